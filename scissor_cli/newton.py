@@ -1,0 +1,179 @@
+"""Newton's method on the tissue energy: the exact reference (MODEL.md §4).
+
+Far from the solution the Hessian is PSD-projected per element, so every
+step is a descent direction; near it (relative residual below
+`exact_below`) the exact Hessian takes over and convergence ends quadratic.
+A backtracking line search keeps every element's J > 0 and decreases Φ.
+
+The start matters for large strokes: placing the cup nodes and leaving the
+rest at the old state can invert the elements next to the cup. So a solve
+starts from a tangent predictor (the linearised response to the stroke
+increment) and, if even that inverts an element, splits the stroke
+increment into steps (load continuation).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import scipy.sparse as sp
+
+from .solve import Factorization, Inertia, SolveResult, SolverError, check_finite, objective_gradient, relative_residual
+from .tissue import Tissue
+
+ARMIJO = 1e-4
+
+
+def tangent_predictor(tissue: Tissue, x: np.ndarray, strokes: np.ndarray, inertia: Inertia | None = None) -> np.ndarray:
+    """First-order response of the free nodes when the Dirichlet nodes move to `strokes`.
+
+    x (N, 2) is an equilibrium (or the rest state); returns positions (N, 2)
+    with K_ff δx_f = −K_fd δx_d − ∇Φ_f(x) solved at x's tangent.
+    """
+    x_new = tissue.apply_strokes(x, strokes)
+    delta = (x_new - x).ravel()
+    K = tissue.stiffness_free(x, project=True)
+    if inertia is not None:
+        K = K + _diag(inertia.weight[tissue.free_dofs])
+    _, grad = objective_gradient(tissue, x, inertia)
+    rhs = -tissue.stiffness_times(x, delta)[tissue.free_dofs] - grad[tissue.free_dofs]
+    if inertia is not None:
+        rhs -= inertia.weight[tissue.free_dofs] * delta[tissue.free_dofs]
+    flat = x_new.ravel().copy()
+    flat[tissue.free_dofs] += Factorization(K).solve(rhs)
+    return flat.reshape(-1, 2)
+
+
+def _diag(v: np.ndarray) -> sp.csr_matrix:
+    return sp.diags(v, format="csr")
+
+
+def newton_iterations(
+    tissue: Tissue,
+    x: np.ndarray,
+    inertia: Inertia | None = None,
+    tol: float = 1e-10,
+    max_iter: int = 100,
+    exact_below: float = 1.0,
+) -> SolveResult:
+    """Newton from a feasible start x (N, 2) with the Dirichlet nodes already placed."""
+    t0 = time.perf_counter()
+    x = np.array(x, dtype=float)
+    phi, grad = objective_gradient(tissue, x, inertia)
+    history = []
+    free = tissue.free_dofs
+    factor = None
+    for it in range(max_iter + 1):
+        check_finite(grad, "the Newton gradient")
+        res = relative_residual(tissue, grad)
+        history.append(res)
+        if res <= tol:
+            return SolveResult(x, True, it, res, time.perf_counter() - t0, "newton", "converged", history)
+        if it == max_iter:
+            break
+        g = grad[free]
+        step = None
+        for project in ([False, True] if res < exact_below else [True]):
+            K = tissue.stiffness_free(x, project=project)
+            if inertia is not None:
+                K = K + _diag(inertia.weight[free])
+            factor = Factorization(K) if factor is None else factor.refactor(K)
+            d = -factor.solve(g)
+            if np.all(np.isfinite(d)) and np.dot(g, d) < 0:
+                step = d
+                break
+        if step is None:
+            raise SolverError(
+                f"Newton found no descent direction at iteration {it} (residual {res:.3g})",
+                SolveResult(x, False, it, res, time.perf_counter() - t0, "newton", "no descent direction", history),
+            )
+        x, phi, grad = _line_search(tissue, x, phi, grad, step, inertia, res)
+    return SolveResult(
+        x, False, max_iter, history[-1], time.perf_counter() - t0, "newton",
+        f"not converged in {max_iter} iterations (relative residual {history[-1]:.3g} > {tol:g})", history,
+    )
+
+
+def _line_search(tissue, x, phi, grad, d_free, inertia, res):
+    """Backtracking: keep every J > 0, then Armijo on Φ (or a smaller residual once Φ is flat)."""
+    free = tissue.free_dofs
+    slope = float(np.dot(grad[free], d_free))
+    step = np.zeros(x.size)
+    step[free] = d_free
+    step = step.reshape(-1, 2)
+    alpha = 1.0
+    g_norm = np.linalg.norm(grad[free])
+    while alpha > 1e-12:
+        trial = x + alpha * step
+        if np.min(tissue.jacobians(trial)) > 0:
+            phi_t, grad_t = objective_gradient(tissue, trial, inertia)
+            # Near the solution Φ changes below round-off; a falling residual decides there.
+            if phi_t <= phi + ARMIJO * alpha * slope or (
+                abs(phi_t - phi) <= 1e-12 * max(abs(phi), 1.0) and np.linalg.norm(grad_t[free]) < g_norm
+            ):
+                return trial, phi_t, grad_t
+        alpha *= 0.5
+    raise SolverError(
+        f"Newton line search failed (residual {res:.3g}): no step keeps all elements uninverted and lowers the energy",
+        SolveResult(x, False, 0, res, 0.0, "newton", "line search failed"),
+    )
+
+
+def solve_newton(
+    tissue: Tissue,
+    strokes: np.ndarray,
+    x0: np.ndarray | None = None,
+    strokes0: np.ndarray | None = None,
+    inertia: Inertia | None = None,
+    tol: float = 1e-10,
+    max_iter: int = 100,
+    max_substeps: int = 64,
+) -> SolveResult:
+    """Equilibrium (or one implicit-Euler step) for cup strokes (C,) in mm.
+
+    x0 (N, 2) is the warm start, an equilibrium for strokes0 (default: rest,
+    zero strokes). A warm start with inverted elements is replaced by the
+    rest state, and the message says so.
+    """
+    t0 = time.perf_counter()
+    strokes = np.asarray(strokes, float)
+    note = ""
+    if x0 is None:
+        x0, strokes0 = tissue.rest, np.zeros_like(strokes)
+    elif np.min(tissue.jacobians(x0)) <= 0:
+        n_bad = int(np.sum(tissue.jacobians(x0) <= 0))
+        note = f"start guess had {n_bad} inverted element(s): restarted from rest; "
+        x0, strokes0 = tissue.rest, np.zeros_like(strokes)
+    elif strokes0 is None:
+        strokes0 = strokes
+    x, s_done = np.array(x0, float), np.asarray(strokes0, float)
+    iterations, fraction, substeps = 0, 1.0, 0
+    while True:
+        s_next = s_done + fraction * (strokes - s_done)
+        pred = tangent_predictor(tissue, x, s_next, inertia)
+        if np.min(tissue.jacobians(pred)) <= 0:
+            pred = tissue.apply_strokes(x, s_next)  # plain placement may still be feasible
+        if np.min(tissue.jacobians(pred)) > 0:
+            final = fraction == 1.0
+            result = newton_iterations(tissue, pred, inertia, tol if final else max(tol, 1e-6), max_iter)
+            iterations += result.iterations
+            if not result.converged:
+                result.message = note + result.message
+                raise SolverError(result.message, result)
+            x, s_done = result.x, s_next
+            if final:
+                result.iterations = iterations
+                result.time_s = time.perf_counter() - t0
+                result.message = note + (f"converged with {substeps} load substeps" if substeps else "converged")
+                return result
+            fraction = 1.0
+            substeps += 1
+        else:
+            fraction *= 0.5
+            substeps += 1
+        if substeps > max_substeps:
+            raise SolverError(
+                note + f"every load step inverts an element even at {fraction:.2g} of the stroke increment",
+                SolveResult(x, False, iterations, np.nan, time.perf_counter() - t0, "newton", "inversion"),
+            )

@@ -1,0 +1,199 @@
+"""The discrete tissue: mesh + material + boundary conditions (MODEL.md §1–3).
+
+A `Tissue` is everything a solver needs: the FE operators, per-element
+material parameters, the Dirichlet nodes (fixed sides and cup-gripped
+nodes) and the sparse pattern of the free–free stiffness. It is immutable;
+`with_material` gives a tissue that shares the mesh but not the material,
+which is how the simulated "true" tissue of a trial differs from the
+controller's model.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+import scipy.sparse as sp
+
+from . import fem, materials
+from .mesh import Mesh
+from .scene import Scene
+
+
+class InvertedElementError(RuntimeError):
+    """An element has J = det F <= 0: the energy is undefined there."""
+
+    def __init__(self, element: int, J: float, where: str = ""):
+        self.element, self.J = int(element), float(J)
+        super().__init__(f"element {self.element} is inverted (J = {self.J:.3g}){where}")
+
+
+@dataclass(frozen=True)
+class Tissue:
+    scene: Scene
+    mesh: Mesh
+    ops: fem.FEOperators
+    params: materials.MaterialParams
+    element_E_kPa: np.ndarray  # (M,)
+    fiber: np.ndarray  # (M, 2) unit, reference frame
+    fixed_nodes: np.ndarray  # (F,)
+    cup_nodes: tuple[np.ndarray, ...]  # per cup, gripped nodes
+    cup_axes: np.ndarray  # (C, 2) unit
+    dirichlet_dofs: np.ndarray  # (Nd,) sorted
+    free_dofs: np.ndarray  # (Nf,) sorted
+    free_index: np.ndarray  # (2N,) position in free_dofs or -1
+    pattern_free: fem.SparsePattern
+    mass: np.ndarray  # (2N,) kg, lumped
+
+    @property
+    def rest(self) -> np.ndarray:
+        return self.mesh.nodes
+
+    @property
+    def n_cups(self) -> int:
+        return len(self.cup_nodes)
+
+    def cup_displacement(self, c: int) -> np.ndarray:
+        """Column c of B, as a full vector (2N,): unit stroke of cup c moves its nodes by its axis."""
+        b = np.zeros(2 * self.mesh.n_nodes)
+        nodes = self.cup_nodes[c]
+        b[2 * nodes] = self.cup_axes[c, 0]
+        b[2 * nodes + 1] = self.cup_axes[c, 1]
+        return b
+
+    def boundary_positions(self, strokes: np.ndarray) -> np.ndarray:
+        """Positions of the Dirichlet dofs (Nd,) in mm for cup strokes (C,) in mm."""
+        x = self.mesh.nodes.copy()
+        for c, nodes in enumerate(self.cup_nodes):
+            x[nodes] += strokes[c] * self.cup_axes[c]
+        return x.ravel()[self.dirichlet_dofs]
+
+    def apply_strokes(self, x: np.ndarray, strokes: np.ndarray) -> np.ndarray:
+        """A copy of positions x (N, 2) with the Dirichlet nodes placed for the strokes."""
+        flat = np.array(x, dtype=float).ravel()
+        flat[self.dirichlet_dofs] = self.boundary_positions(np.asarray(strokes, float))
+        return flat.reshape(-1, 2)
+
+    def jacobians(self, x: np.ndarray) -> np.ndarray:
+        """J = det F (M,) of every element at positions x (N, 2)."""
+        return materials.jacobian_det(fem.deformation_gradients(self.ops, x))
+
+    def check_inversion(self, x: np.ndarray, where: str = "") -> None:
+        J = self.jacobians(x)
+        bad = int(np.argmin(J))
+        if not J[bad] > 0:
+            raise InvertedElementError(bad, J[bad], where)
+
+    def energy(self, x: np.ndarray) -> float:
+        """Strain energy U (µJ) at positions x (N, 2); +inf if an element is inverted."""
+        psi, _, _ = materials.evaluate(fem.deformation_gradients(self.ops, x), self.params, order=0)
+        return float(np.dot(psi, self.ops.volume))
+
+    def energy_gradient(self, x: np.ndarray) -> tuple[float, np.ndarray]:
+        """U (µJ) and ∇U (2N,) in mN at positions x (N, 2)."""
+        psi, P, _ = materials.evaluate(fem.deformation_gradients(self.ops, x), self.params, order=1)
+        return float(np.dot(psi, self.ops.volume)), fem.scatter_vector(self.ops, fem.element_forces(self.ops, P))
+
+    def element_stiffness(self, x: np.ndarray, project: bool = False) -> np.ndarray:
+        """Element Hessians (M, 6, 6) in mN/mm; PSD-projected per element if asked."""
+        _, _, C = materials.evaluate(fem.deformation_gradients(self.ops, x), self.params, order=2)
+        if project:
+            C = materials.project_psd(C)
+        return fem.element_matrices(self.ops, C)
+
+    def stiffness_free(self, x: np.ndarray, project: bool = False) -> sp.csr_matrix:
+        """K_ff (Nf, Nf), the Hessian over free dofs."""
+        return self.pattern_free.assemble(self.element_stiffness(x, project))
+
+    def stiffness_times(self, x: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """K v (2N,) for a full vector v (2N,), element by element without assembling K."""
+        Ke = self.element_stiffness(x)
+        ve = v[self.ops.elem_dofs]
+        return fem.scatter_vector(self.ops, np.einsum("eij,ej->ei", Ke, ve))
+
+    def force_scale(self, grad: np.ndarray) -> float:
+        """A force (mN) to make residuals relative: the Dirichlet reactions, or E·h·L when none."""
+        reactions = float(np.linalg.norm(grad[self.dirichlet_dofs]))
+        size = float(np.ptp(self.mesh.nodes, axis=0).max())
+        return max(reactions, 1e-9 * float(self.element_E_kPa.max()) * self.ops.thickness_mm * size)
+
+    def with_material(
+        self,
+        E_scale: float | np.ndarray = 1.0,
+        nu: float | None = None,
+        eta_kPa: float | None = None,
+        fiber_angle_rad: float | None = None,
+    ) -> "Tissue":
+        """The same mesh and boundary with other material constants (the trials' "true" tissue).
+
+        E_scale multiplies the per-element E (scalar or (M,) for heterogeneity).
+        """
+        m = self.scene.material
+        fiber = self.fiber
+        if fiber_angle_rad is not None:
+            fiber = np.tile([np.cos(fiber_angle_rad), np.sin(fiber_angle_rad)], (self.mesh.n_elements, 1))
+        E = self.element_E_kPa * E_scale
+        params = materials.material_params(
+            m.model,
+            E,
+            m.nu if nu is None else nu,
+            (m.eta_kPa if eta_kPa is None else eta_kPa) if m.model == "neo_hookean_fiber" else 0.0,
+            fiber,
+            m.tension_only,
+        )
+        return replace(self, params=params, element_E_kPa=E, fiber=fiber)
+
+
+class BoundaryError(ValueError):
+    """The boundary conditions cannot be built on this mesh."""
+
+
+def build_tissue(scene: Scene, mesh: Mesh, model: str | None = None) -> Tissue:
+    """The discrete tissue of a scene on a mesh; `model` overrides the material model."""
+    m = scene.material
+    model = model or m.model
+    factors = np.array([o.stiffness_factor for o in scene.obstacles] + [1.0])
+    element_E = m.E_kPa * factors[mesh.element_obstacle]  # index -1 picks the trailing 1.0
+    fiber = np.tile([np.cos(m.fiber_angle_rad), np.sin(m.fiber_angle_rad)], (mesh.n_elements, 1))
+    params = materials.material_params(
+        model, element_E, m.nu, m.eta_kPa if model == "neo_hookean_fiber" else 0.0, fiber, m.tension_only
+    )
+    fixed = mesh.boundary_nodes_on_sides(scene.fixed_sides)
+    if len(fixed) == 0:
+        raise BoundaryError(f"no mesh node lies on the fixed side(s) {list(scene.fixed_sides)}")
+    cup_nodes = []
+    for cup in scene.cups:
+        nodes = mesh.boundary_nodes_near(cup.contact, cup.radius_mm)
+        if len(nodes) == 0:
+            raise BoundaryError(f"cup {cup.name!r} grips no boundary node within {cup.radius_mm} mm of {cup.contact.tolist()}")
+        clash = np.intersect1d(nodes, fixed)
+        if len(clash):
+            raise BoundaryError(f"cup {cup.name!r} grips {len(clash)} node(s) of a fixed side; move it or shrink radius_mm")
+        for other, prev in zip(scene.cups, cup_nodes):
+            if len(np.intersect1d(nodes, prev)):
+                raise BoundaryError(f"cups {other.name!r} and {cup.name!r} grip the same nodes")
+        cup_nodes.append(nodes)
+    held = np.unique(np.concatenate([fixed, *cup_nodes]))
+    dirichlet = np.sort(np.concatenate([2 * held, 2 * held + 1]))
+    free_mask = np.ones(2 * mesh.n_nodes, bool)
+    free_mask[dirichlet] = False
+    free = np.flatnonzero(free_mask)
+    free_index = np.full(2 * mesh.n_nodes, -1, np.int64)
+    free_index[free] = np.arange(len(free))
+    ops = fem.build_operators(mesh, scene.thickness_mm)
+    return Tissue(
+        scene=scene,
+        mesh=mesh,
+        ops=ops,
+        params=params,
+        element_E_kPa=element_E,
+        fiber=fiber,
+        fixed_nodes=fixed,
+        cup_nodes=tuple(cup_nodes),
+        cup_axes=np.array([c.axis for c in scene.cups]).reshape(-1, 2),
+        dirichlet_dofs=dirichlet,
+        free_dofs=free,
+        free_index=free_index,
+        pattern_free=fem.sparse_pattern(ops, free_index),
+        mass=fem.lumped_mass(ops, m.density_kg_per_mm3),
+    )
