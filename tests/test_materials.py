@@ -1,0 +1,373 @@
+"""Tests of scissor_cli.materials: closed forms against finite differences,
+rest state, invariance, small-strain consistency, inversion handling."""
+
+import warnings
+
+import numpy as np
+import pytest
+
+from scissor_cli import materials as mat
+
+FD_STEP = 1e-6
+RTOL = 1e-6
+
+# (model, tension_only)
+VARIANTS = [
+    ("linear", False),
+    ("neo_hookean", False),
+    ("neo_hookean_fiber", False),
+    ("neo_hookean_fiber", True),
+]
+VARIANT_IDS = [f"{m}{'-tension_only' if t else ''}" for m, t in VARIANTS]
+NONLINEAR = [v for v in VARIANTS if v[0] != "linear"]
+NONLINEAR_IDS = [i for i, v in zip(VARIANT_IDS, VARIANTS) if v[0] != "linear"]
+
+
+def random_params(model, M, rng, tension_only=False):
+    theta = rng.uniform(-np.pi, np.pi, M)
+    return mat.material_params(
+        model,
+        E_kPa=rng.uniform(5.0, 50.0, M),
+        nu=rng.uniform(0.2, 0.49, M),
+        eta_kPa=rng.uniform(1.0, 20.0, M),
+        fiber=np.c_[np.cos(theta), np.sin(theta)],
+        tension_only=tension_only,
+    )
+
+
+def rotation(theta):
+    c, s = np.cos(theta), np.sin(theta)
+    return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+
+
+def random_F(M, rng, regime):
+    """Random F with J > 0: 'near' I (|F - I| ~ 0.05) or 'far' (large stretch,
+    shear, rotation, compression)."""
+    if regime == "near":
+        F = np.eye(2) + 0.05 * rng.standard_normal((M, 2, 2))
+    else:
+        # R1 diag(l1, l2) R2: stretches in [0.4, 2.5], arbitrary rotations.
+        lam = np.exp(rng.uniform(np.log(0.4), np.log(2.5), (M, 2)))
+        R1 = rotation(rng.uniform(-np.pi, np.pi, M))
+        R2 = rotation(rng.uniform(-np.pi, np.pi, M))
+        F = R1 @ (lam[:, :, None] * R2)
+    assert np.all(mat.jacobian_det(F) > 0.1)
+    return F
+
+
+def away_from_fiber_kink(F, params):
+    """Drop elements with I4 within 1e-3 of 1 (the tension-only tangent jumps there)."""
+    v = np.einsum("eij,ej->ei", F, params.fiber)
+    keep = np.abs(np.sum(v * v, axis=1) - 1.0) > 1e-3
+    return F[keep], params.take(keep)
+
+
+def fd_gradient(fun, F, h=FD_STEP):
+    """Central differences of fun (M,...) with respect to each vec(F) entry."""
+    cols = []
+    for k in range(4):
+        i, j = divmod(k, 2)
+        Fp = F.copy()
+        Fm = F.copy()
+        Fp[:, i, j] += h
+        Fm[:, i, j] -= h
+        cols.append((fun(Fp) - fun(Fm)) / (2.0 * h))
+    return np.stack(cols, axis=-1)
+
+
+def assert_close_per_element(actual, expected, rtol=RTOL):
+    """Relative comparison scaled by each element's largest entry."""
+    M = actual.shape[0]
+    a = actual.reshape(M, -1)
+    e = expected.reshape(M, -1)
+    scale = np.maximum(np.abs(e).max(axis=1, keepdims=True), 1e-12)
+    err = np.abs(a - e) / scale
+    assert err.max() < rtol, f"max relative error {err.max():.3e}"
+
+
+@pytest.mark.parametrize("regime", ["near", "far"])
+@pytest.mark.parametrize("model,tension_only", VARIANTS, ids=VARIANT_IDS)
+def test_stress_matches_fd_of_energy(model, tension_only, regime):
+    rng = np.random.default_rng(1)
+    M = 200
+    params = random_params(model, M, rng, tension_only)
+    F = random_F(M, rng, regime)
+    P = mat.stress(F, params)
+    P_fd = fd_gradient(lambda G: mat.energy_density(G, params), F).reshape(M, 2, 2)
+    assert_close_per_element(P, P_fd)
+
+
+@pytest.mark.parametrize("regime", ["near", "far"])
+@pytest.mark.parametrize("model,tension_only", VARIANTS, ids=VARIANT_IDS)
+def test_tangent_matches_fd_of_stress(model, tension_only, regime):
+    rng = np.random.default_rng(2)
+    M = 200
+    params = random_params(model, M, rng, tension_only)
+    F = random_F(M, rng, regime)
+    F, params = away_from_fiber_kink(F, params)
+    M = F.shape[0]
+    C = mat.tangent(F, params)
+    # fd_gradient stacks d vec(P) / d f_k in the last axis: C_fd[e, m, k].
+    C_fd = fd_gradient(lambda G: mat.stress(G, params).reshape(-1, 4), F)
+    assert_close_per_element(C, C_fd)
+    np.testing.assert_array_equal(C, np.swapaxes(C, 1, 2))
+
+
+@pytest.mark.parametrize("tension_only", [False, True])
+def test_tension_only_fiber_is_inactive_in_compression(tension_only):
+    model = "neo_hookean_fiber"
+    rng = np.random.default_rng(3)
+    M = 50
+    params = random_params(model, M, rng, tension_only)
+    # The same material without its fiber term.
+    base = mat.MaterialParams("neo_hookean", params.mu, params.kappa, params.lam,
+                              np.zeros(M), params.fiber)
+    # Compress along the fiber: F = I - 0.2 a aᵀ gives I4 = 0.64 < 1.
+    a = params.fiber
+    F = np.eye(2) - 0.2 * a[:, :, None] * a[:, None, :]
+    psi, P, C = mat.evaluate(F, params)
+    psi0, P0, C0 = mat.evaluate(F, base)
+    if tension_only:
+        np.testing.assert_array_equal(psi, psi0)
+        np.testing.assert_array_equal(P, P0)
+        np.testing.assert_array_equal(C, C0)
+    else:
+        expected = 0.5 * params.eta * (0.64 - 1.0) ** 2
+        np.testing.assert_allclose(psi - psi0, expected, rtol=1e-12)
+
+
+@pytest.mark.parametrize("model,tension_only", VARIANTS, ids=VARIANT_IDS)
+def test_rest_state_has_zero_energy_and_stress(model, tension_only):
+    rng = np.random.default_rng(4)
+    M = 20
+    params = random_params(model, M, rng, tension_only)
+    F = np.broadcast_to(np.eye(2), (M, 2, 2))
+    psi, P, C = mat.evaluate(F, params)
+    scale = params.kappa.max()
+    assert np.all(np.abs(psi) <= 1e-12 * scale)
+    assert np.all(np.abs(P) <= 1e-12 * scale)
+    # The rest tangent is positive semidefinite with exactly one null
+    # direction: the infinitesimal rotation vec([[0, 1], [-1, 0]]).
+    w = np.linalg.eigvalsh(C)
+    assert np.all(np.abs(w[:, 0]) <= 1e-12 * scale)
+    assert np.all(w[:, 1] > 0.0)
+    skew = np.array([0.0, 1.0, -1.0, 0.0])
+    assert np.all(np.abs(C @ skew) <= 1e-12 * scale)
+
+
+@pytest.mark.parametrize("model,tension_only", NONLINEAR, ids=NONLINEAR_IDS)
+def test_energy_is_rotation_invariant(model, tension_only):
+    rng = np.random.default_rng(5)
+    M = 100
+    params = random_params(model, M, rng, tension_only)
+    F = random_F(M, rng, "far")
+    R = rotation(rng.uniform(-np.pi, np.pi, M))
+    psi, P, _ = mat.evaluate(F, params, order=1)
+    psi_r, P_r, _ = mat.evaluate(R @ F, params, order=1)
+    np.testing.assert_allclose(psi_r, psi, rtol=1e-11, atol=1e-12 * params.kappa.max())
+    # Objectivity of the first Piola–Kirchhoff stress: P(RF) = R P(F).
+    np.testing.assert_allclose(P_r, R @ P, rtol=1e-9, atol=1e-10 * np.abs(P).max())
+
+
+def test_fiber_energy_follows_rotated_material():
+    """Rotating the fiber with the reference body: Ψ(F R^T; R a0) = Ψ(F; a0)."""
+    rng = np.random.default_rng(6)
+    M = 100
+    params = random_params("neo_hookean_fiber", M, rng)
+    F = random_F(M, rng, "far")
+    R = rotation(rng.uniform(-np.pi, np.pi, M))
+    rotated = mat.MaterialParams(
+        params.model, params.mu, params.kappa, params.lam, params.eta,
+        np.einsum("eij,ej->ei", R, params.fiber),
+    )
+    psi = mat.energy_density(F, params)
+    psi_r = mat.energy_density(F @ np.swapaxes(R, 1, 2), rotated)
+    np.testing.assert_allclose(psi_r, psi, rtol=1e-11)
+
+
+def test_neo_hookean_rest_tangent_equals_linear_tangent():
+    rng = np.random.default_rng(7)
+    M = 30
+    E = rng.uniform(5.0, 50.0, M)
+    nu = rng.uniform(0.0, 0.49, M)
+    nh = mat.material_params("neo_hookean", E, nu, None, None)
+    lin = mat.material_params("linear", E, nu, None, None)
+    np.testing.assert_allclose(nh.lam, nh.kappa - 2.0 * nh.mu / 3.0, rtol=1e-12)
+    F = np.broadcast_to(np.eye(2), (M, 2, 2))
+    C_nh = mat.tangent(F, nh)
+    C_lin = mat.tangent(F, lin)
+    np.testing.assert_allclose(C_nh, C_lin, rtol=1e-12, atol=1e-12 * nh.kappa.max())
+    # ... and so the energies agree to second order in the strain.
+    F = np.eye(2) + 1e-4 * rng.standard_normal((M, 2, 2))
+    psi_nh = mat.energy_density(F, nh)
+    psi_lin = mat.energy_density(F, lin)
+    np.testing.assert_allclose(psi_nh, psi_lin, rtol=1e-3)
+
+
+def test_linear_model_closed_form():
+    rng = np.random.default_rng(8)
+    M = 40
+    params = random_params("linear", M, rng)
+    F = np.eye(2) + 0.3 * rng.standard_normal((M, 2, 2))
+    eps = 0.5 * (F + np.swapaxes(F, 1, 2)) - np.eye(2)
+    tr = eps[:, 0, 0] + eps[:, 1, 1]
+    mu, lam = params.mu, params.lam
+    psi_ref = mu * np.sum(eps * eps, axis=(1, 2)) + 0.5 * lam * tr**2
+    P_ref = 2 * mu[:, None, None] * eps + (lam * tr)[:, None, None] * np.eye(2)
+    psi, P, _ = mat.evaluate(F, params)
+    np.testing.assert_allclose(psi, psi_ref, rtol=1e-12)
+    np.testing.assert_allclose(P, P_ref, rtol=1e-12, atol=1e-13)
+
+
+@pytest.mark.parametrize("model,tension_only", NONLINEAR, ids=NONLINEAR_IDS)
+def test_inverted_element_energy_is_inf_without_warnings(model, tension_only):
+    rng = np.random.default_rng(9)
+    M = 6
+    params = random_params(model, M, rng, tension_only)
+    F = np.broadcast_to(np.eye(2), (M, 2, 2)).copy()
+    F[1] = np.diag([1.0, -1.0])  # reflected
+    F[2] = np.diag([-0.5, -0.5])  # a half-turn with J = 0.25 > 0: valid
+    F[3] = np.zeros((2, 2))  # collapsed, J = 0
+    F[4] = [[1.0, 2.0], [0.5, 1.0]]  # J = 0 with shear
+    F[5] = [[0.2, 1.0], [1.0, 0.1]]  # J < 0
+    J = mat.jacobian_det(F)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        psi, P, C = mat.evaluate(F, params)
+        psi0 = mat.energy_density(F, params)
+    bad = J <= 0.0
+    np.testing.assert_array_equal(bad, [False, True, False, True, True, True])
+    assert np.all(np.isposinf(psi[bad])) and np.all(np.isposinf(psi0[bad]))
+    assert np.all(np.isfinite(psi[~bad]))
+    assert not np.isnan(psi).any()
+    assert np.all(np.isfinite(P)) and np.all(np.isfinite(C))
+    # Valid rows are unaffected by invalid neighbours.
+    psi_ok, P_ok, C_ok = mat.evaluate(F[~bad], params.take(~bad))
+    np.testing.assert_array_equal(psi[~bad], psi_ok)
+    np.testing.assert_array_equal(P[~bad], P_ok)
+    np.testing.assert_array_equal(C[~bad], C_ok)
+
+
+@pytest.mark.parametrize("model", mat.MODELS)
+def test_extreme_input_never_warns(model):
+    rng = np.random.default_rng(13)
+    params = random_params(model, 4, rng)
+    F = np.array([np.eye(2) * 1e200, np.eye(2) * 1e-200, np.eye(2) * 1e-7,
+                  [[1e300, 0.0], [0.0, -1e300]]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        psi, P, C = mat.evaluate(F, params)
+        mat.project_psd(np.nan_to_num(C))
+    assert not np.isnan(psi).any()
+
+
+def test_evaluate_orders_agree_with_single_functions():
+    rng = np.random.default_rng(10)
+    M = 64
+    params = random_params("neo_hookean_fiber", M, rng, tension_only=True)
+    F = random_F(M, rng, "far")
+    psi0, P0, C0 = mat.evaluate(F, params, order=0)
+    psi1, P1, C1 = mat.evaluate(F, params, order=1)
+    psi2, P2, C2 = mat.evaluate(F, params, order=2)
+    assert P0 is None and C0 is None and C1 is None
+    np.testing.assert_array_equal(psi0, psi2)
+    np.testing.assert_array_equal(psi1, psi2)
+    np.testing.assert_array_equal(P1, P2)
+    np.testing.assert_array_equal(mat.energy_density(F, params), psi2)
+    np.testing.assert_array_equal(mat.stress(F, params), P2)
+    np.testing.assert_array_equal(mat.tangent(F, params), C2)
+    assert C2.flags.c_contiguous and P2.flags.c_contiguous
+    with pytest.raises(ValueError):
+        mat.evaluate(F, params, order=3)
+    with pytest.raises(ValueError):
+        mat.evaluate(F[:-1], params)
+
+
+def test_outputs_do_not_alias_scratch_and_any_layout_works():
+    rng = np.random.default_rng(11)
+    params = random_params("neo_hookean_fiber", 50, rng)
+    F = random_F(50, rng, "far")
+    psi, P, C = mat.evaluate(F, params)
+    saved = (psi.copy(), P.copy(), C.copy())
+    # A larger and then a smaller call reuse (and grow) the scratch buffer.
+    big = random_params("neo_hookean", 300, rng)
+    mat.evaluate(random_F(300, rng, "near"), big)
+    mat.evaluate(F[:7], params.take(slice(0, 7)))
+    for a, b in zip((psi, P, C), saved):
+        np.testing.assert_array_equal(a, b)
+    # Non-contiguous input (a transposed view) gives the same answer.
+    Ft = np.ascontiguousarray(np.swapaxes(F, 1, 2))
+    psi_t, P_t, C_t = mat.evaluate(np.swapaxes(Ft, 1, 2), params)
+    np.testing.assert_array_equal(psi_t, psi)
+    np.testing.assert_array_equal(P_t, P)
+    np.testing.assert_array_equal(C_t, C)
+    mat.release_workspace()
+    np.testing.assert_array_equal(mat.evaluate(F, params)[2], C)
+
+
+@pytest.mark.parametrize("model", mat.MODELS)
+def test_empty_stack(model):
+    params = mat.material_params(model, np.zeros(0) + 10.0, 0.3, 1.0, np.zeros((0, 2)))
+    psi, P, C = mat.evaluate(np.zeros((0, 2, 2)), params)
+    assert psi.shape == (0,) and P.shape == (0, 2, 2) and C.shape == (0, 4, 4)
+    assert mat.project_psd(C).shape == (0, 4, 4)
+
+
+def test_project_psd():
+    rng = np.random.default_rng(12)
+    M = 500
+    A = rng.standard_normal((M, 4, 4))
+    C = A + np.swapaxes(A, 1, 2)
+    Cp = mat.project_psd(C)
+    np.testing.assert_allclose(Cp, np.swapaxes(Cp, 1, 2), atol=1e-12)
+    w_in = np.linalg.eigvalsh(C)
+    w_out = np.linalg.eigvalsh(Cp)
+    assert w_out.min() > -1e-12
+    np.testing.assert_allclose(w_out, np.sort(np.maximum(w_in, 0.0), axis=1), atol=1e-12)
+    # Already PSD: returned unchanged (bit for bit), as a new array.
+    B = A @ np.swapaxes(A, 1, 2) + 1e-3 * np.eye(4)
+    Bp = mat.project_psd(B)
+    np.testing.assert_array_equal(Bp, B)
+    assert Bp is not B
+    # A positive floor.
+    Cf = mat.project_psd(C, floor=0.5)
+    assert np.linalg.eigvalsh(Cf).min() > 0.5 - 1e-10
+    # Projecting a tangent stack far from rest keeps the rest of the stack.
+    params = random_params("neo_hookean_fiber", 100, rng)
+    Ct = mat.tangent(random_F(100, rng, "far"), params)
+    Ctp = mat.project_psd(Ct)
+    assert np.linalg.eigvalsh(Ctp).min() > -1e-9 * np.abs(Ct).max()
+
+
+def test_material_params_validation_and_values():
+    with pytest.raises(ValueError, match="linear.*neo_hookean.*neo_hookean_fiber"):
+        mat.material_params("mooney_rivlin", 10.0, 0.3, 0.0, [[1.0, 0.0]])
+    with pytest.raises(ValueError):
+        mat.MaterialParams("ogden", np.ones(1), np.ones(1), np.ones(1), np.zeros(1),
+                           np.array([[1.0, 0.0]]))
+    with pytest.raises(ValueError):
+        mat.material_params("neo_hookean", 10.0, 0.5, 0.0, [[1.0, 0.0]])
+    with pytest.raises(ValueError):
+        mat.material_params("neo_hookean", -1.0, 0.3, 0.0, [[1.0, 0.0]])
+    with pytest.raises(ValueError):
+        mat.material_params("neo_hookean_fiber", 10.0, 0.3, -1.0, [[1.0, 0.0]])
+    with pytest.raises(ValueError):
+        mat.material_params("neo_hookean_fiber", 10.0, 0.3, 1.0, [[0.0, 0.0]])
+    with pytest.raises(ValueError):
+        mat.material_params("neo_hookean", np.ones(3), 0.3, 0.0, np.ones((4, 2)))
+
+    E = np.array([10.0, 20.0, 30.0])
+    p = mat.material_params("neo_hookean_fiber", E, 0.45, 5.0, [3.0, 4.0], tension_only=True)
+    assert p.n_elements == 3 and p.tension_only
+    np.testing.assert_allclose(p.mu, E / 2.9)
+    np.testing.assert_allclose(p.kappa, E / (3 * 0.1))
+    np.testing.assert_allclose(p.lam, E * 0.45 / (1.45 * 0.1))
+    np.testing.assert_allclose(p.eta, 5.0)
+    np.testing.assert_allclose(p.fiber, [[0.6, 0.8]] * 3)
+    with pytest.raises(ValueError):
+        p.mu[0] = 1.0  # read-only
+    q = mat.material_params("neo_hookean", E, 0.45, 5.0, [1.0, 0.0])
+    np.testing.assert_array_equal(q.eta, 0.0)  # eta only for the fiber model
+    sub = p.take(np.array([2, 0]))
+    np.testing.assert_array_equal(sub.mu, p.mu[[2, 0]])
+    assert sub.model == p.model and sub.tension_only
