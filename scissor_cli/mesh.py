@@ -97,8 +97,31 @@ class Mesh:
         return nodes[near]
 
 
+def grip_ends(scene: Scene) -> np.ndarray:
+    """Where each cup's grip ends on the outline: points (K, 2) at exactly radius_mm from the contact.
+
+    They become mesh vertices, so every mesh grips the same stretch of
+    boundary and the solution converges under refinement instead of
+    following the last gripped node.
+    """
+    a, b = geometry.edges(scene.outline)
+    d = b - a
+    out = []
+    for cup in scene.cups:
+        f = a - cup.contact
+        qa, qb, qc = np.sum(d * d, axis=1), 2 * np.sum(f * d, axis=1), np.sum(f * f, axis=1) - cup.radius_mm**2
+        disc = qb * qb - 4 * qa * qc
+        ok = disc >= 0
+        for sign in (-1.0, 1.0):
+            t = (-qb[ok] + sign * np.sqrt(disc[ok])) / (2 * qa[ok])
+            inside = (t >= 0) & (t <= 1)
+            out.append(a[ok][inside] + t[inside, None] * d[ok][inside])
+    pts = np.concatenate(out) if out else np.zeros((0, 2))
+    return np.unique(np.round(pts, 9), axis=0)
+
+
 def size_field(scene: Scene, min_edge_mm: float, max_edge_mm: float, grading: float, graded: bool) -> SizeField:
-    points = [t.rest for t in scene.targets] + [c.contact for c in scene.cups]
+    points = [t.rest for t in scene.targets] + [c.contact for c in scene.cups] + list(grip_ends(scene))
     seg_a = [o.outline for o in scene.obstacles]
     seg_b = [np.roll(o.outline, -1, axis=0) for o in scene.obstacles]
     return SizeField(
@@ -162,8 +185,8 @@ def build_mesh(
     minimum-angle bound, until none does.
     """
     h = size_field(scene, min_edge_mm, max_edge_mm, grading, graded)
-    contacts = np.array([c.contact for c in scene.cups]).reshape(-1, 2)
-    loops = [_discretise_closed(scene.outline, h, contacts)] + [_discretise_closed(o.outline, h) for o in scene.obstacles]
+    breaks = np.vstack([np.array([c.contact for c in scene.cups]).reshape(-1, 2), grip_ends(scene)])
+    loops = [_discretise_closed(scene.outline, h, breaks)] + [_discretise_closed(o.outline, h) for o in scene.obstacles]
     vertices, segments, offset = [], [], 0
     for loop in loops:
         n = len(loop)

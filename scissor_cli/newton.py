@@ -148,12 +148,12 @@ def solve_newton(
     elif strokes0 is None:
         strokes0 = strokes
     x, s_done = np.array(x0, float), np.asarray(strokes0, float)
-    iterations, fraction, substeps = 0, 1.0, 0
+    # Load continuation: `fraction` of the remaining increment per step, halved
+    # when the predictor inverts an element, grown again after a success.
+    iterations, fraction, substeps, failures = 0, 1.0, 0, 0
     while True:
         s_next = s_done + fraction * (strokes - s_done)
         pred = tangent_predictor(tissue, x, s_next, inertia)
-        if np.min(tissue.jacobians(pred)) <= 0:
-            pred = tissue.apply_strokes(x, s_next)  # plain placement may still be feasible
         if np.min(tissue.jacobians(pred)) > 0:
             final = fraction == 1.0
             result = newton_iterations(tissue, pred, inertia, tol if final else max(tol, 1e-6), max_iter)
@@ -167,13 +167,13 @@ def solve_newton(
                 result.time_s = time.perf_counter() - t0
                 result.message = note + (f"converged with {substeps} load substeps" if substeps else "converged")
                 return result
-            fraction = 1.0
             substeps += 1
+            fraction = min(1.0, 2.0 * fraction / (1.0 - fraction))  # same absolute step, doubled
         else:
             fraction *= 0.5
-            substeps += 1
-        if substeps > max_substeps:
+            failures += 1
+        if failures > max_substeps:
             raise SolverError(
-                note + f"every load step inverts an element even at {fraction:.2g} of the stroke increment",
+                note + f"every load step inverts an element, down to {fraction:.2g} of the remaining stroke increment",
                 SolveResult(x, False, iterations, np.nan, time.perf_counter() - t0, "newton", "inversion"),
             )

@@ -112,10 +112,14 @@ class Tissue:
         return fem.scatter_vector(self.ops, np.einsum("eij,ej->ei", Ke, ve))
 
     def force_scale(self, grad: np.ndarray) -> float:
-        """A force (mN) to make residuals relative: the Dirichlet reactions, or E·h·L when none."""
+        """A force (mN) to make residuals relative: the Dirichlet reactions.
+
+        Floored at 1e-3·E·h·L (about the reaction of a 0.1 mm stroke), so
+        a tiny stroke does not ask for a residual below round-off.
+        """
         reactions = float(np.linalg.norm(grad[self.dirichlet_dofs]))
         size = float(np.ptp(self.mesh.nodes, axis=0).max())
-        return max(reactions, 1e-9 * float(self.element_E_kPa.max()) * self.ops.thickness_mm * size)
+        return max(reactions, 1e-3 * float(self.element_E_kPa.max()) * self.ops.thickness_mm * size)
 
     def with_material(
         self,

@@ -1,0 +1,149 @@
+"""The `scissor` command line: thin wrappers over the pipeline modules.
+
+Exit codes (CONTRACT.md): 0 success; 2 bad config or arguments, one message,
+no traceback; 1 a failure at run time, with the reason.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import sys
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Callable, Optional
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from . import __version__
+from .config import Config, ConfigError, load_config, parse_config, resolved_yaml
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="scissor: simulate robot-assisted breast intervention from a YAML scene.",
+)
+err = Console(stderr=True, highlight=False)
+out = Console(highlight=False)
+
+DEFAULT_SCENE = Path(__file__).parent / "scenes" / "example.yaml"
+
+
+class ConsoleReporter:
+    """Messages and progress bars on stderr; silent with --quiet, bars only on a terminal."""
+
+    def __init__(self, quiet: bool):
+        self.quiet = quiet
+        self.bars = not quiet and err.is_terminal
+
+    def info(self, message: str) -> None:
+        if not self.quiet:
+            err.print(message)
+
+    def progress(self, description: str, total: int) -> Callable[[int], None]:
+        if not self.bars or total <= 1:
+            return lambda advance=1: None
+        bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                       console=err, transient=True)
+        task = bar.add_task(description, total=total)
+        bar.start()
+
+        def advance(n: int = 1) -> None:
+            bar.advance(task, n)
+            if bar.finished:
+                bar.stop()
+
+        return advance
+
+
+def _fail(code: int, message: str) -> None:
+    err.print(f"[bold red]error:[/] {message}" if code == 1 else f"error: {message}", markup=code == 1)
+    raise typer.Exit(code)
+
+
+def _load(config: Optional[Path]) -> tuple[Config, str]:
+    path = config or DEFAULT_SCENE
+    try:
+        return load_config(path), path.stem
+    except ConfigError as exc:
+        _fail(2, str(exc))
+
+
+def _out_dir(out: Optional[Path], stem: str, force: bool) -> Path:
+    if out is None:
+        out = Path("runs") / f"{stem}-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
+    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not force:
+        _fail(2, f"--out {out}: exists and is not empty; choose another directory or pass --force")
+    return out
+
+
+def _version(value: bool) -> None:
+    if value:
+        out.print(f"scissor {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def main(
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version and exit."),
+) -> None:
+    """scissor: simulate robot-assisted breast intervention from a YAML scene."""
+
+
+@app.command()
+def validate(config: Path = typer.Argument(..., help="Scene YAML file.")) -> None:
+    """Validate a scene and print it with every default filled in."""
+    cfg, _ = _load(config)
+    out.print(resolved_yaml(cfg), end="", markup=False)
+
+
+@app.command()
+def simulate(
+    config: Optional[Path] = typer.Argument(None, help="Scene YAML file (default: the shipped example scene)."),
+    out_dir: Optional[Path] = typer.Option(None, "--out", help="Output directory (default runs/<config-stem>-<time>/)."),
+    trials: Optional[int] = typer.Option(None, "--trials", min=0, help="Trials per target (0: forward cases only)."),
+    seed: Optional[int] = typer.Option(None, "--seed", min=0, help="Override the config's seed."),
+    solver: Optional[str] = typer.Option(None, "--solver", help="Override the config's solver: admm | newton."),
+    jobs: Optional[int] = typer.Option(None, "--jobs", min=1, help="Worker processes for trials (default: all cores)."),
+    force: bool = typer.Option(False, "--force", help="Write into a non-empty --out directory."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress or messages, only the output path."),
+) -> None:
+    """Mesh the scene, solve its forward cases, and write results.h5 and figures."""
+    from .simulate import run_simulation
+    from .solve import SolverError
+    from .mesh import MeshError
+    from .tissue import BoundaryError
+
+    cfg, stem = _load(config)
+    if solver is not None:
+        if solver not in ("admm", "newton"):
+            _fail(2, f"--solver: must be 'admm' or 'newton'; got {solver!r}")
+        cfg = cfg.model_copy(update={"solver": cfg.solver.model_copy(update={"kind": solver})})
+    if seed is not None:
+        cfg = cfg.model_copy(update={"seed": seed})
+    n_trials = cfg.trials.count if trials is None else trials
+    if n_trials > 0:
+        _fail(2, f"trials.count = {n_trials}: closed-loop trials are not available in scissor {__version__} yet; "
+                 "run the forward cases with --trials 0")
+    directory = _out_dir(out_dir, stem, force)
+    reporter = ConsoleReporter(quiet)
+    try:
+        summary = run_simulation(cfg, directory, reporter)
+    except (BoundaryError, MeshError) as exc:
+        _fail(2, f"{config or DEFAULT_SCENE}: {exc}")
+    except SolverError as exc:
+        err.print(f"results so far: {directory / 'results.h5'} (status = failed)")
+        _fail(1, str(exc))
+    except KeyboardInterrupt:
+        err.print(f"interrupted; results so far: {directory / 'results.h5'} (status = failed)")
+        raise typer.Exit(130)
+    out.print(str(summary.out_dir))
+
+
+def run() -> None:  # pragma: no cover - console entry for `python -m scissor_cli`
+    app()
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(app())

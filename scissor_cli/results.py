@@ -1,0 +1,129 @@
+"""results.h5 as CONTRACT.md lays it out.
+
+The file is written under a temporary name and renamed when closed, so a
+reader never sees half a file. A run that fails part-way still renames it,
+with `status = "failed"` and the reason, keeping everything it finished.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import os
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from . import __version__
+
+
+class ResultsFile:
+    """An open results.h5 being written; use as a context manager."""
+
+    def __init__(self, path: Path | str, config_yaml: str, seed: int):
+        self.path = Path(path)
+        self.tmp = self.path.with_name(self.path.name + ".tmp")
+        self.h5 = h5py.File(self.tmp, "w")
+        attrs = self.h5.attrs
+        attrs["scissor_version"] = __version__
+        attrs["created"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+        attrs["config_yaml"] = config_yaml
+        attrs["seed"] = int(seed)
+        attrs["status"] = "running"
+
+    def __enter__(self) -> "ResultsFile":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc is None:
+            self.close("complete")
+        else:
+            self.close("failed", f"{type(exc).__name__}: {exc}" if not isinstance(exc, KeyboardInterrupt) else "interrupted")
+
+    def close(self, status: str, reason: str = "") -> None:
+        if not self.h5.id.valid:
+            return
+        self.h5.attrs["status"] = status
+        if reason:
+            self.h5.attrs["failure"] = reason
+        self.h5.close()
+        os.replace(self.tmp, self.path)
+
+    def dataset(self, path: str, data, units: str | None = None, **attrs) -> h5py.Dataset:
+        if path in self.h5:
+            del self.h5[path]
+        ds = self.h5.create_dataset(path, data=data)
+        if units is not None:
+            ds.attrs["units"] = units
+        for key, value in attrs.items():
+            ds.attrs[key] = value
+        return ds
+
+    def group(self, path: str) -> h5py.Group:
+        return self.h5.require_group(path)
+
+    def flush(self) -> None:
+        self.h5.flush()
+
+
+def write_model(out: ResultsFile, tissue, material_cfg) -> None:
+    """/mesh, /material, /cups: what the run was computed on."""
+    mesh = tissue.mesh
+    out.dataset("mesh/nodes", mesh.nodes, "mm")
+    out.dataset("mesh/triangles", mesh.triangles.astype(np.int64))
+    out.dataset("mesh/fiber", tissue.fiber, "1")
+    out.dataset("mesh/fixed_nodes", tissue.fixed_nodes.astype(np.int64))
+    out.dataset("mesh/element_E_kPa", tissue.element_E_kPa, "kPa")
+    out.dataset("mesh/element_obstacle", mesh.element_obstacle.astype(np.int64), description="obstacle index, -1 tissue")
+    angles = mesh.angles_deg()
+    out.group("mesh").attrs.update(
+        {"n_nodes": mesh.n_nodes, "n_elements": mesh.n_elements, "min_angle_deg": float(angles.min())}
+    )
+    m = tissue.scene.material
+    out.group("material").attrs.update(
+        {
+            "model": tissue.params.model,
+            "E_kPa": m.E_kPa,
+            "nu": m.nu,
+            "eta_kPa": m.eta_kPa,
+            "thickness_mm": tissue.ops.thickness_mm,
+            "density_kg_per_mm3": m.density_kg_per_mm3,
+            "fiber_tension_only": bool(m.tension_only),
+            "fiber_angle_rad": m.fiber_angle_rad,
+        }
+    )
+    for c, cup in enumerate(tissue.scene.cups):
+        out.dataset(f"cups/{cup.name}/nodes", tissue.cup_nodes[c].astype(np.int64))
+        out.group(f"cups/{cup.name}").attrs.update(
+            {
+                "axis": cup.axis,
+                "contact": cup.contact,
+                "radius_mm": cup.radius_mm,
+                "stroke_range_mm": [cup.stroke_min_mm, cup.stroke_max_mm],
+                "speed_mm_per_s": cup.speed_mm_per_s,
+            }
+        )
+
+
+def write_target(out: ResultsFile, name: str, rest: np.ndarray, desired: np.ndarray, source: str) -> None:
+    g = out.group(f"targets/{name}")
+    g.attrs.update({"rest": np.asarray(rest, float), "desired": np.asarray(desired, float), "desired_source": source, "units": "mm"})
+
+
+def write_forward(out: ResultsFile, case: str, strokes: dict[str, float], result, rest: np.ndarray, targets: dict[str, np.ndarray]) -> None:
+    g = out.group(f"forward/{case}")
+    out.group(f"forward/{case}/strokes").attrs.update({k: float(v) for k, v in strokes.items()})
+    out.group(f"forward/{case}/strokes").attrs["units"] = "mm"
+    out.dataset(f"forward/{case}/displacement", result.x - rest, "mm")
+    for name, pos in targets.items():
+        out.dataset(f"forward/{case}/targets/{name}", np.asarray(pos, float), "mm")
+    g.attrs.update(
+        {
+            "solver": result.solver,
+            "iterations": int(result.iterations),
+            "time_s": float(result.time_s),
+            "residual": float(result.residual),
+            "converged": bool(result.converged),
+            "message": result.message,
+        }
+    )

@@ -1,0 +1,187 @@
+"""`scissor simulate`: mesh a scene, solve its forward cases, write results.
+
+The pipeline: config → scene → mesh → tissue → forward solves → results.h5
+and one figure per case. Progress and messages go through a `Reporter` so
+the CLI decides what a terminal shows.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Protocol
+
+import numpy as np
+
+from . import figures, mesh as meshing, results
+from .config import Config, SolverConfig, resolved_yaml
+from .newton import solve_newton
+from .scene import Scene, scene_from_config
+from .solve import Inertia, SolveResult, SolverError
+from .tissue import Tissue, build_tissue
+
+
+class Reporter(Protocol):
+    def info(self, message: str) -> None: ...
+
+    def progress(self, description: str, total: int) -> Callable[[int], None]: ...
+
+
+class SilentReporter:
+    def info(self, message: str) -> None:
+        pass
+
+    def progress(self, description: str, total: int) -> Callable[[int], None]:
+        return lambda advance=1: None
+
+
+@dataclass
+class RunSummary:
+    out_dir: Path
+    results_path: Path
+    n_elements: int
+    forward: dict[str, SolveResult] = field(default_factory=dict)
+    figures: list[Path] = field(default_factory=list)
+    status: str = "complete"
+    failure: str = ""
+
+
+class ForwardSolver:
+    """Solves forward cases of one tissue with the configured solver.
+
+    Keeps the ADMM's prefactored matrix across cases (one factorisation per
+    mesh and boundary set).
+    """
+
+    def __init__(self, tissue: Tissue, cfg: SolverConfig):
+        self.tissue, self.cfg = tissue, cfg
+        self._admm = None
+
+    def solve(self, strokes: np.ndarray) -> SolveResult:
+        if self.cfg.dt_s is not None:
+            return self._dynamic(strokes)
+        return self._static(strokes, None, None)
+
+    def _static(self, strokes, x0, inertia) -> SolveResult:
+        cfg = self.cfg
+        if cfg.kind == "newton":
+            return solve_newton(self.tissue, strokes, x0=x0, inertia=inertia, tol=cfg.newton_tolerance,
+                                max_iter=cfg.newton_max_iterations)
+        from .admm import AdmmSolver  # the ADMM is only built when asked for
+
+        if self._admm is None or self._admm.dt_s != (None if inertia is None else inertia.dt_s):
+            self._admm = AdmmSolver(self.tissue, dt_s=None if inertia is None else inertia.dt_s,
+                                    anderson_memory=cfg.anderson_memory)
+        result, _ = self._admm.solve(strokes, inertia=inertia, tol=cfg.tolerance, max_iter=cfg.max_iterations)
+        if not result.converged:
+            raise SolverError(f"ADMM did not converge: {result.message}", result)
+        return result
+
+    def _dynamic(self, strokes: np.ndarray) -> SolveResult:
+        """Implicit Euler: ramp the strokes at the cups' speed, then let the tissue settle."""
+        t, cfg = self.tissue, self.cfg
+        speeds = np.array([c.speed_mm_per_s for c in t.scene.cups])
+        ramp_s = float(np.max(np.abs(strokes) / speeds)) if len(speeds) else 0.0
+        n_ramp = max(int(np.ceil(ramp_s / cfg.dt_s)), 1)
+        x = t.rest.copy()
+        v = np.zeros(x.size)
+        t0, iterations = time.perf_counter(), 0
+        for step in range(n_ramp + cfg.steps):
+            s = strokes * min(1.0, (step + 1) / n_ramp)
+            x_tilde = x.ravel() + cfg.dt_s * v
+            inertia = Inertia(cfg.dt_s, x_tilde, t.mass)
+            r = self._static(s, x, inertia)
+            iterations += r.iterations
+            v = (r.x - x).ravel() / cfg.dt_s
+            x = r.x
+        r.iterations, r.time_s = iterations, time.perf_counter() - t0
+        speed = float(np.abs(v[t.free_dofs]).max()) if len(t.free_dofs) else 0.0
+        r.message = f"implicit Euler, {n_ramp} ramp + {cfg.steps} settling steps of {cfg.dt_s:g} s; final max speed {speed:.3g} mm/s"
+        return r
+
+
+def build_model(cfg: Config, model: str | None = None, mesh_scale: float | None = None) -> tuple[Scene, meshing.Mesh, Tissue]:
+    scene = scene_from_config(cfg)
+    mesh = meshing.mesh_for_config(scene, cfg.tissue.mesh, scale=mesh_scale)
+    return scene, mesh, build_tissue(scene, mesh, model=model)
+
+
+def run_simulation(cfg: Config, out_dir: Path, reporter: Reporter | None = None) -> RunSummary:
+    """Everything `scissor simulate` does for a validated config, into out_dir.
+
+    Raises SolverError (after writing the partial, failed file) when a
+    solve fails.
+    """
+    reporter = reporter or SilentReporter()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    t_mesh = time.perf_counter()
+    scene, mesh, tissue = build_model(cfg)
+    angles = mesh.angles_deg()
+    reporter.info(
+        f"mesh: {mesh.n_elements} triangles, {mesh.n_nodes} nodes, min angle {angles.min():.1f}°, "
+        f"edges {mesh.edge_lengths().min():.2f}–{mesh.edge_lengths().max():.2f} mm ({time.perf_counter() - t_mesh:.2f} s)"
+    )
+    summary = RunSummary(out_dir, out_dir / "results.h5", mesh.n_elements)
+    tri_idx, bary = meshing.locate(mesh, np.array([t.rest for t in scene.targets]).reshape(-1, 2))
+    with results.ResultsFile(summary.results_path, resolved_yaml(cfg), cfg.seed) as out:
+        results.write_model(out, tissue, cfg.material)
+        for target in scene.targets:
+            desired, source = (target.desired, "config") if target.desired is not None else (target.rest, "rest")
+            results.write_target(out, target.name, target.rest, desired, source)
+        solver = ForwardSolver(tissue, cfg.solver)
+        advance = reporter.progress("forward cases", len(cfg.forward))
+        for case in cfg.forward:
+            strokes = scene.strokes_vector(case.strokes)
+            try:
+                result = solver.solve(strokes)
+            except SolverError as exc:
+                summary.status, summary.failure = "failed", f"forward case {case.name!r}: {exc}"
+                raise SolverError(summary.failure, exc.result) from None
+            summary.forward[case.name] = result
+            targets_now = meshing.interpolate(result.x, mesh.triangles, tri_idx, bary)
+            results.write_forward(
+                out, case.name, {c.name: float(s) for c, s in zip(scene.cups, strokes)}, result, mesh.nodes,
+                {t.name: p for t, p in zip(scene.targets, targets_now)},
+            )
+            out.flush()
+            reporter.info(
+                f"forward {case.name}: {result.solver} {result.iterations} iterations, "
+                f"residual {result.residual:.2e}, {result.time_s * 1e3:.1f} ms"
+            )
+            summary.figures.append(_forward_figure(out_dir, cfg.name, tissue, case.name, strokes, result, targets_now))
+            advance(1)
+    return summary
+
+
+def _carry(mesh: meshing.Mesh, points: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    tri_idx, bary = meshing.locate(mesh, points)
+    return meshing.interpolate(positions, mesh.triangles, tri_idx, bary)
+
+
+def _forward_figure(out_dir, name, tissue, case, strokes, result, targets_now) -> Path:
+    mesh, scene = tissue.mesh, tissue.scene
+    boundary = mesh.boundary_edges
+    # The deformed outline is the boundary edge chain itself: follow it from node to node.
+    nxt = dict(zip(boundary[:, 0].tolist(), boundary[:, 1].tolist()))
+    start = int(boundary[0, 0])
+    chain, node = [start], nxt[start]
+    while node != start and len(chain) <= len(boundary):
+        chain.append(node)
+        node = nxt[node]
+    fig = figures.forward_case_figure(
+        title=f"{name} — forward case {case}: " + ", ".join(f"{c.name} {s:+.1f} mm" for c, s in zip(scene.cups, strokes)),
+        rest=mesh.nodes,
+        deformed=result.x,
+        triangles=mesh.triangles,
+        outline_rest=mesh.nodes[chain],
+        outline_deformed=result.x[chain],
+        obstacles_rest=[(o.name, o.outline) for o in scene.obstacles],
+        obstacles_deformed=[_carry(mesh, o.outline, result.x) for o in scene.obstacles],
+        targets_rest={t.name: t.rest for t in scene.targets},
+        targets_deformed={t.name: p for t, p in zip(scene.targets, targets_now)},
+        cup_nodes=list(tissue.cup_nodes),
+        fixed_nodes=tissue.fixed_nodes,
+    )
+    return figures.save(fig, out_dir / f"forward_{case}.png")
+
