@@ -1,0 +1,103 @@
+"""The quasi-static Jacobian between cup strokes and target positions (MODEL.md §5).
+
+At an equilibrium x⁰ the linearised response of the free nodes to a small
+cup motion δs solves
+
+    K_ff δx_f = −K_fc B δs,     δx_c = B δs,     δx_fixed = 0,
+
+and the targets follow their rest triangles, δx_t = S_t δx. Hence
+
+    J = S_t [ B ; −K_ff⁻¹ K_fc B ]    (2K × C, mm/mm),
+
+which is −S_t K_ff⁻¹ K_fc B when no target triangle touches a gripped node
+and, when one does, also carries the gripped node's own motion B δs.
+
+K is the exact Hessian of the strain energy, not the PSD-projected one used
+far from convergence by Newton: J is a derivative of the equilibrium map and
+only the exact tangent gives it. One sparse LDLᵀ of K_ff serves all cups.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .mesh import Mesh, locate
+from .solve import Factorization, SolverError
+from .tissue import Tissue
+
+
+@dataclass(frozen=True)
+class TargetProbe:
+    """K points carried by their rest triangles (MODEL.md §1).
+
+    nodes (K, 3) int: the containing triangle's vertices; bary (K, 3): the
+    barycentric weights at rest (rows sum to 1); tri_idx (K,) for reference.
+    """
+
+    tri_idx: np.ndarray
+    nodes: np.ndarray
+    bary: np.ndarray
+
+    @property
+    def n_targets(self) -> int:
+        return len(self.tri_idx)
+
+
+def probe_targets(mesh: Mesh, points: np.ndarray) -> TargetProbe:
+    """The probe of rest points (K, 2) mm; ValueError if one lies outside the mesh."""
+    tri_idx, bary = locate(mesh, np.atleast_2d(np.asarray(points, float)))
+    return TargetProbe(tri_idx=tri_idx, nodes=mesh.triangles[tri_idx], bary=bary)
+
+
+def target_positions(probe: TargetProbe, x: np.ndarray) -> np.ndarray:
+    """Deformed target positions (K, 2) mm for node positions x (N, 2) mm."""
+    return np.einsum("kj,kjd->kd", probe.bary, np.asarray(x, float)[probe.nodes])
+
+
+def apply_probe(probe: TargetProbe, D: np.ndarray) -> np.ndarray:
+    """S_t D: nodal vectors D (2N, C) → target vectors (2K, C), rows [t0x, t0y, t1x, ...]."""
+    D3 = D.reshape(-1, 2, D.shape[1])  # (N, 2, C)
+    return np.einsum("kj,kjdc->kdc", probe.bary, D3[probe.nodes]).reshape(2 * probe.n_targets, D.shape[1])
+
+
+def nodal_response(
+    tissue: Tissue, x: np.ndarray, factor: Factorization | None = None
+) -> tuple[np.ndarray, Factorization]:
+    """∂x/∂s (2N, C) in mm/mm at the equilibrium x (N, 2), and the factorisation of K_ff.
+
+    Column c is the first-order displacement of every dof for a unit stroke of
+    cup c: the cup's axis on its gripped nodes, zero on fixed ones and
+    −K_ff⁻¹ K_fc B e_c on the free ones. `factor`, if given, is refactored in
+    place (same sparsity pattern on every call, so the symbolic analysis is
+    reused) and returned. Raises SolverError if K_ff is singular (a buckling
+    point) or the response is not finite.
+    """
+    x = np.asarray(x, float)
+    K = tissue.stiffness_free(x, project=False)
+    factor = Factorization(K) if factor is None else factor.refactor(K)
+    free = tissue.free_dofs
+    D = np.zeros((2 * tissue.mesh.n_nodes, tissue.n_cups))
+    for c in range(tissue.n_cups):
+        b = tissue.cup_displacement(c)  # zero on free and fixed dofs
+        # K b restricted to free rows is K_fc B e_c: b vanishes outside the cup's dofs.
+        rhs = -tissue.stiffness_times(x, b)[free]
+        D[:, c] = b
+        D[free, c] = factor.solve(rhs)
+    if not np.all(np.isfinite(D)):
+        raise SolverError("the cup response became non-finite (K_ff singular at this equilibrium?)")
+    return D, factor
+
+
+def cup_target_jacobian(
+    tissue: Tissue, x: np.ndarray, probe: TargetProbe, factor: Factorization | None = None
+) -> np.ndarray:
+    """J = ∂x_t/∂s (2K, C) in mm/mm at the equilibrium x (N, 2).
+
+    Rows are [t0x, t0y, t1x, t1y, ...], columns the cups in scene order.
+    Pass an existing `factor` (e.g. from `nodal_response`) to reuse its
+    symbolic analysis across control steps; it is refactored in place.
+    """
+    D, _ = nodal_response(tissue, x, factor)
+    return apply_probe(probe, D)
