@@ -514,8 +514,12 @@ def _apply_robot(plan: NeedlePlan, ranked: list[Insertion], robot_check: Optiona
             _set_insertion(plan, ins)
             plan.joints, plan.robot_ok, plan.robot_note = np.asarray(joints, float), True, note
             return plan
-    plan.feasible, plan.robot_ok, plan.robot_note = False, False, notes[0]
-    plan.reason = f"the robot cannot realise any of the {len(clear)} clear insertion(s): {notes[0]}"
+    # The corridor is clear, so the tissue side of the plan stands (`feasible`);
+    # that the puncture module as registered cannot realise it is reported
+    # beside it, with the best insertion kept, rather than hiding the plan.
+    plan.joints = np.asarray(robot_check(clear[0].entry, clear[0].direction, plan.desired)[0], float)
+    plan.robot_ok = False
+    plan.robot_note = f"the robot cannot realise any of the {len(clear)} clear insertion(s): {notes[0]}"
     return plan
 
 

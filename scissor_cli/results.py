@@ -127,3 +127,30 @@ def write_forward(out: ResultsFile, case: str, strokes: dict[str, float], result
             "message": result.message,
         }
     )
+
+
+def write_jacobian(out: ResultsFile, name: str, J: np.ndarray, cup_names: list[str]) -> None:
+    """/jacobian/<target>: (2, C) mm of target motion per mm of stroke, at rest."""
+    out.dataset(f"jacobian/{name}", np.asarray(J, float), "mm/mm", columns=cup_names, rows=["x", "y"])
+
+
+def write_plan(out: ResultsFile, plan, joints_note: str) -> None:
+    """/plan/<target>: the needle plan (MODEL.md §7, §11) as attributes."""
+    g = out.group(f"plan/{plan.target}")
+    g.attrs.update(
+        {
+            "entry": np.asarray(plan.entry, float),
+            "direction": np.asarray(plan.direction, float),
+            "depth_mm": float(plan.depth_mm),
+            "clearance_mm": float(plan.clearance_mm),
+            "joints": np.asarray(plan.joints, float),
+            "joints_units": "d1, d2, d3 mm; theta4 rad; d5 mm",
+            "joints_note": joints_note,
+            "feasible": bool(plan.feasible),
+            "reason": plan.reason,
+            "desired": np.asarray(plan.desired, float),
+            "strokes": np.asarray(plan.strokes, float),
+            "side": plan.side,
+            "desired_error_mm": float(plan.desired_error_mm),
+        }
+    )

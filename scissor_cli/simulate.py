@@ -16,7 +16,9 @@ import numpy as np
 
 from . import figures, mesh as meshing, results
 from .config import Config, SolverConfig, resolved_yaml
+from .jacobian import cup_target_jacobian, probe_targets, target_positions
 from .newton import solve_newton
+from .planner import NeedlePlan, StateCache, plan_target
 from .scene import Scene, scene_from_config
 from .solve import Inertia, SolveResult, SolverError
 from .tissue import Tissue, build_tissue
@@ -43,6 +45,7 @@ class RunSummary:
     n_elements: int
     forward: dict[str, SolveResult] = field(default_factory=dict)
     figures: list[Path] = field(default_factory=list)
+    plans: list = field(default_factory=list)
     status: str = "complete"
     failure: str = ""
 
@@ -123,35 +126,70 @@ def run_simulation(cfg: Config, out_dir: Path, reporter: Reporter | None = None)
         f"edges {mesh.edge_lengths().min():.2f}–{mesh.edge_lengths().max():.2f} mm ({time.perf_counter() - t_mesh:.2f} s)"
     )
     summary = RunSummary(out_dir, out_dir / "results.h5", mesh.n_elements)
-    tri_idx, bary = meshing.locate(mesh, np.array([t.rest for t in scene.targets]).reshape(-1, 2))
     with results.ResultsFile(summary.results_path, resolved_yaml(cfg), cfg.seed) as out:
         results.write_model(out, tissue, cfg.material)
-        for target in scene.targets:
-            desired, source = (target.desired, "config") if target.desired is not None else (target.rest, "rest")
-            results.write_target(out, target.name, target.rest, desired, source)
-        solver = ForwardSolver(tissue, cfg.solver)
-        advance = reporter.progress("forward cases", len(cfg.forward))
-        for case in cfg.forward:
-            strokes = scene.strokes_vector(case.strokes)
-            try:
-                result = solver.solve(strokes)
-            except SolverError as exc:
-                summary.status, summary.failure = "failed", f"forward case {case.name!r}: {exc}"
-                raise SolverError(summary.failure, exc.result) from None
-            summary.forward[case.name] = result
-            targets_now = meshing.interpolate(result.x, mesh.triangles, tri_idx, bary)
-            results.write_forward(
-                out, case.name, {c.name: float(s) for c, s in zip(scene.cups, strokes)}, result, mesh.nodes,
-                {t.name: p for t, p in zip(scene.targets, targets_now)},
-            )
-            out.flush()
-            reporter.info(
-                f"forward {case.name}: {result.solver} {result.iterations} iterations, "
-                f"residual {result.residual:.2e}, {result.time_s * 1e3:.1f} ms"
-            )
-            summary.figures.append(_forward_figure(out_dir, cfg.name, tissue, case.name, strokes, result, targets_now))
-            advance(1)
+        _forward_stage(cfg, tissue, out, summary, reporter)
+        probe = probe_targets(mesh, np.array([t.rest for t in scene.targets]).reshape(-1, 2))
+        if len(scene.targets):
+            J = cup_target_jacobian(tissue, tissue.rest, probe)
+            for k, target in enumerate(scene.targets):
+                results.write_jacobian(out, target.name, J[2 * k : 2 * k + 2], scene.cup_names)
+        summary.plans = _plan_stage(cfg, tissue, out, reporter)
     return summary
+
+
+def _forward_stage(cfg: Config, tissue: Tissue, out: results.ResultsFile, summary: RunSummary, reporter: Reporter) -> None:
+    scene, mesh = tissue.scene, tissue.mesh
+    probe = probe_targets(mesh, np.array([t.rest for t in scene.targets]).reshape(-1, 2))
+    solver = ForwardSolver(tissue, cfg.solver)
+    advance = reporter.progress("forward cases", len(cfg.forward))
+    for case in cfg.forward:
+        strokes = scene.strokes_vector(case.strokes)
+        try:
+            result = solver.solve(strokes)
+        except SolverError as exc:
+            summary.status, summary.failure = "failed", f"forward case {case.name!r}: {exc}"
+            raise SolverError(summary.failure, exc.result) from None
+        summary.forward[case.name] = result
+        targets_now = target_positions(probe, result.x)
+        results.write_forward(
+            out, case.name, {c.name: float(s) for c, s in zip(scene.cups, strokes)}, result, mesh.nodes,
+            {t.name: p for t, p in zip(scene.targets, targets_now)},
+        )
+        out.flush()
+        reporter.info(
+            f"forward {case.name}: {result.solver} {result.iterations} iterations, "
+            f"residual {result.residual:.2e}, {result.time_s * 1e3:.1f} ms"
+        )
+        summary.figures.append(_forward_figure(out.path.parent, cfg.name, tissue, case.name, strokes, result, targets_now))
+        advance(1)
+
+
+def _plan_stage(cfg: Config, tissue: Tissue, out: results.ResultsFile, reporter: Reporter) -> list[NeedlePlan]:
+    """Plan every target's insertion; the plan's desired position becomes the target's."""
+    scene = tissue.scene
+    robot_check, joints_note = None, "robot kinematics not applied"
+    plans = []
+    cache = StateCache(tissue)
+    advance = reporter.progress("needle plans", len(scene.targets))
+    for target in scene.targets:
+        plan = plan_target(tissue, scene, target, cfg.needle, robot_check=robot_check, cache=cache)
+        plans.append(plan)
+        source = "config" if target.desired is not None else "planner"
+        results.write_target(out, target.name, target.rest, plan.desired, source)
+        results.write_plan(out, plan, joints_note if robot_check is None else plan.robot_note)
+        out.flush()
+        how = (f"strokes {_fmt(plan.strokes)} mm" if plan.manipulated else "no manipulation needed")
+        reporter.info(
+            f"plan {target.name}: " + (f"{plan.side} entry, clearance {plan.clearance_mm:.2f} mm, {how} ({plan.time_s:.1f} s)"
+                                       if plan.feasible else f"infeasible: {plan.reason}")
+        )
+        advance(1)
+    return plans
+
+
+def _fmt(values) -> str:
+    return ", ".join(f"{v:+.2f}" for v in np.atleast_1d(values))
 
 
 def _carry(mesh: meshing.Mesh, points: np.ndarray, positions: np.ndarray) -> np.ndarray:

@@ -62,6 +62,15 @@ def test_simulate_writes_contract_layout(run):
         cup = f["cups/cup/nodes"][:]
         assert np.allclose(f["forward/push10/displacement"][:][cup], [0.0, -10.0])
         assert np.allclose(f["targets/T2"].attrs["desired"], [58.0, 20.5])
+        for t in ("T1", "T2"):
+            assert f[f"jacobian/{t}"].shape == (2, 1) and f[f"jacobian/{t}"].attrs["units"] == "mm/mm"
+            plan = f[f"plan/{t}"].attrs
+            for key in ("entry", "direction", "depth_mm", "clearance_mm", "joints", "feasible"):
+                assert key in plan
+            assert plan["joints"].shape == (5,) and plan["entry"].shape == (2,)
+            assert plan["feasible"] and plan["clearance_mm"] > 0
+        # a push moves the targets down: J's y entry is negative
+        assert f["jacobian/T1"][1, 0] < 0
     assert (out / "forward_push10.png").stat().st_size > 10_000
 
 

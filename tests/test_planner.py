@@ -183,7 +183,8 @@ def test_robot_check_rejection_falls_back_to_next_clear_insertion():
 
     never = lambda e, d, t: (np.full(5, np.nan), False, "tip outside the workspace")  # noqa: E731
     plan = pl.plan_target(tissue, scene, target, cfg.needle, robot_check=never)
-    assert not plan.feasible and "tip outside the workspace" in plan.reason
+    # the corridor stays planned; the robot's refusal is reported beside it
+    assert plan.feasible and not plan.robot_ok and "tip outside the workspace" in plan.robot_note
 
 
 ENCLOSED = """
