@@ -1,0 +1,128 @@
+"""Time per control iteration of the closed loop (MODEL.md §6) on a scene's full mesh.
+
+One iteration = actuate and solve the truth (warm-started) + solve the
+controller's model at the command (warm-started) + update J there. Three
+measurements, each the median over iterations (time.perf_counter):
+
+* corrective steps: both tissues at an operating stroke, then small moves
+  (a few tenths of a mm, with reversals) as in the loop's later iterations,
+  truth ≠ model (E ×1.3, fibers +10°);
+* the same with truth = model (one solve serves both);
+* real closed loops over the scene's targets: ideal, and trials with
+  camera noise, localisation bias, backlash and a mismatched truth; the
+  first iteration (the big move from rest) is reported apart.
+
+    python benchmarks/bench_control.py [CONFIG.yaml] [--repeats N]
+
+The machine has 2 cores and other work may share them: the numbers are
+wall-clock medians, not CPU time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from scissor_cli import control as ct
+from scissor_cli.camera import Camera
+from scissor_cli.config import load_config
+from scissor_cli.jacobian import probe_targets
+from scissor_cli.planner import StateCache, corridor_radius, plan_targets
+from scissor_cli.simulate import build_model
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def corrective_steps(model, truth_tissue, target, operating_mm: float, n: int) -> np.ndarray:
+    """Wall time (n,) s of n small control iterations around operating_mm."""
+    probe = probe_targets(model.mesh, target.rest[None])
+    act = ct.Actuator.from_scene(model.scene)
+    plant = ct.Plant(truth_tissue, act, probe)
+    ctrl = ct.Controller(model, probe, act.lo, act.hi)
+    shared = ctrl.shares(plant)
+    if shared:
+        plant.eq.adopt(ctrl.eq)
+    s = np.array([operating_mm])
+    plant.apply(s, tangent=shared)
+    ctrl.update(s, plant)
+    rng = np.random.default_rng(0)
+    times = []
+    for _ in range(n):
+        s = np.clip(s + rng.choice([-1, 1]) * rng.uniform(0.02, 0.5), act.lo, act.hi)
+        t0 = time.perf_counter()
+        plant.apply(s, tangent=shared)
+        ctrl.update(s, plant)
+        times.append(time.perf_counter() - t0)
+    return np.array(times)
+
+
+def loop_steps(cfg, model, plans, trials: int, cache=None) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    """(first-iteration times, later-iteration times, iterations per run) over closed loops.
+
+    With the planner's `cache`, each loop starts its big moves from the
+    model's state at the plan's strokes.
+    """
+    cam = Camera.from_config(cfg.camera)
+    rng = np.random.default_rng(cfg.seed)
+    first, later, iterations = [], [], []
+    for target, plan in zip(model.scene.targets, plans):
+        cases = [dict()]
+        for _ in range(trials):
+            cases.append(dict(
+                truth=ct.TruthPerturbation(E_scale=float(rng.uniform(0.8, 1.2)),
+                                           fiber_offset_rad=float(np.deg2rad(rng.normal(0, 5)))),
+                measurement=ct.Measurement(cam, tuple(rng.normal(0, 0.2, 2))),
+                backlash_mm=0.1, rng=np.random.default_rng(int(rng.integers(1 << 31))),
+            ))
+        corridor = ct.Corridor.from_plan(plan, corridor_radius(cfg.needle))
+        guess = None if cache is None else (plan.strokes, cache.state(plan.strokes))
+        for kw in cases:
+            r = ct.run_target(model, target.rest, plan.desired, cfg.controller, corridor=corridor, guess=guess, **kw)
+            iterations.append(r.iterations)
+            first.extend(r.step_wall_s[:1])
+            later.extend(r.step_wall_s[1:])
+    return np.array(first), np.array(later), iterations
+
+
+def ms(a: np.ndarray) -> str:
+    if len(a) == 0:
+        return "n/a"
+    p10, p50, p90 = np.percentile(a, [10, 50, 90]) * 1e3
+    return f"median {p50:6.1f} ms  (p10 {p10:.1f}, p90 {p90:.1f}, n={len(a)})"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("config", nargs="?", default=str(ROOT / "configs" / "example.yaml"))
+    ap.add_argument("--repeats", type=int, default=60, help="corrective steps per measurement")
+    ap.add_argument("--trials", type=int, default=3, help="noisy trials per target in the loop measurement")
+    args = ap.parse_args()
+
+    cfg = load_config(args.config)
+    scene, mesh, model = build_model(cfg)
+    print(f"{cfg.name}: {mesh.n_elements} elements, {mesh.n_nodes} nodes, {len(model.free_dofs)} free dofs; "
+          f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}")
+    target = scene.targets[0]
+    operating = 0.6 * scene.cups[0].stroke_max_mm
+    truth = model.with_material(1.3, fiber_angle_rad=scene.material.fiber_angle_rad + np.deg2rad(10))
+    corrective_steps(model, truth, target, operating, 3)  # warm-up: imports, allocations
+    print(f"corrective iteration, truth != model : {ms(corrective_steps(model, truth, target, operating, args.repeats))}")
+    print(f"corrective iteration, truth == model : {ms(corrective_steps(model, model, target, operating, args.repeats))}")
+
+    cache = StateCache(model)
+    plans = plan_targets(model, scene, cfg.needle, cache=cache)
+    for label, c in (("from rest", None), ("from the planner's state", cache)):
+        first, later, its = loop_steps(cfg, model, plans, args.trials, c)
+        print(f"closed loops, big moves {label} ({len(its)} runs, {sum(its)} iterations, {min(its)}-{max(its)} per run):")
+        print(f"  first iteration (the big move)       : {ms(first)}")
+        print(f"  later iterations                     : {ms(later)}")
+        print(f"  all iterations                       : {ms(np.concatenate([first, later]))}")
+    print(f"load average now {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()

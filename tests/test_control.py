@@ -1,0 +1,321 @@
+"""Tests of scissor_cli.control: the closed loop of MODEL.md §6 on the paper's
+scenes (ideal and with a mismatched truth, against the open-loop Jacobian
+step), the uncorrectable part with one cup, the actuator (resolution,
+backlash, anti-windup), the incremental equilibria against the reference
+Newton, determinism, and the Fig. 11 figure."""
+
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from scissor_cli import control as ct
+from scissor_cli import figures
+from scissor_cli.camera import Camera
+from scissor_cli.config import ControllerConfig, load_config
+from scissor_cli.jacobian import apply_probe, cup_target_jacobian, probe_targets, target_positions
+from scissor_cli.newton import solve_newton
+from scissor_cli.planner import corridor_radius, plan_targets
+from scissor_cli.simulate import build_model
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = ("paper_pull", "paper_push", "example")
+SCALES = (1.3, 0.7)
+FIBER_15 = np.deg2rad(15.0)
+
+
+@lru_cache(maxsize=None)
+def setup(name: str):
+    """(cfg, tissue on the coarse test mesh, plans of every target)."""
+    cfg = load_config(ROOT / "configs" / f"{name}.yaml")
+    scene, _, tissue = build_model(cfg, mesh_scale=2.0)
+    return cfg, tissue, plan_targets(tissue, scene, cfg.needle)
+
+
+def manipulate(name: str, k: int, mode: str = "closed", **kw) -> ct.LoopResult:
+    cfg, tissue, plans = setup(name)
+    target, plan = tissue.scene.targets[k], plans[k]
+    corridor = ct.Corridor.from_plan(plan, corridor_radius(cfg.needle))
+    return ct.run_target(tissue, target.rest, plan.desired, cfg.controller, corridor=corridor, mode=mode,
+                         target=target.name, **kw)
+
+
+def all_targets():
+    return [(name, k) for name in CONFIGS for k in range(len(setup(name)[1].scene.targets))]
+
+
+# --------------------------------------------------------------------------
+# The loop on the paper's scenes
+
+
+@pytest.mark.parametrize("name", CONFIGS)
+def test_ideal_loop_reaches_every_target(name):
+    cfg, tissue, plans = setup(name)
+    for k, (target, plan) in enumerate(zip(tissue.scene.targets, plans)):
+        r = manipulate(name, k)
+        assert r.stop_reason == "tolerance" and r.converged, (target.name, r.stop_reason)
+        assert r.correctable_error_mm <= 0.1, (target.name, r.final_error)
+        assert 1 <= r.iterations <= 20
+        # Truth = model and no noise: the measurement is the truth.
+        np.testing.assert_array_equal(r.hist_measured, r.hist_true)
+        if target.desired is None:  # the planner's y_d lies on the cup's path: all of it is reachable
+            assert plan.feasible
+            assert r.final_error_mm <= 0.1, (target.name, r.final_error)
+            assert r.uncorrectable_error_mm < 0.02
+            assert r.corridor_clear and r.clearance_mm > 0, (target.name, r.clearance_mm)
+
+
+@pytest.mark.parametrize("scale", SCALES)
+def test_mismatched_stiffness_closed_loop_beats_open_loop(scale):
+    """E ×1.3 / ×0.7 in the truth (η unchanged, so the fiber's share changes too)."""
+    truth = ct.TruthPerturbation(E_scale=scale)
+    for name, k in all_targets():
+        if setup(name)[1].scene.targets[k].desired is not None:
+            continue  # a configured y_d off the cup's path: see test_uncorrectable_part_is_reported
+        closed = manipulate(name, k, truth=truth)
+        opened = manipulate(name, k, "open", truth=truth)
+        assert closed.final_error_mm <= 0.3, (name, k, closed.final_error)
+        assert closed.final_error_mm < opened.final_error_mm, (name, k, closed.final_error, opened.final_error)
+        assert opened.iterations == 1 and opened.mode == "open"
+
+
+def test_rotated_fibers_closed_loop_beats_open_loop():
+    """Fibers +15° in the truth move its target along another path than the model's.
+
+    The loop removes the part of the error the cup can move (correctable);
+    what remains is reported as uncorrectable. Where the stroke range
+    allows, the correctable part ends within tolerance and the loop is
+    never worse than the open-loop step.
+    """
+    truth = ct.TruthPerturbation(fiber_offset_rad=FIBER_15)
+    for name, k in all_targets():
+        if setup(name)[1].scene.targets[k].desired is not None:
+            continue
+        closed = manipulate(name, k, truth=truth)
+        opened = manipulate(name, k, "open", truth=truth)
+        assert closed.final_error_mm <= opened.final_error_mm + 1e-9, (name, k)
+        if closed.stop_reason == "stroke_limit":
+            assert np.isclose(abs(closed.final_strokes[0]), 15.0)
+        else:
+            assert closed.stop_reason == "tolerance" and closed.correctable_error_mm <= 0.1, (name, k)
+        assert np.hypot(closed.correctable_error_mm, closed.uncorrectable_error_mm) == pytest.approx(closed.final_error_mm)
+    # Pushing paper-push T1 stays well inside the range: all of it within 0.3 mm, better than open loop.
+    closed = manipulate("paper_push", 0, truth=truth)
+    opened = manipulate("paper_push", 0, "open", truth=truth)
+    assert closed.final_error_mm <= 0.3 < opened.final_error_mm
+
+
+def test_uncorrectable_part_is_reported():
+    """example T2's configured y_d (58, 20.5) is off the one cup's path: the loop stops with a reason."""
+    cfg, tissue, _ = setup("example")
+    k = [t.name for t in tissue.scene.targets].index("T2")
+    target = tissue.scene.targets[k]
+    np.testing.assert_allclose(target.desired, [58.0, 20.5])
+    r = ct.run_target(tissue, target.rest, target.desired, cfg.controller, target="T2")
+    assert r.uncorrectable_error_mm > 0.1
+    assert r.correctable_error_mm <= cfg.controller.tolerance_mm
+    assert r.stop_reason in ct.STOP_REASONS and r.iterations < cfg.controller.max_iterations
+    assert r.hist_uncorrectable[-1] > 0.1
+    # Even a budget-free loop does not run forever on it.
+    ctrl = ControllerConfig(tolerance_mm=1e-6, max_iterations=200)
+    r = ct.run_target(tissue, target.rest, target.desired, ctrl, target="T2")
+    assert r.stop_reason in ("stalled", "tolerance", "stroke_limit") and r.iterations < 200
+
+
+def test_unreachable_desired_stops_at_the_stroke_limit():
+    cfg, tissue, _ = setup("paper_push")
+    target = tissue.scene.targets[0]
+    desired = target.rest + [0.0, -30.0]  # far beyond what a 15 mm push moves it
+    r = ct.run_target(tissue, target.rest, desired, cfg.controller)
+    assert r.stop_reason == "stroke_limit" and not r.converged
+    assert r.final_strokes[0] == pytest.approx(15.0)
+    assert r.iterations < 10
+
+
+def test_history_and_table():
+    cfg, tissue, plans = setup("paper_push")
+    cam = Camera.from_config(cfg.camera)
+    r = manipulate("paper_push", 0, measurement=ct.Measurement(cam, (0.1, -0.05)), backlash_mm=0.2,
+                   rng=np.random.default_rng(3))
+    K = r.iterations + 1
+    names, table = r.history_table()
+    assert table.shape == (K, len(names)) and table.dtype == np.float64
+    assert names[:3] == ["time_s", "stroke_cmd_cup", "stroke_cup"]
+    np.testing.assert_allclose(table[:, names.index("error_y")], r.hist_true[:, 1] - r.desired[1])
+    np.testing.assert_allclose(r.hist_error[-1], r.final_error)
+    assert r.hist_time_s[0] == 0 and np.all(np.diff(r.hist_time_s) >= 1.0 / cfg.controller.rate_hz - 1e-12)
+    # A move lasts its stroke at the cup's speed when that is longer than a control period.
+    moves = np.abs(np.diff(r.hist_strokes_cmd[:, 0]))
+    np.testing.assert_allclose(np.diff(r.hist_time_s), np.maximum(0.1, moves / 5.0))
+    assert r.sim_time_s == pytest.approx(r.hist_time_s[-1]) and r.time_s > 0
+    assert len(r.step_wall_s) == r.iterations
+
+
+def test_same_seed_same_history():
+    cfg, _, _ = setup("paper_pull")
+    meas = ct.Measurement(Camera.from_config(cfg.camera), (0.2, 0.1))
+    kw = dict(truth=ct.TruthPerturbation(E_scale=1.2, fiber_offset_rad=0.05), measurement=meas,
+              backlash_mm=0.1, resolution_mm=0.01)
+    a = manipulate("paper_pull", 1, rng=np.random.default_rng(11), **kw)
+    b = manipulate("paper_pull", 1, rng=np.random.default_rng(11), **kw)
+    c = manipulate("paper_pull", 1, rng=np.random.default_rng(12), **kw)
+    np.testing.assert_array_equal(a.history_table()[1], b.history_table()[1])
+    assert a.stop_reason == b.stop_reason and a.iterations == b.iterations
+    assert not np.array_equal(a.hist_measured, c.hist_measured)
+
+
+# --------------------------------------------------------------------------
+# Actuator, control law, measurement
+
+
+def test_actuator_resolution_quantises():
+    act = ct.Actuator(lo=[-15.0], hi=[15.0], speed_mm_per_s=[5.0], resolution_mm=0.05)
+    assert act.apply([0.123])[0] == pytest.approx(0.1)
+    assert act.apply([0.126])[0] == pytest.approx(0.15)
+    assert act.apply([20.0])[0] == pytest.approx(15.0)
+    # Limits that are not multiples of the step are never exceeded.
+    np.testing.assert_allclose(ct.quantise(np.array([9.99]), np.array([-1.0]), np.array([9.98]), 0.05), [9.95])
+    # In a loop every command is a multiple of the resolution.
+    r = manipulate("paper_push", 1, resolution_mm=0.05)
+    steps = r.hist_strokes_cmd[:, 0] / 0.05
+    np.testing.assert_allclose(steps, np.round(steps), atol=1e-9)
+    np.testing.assert_array_equal(r.hist_strokes, r.hist_strokes_cmd)
+
+
+def test_actuator_backlash_loses_motion_on_reversal():
+    act = ct.Actuator(lo=[-15.0], hi=[15.0], speed_mm_per_s=[5.0], backlash_mm=0.3)
+    assert act.apply([2.0])[0] == pytest.approx(2.0)  # the first move is lossless
+    assert act.last_move_s == pytest.approx(0.4)
+    assert act.apply([3.0])[0] == pytest.approx(3.0)  # same direction: no loss
+    assert act.apply([2.0])[0] == pytest.approx(2.3)  # reversal: 0.3 of the 1 mm lost
+    assert act.apply([0.0])[0] == pytest.approx(0.3)  # then it follows, 0.3 behind
+    assert act.apply([0.2])[0] == pytest.approx(0.3)  # inside the play: no motion
+    assert act.apply([1.0])[0] == pytest.approx(1.0)
+    down = ct.Actuator(lo=[-15.0], hi=[15.0], speed_mm_per_s=[5.0], backlash_mm=0.3)
+    assert down.apply([-2.0])[0] == pytest.approx(-2.0)
+    assert down.apply([-1.0])[0] == pytest.approx(-1.3)
+    # A loop that overshoots (high gain) reverses through the play and still gets there.
+    cfg, tissue, plans = setup("paper_pull")
+    target = tissue.scene.targets[0]
+    r = ct.run_target(tissue, target.rest, plans[0].desired, ControllerConfig(kp=1.3), backlash_mm=0.3)
+    assert r.correctable_error_mm <= 0.1
+    lost = r.hist_strokes[:, 0] - r.hist_strokes_cmd[:, 0]
+    assert np.any(np.isclose(np.abs(lost), 0.3))
+
+
+def test_anti_windup_keeps_the_integral_bounded():
+    lo, hi = np.array([-15.0]), np.array([15.0])
+    pid = ct.PID(kp=0.8, ki=0.1, kd=0.0, dt=0.1)
+    s = np.array([14.0])
+    for _ in range(50):
+        s, saturated = pid.command(s, np.array([5.0]), lo, hi)
+    assert s[0] == 15.0 and saturated[0]
+    assert abs(pid.integral[0]) <= 1.0  # integrated only while the command was inside the range
+    free = ct.PID(kp=0.8, ki=0.1, kd=0.0, dt=0.1)
+    s = np.array([14.0])
+    for _ in range(50):
+        s, _ = free.command(s, np.array([5.0]), np.array([-1e9]), np.array([1e9]))
+    assert free.integral[0] == pytest.approx(25.0)  # without a limit it winds up
+    # Away from the limit the integral integrates again at once.
+    s, saturated = pid.command(np.array([10.0]), np.array([-1.0]), lo, hi)
+    assert not saturated[0]
+
+
+def test_pid_law_matches_model():
+    pid = ct.PID(kp=0.8, ki=0.1, kd=0.05, dt=0.1)
+    lo, hi = np.array([-15.0]), np.array([15.0])
+    s1, _ = pid.command(np.array([0.0]), np.array([2.0]), lo, hi)
+    assert s1[0] == pytest.approx(0.8 * 2 + 0.1 * 0.2)  # no derivative kick on the first step
+    s2, _ = pid.command(s1, np.array([1.0]), lo, hi)
+    assert s2[0] == pytest.approx(s1[0] + 0.8 * 1 + 0.1 * 0.3 + 0.05 * (1.0 - 2.0) / 0.1)
+
+
+def test_measurement():
+    rng = np.random.default_rng(0)
+    p = np.array([45.123456, 31.987654])
+    np.testing.assert_array_equal(ct.Measurement().measure(p, rng), p)
+    assert rng.standard_normal() == np.random.default_rng(0).standard_normal()  # ideal draws nothing
+    cfg, _, _ = setup("example")
+    cam = Camera.from_config(cfg.camera)
+    m = ct.Measurement(cam, noise_px=0.0)
+    assert np.all(np.abs(m.measure(p, rng) - p) <= cam.mm_per_pixel / 2 + 1e-9)  # pixel rounding only
+    biased = ct.Measurement(cam, bias_mm=(0.5, -0.25), noise_px=0.0)
+    np.testing.assert_allclose(biased.measure(p, rng) - m.measure(p, rng), [0.5, -0.25])
+
+
+def test_split_error_one_cup():
+    J = np.array([[0.0], [2.0]])
+    ds, corr, unc = ct.split_error(J, np.array([0.3, -1.0]))
+    np.testing.assert_allclose(ds, [-0.5])
+    np.testing.assert_allclose(corr, [0.0, -1.0])
+    np.testing.assert_allclose(unc, [0.3, 0.0])
+
+
+# --------------------------------------------------------------------------
+# Incremental equilibria
+
+
+def test_equilibrium_tracks_reference_newton():
+    _, tissue, _ = setup("paper_push")
+    probe = probe_targets(tissue.mesh, np.array([t.rest for t in tissue.scene.targets]))
+    eq = ct.Equilibrium(tissue)
+    for s in (9.0, 12.5, 12.4, 3.0, 3.05):
+        eq.move_to(np.array([s]), tangent=True)
+        ref = solve_newton(tissue, np.array([s]), tol=1e-10)
+        np.testing.assert_allclose(eq.x, ref.x, atol=1e-7)
+        J = apply_probe(probe, eq.response)
+        np.testing.assert_allclose(J, cup_target_jacobian(tissue, ref.x, probe), rtol=1e-5, atol=1e-8)
+    truth = tissue.with_material(1.3, fiber_angle_rad=0.3)
+    eq = ct.Equilibrium(truth)
+    eq.move_to(np.array([-10.0]), tangent=False)
+    eq.move_to(np.array([-9.7]), tangent=False)
+    ref = solve_newton(truth, np.array([-9.7]), tol=1e-10)
+    np.testing.assert_allclose(target_positions(probe, eq.x), target_positions(probe, ref.x), atol=1e-7)
+
+
+def test_guess_changes_speed_not_the_equilibrium():
+    _, tissue, _ = setup("paper_pull")
+    truth = tissue.with_material(0.8, fiber_angle_rad=0.8)
+    model_state = solve_newton(tissue, np.array([-13.0])).x
+    plain, guided = ct.Equilibrium(truth), ct.Equilibrium(truth)
+    guided.guesses.append((np.array([-13.0]), model_state))  # the model's state, not the truth's
+    for eq in (plain, guided):
+        eq.move_to(np.array([-12.0]), tangent=False)
+    np.testing.assert_allclose(guided.x, plain.x, atol=1e-7)
+    assert guided.stats["refactors"] < plain.stats["refactors"]
+
+
+def test_truth_equal_to_model_is_solved_once():
+    cfg, tissue, plans = setup("paper_push")
+    assert ct.true_tissue(tissue, ct.TruthPerturbation()) is tissue
+    assert ct.true_tissue(tissue, ct.TruthPerturbation(E_scale=1.3)) is not tissue
+    same = ct.TruthPerturbation(E_scale=np.ones(tissue.mesh.n_elements), nu=tissue.scene.material.nu, eta_scale=1.0)
+    assert ct.true_tissue(tissue, same) is tissue  # a profile's zero-spread draw is still the model
+    softer = ct.true_tissue(tissue, ct.TruthPerturbation(E_scale=np.full(tissue.mesh.n_elements, 0.5), eta_scale=2.0))
+    np.testing.assert_allclose(softer.element_E_kPa, 0.5 * tissue.element_E_kPa)
+    np.testing.assert_allclose(softer.params.eta, 2.0 * tissue.params.eta)
+    probe = probe_targets(tissue.mesh, tissue.scene.targets[0].rest[None])
+    act = ct.Actuator.from_scene(tissue.scene)
+    plant = ct.Plant(tissue, act, probe)
+    ctrl = ct.Controller(tissue, probe, act.lo, act.hi)
+    plant.eq.adopt(ctrl.eq)
+    r = ct.run_loop(plant, ctrl, plans[0].desired, cfg.controller)
+    assert r.converged and ctrl.eq.stats["moves"] == 1  # only its construction solved
+    assert ctrl.eq.x is plant.eq.x
+
+
+# --------------------------------------------------------------------------
+# Figure
+
+
+def test_manipulation_figure(tmp_path):
+    cfg, tissue, plans = setup("paper_pull")
+    corridor = ct.Corridor.from_plan(plans[0], corridor_radius(cfg.needle))
+    r = manipulate("paper_pull", 0)
+    kw = ct.figure_inputs(tissue, r, tissue.scene.targets[0].rest, corridor)
+    assert kw["corridor_before"].shape == (2, 2) and np.all(np.isfinite(kw["corridor_after"]))
+    fig = figures.manipulation_figure(**kw)
+    path = figures.save(fig, tmp_path / "manipulation_T1.png")
+    assert path.stat().st_size > 10_000
+    assert "T1" in fig._suptitle.get_text() and "clearance" in fig._suptitle.get_text()
