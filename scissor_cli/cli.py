@@ -95,7 +95,7 @@ def main(
 def validate(config: Path = typer.Argument(..., help="Scene YAML file.")) -> None:
     """Validate a scene and print it with every default filled in."""
     cfg, _ = _load(config)
-    out.print(resolved_yaml(cfg), end="", markup=False)
+    sys.stdout.write(resolved_yaml(cfg))  # plain: a rich console would wrap long YAML lines
 
 
 @app.command()

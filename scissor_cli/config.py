@@ -133,6 +133,9 @@ class SolverConfig(_Section):
     newton_max_iterations: Annotated[int, Field(ge=1)] = 100
     #: ADMM: Anderson acceleration memory (0 switches it off)
     anderson_memory: Annotated[int, Field(ge=0, le=50)] = 0
+    #: start of a forward solve: the rest state, or (a stress test of the
+    #: solvers' recovery) the rest state mirrored top-to-bottom, every element inverted
+    initial_guess: Literal["rest", "mirrored"] = "rest"
 
 
 class ForwardCase(_Section):
@@ -172,8 +175,36 @@ class RobotConfig(_Section):
 
 
 class TrialsConfig(_Section):
+    """Trials per target and the error sources they draw (MODEL.md §10).
+
+    `profile` sets every distribution (see scissor_cli/trials.py for the
+    values and their sources); each field below, when given, overrides the
+    profile's value. Spreads are standard deviations.
+    """
+
     count: Annotated[int, Field(ge=0)] = 30
     profile: Literal["ideal", "prosthesis", "ex_vivo"] = "prosthesis"
+    #: camera pixel noise σ (px); ideal: no camera error at all (no rounding)
+    pixel_noise_px: Optional[NonNegFloat] = None
+    #: per-trial bias of the target localisation, σ per axis (mm)
+    localisation_error_mm: Optional[NonNegFloat] = None
+    #: true E / model E is log-normal with this σ of its logarithm
+    E_log_sd: Optional[NonNegFloat] = None
+    #: true ν = model ν + N(0, σ), kept below 0.499
+    nu_sd: Optional[NonNegFloat] = None
+    #: true η / model η is log-normal with this σ of its logarithm
+    eta_log_sd: Optional[NonNegFloat] = None
+    #: true fiber angle = model angle + N(0, σ) (deg)
+    fiber_angle_sd_deg: Optional[NonNegFloat] = None
+    #: smooth random field of E across the layer: σ of log E (correlation length below)
+    heterogeneity_log_sd: Optional[NonNegFloat] = None
+    heterogeneity_length_mm: PositiveFloat = 20.0
+    #: actuator resolution (mm; commands are quantised to it) and backlash (mm)
+    actuator_resolution_mm: Optional[NonNegFloat] = None
+    backlash_mm: Optional[NonNegFloat] = None
+    #: slip of the tissue in the cup along the push axis after the loop stops,
+    #: σ (mm): the prone position and vertical restraint the paper's bench lacked
+    release_slip_mm: Optional[NonNegFloat] = None
 
 
 class Config(_Section):
@@ -471,4 +502,4 @@ def load_config(path: Path | str) -> Config:
 
 def resolved_yaml(cfg: Config) -> str:
     """The config with every default filled in, as YAML text."""
-    return yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False, default_flow_style=None, width=100)
+    return yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False, default_flow_style=None, width=1000)

@@ -1,0 +1,162 @@
+"""Error sources of a simulated trial and their distributions (MODEL.md §10).
+
+A trial draws, from a generator seeded by (seed, target, trial), what a real
+bench gets wrong: camera pixel noise, a bias in localising the target, the
+true tissue's material against the controller's model (E, ν, η, fiber angle
+and a smooth heterogeneity field), actuator resolution and backlash. Trial
+k's draw depends only on (seed, target index, k), so any trial can be re-run
+alone and the order or the process that runs it does not matter.
+
+Profiles and where their values come from
+-----------------------------------------
+``prosthesis`` — the paper's silicone prosthesis (§4.2, E = 10 kPa [27]),
+observed by a CCD camera through transparent silicone:
+
+* pixel noise σ 0.5 px: centroid noise of a dark target on a clear
+  background, typical of blob detection (0.1–0.5 px);
+* localisation bias σ 0.3 mm per axis: the target is a 3-D object seen
+  through silicone (refraction, its offset from the layer plane);
+* E: log-normal, σ(log) 0.10 — batch-to-batch spread of a cast silicone
+  around the quoted 10 kPa; ν: ±0.01 (silicone is nearly incompressible);
+  η: σ(log) 0.2 and fiber angle σ 10° (silicone has no fibers; the model's
+  fiber term is itself a modelling error); heterogeneity σ(log E) 0.05
+  (a homogeneous cast);
+* actuator: resolution 0.01 mm, backlash 0.02 mm — the paper's T-type micro
+  ball-screw slide with a NEMA 11 stepper (1 mm lead, 200 steps, drivers
+  microstepping; C7-class screws have 0.01–0.05 mm backlash).
+
+``ex_vivo`` — pork (§4.2), the target a peg whose head is seen on the
+surface:
+
+* pixel noise σ 1.0 px: a wet, textured surface;
+* localisation bias σ 0.6 mm: the target is inferred from the peg head,
+  which tilts and sits above the layer;
+* E: σ(log) 0.30 — reported moduli of breast tissue and of porcine fat and
+  muscle range from a few kPa to tens of kPa; ν ±0.02; η σ(log) 0.5; fiber
+  angle σ 20°; heterogeneity σ(log E) 0.30 (fat, gland, connective tissue);
+* actuator as for the prosthesis (same bench).
+
+``ideal`` — nothing: the truth is the controller's model and the
+measurement is exact (no pixel rounding). With `trials.count: 1` it is the
+deterministic check of the loop.
+
+``release_slip_mm`` (default 0 in every profile) is an optional extra source:
+the tissue slipping in the cup along the push axis after the loop stops,
+which the paper names as its main error (no prone position, no vertical
+restraint). It is off by default because nothing measures it; the README
+compares the simulated errors with the paper's without it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .config import TrialsConfig
+
+PROFILES: dict[str, dict[str, float]] = {
+    "ideal": dict(
+        pixel_noise_px=0.0, localisation_error_mm=0.0, E_log_sd=0.0, nu_sd=0.0, eta_log_sd=0.0,
+        fiber_angle_sd_deg=0.0, heterogeneity_log_sd=0.0, actuator_resolution_mm=0.0, backlash_mm=0.0,
+        release_slip_mm=0.0,
+    ),
+    "prosthesis": dict(
+        pixel_noise_px=0.5, localisation_error_mm=0.3, E_log_sd=0.10, nu_sd=0.01, eta_log_sd=0.2,
+        fiber_angle_sd_deg=10.0, heterogeneity_log_sd=0.05, actuator_resolution_mm=0.01, backlash_mm=0.02,
+        release_slip_mm=0.0,
+    ),
+    "ex_vivo": dict(
+        pixel_noise_px=1.0, localisation_error_mm=0.6, E_log_sd=0.30, nu_sd=0.02, eta_log_sd=0.5,
+        fiber_angle_sd_deg=20.0, heterogeneity_log_sd=0.30, actuator_resolution_mm=0.01, backlash_mm=0.02,
+        release_slip_mm=0.0,
+    ),
+}
+
+#: Fourier features of the heterogeneity field (random-feature approximation
+#: of a Gaussian-covariance random field with unit variance)
+N_FEATURES = 64
+NU_MAX = 0.499
+
+
+@dataclass(frozen=True)
+class ErrorModel:
+    """The resolved distributions of one run: the profile with the config's overrides."""
+
+    profile: str
+    pixel_noise_px: float
+    localisation_error_mm: float
+    E_log_sd: float
+    nu_sd: float
+    eta_log_sd: float
+    fiber_angle_sd_deg: float
+    heterogeneity_log_sd: float
+    heterogeneity_length_mm: float
+    actuator_resolution_mm: float
+    backlash_mm: float
+    release_slip_mm: float
+
+    @property
+    def exact_measurement(self) -> bool:
+        return self.profile == "ideal" and self.pixel_noise_px == 0 and self.localisation_error_mm == 0
+
+    @property
+    def truth_is_model(self) -> bool:
+        return not any((self.E_log_sd, self.nu_sd, self.eta_log_sd, self.fiber_angle_sd_deg, self.heterogeneity_log_sd))
+
+
+def error_model(trials: TrialsConfig) -> ErrorModel:
+    values = dict(PROFILES[trials.profile])
+    for key in values:
+        override = getattr(trials, key)
+        if override is not None:
+            values[key] = float(override)
+    return ErrorModel(profile=trials.profile, heterogeneity_length_mm=trials.heterogeneity_length_mm, **values)
+
+
+@dataclass(frozen=True)
+class TrialDraw:
+    """What trial k of one target gets wrong, drawn once before its loop runs.
+
+    E_field (M,) multiplies the model's per-element E; rng is the trial's own
+    stream for the measurements inside the loop.
+    """
+
+    E_field: np.ndarray
+    nu: float
+    eta_scale: float
+    fiber_offset_rad: float
+    localisation_offset_mm: np.ndarray  # (2,)
+    release_slip_mm: float
+    rng: np.random.Generator
+
+
+def trial_rng(seed: int, target_index: int, trial: int) -> np.random.Generator:
+    """The generator of one trial: depends only on (seed, target, trial)."""
+    return np.random.default_rng([int(seed), int(target_index), int(trial)])
+
+
+def smooth_field(centroids: np.ndarray, length_mm: float, rng: np.random.Generator) -> np.ndarray:
+    """A zero-mean, unit-variance random field (M,) at centroids (M, 2), correlation length in mm."""
+    omega = rng.standard_normal((N_FEATURES, 2)) / length_mm
+    phase = rng.uniform(0.0, 2.0 * np.pi, N_FEATURES)
+    return np.sqrt(2.0 / N_FEATURES) * np.cos(centroids @ omega.T + phase).sum(axis=1)
+
+
+def draw_trial(model: ErrorModel, nu_model: float, centroids: np.ndarray, seed: int, target_index: int, trial: int) -> TrialDraw:
+    """Draw one trial's error sources; the same arguments give the same draw."""
+    rng = trial_rng(seed, target_index, trial)
+    # Every draw is made whatever its σ, so changing one σ does not shift the others.
+    z = rng.standard_normal(5)
+    field = smooth_field(centroids, model.heterogeneity_length_mm, rng)
+    offset = rng.standard_normal(2) * model.localisation_error_mm
+    slip = float(rng.standard_normal()) * model.release_slip_mm
+    return TrialDraw(
+        E_field=np.exp(model.E_log_sd * z[0] + model.heterogeneity_log_sd * field),
+        nu=float(np.clip(nu_model + model.nu_sd * z[1], -0.99, NU_MAX)),
+        eta_scale=float(np.exp(model.eta_log_sd * z[2])),
+        fiber_offset_rad=float(np.deg2rad(model.fiber_angle_sd_deg) * z[3]),
+        localisation_offset_mm=offset,
+        release_slip_mm=slip,
+        rng=np.random.default_rng(rng.integers(0, 2**63 - 1)),
+    )
