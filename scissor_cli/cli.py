@@ -7,6 +7,7 @@ no traceback; 1 a failure at run time, with the reason.
 from __future__ import annotations
 
 import datetime as _dt
+import os
 import sys
 from contextlib import contextmanager
 from pathlib import Path
@@ -102,19 +103,43 @@ def validate(config: Path = typer.Argument(..., help="Scene YAML file.")) -> Non
 def simulate(
     config: Optional[Path] = typer.Argument(None, help="Scene YAML file (default: the shipped example scene)."),
     out_dir: Optional[Path] = typer.Option(None, "--out", help="Output directory (default runs/<config-stem>-<time>/)."),
-    trials: Optional[int] = typer.Option(None, "--trials", min=0, help="Trials per target (0: forward cases only)."),
+    trials: Optional[int] = typer.Option(None, "--trials", min=0, help="Trials per target (0: forward cases and plans only)."),
     seed: Optional[int] = typer.Option(None, "--seed", min=0, help="Override the config's seed."),
     solver: Optional[str] = typer.Option(None, "--solver", help="Override the config's solver: admm | newton."),
     jobs: Optional[int] = typer.Option(None, "--jobs", min=1, help="Worker processes for trials (default: all cores)."),
+    executor: str = typer.Option("local", "--executor", help="Where trials run: local | dask."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address (with --executor dask)."),
+    resume: Optional[Path] = typer.Option(None, "--resume", help="Finish the trials of an interrupted run directory."),
     force: bool = typer.Option(False, "--force", help="Write into a non-empty --out directory."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress or messages, only the output path."),
 ) -> None:
-    """Mesh the scene, solve its forward cases, and write results.h5 and figures."""
-    from .simulate import run_simulation
-    from .solve import SolverError
+    """Mesh the scene, solve its forward cases, plan the needle, manipulate the targets, run trials."""
     from .mesh import MeshError
+    from .simulate import Execution, ResumeError, TrialsFailed, resume_simulation, run_simulation
+    from .solve import SolverError
     from .tissue import BoundaryError
 
+    if executor not in ("local", "dask"):
+        _fail(2, f"--executor: must be 'local' or 'dask'; got {executor!r}")
+    if executor == "dask" and not scheduler:
+        _fail(2, "--executor dask needs --scheduler ADDRESS (e.g. tcp://127.0.0.1:8786)")
+    execution = Execution(jobs or os.cpu_count() or 1, executor, scheduler)
+    reporter = ConsoleReporter(quiet)
+    if resume is not None:
+        if not (resume / "results.h5").is_file():
+            _fail(2, f"--resume {resume}: no results.h5 there")
+        try:
+            n = resume_simulation(resume, reporter, execution)
+        except ResumeError as exc:
+            _fail(2, str(exc))
+        except TrialsFailed as exc:
+            _fail(1, str(exc))
+        except KeyboardInterrupt:
+            err.print(f"interrupted; finished trials are kept: resume again with --resume {resume}")
+            raise typer.Exit(130)
+        reporter.info(f"resumed: {n} trial(s) run")
+        out.print(str(resume))
+        return
     cfg, stem = _load(config)
     if solver is not None:
         if solver not in ("admm", "newton"):
@@ -122,21 +147,19 @@ def simulate(
         cfg = cfg.model_copy(update={"solver": cfg.solver.model_copy(update={"kind": solver})})
     if seed is not None:
         cfg = cfg.model_copy(update={"seed": seed})
-    n_trials = cfg.trials.count if trials is None else trials
-    if n_trials > 0:
-        _fail(2, f"trials.count = {n_trials}: closed-loop trials are not available in scissor {__version__} yet; "
-                 "run the forward cases with --trials 0")
+    if trials is not None:
+        cfg = cfg.model_copy(update={"trials": cfg.trials.model_copy(update={"count": trials})})
     directory = _out_dir(out_dir, stem, force)
-    reporter = ConsoleReporter(quiet)
     try:
-        summary = run_simulation(cfg, directory, reporter)
+        summary = run_simulation(cfg, directory, reporter, execution)
     except (BoundaryError, MeshError) as exc:
         _fail(2, f"{config or DEFAULT_SCENE}: {exc}")
-    except SolverError as exc:
+    except (SolverError, TrialsFailed) as exc:
         err.print(f"results so far: {directory / 'results.h5'} (status = failed)")
         _fail(1, str(exc))
     except KeyboardInterrupt:
-        err.print(f"interrupted; results so far: {directory / 'results.h5'} (status = failed)")
+        err.print(f"interrupted; results so far: {directory / 'results.h5'} (status = failed); "
+                  f"finish the trials with: scissor simulate --resume {directory}")
         raise typer.Exit(130)
     out.print(str(summary.out_dir))
 

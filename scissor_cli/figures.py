@@ -169,3 +169,45 @@ def manipulation_figure(
     fig.suptitle(title, fontsize=10)
     fig.subplots_adjust(bottom=0.2, wspace=0.08)
     return fig
+
+
+def error_boxplots(panels: list[tuple[str, dict[str, np.ndarray]]]) -> Figure:
+    """Box plots of the final error in x and y per target, like the paper's Fig. 14.
+
+    panels: [(title, {target: errors (T, 2) mm})], one row of x|y axes per
+    panel (e.g. prosthesis, ex vivo). Box 25–75 %, black median line, solid
+    triangle at the mean, whiskers at the minimum and maximum.
+    """
+    fig = Figure(figsize=(9, 3.4 * len(panels)))
+    for row, (title, errors) in enumerate(panels):
+        names = list(errors)
+        for col, axis in enumerate("xy"):
+            ax = fig.add_subplot(len(panels), 2, 2 * row + col + 1)
+            data = [np.asarray(errors[n])[:, col] for n in names]
+            data = [d[np.isfinite(d)] for d in data]
+            ax.boxplot(
+                data, whis=(0, 100), widths=0.5, patch_artist=True, showmeans=True,
+                boxprops={"facecolor": "#9ec5e8", "edgecolor": "k"}, medianprops={"color": "k", "lw": 1.5},
+                meanprops={"marker": "^", "markerfacecolor": "k", "markeredgecolor": "k", "markersize": 6},
+            )
+            ax.set_xticks(range(1, len(names) + 1), names)
+            ax.axhline(0.0, color="0.6", lw=0.6, zorder=0)
+            ax.set_ylabel(f"error in {axis.upper()} (mm)")
+            worst = max((np.abs(d).max() for d in data if len(d)), default=0.0)
+            ax.set_title(f"{title}: {axis.upper()} (max |e| {worst:.2f} mm)", fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
+def iterations_histogram(iterations: dict[str, np.ndarray], title: str) -> Figure:
+    """Histogram of control iterations per trial, stacked by target."""
+    fig = Figure(figsize=(6, 3.6))
+    ax = fig.add_subplot(1, 1, 1)
+    values = [np.asarray(v)[np.asarray(v) >= 0] for v in iterations.values()]
+    top = max((int(v.max()) for v in values if len(v)), default=1)
+    ax.hist(values, bins=np.arange(0.5, top + 1.5), stacked=True, label=list(iterations), edgecolor="k", lw=0.4)
+    ax.set_xlabel("control iterations")
+    ax.set_ylabel("trials")
+    ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=8, frameon=False)
+    return fig

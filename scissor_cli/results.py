@@ -154,3 +154,67 @@ def write_plan(out: ResultsFile, plan, joints_note: str) -> None:
             "desired_error_mm": float(plan.desired_error_mm),
         }
     )
+
+
+def allocate_trials(out: ResultsFile, names: list[str], count: int, attrs: dict) -> None:
+    """/trials/<target>/...: arrays for `count` trials, filled as trials finish (done marks which)."""
+    g = out.group("trials")
+    g.attrs.update(attrs)
+    for name in names:
+        t = f"trials/{name}"
+        out.dataset(f"{t}/final_error", np.full((count, 2), np.nan), "mm", description="true minus desired, x and y")
+        out.dataset(f"{t}/iterations", np.full(count, -1, np.int64))
+        out.dataset(f"{t}/time_s", np.full(count, np.nan), "s", description="wall time of the loop")
+        out.dataset(f"{t}/corridor_clear", np.zeros(count, bool))
+        out.dataset(f"{t}/clearance_mm", np.full(count, np.nan), "mm")
+        out.dataset(f"{t}/correctable_mm", np.full(count, np.nan), "mm")
+        out.dataset(f"{t}/uncorrectable_mm", np.full(count, np.nan), "mm")
+        out.dataset(f"{t}/stop_reason", np.array([""] * count, dtype=h5py.string_dtype()))
+        out.dataset(f"{t}/done", np.zeros(count, bool), description="trial finished (successfully or not)")
+        out.dataset(f"{t}/failed", np.zeros(count, bool), description="trial crashed; see message")
+        out.dataset(f"{t}/message", np.array([""] * count, dtype=h5py.string_dtype()))
+        out.group(f"{t}/history")
+
+
+def write_trial(out: ResultsFile, name: str, o) -> None:
+    """Store one finished trial (a `trials.TrialOutcome`) in its target's arrays."""
+    t, k = f"trials/{name}", o.trial
+    h5 = out.h5
+    h5[f"{t}/final_error"][k] = o.final_error
+    h5[f"{t}/iterations"][k] = o.iterations
+    h5[f"{t}/time_s"][k] = o.time_s
+    h5[f"{t}/corridor_clear"][k] = o.corridor_clear
+    h5[f"{t}/clearance_mm"][k] = o.clearance_mm
+    h5[f"{t}/correctable_mm"][k] = o.correctable_mm
+    h5[f"{t}/uncorrectable_mm"][k] = o.uncorrectable_mm
+    h5[f"{t}/stop_reason"][k] = o.stop_reason
+    h5[f"{t}/message"][k] = o.message
+    h5[f"{t}/failed"][k] = not o.ok
+    if o.ok:
+        ds = out.dataset(f"{t}/history/{k}", o.history, "mm (time_s: s)", columns=o.history_columns)
+        ds.attrs["stop_reason"] = o.stop_reason
+    h5[f"{t}/done"][k] = True
+
+
+def pending_trials(h5: h5py.File) -> dict[str, np.ndarray]:
+    """Trials per target still to run: not done, or done but failed."""
+    if "trials" not in h5:
+        return {}
+    return {
+        name: np.flatnonzero(~g["done"][:] | g["failed"][:])
+        for name, g in h5["trials"].items()
+    }
+
+
+def reopen(path: Path | str) -> ResultsFile:
+    """Continue writing an existing results.h5 (for --resume): copied to the temporary name first."""
+    import shutil
+
+    path = Path(path)
+    obj = ResultsFile.__new__(ResultsFile)
+    obj.path = path
+    obj.tmp = path.with_name(path.name + ".tmp")
+    shutil.copyfile(path, obj.tmp)
+    obj.h5 = h5py.File(obj.tmp, "r+")
+    obj.h5.attrs["status"] = "running"
+    return obj

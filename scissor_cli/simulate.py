@@ -8,17 +8,21 @@ the CLI decides what a terminal shows.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable, Protocol
 
 import numpy as np
 
-from . import figures, mesh as meshing, results
-from .config import Config, SolverConfig, resolved_yaml
+import h5py
+
+from . import control, figures, mesh as meshing, results
+from .config import Config, SolverConfig, parse_config, resolved_yaml
 from .jacobian import cup_target_jacobian, probe_targets, target_positions
 from .newton import solve_newton
-from .planner import NeedlePlan, StateCache, plan_target
+from .planner import NeedlePlan, StateCache, corridor_radius, plan_target
+from .profiles import error_model
+from .trials import TargetTask, execute
 from .scene import Scene, scene_from_config
 from .solve import Inertia, SolveResult, SolverError
 from .tissue import Tissue, build_tissue
@@ -110,11 +114,27 @@ def build_model(cfg: Config, model: str | None = None, mesh_scale: float | None 
     return scene, mesh, build_tissue(scene, mesh, model=model)
 
 
-def run_simulation(cfg: Config, out_dir: Path, reporter: Reporter | None = None) -> RunSummary:
+class TrialsFailed(RuntimeError):
+    """Some trials crashed; the others are stored and `--resume` re-runs the crashed ones."""
+
+
+@dataclass(frozen=True)
+class Execution:
+    """How trials run: worker processes, or a Dask cluster at `scheduler`."""
+
+    jobs: int = 1
+    executor: str = "local"  # "local" | "dask"
+    scheduler: str | None = None
+
+
+def run_simulation(cfg: Config, out_dir: Path, reporter: Reporter | None = None,
+                   execution: Execution = Execution()) -> RunSummary:
     """Everything `scissor simulate` does for a validated config, into out_dir.
 
-    Raises SolverError (after writing the partial, failed file) when a
-    solve fails.
+    Forward cases, the rest Jacobian and the needle plans always; with
+    `cfg.trials.count` > 0 also the nominal manipulation of every target
+    (Fig. 11) and the trials (Fig. 14). Raises SolverError or TrialsFailed
+    after writing the partial file, marked failed.
     """
     reporter = reporter or SilentReporter()
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -135,7 +155,139 @@ def run_simulation(cfg: Config, out_dir: Path, reporter: Reporter | None = None)
             for k, target in enumerate(scene.targets):
                 results.write_jacobian(out, target.name, J[2 * k : 2 * k + 2], scene.cup_names)
         summary.plans = _plan_stage(cfg, tissue, out, reporter)
+        if cfg.trials.count > 0:
+            _manipulation_stage(cfg, tissue, summary.plans, out, reporter)
+            tasks = trial_tasks(tissue, summary.plans)
+            allocate_trial_arrays(out, cfg, tasks, summary.plans)
+            _trial_stage(out, cfg, tasks, reporter, execution)
     return summary
+
+
+def trial_tasks(tissue: Tissue, plans: list[NeedlePlan]) -> list[TargetTask]:
+    """Plain-data tasks of the targets that have a plan with a desired position."""
+    tasks = []
+    for index, (target, plan) in enumerate(zip(tissue.scene.targets, plans)):
+        if plan.feasible:
+            tasks.append(TargetTask(index, target.name, target.rest, np.asarray(plan.desired, float),
+                                    np.asarray(plan.strokes, float), plan.side, np.asarray(plan.direction, float)))
+    return tasks
+
+
+def allocate_trial_arrays(out: results.ResultsFile, cfg: Config, tasks: list[TargetTask], plans: list[NeedlePlan]) -> None:
+    em = error_model(cfg.trials)
+    attrs = {"count": cfg.trials.count, "profile": cfg.trials.profile, "seed": cfg.seed,
+             **{k: v for k, v in asdict(em).items() if k != "profile"}}
+    results.allocate_trials(out, [p.target for p in plans], cfg.trials.count, attrs)
+    planned = {t.name for t in tasks}
+    for plan in plans:  # a target without a plan has nothing to manipulate towards
+        if plan.target not in planned:
+            g = f"trials/{plan.target}"
+            out.h5[f"{g}/done"][:] = True
+            out.h5[f"{g}/stop_reason"][:] = "no_plan"
+            out.h5[f"{g}/message"][:] = f"no plan: {plan.reason}"
+
+
+def _manipulation_stage(cfg: Config, tissue: Tissue, plans: list[NeedlePlan], out: results.ResultsFile,
+                        reporter: Reporter) -> None:
+    """The nominal manipulation of each planned target (truth = model, exact camera): Fig. 11.
+
+    The open-loop baseline (one Jacobian step from rest) is stored beside it.
+    """
+    radius = corridor_radius(cfg.needle)
+    for target, plan in zip(tissue.scene.targets, plans):
+        if not plan.feasible:
+            continue
+        corridor = control.Corridor.from_plan(plan, radius)
+        kw = dict(corridor=corridor, target=target.name)
+        closed = control.run_target(tissue, target.rest, plan.desired, cfg.controller, **kw)
+        opened = control.run_target(tissue, target.rest, plan.desired, cfg.controller, mode="open", **kw)
+        g = out.group(f"manipulation/{target.name}")
+        g.attrs.update({
+            "closed_final_error": closed.final_error, "closed_iterations": closed.iterations,
+            "closed_stop_reason": closed.stop_reason, "closed_corridor_clear": bool(closed.corridor_clear),
+            "closed_clearance_mm": closed.clearance_mm, "open_final_error": opened.final_error,
+            "uncorrectable_mm": closed.uncorrectable_error_mm, "units": "mm",
+        })
+        names, table = closed.history_table()
+        out.dataset(f"manipulation/{target.name}/history", table, "mm (time_s: s)", columns=names)
+        fig = figures.manipulation_figure(**control.figure_inputs(tissue, closed, target.rest, corridor))
+        figures.save(fig, out.path.parent / f"manipulation_{target.name}.png")
+        reporter.info(
+            f"manipulation {target.name}: closed loop {closed.iterations} iterations ({closed.stop_reason}), "
+            f"error {np.linalg.norm(closed.final_error):.3f} mm vs open loop {np.linalg.norm(opened.final_error):.3f} mm, "
+            f"corridor {'clear' if closed.corridor_clear else 'BLOCKED'}"
+        )
+
+
+def _trial_stage(out: results.ResultsFile, cfg: Config, tasks: list[TargetTask], reporter: Reporter,
+                 execution: Execution) -> None:
+    """Run every pending trial of the file and store each as it finishes."""
+    pending = results.pending_trials(out.h5)
+    by_name = {t.name: t for t in tasks}
+    work = [(by_name[name], int(k)) for name, ks in pending.items() if name in by_name for k in ks]
+    if work:
+        reporter.info(f"trials: {len(work)} to run ({cfg.trials.profile} profile, {execution.jobs} job(s), "
+                      f"{execution.executor} executor)")
+    advance = reporter.progress("trials", len(work))
+    t0, failed = time.perf_counter(), 0
+    config_yaml = out.h5.attrs["config_yaml"]
+    for outcome in execute(config_yaml, work, execution.jobs, execution.executor, execution.scheduler):
+        results.write_trial(out, tasks_by_index(tasks)[outcome.target_index].name, outcome)
+        out.flush()
+        failed += not outcome.ok
+        advance(1)
+    if work:
+        reporter.info(f"trials done in {time.perf_counter() - t0:.1f} s")
+    write_trial_figures(out.h5, out.path.parent, cfg.name)
+    if failed:
+        raise TrialsFailed(f"{failed} trial(s) crashed (see /trials/<target>/message); re-run them with --resume")
+
+
+def tasks_by_index(tasks: list[TargetTask]) -> dict[int, TargetTask]:
+    return {t.index: t for t in tasks}
+
+
+def write_trial_figures(h5, out_dir: Path, name: str) -> list[Path]:
+    """Fig. 14 box plots of the x and y error per target, and the iterations histogram."""
+    errors = {t: g["final_error"][:][g["done"][:] & ~g["failed"][:]] for t, g in h5["trials"].items()}
+    errors = {t: e[np.isfinite(e).all(axis=1)] for t, e in errors.items()}
+    errors = {t: e for t, e in errors.items() if len(e)}
+    if not errors:
+        return []
+    profile = h5["trials"].attrs.get("profile", "")
+    paths = [figures.save(figures.error_boxplots([(f"{name} ({profile})", errors)]), out_dir / "trials_error_boxplot.png")]
+    iterations = {t: g["iterations"][:][g["iterations"][:] >= 0] for t, g in h5["trials"].items()}
+    paths.append(figures.save(figures.iterations_histogram(iterations, f"{name}: control iterations per trial"),
+                              out_dir / "trials_iterations.png"))
+    return paths
+
+
+def resume_simulation(run_dir: Path, reporter: Reporter | None = None, execution: Execution = Execution()) -> int:
+    """Finish the trials of an interrupted or partly failed run in place; returns how many ran."""
+    reporter = reporter or SilentReporter()
+    path = run_dir / "results.h5"
+    with h5py.File(path, "r") as h5:
+        config_yaml = h5.attrs["config_yaml"]
+        if "trials" not in h5 or "plan" not in h5:
+            raise ResumeError(f"{path}: nothing to resume: the run stopped before its trials; run simulate again")
+        plans = {name: dict(g.attrs) for name, g in h5["plan"].items()}
+        todo = sum(len(v) for v in results.pending_trials(h5).values())
+    cfg = parse_config(config_yaml, str(path))
+    scene, mesh, tissue = build_model(cfg)
+    tasks = []
+    for index, target in enumerate(scene.targets):
+        p = plans.get(target.name)
+        if p is not None and bool(p["feasible"]):
+            tasks.append(TargetTask(index, target.name, target.rest, np.asarray(p["desired"]),
+                                    np.asarray(p["strokes"]), str(p["side"]), np.asarray(p["direction"])))
+    out = results.reopen(path)
+    with out:
+        _trial_stage(out, cfg, tasks, reporter, execution)
+    return todo
+
+
+class ResumeError(ValueError):
+    """The run directory cannot be resumed."""
 
 
 def _forward_stage(cfg: Config, tissue: Tissue, out: results.ResultsFile, summary: RunSummary, reporter: Reporter) -> None:

@@ -1,0 +1,212 @@
+"""Trials: many closed-loop manipulations per target under drawn error sources (MODEL.md §10).
+
+A trial is a pure function of (resolved config text, target task, trial
+index): the worker rebuilds the same mesh and model from the config text,
+draws the trial's error sources from a generator seeded by (seed, target,
+trial) and runs the loop. So a trial gives the same numbers in this
+process, in a pool of processes or on a Dask worker, and any trial can be
+re-run alone (`--resume`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from typing import Callable, Iterable, Iterator, Optional
+
+import numpy as np
+
+from . import control
+from .camera import Camera
+from .config import parse_config
+from .newton import solve_newton
+from .planner import corridor_radius
+from .profiles import ErrorModel, draw_trial, error_model
+
+
+@dataclass(frozen=True)
+class TargetTask:
+    """What a worker needs to know of one target's plan, as plain data (mm)."""
+
+    index: int
+    name: str
+    rest: np.ndarray  # (2,)
+    desired: np.ndarray  # (2,)
+    plan_strokes: np.ndarray  # (C,) where the planner found the desired position
+    side: str  # corridor entry side, "" when there is no corridor
+    direction: np.ndarray  # (2,) corridor direction, NaN when none
+
+
+@dataclass
+class TrialOutcome:
+    target_index: int
+    trial: int
+    ok: bool
+    message: str
+    final_error: np.ndarray  # (2,) true − desired, mm
+    iterations: int
+    time_s: float  # wall clock of the loop
+    corridor_clear: bool
+    clearance_mm: float
+    stop_reason: str
+    correctable_mm: float
+    uncorrectable_mm: float
+    history_columns: list[str]
+    history: np.ndarray  # (K, n)
+
+
+class TrialContext:
+    """Everything trials of one run share in one process: model, camera, error model, warm starts."""
+
+    def __init__(self, config_yaml: str):
+        from .simulate import build_model  # experiments build on the pipeline's model builder
+
+        self.cfg = parse_config(config_yaml, "<run config>")
+        self.scene, self.mesh, self.tissue = build_model(self.cfg)
+        self.errors: ErrorModel = error_model(self.cfg.trials)
+        self.camera = Camera.from_config(self.cfg.camera)
+        self.centroids = self.mesh.nodes[self.mesh.triangles].mean(axis=1)
+        self._guesses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def guess(self, task: TargetTask) -> Optional[tuple[np.ndarray, np.ndarray]]:
+        """The model's equilibrium at the plan's strokes: a warm start for the loop's first big move."""
+        if not np.any(task.plan_strokes):
+            return None
+        if task.index not in self._guesses:
+            r = solve_newton(self.tissue, task.plan_strokes)
+            self._guesses[task.index] = (task.plan_strokes, r.x)
+        return self._guesses[task.index]
+
+    def measurement(self, draw) -> control.Measurement:
+        if self.errors.exact_measurement:
+            return control.Measurement()
+        return control.Measurement(self.camera, tuple(draw.localisation_offset_mm), noise_px=self.errors.pixel_noise_px)
+
+    def run(self, task: TargetTask, trial: int) -> TrialOutcome:
+        draw = draw_trial(self.errors, self.scene.material.nu, self.centroids, self.cfg.seed, task.index, trial)
+        truth = control.TruthPerturbation(
+            E_scale=draw.E_field, fiber_offset_rad=draw.fiber_offset_rad, nu=draw.nu, eta_scale=draw.eta_scale
+        )
+        corridor = None
+        if task.side:
+            corridor = control.Corridor(task.side, task.direction, corridor_radius(self.cfg.needle))
+        r = control.run_target(
+            self.tissue, task.rest, task.desired, self.cfg.controller,
+            truth=truth, measurement=self.measurement(draw),
+            resolution_mm=self.errors.actuator_resolution_mm, backlash_mm=self.errors.backlash_mm,
+            rng=draw.rng, corridor=corridor, target=task.name, guess=self.guess(task),
+        )
+        # The optional release slip moves the target along the (first) cup's axis after the loop.
+        slip = draw.release_slip_mm * self.scene.cups[0].axis if len(self.scene.cups) else np.zeros(2)
+        columns, table = r.history_table()
+        return TrialOutcome(
+            target_index=task.index, trial=trial, ok=True, message=r.message,
+            final_error=np.asarray(r.final_error, float) + slip, iterations=int(r.iterations), time_s=float(r.time_s),
+            corridor_clear=bool(r.corridor_clear) if r.corridor_clear is not None else False,
+            clearance_mm=float(r.clearance_mm), stop_reason=r.stop_reason,
+            correctable_mm=float(r.correctable_error_mm), uncorrectable_mm=float(r.uncorrectable_error_mm),
+            history_columns=list(columns), history=table,
+        )
+
+
+_CONTEXTS: dict[str, TrialContext] = {}
+
+
+def _context(config_yaml: str) -> TrialContext:
+    key = hashlib.sha256(config_yaml.encode()).hexdigest()
+    if key not in _CONTEXTS:
+        _CONTEXTS.clear()  # one run at a time per process
+        _CONTEXTS[key] = TrialContext(config_yaml)
+    return _CONTEXTS[key]
+
+
+def run_trial(config_yaml: str, task: TargetTask, trial: int) -> TrialOutcome:
+    """One trial, in whatever process runs it; a failure is an outcome, not an exception."""
+    t0 = time.perf_counter()
+    try:
+        return _context(config_yaml).run(task, trial)
+    except Exception as exc:  # noqa: BLE001 - a crashed trial is recorded and the run goes on
+        return TrialOutcome(
+            target_index=task.index, trial=trial, ok=False, message=f"{type(exc).__name__}: {exc}",
+            final_error=np.full(2, np.nan), iterations=-1, time_s=time.perf_counter() - t0,
+            corridor_clear=False, clearance_mm=float("nan"), stop_reason="solver_failed",
+            correctable_mm=float("nan"), uncorrectable_mm=float("nan"), history_columns=[], history=np.zeros((0, 0)),
+        )
+
+
+def _run_batch(config_yaml: str, work: list[tuple[TargetTask, int]]) -> list[TrialOutcome]:
+    return [run_trial(config_yaml, task, k) for task, k in work]
+
+
+def _batches(work: list[tuple[TargetTask, int]], size: int) -> list[list[tuple[TargetTask, int]]]:
+    return [work[i : i + size] for i in range(0, len(work), size)]
+
+
+def execute(
+    config_yaml: str,
+    work: list[tuple[TargetTask, int]],
+    jobs: int = 1,
+    executor: str = "local",
+    scheduler: Optional[str] = None,
+) -> Iterator[TrialOutcome]:
+    """Run trials and yield outcomes as they finish (order not guaranteed).
+
+    jobs 1 runs in this process; a local pool sends small batches so each
+    worker builds its model once; "dask" submits batches to the
+    dask.distributed scheduler at `scheduler`.
+    """
+    if not work:
+        return
+    if executor == "dask":
+        yield from _execute_dask(config_yaml, work, scheduler, jobs)
+        return
+    if jobs <= 1:
+        for task, k in work:
+            yield run_trial(config_yaml, task, k)
+        return
+    # Batches amortise the per-task overhead while keeping both workers busy to the end.
+    size = max(1, min(8, len(work) // (4 * jobs)))
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        pending = {pool.submit(_run_batch, config_yaml, batch) for batch in _batches(work, size)}
+        try:
+            while pending:
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for future in done:
+                    yield from future.result()
+        except BaseException:
+            for future in pending:
+                future.cancel()
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+
+
+def _execute_dask(config_yaml: str, work, scheduler: Optional[str], jobs: int) -> Iterator[TrialOutcome]:
+    try:
+        from dask.distributed import Client, as_completed
+    except ImportError:  # pragma: no cover - depends on the installation
+        raise RuntimeError("--executor dask needs dask.distributed: pip install 'scissor[cluster]'") from None
+    if not scheduler:
+        raise RuntimeError("--executor dask needs --scheduler ADDRESS (e.g. tcp://127.0.0.1:8786)")
+    with Client(scheduler, timeout="20s") as client:
+        n_workers = max(1, len(client.scheduler_info().get("workers", {})))
+        size = max(1, min(8, len(work) // (4 * n_workers)))
+        futures = [client.submit(_run_batch, config_yaml, batch, pure=False) for batch in _batches(work, size)]
+        for future in as_completed(futures):
+            yield from future.result()
+
+
+def summarise(outcomes: Iterable[TrialOutcome]) -> dict[str, float]:
+    """Mean, median, max and 95th percentile of |x| and |y| error over successful trials (mm)."""
+    errs = np.array([o.final_error for o in outcomes if o.ok]).reshape(-1, 2)
+    if not len(errs):
+        return {}
+    a = np.abs(errs)
+    out = {}
+    for j, axis in enumerate("xy"):
+        out[f"mean_{axis}"] = float(a[:, j].mean())
+        out[f"median_{axis}"] = float(np.median(a[:, j]))
+        out[f"max_{axis}"] = float(a[:, j].max())
+        out[f"p95_{axis}"] = float(np.percentile(a[:, j], 95))
+    return out
