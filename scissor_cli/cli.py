@@ -164,6 +164,25 @@ def simulate(
     out.print(str(summary.out_dir))
 
 
+@app.command()
+def report(
+    run_dirs: list[Path] = typer.Argument(..., help="Run directories (each with a results.h5)."),
+    out_dir: Optional[Path] = typer.Option(None, "--out", help="Where to write (default: runs/report-<time>/)."),
+    partial: bool = typer.Option(False, "--partial", help="Also report runs whose status is not 'complete'."),
+) -> None:
+    """Combine runs: error box plots side by side, and a summary table (Markdown, CSV)."""
+    from .report import ReportError, report_trials
+
+    directory = out_dir or Path("runs") / f"report-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
+    try:
+        result = report_trials(run_dirs, directory, partial)
+    except ReportError as exc:
+        _fail(2, str(exc))
+    sys.stdout.write(result.table_markdown)
+    for path in result.files:
+        err.print(f"wrote {path}")
+
+
 def run() -> None:  # pragma: no cover - console entry for `python -m scissor_cli`
     app()
 

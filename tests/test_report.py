@@ -1,0 +1,49 @@
+"""`scissor report`: box plots and summary tables from runs; refusal of incomplete runs."""
+
+import csv
+import subprocess
+import sys
+
+import h5py
+import numpy as np
+import pytest
+
+from scissor_cli.report import ReportError, report_trials
+from scissor_cli.simulate import Execution, run_simulation
+from test_trials import reduced
+
+
+@pytest.fixture(scope="module")
+def two_runs(tmp_path_factory):
+    a, b = tmp_path_factory.mktemp("pros"), tmp_path_factory.mktemp("exv")
+    run_simulation(reduced(trials=4), a, execution=Execution(jobs=1))
+    run_simulation(reduced(trials=4, profile="ex_vivo"), b, execution=Execution(jobs=1))
+    return a, b
+
+
+def test_report_writes_plots_and_tables(two_runs, tmp_path):
+    out = report_trials(list(two_runs), tmp_path / "rep")
+    assert (tmp_path / "rep" / "error_boxplots.png").stat().st_size > 10_000
+    rows = list(csv.DictReader(open(tmp_path / "rep" / "summary.csv")))
+    assert [r["target"] for r in rows] == ["T1", "T2", "T1", "T2"]
+    assert "prosthesis" in rows[0]["run"] and "ex_vivo" in rows[2]["run"]
+    with h5py.File(two_runs[0] / "results.h5") as f:
+        e = np.abs(f["trials/T1/final_error"][:])
+    assert float(rows[0]["max_x"]) == pytest.approx(e[:, 0].max(), abs=1e-3)
+    assert float(rows[0]["median_y"]) == pytest.approx(np.median(e[:, 1]), abs=1e-3)
+    assert "| T2 |" in out.table_markdown
+
+
+def test_report_refuses_incomplete_run_unless_partial(two_runs, tmp_path):
+    import shutil
+
+    bad = tmp_path / "bad"
+    shutil.copytree(two_runs[0], bad)
+    with h5py.File(bad / "results.h5", "r+") as f:
+        f.attrs["status"] = "failed"
+    proc = subprocess.run([sys.executable, "-m", "scissor_cli.cli", "report", str(bad), "--out", str(tmp_path / "r")],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2 and "--partial" in proc.stderr and "Traceback" not in proc.stderr
+    report_trials([bad], tmp_path / "r2", partial=True)
+    with pytest.raises(ReportError, match="no results.h5"):
+        report_trials([tmp_path], tmp_path / "r3")
