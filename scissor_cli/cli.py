@@ -110,6 +110,7 @@ def simulate(
     executor: str = typer.Option("local", "--executor", help="Where trials run: local | dask."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address (with --executor dask)."),
     resume: Optional[Path] = typer.Option(None, "--resume", help="Finish the trials of an interrupted run directory."),
+    study: bool = typer.Option(False, "--study", help="Also run the solver study (the config's `study` section or its defaults)."),
     force: bool = typer.Option(False, "--force", help="Write into a non-empty --out directory."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress or messages, only the output path."),
 ) -> None:
@@ -149,6 +150,10 @@ def simulate(
         cfg = cfg.model_copy(update={"seed": seed})
     if trials is not None:
         cfg = cfg.model_copy(update={"trials": cfg.trials.model_copy(update={"count": trials})})
+    if study and cfg.study is None:
+        from .config import StudyConfig
+
+        cfg = cfg.model_copy(update={"study": StudyConfig()})
     directory = _out_dir(out_dir, stem, force)
     try:
         summary = run_simulation(cfg, directory, reporter, execution)
@@ -170,12 +175,12 @@ def report(
     out_dir: Optional[Path] = typer.Option(None, "--out", help="Where to write (default: runs/report-<time>/)."),
     partial: bool = typer.Option(False, "--partial", help="Also report runs whose status is not 'complete'."),
 ) -> None:
-    """Combine runs: error box plots side by side, and a summary table (Markdown, CSV)."""
-    from .report import ReportError, report_trials
+    """Combine runs: error box plots and summary tables of trials; speed against error of studies."""
+    from .report import ReportError, make_report
 
     directory = out_dir or Path("runs") / f"report-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
     try:
-        result = report_trials(run_dirs, directory, partial)
+        result = make_report(run_dirs, directory, partial)
     except ReportError as exc:
         _fail(2, str(exc))
     sys.stdout.write(result.table_markdown)

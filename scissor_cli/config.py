@@ -207,6 +207,32 @@ class TrialsConfig(_Section):
     release_slip_mm: Optional[NonNegFloat] = None
 
 
+ModelName = Literal["linear", "neo_hookean", "neo_hookean_fiber"]
+
+
+class StudyConfig(_Section):
+    """The solver study (`simulate --study`): speed against error (MODEL.md §9)."""
+
+    #: size-field scale factors (×2 coarser … ×¼ finer than the config's mesh)
+    levels: Annotated[list[PositiveFloat], Len(1, None)] = [2.0, 1.0, 0.5, 0.25]
+    #: also uniform meshes at min_edge × level, the comparison for grading
+    uniform: bool = True
+    #: meshes with more elements are skipped (and said so)
+    max_elements: Annotated[int, Field(ge=100)] = 60000
+    models: Annotated[list[ModelName], Len(1, None)] = ["linear", "neo_hookean", "neo_hookean_fiber"]
+    admm_tolerances: Annotated[list[Annotated[float, Field(gt=0, lt=1)]], Len(1, None)] = [1e-2, 1e-3, 1e-4, 1e-5, 1e-6]
+    #: Anderson memory of the accelerated ADMM variant (0: no accelerated variant)
+    anderson_memory: Annotated[int, Field(ge=0, le=50)] = 5
+    admm_max_iterations: Annotated[int, Field(ge=1)] = 5000
+    #: the ADMM sweep runs on meshes up to this size (its cost is iterations × elements)
+    admm_max_elements: Annotated[int, Field(ge=100)] = 20000
+    #: timing repeats (median); a solve slower than `repeat_below_s` runs once
+    repeats: Annotated[int, Field(ge=1)] = 3
+    repeat_below_s: PositiveFloat = 1.0
+    #: forward cases to study (default: all)
+    cases: Optional[list[str]] = None
+
+
 class Config(_Section):
     name: str = "scene"
     seed: Annotated[int, Field(ge=0)] = 0
@@ -224,6 +250,7 @@ class Config(_Section):
     camera: CameraConfig = CameraConfig()
     robot: RobotConfig = RobotConfig()
     trials: TrialsConfig = TrialsConfig()
+    study: Optional[StudyConfig] = None
 
 
 # --------------------------------------------------------------------------
@@ -345,6 +372,11 @@ def scene_problems(cfg: Config) -> list[Problem]:
                         f"stroke {stroke} mm is outside cup {name!r}'s stroke_mm {cups[name].stroke_mm}",
                     )
                 )
+    if cfg.study is not None and cfg.study.cases is not None:
+        names = {c.name for c in cfg.forward}
+        for i, case in enumerate(cfg.study.cases):
+            if case not in names:
+                problems.append((("study", "cases", i), f"unknown forward case {case!r}; cases are {sorted(names)}"))
     lo, hi = cfg.needle.direction_range_deg
     if lo > hi or lo < -89 or hi > 89:
         problems.append(

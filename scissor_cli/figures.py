@@ -211,3 +211,36 @@ def iterations_histogram(iterations: dict[str, np.ndarray], title: str) -> Figur
     ax.set_title(title, fontsize=10)
     ax.legend(fontsize=8, frameon=False)
     return fig
+
+
+SOLVER_STYLE = {"newton": ("o", "-"), "admm": ("s", "--"), "admm+anderson": ("^", ":")}
+MODEL_COLOUR = {"linear": "#2a9d8f", "neo_hookean": "#e9c46a", "neo_hookean_fiber": "#e76f51"}
+
+
+def speed_error_figure(title: str, curves: dict[tuple[str, str, str], tuple[np.ndarray, np.ndarray]],
+                       front: tuple[np.ndarray, np.ndarray]) -> Figure:
+    """Log–log wall time against target error: one curve per (solver, model, mesh kind), Pareto front marked.
+
+    curves[(solver, model, kind)] = (error_mm (K,), time_s (K,)); front = (error_mm, time_s).
+    """
+    fig = Figure(figsize=(8.5, 5.5))
+    ax = fig.add_subplot(1, 1, 1)
+    for (solver, model, kind), (err, t) in sorted(curves.items()):
+        ok = np.isfinite(err) & np.isfinite(t) & (err > 0)
+        if not ok.any():
+            continue
+        order = np.argsort(t[ok])
+        marker, ls = SOLVER_STYLE.get(solver, ("x", "-"))
+        ax.plot(err[ok][order], t[ok][order], marker=marker, ls=ls, color=MODEL_COLOUR.get(model, "k"),
+                mfc="none" if kind == "uniform" else MODEL_COLOUR.get(model, "k"), ms=5, lw=1,
+                label=f"{solver}, {model}, {kind}")
+    if len(front[0]):
+        ax.plot(front[0], front[1], "k-", lw=2.5, alpha=0.35, zorder=0, label="Pareto front")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("target error against the reference (mm)")
+    ax.set_ylabel("wall time (s)")
+    ax.set_title(title, fontsize=10)
+    ax.grid(True, which="both", lw=0.3, alpha=0.5)
+    ax.legend(fontsize=6.5, frameon=False, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    return fig

@@ -23,6 +23,10 @@ from .solve import Factorization, Inertia, SolveResult, SolverError, check_finit
 from .tissue import Tissue
 
 ARMIJO = 1e-4
+#: an intermediate load step goes this far towards the first inverted element
+STEP_FRACTION = 0.7
+#: and is solved to this relative residual only
+SUBSTEP_TOL = 1e-4
 
 
 def tangent_predictor(tissue: Tissue, x: np.ndarray, strokes: np.ndarray, inertia: Inertia | None = None) -> np.ndarray:
@@ -102,7 +106,7 @@ def _line_search(tissue, x, phi, grad, d_free, inertia, res):
     step = np.zeros(x.size)
     step[free] = d_free
     step = step.reshape(-1, 2)
-    alpha = 1.0
+    alpha = min(1.0, 0.95 * tissue.max_feasible_step(x, step))
     g_norm = np.linalg.norm(grad[free])
     while alpha > 1e-12:
         trial = x + alpha * step
@@ -148,32 +152,37 @@ def solve_newton(
     elif strokes0 is None:
         strokes0 = strokes
     x, s_done = np.array(x0, float), np.asarray(strokes0, float)
-    # Load continuation: `fraction` of the remaining increment per step, halved
-    # when the predictor inverts an element, grown again after a success.
-    iterations, fraction, substeps, failures = 0, 1.0, 0, 0
+    # Load continuation. The predictor is linear in the stroke increment, so the
+    # largest fraction of it that keeps every J > 0 is known in closed form; an
+    # intermediate state goes to STEP_FRACTION of that and is solved loosely
+    # (it only has to be a good start for the next step).
+    iterations, substeps = 0, 0
     while True:
-        s_next = s_done + fraction * (strokes - s_done)
-        pred = tangent_predictor(tissue, x, s_next, inertia)
-        if np.min(tissue.jacobians(pred)) > 0:
-            final = fraction == 1.0
-            result = newton_iterations(tissue, pred, inertia, tol if final else max(tol, 1e-6), max_iter)
-            iterations += result.iterations
-            if not result.converged:
-                result.message = note + result.message
-                raise SolverError(result.message, result)
-            x, s_done = result.x, s_next
-            if final:
-                result.iterations = iterations
-                result.time_s = time.perf_counter() - t0
-                result.message = note + (f"converged with {substeps} load substeps" if substeps else "converged")
-                return result
-            substeps += 1
-            fraction = min(1.0, 2.0 * fraction / (1.0 - fraction))  # same absolute step, doubled
-        else:
-            fraction *= 0.5
-            failures += 1
-        if failures > max_substeps:
+        pred = tangent_predictor(tissue, x, strokes, inertia)
+        alpha = tissue.max_feasible_step(x, pred - x)
+        final = alpha > 1.0 / STEP_FRACTION
+        fraction = 1.0 if final else STEP_FRACTION * alpha
+        if fraction < 1e-6:
             raise SolverError(
-                note + f"every load step inverts an element, down to {fraction:.2g} of the remaining stroke increment",
+                note + f"every load step inverts an element: at most {alpha:.2g} of the remaining stroke increment is feasible",
+                SolveResult(x, False, iterations, np.nan, time.perf_counter() - t0, "newton", "inversion"),
+            )
+        s_next = s_done + fraction * (strokes - s_done)
+        start = x + fraction * (pred - x)
+        result = newton_iterations(tissue, start, inertia, tol if final else max(tol, SUBSTEP_TOL), max_iter)
+        iterations += result.iterations
+        if not result.converged:
+            result.message = note + result.message
+            raise SolverError(result.message, result)
+        x, s_done = result.x, s_next
+        if final:
+            result.iterations = iterations
+            result.time_s = time.perf_counter() - t0
+            result.message = note + (f"converged with {substeps} load substeps" if substeps else "converged")
+            return result
+        substeps += 1
+        if substeps > max_substeps:
+            raise SolverError(
+                note + f"load continuation needed more than {max_substeps} substeps",
                 SolveResult(x, False, iterations, np.nan, time.perf_counter() - t0, "newton", "inversion"),
             )

@@ -15,6 +15,8 @@ import h5py
 import numpy as np
 
 from . import figures
+from . import study as study_mod
+from .results import read_study
 
 
 class ReportError(ValueError):
@@ -122,6 +124,101 @@ class ReportOutput:
     out_dir: Path
     files: list[Path]
     table_markdown: str
+
+
+STUDY_THRESHOLDS_MM = (1.0, 0.1, 0.01)
+CHEAPEST_COLUMNS = ["run", "case", "accuracy_mm", "solver", "tolerance", "model", "kind", "level", "n_elements",
+                    "time_s", "error_reference_mm"]
+
+
+def _check_status(run_dir: Path, partial: bool) -> Path:
+    path = Path(run_dir) / "results.h5"
+    if not path.is_file():
+        raise ReportError(f"{run_dir}: no results.h5 (is this a scissor run directory?)")
+    with h5py.File(path, "r") as f:
+        status = str(f.attrs.get("status", "unknown"))
+        if status != "complete" and not partial:
+            reason = f.attrs.get("failure", "")
+            raise ReportError(
+                f"{path}: status is {status!r}, not 'complete'" + (f" ({reason})" if reason else "")
+                + "; finish it with 'scissor simulate --resume' or pass --partial"
+            )
+    return path
+
+
+def make_report(run_dirs: list[Path], out_dir: Path, partial: bool = False) -> ReportOutput:
+    """Trials (box plots, summary) and studies (speed vs error, cheapest settings) of the runs."""
+    paths = [_check_status(d, partial) for d in run_dirs]
+    with_trials, with_study = [], []
+    for d, p in zip(run_dirs, paths):
+        with h5py.File(p, "r") as f:
+            if "trials" in f:
+                with_trials.append(d)
+            if "study" in f:
+                with_study.append((d, study_mod.rows_from_columns(read_study(f)), _config_name(f.attrs.get("config_yaml", ""))))
+    if not with_trials and not with_study:
+        raise ReportError("none of the runs has trials or a study (run simulate with --trials N or --study)")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    files, text = [], ""
+    if with_trials:
+        trials = report_trials(with_trials, out_dir, partial=True)
+        files += trials.files
+        text += trials.table_markdown
+    if with_study:
+        files_s, text_s = report_studies(with_study, out_dir)
+        files += files_s
+        text += ("\n" if text else "") + text_s
+    return ReportOutput(out_dir, files, text)
+
+
+def report_studies(studies: list[tuple[Path, list, str]], out_dir: Path) -> tuple[list[Path], str]:
+    files, rows_out, ratios = [], [], []
+    for run_dir, rows, name in studies:
+        err = np.array([r.error_reference_mm for r in rows], float)
+        t = np.array([r.time_s for r in rows], float)
+        ok = np.array([r.converged for r in rows])
+        curves = {}
+        for key in {(r.solver, r.model, r.kind) for r in rows}:
+            sel = np.array([(r.solver, r.model, r.kind) == key and r.converged for r in rows])
+            # one point per (level, tolerance): the slowest case, the largest error (a setting serves all cases)
+            curves[key] = _per_setting(rows, sel)
+        settings_err, settings_t = zip(*curves.values()) if curves else ((), ())
+        all_err = np.concatenate(settings_err) if settings_err else np.zeros(0)
+        all_t = np.concatenate(settings_t) if settings_t else np.zeros(0)
+        front = study_mod.pareto_front(all_t, all_err)
+        fig = figures.speed_error_figure(f"{name}: speed against error ({ok.sum()} solves)", curves,
+                                         (all_err[front], all_t[front]))
+        tag = Path(run_dir).name
+        files.append(figures.save(fig, out_dir / f"speed_vs_error_{tag}.png"))
+        for case in sorted({r.case for r in rows}):
+            for thr in STUDY_THRESHOLDS_MM:
+                best = study_mod.cheapest(rows, thr, case)
+                row = {"run": name, "case": case, "accuracy_mm": thr}
+                if best is not None:
+                    row.update({c: getattr(best, c) for c in CHEAPEST_COLUMNS[3:]})
+                else:
+                    row["solver"] = "none reaches it"
+                rows_out.append(row)
+        for thr in STUDY_THRESHOLDS_MM:
+            counts = study_mod.graded_vs_uniform(rows, thr)
+            if counts:
+                ratios.append(f"{name}: to {thr:g} mm a graded mesh needs {counts[0]} elements, a uniform one "
+                              f"{counts[1]} ({counts[1] / counts[0]:.1f}x more)")
+    table = markdown_table(rows_out, CHEAPEST_COLUMNS)
+    (out_dir / "study_cheapest.md").write_text(table + "\n" + "\n".join(ratios) + "\n")
+    write_csv(out_dir / "study_cheapest.csv", rows_out, CHEAPEST_COLUMNS)
+    files += [out_dir / "study_cheapest.md", out_dir / "study_cheapest.csv"]
+    return files, table + ("\n" + "\n".join(ratios) + "\n" if ratios else "")
+
+
+def _per_setting(rows, sel) -> tuple[np.ndarray, np.ndarray]:
+    settings: dict[tuple, list] = {}
+    for r, s in zip(rows, sel):
+        if s:
+            settings.setdefault((r.level, r.tolerance if r.tolerance == r.tolerance else -1.0), []).append(r)
+    err = np.array([max(r.error_reference_mm for r in v) for v in settings.values()], float)
+    t = np.array([max(r.time_s for r in v) for v in settings.values()], float)
+    return err, t
 
 
 def report_trials(run_dirs: list[Path], out_dir: Path, partial: bool = False) -> ReportOutput:

@@ -218,3 +218,20 @@ def reopen(path: Path | str) -> ResultsFile:
     obj.h5 = h5py.File(obj.tmp, "r+")
     obj.h5.attrs["status"] = "running"
     return obj
+
+
+def write_study(out: ResultsFile, columns: dict[str, np.ndarray], reference: dict, notes: list[str], seconds: float) -> None:
+    """/study: one row per (case, mesh level, kind, model, solver, tolerance), as column datasets."""
+    units = {"level": "1", "tolerance": "1", "time_s": "s", "error_discrete_mm": "mm", "error_reference_mm": "mm"}
+    for name, values in columns.items():
+        data = values if values.dtype.kind != "U" else np.array(values.tolist(), dtype=h5py.string_dtype())
+        out.dataset(f"study/{name}", data, units.get(name))
+    out.group("study").attrs.update(
+        {f"reference_{k}": v for k, v in reference.items()} | {"notes": "\n".join(notes), "wall_time_s": seconds}
+    )
+
+
+def read_study(h5: h5py.File) -> dict[str, np.ndarray] | None:
+    if "study" not in h5:
+        return None
+    return {name: ds[:] for name, ds in h5["study"].items()}

@@ -22,6 +22,7 @@ from .jacobian import cup_target_jacobian, probe_targets, target_positions
 from .newton import solve_newton
 from .planner import NeedlePlan, StateCache, corridor_radius, plan_target
 from .profiles import error_model
+from .study import rows_as_columns, run_study
 from .trials import TargetTask, execute
 from .scene import Scene, scene_from_config
 from .solve import Inertia, SolveResult, SolverError
@@ -154,6 +155,8 @@ def run_simulation(cfg: Config, out_dir: Path, reporter: Reporter | None = None,
             J = cup_target_jacobian(tissue, tissue.rest, probe)
             for k, target in enumerate(scene.targets):
                 results.write_jacobian(out, target.name, J[2 * k : 2 * k + 2], scene.cup_names)
+        if cfg.study is not None:
+            _study_stage(cfg, out, reporter)
         summary.plans = _plan_stage(cfg, tissue, out, reporter)
         if cfg.trials.count > 0:
             _manipulation_stage(cfg, tissue, summary.plans, out, reporter)
@@ -161,6 +164,17 @@ def run_simulation(cfg: Config, out_dir: Path, reporter: Reporter | None = None,
             allocate_trial_arrays(out, cfg, tasks, summary.plans)
             _trial_stage(out, cfg, tasks, reporter, execution)
     return summary
+
+
+def _study_stage(cfg: Config, out: results.ResultsFile, reporter: Reporter) -> None:
+    t0 = time.perf_counter()
+    study = run_study(cfg, reporter.info)
+    seconds = time.perf_counter() - t0
+    results.write_study(out, rows_as_columns(study.rows), study.reference, study.notes, seconds)
+    out.flush()
+    for note in study.notes:
+        reporter.info(f"study: {note}")
+    reporter.info(f"study: {len(study.rows)} combinations in {seconds:.1f} s (speed vs error: scissor report {out.path.parent})")
 
 
 def trial_tasks(tissue: Tissue, plans: list[NeedlePlan]) -> list[TargetTask]:

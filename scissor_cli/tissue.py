@@ -78,6 +78,30 @@ class Tissue:
         """J = det F (M,) of every element at positions x (N, 2)."""
         return materials.jacobian_det(fem.deformation_gradients(self.ops, x))
 
+    def max_feasible_step(self, x: np.ndarray, dx: np.ndarray) -> float:
+        """The largest α ≥ 0 (inf if unbounded) keeping every J > 0 along x + α dx, both (N, 2).
+
+        J_e(α) = det(F + α dF) = J + α tr(cof(F)ᵀ dF) + α² det dF is a quadratic
+        per element, so the first root is found in closed form for all at once.
+        """
+        F = fem.deformation_gradients(self.ops, x)
+        dF = fem.deformation_gradients(self.ops, x + dx) - F
+        c = F[:, 0, 0] * F[:, 1, 1] - F[:, 0, 1] * F[:, 1, 0]
+        b = F[:, 0, 0] * dF[:, 1, 1] + dF[:, 0, 0] * F[:, 1, 1] - F[:, 0, 1] * dF[:, 1, 0] - dF[:, 0, 1] * F[:, 1, 0]
+        a = dF[:, 0, 0] * dF[:, 1, 1] - dF[:, 0, 1] * dF[:, 1, 0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            disc = b * b - 4 * a * c
+            sq = np.sqrt(np.maximum(disc, 0.0))
+            # roots of a α² + b α + c, in the cancellation-free form
+            q = -0.5 * (b + np.copysign(sq, b))
+            r1, r2 = q / a, c / q
+            linear = np.abs(a) <= 1e-14 * (np.abs(b) + np.abs(c))
+            r_lin = -c / b
+        roots = np.where(linear[:, None], np.stack([r_lin, r_lin], 1), np.stack([r1, r2], 1))
+        roots = np.where((disc[:, None] >= 0) | linear[:, None], roots, np.inf)
+        roots = np.where(np.isfinite(roots) & (roots > 0), roots, np.inf)
+        return float(roots.min()) if len(roots) else float("inf")
+
     def check_inversion(self, x: np.ndarray, where: str = "") -> None:
         J = self.jacobians(x)
         bad = int(np.argmin(J))
