@@ -133,6 +133,9 @@ class SolverConfig(_Section):
     newton_max_iterations: Annotated[int, Field(ge=1)] = 100
     #: ADMM: Anderson acceleration memory (0 switches it off)
     anderson_memory: Annotated[int, Field(ge=0, le=50)] = 0
+    #: target accuracy (mm): simulate calibrates on the scene and picks the cheapest
+    #: mesh level, material model and solver predicted to meet it (None: use the config as is)
+    accuracy_mm: Optional[PositiveFloat] = None
     #: start of a forward solve: the rest state, or (a stress test of the
     #: solvers' recovery) the rest state mirrored top-to-bottom, every element inverted
     initial_guess: Literal["rest", "mirrored"] = "rest"

@@ -235,3 +235,20 @@ def read_study(h5: h5py.File) -> dict[str, np.ndarray] | None:
     if "study" not in h5:
         return None
     return {name: ds[:] for name, ds in h5["study"].items()}
+
+
+def write_selection(out: ResultsFile, sel) -> None:
+    """/selection: what `solver.accuracy_mm` picked, why, and the calibration behind it."""
+    p = sel.pick
+    g = out.group("selection")
+    g.attrs.update({
+        "accuracy_mm": sel.accuracy_mm, "meets_budget": sel.meets_budget, "explanation": sel.explain(),
+        "level": p.level, "model": p.model, "solver": p.solver, "tolerance": p.tolerance, "n_elements": p.n_elements,
+        "predicted_error_mm": p.predicted_error_mm, "predicted_time_s": p.predicted_time_s,
+        "observed_order": sel.order, "calibration_case": sel.case, "calibration_s": sel.calibration_s,
+    })
+    levels = sorted(sel.discretisation_mm)
+    out.dataset("selection/discretisation_mm", np.array([sel.discretisation_mm[L] for L in levels]), "mm", levels=levels)
+    out.dataset("selection/model_mm", np.array(list(sel.model_mm.values())), "mm", models=list(sel.model_mm))
+    tols = sorted(sel.solver_mm)
+    out.dataset("selection/admm_mm", np.array([sel.solver_mm[t] for t in tols]), "mm", tolerances=tols)

@@ -22,6 +22,7 @@ from .jacobian import cup_target_jacobian, probe_targets, target_positions
 from .newton import solve_newton
 from .planner import NeedlePlan, StateCache, corridor_radius, plan_target
 from .profiles import error_model
+from .selection import select
 from .study import rows_as_columns, run_study
 from .trials import TargetTask, execute
 from .scene import Scene, scene_from_config
@@ -139,6 +140,12 @@ def run_simulation(cfg: Config, out_dir: Path, reporter: Reporter | None = None,
     """
     reporter = reporter or SilentReporter()
     out_dir.mkdir(parents=True, exist_ok=True)
+    selection = None
+    if cfg.solver.accuracy_mm is not None:
+        selection = select(cfg, cfg.solver.accuracy_mm, reporter.info)
+        # the file records the config that ran; the budget stays in /selection
+        cfg = selection.apply(cfg)
+        cfg = cfg.model_copy(update={"solver": cfg.solver.model_copy(update={"accuracy_mm": None})})
     t_mesh = time.perf_counter()
     scene, mesh, tissue = build_model(cfg)
     angles = mesh.angles_deg()
@@ -149,6 +156,8 @@ def run_simulation(cfg: Config, out_dir: Path, reporter: Reporter | None = None,
     summary = RunSummary(out_dir, out_dir / "results.h5", mesh.n_elements)
     with results.ResultsFile(summary.results_path, resolved_yaml(cfg), cfg.seed) as out:
         results.write_model(out, tissue, cfg.material)
+        if selection is not None:
+            results.write_selection(out, selection)
         _forward_stage(cfg, tissue, out, summary, reporter)
         probe = probe_targets(mesh, np.array([t.rest for t in scene.targets]).reshape(-1, 2))
         if len(scene.targets):

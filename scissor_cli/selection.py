@@ -1,0 +1,190 @@
+"""Model only what a scene needs: pick mesh, model and solver for an accuracy budget (MODEL.md §9).
+
+With `solver.accuracy_mm` set, `simulate` first calibrates on the scene
+itself, cheaply, and then runs with the cheapest setting predicted to keep
+the targets' error within the budget:
+
+* discretisation: Newton with the richest model on the size field scaled
+  ×4, ×2 and ×1; the observed order q of the successive changes of the
+  target positions gives a Richardson estimate of each level's error,
+  e(L) = d · L^q / (2^q − 1), d the change between levels 2 and 1;
+* model: at level 2, the distance of each simpler model's targets from the
+  richest model's (taken as independent of the mesh);
+* solver: at level 2, ADMM's distance from Newton at each tolerance;
+* cost: the measured times at levels 4, 2, 1, with the element count of
+  every candidate level (meshing is cheap) and a power law in elements
+  fitted to the measurements.
+
+The predicted error of a candidate is the sum of the three; the pick is
+the cheapest candidate whose prediction is within SAFETY × budget. The
+case studied is the forward case with the largest stroke (or the cups'
+largest stroke when the scene has none): the hardest the scene asks for.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from typing import Callable, Optional
+
+import numpy as np
+
+from .admm import AdmmSolver
+from .config import Config
+from .jacobian import probe_targets, target_positions
+from .mesh import mesh_for_config
+from .newton import solve_newton
+from .scene import scene_from_config
+from .tissue import build_tissue
+
+SAFETY = 0.7
+CALIBRATION_LEVELS = (4.0, 2.0, 1.0)
+CANDIDATE_LEVELS = (4.0, 2.0, 1.0, 0.5, 0.25)
+MODELS = ("linear", "neo_hookean", "neo_hookean_fiber")
+ADMM_TOLERANCES = (1e-2, 1e-3, 1e-4, 1e-5)
+ORDER_RANGE = (0.3, 2.0)
+
+
+@dataclass
+class Candidate:
+    level: float
+    model: str
+    solver: str  # "newton" | "admm"
+    tolerance: float  # the solver's tolerance (Newton: its reference 1e-10)
+    n_elements: int
+    predicted_error_mm: float
+    predicted_time_s: float
+
+
+@dataclass
+class Selection:
+    accuracy_mm: float
+    pick: Optional[Candidate]
+    meets_budget: bool
+    order: float
+    discretisation_mm: dict[float, float]
+    model_mm: dict[str, float]
+    solver_mm: dict[float, float]
+    calibration_s: float
+    case: str
+    candidates: list[Candidate] = field(default_factory=list)
+
+    def explain(self) -> str:
+        p = self.pick
+        head = (f"accuracy {self.accuracy_mm:g} mm: picked {p.solver}"
+                + (f" (tol {p.tolerance:g})" if p.solver == "admm" else "")
+                + f", {p.model}, mesh level {p.level:g} ({p.n_elements} elements); predicted error "
+                f"{p.predicted_error_mm:.3g} mm = mesh {self.discretisation_mm[p.level]:.3g} + model "
+                f"{self.model_mm[p.model]:.3g}" + (f" + solver {self.solver_mm[p.tolerance]:.3g}" if p.solver == "admm" else "")
+                + f", predicted {p.predicted_time_s * 1e3:.0f} ms per solve")
+        why = (f"; the cheapest of {len(self.candidates)} settings within {SAFETY:g} x the budget "
+               f"(calibrated on case {self.case!r} in {self.calibration_s:.1f} s, observed mesh order {self.order:.2f})")
+        if not self.meets_budget:
+            why = f"; NO setting is predicted to meet the budget: this is the most accurate one{why}"
+        return head + why
+
+    def for_budget(self, accuracy_mm: float) -> "Selection":
+        """The same calibration, choosing for another budget."""
+        pick, meets = choose(self.candidates, accuracy_mm)
+        return replace(self, accuracy_mm=accuracy_mm, pick=pick, meets_budget=meets)
+
+    def apply(self, cfg: Config) -> Config:
+        """The config that runs with the picked mesh level, model and solver."""
+        p = self.pick
+        solver = cfg.solver.model_copy(update={"kind": p.solver, "tolerance": p.tolerance if p.solver == "admm" else cfg.solver.tolerance})
+        return _at_level(cfg, p.level).model_copy(update={
+            "material": cfg.material.model_copy(update={"model": p.model}),
+            "solver": solver,
+        })
+
+
+def _at_level(cfg: Config, level: float) -> Config:
+    mesh = cfg.tissue.mesh.model_copy(update={"scale": cfg.tissue.mesh.scale * level})
+    return cfg.model_copy(update={"tissue": cfg.tissue.model_copy(update={"mesh": mesh})})
+
+
+def hardest_case(cfg: Config, scene) -> tuple[str, np.ndarray]:
+    if cfg.forward:
+        case = max(cfg.forward, key=lambda c: float(np.abs(scene.strokes_vector(c.strokes)).max(initial=0.0)))
+        return case.name, scene.strokes_vector(case.strokes)
+    strokes = np.array([c.stroke_max_mm if abs(c.stroke_max_mm) >= abs(c.stroke_min_mm) else c.stroke_min_mm
+                        for c in scene.cups])
+    return "largest stroke", strokes
+
+
+def _timed(fn):
+    t0 = time.perf_counter()
+    out = fn()
+    return out, time.perf_counter() - t0
+
+
+def select(cfg: Config, accuracy_mm: float, say: Optional[Callable[[str], None]] = None) -> Selection:
+    """Calibrate on the scene and pick the cheapest setting predicted to meet accuracy_mm."""
+    say = say or (lambda m: None)
+    t_start = time.perf_counter()
+    scene = scene_from_config(cfg)
+    if not scene.targets:
+        raise ValueError("solver.accuracy_mm needs at least one target to measure the error at")
+    case, strokes = hardest_case(cfg, scene)
+    rest = np.array([t.rest for t in scene.targets])
+    # Each level is built from the config it would run with (a circle's outline follows the mesh scale).
+    scenes = {L: scene_from_config(_at_level(cfg, L)) for L in CANDIDATE_LEVELS}
+    meshes = {L: mesh_for_config(scenes[L], _at_level(cfg, L).tissue.mesh) for L in CANDIDATE_LEVELS}
+    n = {L: m.n_elements for L, m in meshes.items()}
+
+    positions, newton_time = {}, {}
+    for L in CALIBRATION_LEVELS:
+        tissue = build_tissue(scenes[L], meshes[L], model="neo_hookean_fiber")
+        r, t = _timed(lambda: solve_newton(tissue, strokes))
+        positions[L], newton_time[L] = target_positions(probe_targets(meshes[L], rest), r.x), t
+    d1 = float(np.linalg.norm(positions[4.0] - positions[2.0], axis=1).max())
+    d2 = float(np.linalg.norm(positions[2.0] - positions[1.0], axis=1).max())
+    q = float(np.clip(np.log2(d1 / d2) if d2 > 0 and d1 > 0 else ORDER_RANGE[1], *ORDER_RANGE))
+    disc = {L: d2 * L**q / (2**q - 1) for L in CANDIDATE_LEVELS}
+
+    probe2 = probe_targets(meshes[2.0], rest)
+    model_err, model_time = {}, {}
+    for model in MODELS:
+        tissue = build_tissue(scenes[2.0], meshes[2.0], model=model)
+        r, t = _timed(lambda: solve_newton(tissue, strokes))
+        model_err[model] = float(np.linalg.norm(target_positions(probe2, r.x) - positions[2.0], axis=1).max())
+        model_time[model] = t / newton_time[2.0]  # relative cost of the model
+    tissue2 = build_tissue(scenes[2.0], meshes[2.0], model="neo_hookean_fiber")
+    solver_err, admm_time = {}, {}
+    for tol in ADMM_TOLERANCES:
+        def run():
+            solver = AdmmSolver(tissue2)
+            return solver.solve(strokes, tol=tol, max_iter=5000)[0]
+        r, t = _timed(run)
+        solver_err[tol] = float(np.linalg.norm(target_positions(probe2, r.x) - positions[2.0], axis=1).max()) if r.converged else np.inf
+        admm_time[tol] = t / newton_time[2.0]  # relative to Newton at the same level
+
+    # cost of Newton in elements: a power law through the calibration levels
+    ns = np.array([n[L] for L in CALIBRATION_LEVELS], float)
+    ts = np.array([newton_time[L] for L in CALIBRATION_LEVELS])
+    b, log_a = np.polyfit(np.log(ns), np.log(ts), 1)
+    b = float(np.clip(b, 1.0, 2.0))
+
+    def newton_cost(L):
+        return float(np.exp(log_a) * n[L] ** b)
+
+    candidates = []
+    for L in CANDIDATE_LEVELS:
+        for model in MODELS:
+            base_t = newton_cost(L) * model_time[model]
+            candidates.append(Candidate(L, model, "newton", 1e-10, n[L], disc[L] + model_err[model], base_t))
+            for tol in ADMM_TOLERANCES:
+                candidates.append(Candidate(L, model, "admm", tol, n[L], disc[L] + model_err[model] + solver_err[tol],
+                                            base_t * admm_time[tol]))
+    pick, meets = choose(candidates, accuracy_mm)
+    sel = Selection(accuracy_mm, pick, meets, q, disc, model_err, solver_err, time.perf_counter() - t_start, case, candidates)
+    say(sel.explain())
+    return sel
+
+
+def choose(candidates: list[Candidate], accuracy_mm: float) -> tuple[Candidate, bool]:
+    """The cheapest candidate predicted within SAFETY × budget, or the most accurate (and False)."""
+    ok = [c for c in candidates if c.predicted_error_mm <= SAFETY * accuracy_mm]
+    if ok:
+        return min(ok, key=lambda c: c.predicted_time_s), True
+    return min(candidates, key=lambda c: c.predicted_error_mm), False
