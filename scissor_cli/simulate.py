@@ -70,19 +70,31 @@ class ForwardSolver:
     def solve(self, strokes: np.ndarray) -> SolveResult:
         if self.cfg.dt_s is not None:
             return self._dynamic(strokes)
-        return self._static(strokes, None, None)
+        x0 = self.initial_guess()
+        return self._static(strokes, x0, None, None if x0 is None else np.zeros_like(strokes))
 
-    def _static(self, strokes, x0, inertia) -> SolveResult:
+    def initial_guess(self) -> np.ndarray | None:
+        """The configured start: None (rest) or the rest state mirrored top to bottom (every J < 0)."""
+        if self.cfg.initial_guess == "rest":
+            return None
+        x = self.tissue.rest.copy()
+        y = x[:, 1]
+        x[:, 1] = y.max() + y.min() - y
+        return x
+
+    def _static(self, strokes, x0, inertia, strokes0=None) -> SolveResult:
+        """One solve for strokes from x0 (an equilibrium at strokes0, or any start)."""
         cfg = self.cfg
         if cfg.kind == "newton":
-            return solve_newton(self.tissue, strokes, x0=x0, inertia=inertia, tol=cfg.newton_tolerance,
-                                max_iter=cfg.newton_max_iterations)
+            return solve_newton(self.tissue, strokes, x0=x0, strokes0=strokes0,
+                                inertia=inertia, tol=cfg.newton_tolerance, max_iter=cfg.newton_max_iterations)
         from .admm import AdmmSolver  # the ADMM is only built when asked for
 
         if self._admm is None or self._admm.dt_s != (None if inertia is None else inertia.dt_s):
             self._admm = AdmmSolver(self.tissue, dt_s=None if inertia is None else inertia.dt_s,
                                     anderson_memory=cfg.anderson_memory)
-        result, _ = self._admm.solve(strokes, inertia=inertia, tol=cfg.tolerance, max_iter=cfg.max_iterations)
+        state = None if x0 is None else self._admm.state_from_positions(x0)
+        result, _ = self._admm.solve(strokes, state=state, inertia=inertia, tol=cfg.tolerance, max_iter=cfg.max_iterations)
         if not result.converged:
             raise SolverError(f"ADMM did not converge: {result.message}", result)
         return result
@@ -96,14 +108,15 @@ class ForwardSolver:
         x = t.rest.copy()
         v = np.zeros(x.size)
         t0, iterations = time.perf_counter(), 0
+        s_prev = np.zeros_like(strokes)
         for step in range(n_ramp + cfg.steps):
             s = strokes * min(1.0, (step + 1) / n_ramp)
             x_tilde = x.ravel() + cfg.dt_s * v
             inertia = Inertia(cfg.dt_s, x_tilde, t.mass)
-            r = self._static(s, x, inertia)
+            r = self._static(s, x, inertia, s_prev)
             iterations += r.iterations
             v = (r.x - x).ravel() / cfg.dt_s
-            x = r.x
+            x, s_prev = r.x, s
         r.iterations, r.time_s = iterations, time.perf_counter() - t0
         speed = float(np.abs(v[t.free_dofs]).max()) if len(t.free_dofs) else 0.0
         r.message = f"implicit Euler, {n_ramp} ramp + {cfg.steps} settling steps of {cfg.dt_s:g} s; final max speed {speed:.3g} mm/s"

@@ -1,0 +1,49 @@
+"""Hard cases (configs/hard/): iterations and time of every forward case with Newton, ADMM and ADMM+Anderson.
+
+Usage: python benchmarks/bench_hard_cases.py [--scale S]
+Prints a Markdown table; times are wall clock of one solve (2-core machine).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from scissor_cli.config import load_config  # noqa: E402
+from scissor_cli.simulate import ForwardSolver, build_model  # noqa: E402
+from scissor_cli.solve import SolverError  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--scale", type=float, default=1.0, help="mesh scale (1: the configs' own mesh)")
+    args = ap.parse_args()
+    print("| case | forward | elements | solver | iterations | time (s) | residual | outcome |")
+    print("|---|---|---|---|---|---|---|---|")
+    for path in sorted((ROOT / "configs" / "hard").glob("*.yaml")):
+        cfg = load_config(path)
+        _, mesh, tissue = build_model(cfg, mesh_scale=args.scale * cfg.tissue.mesh.scale)
+        for label, kind, memory in (("newton", "newton", 0), ("admm", "admm", 0), ("admm+anderson", "admm", 5)):
+            solver_cfg = cfg.solver.model_copy(update={"kind": kind, "anderson_memory": memory})
+            forward = ForwardSolver(tissue, solver_cfg)
+            for case in cfg.forward:
+                strokes = tissue.scene.strokes_vector(case.strokes)
+                try:
+                    r = forward.solve(strokes)
+                    outcome = "converged" if r.converged else r.message
+                    row = (r.iterations, f"{r.time_s:.3f}", f"{r.residual:.1e}", outcome)
+                except SolverError as exc:
+                    row = ("-", "-", "-", f"failed: {exc}")
+                print(f"| {path.stem} | {case.name} | {mesh.n_elements} | {label} | {' | '.join(map(str, row))} |")
+            sys.stdout.flush()
+
+
+if __name__ == "__main__":
+    main()
