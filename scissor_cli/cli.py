@@ -170,6 +170,54 @@ def simulate(
 
 
 @app.command()
+def workspace(
+    config: Optional[Path] = typer.Argument(None, help="Scene YAML file for its `robot` section (default: the paper's robot)."),
+    samples: int = typer.Option(1_000_000, "--samples", min=1, help="Joint-space samples."),
+    out_dir: Optional[Path] = typer.Option(None, "--out", help="Output directory (default runs/workspace-<time>/)."),
+    seed: Optional[int] = typer.Option(None, "--seed", min=0, help="Sampling seed (default: the config's seed, else 0)."),
+    grid: bool = typer.Option(False, "--grid", help="Sample a tensor grid instead of uniformly at random."),
+    force: bool = typer.Option(False, "--force", help="Write into a non-empty --out directory."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="Only the output path."),
+) -> None:
+    """Sample the puncture module's joint space: workspace.h5, the Fig. 8 projections, box coverage."""
+    from .robot import RobotModel
+    from .workspace import plot_workspace, run_workspace, write_workspace_h5
+
+    if config is not None:
+        cfg, stem = _load(config)
+    else:
+        from .config import Config
+
+        cfg, stem = Config(), "workspace"
+    try:
+        robot = RobotModel.from_config(cfg.robot)
+    except ValueError as exc:
+        _fail(2, f"{config}: robot.dh: {exc}")
+    directory = _out_dir(out_dir, f"{stem}-workspace" if config else "workspace", force)
+    directory.mkdir(parents=True, exist_ok=True)
+    box = cfg.robot.breast_box_mm
+    used_seed = cfg.seed if seed is None else seed
+    result = run_workspace(robot, box.min, box.max, samples=samples, seed=used_seed,
+                           method="grid" if grid else "uniform", voxel_mm=cfg.robot.voxel_mm)
+    write_workspace_h5(directory / "workspace.h5", result, {"scissor_version": __version__, "robot": robot.name})
+    plot_workspace(result, directory / "workspace.png")
+    reporter = ConsoleReporter(quiet)
+    c, r = result.coverage, result.reachable
+    reporter.info(f"{result.samples} samples in {result.timings['total_s']:.2f} s; box {box.min} .. {box.max} mm, "
+                  f"voxels of {cfg.robot.voxel_mm:g} mm")
+    reporter.info(f"coverage (sampled tips): {100 * c.coverage:.1f}% of the box, "
+                  f"{100 * c.coverage_multi_direction:.1f}% from >= 3 insertion directions")
+    if r is not None:
+        reporter.info(f"coverage (reachable by IK): {100 * r.coverage:.1f}% of the box, "
+                      f"{100 * r.coverage_multi_direction:.1f}% from >= 3 insertion directions")
+        if r.coverage < 1:
+            reporter.info(r.summary)
+    elif c.coverage < 1:
+        reporter.info(c.summary)
+    out.print(str(directory))
+
+
+@app.command()
 def report(
     run_dirs: list[Path] = typer.Argument(..., help="Run directories (each with a results.h5)."),
     out_dir: Optional[Path] = typer.Option(None, "--out", help="Where to write (default: runs/report-<time>/)."),

@@ -134,7 +134,7 @@ def write_jacobian(out: ResultsFile, name: str, J: np.ndarray, cup_names: list[s
     out.dataset(f"jacobian/{name}", np.asarray(J, float), "mm/mm", columns=cup_names, rows=["x", "y"])
 
 
-def write_plan(out: ResultsFile, plan, joints_note: str) -> None:
+def write_plan(out: ResultsFile, plan, joints_note: str, robot_reachable: bool) -> None:
     """/plan/<target>: the needle plan (MODEL.md §7, §11) as attributes."""
     g = out.group(f"plan/{plan.target}")
     g.attrs.update(
@@ -146,6 +146,7 @@ def write_plan(out: ResultsFile, plan, joints_note: str) -> None:
             "joints": np.asarray(plan.joints, float),
             "joints_units": "d1, d2, d3 mm; theta4 rad; d5 mm",
             "joints_note": joints_note,
+            "robot_reachable": bool(robot_reachable),
             "feasible": bool(plan.feasible),
             "reason": plan.reason,
             "desired": np.asarray(plan.desired, float),

@@ -22,6 +22,7 @@ from .jacobian import cup_target_jacobian, probe_targets, target_positions
 from .newton import solve_newton
 from .planner import NeedlePlan, StateCache, corridor_radius, plan_target
 from .profiles import error_model
+from .robot import RobotModel, plan_to_joints
 from .selection import select
 from .study import rows_as_columns, run_study
 from .trials import TargetTask, execute
@@ -356,7 +357,7 @@ def _forward_stage(cfg: Config, tissue: Tissue, out: results.ResultsFile, summar
 def _plan_stage(cfg: Config, tissue: Tissue, out: results.ResultsFile, reporter: Reporter) -> list[NeedlePlan]:
     """Plan every target's insertion; the plan's desired position becomes the target's."""
     scene = tissue.scene
-    robot_check, joints_note = None, "robot kinematics not applied"
+    robot_check = robot_joint_check(cfg)
     plans = []
     cache = StateCache(tissue)
     advance = reporter.progress("needle plans", len(scene.targets))
@@ -365,15 +366,30 @@ def _plan_stage(cfg: Config, tissue: Tissue, out: results.ResultsFile, reporter:
         plans.append(plan)
         source = "config" if target.desired is not None else "planner"
         results.write_target(out, target.name, target.rest, plan.desired, source)
-        results.write_plan(out, plan, joints_note if robot_check is None else plan.robot_note)
+        results.write_plan(out, plan, plan.robot_note, plan.robot_ok)
         out.flush()
         how = (f"strokes {_fmt(plan.strokes)} mm" if plan.manipulated else "no manipulation needed")
+        if plan.feasible and not plan.robot_ok:
+            how += f"; ROBOT: {plan.robot_note}"
         reporter.info(
             f"plan {target.name}: " + (f"{plan.side} entry, clearance {plan.clearance_mm:.2f} mm, {how} ({plan.time_s:.1f} s)"
                                        if plan.feasible else f"infeasible: {plan.reason}")
         )
         advance(1)
     return plans
+
+
+def robot_joint_check(cfg: Config):
+    """The planner's hook: joint values of the puncture module for an insertion (MODEL.md §11)."""
+    robot = RobotModel.from_config(cfg.robot)
+    origin = np.asarray(cfg.robot.layer_origin_mm, float)
+    yaw = float(np.deg2rad(cfg.robot.layer_yaw_deg))
+
+    def check(entry: np.ndarray, direction: np.ndarray, target: np.ndarray):
+        r = plan_to_joints(robot, target, direction, origin, yaw)
+        return r.q, r.reachable, r.reason
+
+    return check
 
 
 def _fmt(values) -> str:
