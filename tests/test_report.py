@@ -47,3 +47,38 @@ def test_report_refuses_incomplete_run_unless_partial(two_runs, tmp_path):
     report_trials([bad], tmp_path / "r2", partial=True)
     with pytest.raises(ReportError, match="no results.h5"):
         report_trials([tmp_path], tmp_path / "r3")
+
+
+def test_study_report(tmp_path):
+    """A small study through simulate and report: the plot, the cheapest-setting table, graded vs uniform."""
+    from scissor_cli.config import StudyConfig, load_config
+    from helpers import ROOT
+
+    cfg = load_config(ROOT / "configs" / "example.yaml")
+    cfg = cfg.model_copy(update={
+        "forward": cfg.forward[1:],
+        "trials": cfg.trials.model_copy(update={"count": 0}),
+        "study": StudyConfig(levels=[4.0, 2.0, 1.0], models=["linear", "neo_hookean_fiber"],
+                             admm_tolerances=[1e-2, 1e-4], repeats=1, admm_max_elements=10000),
+    })
+    run_simulation(cfg, tmp_path / "run")
+    with h5py.File(tmp_path / "run" / "results.h5") as f:
+        study = f["study"]
+        n = len(study["case"])
+        sizes = dict(zip(zip(study["kind"][:].astype(str), study["level"][:]), study["n_elements"][:]))
+        with_admm = sum(1 for v in sizes.values() if v <= 10000)
+        # per mesh and model: Newton, plus plain and Anderson ADMM at two tolerances where the mesh is small enough
+        assert n == 2 * (len(sizes) + 4 * with_admm) and len(sizes) == 6 and with_admm == 5
+        assert study["time_s"].attrs["units"] == "s" and study.attrs["reference_model"] == "neo_hookean_fiber"
+        newton = study["solver"][:].astype(str) == "newton"
+        assert np.all(study["error_discrete_mm"][:][newton] == 0)
+    from scissor_cli.report import make_report
+
+    rep = make_report([tmp_path / "run"], tmp_path / "rep")
+    assert (tmp_path / "rep" / "study_cheapest.csv").exists()
+    rows = list(csv.DictReader(open(tmp_path / "rep" / "study_cheapest.csv")))
+    assert {r["accuracy_mm"] for r in rows} == {"1.000", "0.100", "0.010"}
+    one_mm = next(r for r in rows if r["accuracy_mm"] == "1.000")
+    assert one_mm["solver"] != "none reaches it" and float(one_mm["error_reference_mm"]) <= 1.0
+    assert any(p.name.startswith("speed_vs_error") for p in rep.files)
+    assert "graded mesh needs" in rep.table_markdown
