@@ -9,7 +9,6 @@ from __future__ import annotations
 import datetime as _dt
 import os
 import sys
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -18,7 +17,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from . import __version__
-from .config import Config, ConfigError, load_config, parse_config, resolved_yaml
+from .config import Config, ConfigError, load_config, resolved_yaml
 
 app = typer.Typer(
     add_completion=False,

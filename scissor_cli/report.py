@@ -174,8 +174,6 @@ def make_report(run_dirs: list[Path], out_dir: Path, partial: bool = False) -> R
 def report_studies(studies: list[tuple[Path, list, str]], out_dir: Path) -> tuple[list[Path], str]:
     files, rows_out, ratios = [], [], []
     for run_dir, rows, name in studies:
-        err = np.array([r.error_reference_mm for r in rows], float)
-        t = np.array([r.time_s for r in rows], float)
         ok = np.array([r.converged for r in rows])
         curves = {}
         for key in {(r.solver, r.model, r.kind) for r in rows}:

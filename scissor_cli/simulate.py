@@ -26,9 +26,8 @@ from .robot import RobotModel, plan_to_joints
 from .selection import select
 from .study import rows_as_columns, run_study
 from .trials import TargetTask, execute
-from .scene import Scene, scene_from_config
 from .solve import Inertia, SolveResult, SolverError
-from .tissue import Tissue, build_tissue
+from .tissue import Tissue, build_model  # noqa: F401 - build_model is part of this module's API
 
 
 class Reporter(Protocol):
@@ -122,12 +121,6 @@ class ForwardSolver:
         speed = float(np.abs(v[t.free_dofs]).max()) if len(t.free_dofs) else 0.0
         r.message = f"implicit Euler, {n_ramp} ramp + {cfg.steps} settling steps of {cfg.dt_s:g} s; final max speed {speed:.3g} mm/s"
         return r
-
-
-def build_model(cfg: Config, model: str | None = None, mesh_scale: float | None = None) -> tuple[Scene, meshing.Mesh, Tissue]:
-    scene = scene_from_config(cfg)
-    mesh = meshing.mesh_for_config(scene, cfg.tissue.mesh, scale=mesh_scale)
-    return scene, mesh, build_tissue(scene, mesh, model=model)
 
 
 class TrialsFailed(RuntimeError):

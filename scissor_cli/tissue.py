@@ -225,3 +225,13 @@ def build_tissue(scene: Scene, mesh: Mesh, model: str | None = None) -> Tissue:
         pattern_free=fem.sparse_pattern(ops, free_index),
         mass=fem.lumped_mass(ops, m.density_kg_per_mm3),
     )
+
+
+def build_model(cfg, model: str | None = None, mesh_scale: float | None = None):
+    """Scene, mesh and tissue of a validated config; `model` and `mesh_scale` override the config's."""
+    from .mesh import mesh_for_config
+    from .scene import scene_from_config
+
+    scene = scene_from_config(cfg)
+    mesh = mesh_for_config(scene, cfg.tissue.mesh, scale=mesh_scale)
+    return scene, mesh, build_tissue(scene, mesh, model=model)

@@ -14,7 +14,7 @@ import hashlib
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
-from typing import Callable, Iterable, Iterator, Optional
+from typing import Iterable, Iterator, Optional
 
 import numpy as np
 
@@ -24,6 +24,7 @@ from .config import parse_config
 from .newton import solve_newton
 from .planner import corridor_radius
 from .profiles import ErrorModel, draw_trial, error_model
+from .tissue import build_model
 
 
 @dataclass(frozen=True)
@@ -61,8 +62,6 @@ class TrialContext:
     """Everything trials of one run share in one process: model, camera, error model, warm starts."""
 
     def __init__(self, config_yaml: str):
-        from .simulate import build_model  # experiments build on the pipeline's model builder
-
         self.cfg = parse_config(config_yaml, "<run config>")
         self.scene, self.mesh, self.tissue = build_model(self.cfg)
         self.errors: ErrorModel = error_model(self.cfg.trials)

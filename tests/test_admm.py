@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from scissor_cli import admm, materials
+from scissor_cli import admm
 from scissor_cli.admm import AdmmSolver, AdmmState, implicit_euler
 from scissor_cli.config import load_config
 from scissor_cli.mesh import mesh_for_config

@@ -41,7 +41,6 @@ def test_targets_are_vertices_and_obstacles_are_resolved(example):
     cfg, scene, mesh = example
     for t in scene.targets:
         assert np.min(np.linalg.norm(mesh.nodes - t.rest, axis=1)) < 1e-12
-    centroids = mesh.nodes[mesh.triangles].mean(axis=1)
     for k, obstacle in enumerate(scene.obstacles):
         inside = mesh.element_obstacle == k
         assert inside.sum() > 10

@@ -1,0 +1,52 @@
+"""The paper's 4 x 30 trial studies (prosthesis and ex vivo): wall time and error statistics vs the paper.
+
+Usage: python benchmarks/bench_trials.py [--jobs N]
+Goal: each study <= 60 s on the 2-core machine. Prints max/median |x| and |y| error beside the paper's maxima.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from scissor_cli.config import load_config  # noqa: E402
+from scissor_cli.simulate import Execution, run_simulation  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+PAPER_MAX = {"prosthesis": (0.7, 1.7), "ex_vivo": (1.3, 2.5)}  # max |x|, |y| error (mm), paper section 4.2
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--jobs", type=int, default=2)
+    args = ap.parse_args()
+    for profile in ("prosthesis", "ex_vivo"):
+        cfg = load_config(ROOT / "configs" / f"paper_trials_{profile}.yaml")
+        with tempfile.TemporaryDirectory() as tmp:
+            t0 = time.perf_counter()
+            run_simulation(cfg, Path(tmp), execution=Execution(jobs=args.jobs))
+            wall = time.perf_counter() - t0
+            with h5py.File(Path(tmp) / "results.h5") as f:
+                e = np.concatenate([f[f"trials/{t}/final_error"][:] for t in f["trials"]])
+                it = np.concatenate([f[f"trials/{t}/iterations"][:] for t in f["trials"]])
+                clear = np.concatenate([f[f"trials/{t}/corridor_clear"][:] for t in f["trials"]])
+        a = np.abs(e)
+        px, py = PAPER_MAX[profile]
+        print(f"{profile}: {len(e)} trials in {wall:.1f} s (jobs {args.jobs}, 2-core machine)")
+        print(f"  |x| error: max {a[:, 0].max():.2f} mm (paper {px}), median {np.median(a[:, 0]):.2f}, "
+              f"95th percentile {np.percentile(a[:, 0], 95):.2f}")
+        print(f"  |y| error: max {a[:, 1].max():.2f} mm (paper {py}), median {np.median(a[:, 1]):.2f}, "
+              f"95th percentile {np.percentile(a[:, 1], 95):.2f}")
+        print(f"  control iterations: mean {it.mean():.1f}, max {it.max()}; corridor clear in {100 * clear.mean():.0f}% of trials")
+
+
+if __name__ == "__main__":
+    main()
