@@ -40,18 +40,9 @@ class RunTrials:
 
 
 def load_run(run_dir: Path, partial: bool = False) -> RunTrials:
-    path = Path(run_dir) / "results.h5"
-    if not path.is_file():
-        raise ReportError(f"{run_dir}: no results.h5 (is this a scissor run directory?)")
+    path = _check_status(run_dir, partial)
     with h5py.File(path, "r") as f:
         status = str(f.attrs.get("status", "unknown"))
-        if status != "complete" and not partial:
-            reason = f.attrs.get("failure", "")
-            raise ReportError(
-                f"{path}: status is {status!r}, not 'complete'"
-                + (f" ({reason})" if reason else "")
-                + "; finish it with 'scissor simulate --resume' or pass --partial"
-            )
         if "trials" not in f:
             raise ReportError(f"{path}: the run has no trials (it was run with --trials 0)")
         profile = f["trials"].attrs.get("profile", "")

@@ -16,11 +16,11 @@ import numpy as np
 
 import h5py
 
-from . import control, figures, mesh as meshing, results
+from . import control, figures, results
 from .config import Config, SolverConfig, parse_config, resolved_yaml
 from .jacobian import cup_target_jacobian, probe_targets, target_positions
 from .newton import solve_newton
-from .planner import NeedlePlan, StateCache, corridor_radius, plan_target
+from .planner import NeedlePlan, StateCache, boundary_loop, corridor_radius, deformed_outlines, embed_outlines, plan_target
 from .profiles import error_model
 from .robot import RobotModel, plan_to_joints
 from .selection import select
@@ -389,30 +389,19 @@ def _fmt(values) -> str:
     return ", ".join(f"{v:+.2f}" for v in np.atleast_1d(values))
 
 
-def _carry(mesh: meshing.Mesh, points: np.ndarray, positions: np.ndarray) -> np.ndarray:
-    tri_idx, bary = meshing.locate(mesh, points)
-    return meshing.interpolate(positions, mesh.triangles, tri_idx, bary)
-
-
 def _forward_figure(out_dir, name, tissue, case, strokes, result, targets_now) -> Path:
     mesh, scene = tissue.mesh, tissue.scene
-    boundary = mesh.boundary_edges
-    # The deformed outline is the boundary edge chain itself: follow it from node to node.
-    nxt = dict(zip(boundary[:, 0].tolist(), boundary[:, 1].tolist()))
-    start = int(boundary[0, 0])
-    chain, node = [start], nxt[start]
-    while node != start and len(chain) <= len(boundary):
-        chain.append(node)
-        node = nxt[node]
+    loop = boundary_loop(mesh)
+    obstacles = embed_outlines(mesh, [o.outline for o in scene.obstacles])
     fig = figures.forward_case_figure(
         title=f"{name} — forward case {case}: " + ", ".join(f"{c.name} {s:+.1f} mm" for c, s in zip(scene.cups, strokes)),
         rest=mesh.nodes,
         deformed=result.x,
         triangles=mesh.triangles,
-        outline_rest=mesh.nodes[chain],
-        outline_deformed=result.x[chain],
+        outline_rest=mesh.nodes[loop],
+        outline_deformed=result.x[loop],
         obstacles_rest=[(o.name, o.outline) for o in scene.obstacles],
-        obstacles_deformed=[_carry(mesh, o.outline, result.x) for o in scene.obstacles],
+        obstacles_deformed=deformed_outlines(obstacles, result.x),
         targets_rest={t.name: t.rest for t in scene.targets},
         targets_deformed={t.name: p for t, p in zip(scene.targets, targets_now)},
         cup_nodes=list(tissue.cup_nodes),
