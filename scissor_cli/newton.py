@@ -19,7 +19,7 @@ import time
 import numpy as np
 import scipy.sparse as sp
 
-from .solve import Factorization, Inertia, SolveResult, SolverError, check_finite, objective_gradient, relative_residual
+from .solve import Inertia, SolveResult, SolverError, check_finite, objective_gradient, relative_residual
 from .tissue import Tissue
 
 ARMIJO = 1e-4
@@ -27,6 +27,8 @@ ARMIJO = 1e-4
 STEP_FRACTION = 0.7
 #: and is solved to this relative residual only
 SUBSTEP_TOL = 1e-4
+#: a chord step (the last factorisation reused) is kept when it shrinks the residual this much
+CHORD_CONTRACTION = 0.3
 
 
 def tangent_predictor(tissue: Tissue, x: np.ndarray, strokes: np.ndarray, inertia: Inertia | None = None) -> np.ndarray:
@@ -37,15 +39,24 @@ def tangent_predictor(tissue: Tissue, x: np.ndarray, strokes: np.ndarray, inerti
     """
     x_new = tissue.apply_strokes(x, strokes)
     delta = (x_new - x).ravel()
-    K = tissue.stiffness_free(x, project=True)
-    if inertia is not None:
-        K = K + _diag(inertia.weight[tissue.free_dofs])
     _, grad = objective_gradient(tissue, x, inertia)
     rhs = -tissue.stiffness_times(x, delta)[tissue.free_dofs] - grad[tissue.free_dofs]
     if inertia is not None:
         rhs -= inertia.weight[tissue.free_dofs] * delta[tissue.free_dofs]
+    # The exact tangent of a stable equilibrium is positive definite; the
+    # per-element projection (a batched eigendecomposition) only where it is not.
+    for project in (False, True):
+        K = tissue.stiffness_free(x, project=project)
+        if inertia is not None:
+            K = K + _diag(inertia.weight[tissue.free_dofs])
+        try:
+            dx = tissue.factorize_free(K).solve(rhs)
+        except SolverError:
+            continue
+        if np.all(np.isfinite(dx)) and np.dot(dx, K @ dx) > 0:
+            break
     flat = x_new.ravel().copy()
-    flat[tissue.free_dofs] += Factorization(K).solve(rhs)
+    flat[tissue.free_dofs] += dx
     return flat.reshape(-1, 2)
 
 
@@ -60,14 +71,23 @@ def newton_iterations(
     tol: float = 1e-10,
     max_iter: int = 100,
     exact_below: float = 1.0,
+    chord: bool = False,
 ) -> SolveResult:
-    """Newton from a feasible start x (N, 2) with the Dirichlet nodes already placed."""
+    """Newton from a feasible start x (N, 2) with the Dirichlet nodes already placed.
+
+    With `chord`, a step first reuses the last factorisation (the predictor's
+    or the previous iteration's) and is kept when it shrinks the residual by
+    CHORD_CONTRACTION at full length; otherwise K is refactored for a full
+    Newton step. Above a relative residual of `exact_below` the Hessian is
+    PSD-projected per element (far from equilibrium the exact one sends
+    pull8 wandering); below it the exact one, falling back to the projected
+    one when its step is not a descent direction.
+    """
     t0 = time.perf_counter()
     x = np.array(x, dtype=float)
     phi, grad = objective_gradient(tissue, x, inertia)
     history = []
     free = tissue.free_dofs
-    factor = None
     for it in range(max_iter + 1):
         check_finite(grad, "the Newton gradient")
         res = relative_residual(tissue, grad)
@@ -77,13 +97,20 @@ def newton_iterations(
         if it == max_iter:
             break
         g = grad[free]
+        if chord and "free" in tissue.factor_cache:
+            kept = _chord_step(tissue, x, g, inertia, res)
+            if kept is not None:
+                x, phi, grad = kept
+                continue
         step = None
         for project in ([False, True] if res < exact_below else [True]):
             K = tissue.stiffness_free(x, project=project)
             if inertia is not None:
                 K = K + _diag(inertia.weight[free])
-            factor = Factorization(K) if factor is None else factor.refactor(K)
-            d = -factor.solve(g)
+            try:
+                d = -tissue.factorize_free(K).solve(g)
+            except SolverError:  # singular exact Hessian: the projected one is next
+                continue
             if np.all(np.isfinite(d)) and np.dot(g, d) < 0:
                 step = d
                 break
@@ -97,6 +124,22 @@ def newton_iterations(
         x, False, max_iter, history[-1], time.perf_counter() - t0, "newton",
         f"not converged in {max_iter} iterations (relative residual {history[-1]:.3g} > {tol:g})", history,
     )
+
+
+def _chord_step(tissue, x, g, inertia, res):
+    """A full step on the cached factorisation, if it is feasible and contracts the residual enough."""
+    d = -tissue.factor_cache["free"].solve(g)
+    if not np.all(np.isfinite(d)) or np.dot(g, d) >= 0:
+        return None
+    step = np.zeros(x.size)
+    step[tissue.free_dofs] = d
+    trial = x + step.reshape(-1, 2)
+    if not np.min(tissue.jacobians(trial)) > 0:
+        return None
+    phi_t, grad_t = objective_gradient(tissue, trial, inertia)
+    if relative_residual(tissue, grad_t) > CHORD_CONTRACTION * res:
+        return None
+    return trial, phi_t, grad_t
 
 
 def _line_search(tissue, x, phi, grad, d_free, inertia, res):

@@ -10,7 +10,7 @@ controller's model.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.sparse as sp
@@ -44,6 +44,8 @@ class Tissue:
     free_index: np.ndarray  # (2N,) position in free_dofs or -1
     pattern_free: fem.SparsePattern
     mass: np.ndarray  # (2N,) kg, lumped
+    #: one symbolic factorisation of K_ff's pattern, reused by every solve on this mesh
+    factor_cache: dict = field(default_factory=dict, compare=False, repr=False)
 
     @property
     def rest(self) -> np.ndarray:
@@ -128,6 +130,16 @@ class Tissue:
     def stiffness_free(self, x: np.ndarray, project: bool = False) -> sp.csr_matrix:
         """K_ff (Nf, Nf), the Hessian over free dofs."""
         return self.pattern_free.assemble(self.element_stiffness(x, project))
+
+    def factorize_free(self, K: sp.csr_matrix):
+        """A `solve.Factorization` of K_ff, refactoring the cached symbolic analysis of its pattern."""
+        from .solve import Factorization  # solve builds on tissue; the cache lives here with the pattern
+
+        factor = self.factor_cache.get("free")
+        if factor is None:
+            factor = self.factor_cache["free"] = Factorization(K)
+            return factor
+        return factor.refactor(K)
 
     def stiffness_times(self, x: np.ndarray, v: np.ndarray) -> np.ndarray:
         """K v (2N,) for a full vector v (2N,), element by element without assembling K."""
