@@ -29,6 +29,8 @@ STEP_FRACTION = 0.7
 SUBSTEP_TOL = 1e-4
 #: a chord step (the last factorisation reused) is kept when it shrinks the residual this much
 CHORD_CONTRACTION = 0.3
+#: chord steps only far from the solution: the last steps are full Newton steps
+CHORD_ABOVE = 1e-3
 
 
 def tangent_predictor(tissue: Tissue, x: np.ndarray, strokes: np.ndarray, inertia: Inertia | None = None) -> np.ndarray:
@@ -72,13 +74,16 @@ def newton_iterations(
     max_iter: int = 100,
     exact_below: float = 1.0,
     chord: bool = False,
+    chord_above: float = CHORD_ABOVE,
 ) -> SolveResult:
     """Newton from a feasible start x (N, 2) with the Dirichlet nodes already placed.
 
-    With `chord`, a step first reuses the last factorisation (the predictor's
-    or the previous iteration's) and is kept when it shrinks the residual by
-    CHORD_CONTRACTION at full length; otherwise K is refactored for a full
-    Newton step. Above a relative residual of `exact_below` the Hessian is
+    With `chord`, while the relative residual is above `chord_above` a step
+    first reuses the last factorisation (the predictor's or the previous
+    iteration's) and is kept when it shrinks the residual by
+    CHORD_CONTRACTION at full length; otherwise, and always below
+    `chord_above`, K is refactored for a full Newton step, so convergence
+    still ends quadratic. Above a relative residual of `exact_below` the Hessian is
     PSD-projected per element (far from equilibrium the exact one sends
     pull8 wandering); below it the exact one, falling back to the projected
     one when its step is not a descent direction.
@@ -97,7 +102,7 @@ def newton_iterations(
         if it == max_iter:
             break
         g = grad[free]
-        if chord and "free" in tissue.factor_cache:
+        if chord and res > chord_above and "free" in tissue.factor_cache:
             kept = _chord_step(tissue, x, g, inertia, res)
             if kept is not None:
                 x, phi, grad = kept
