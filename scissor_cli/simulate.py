@@ -339,9 +339,10 @@ def _forward_stage(cfg: Config, tissue: Tissue, out: results.ResultsFile, summar
             {t.name: p for t, p in zip(scene.targets, targets_now)},
         )
         out.flush()
+        note = "" if result.message.startswith("converged") else f" ({result.message})"
         reporter.info(
             f"forward {case.name}: {result.solver} {result.iterations} iterations, "
-            f"residual {result.residual:.2e}, {result.time_s * 1e3:.1f} ms"
+            f"residual {result.residual:.2e}, {result.time_s * 1e3:.1f} ms{note}"
         )
         summary.figures.append(_forward_figure(out.path.parent, cfg.name, tissue, case.name, strokes, result, targets_now))
         advance(1)
@@ -365,7 +366,7 @@ def _plan_stage(cfg: Config, tissue: Tissue, out: results.ResultsFile, reporter:
         if plan.feasible and not plan.robot_ok:
             how += f"; ROBOT: {plan.robot_note}"
         reporter.info(
-            f"plan {target.name}: " + (f"{plan.side} entry, clearance {plan.clearance_mm:.2f} mm, {how} ({plan.time_s:.1f} s)"
+            f"plan {target.name}: " + (f"{plan.side} entry, {_clearance_text(plan.clearance_mm)}, {how} ({plan.time_s:.1f} s)"
                                        if plan.feasible else f"infeasible: {plan.reason}")
         )
         advance(1)
@@ -383,6 +384,10 @@ def robot_joint_check(cfg: Config):
         return r.q, r.reachable, r.reason
 
     return check
+
+
+def _clearance_text(clearance_mm: float) -> str:
+    return "no obstacles" if np.isinf(clearance_mm) else f"clearance {clearance_mm:.2f} mm"
 
 
 def _fmt(values) -> str:
