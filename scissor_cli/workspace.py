@@ -436,6 +436,8 @@ def plot_workspace(result: WorkspaceResult, path) -> None:
             ax.imshow(np.ma.masked_equal(foot.T.astype(float), 0), origin="lower", cmap="autumn", alpha=0.45,
                       extent=(g.box_min[i], g.box_max[i], g.box_min[j], g.box_max[j]), aspect="equal",
                       interpolation="nearest", vmin=0, vmax=1)
+            ax.add_patch(Rectangle((np.nan, np.nan), 0, 0, color="yellow", alpha=0.6,
+                                   label="unreachable voxels (IK)"))  # legend proxy
         ax.add_patch(Rectangle(result.box_min[[i, j]], *(result.box_max - result.box_min)[[i, j]],
                                fill=False, edgecolor="red", linewidth=1.8, label="breast box"))
         ax.set_xlim(lo[0], hi[0])

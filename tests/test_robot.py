@@ -92,3 +92,29 @@ def test_custom_dh_table_from_config():
     assert not odd.has_closed_form
     q = sample_joints(odd, 10, seed=0)
     assert np.allclose(odd.tip_and_axis(q)[0], odd.fk(q)[:, :3, 3])
+
+
+def test_ik_returns_the_shortest_insertion_of_the_one_parameter_family():
+    # For a fixed tip and axis the solutions are q + t·(0, sin θ4, cos θ4, 0, 1) inside the limits;
+    # IK must return the member with the smallest d5, so one millimetre less must break a limit.
+    q = sample_joints(PAPER, 10_000, seed=11)
+    tip, axis = PAPER.tip_and_axis(q)
+    sol = ik_batch(tip, axis, PAPER)
+    t = sol.q[:, 4] - q[:, 4]
+    step = np.column_stack([np.zeros_like(t), np.sin(q[:, 3]), np.cos(q[:, 3]), np.zeros_like(t), np.ones_like(t)])
+    assert np.abs(sol.q - (q + t[:, None] * step)).max() < 1e-9
+    shorter = sol.q - 1e-3 * step
+    assert not PAPER.within_limits(shorter, tol=0.0).any()
+
+
+def test_ik_exact_when_a_limit_pins_the_insertion():
+    # d3 on its lower limit with cos θ4 > 0 (or d2 on its upper limit with sin θ4 < 0): no shorter
+    # insertion exists, so the full joint vector is unique and must come back.
+    rng = np.random.default_rng(4)
+    q = sample_joints(PAPER, 2000, seed=5)
+    q[:, 3] = np.deg2rad(rng.uniform(-89.0, 45.0, len(q)))
+    q[:1000, 2] = 0.0
+    q[1000:, 3] = np.deg2rad(rng.uniform(-135.0, -1.0, 1000))
+    q[1000:, 1] = 200.0
+    sol = ik_batch(*PAPER.tip_and_axis(q), PAPER)
+    assert sol.reachable.all() and np.abs(sol.q - q).max() < 1e-9
