@@ -22,6 +22,7 @@ median over the repeats. Runs in well under 2 minutes on the 2-core box.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import time
@@ -35,17 +36,8 @@ from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.mesh import mesh_for_config  # noqa: E402
 from scissor_cli.newton import solve_newton  # noqa: E402
 from scissor_cli.scene import scene_from_config  # noqa: E402
+from scissor_cli.study import timed  # noqa: E402
 from scissor_cli.tissue import build_tissue  # noqa: E402
-
-
-def timed(fn, repeats):
-    """(median seconds, last return value) of fn() over `repeats` calls."""
-    times, out = [], None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times)), out
 
 
 def rel_error(x, ref, rest):
@@ -74,21 +66,21 @@ def main(argv=None) -> int:
     for case in cfg.forward:
         strokes = scene.strokes_vector(case.strokes)
         print(f"\n== {case.name}: strokes {strokes.tolist()} mm")
-        t_newton, ref = timed(lambda: solve_newton(tissue, strokes, tol=1e-10), n_rep)
+        ref, t_newton = timed(lambda: solve_newton(tissue, strokes, tol=1e-10), n_rep, math.inf)
         print(f"  newton          {t_newton * 1e3:8.1f} ms  {ref.iterations:4d} it  residual {ref.residual:.1e}")
         for memory in (0, 5):
             name = "admm" if memory == 0 else f"admm+AA({memory})"
-            t_setup, solver = timed(lambda: AdmmSolver(tissue, anderson_memory=memory), n_rep)
+            solver, t_setup = timed(lambda: AdmmSolver(tissue, anderson_memory=memory), n_rep, math.inf)
 
             def cold():
                 s = AdmmSolver(tissue, anderson_memory=memory)
                 r, _ = s.solve(strokes, tol=tol)
                 return r, s.n_factorizations
 
-            t_cold, (r_cold, n_fact) = timed(cold, n_rep)
+            (r_cold, n_fact), t_cold = timed(cold, n_rep, math.inf)
             solver.solve(strokes, tol=tol)  # learn the weights
             n_before = solver.n_factorizations
-            t_set, (r_set, state) = timed(lambda: solver.solve(strokes, tol=tol), n_rep)
+            (r_set, state), t_set = timed(lambda: solver.solve(strokes, tol=tol), n_rep, math.inf)
             per_it = t_set / r_set.iterations / M * 1e6
             refact = solver.n_factorizations - n_before
             print(f"  {name:14s}  setup {t_setup * 1e3:6.1f} ms (1 factorisation)")
@@ -101,7 +93,7 @@ def main(argv=None) -> int:
             for ds in (0.05, 0.3):
                 s2 = strokes + ds
                 ref2 = solve_newton(tissue, s2, x0=ref.x, strokes0=strokes)
-                t_warm, (r_warm, _) = timed(lambda: solver.solve(s2, state, tol=tol), n_rep)
+                (r_warm, _), t_warm = timed(lambda: solver.solve(s2, state, tol=tol), n_rep, math.inf)
                 r_cold2, _ = solver.solve(s2, tol=tol)
                 print(f"  {'':14s}  warm +{ds:<4g} {t_warm * 1e3:6.1f} ms  {r_warm.iterations:4d} it "
                       f"(from scratch {r_cold2.iterations} it)  err {rel_error(r_warm.x, ref2.x, tissue.rest):.1e}")

@@ -55,6 +55,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import math
 import os
 import platform
 import sys
@@ -87,6 +88,7 @@ from scissor_cli.jacobian import probe_targets, target_positions  # noqa: E402
 from scissor_cli.newton import solve_newton  # noqa: E402
 from scissor_cli.simulate import build_model  # noqa: E402
 from scissor_cli.solve import SolverError  # noqa: E402
+from scissor_cli.study import timed  # noqa: E402
 from scissor_cli.tissue import Tissue  # noqa: E402
 
 CONFIG = os.path.join(ROOT, "configs", "example.yaml")
@@ -293,15 +295,6 @@ def first_passing(run, err, ladder=LADDER):
     return None
 
 
-def median_time(fn, repeats):
-    times, out = [], None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times)), out
-
-
 def admm_run(tissue, memory, tol):
     solver = AdmmSolver(tissue, anderson_memory=memory)  # construction + factorisation included in the time
     result, _ = solver.solve(STROKE, tol=tol, max_iter=5000)
@@ -356,7 +349,7 @@ def bench_mesh(cfg, scale, log, profile: bool = False) -> Row:
             row.times[name] = np.nan
             continue
         tol, _, _ = found
-        t, r = median_time(lambda run=run, tol=tol: run(tol), repeats)
+        r, t = timed(lambda run=run, tol=tol: run(tol), repeats, math.inf)
         row.times[name], row.iters[name], row.tols[name], row.errors[name] = t, r.iterations, tol, err(r.x)
         log(f"  {name:9s} tol {tol:<6g} {t:7.3f} s  {r.iterations:4d} it  e = {err(r.x):.2e}")
 

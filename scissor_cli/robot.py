@@ -505,15 +505,6 @@ def direction_layer_to_base(dir_2d, yaw_rad: float) -> np.ndarray:
     return np.column_stack([d, np.zeros(len(d))]) @ _rot_z(yaw_rad).T
 
 
-def insertion_angle_range_layer(robot: RobotModel, yaw_rad: float) -> tuple[float, float]:
-    """Allowed needle travel directions in the layer frame as an angle range
-    (lo, hi) rad, measured from the layer x axis (paper structure only)."""
-    cf = _require_closed(robot)
-    lo, hi = robot.lower[3] + cf.offsets[3], robot.upper[3] + cf.offsets[3]
-    # travel direction (−cos Θ4, −sin Θ4) has polar angle Θ4 + π
-    return float(lo + np.pi - yaw_rad), float(hi + np.pi - yaw_rad)
-
-
 def plan_to_joints(robot: RobotModel, target_layer_2d, direction_layer_2d, origin, yaw_rad: float) -> IKResult:
     """Joint values that put the needle tip on a layer target, travelling
     along `direction_layer_2d` (unit 2-D, layer frame)."""

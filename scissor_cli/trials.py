@@ -14,7 +14,7 @@ import hashlib
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
-from typing import Iterable, Iterator, Optional
+from typing import Iterator, Optional
 
 import numpy as np
 
@@ -195,17 +195,3 @@ def _execute_dask(config_yaml: str, work, scheduler: Optional[str], jobs: int) -
         for future in as_completed(futures):
             yield from future.result()
 
-
-def summarise(outcomes: Iterable[TrialOutcome]) -> dict[str, float]:
-    """Mean, median, max and 95th percentile of |x| and |y| error over successful trials (mm)."""
-    errs = np.array([o.final_error for o in outcomes if o.ok]).reshape(-1, 2)
-    if not len(errs):
-        return {}
-    a = np.abs(errs)
-    out = {}
-    for j, axis in enumerate("xy"):
-        out[f"mean_{axis}"] = float(a[:, j].mean())
-        out[f"median_{axis}"] = float(np.median(a[:, j]))
-        out[f"max_{axis}"] = float(a[:, j].max())
-        out[f"p95_{axis}"] = float(np.percentile(a[:, j], 95))
-    return out

@@ -107,3 +107,16 @@ def test_unconverged_newton_says_so(example):
     _, _, tissue = build_model(example, mesh_scale=2.0)
     with pytest.raises(SolverError, match="not converged in 1 iterations"):
         solve_newton(tissue, np.array([10.0]), max_iter=1)
+
+
+def test_chord_option_reaches_the_same_solution_and_ends_quadratic(example):
+    """newton_iterations(chord=True) reuses factorisations only far from the solution (its docstring)."""
+    from scissor_cli.newton import newton_iterations, tangent_predictor
+
+    _, _, tissue = build_model(example, mesh_scale=2.0)
+    ref = solve_newton(tissue, np.array([5.0]))
+    start = tangent_predictor(tissue, tissue.rest, np.array([5.0]))
+    r = newton_iterations(tissue, start, chord=True)
+    assert r.converged and np.abs(r.x - ref.x).max() < 1e-8
+    h = r.history
+    assert h[-1] < 1e-3 * h[-2]  # the last step is a full Newton step
