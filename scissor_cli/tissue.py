@@ -127,23 +127,29 @@ class Tissue:
             C = materials.project_psd(C)
         return fem.element_matrices(self.ops, C)
 
-    def stiffness_free(self, x: np.ndarray, project: bool = False) -> sp.csr_matrix:
-        """K_ff (Nf, Nf), the Hessian over free dofs."""
-        return self.pattern_free.assemble(self.element_stiffness(x, project))
+    def stiffness_free(self, x: np.ndarray, project: bool = False, Ke: np.ndarray | None = None) -> sp.csr_matrix:
+        """K_ff (Nf, Nf), the Hessian over free dofs (from element Hessians Ke (M, 6, 6) if given)."""
+        return self.pattern_free.assemble(self.element_stiffness(x, project) if Ke is None else Ke)
 
     def factorize_free(self, K: sp.csr_matrix):
-        """A `solve.Factorization` of K_ff, refactoring the cached symbolic analysis of its pattern."""
+        """A positive definite `solve.Factorization` of K_ff, refactoring the cached symbolic analysis.
+
+        Raises SolverError if K_ff is not positive definite (Newton then projects).
+        """
         from .solve import Factorization  # solve builds on tissue; the cache lives here with the pattern
 
         factor = self.factor_cache.get("free")
         if factor is None:
-            factor = self.factor_cache["free"] = Factorization(K)
+            factor = self.factor_cache["free"] = Factorization(K, definite=True)
             return factor
         return factor.refactor(K)
 
-    def stiffness_times(self, x: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """K v (2N,) for a full vector v (2N,), element by element without assembling K."""
-        Ke = self.element_stiffness(x)
+    def stiffness_times(self, x: np.ndarray, v: np.ndarray, Ke: np.ndarray | None = None) -> np.ndarray:
+        """K v (2N,) for a full vector v (2N,), element by element without assembling K.
+
+        Ke (M, 6, 6), the exact element Hessians at x, saves evaluating them again.
+        """
+        Ke = self.element_stiffness(x) if Ke is None else Ke
         ve = v[self.ops.elem_dofs]
         return fem.scatter_vector(self.ops, np.einsum("eij,ej->ei", Ke, ve))
 
