@@ -42,13 +42,14 @@ def tangent_predictor(tissue: Tissue, x: np.ndarray, strokes: np.ndarray, inerti
     x_new = tissue.apply_strokes(x, strokes)
     delta = (x_new - x).ravel()
     _, grad = objective_gradient(tissue, x, inertia)
-    rhs = -tissue.stiffness_times(x, delta)[tissue.free_dofs] - grad[tissue.free_dofs]
+    Ke = tissue.element_stiffness(x)
+    rhs = -tissue.stiffness_times(x, delta, Ke)[tissue.free_dofs] - grad[tissue.free_dofs]
     if inertia is not None:
         rhs -= inertia.weight[tissue.free_dofs] * delta[tissue.free_dofs]
     # The exact tangent of a stable equilibrium is positive definite; the
-    # per-element projection (a batched eigendecomposition) only where it is not.
+    # per-element projection only where it is not.
     for project in (False, True):
-        K = tissue.stiffness_free(x, project=project)
+        K = tissue.stiffness_free(x, project=project, Ke=None if project else Ke)
         if inertia is not None:
             K = K + _diag(inertia.weight[tissue.free_dofs])
         try:
