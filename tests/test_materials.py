@@ -371,3 +371,242 @@ def test_material_params_validation_and_values():
     sub = p.take(np.array([2, 0]))
     np.testing.assert_array_equal(sub.mu, p.mu[[2, 0]])
     assert sub.model == p.model and sub.tension_only
+
+
+# --------------------------------------------------------------------------
+# analytic per-term PSD projection (evaluate_projected)
+# --------------------------------------------------------------------------
+
+
+def special_F(M, rng):
+    """J > 0 states that stress the closed forms: identity, rotations (incl. a
+    half-turn), equal and nearly equal singular values, strong compression,
+    stretch, near-incompressible shear; each with random rotations."""
+    sigmas = [
+        (1.0, 1.0), (0.7, 0.7), (1.3, 1.3), (1.0, 1.0 + 1e-13), (0.8, 0.8 * (1 + 1e-8)),
+        (1.1, 1.1 * (1 + 1e-4)), (0.5, 0.6), (0.2, 0.25), (0.3, 1.0), (1.8, 1.3),
+        (2.5, 0.4), (1.2, 1.0 / 1.2), (3.0, 3.0), (0.05, 1.0),
+    ]
+    F = [np.eye(2), -np.eye(2), rotation(0.3), rotation(2.9)]
+    while len(F) < M:
+        s1, s2 = sigmas[len(F) % len(sigmas)]
+        F.append(rotation(rng.uniform(-np.pi, np.pi)) @ np.diag([s1, s2])
+                 @ rotation(rng.uniform(-np.pi, np.pi)))
+    F = np.array(F[:M])
+    # Exactly conformal and exactly diagonal entries too (R = 0, ρ undefined).
+    F[4] = 0.8 * np.eye(2)
+    F[5] = np.diag([0.6, 0.9])
+    F[6] = 1.2 * rotation(1.0)
+    assert np.all(mat.jacobian_det(F) > 0.0)
+    return F
+
+
+def state(regime, M, rng):
+    return special_F(M, rng) if regime == "special" else random_F(M, rng, regime)
+
+
+def outer_sum(lam, vec):
+    """Σ_k lam[e, k] vec[e, k] vec[e, k]ᵀ."""
+    return np.einsum("ek,eki,ekj->eij", lam, vec, vec)
+
+
+def per_element_scale(C):
+    return np.abs(C).max(axis=(1, 2))
+
+
+REGIMES = ["near", "far", "special"]
+
+
+@pytest.mark.parametrize("regime", REGIMES)
+@pytest.mark.parametrize("model,tension_only", NONLINEAR, ids=NONLINEAR_IDS)
+def test_analytic_eigensystem_reconstructs_tangent(model, tension_only, regime):
+    rng = np.random.default_rng(20)
+    M = 300
+    params = random_params(model, M, rng, tension_only)
+    F = state(regime, M, rng)
+    C = mat.tangent(F, params)
+    lam_i, vec_i, lam_f, vec_f = mat._eigensystem(F, params)
+    # Orthonormal eigenvectors of each term.
+    np.testing.assert_allclose(vec_i @ np.swapaxes(vec_i, 1, 2), np.broadcast_to(np.eye(4), (M, 4, 4)),
+                               atol=1e-12)
+    np.testing.assert_allclose(vec_f @ np.swapaxes(vec_f, 1, 2), np.broadcast_to(np.eye(2), (M, 2, 2)),
+                               atol=1e-12)
+    # Σ λ e eᵀ over both terms (unclamped) is the exact tangent.
+    assert_close_per_element(outer_sum(lam_i, vec_i) + outer_sum(lam_f, vec_f), C, rtol=1e-10)
+    # ... and each eigenpair is one of the isotropic term's tangent.
+    iso = mat.MaterialParams("neo_hookean", params.mu, params.kappa, params.lam,
+                             np.zeros(M), params.fiber)
+    C_iso = mat.tangent(F, iso)
+    resid = np.einsum("eij,ekj->eki", C_iso, vec_i) - lam_i[:, :, None] * vec_i
+    assert np.abs(resid).max(axis=(1, 2)).max() / per_element_scale(C_iso).min() < 1e-10
+    # Twist is ~0 at rest and negative in (volumetric) compression.
+    at_rest = np.all(np.abs(F - np.eye(2)) < 1e-15, axis=(1, 2))
+    if at_rest.any():
+        assert np.abs(lam_i[at_rest, 2]).max() <= 1e-12 * params.kappa.max()
+
+
+@pytest.mark.parametrize("regime", REGIMES)
+@pytest.mark.parametrize("model,tension_only", NONLINEAR, ids=NONLINEAR_IDS)
+def test_fast_path_decomposition_reconstructs_tangent(model, tension_only, regime):
+    """The closed forms used by evaluate_projected (rotation/reflection
+    parameterisation, invariants, negative parts with the clamp switched off)
+    sum back to evaluate's tangent."""
+    rng = np.random.default_rng(21)
+    M = 300
+    params = random_params(model, M, rng, tension_only)
+    F = state(regime, M, rng)
+    C = mat.tangent(F, params)
+    _, _, residual = mat._evaluate_projected(F, params, clamp=False)
+    assert np.abs(residual).max(axis=(1, 2)).max() <= 1e-10 * per_element_scale(C).min()
+
+
+@pytest.mark.parametrize("regime", REGIMES)
+@pytest.mark.parametrize("model,tension_only", NONLINEAR, ids=NONLINEAR_IDS)
+def test_projected_tangent_is_per_term_psd_projection(model, tension_only, regime):
+    rng = np.random.default_rng(22)
+    M = 400
+    params = random_params(model, M, rng, tension_only)
+    F = state(regime, M, rng)
+    if regime == "near":  # volumetric compression (twist < 0) and expansion
+        F = F * rng.uniform(0.9, 1.1, M)[:, None, None]
+    psi0, P0, C = mat.evaluate(F, params)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        psi, P, Cp = mat.evaluate_projected(F, params)
+    np.testing.assert_array_equal(psi, psi0)
+    np.testing.assert_array_equal(P, P0)
+    assert Cp.shape == (M, 4, 4) and Cp.flags.c_contiguous
+    np.testing.assert_array_equal(Cp, np.swapaxes(Cp, 1, 2))
+    scale = per_element_scale(C)
+    assert np.all(np.linalg.eigvalsh(Cp)[:, 0] >= -1e-12 * scale)
+    # Σ_k max(λ_k, 0) e_k e_kᵀ per term, from the reference eigensystem.
+    lam_i, vec_i, lam_f, vec_f = mat._eigensystem(F, params)
+    expected = outer_sum(np.maximum(lam_i, 0.0), vec_i) + outer_sum(np.maximum(lam_f, 0.0), vec_f)
+    assert_close_per_element(Cp, expected, rtol=1e-10)
+    # Only negative parts are removed: Cp − C = −Σ min(λ, 0) e eᵀ is PSD.
+    assert np.all(np.linalg.eigvalsh(Cp - C)[:, 0] >= -1e-12 * scale)
+    # Unchanged (bit for bit) where every term is PSD; changed where one is not.
+    tol = 1e-9 * scale[:, None]
+    psd = np.all(lam_i >= tol, axis=1) & np.all((lam_f >= tol) | (lam_f == 0.0), axis=1)
+    indefinite = np.any(lam_i < -tol, axis=1) | np.any(lam_f < -tol, axis=1)
+    np.testing.assert_array_equal(Cp[psd], C[psd])
+    assert np.all(np.any(Cp[indefinite] != C[indefinite], axis=(1, 2)))
+    if regime != "special":
+        assert psd.any() and indefinite.any()
+
+
+@pytest.mark.parametrize("regime", REGIMES)
+def test_projected_tangent_matches_project_psd_for_a_single_term(regime):
+    """With one energy term (neo-Hookean; or the fiber model with tension_only
+    in fiber compression) the per-term projection is project_psd of C."""
+    rng = np.random.default_rng(23)
+    M = 300
+    F = state(regime, M, rng)
+    params = random_params("neo_hookean", M, rng)
+    C = mat.tangent(F, params)
+    _, _, Cp = mat.evaluate_projected(F, params)
+    assert_close_per_element(Cp, mat.project_psd(C), rtol=1e-10)
+
+    fib = random_params("neo_hookean_fiber", M, rng, tension_only=True)
+    a = fib.fiber
+    Fc = (np.eye(2) - 0.3 * a[:, :, None] * a[:, None, :]) @ rotation(rng.uniform(-1, 1, M))
+    Fc = rotation(rng.uniform(-np.pi, np.pi, M)) @ Fc @ np.swapaxes(rotation(rng.uniform(-1, 1, M)), 1, 2)
+    _, _, Cp = mat.evaluate_projected(Fc, fib)
+    assert_close_per_element(Cp, mat.project_psd(mat.tangent(Fc, fib)), rtol=1e-10)
+
+
+@pytest.mark.parametrize("model,tension_only", NONLINEAR, ids=NONLINEAR_IDS)
+def test_projected_tangent_frame_behaviour(model, tension_only):
+    """Like the exact tangent: C(R F) = K C(F) Kᵀ with K = R ⊗ I (spatial
+    rotation), and C(F Rᵀ; R a0) = L C(F; a0) Lᵀ with L = I ⊗ R (rotating the
+    reference body together with its fiber)."""
+    rng = np.random.default_rng(24)
+    M = 200
+    params = random_params(model, M, rng, tension_only)
+    F = random_F(M, rng, "far")
+    F[: M // 2] *= rng.uniform(0.85, 1.0, M // 2)[:, None, None]
+    R = rotation(rng.uniform(-np.pi, np.pi, M))
+    K = np.einsum("eij,kl->eikjl", R, np.eye(2)).reshape(M, 4, 4)
+    L = np.einsum("ij,ekl->eikjl", np.eye(2), R).reshape(M, 4, 4)
+    Kt, Lt = np.swapaxes(K, 1, 2), np.swapaxes(L, 1, 2)
+    rotated = mat.MaterialParams(params.model, params.mu, params.kappa, params.lam, params.eta,
+                                 np.einsum("eij,ej->ei", R, params.fiber), tension_only)
+    Rt = np.swapaxes(R, 1, 2)
+    for evaluate in (mat.tangent, lambda G, p: mat.evaluate_projected(G, p)[2]):
+        C = evaluate(F, params)
+        assert_close_per_element(evaluate(R @ F, params), K @ C @ Kt, rtol=1e-10)
+        if model == "neo_hookean_fiber":
+            v = np.einsum("eij,ej->ei", F, params.fiber)
+            keep = np.abs(np.sum(v * v, axis=1) - 1.0) > 1e-3  # away from the I4 = 1 kink
+            assert_close_per_element(evaluate(F[keep] @ Rt[keep], rotated.take(keep)),
+                                     L[keep] @ C[keep] @ Lt[keep], rtol=1e-10)
+
+
+def test_projected_linear_model_is_evaluate():
+    rng = np.random.default_rng(25)
+    M = 50
+    params = random_params("linear", M, rng)
+    F = np.eye(2) + 0.3 * rng.standard_normal((M, 2, 2))
+    for a, b in zip(mat.evaluate_projected(F, params), mat.evaluate(F, params)):
+        np.testing.assert_array_equal(a, b)
+    assert np.linalg.eigvalsh(mat.tangent(F, params)).min() > -1e-12
+
+
+@pytest.mark.parametrize("model,tension_only", NONLINEAR, ids=NONLINEAR_IDS)
+def test_projected_invalid_rows_are_finite_psd_without_warnings(model, tension_only):
+    rng = np.random.default_rng(26)
+    Fs = np.array([
+        np.eye(2), np.diag([1.0, -1.0]), np.diag([-0.5, -0.5]), np.zeros((2, 2)),
+        [[1.0, 2.0], [0.5, 1.0]], [[0.2, 1.0], [1.0, 0.1]],   # J = 0, J < 0
+        np.eye(2) * 1e200, np.eye(2) * 1e-200, np.eye(2) * 1e-7, [[1e300, 0.0], [0.0, -1e300]],
+        np.diag([1e100, 1e-100]), np.diag([1e40, 1e-40]), np.diag([1e-13, 1.0]),
+        np.full((2, 2), np.nan), np.diag([np.inf, 1.0]), [[0.9, 0.1], [-0.2, 0.8]],
+    ])
+    M = len(Fs)
+    params = random_params(model, M, rng, tension_only)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        psi, P, Cp = mat.evaluate_projected(Fs, params)
+        psi0, P0, _ = mat.evaluate(Fs, params)
+    np.testing.assert_array_equal(psi, psi0)
+    np.testing.assert_array_equal(P, P0)
+    assert np.all(np.isfinite(Cp))
+    np.testing.assert_array_equal(Cp, np.swapaxes(Cp, 1, 2))
+    scale = np.maximum(per_element_scale(Cp), 1e-300)
+    assert np.all(np.linalg.eigvalsh(Cp / scale[:, None, None])[:, 0] >= -1e-12)
+    # Valid rows are unaffected by invalid neighbours.
+    with np.errstate(all="ignore"):
+        good = np.isfinite(psi) & (mat.jacobian_det(Fs) > 1e-6)
+    _, _, Cg = mat.evaluate_projected(Fs[good], params.take(good))
+    np.testing.assert_array_equal(Cp[good], Cg)
+    assert good.sum() >= 4
+
+
+def test_projected_scratch_reuse_and_validation():
+    rng = np.random.default_rng(27)
+    params = random_params("neo_hookean_fiber", 60, rng)
+    F = random_F(60, rng, "far")
+    before = mat.evaluate(F, params)
+    out = mat.evaluate_projected(F, params)
+    saved = [a.copy() for a in out]
+    # evaluate is unaffected by the grown scratch buffer, and later calls do
+    # not write into earlier results.
+    for a, b in zip(mat.evaluate(F, params), before):
+        np.testing.assert_array_equal(a, b)
+    mat.evaluate_projected(random_F(500, rng, "near"), random_params("neo_hookean", 500, rng))
+    mat.evaluate_projected(F[:5], params.take(slice(0, 5)))
+    for a, b in zip(out, saved):
+        np.testing.assert_array_equal(a, b)
+    mat.release_workspace()
+    np.testing.assert_array_equal(mat.evaluate_projected(F, params)[2], saved[2])
+    # Non-contiguous input.
+    Ft = np.ascontiguousarray(np.swapaxes(F, 1, 2))
+    np.testing.assert_array_equal(mat.evaluate_projected(np.swapaxes(Ft, 1, 2), params)[2], saved[2])
+    with pytest.raises(ValueError):
+        mat.evaluate_projected(F[:-1], params)
+    with pytest.raises(ValueError):
+        mat.evaluate_projected(F.reshape(-1, 4), params)
+    for model in mat.MODELS:
+        empty = mat.material_params(model, np.zeros(0) + 10.0, 0.3, 1.0, np.zeros((0, 2)))
+        psi, P, C = mat.evaluate_projected(np.zeros((0, 2, 2)), empty)
+        assert psi.shape == (0,) and P.shape == (0, 2, 2) and C.shape == (0, 4, 4)
