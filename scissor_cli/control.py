@@ -246,8 +246,8 @@ class Equilibrium:
         t = self.tissue
         self.stats["refactors"] += 1
         F = _deformation_gradients(self._D, x)
-        _, _, C = materials.evaluate(F, t.params, order=2)
-        Ke = fem.element_matrices(t.ops, materials.project_psd(C) if project else C)
+        C = materials.evaluate_projected(F, t.params)[2] if project else materials.evaluate(F, t.params, order=2)[2]
+        Ke = fem.element_matrices(t.ops, C)
         K = t.pattern_free.assemble(Ke)
         self._factor = Factorization(K) if self._factor is None else self._factor.refactor(K)
         self._factor_x = x
