@@ -30,6 +30,10 @@ class FEOperators:
     elem_dofs: np.ndarray  # (M, 6) int64
     thickness_mm: float
     n_nodes: int
+    # Component-major copies for the hot loops: gathering and multiplying
+    # contiguous (M,) rows is 2.5x faster than strided columns of (M, 3, 2).
+    corners: np.ndarray  # (3, M) int64, triangles.T
+    grad_rows: np.ndarray  # (3, 2, M) 1/mm, grad_n.transpose(1, 2, 0)
 
     @property
     def volume(self) -> np.ndarray:
@@ -54,21 +58,26 @@ def build_operators(mesh: Mesh, thickness_mm: float) -> FEOperators:
         for j in range(2):
             G[:, 2 * i + j, i::2] = grad_n[:, :, j]
     elem_dofs = (2 * mesh.triangles[:, :, None] + np.arange(2)).reshape(-1, 6)
-    return FEOperators(mesh.triangles, 0.5 * det, grad_n, G, elem_dofs, float(thickness_mm), mesh.n_nodes)
+    return FEOperators(
+        mesh.triangles, 0.5 * det, grad_n, G, elem_dofs, float(thickness_mm), mesh.n_nodes,
+        np.ascontiguousarray(mesh.triangles.T), np.ascontiguousarray(grad_n.transpose(1, 2, 0)),
+    )
 
 
 def deformation_gradients(ops: FEOperators, x: np.ndarray) -> np.ndarray:
     """F (M, 2, 2) of every element for node positions x (N, 2).
 
-    Plain arithmetic on the three vertices: three times faster than the
-    equivalent einsum at 64k elements.
+    Plain arithmetic on contiguous rows of the three vertices: 0.27 ms at
+    15.7k elements, against 0.67 ms for strided columns and 3x that for the
+    equivalent einsum.
     """
-    g = ops.grad_n
-    F = np.empty((len(g), 2, 2))
+    g = ops.grad_rows
+    F = np.empty((g.shape[2], 2, 2))
     for i in range(2):
-        xa, xb, xc = (x[ops.triangles[:, a], i] for a in range(3))
+        xi = np.ascontiguousarray(x[:, i])
+        xa, xb, xc = (xi.take(ops.corners[a]) for a in range(3))
         for j in range(2):
-            F[:, i, j] = xa * g[:, 0, j] + xb * g[:, 1, j] + xc * g[:, 2, j]
+            F[:, i, j] = xa * g[0, j] + xb * g[1, j] + xc * g[2, j]
     return F
 
 
