@@ -23,6 +23,10 @@ from .solve import Inertia, SolveResult, SolverError, check_finite, objective_gr
 from .tissue import Tissue
 
 ARMIJO = 1e-4
+#: a full step whose Φ decrease reaches this fraction of the linear prediction
+#: (a Newton step on a quadratic reaches 1/2) is tried longer
+EXTRAPOLATE_RATIO = 0.9
+MAX_EXTRAPOLATION = 64.0
 #: an intermediate load step goes this far towards the first inverted element
 STEP_FRACTION = 0.7
 #: and is solved to this relative residual only
@@ -149,13 +153,21 @@ def _chord_step(tissue, x, g, inertia, res):
 
 
 def _line_search(tissue, x, phi, grad, d_free, inertia, res):
-    """Backtracking: keep every J > 0, then Armijo on Φ (or a smaller residual once Φ is flat)."""
+    """Backtracking: keep every J > 0, then Armijo on Φ (or a smaller residual once Φ is flat).
+
+    A full step that lowers Φ by nearly its linear prediction met (almost) no
+    curvature along d: the Hessian used overrates it (a PD-modified one, where
+    the exact Hessian is indefinite: an element folding at a grip end). Then
+    the step is doubled while Φ keeps falling, instead of crawling there in
+    unit steps (30 such iterations on a 10 mm push of the 15.7k mesh).
+    """
     free = tissue.free_dofs
     slope = float(np.dot(grad[free], d_free))
     step = np.zeros(x.size)
     step[free] = d_free
     step = step.reshape(-1, 2)
-    alpha = min(1.0, 0.95 * tissue.max_feasible_step(x, step))
+    feasible = 0.95 * tissue.max_feasible_step(x, step)
+    alpha = min(1.0, feasible)
     g_norm = np.linalg.norm(grad[free])
     while alpha > 1e-12:
         trial = x + alpha * step
@@ -165,12 +177,29 @@ def _line_search(tissue, x, phi, grad, d_free, inertia, res):
             if phi_t <= phi + ARMIJO * alpha * slope or (
                 abs(phi_t - phi) <= 1e-12 * max(abs(phi), 1.0) and np.linalg.norm(grad_t[free]) < g_norm
             ):
+                if alpha == 1.0 and phi_t - phi <= EXTRAPOLATE_RATIO * slope:
+                    return _extrapolate(tissue, x, step, phi_t, (trial, phi_t, grad_t), feasible, inertia)
                 return trial, phi_t, grad_t
         alpha *= 0.5
     raise SolverError(
         f"Newton line search failed (residual {res:.3g}): no step keeps all elements uninverted and lowers the energy",
         SolveResult(x, False, 0, res, 0.0, "newton", "line search failed"),
     )
+
+
+def _extrapolate(tissue, x, step, phi_best, best, feasible, inertia):
+    """Double a full step (up to MAX_EXTRAPOLATION, inside the feasible range) while Φ falls."""
+    alpha = 2.0
+    while alpha <= min(MAX_EXTRAPOLATION, feasible):
+        trial = x + alpha * step
+        if not np.min(tissue.jacobians(trial)) > 0:
+            break
+        phi_t, grad_t = objective_gradient(tissue, trial, inertia)
+        if not phi_t < phi_best:
+            break
+        phi_best, best = phi_t, (trial, phi_t, grad_t)
+        alpha *= 2.0
+    return best
 
 
 def solve_newton(
