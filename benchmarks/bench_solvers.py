@@ -1,6 +1,6 @@
 """Solver-scaling benchmark: scissor's Newton and ADMM against a scikit-fem peer, 1k to 64k triangles.
 
-    python benchmarks/bench_solvers.py            # 1k, 4k, 16k, 64k elements (≈ 3.5 min on 2 cores)
+    python benchmarks/bench_solvers.py            # 1k, 4k, 16k, 64k elements (≈ 2 min on 2 cores)
     python benchmarks/bench_solvers.py --quick    # stops after the 16k mesh (≈ 35 s)
     options: --profile (cProfile of each solver on the largest mesh), --blas-threads N
 

@@ -45,8 +45,8 @@ else, so the weights are per element and two-part:
   Cholesky, cheap) at two consecutive iterations gets
   k_e = min(3 · (−λ_min(C(z_e))), 16 · k0_e) (eigenvalues of those few
   elements only), the scaled dual is rescaled to keep the stress k_e u_e,
-  and the global matrix is refactored (same pattern: qdldl numeric update,
-  ≈ 4 ms ≈ 2 iterations). The persistence and the cap matter: without them
+  and the global matrix is refactored (same pattern: a CHOLMOD numeric
+  refactorisation, ≈ 2 ms ≈ 1 iteration). The persistence and the cap matter: without them
   transient iterates with J → 0 drove k up 10⁵-fold (ν = 0.3, push10) and
   froze those elements. Weights only grow and persist in the solver, so a
   control loop that re-solves nearby strokes stops refactoring after its
@@ -133,8 +133,8 @@ nearest rotations; the message says so.
 Speed: one iteration (global solve, local Newton step, residuals) costs
 ≈ 0.7–0.9 µs per element on the example (2 ms at 2667 elements): the
 order-2 material evaluation ≈ 20 %, the 4×4 Cholesky factorisations (Newton
-direction and boost test) ≈ 18 %, sparse products and the qdldl solve
-≈ 16 %, the rest elementwise arithmetic on (M, 4) arrays. Newton needs 5–6 iterations (≈ 60–75 ms) to
+direction and boost test) ≈ 18 %, sparse products and the Cholesky solve
+≈ 16 %, the rest elementwise arithmetic on (M, 4) arrays. Newton needs 5–6 iterations (≈ 30 ms) to
 1e-10 here; plain ADMM ≈ 110–130 ms to 1e-4, with Anderson ≈ 65 ms.
 
 Failure modes: never NaN silently. Non-finite values raise SolverError; so

@@ -14,7 +14,7 @@ and, when one does, also carries the gripped node's own motion B δs.
 
 K is the exact Hessian of the strain energy, not the PSD-projected one used
 far from convergence by Newton: J is a derivative of the equilibrium map and
-only the exact tangent gives it. One sparse LDLᵀ of K_ff serves all cups.
+only the exact tangent gives it. One sparse factorisation of K_ff serves all cups.
 """
 
 from __future__ import annotations
