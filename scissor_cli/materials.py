@@ -430,6 +430,11 @@ def _addmul(target, x, y, tmp):
     target += tmp
 
 
+def _submul(target, x, y, tmp):
+    np.multiply(x, y, out=tmp)
+    target -= tmp
+
+
 def _eval_neo_hookean(F, params, order, keep_rows=False):
     """Ψ, P and C of the neo-Hookean models (see :func:`evaluate`).
 
@@ -606,38 +611,38 @@ def _eval_neo_hookean(F, params, order, keep_rows=False):
     if fiber:
         # t kron(I, a aᵀ) + 4η w wᵀ, w = vec(v aᵀ): per 2x2 block (rows of F)
         # the block is k a aᵀ with k0 = t + 4η v0², k1 = t + 4η v1², k01 = 4η v0 v1.
-        k = d
-        mul(v0, v0, out=k)
-        k *= e4
-        k += teta
-        _addmul(H[0], k, aa, tmp)
-        _addmul(H[1], k, ab, tmp)
-        _addmul(H[5], k, bb, tmp)
-        mul(v1, v1, out=k)
-        k *= e4
-        k += teta
-        _addmul(H[10], k, aa, tmp)
-        _addmul(H[11], k, ab, tmp)
-        _addmul(H[15], k, bb, tmp)
-        mul(v0, v1, out=k)
-        k *= e4
-        _addmul(H[2], k, aa, tmp)
-        _addmul(H[3], k, ab, tmp)
-        _addmul(H[6], k, ab, tmp)
-        _addmul(H[7], k, bb, tmp)
+        _fiber_block(H, _addmul, v0, v1, e4, teta, aa, ab, bb, d, tmp)
 
     if keep_rows:
         return psi, P, S
-    # Mirror the upper triangle, then one transposed copy into the output.
-    np.copyto(H[4], H[1])
-    np.copyto(H[8], H[2])
-    np.copyto(H[9], H[6])
-    np.copyto(H[12], H[3])
-    np.copyto(H[13], H[7])
-    np.copyto(H[14], H[11])
-    C = np.empty((M, 4, 4))
-    np.copyto(C.reshape(M, 16), H.T)
-    return psi, P, C
+    return psi, P, _tangent_from_rows(H)
+
+
+def _tangent_from_rows(H) -> np.ndarray:
+    """(M, 4, 4) tangents from the upper-triangle rows H (16, M): mirror, then one transposed copy."""
+    for lower, upper in ((4, 1), (8, 2), (9, 6), (12, 3), (13, 7), (14, 11)):
+        np.copyto(H[lower], H[upper])
+    C = np.empty((H.shape[1], 4, 4))
+    np.copyto(C.reshape(-1, 16), H.T)
+    return C
+
+
+def _fiber_block(H, accumulate, v0, v1, c, d, aa, ab, bb, k, tmp):
+    """H ±= (c v vᵀ + d I) ⊗ a aᵀ on the upper-triangle rows (16, M), v = F a0.
+
+    The fiber tangent (c = 4η, d = t) and its negative part (c = (n2 − n1)/I4,
+    d = n1) have this form; `accumulate` is _addmul or _submul; k, tmp scratch rows.
+    """
+    for (i, j), rows in (((0, 0), (0, 1, 5)), ((1, 1), (10, 11, 15))):
+        np.multiply((v0, v1)[i], (v0, v1)[j], out=k)
+        k *= c
+        k += d
+        for row, w in zip(rows, (aa, ab, bb)):
+            accumulate(H[row], k, w, tmp)
+    np.multiply(v0, v1, out=k)
+    k *= c
+    for row, w in zip((2, 3, 6, 7), (aa, ab, ab, bb)):
+        accumulate(H[row], k, w, tmp)
 
 
 # --------------------------------------------------------------------------
@@ -740,15 +745,7 @@ def _evaluate_projected(F, params, clamp=True):
         psi, P, _ = _eval_neo_hookean(F, params, 2, keep_rows=True)
         S = _scratch(rows, M)
         bad = _project_rows(S, params, psi, clamp)
-        H = S[8:24]
-        np.copyto(H[4], H[1])
-        np.copyto(H[8], H[2])
-        np.copyto(H[9], H[6])
-        np.copyto(H[12], H[3])
-        np.copyto(H[13], H[7])
-        np.copyto(H[14], H[11])
-        C = np.empty((M, 4, 4))
-        np.copyto(C.reshape(M, 16), H.T)
+        C = _tangent_from_rows(S[8:24])
         if bad is not None:
             C[bad] = _fallback_projection(F[bad], params.take(bad))
     return psi, P, C
@@ -952,25 +949,7 @@ def _project_rows(S, params, psi, clamp):
             sub(nf2, nf1, out=q)
             np.maximum(I4, _TINY, out=I4)
             q /= I4
-            k = t2
-            mul(v0, v0, out=k)
-            k *= q
-            k += nf1
-            _submul(H[0], k, aa, t1)
-            _submul(H[1], k, ab, t1)
-            _submul(H[5], k, bb, t1)
-            mul(v1, v1, out=k)
-            k *= q
-            k += nf1
-            _submul(H[10], k, aa, t1)
-            _submul(H[11], k, ab, t1)
-            _submul(H[15], k, bb, t1)
-            mul(v0, v1, out=k)
-            k *= q
-            _submul(H[2], k, aa, t1)
-            _submul(H[3], k, ab, t1)
-            _submul(H[6], k, ab, t1)
-            _submul(H[7], k, bb, t1)
+            _fiber_block(H, _submul, v0, v1, q, nf1, aa, ab, bb, t2, t1)
 
     # Rows to hand to the fallback: J <= J_FLOOR, psi = +inf, or anything
     # non-finite in the result (overflow of the closed forms).
@@ -983,11 +962,6 @@ def _project_rows(S, params, psi, clamp):
     if good.all():
         return None
     return np.flatnonzero(~good)
-
-
-def _submul(target, x, y, tmp):
-    np.multiply(x, y, out=tmp)
-    target -= tmp
 
 
 def _fallback_projection(F, params) -> np.ndarray:
