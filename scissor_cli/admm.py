@@ -399,7 +399,8 @@ class AdmmSolver:
         self.D_fT = self.D_f.T.tocsr()
         self.D_d = D[:, tissue.dirichlet_dofs].tocsr()
         self.D_dT = self.D_d.T.tocsr()
-        self._GtG = np.matmul(ops.G.transpose(0, 2, 1), ops.G)  # (M, 6, 6) 1/mm²
+        # G_eᵀ G_e packed (21, M) in 1/mm²: the element matrices of C = I, unscaled
+        self._GtG = fem.element_matrices(ops, np.broadcast_to(np.eye(4), (len(ops.area), 4, 4)), scale=np.ones(len(ops.area)))
         self._mass_w = None if dt_s is None else tissue.mass[tissue.free_dofs] / dt_s**2
         self.n_factorizations = 0
         self._factor: Factorization | None = None
@@ -415,10 +416,10 @@ class AdmmSolver:
         return self.k * self.tissue.ops.volume
 
     def _factor_global(self) -> None:
-        A = self.tissue.pattern_free.assemble(self.w2[:, None, None] * self._GtG)
+        A = self.tissue.pattern_free_upper.assemble(self._GtG * self.w2)
         if self._mass_w is not None:
             A = A + sp.diags(self._mass_w, format="csr")
-        self._factor = Factorization(A) if self._factor is None else self._factor.refactor(A)
+        self._factor = Factorization(A, upper=True) if self._factor is None else self._factor.refactor(A)
         self.n_factorizations += 1
 
     # ------------------------------------------------------------------ starts

@@ -248,15 +248,15 @@ class Equilibrium:
         F = _deformation_gradients(self._D, x)
         C = materials.evaluate_projected(F, t.params)[2] if project else materials.evaluate(F, t.params, order=2)[2]
         Ke = fem.element_matrices(t.ops, C)
-        K = t.pattern_free.assemble(Ke)
-        self._factor = Factorization(K) if self._factor is None else self._factor.refactor(K)
+        K = t.pattern_free_upper.assemble(Ke)
+        self._factor = Factorization(K, upper=True) if self._factor is None else self._factor.refactor(K)
         self._factor_x = x
         if project:
             return
         # K_fc B from the elements that touch a cup: B vanishes on every other element's dofs.
         e = self._cup_elems
         dofs = t.ops.elem_dofs[e]
-        KB_e = np.einsum("eij,ejc->eic", Ke[e], self._B[dofs])
+        KB_e = np.einsum("eij,ejc->eic", fem.unpack(Ke[:, e]), self._B[dofs])
         D = self._B.copy()
         for c in range(t.n_cups):  # a few cups, not elements
             KB = np.bincount(dofs.ravel(), weights=KB_e[:, :, c].ravel(), minlength=self._B.shape[0])

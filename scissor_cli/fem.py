@@ -92,10 +92,59 @@ def element_forces(ops: FEOperators, P: np.ndarray) -> np.ndarray:
     return f.reshape(-1, 6)
 
 
-def element_matrices(ops: FEOperators, C: np.ndarray) -> np.ndarray:
-    """Element stiffness matrices (M, 6, 6) in mN/mm from tangents C (M, 4, 4) in kPa."""
-    GtC = np.matmul(ops.G.transpose(0, 2, 1), C)
-    return np.matmul(GtC, ops.G) * ops.volume[:, None, None]
+#: The 21 (p, q), p <= q, of a symmetric 6x6 element matrix, in its packed order.
+PACKED_PAIRS = tuple((p, q) for p in range(6) for q in range(p, 6))
+
+
+def element_matrices(ops: FEOperators, C: np.ndarray, scale: np.ndarray | None = None) -> np.ndarray:
+    """Symmetric element matrices, packed: (21, M), Ke[k, e] = (K_e)[PACKED_PAIRS[k]].
+
+    K_e = scale_e G_eᵀ C_e G_e from tangents C (M, 4, 4) in kPa, scale the
+    element volumes by default (then mN/mm). Only the upper triangle, and
+    component rows: with the gradients' structure (G_e has two nonzeros per
+    column) this is 2.2x faster than two batched matmuls, and an upper-
+    triangle assembly needs nothing else. K_e[2a+i, 2b+k] =
+    Σ_jl ∂N_a/∂X_j C[2i+j, 2k+l] ∂N_b/∂X_l.
+    """
+    M = C.shape[0]
+    g = ops.grad_rows  # (3, 2, M)
+    rows = np.ascontiguousarray(C.reshape(M, 16).T)  # rows[4r + c] = C[:, r, c]
+    # T[r, b, k] = Σ_l C[r, 2k+l] ∂N_b/∂X_l
+    T = np.empty((4, 3, 2, M))
+    tmp = np.empty(M)
+    for r in range(4):
+        for k in range(2):
+            for b in range(3):
+                np.multiply(rows[4 * r + 2 * k], g[b, 0], out=T[r, b, k])
+                np.multiply(rows[4 * r + 2 * k + 1], g[b, 1], out=tmp)
+                T[r, b, k] += tmp
+    gs = g * (ops.volume if scale is None else scale)
+    Ke = np.empty((len(PACKED_PAIRS), M))
+    for n, (p, q) in enumerate(PACKED_PAIRS):
+        (a, i), (b, k) = divmod(p, 2), divmod(q, 2)
+        np.multiply(gs[a, 0], T[2 * i, b, k], out=Ke[n])
+        np.multiply(gs[a, 1], T[2 * i + 1, b, k], out=tmp)
+        Ke[n] += tmp
+    return Ke
+
+
+def unpack(Ke: np.ndarray) -> np.ndarray:
+    """Packed element matrices (21, M) → full symmetric (M, 6, 6)."""
+    full = np.empty((Ke.shape[1], 6, 6))
+    for n, (p, q) in enumerate(PACKED_PAIRS):
+        full[:, p, q] = full[:, q, p] = Ke[n]
+    return full
+
+
+def packed_times(ops: FEOperators, Ke: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Σ_e K_e v_e (2N,) for packed element matrices Ke (21, M) and a full vector v (2N,)."""
+    ve = v[ops.elem_dofs].T  # (6, M)
+    out = np.zeros((6, Ke.shape[1]))
+    for n, (p, q) in enumerate(PACKED_PAIRS):
+        out[p] += Ke[n] * ve[q]
+        if p != q:
+            out[q] += Ke[n] * ve[p]
+    return scatter_vector(ops, out.T)
 
 
 def scatter_vector(ops: FEOperators, elem: np.ndarray) -> np.ndarray:
@@ -119,40 +168,54 @@ def reduction_matrix(ops: FEOperators) -> sp.csr_matrix:
 
 @dataclass(frozen=True)
 class SparsePattern:
-    """Where each entry of the element matrices lands in a CSR matrix.
+    """Where each entry of the packed element matrices lands in a CSR matrix.
 
-    `entries` selects the entries of the flattened (M, 6, 6) element
-    matrices that belong to the matrix (e.g. free rows and columns only),
-    `slot` is the CSR data position of each selected entry.
+    `entries` selects the entries of the flattened packed (21, M) element
+    matrices that belong to the matrix (free rows and columns only; an
+    off-diagonal pair twice in a full pattern, once in an upper one),
+    `slot` is the CSR data position of each selected entry. An `upper`
+    pattern holds the upper triangle only (sorted CSR), which is what a
+    Cholesky factorisation reads.
     """
 
-    entries: np.ndarray  # (E,) int64 into the flattened (M*36,) element data
+    entries: np.ndarray  # (E,) int64 into the flattened (21*M,) packed data
     slot: np.ndarray  # (E,) int64 into csr data
     indptr: np.ndarray
     indices: np.ndarray
     shape: tuple[int, int]
+    upper: bool = False
 
-    def assemble(self, elem: np.ndarray) -> sp.csr_matrix:
-        data = np.bincount(self.slot, weights=elem.reshape(-1)[self.entries], minlength=len(self.indices))
+    def assemble(self, Ke: np.ndarray) -> sp.csr_matrix:
+        """The CSR matrix of packed element matrices Ke (21, M)."""
+        data = np.bincount(self.slot, weights=Ke.reshape(-1)[self.entries], minlength=len(self.indices))
         return sp.csr_matrix((data, self.indices, self.indptr), shape=self.shape)
 
 
-def sparse_pattern(ops: FEOperators, dof_index: np.ndarray | None = None) -> SparsePattern:
+def sparse_pattern(ops: FEOperators, dof_index: np.ndarray | None = None, upper: bool = False) -> SparsePattern:
     """Pattern of the matrix over the dofs with dof_index >= 0 (renumbered by it).
 
     dof_index (2N,) maps each global dof to its row in the reduced system, or
-    -1 to drop it (Dirichlet dofs); None keeps every dof.
+    -1 to drop it (Dirichlet dofs); None keeps every dof. `upper`: only the
+    upper triangle (row <= column).
     """
     n = 2 * ops.n_nodes
     if dof_index is None:
         dof_index = np.arange(n)
     local = dof_index[ops.elem_dofs]  # (M, 6)
-    rows = np.broadcast_to(local[:, :, None], (len(local), 6, 6)).ravel()
-    cols = np.broadcast_to(local[:, None, :], (len(local), 6, 6)).ravel()
-    entries = np.flatnonzero((rows >= 0) & (cols >= 0))
+    M = len(local)
+    p, q = np.array(PACKED_PAIRS).T
+    rows, cols = local[:, p].T.ravel(), local[:, q].T.ravel()  # packed order: pair-major
+    packed = np.arange(len(PACKED_PAIRS) * M)
+    if upper:
+        rows, cols = np.minimum(rows, cols), np.maximum(rows, cols)
+    else:  # the mirror image of every off-diagonal pair
+        off = rows != cols
+        rows, cols = np.concatenate([rows, cols[off]]), np.concatenate([cols, rows[off]])
+        packed = np.concatenate([packed, packed[off]])
+    keep = (rows >= 0) & (cols >= 0)
     size = int(dof_index.max()) + 1
-    key = rows[entries].astype(np.int64) * size + cols[entries]
+    key = rows[keep].astype(np.int64) * size + cols[keep]
     unique, slot = np.unique(key, return_inverse=True)
     r, c = np.divmod(unique, size)
     indptr = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=size))])
-    return SparsePattern(entries, slot.ravel(), indptr, c.astype(np.int32), (size, size))
+    return SparsePattern(packed[keep], slot.ravel(), indptr, c.astype(np.int32), (size, size), upper)

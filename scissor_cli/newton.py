@@ -51,17 +51,20 @@ def tangent_predictor(tissue: Tissue, x: np.ndarray, strokes: np.ndarray, inerti
     if inertia is not None:
         rhs -= inertia.weight[tissue.free_dofs] * delta[tissue.free_dofs]
     # The exact tangent of a stable equilibrium is positive definite; the
-    # per-element projection only where it is not.
+    # per-element projection only where it is not (the factorisation says).
+    dx = None
     for project in (False, True):
-        K = tissue.stiffness_free(x, project=project, Ke=None if project else Ke)
+        K = tissue.stiffness_free(x, project=project, Ke=None if project else Ke, upper=True)
         if inertia is not None:
             K = K + _diag(inertia.weight[tissue.free_dofs])
         try:
             dx = tissue.factorize_free(K).solve(rhs)
         except SolverError:
             continue
-        if np.all(np.isfinite(dx)) and np.dot(dx, K @ dx) > 0:
+        if np.all(np.isfinite(dx)):
             break
+    if dx is None or not np.all(np.isfinite(dx)):
+        raise SolverError("the tangent predictor found no positive definite stiffness (is a part of the layer unconstrained?)")
     flat = x_new.ravel().copy()
     flat[tissue.free_dofs] += dx
     return flat.reshape(-1, 2)
@@ -114,7 +117,7 @@ def newton_iterations(
                 continue
         step = None
         for project in ([False, True] if res < exact_below else [True]):
-            K = tissue.stiffness_free(x, project=project)
+            K = tissue.stiffness_free(x, project=project, upper=True)
             if inertia is not None:
                 K = K + _diag(inertia.weight[free])
             try:

@@ -42,7 +42,8 @@ class Tissue:
     dirichlet_dofs: np.ndarray  # (Nd,) sorted
     free_dofs: np.ndarray  # (Nf,) sorted
     free_index: np.ndarray  # (2N,) position in free_dofs or -1
-    pattern_free: fem.SparsePattern
+    pattern_free: fem.SparsePattern  # K_ff, both triangles
+    pattern_free_upper: fem.SparsePattern  # its upper triangle, what a Cholesky factorisation reads
     mass: np.ndarray  # (2N,) kg, lumped
     #: one symbolic factorisation of K_ff's pattern, reused by every solve on this mesh
     factor_cache: dict = field(default_factory=dict, compare=False, repr=False)
@@ -121,7 +122,7 @@ class Tissue:
         return float(np.dot(psi, self.ops.volume)), fem.scatter_vector(self.ops, fem.element_forces(self.ops, P))
 
     def element_stiffness(self, x: np.ndarray, project: bool = False) -> np.ndarray:
-        """Element Hessians (M, 6, 6) in mN/mm; PSD-projected if asked.
+        """Element Hessians, packed (21, M) (`fem.element_matrices`), in mN/mm; PSD-projected if asked.
 
         The projection clamps each energy term's closed-form eigenvalues
         (`materials.evaluate_projected`): 12x cheaper than eigendecomposing
@@ -134,31 +135,36 @@ class Tissue:
             C = materials.evaluate(F, self.params, order=2)[2]
         return fem.element_matrices(self.ops, C)
 
-    def stiffness_free(self, x: np.ndarray, project: bool = False, Ke: np.ndarray | None = None) -> sp.csr_matrix:
-        """K_ff (Nf, Nf), the Hessian over free dofs (from element Hessians Ke (M, 6, 6) if given)."""
-        return self.pattern_free.assemble(self.element_stiffness(x, project) if Ke is None else Ke)
+    def stiffness_free(
+        self, x: np.ndarray, project: bool = False, Ke: np.ndarray | None = None, upper: bool = False
+    ) -> sp.csr_matrix:
+        """K_ff (Nf, Nf), the Hessian over free dofs, or only its upper triangle.
 
-    def factorize_free(self, K: sp.csr_matrix):
-        """A positive definite `solve.Factorization` of K_ff, refactoring the cached symbolic analysis.
+        From the packed element Hessians Ke (21, M) if given.
+        """
+        pattern = self.pattern_free_upper if upper else self.pattern_free
+        return pattern.assemble(self.element_stiffness(x, project) if Ke is None else Ke)
 
-        Raises SolverError if K_ff is not positive definite (Newton then projects).
+    def factorize_free(self, K_upper: sp.csr_matrix):
+        """A positive definite `solve.Factorization` of K_ff from its upper triangle (Nf, Nf).
+
+        Refactors the cached symbolic analysis; raises SolverError if K_ff is
+        not positive definite (Newton then projects).
         """
         from .solve import Factorization  # solve builds on tissue; the cache lives here with the pattern
 
         factor = self.factor_cache.get("free")
         if factor is None:
-            factor = self.factor_cache["free"] = Factorization(K, definite=True)
+            factor = self.factor_cache["free"] = Factorization(K_upper, definite=True, upper=True)
             return factor
-        return factor.refactor(K)
+        return factor.refactor(K_upper)
 
     def stiffness_times(self, x: np.ndarray, v: np.ndarray, Ke: np.ndarray | None = None) -> np.ndarray:
         """K v (2N,) for a full vector v (2N,), element by element without assembling K.
 
-        Ke (M, 6, 6), the exact element Hessians at x, saves evaluating them again.
+        Ke (21, M), the exact packed element Hessians at x, saves evaluating them again.
         """
-        Ke = self.element_stiffness(x) if Ke is None else Ke
-        ve = v[self.ops.elem_dofs]
-        return fem.scatter_vector(self.ops, np.einsum("eij,ej->ei", Ke, ve))
+        return fem.packed_times(self.ops, self.element_stiffness(x) if Ke is None else Ke, v)
 
     def force_scale(self, grad: np.ndarray) -> float:
         """A force (mN) to make residuals relative: the Dirichlet reactions.
@@ -248,6 +254,7 @@ def build_tissue(scene: Scene, mesh: Mesh, model: str | None = None) -> Tissue:
         free_dofs=free,
         free_index=free_index,
         pattern_free=fem.sparse_pattern(ops, free_index),
+        pattern_free_upper=fem.sparse_pattern(ops, free_index, upper=True),
         mass=fem.lumped_mass(ops, m.density_kg_per_mm3),
     )
 

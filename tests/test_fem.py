@@ -79,3 +79,42 @@ def test_zero_force_at_rest_and_mass(tissue):
     assert np.abs(g).max() < 1e-11  # round-off of F = I from absolute positions
     area = tissue.ops.area.sum()
     assert np.isclose(tissue.mass.sum(), 2 * 1e-6 * tissue.ops.thickness_mm * area)
+
+
+def test_packed_element_matrices_are_the_matrix_products(tissue):
+    """Ke = vol GᵀCG: the packed closed form against the batched products it stands for."""
+    from scissor_cli import materials
+
+    x = deformed(tissue)
+    C = materials.evaluate(fem.deformation_gradients(tissue.ops, x), tissue.params, 2)[2]
+    G, vol = tissue.ops.G, tissue.ops.volume
+    ref = np.matmul(np.matmul(G.transpose(0, 2, 1), C), G) * vol[:, None, None]
+    packed = fem.element_matrices(tissue.ops, C)
+    assert packed.shape == (21, len(vol))
+    np.testing.assert_allclose(fem.unpack(packed), ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+    # and K v element by element equals the assembled matrix times v
+    v = np.random.default_rng(3).standard_normal(2 * tissue.mesh.n_nodes)
+    full = fem.sparse_pattern(tissue.ops).assemble(packed)
+    np.testing.assert_allclose(fem.packed_times(tissue.ops, packed, v), full @ v, rtol=1e-12, atol=1e-12)
+
+
+def test_upper_pattern_is_the_upper_triangle_of_the_full_one(tissue):
+    import scipy.sparse as sp
+
+    from scissor_cli.solve import Factorization
+
+    x = deformed(tissue, amp=0.1)
+    K = tissue.stiffness_free(x, project=True)
+    U = tissue.stiffness_free(x, project=True, upper=True)
+    assert abs(sp.triu(K) - U).max() <= 1e-12 * abs(K).max()
+    assert U.has_sorted_indices and sp.tril(U, -1).nnz == 0
+    b = np.random.default_rng(4).standard_normal(K.shape[0])
+    np.testing.assert_allclose(Factorization(U, upper=True).solve(b), Factorization(K).solve(b), rtol=1e-10)
+    # the qdldl fallback reads the upper triangle too
+    shift = 2 * abs(K).max()
+    Ki, Ui = (K - shift * sp.eye(K.shape[0])).tocsr(), (U - shift * sp.eye(K.shape[0])).tocsr()
+    f = Factorization(Ui, upper=True)
+    assert f.method == "ldl"
+    np.testing.assert_allclose(Ki @ f.solve(b), b, atol=1e-8 * np.abs(b).max())
+    with pytest.raises(ValueError, match="upper-triangular"):
+        Factorization(K, upper=True)
