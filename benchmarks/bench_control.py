@@ -27,12 +27,13 @@ from pathlib import Path
 
 import numpy as np
 
-from scissor_cli import control as ct
-from scissor_cli.camera import Camera
+from scissor_cli import runtime  # noqa: E402
+from scissor_cli.control import loop as ct
+from scissor_cli.scene.camera import Camera
 from scissor_cli.config import load_config
-from scissor_cli.jacobian import probe_targets
-from scissor_cli.planner import StateCache, corridor_radius, plan_targets
-from scissor_cli.simulate import build_model
+from scissor_cli.mesh.probe import probe_targets
+from scissor_cli.planning.needle import StateCache, corridor_radius, plan_targets
+from scissor_cli.experiments.simulate import build_model
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -125,4 +126,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    runtime.configure()
     main()

@@ -31,13 +31,14 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from scissor_cli.admm import AdmmSolver  # noqa: E402
+from scissor_cli import runtime  # noqa: E402
+from scissor_cli.solvers.admm import AdmmSolver  # noqa: E402
 from scissor_cli.config import load_config  # noqa: E402
-from scissor_cli.mesh import mesh_for_config  # noqa: E402
-from scissor_cli.newton import solve_newton  # noqa: E402
-from scissor_cli.scene import scene_from_config  # noqa: E402
-from scissor_cli.study import timed  # noqa: E402
-from scissor_cli.tissue import build_tissue  # noqa: E402
+from scissor_cli.mesh.mesh import mesh_for_config  # noqa: E402
+from scissor_cli.solvers.newton import solve_newton  # noqa: E402
+from scissor_cli.scene.scene import scene_from_config  # noqa: E402
+from scissor_cli.experiments.study import timed  # noqa: E402
+from scissor_cli.mechanics.tissue import build_tissue  # noqa: E402
 
 
 def rel_error(x, ref, rest):
@@ -102,4 +103,5 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
+    runtime.configure()
     raise SystemExit(main())

@@ -13,9 +13,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from scissor_cli import runtime  # noqa: E402
 from scissor_cli.config import load_config  # noqa: E402
-from scissor_cli.simulate import ForwardSolver, build_model  # noqa: E402
-from scissor_cli.solve import SolverError  # noqa: E402
+from scissor_cli.experiments.simulate import ForwardSolver, build_model  # noqa: E402
+from scissor_cli.solvers.common import SolverError  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -45,4 +46,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    runtime.configure()
     main()

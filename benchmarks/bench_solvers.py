@@ -82,14 +82,15 @@ import numpy as np  # noqa: E402
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from scissor_cli.admm import AdmmSolver  # noqa: E402
+from scissor_cli import runtime  # noqa: E402
+from scissor_cli.solvers.admm import AdmmSolver  # noqa: E402
 from scissor_cli.config import load_config  # noqa: E402
-from scissor_cli.jacobian import probe_targets, target_positions  # noqa: E402
-from scissor_cli.newton import solve_newton  # noqa: E402
-from scissor_cli.simulate import build_model  # noqa: E402
-from scissor_cli.solve import SolverError  # noqa: E402
-from scissor_cli.study import timed  # noqa: E402
-from scissor_cli.tissue import Tissue  # noqa: E402
+from scissor_cli.mesh.probe import probe_targets, target_positions  # noqa: E402
+from scissor_cli.solvers.newton import solve_newton  # noqa: E402
+from scissor_cli.experiments.simulate import build_model  # noqa: E402
+from scissor_cli.solvers.common import SolverError  # noqa: E402
+from scissor_cli.experiments.study import timed  # noqa: E402
+from scissor_cli.mechanics.tissue import Tissue  # noqa: E402
 
 CONFIG = os.path.join(ROOT, "configs", "example.yaml")
 #: mesh_scale → elements of the example's graded mesh (1050 / 4016 / 15708 / 62k)
@@ -502,4 +503,7 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
+    runtime.keep_freed_memory()
+    if _blas_threads_from_argv(sys.argv) is None:  # else the environment set above decides
+        runtime.limit_blas_threads()
     raise SystemExit(main())

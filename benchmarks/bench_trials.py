@@ -17,8 +17,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from scissor_cli import runtime  # noqa: E402
 from scissor_cli.config import load_config  # noqa: E402
-from scissor_cli.simulate import Execution, run_simulation  # noqa: E402
+from scissor_cli.experiments.simulate import Execution, run_simulation  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_MAX = {"prosthesis": (0.7, 1.7), "ex_vivo": (1.3, 2.5)}  # max |x|, |y| error (mm), paper section 4.2
@@ -49,4 +50,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    runtime.configure()
     main()

@@ -15,8 +15,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from scissor_cli.robot import RobotModel  # noqa: E402
-from scissor_cli.workspace import run_workspace  # noqa: E402
+from scissor_cli import runtime  # noqa: E402
+from scissor_cli.robot.kinematics import RobotModel  # noqa: E402
+from scissor_cli.robot.workspace import run_workspace  # noqa: E402
 
 
 def main() -> None:
@@ -39,4 +40,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    runtime.configure()
     main()

@@ -16,8 +16,8 @@ import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from . import __version__
-from .config import Config, ConfigError, load_config, resolved_yaml
+from scissor_cli import __version__, runtime
+from scissor_cli.config import Config, ConfigError, load_config, resolved_yaml
 
 app = typer.Typer(
     add_completion=False,
@@ -89,6 +89,7 @@ def main(
     version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version and exit."),
 ) -> None:
     """scissor: simulate robot-assisted breast intervention from a YAML scene."""
+    runtime.configure()
 
 
 @app.command()
@@ -114,10 +115,10 @@ def simulate(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress or messages, only the output path."),
 ) -> None:
     """Mesh the scene, solve its forward cases, plan the needle, manipulate the targets, run trials."""
-    from .mesh import MeshError
-    from .simulate import Execution, ResumeError, TrialsFailed, resume_simulation, run_simulation
-    from .solve import SolverError
-    from .tissue import BoundaryError
+    from scissor_cli.mesh.mesh import MeshError
+    from scissor_cli.experiments.simulate import Execution, ResumeError, TrialsFailed, resume_simulation, run_simulation
+    from scissor_cli.solvers.common import SolverError
+    from scissor_cli.mechanics.tissue import BoundaryError
 
     if executor not in ("local", "dask"):
         _fail(2, f"--executor: must be 'local' or 'dask'; got {executor!r}")
@@ -150,7 +151,7 @@ def simulate(
     if trials is not None:
         cfg = cfg.model_copy(update={"trials": cfg.trials.model_copy(update={"count": trials})})
     if study and cfg.study is None:
-        from .config import StudyConfig
+        from scissor_cli.config import StudyConfig
 
         cfg = cfg.model_copy(update={"study": StudyConfig()})
     directory = _out_dir(out_dir, stem, force)
@@ -179,13 +180,14 @@ def workspace(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Only the output path."),
 ) -> None:
     """Sample the puncture module's joint space: workspace.h5, the Fig. 8 projections, box coverage."""
-    from .robot import RobotModel
-    from .workspace import plot_workspace, run_workspace, write_workspace_h5
+    from scissor_cli.robot.kinematics import RobotModel
+    from scissor_cli.output.workspace import plot_workspace, write_workspace_h5
+    from scissor_cli.robot.workspace import run_workspace
 
     if config is not None:
         cfg, stem = _load(config)
     else:
-        from .config import Config
+        from scissor_cli.config import Config
 
         cfg, stem = Config(), "workspace"
     try:
@@ -223,7 +225,7 @@ def report(
     partial: bool = typer.Option(False, "--partial", help="Also report runs whose status is not 'complete'."),
 ) -> None:
     """Combine runs: error box plots and summary tables of trials; speed against error of studies."""
-    from .report import ReportError, make_report
+    from scissor_cli.output.report import ReportError, make_report
 
     directory = out_dir or Path("runs") / f"report-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
     try:

@@ -7,14 +7,14 @@ import time
 import numpy as np
 import pytest
 
-from scissor_cli import admm
-from scissor_cli.admm import AdmmSolver, AdmmState, implicit_euler
+from scissor_cli.solvers import admm
+from scissor_cli.solvers.admm import AdmmSolver, AdmmState, implicit_euler
 from scissor_cli.config import load_config
-from scissor_cli.mesh import mesh_for_config
-from scissor_cli.newton import solve_newton
-from scissor_cli.scene import scene_from_config
-from scissor_cli.solve import Inertia, SolverError
-from scissor_cli.tissue import build_tissue
+from scissor_cli.mesh.mesh import mesh_for_config
+from scissor_cli.solvers.newton import solve_newton
+from scissor_cli.scene.scene import scene_from_config
+from scissor_cli.solvers.common import Inertia, SolverError
+from scissor_cli.mechanics.tissue import build_tissue
 
 CONFIG = "configs/example.yaml"
 

@@ -10,14 +10,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scissor_cli import control as ct
-from scissor_cli import figures
-from scissor_cli.camera import Camera
+from scissor_cli.control import loop as ct
+from scissor_cli.output import figures
+from scissor_cli.scene.camera import Camera
 from scissor_cli.config import ControllerConfig, load_config
-from scissor_cli.jacobian import apply_probe, cup_target_jacobian, probe_targets, target_positions
-from scissor_cli.newton import solve_newton
-from scissor_cli.planner import corridor_radius, plan_targets
-from scissor_cli.simulate import build_model
+from scissor_cli.mesh.probe import apply_probe, probe_targets, target_positions
+from scissor_cli.solvers.jacobian import cup_target_jacobian
+from scissor_cli.solvers.newton import solve_newton
+from scissor_cli.planning.needle import corridor_radius, plan_targets
+from scissor_cli.experiments.simulate import build_model
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ("paper_pull", "paper_push", "example")

@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from scissor_cli import fem
+from scissor_cli.mechanics import fem
 from scissor_cli.config import parse_config
-from scissor_cli.mesh import mesh_for_config
-from scissor_cli.scene import scene_from_config
-from scissor_cli.tissue import build_tissue
+from scissor_cli.mesh.mesh import mesh_for_config
+from scissor_cli.scene.scene import scene_from_config
+from scissor_cli.mechanics.tissue import build_tissue
 
 SCENE = """
 tissue: {size_mm: [30, 20], mesh: {max_edge_mm: 5, min_edge_mm: 2.5}}
@@ -83,7 +83,7 @@ def test_zero_force_at_rest_and_mass(tissue):
 
 def test_packed_element_matrices_are_the_matrix_products(tissue):
     """Ke = vol GᵀCG: the packed closed form against the batched products it stands for."""
-    from scissor_cli import materials
+    from scissor_cli.mechanics import materials
 
     x = deformed(tissue)
     C = materials.evaluate(fem.deformation_gradients(tissue.ops, x), tissue.params, 2)[2]
@@ -101,7 +101,7 @@ def test_packed_element_matrices_are_the_matrix_products(tissue):
 def test_upper_pattern_is_the_upper_triangle_of_the_full_one(tissue):
     import scipy.sparse as sp
 
-    from scissor_cli.solve import Factorization
+    from scissor_cli.solvers.linear import Factorization
 
     x = deformed(tissue, amp=0.1)
     K = tissue.stiffness_free(x, project=True)

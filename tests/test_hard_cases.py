@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from scissor_cli.config import load_config
-from scissor_cli.simulate import ForwardSolver, build_model
-from scissor_cli.solve import SolverError
+from scissor_cli.experiments.simulate import ForwardSolver, build_model
+from scissor_cli.solvers.common import SolverError
 from helpers import ROOT
 
 HARD = sorted((ROOT / "configs" / "hard").glob("*.yaml"))

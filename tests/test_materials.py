@@ -6,7 +6,7 @@ import warnings
 import numpy as np
 import pytest
 
-from scissor_cli import materials as mat
+from scissor_cli.mechanics import materials as mat
 
 FD_STEP = 1e-6
 RTOL = 1e-6

@@ -5,9 +5,9 @@ import pytest
 
 from scissor_cli import geometry
 from scissor_cli.config import load_config, parse_config
-from scissor_cli.mesh import grip_ends, interpolate, locate, mesh_for_config
-from scissor_cli.scene import scene_from_config
-from scissor_cli.tissue import build_tissue
+from scissor_cli.mesh.mesh import grip_ends, interpolate, locate, mesh_for_config
+from scissor_cli.scene.scene import scene_from_config
+from scissor_cli.mechanics.tissue import build_tissue
 from helpers import EXAMPLE
 
 

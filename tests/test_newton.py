@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from scissor_cli.config import load_config
-from scissor_cli.mesh import interpolate, locate
-from scissor_cli.newton import solve_newton
-from scissor_cli.simulate import build_model
-from scissor_cli.solve import SolverError
+from scissor_cli.mesh.mesh import interpolate, locate
+from scissor_cli.solvers.newton import solve_newton
+from scissor_cli.experiments.simulate import build_model
+from scissor_cli.solvers.common import SolverError
 from helpers import EXAMPLE
 
 
@@ -33,7 +33,7 @@ def test_linear_model_is_one_linear_solve(example):
     r = solve_newton(tissue, np.array([5.0]))
     assert r.converged and r.iterations <= 1
     # and it equals the solution of K_ff u_f = -K_fd u_d at rest
-    from scissor_cli.solve import Factorization
+    from scissor_cli.solvers.linear import Factorization
 
     x_d = tissue.apply_strokes(tissue.rest, np.array([5.0]))
     u = (x_d - tissue.rest).ravel()
@@ -111,7 +111,7 @@ def test_unconverged_newton_says_so(example):
 
 def test_chord_option_reaches_the_same_solution_and_ends_quadratic(example):
     """newton_iterations(chord=True) reuses factorisations only far from the solution (its docstring)."""
-    from scissor_cli.newton import newton_iterations, tangent_predictor
+    from scissor_cli.solvers.newton import newton_iterations, tangent_predictor
 
     _, _, tissue = build_model(example, mesh_scale=2.0)
     ref = solve_newton(tissue, np.array([5.0]))
@@ -126,7 +126,7 @@ def test_full_steps_are_extrapolated_where_the_hessian_overrates_the_curvature(e
     """10 mm push on the 15.7k mesh: an element folds at the cup's grip end, the exact
     Hessian is indefinite there and its PD stand-in makes unit steps crawl (Φ falls by
     its full linear prediction). Doubling such steps crosses that stretch."""
-    import scissor_cli.newton as newton
+    import scissor_cli.solvers.newton as newton
 
     _, _, tissue = build_model(example, mesh_scale=0.33)
     fast = solve_newton(tissue, np.array([10.0]))

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from scissor_cli import geometry
-from scissor_cli import planner as pl
+from scissor_cli.planning import needle as pl
 from scissor_cli.config import NeedleConfig, load_config, parse_config
-from scissor_cli.mesh import interpolate, locate, mesh_for_config
-from scissor_cli.newton import solve_newton
-from scissor_cli.scene import scene_from_config
-from scissor_cli.tissue import build_tissue
+from scissor_cli.mesh.mesh import interpolate, locate, mesh_for_config
+from scissor_cli.solvers.newton import solve_newton
+from scissor_cli.scene.scene import scene_from_config
+from scissor_cli.mechanics.tissue import build_tissue
 
 RADIUS = 0.6 + 1.0  # 18G needle radius + the default margin, mm
 SQUARE = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]])

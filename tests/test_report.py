@@ -8,8 +8,8 @@ import h5py
 import numpy as np
 import pytest
 
-from scissor_cli.report import ReportError, report_trials
-from scissor_cli.simulate import Execution, run_simulation
+from scissor_cli.output.report import ReportError, report_trials
+from scissor_cli.experiments.simulate import Execution, run_simulation
 from test_trials import reduced
 
 
@@ -72,7 +72,7 @@ def test_study_report(tmp_path):
         assert study["time_s"].attrs["units"] == "s" and study.attrs["reference_model"] == "neo_hookean_fiber"
         newton = study["solver"][:].astype(str) == "newton"
         assert np.all(study["error_discrete_mm"][:][newton] == 0)
-    from scissor_cli.report import make_report
+    from scissor_cli.output.report import make_report
 
     rep = make_report([tmp_path / "run"], tmp_path / "rep")
     assert (tmp_path / "rep" / "study_cheapest.csv").exists()

@@ -5,8 +5,8 @@ import types
 import numpy as np
 import pytest
 
-from scissor_cli.robot import RobotModel, ik, ik_batch, layer_to_base, direction_layer_to_base, plan_to_joints
-from scissor_cli.workspace import sample_joints
+from scissor_cli.robot.kinematics import RobotModel, ik, ik_batch, layer_to_base, direction_layer_to_base, plan_to_joints
+from scissor_cli.robot.workspace import sample_joints
 
 PAPER = RobotModel.paper()
 

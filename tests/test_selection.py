@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 
-from scissor_cli.admm import AdmmSolver
+from scissor_cli.solvers.admm import AdmmSolver
 from scissor_cli.config import load_config
-from scissor_cli.jacobian import probe_targets, target_positions
-from scissor_cli.newton import solve_newton
-from scissor_cli.selection import hardest_case, select
-from scissor_cli.simulate import build_model
+from scissor_cli.mesh.probe import probe_targets, target_positions
+from scissor_cli.solvers.newton import solve_newton
+from scissor_cli.experiments.selection import hardest_case, select
+from scissor_cli.experiments.simulate import build_model
 from helpers import ROOT
 
 
@@ -67,7 +67,7 @@ def test_selection_is_recorded(tmp_path):
     import yaml
 
     from scissor_cli.config import parse_config
-    from scissor_cli.simulate import run_simulation
+    from scissor_cli.experiments.simulate import run_simulation
 
     data = yaml.safe_load((ROOT / "configs" / "example.yaml").read_text())
     data["solver"]["accuracy_mm"] = 1.0

@@ -4,10 +4,10 @@ import h5py
 import numpy as np
 import pytest
 
-from scissor_cli import control
+from scissor_cli.control import loop as control
 from scissor_cli.config import load_config
-from scissor_cli.profiles import draw_trial, error_model
-from scissor_cli.simulate import Execution, TrialsFailed, resume_simulation, run_simulation
+from scissor_cli.experiments.profiles import draw_trial, error_model
+from scissor_cli.experiments.simulate import Execution, TrialsFailed, resume_simulation, run_simulation
 from helpers import ROOT
 
 

@@ -54,14 +54,16 @@ from typing import Optional
 import numpy as np
 import scipy.sparse as sp
 
-from . import fem, materials
-from .camera import Camera
-from .config import ControllerConfig
-from .jacobian import TargetProbe, apply_probe, probe_targets, target_positions
-from .newton import solve_newton
-from .planner import Embedding, boundary_loop, corridor_clearance, deformed_outlines, embed_outlines, entry_points
-from .solve import Factorization, SolverError, check_finite, relative_residual
-from .tissue import Tissue
+from scissor_cli.mechanics import fem
+from scissor_cli.mechanics import materials
+from scissor_cli.scene.camera import Camera
+from scissor_cli.config import ControllerConfig
+from scissor_cli.mesh.probe import TargetProbe, apply_probe, probe_targets, target_positions
+from scissor_cli.solvers.newton import solve_newton
+from scissor_cli.planning.needle import Embedding, boundary_loop, corridor_clearance, deformed_outlines, embed_outlines, entry_points
+from scissor_cli.solvers.linear import Factorization
+from scissor_cli.solvers.common import SolverError, check_finite, relative_residual
+from scissor_cli.mechanics.tissue import Tissue
 
 #: Why `run_loop` stopped.
 STOP_REASONS = ("tolerance", "max_iterations", "stalled", "stroke_limit", "solver_failed")

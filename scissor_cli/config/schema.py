@@ -22,7 +22,7 @@ import yaml
 from annotated_types import Len
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from . import geometry
+from scissor_cli import geometry
 
 Side = Literal["bottom", "top", "left", "right"]
 Vec2 = Annotated[list[float], Len(2, 2)]

@@ -29,13 +29,13 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .admm import AdmmSolver
-from .config import Config
-from .jacobian import probe_targets, target_positions
-from .mesh import mesh_for_config
-from .newton import solve_newton
-from .scene import scene_from_config
-from .tissue import build_tissue
+from scissor_cli.solvers.admm import AdmmSolver
+from scissor_cli.config import Config
+from scissor_cli.mesh.probe import probe_targets, target_positions
+from scissor_cli.mesh.mesh import mesh_for_config
+from scissor_cli.solvers.newton import solve_newton
+from scissor_cli.scene.scene import scene_from_config
+from scissor_cli.mechanics.tissue import build_tissue
 
 SAFETY = 0.7
 CALIBRATION_LEVELS = (4.0, 2.0, 1.0)

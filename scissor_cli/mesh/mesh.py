@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 import triangle
 
-from . import geometry
-from .scene import Scene
+from scissor_cli import geometry
+from scissor_cli.scene.scene import Scene
 
 
 class MeshError(RuntimeError):

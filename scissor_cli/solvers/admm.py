@@ -151,9 +151,11 @@ from typing import Callable
 import numpy as np
 import scipy.sparse as sp
 
-from . import fem, materials
-from .solve import Factorization, Inertia, SolveResult, SolverError, objective_gradient, relative_residual
-from .tissue import Tissue
+from scissor_cli.mechanics import fem
+from scissor_cli.mechanics import materials
+from scissor_cli.solvers.linear import Factorization
+from scissor_cli.solvers.common import Inertia, SolveResult, SolverError, objective_gradient, relative_residual
+from scissor_cli.mechanics.tissue import Tissue
 
 __all__ = ["AdmmSolver", "AdmmState", "EulerStep", "implicit_euler", "rest_weights", "local_newton"]
 

@@ -16,18 +16,21 @@ import numpy as np
 
 import h5py
 
-from . import control, figures, results
-from .config import Config, SolverConfig, parse_config, resolved_yaml
-from .jacobian import cup_target_jacobian, probe_targets, target_positions
-from .newton import solve_newton
-from .planner import NeedlePlan, StateCache, boundary_loop, corridor_radius, deformed_outlines, embed_outlines, plan_target
-from .profiles import error_model
-from .robot import RobotModel, plan_to_joints
-from .selection import select
-from .study import rows_as_columns, run_study
-from .trials import TargetTask, execute
-from .solve import Inertia, SolveResult, SolverError
-from .tissue import Tissue, build_model  # noqa: F401 - build_model is part of this module's API
+from scissor_cli.control import loop as control
+from scissor_cli.output import figures
+from scissor_cli.output import results
+from scissor_cli.config import Config, SolverConfig, parse_config, resolved_yaml
+from scissor_cli.solvers.jacobian import cup_target_jacobian
+from scissor_cli.mesh.probe import probe_targets, target_positions
+from scissor_cli.solvers.newton import solve_newton
+from scissor_cli.planning.needle import NeedlePlan, StateCache, boundary_loop, corridor_radius, deformed_outlines, embed_outlines, plan_target
+from scissor_cli.experiments.profiles import error_model
+from scissor_cli.robot.kinematics import RobotModel, plan_to_joints
+from scissor_cli.experiments.selection import select
+from scissor_cli.experiments.study import rows_as_columns, run_study
+from scissor_cli.experiments.trials import TargetTask, execute
+from scissor_cli.solvers.common import Inertia, SolveResult, SolverError
+from scissor_cli.mechanics.tissue import Tissue, build_model  # noqa: F401 - build_model is part of this module's API
 
 
 class Reporter(Protocol):
@@ -88,7 +91,7 @@ class ForwardSolver:
         if cfg.kind == "newton":
             return solve_newton(self.tissue, strokes, x0=x0, strokes0=strokes0,
                                 inertia=inertia, tol=cfg.newton_tolerance, max_iter=cfg.newton_max_iterations)
-        from .admm import AdmmSolver  # the ADMM is only built when asked for
+        from scissor_cli.solvers.admm import AdmmSolver  # the ADMM is only built when asked for
 
         if self._admm is None or self._admm.dt_s != (None if inertia is None else inertia.dt_s):
             self._admm = AdmmSolver(self.tissue, dt_s=None if inertia is None else inertia.dt_s,

@@ -19,47 +19,12 @@ only the exact tangent gives it. One sparse factorisation of K_ff serves all cup
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-from .mesh import Mesh, locate
-from .solve import Factorization, SolverError
-from .tissue import Tissue
-
-
-@dataclass(frozen=True)
-class TargetProbe:
-    """K points carried by their rest triangles (MODEL.md §1).
-
-    nodes (K, 3) int: the containing triangle's vertices; bary (K, 3): the
-    barycentric weights at rest (rows sum to 1); tri_idx (K,) for reference.
-    """
-
-    tri_idx: np.ndarray
-    nodes: np.ndarray
-    bary: np.ndarray
-
-    @property
-    def n_targets(self) -> int:
-        return len(self.tri_idx)
-
-
-def probe_targets(mesh: Mesh, points: np.ndarray) -> TargetProbe:
-    """The probe of rest points (K, 2) mm; ValueError if one lies outside the mesh."""
-    tri_idx, bary = locate(mesh, np.atleast_2d(np.asarray(points, float)))
-    return TargetProbe(tri_idx=tri_idx, nodes=mesh.triangles[tri_idx], bary=bary)
-
-
-def target_positions(probe: TargetProbe, x: np.ndarray) -> np.ndarray:
-    """Deformed target positions (K, 2) mm for node positions x (N, 2) mm."""
-    return np.einsum("kj,kjd->kd", probe.bary, np.asarray(x, float)[probe.nodes])
-
-
-def apply_probe(probe: TargetProbe, D: np.ndarray) -> np.ndarray:
-    """S_t D: nodal vectors D (2N, C) → target vectors (2K, C), rows [t0x, t0y, t1x, ...]."""
-    D3 = D.reshape(-1, 2, D.shape[1])  # (N, 2, C)
-    return np.einsum("kj,kjdc->kdc", probe.bary, D3[probe.nodes]).reshape(2 * probe.n_targets, D.shape[1])
+from scissor_cli.mesh.probe import TargetProbe, apply_probe
+from scissor_cli.solvers.linear import Factorization
+from scissor_cli.solvers.common import SolverError
+from scissor_cli.mechanics.tissue import Tissue
 
 
 def nodal_response(

@@ -53,7 +53,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import TrialsConfig
+from scissor_cli.config import TrialsConfig
 
 PROFILES: dict[str, dict[str, float]] = {
     "ideal": dict(

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import CameraConfig
+from scissor_cli.config import CameraConfig
 
 
 def intrinsics(focal_mm: float, pixel_size_mm, principal_point_px) -> np.ndarray:

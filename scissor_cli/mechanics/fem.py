@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from .mesh import Mesh
+from scissor_cli.mesh.mesh import Mesh
 
 
 @dataclass(frozen=True)

@@ -14,9 +14,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from . import figures
-from . import study as study_mod
-from .results import read_study
+from scissor_cli.output import figures
+from scissor_cli.experiments import study as study_mod
+from scissor_cli.output.results import read_study
 
 
 class ReportError(ValueError):

@@ -21,14 +21,14 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .admm import AdmmSolver
-from .config import Config, StudyConfig
-from .jacobian import probe_targets, target_positions
-from .mesh import Mesh, mesh_for_config
-from .newton import solve_newton
-from .scene import Scene, scene_from_config
-from .solve import SolverError
-from .tissue import build_tissue
+from scissor_cli.solvers.admm import AdmmSolver
+from scissor_cli.config import Config, StudyConfig
+from scissor_cli.mesh.probe import probe_targets, target_positions
+from scissor_cli.mesh.mesh import Mesh, mesh_for_config
+from scissor_cli.solvers.newton import solve_newton
+from scissor_cli.scene.scene import Scene, scene_from_config
+from scissor_cli.solvers.common import SolverError
+from scissor_cli.mechanics.tissue import build_tissue
 
 RICHEST = "neo_hookean_fiber"
 
@@ -94,7 +94,7 @@ def mesh_variants(cfg: Config, scene: Scene, study: StudyConfig, notes: list[str
 
 
 def _uniform_estimate(scene: Scene, h: float) -> int:
-    from .geometry import signed_area
+    from scissor_cli.geometry import signed_area
 
     return int(abs(signed_area(scene.outline)) / (np.sqrt(3) / 4 * h * h))
 

@@ -33,13 +33,13 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
-from . import geometry
-from .config import NeedleConfig
-from .mesh import Mesh, interpolate, locate
-from .newton import solve_newton
-from .scene import Scene, Target
-from .solve import SolverError
-from .tissue import Tissue
+from scissor_cli import geometry
+from scissor_cli.config import NeedleConfig
+from scissor_cli.mesh.mesh import Mesh, interpolate, locate
+from scissor_cli.solvers.newton import solve_newton
+from scissor_cli.scene.scene import Scene, Target
+from scissor_cli.solvers.common import SolverError
+from scissor_cli.mechanics.tissue import Tissue
 
 #: A caller-supplied check that the robot can realise an insertion:
 #: (entry (2,), direction (2,), target (2,)) in the layer frame, mm →

@@ -19,8 +19,9 @@ import time
 import numpy as np
 import scipy.sparse as sp
 
-from .solve import Inertia, SolveResult, SolverError, check_finite, objective_gradient, relative_residual
-from .tissue import Tissue
+from scissor_cli.solvers.linear import factorize_free
+from scissor_cli.solvers.common import Inertia, SolveResult, SolverError, check_finite, objective_gradient, relative_residual
+from scissor_cli.mechanics.tissue import Tissue
 
 ARMIJO = 1e-4
 #: a full step whose Φ decrease reaches this fraction of the linear prediction
@@ -58,7 +59,7 @@ def tangent_predictor(tissue: Tissue, x: np.ndarray, strokes: np.ndarray, inerti
         if inertia is not None:
             K = K + _diag(inertia.weight[tissue.free_dofs])
         try:
-            dx = tissue.factorize_free(K).solve(rhs)
+            dx = factorize_free(tissue, K).solve(rhs)
         except SolverError:
             continue
         if np.all(np.isfinite(dx)):
@@ -121,7 +122,7 @@ def newton_iterations(
             if inertia is not None:
                 K = K + _diag(inertia.weight[free])
             try:
-                d = -tissue.factorize_free(K).solve(g)
+                d = -factorize_free(tissue, K).solve(g)
             except SolverError:  # singular exact Hessian: the projected one is next
                 continue
             if np.all(np.isfinite(d)) and np.dot(g, d) < 0:

@@ -15,9 +15,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import scipy.sparse as sp
 
-from . import fem, materials
-from .mesh import Mesh
-from .scene import Scene
+from scissor_cli.mechanics import fem
+from scissor_cli.mechanics import materials
+from scissor_cli.mesh.mesh import Mesh
+from scissor_cli.scene.scene import Scene
 
 
 class InvertedElementError(RuntimeError):
@@ -145,20 +146,6 @@ class Tissue:
         pattern = self.pattern_free_upper if upper else self.pattern_free
         return pattern.assemble(self.element_stiffness(x, project) if Ke is None else Ke)
 
-    def factorize_free(self, K_upper: sp.csr_matrix):
-        """A positive definite `solve.Factorization` of K_ff from its upper triangle (Nf, Nf).
-
-        Refactors the cached symbolic analysis; raises SolverError if K_ff is
-        not positive definite (Newton then projects).
-        """
-        from .solve import Factorization  # solve builds on tissue; the cache lives here with the pattern
-
-        factor = self.factor_cache.get("free")
-        if factor is None:
-            factor = self.factor_cache["free"] = Factorization(K_upper, definite=True, upper=True)
-            return factor
-        return factor.refactor(K_upper)
-
     def stiffness_times(self, x: np.ndarray, v: np.ndarray, Ke: np.ndarray | None = None) -> np.ndarray:
         """K v (2N,) for a full vector v (2N,), element by element without assembling K.
 
@@ -261,8 +248,8 @@ def build_tissue(scene: Scene, mesh: Mesh, model: str | None = None) -> Tissue:
 
 def build_model(cfg, model: str | None = None, mesh_scale: float | None = None):
     """Scene, mesh and tissue of a validated config; `model` and `mesh_scale` override the config's."""
-    from .mesh import mesh_for_config
-    from .scene import scene_from_config
+    from scissor_cli.mesh.mesh import mesh_for_config
+    from scissor_cli.scene.scene import scene_from_config
 
     scene = scene_from_config(cfg)
     mesh = mesh_for_config(scene, cfg.tissue.mesh, scale=mesh_scale)

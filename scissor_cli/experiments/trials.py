@@ -18,13 +18,14 @@ from typing import Iterator, Optional
 
 import numpy as np
 
-from . import control
-from .camera import Camera
-from .config import parse_config
-from .newton import solve_newton
-from .planner import corridor_radius
-from .profiles import ErrorModel, draw_trial, error_model
-from .tissue import build_model
+from scissor_cli import runtime
+from scissor_cli.control import loop as control
+from scissor_cli.scene.camera import Camera
+from scissor_cli.config import parse_config
+from scissor_cli.solvers.newton import solve_newton
+from scissor_cli.planning.needle import corridor_radius
+from scissor_cli.experiments.profiles import ErrorModel, draw_trial, error_model
+from scissor_cli.mechanics.tissue import build_model
 
 
 @dataclass(frozen=True)
@@ -167,7 +168,7 @@ def execute(
         return
     # Batches amortise the per-task overhead while keeping both workers busy to the end.
     size = max(1, min(8, len(work) // (4 * jobs)))
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
+    with ProcessPoolExecutor(max_workers=jobs, initializer=runtime.configure) as pool:
         pending = {pool.submit(_run_batch, config_yaml, batch) for batch in _batches(work, size)}
         try:
             while pending:

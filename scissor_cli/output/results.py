@@ -14,7 +14,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from . import __version__
+from scissor_cli import __version__
 
 
 class ResultsFile:

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import Config, obstacle_outline, tissue_outline
+from scissor_cli.config import Config, obstacle_outline, tissue_outline
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,40 @@
+"""The scene file: pydantic models of every section, loading with errors that name file, field and line.
+
+Everything outside this package imports from here, so the package's inner
+split may change.
+"""
+
+from scissor_cli.config.schema import (
+    BoxConfig,
+    CameraConfig,
+    CircleConfig,
+    Config,
+    ConfigError,
+    ControllerConfig,
+    CupConfig,
+    DHLinkConfig,
+    ForwardCase,
+    MaterialConfig,
+    MeshConfig,
+    NeedleConfig,
+    ObstacleConfig,
+    RobotConfig,
+    SolverConfig,
+    StudyConfig,
+    TargetConfig,
+    TissueConfig,
+    TrialsConfig,
+    load_config,
+    obstacle_outline,
+    parse_config,
+    resolved_yaml,
+    scene_problems,
+    tissue_outline,
+)
+
+__all__ = [
+    "BoxConfig", "CameraConfig", "CircleConfig", "Config", "ConfigError", "ControllerConfig", "CupConfig",
+    "DHLinkConfig", "ForwardCase", "MaterialConfig", "MeshConfig", "NeedleConfig", "ObstacleConfig",
+    "RobotConfig", "SolverConfig", "StudyConfig", "TargetConfig", "TissueConfig", "TrialsConfig",
+    "load_config", "obstacle_outline", "parse_config", "resolved_yaml", "scene_problems", "tissue_outline",
+]

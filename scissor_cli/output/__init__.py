@@ -1,0 +1,1 @@
+"""What a run leaves behind: results.h5, figures, reports and exports (docs/contract.md)."""
