@@ -1,0 +1,129 @@
+"""The package's layers: data flows one way, and no module imports a later layer or forms a cycle.
+
+Order (docs/architecture.md): the base modules (`geometry`, `runtime`, the
+package root), then config → scene → mesh → mechanics → solvers → robot →
+planning → control → insertion → layer3d → experiments → output → cli. A
+module may import from its own package and from any earlier layer; the test
+reads every `import` statement (including those inside functions) with `ast`.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / "scissor_cli"
+LAYERS = [
+    "", "geometry", "runtime", "config", "scene", "mesh", "mechanics", "solvers", "robot", "planning",
+    "control", "insertion", "layer3d", "experiments", "output", "cli", "__main__",
+]
+RANK = {name: i for i, name in enumerate(LAYERS)}
+BASE = {"", "geometry", "runtime"}  # importable from everywhere
+
+
+def _module_name(path: Path) -> str:
+    rel = path.relative_to(PACKAGE.parent).with_suffix("")
+    parts = list(rel.parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def _layer(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else ""
+
+
+def _imports(path: Path) -> set[str]:
+    tree = ast.parse(path.read_text(), str(path))
+    me = _module_name(path)
+    package = me if path.name == "__init__.py" else me.rsplit(".", 1)[0]
+    found = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names if a.name.split(".")[0] == "scissor_cli"}
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[: len(base) - node.level + 1]
+                mod = ".".join(base + ([node.module] if node.module else []))
+            else:
+                mod = node.module or ""
+            if mod.split(".")[0] != "scissor_cli":
+                continue
+            # `from scissor_cli.pkg import module` names a module, not a value
+            for a in node.names:
+                sub = f"{mod}.{a.name}"
+                found.add(sub if (PACKAGE.parent / (sub.replace(".", "/") + ".py")).exists()
+                          or (PACKAGE.parent / sub.replace(".", "/")).is_dir() else mod)
+    return found
+
+
+MODULES = {_module_name(p): p for p in sorted(PACKAGE.rglob("*.py"))}
+
+
+def test_every_package_is_a_known_layer():
+    unknown = {_layer(m) for m in MODULES} - set(RANK)
+    assert not unknown, f"packages without a place in LAYERS: {unknown}"
+
+
+@pytest.mark.parametrize("module", sorted(MODULES))
+def test_imports_only_from_earlier_layers(module):
+    mine = _layer(module)
+    bad = []
+    for imported in _imports(MODULES[module]):
+        theirs = _layer(imported)
+        if theirs == mine or theirs in BASE:
+            continue
+        if RANK[theirs] > RANK[mine]:
+            bad.append(f"{imported} (layer {theirs!r} comes after {mine!r})")
+    assert not bad, f"{module} imports from later layers: {bad}"
+
+
+def test_no_import_cycles():
+    graph = {m: {i for i in _imports(p) if i in MODULES and i != m} for m, p in MODULES.items()}
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(m):
+        state[m] = 1
+        stack.append(m)
+        for n in sorted(graph[m]):
+            if state.get(n) == 1:
+                raise AssertionError("import cycle: " + " -> ".join(stack[stack.index(n):] + [n]))
+            if n not in state:
+                visit(n)
+        stack.pop()
+        state[m] = 2
+
+    for m in sorted(graph):
+        if m not in state:
+            visit(m)
+
+
+def test_no_module_over_500_lines():
+    big = {m: n for m, p in MODULES.items() if (n := len(p.read_text().splitlines())) > 500}
+    assert not big, f"modules over 500 lines (one concern each): {big}"
+
+
+def test_importing_has_no_process_side_effects():
+    """Importing every module leaves the BLAS thread pools as the libraries set them (the CLI sets them)."""
+    import os
+    import subprocess
+    import sys
+
+    code = (
+        "import numpy, scipy.sparse, cvxopt, cvxopt.cholmod, qdldl, h5py, matplotlib\n"
+        "from threadpoolctl import threadpool_info\n"
+        "before = {i['filepath']: i['num_threads'] for i in threadpool_info()}\n"
+        "import importlib\n"
+        f"for m in {sorted(m for m in MODULES if not m.endswith('__main__'))!r}:\n"
+        "    importlib.import_module(m)\n"
+        "after = {i['filepath']: i['num_threads'] for i in threadpool_info()}\n"
+        "changed = {k: (v, after[k]) for k, v in before.items() if after.get(k) != v}\n"
+        "assert not changed and max(after.values()) == 2, (changed, after)\n"
+    )
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "2"}
+    subprocess.run([sys.executable, "-c", code], check=True, env=env, timeout=120)
