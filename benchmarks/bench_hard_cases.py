@@ -15,7 +15,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from scissor_cli import runtime  # noqa: E402
 from scissor_cli.config import load_config  # noqa: E402
-from scissor_cli.experiments.simulate import ForwardSolver, build_model  # noqa: E402
+from scissor_cli.mechanics.tissue import build_model
+from scissor_cli.solvers.equilibrium import EquilibriumSolver  # noqa: E402
 from scissor_cli.solvers.common import SolverError  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -32,11 +33,11 @@ def main() -> None:
         _, mesh, tissue = build_model(cfg, mesh_scale=args.scale * cfg.tissue.mesh.scale)
         for label, kind, memory in (("newton", "newton", 0), ("admm", "admm", 0), ("admm+anderson", "admm", 5)):
             solver_cfg = cfg.solver.model_copy(update={"kind": kind, "anderson_memory": memory})
-            forward = ForwardSolver(tissue, solver_cfg)
+            forward = EquilibriumSolver.from_config(tissue, solver_cfg)
             for case in cfg.forward:
                 strokes = tissue.scene.strokes_vector(case.strokes)
                 try:
-                    r = forward.solve(strokes)
+                    r = forward.solve_case(strokes)
                     outcome = "converged" if r.converged else r.message
                     row = (r.iterations, f"{r.time_s:.3f}", f"{r.residual:.1e}", outcome)
                 except SolverError as exc:

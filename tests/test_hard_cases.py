@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from scissor_cli.config import load_config
-from scissor_cli.experiments.simulate import ForwardSolver, build_model
+from scissor_cli.mechanics.tissue import build_model
+from scissor_cli.solvers.equilibrium import EquilibriumSolver
 from scissor_cli.solvers.common import SolverError
 from helpers import ROOT
 
@@ -25,11 +26,11 @@ def test_hard_case(path: Path, solver: str):
     cfg = load_config(path)
     cfg = cfg.model_copy(update={"solver": cfg.solver.model_copy(update={"kind": solver, "anderson_memory": 5})})
     _, mesh, tissue = build_model(cfg, mesh_scale=2.0 * cfg.tissue.mesh.scale)
-    forward = ForwardSolver(tissue, cfg.solver)
+    forward = EquilibriumSolver.from_config(tissue, cfg.solver)
     for case in cfg.forward:
         strokes = tissue.scene.strokes_vector(case.strokes)
         try:
-            r = forward.solve(strokes)
+            r = forward.solve_case(strokes)
         except SolverError as exc:
             # allowed only with a reason, and whatever it kept must be finite
             assert str(exc)

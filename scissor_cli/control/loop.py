@@ -33,16 +33,10 @@ tolerance, and declares "stalled" when the error stops improving.
 With fewer cups than target coordinates only the part of e in range(J) can
 be corrected; the rest, e − J J⁺ e, is reported as the uncorrectable error.
 
-Equilibria are tracked incrementally (`Equilibrium`): each move starts from
-the tangent predictor x + (∂x/∂s) Δs and corrects it with chord steps on
-the last factorisation of K_ff, kept while they shrink the residual ≥ 3×;
-otherwise K_ff is refactored (same sparsity pattern: numeric work only) for
-a Newton step with an energy line search that keeps every J > 0 (the PSD-
-projected tangent where the exact one is indefinite). When J is needed the
-exact tangent is refactored once at the converged state; its element
-Hessians serve both K_ff and K_fc B. Big moves may start from a known
-nearby equilibrium (e.g. the planner's state at the plan's strokes); a move
-the fast path cannot finish falls back to the reference `solve_newton`.
+Both tissues follow their equilibria with `solvers.tracking.Equilibrium`
+(tangent predictor, then the one Newton iteration with chord steps; the
+exact tangent at the converged state gives J). Big moves may start from a
+known nearby equilibrium (e.g. the planner's state at the plan's strokes).
 """
 
 from __future__ import annotations
@@ -52,17 +46,13 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
-import scipy.sparse as sp
 
-from scissor_cli.mechanics import fem
-from scissor_cli.mechanics import materials
 from scissor_cli.scene.camera import Camera
 from scissor_cli.config import ControllerConfig
 from scissor_cli.mesh.probe import TargetProbe, apply_probe, probe_targets, target_positions
-from scissor_cli.solvers.newton import solve_newton
+from scissor_cli.solvers.tracking import Equilibrium
 from scissor_cli.planning.needle import Embedding, boundary_loop, corridor_clearance, deformed_outlines, embed_outlines, entry_points
-from scissor_cli.solvers.linear import Factorization
-from scissor_cli.solvers.common import SolverError, check_finite, relative_residual
+from scissor_cli.solvers.common import SolverError
 from scissor_cli.mechanics.tissue import Tissue
 
 #: Why `run_loop` stopped.
@@ -72,8 +62,6 @@ STOP_REASONS = ("tolerance", "max_iterations", "stalled", "stroke_limit", "solve
 STALL_PATIENCE = 5
 STALL_GAIN = 0.9
 
-#: A chord step (old factorisation) is kept when it shrinks the residual at least this much.
-CHORD_CONTRACTION = 0.3
 
 
 # --------------------------------------------------------------------------
@@ -188,194 +176,6 @@ class Measurement:
         if self.camera is not None:
             p = self.camera.measure(p[None], rng, self.noise_px)[0]
         return p + np.asarray(self.bias_mm, float)
-
-
-# --------------------------------------------------------------------------
-# Incremental equilibria
-
-
-def _deformation_gradients(D: sp.csr_matrix, x: np.ndarray) -> np.ndarray:
-    # vec(F_e) = G_e x_e for all elements is one sparse mat-vec with the ADMM's reduction matrix.
-    return (D @ x.ravel()).reshape(-1, 2, 2)
-
-
-class Equilibrium:
-    """The quasi-static equilibrium of one tissue, followed as the strokes change.
-
-    x (N, 2) mm: node positions at `strokes` (C,) mm. `response` (2N, C) is
-    ∂x/∂s (mm/mm) at `tangent_x`, the point where K_ff was last factored
-    (the equilibrium itself right after `move_to(..., tangent=True)`).
-    Arrays are replaced, never written in place, so another tracker may
-    hold them (see `adopt`).
-    """
-
-    def __init__(self, tissue: Tissue, tol: float = 1e-10, max_iter: int = 30):
-        self.tissue, self.tol, self.max_iter = tissue, tol, max_iter
-        self.x = tissue.rest
-        self.strokes = np.zeros(tissue.n_cups)
-        self._D = fem.reduction_matrix(tissue.ops)
-        self._Dt = self._D.T.tocsr()
-        self._vol4 = np.repeat(tissue.ops.volume, 4)
-        self._B = np.column_stack([tissue.cup_displacement(c) for c in range(tissue.n_cups)])  # (2N, C)
-        self._cup_elems = np.flatnonzero(np.any(self._B[tissue.ops.elem_dofs] != 0, axis=(1, 2)))
-        self._factor: Optional[Factorization] = None
-        self._factor_x: Optional[np.ndarray] = None  # where K_ff was factored
-        self.response: Optional[np.ndarray] = None
-        self.tangent_x: Optional[np.ndarray] = None
-        self.stats = {"moves": 0, "residuals": 0, "refactors": 0, "fallbacks": 0}
-        # Known (near-)equilibria (strokes (C,), x (N, 2)) to start a big move from, e.g. the planner's.
-        self.guesses: list[tuple[np.ndarray, np.ndarray]] = []
-
-    # -- evaluations -------------------------------------------------------
-
-    def evaluate(self, x: np.ndarray) -> _State:
-        """Energy, ∇U and relative residual at x (N, 2); residual inf if an element is inverted."""
-        self.stats["residuals"] += 1
-        F = _deformation_gradients(self._D, x)
-        if materials.jacobian_det(F).min() <= 0:
-            return _State(x, np.inf, None, np.inf)
-        psi, P, _ = materials.evaluate(F, self.tissue.params, order=1)
-        grad = self._Dt @ (P.reshape(-1) * self._vol4)
-        check_finite(grad, "the tissue forces")
-        return _State(x, float(np.dot(psi, self.tissue.ops.volume)), grad, relative_residual(self.tissue, grad))
-
-    def refactor(self, x: np.ndarray, project: bool = False) -> None:
-        """Factor K_ff at x (N, 2); the exact one also gives ∂x/∂s there (MODEL.md §5).
-
-        project=True factors the per-element PSD-projected Hessian instead (a
-        descent direction far from equilibrium) and leaves ∂x/∂s as it was.
-        """
-        t = self.tissue
-        self.stats["refactors"] += 1
-        F = _deformation_gradients(self._D, x)
-        C = materials.evaluate_projected(F, t.params)[2] if project else materials.evaluate(F, t.params, order=2)[2]
-        Ke = fem.element_matrices(t.ops, C)
-        K = t.pattern_free_upper.assemble(Ke)
-        self._factor = Factorization(K, upper=True) if self._factor is None else self._factor.refactor(K)
-        self._factor_x = x
-        if project:
-            return
-        # K_fc B from the elements that touch a cup: B vanishes on every other element's dofs.
-        e = self._cup_elems
-        dofs = t.ops.elem_dofs[e]
-        KB_e = np.einsum("eij,ejc->eic", fem.unpack(Ke[:, e]), self._B[dofs])
-        D = self._B.copy()
-        for c in range(t.n_cups):  # a few cups, not elements
-            KB = np.bincount(dofs.ravel(), weights=KB_e[:, :, c].ravel(), minlength=self._B.shape[0])
-            D[t.free_dofs, c] = self._factor.solve(-KB[t.free_dofs])
-        check_finite(D, "the cup response (K_ff singular?)")
-        self.response, self.tangent_x = D, x
-
-    @property
-    def jacobian_is_current(self) -> bool:
-        return self.tangent_x is self.x
-
-    # -- moves -------------------------------------------------------------
-
-    def move_to(self, strokes: np.ndarray, tangent: bool = True) -> None:
-        """Solve the equilibrium at `strokes` (C,) mm, warm-started from the current one.
-
-        tangent=True also leaves the exact ∂x/∂s at the new equilibrium
-        (what the controller's J needs); the truth does without it.
-        Raises SolverError if even the reference Newton fails.
-        """
-        strokes = np.asarray(strokes, float)
-        self.stats["moves"] += 1
-        if self.response is None:
-            self.refactor(self.x)
-        if not np.array_equal(strokes, self.strokes):
-            x0, s0 = self._start(strokes)
-            try:
-                x = self._corrected(strokes, x0, s0)
-            except _FastPathFailed:
-                self.stats["fallbacks"] += 1
-                x = solve_newton(self.tissue, strokes, x0=self.x, strokes0=self.strokes, tol=self.tol).x
-                self.refactor(x)  # the old tangent just failed as a predictor
-            self.x, self.strokes = x, strokes.copy()
-        if tangent and not self.jacobian_is_current:
-            self.refactor(self.x)
-
-    def _start(self, strokes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Where a move to `strokes` starts: the current state, or a guess much nearer in stroke.
-
-        A guess gets this tissue's own tangent (one factorisation), so it
-        may come from another tissue on the same mesh (the model's state for
-        the truth): it is only a starting point.
-        """
-        if self.guesses:
-            s_g, x_g = min(self.guesses, key=lambda g: np.linalg.norm(g[0] - strokes))
-            if np.linalg.norm(s_g - strokes) < 0.5 * np.linalg.norm(self.strokes - strokes):
-                self.refactor(x_g)
-                return x_g, s_g
-        return self.x, self.strokes
-
-    def _corrected(self, strokes: np.ndarray, x0: np.ndarray, s0: np.ndarray) -> np.ndarray:
-        """Tangent predictor from (x0, s0), then chord and damped Newton steps down to the tolerance."""
-        t = self.tissue
-        cur = self.evaluate(t.apply_strokes(x0 + (self.response @ (strokes - s0)).reshape(-1, 2), strokes))
-        if not np.isfinite(cur.res):
-            raise _FastPathFailed("the predictor inverts an element")
-        free = t.free_dofs
-        for _ in range(self.max_iter):
-            if cur.res <= self.tol:
-                return cur.x
-            fresh = self._factor is not None and self._factor_x is cur.x
-            if not fresh and self._factor is not None:
-                # Chord step on the old factorisation: kept only if it contracts well.
-                new = self.evaluate(cur.x + self._step(cur))
-                if new.res < CHORD_CONTRACTION * cur.res or new.res <= self.tol:
-                    cur = new
-                    continue
-                if new.res < cur.res:
-                    cur = new
-            self.refactor(cur.x)
-            d = self._step(cur)
-            slope = float(np.dot(cur.grad[free], d.ravel()[free]))
-            if not slope < 0:  # the exact tangent is indefinite here: the projected one descends
-                self.refactor(cur.x, project=True)
-                d = self._step(cur)
-                slope = float(np.dot(cur.grad[free], d.ravel()[free]))
-            cur = self._line_search(cur, d, slope)
-        raise _FastPathFailed("no convergence")
-
-    def _step(self, cur: "_State") -> np.ndarray:
-        step = np.zeros(cur.x.size)
-        step[self.tissue.free_dofs] = -self._factor.solve(cur.grad[self.tissue.free_dofs])
-        return step.reshape(-1, 2)
-
-    def _line_search(self, cur: "_State", d: np.ndarray, slope: float) -> "_State":
-        """Backtracking on the energy (Armijo), every element kept uninverted; as in `newton`."""
-        alpha = 1.0
-        while alpha > 1e-4:
-            new = self.evaluate(cur.x + alpha * d)
-            if np.isfinite(new.res) and (
-                new.energy <= cur.energy + 1e-4 * alpha * slope
-                # Near the solution the energy changes below round-off; a falling residual decides there.
-                or (abs(new.energy - cur.energy) <= 1e-12 * max(abs(cur.energy), 1.0) and new.res < cur.res)
-            ):
-                return new
-            alpha *= 0.5
-        raise _FastPathFailed("the line search found no step that lowers the energy")
-
-    def adopt(self, other: "Equilibrium") -> None:
-        """Take another tracker's state of the same tissue (same x, strokes and ∂x/∂s)."""
-        self.x, self.strokes = other.x, other.strokes.copy()
-        self.response, self.tangent_x = other.response, other.tangent_x
-        # Our own factorisation is now at some other state; `_corrected` refreshes it when it matters.
-
-
-class _FastPathFailed(Exception):
-    pass
-
-
-@dataclass(frozen=True)
-class _State:
-    """One evaluated configuration: x (N, 2), energy (µJ), ∇U (2N,) mN, relative residual."""
-
-    x: np.ndarray
-    energy: float
-    grad: Optional[np.ndarray]
-    res: float
 
 
 # --------------------------------------------------------------------------

@@ -29,11 +29,11 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from scissor_cli.solvers.admm import AdmmSolver
 from scissor_cli.config import Config
 from scissor_cli.mesh.probe import probe_targets, target_positions
 from scissor_cli.mesh.mesh import mesh_for_config
-from scissor_cli.solvers.newton import solve_newton
+from scissor_cli.solvers.common import SolverError
+from scissor_cli.solvers.equilibrium import solve_equilibrium
 from scissor_cli.scene.scene import scene_from_config
 from scissor_cli.mechanics.tissue import build_tissue
 
@@ -145,7 +145,7 @@ def select(cfg: Config, accuracy_mm: float, say: Optional[Callable[[str], None]]
     positions, newton_time = {}, {}
     for L in CALIBRATION_LEVELS:
         tissue = build_tissue(scenes[L], meshes[L], model="neo_hookean_fiber")
-        r, t = _timed(lambda: solve_newton(tissue, strokes), repeats=2)
+        r, t = _timed(lambda: solve_equilibrium(tissue, strokes), repeats=2)
         positions[L], newton_time[L] = target_positions(probe_targets(meshes[L], rest), r.x), t
     d1 = float(np.linalg.norm(positions[4.0] - positions[2.0], axis=1).max())
     d2 = float(np.linalg.norm(positions[2.0] - positions[1.0], axis=1).max())
@@ -156,17 +156,20 @@ def select(cfg: Config, accuracy_mm: float, say: Optional[Callable[[str], None]]
     model_err, model_time = {}, {}
     for model in MODELS:
         tissue = build_tissue(scenes[2.0], meshes[2.0], model=model)
-        r, t = _timed(lambda: solve_newton(tissue, strokes), repeats=2)
+        r, t = _timed(lambda: solve_equilibrium(tissue, strokes), repeats=2)
         model_err[model] = float(np.linalg.norm(target_positions(probe2, r.x) - positions[2.0], axis=1).max())
         model_time[model] = t / newton_time[2.0]  # relative cost of the model
     tissue2 = build_tissue(scenes[2.0], meshes[2.0], model="neo_hookean_fiber")
     solver_err, admm_time = {}, {}
     for tol in ADMM_TOLERANCES:
         def run():
-            solver = AdmmSolver(tissue2)
-            return solver.solve(strokes, tol=tol, max_iter=5000)[0]
+            try:
+                return solve_equilibrium(tissue2, strokes, method="admm", tol=tol, max_iter=5000)
+            except SolverError as exc:  # not converged: this tolerance is out of reach
+                return exc.result
         r, t = _timed(run)
-        solver_err[tol] = float(np.linalg.norm(target_positions(probe2, r.x) - positions[2.0], axis=1).max()) if r.converged else np.inf
+        ok = r is not None and r.converged
+        solver_err[tol] = float(np.linalg.norm(target_positions(probe2, r.x) - positions[2.0], axis=1).max()) if ok else np.inf
         admm_time[tol] = t / newton_time[2.0]  # relative to Newton at the same level
 
     # cost of Newton in elements: a power law through the calibration levels

@@ -22,14 +22,14 @@ from scissor_cli.output import results
 from scissor_cli.config import Config, SolverConfig, parse_config, resolved_yaml
 from scissor_cli.solvers.jacobian import cup_target_jacobian
 from scissor_cli.mesh.probe import probe_targets, target_positions
-from scissor_cli.solvers.newton import solve_newton
+from scissor_cli.solvers.equilibrium import EquilibriumSolver
 from scissor_cli.planning.needle import NeedlePlan, StateCache, boundary_loop, corridor_radius, deformed_outlines, embed_outlines, plan_target
 from scissor_cli.experiments.profiles import error_model
 from scissor_cli.robot.kinematics import RobotModel, plan_to_joints
 from scissor_cli.experiments.selection import select
 from scissor_cli.experiments.study import rows_as_columns, run_study
 from scissor_cli.experiments.trials import TargetTask, execute
-from scissor_cli.solvers.common import Inertia, SolveResult, SolverError
+from scissor_cli.solvers.common import SolveResult, SolverError
 from scissor_cli.mechanics.tissue import Tissue, build_model  # noqa: F401 - build_model is part of this module's API
 
 
@@ -57,73 +57,6 @@ class RunSummary:
     plans: list = field(default_factory=list)
     status: str = "complete"
     failure: str = ""
-
-
-class ForwardSolver:
-    """Solves forward cases of one tissue with the configured solver.
-
-    Keeps the ADMM's prefactored matrix across cases (one factorisation per
-    mesh and boundary set).
-    """
-
-    def __init__(self, tissue: Tissue, cfg: SolverConfig):
-        self.tissue, self.cfg = tissue, cfg
-        self._admm = None
-
-    def solve(self, strokes: np.ndarray) -> SolveResult:
-        if self.cfg.dt_s is not None:
-            return self._dynamic(strokes)
-        x0 = self.initial_guess()
-        return self._static(strokes, x0, None, None if x0 is None else np.zeros_like(strokes))
-
-    def initial_guess(self) -> np.ndarray | None:
-        """The configured start: None (rest) or the rest state mirrored top to bottom (every J < 0)."""
-        if self.cfg.initial_guess == "rest":
-            return None
-        x = self.tissue.rest.copy()
-        y = x[:, 1]
-        x[:, 1] = y.max() + y.min() - y
-        return x
-
-    def _static(self, strokes, x0, inertia, strokes0=None) -> SolveResult:
-        """One solve for strokes from x0 (an equilibrium at strokes0, or any start)."""
-        cfg = self.cfg
-        if cfg.kind == "newton":
-            return solve_newton(self.tissue, strokes, x0=x0, strokes0=strokes0,
-                                inertia=inertia, tol=cfg.newton_tolerance, max_iter=cfg.newton_max_iterations)
-        from scissor_cli.solvers.admm import AdmmSolver  # the ADMM is only built when asked for
-
-        if self._admm is None or self._admm.dt_s != (None if inertia is None else inertia.dt_s):
-            self._admm = AdmmSolver(self.tissue, dt_s=None if inertia is None else inertia.dt_s,
-                                    anderson_memory=cfg.anderson_memory)
-        state = None if x0 is None else self._admm.state_from_positions(x0)
-        result, _ = self._admm.solve(strokes, state=state, inertia=inertia, tol=cfg.tolerance, max_iter=cfg.max_iterations)
-        if not result.converged:
-            raise SolverError(f"ADMM did not converge: {result.message}", result)
-        return result
-
-    def _dynamic(self, strokes: np.ndarray) -> SolveResult:
-        """Implicit Euler: ramp the strokes at the cups' speed, then let the tissue settle."""
-        t, cfg = self.tissue, self.cfg
-        speeds = np.array([c.speed_mm_per_s for c in t.scene.cups])
-        ramp_s = float(np.max(np.abs(strokes) / speeds)) if len(speeds) else 0.0
-        n_ramp = max(int(np.ceil(ramp_s / cfg.dt_s)), 1)
-        x = t.rest.copy()
-        v = np.zeros(x.size)
-        t0, iterations = time.perf_counter(), 0
-        s_prev = np.zeros_like(strokes)
-        for step in range(n_ramp + cfg.steps):
-            s = strokes * min(1.0, (step + 1) / n_ramp)
-            x_tilde = x.ravel() + cfg.dt_s * v
-            inertia = Inertia(cfg.dt_s, x_tilde, t.mass)
-            r = self._static(s, x, inertia, s_prev)
-            iterations += r.iterations
-            v = (r.x - x).ravel() / cfg.dt_s
-            x, s_prev = r.x, s
-        r.iterations, r.time_s = iterations, time.perf_counter() - t0
-        speed = float(np.abs(v[t.free_dofs]).max()) if len(t.free_dofs) else 0.0
-        r.message = f"implicit Euler, {n_ramp} ramp + {cfg.steps} settling steps of {cfg.dt_s:g} s; final max speed {speed:.3g} mm/s"
-        return r
 
 
 class TrialsFailed(RuntimeError):
@@ -326,12 +259,12 @@ class ResumeError(ValueError):
 def _forward_stage(cfg: Config, tissue: Tissue, out: results.ResultsFile, summary: RunSummary, reporter: Reporter) -> None:
     scene, mesh = tissue.scene, tissue.mesh
     probe = probe_targets(mesh, np.array([t.rest for t in scene.targets]).reshape(-1, 2))
-    solver = ForwardSolver(tissue, cfg.solver)
+    solver = EquilibriumSolver.from_config(tissue, cfg.solver)
     advance = reporter.progress("forward cases", len(cfg.forward))
     for case in cfg.forward:
         strokes = scene.strokes_vector(case.strokes)
         try:
-            result = solver.solve(strokes)
+            result = solver.solve_case(strokes)
         except SolverError as exc:
             summary.status, summary.failure = "failed", f"forward case {case.name!r}: {exc}"
             raise SolverError(summary.failure, exc.result) from None

@@ -21,11 +21,10 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from scissor_cli.solvers.admm import AdmmSolver
 from scissor_cli.config import Config, StudyConfig
 from scissor_cli.mesh.probe import probe_targets, target_positions
 from scissor_cli.mesh.mesh import Mesh, mesh_for_config
-from scissor_cli.solvers.newton import solve_newton
+from scissor_cli.solvers.equilibrium import EquilibriumSolver, solve_equilibrium
 from scissor_cli.scene.scene import Scene, scene_from_config
 from scissor_cli.solvers.common import SolverError
 from scissor_cli.mechanics.tissue import build_tissue
@@ -131,7 +130,7 @@ def run_study(cfg: Config, progress: Optional[Callable[[str], None]] = None) -> 
 
 def _newton_row(tissue, strokes, probe, case, level, kind, model, study, rows) -> Optional[np.ndarray]:
     try:
-        result, t = timed(lambda: solve_newton(tissue, strokes), study.repeats, study.repeat_below_s)
+        result, t = timed(lambda: solve_equilibrium(tissue, strokes), study.repeats, study.repeat_below_s)
     except SolverError as exc:
         rows.append(StudyRow(case, level, kind, model, "newton", np.nan, tissue.mesh.n_elements, np.nan, 0, False,
                              note=str(exc)))
@@ -149,18 +148,23 @@ def _admm_rows(tissue, strokes, probe, exact, case, level, kind, model, memory, 
 
     def ladder():
         t0 = time.perf_counter()
-        solver = AdmmSolver(tissue, anderson_memory=memory)  # the factorisation is part of the cost
-        state, used, out = None, 0, []
+        # built inside the first solve: the factorisation is part of the cost
+        solver = EquilibriumSolver(tissue, "admm", anderson_memory=memory)
+        used, out = 0, []
         for tol in tolerances:
+            solver.tol, solver.max_iter = tol, max(study.admm_max_iterations - used, 1)
             try:
-                result, state = solver.solve(strokes, state=state, tol=tol, max_iter=max(study.admm_max_iterations - used, 1))
+                result = solver.solve(strokes, continue_previous=used > 0)
             except SolverError as exc:
-                out.append((tol, time.perf_counter() - t0, used, False, None, str(exc)))
+                partial = exc.result
+                if partial is None:
+                    out.append((tol, time.perf_counter() - t0, used, False, None, str(exc)))
+                else:
+                    used += partial.iterations
+                    out.append((tol, time.perf_counter() - t0, used, False, partial.x, partial.message))
                 break
             used += result.iterations
-            out.append((tol, time.perf_counter() - t0, used, result.converged, result.x, result.message))
-            if not result.converged:
-                break
+            out.append((tol, time.perf_counter() - t0, used, True, result.x, result.message))
         return out
 
     runs = []

@@ -22,7 +22,7 @@ from scissor_cli import runtime
 from scissor_cli.control import loop as control
 from scissor_cli.scene.camera import Camera
 from scissor_cli.config import parse_config
-from scissor_cli.solvers.newton import solve_newton
+from scissor_cli.solvers.equilibrium import solve_equilibrium
 from scissor_cli.planning.needle import corridor_radius
 from scissor_cli.experiments.profiles import ErrorModel, draw_trial, error_model
 from scissor_cli.mechanics.tissue import build_model
@@ -75,7 +75,7 @@ class TrialContext:
         if not np.any(task.plan_strokes):
             return None
         if task.index not in self._guesses:
-            r = solve_newton(self.tissue, task.plan_strokes)
+            r = solve_equilibrium(self.tissue, task.plan_strokes)
             self._guesses[task.index] = (task.plan_strokes, r.x)
         return self._guesses[task.index]
 

@@ -36,7 +36,7 @@ import numpy as np
 from scissor_cli import geometry
 from scissor_cli.config import NeedleConfig
 from scissor_cli.mesh.mesh import Mesh, interpolate, locate
-from scissor_cli.solvers.newton import solve_newton
+from scissor_cli.solvers.equilibrium import solve_equilibrium
 from scissor_cli.scene.scene import Scene, Target
 from scissor_cli.solvers.common import SolverError
 from scissor_cli.mechanics.tissue import Tissue
@@ -315,7 +315,7 @@ class StateCache:
         t0 = time.perf_counter()
         self.solves += 1
         try:
-            x = solve_newton(self.tissue, s, x0=self._states[tuple(near)], strokes0=near, tol=self.tol).x
+            x = solve_equilibrium(self.tissue, s, start=self._states[tuple(near)], start_strokes=near, tol=self.tol).x
         except SolverError as exc:
             self.failures[k] = str(exc)
             return None

@@ -1,11 +1,13 @@
 """What every solver shares: results, errors, the implicit-Euler term, the residual.
 
-The objective of one solve is (MODEL.md §4)
+The objective of one solve is (docs/model.md §4)
 
-    Φ(x) = U(x) + 1/(2Δt²) ‖x − x̃‖²_M        (dynamics, an `Inertia` given)
-    Φ(x) = U(x)                                (quasi-static, no inertia)
+    Φ(x) = U(x) − fᵀx + 1/(2Δt²) ‖x − x̃‖²_M    (dynamics, an `Inertia` given)
+    Φ(x) = U(x) − fᵀx                            (quasi-static, no inertia)
 
-over the free degrees of freedom, the Dirichlet ones placed by the strokes.
+over the free degrees of freedom, the Dirichlet ones placed by the strokes;
+f are external nodal loads (`Conditions.loads`, zero by default), and
+`Conditions.held` free dofs stay where the start puts them.
 """
 
 from __future__ import annotations
@@ -32,6 +34,40 @@ class Inertia:
         return self.mass / self.dt_s**2
 
 
+@dataclass(frozen=True)
+class Conditions:
+    """What one equilibrium holds and pushes beyond the tissue's own boundary (fixed sides, cups).
+
+    loads (2N,) mN: external nodal forces (a needle's friction and tip
+    force); held (H,): indices of free dofs (of the 2N) that stay where the
+    start puts them (nodes a needle holds). Inputs to every solve, not
+    subclasses of the tissue: the sparsity pattern of K_ff stays the same,
+    so a factorisation's symbolic analysis is reused when they change.
+    """
+
+    loads: np.ndarray | None = None
+    held: np.ndarray | None = None
+
+    def held_free(self, tissue: Tissue) -> np.ndarray:
+        """Positions of the held dofs among the free ones (H,); ValueError if one is not free."""
+        if self.held is None or len(self.held) == 0:
+            return np.zeros(0, np.int64)
+        held = np.unique(np.asarray(self.held, np.int64))
+        if held.min() < 0 or held.max() >= tissue.free_index.size:
+            raise ValueError(f"held dofs must lie in [0, {tissue.free_index.size}), got {held.min()}..{held.max()}")
+        pos = tissue.free_index[held]
+        if np.any(pos < 0):
+            raise ValueError(f"held dofs {held[pos < 0][:5].tolist()} are already Dirichlet dofs (fixed or gripped)")
+        return pos
+
+    @property
+    def trivial(self) -> bool:
+        return self.loads is None and (self.held is None or len(self.held) == 0)
+
+
+NO_CONDITIONS = Conditions()
+
+
 @dataclass
 class SolveResult:
     """One solve: positions (N, 2) mm and how it went.
@@ -48,6 +84,8 @@ class SolveResult:
     solver: str
     message: str = ""
     history: list[float] = field(default_factory=list)
+    #: sparse factorisations the solve made (numeric refactorisations included)
+    factorizations: int = 0
 
     def displacement(self, rest: np.ndarray) -> np.ndarray:
         return self.x - rest
@@ -64,9 +102,14 @@ class SolverError(RuntimeError):
         self.result = result
 
 
-def objective_gradient(tissue: Tissue, x: np.ndarray, inertia: Inertia | None) -> tuple[float, np.ndarray]:
-    """Φ (µJ) and ∇Φ (2N,) in mN at positions x (N, 2)."""
+def objective_gradient(
+    tissue: Tissue, x: np.ndarray, inertia: Inertia | None, loads: np.ndarray | None = None
+) -> tuple[float, np.ndarray]:
+    """Φ (µJ) and ∇Φ (2N,) in mN at positions x (N, 2), with external loads (2N,) mN if given."""
     energy, grad = tissue.energy_gradient(x)
+    if loads is not None:
+        energy -= float(np.dot(loads, x.ravel()))
+        grad = grad - loads
     if inertia is not None:
         dx = x.ravel() - inertia.x_tilde
         energy += 0.5 * float(np.dot(inertia.weight * dx, dx))
@@ -74,9 +117,16 @@ def objective_gradient(tissue: Tissue, x: np.ndarray, inertia: Inertia | None) -
     return energy, grad
 
 
-def relative_residual(tissue: Tissue, grad: np.ndarray) -> float:
-    """‖∇Φ_f‖ over the force scale of the Dirichlet reactions (dimensionless)."""
-    return float(np.linalg.norm(grad[tissue.free_dofs])) / tissue.force_scale(grad)
+def relative_residual(tissue: Tissue, grad: np.ndarray, held_free: np.ndarray | None = None) -> float:
+    """‖∇Φ_f‖ over the force scale of the Dirichlet reactions (dimensionless).
+
+    Held free dofs (`Conditions.held_free`) carry reactions, not residuals: they are left out.
+    """
+    g = grad[tissue.free_dofs]
+    if held_free is not None and len(held_free):
+        g = g.copy()
+        g[held_free] = 0.0
+    return float(np.linalg.norm(g)) / tissue.force_scale(grad)
 
 
 def check_finite(x: np.ndarray, what: str) -> None:

@@ -111,15 +111,17 @@ def _symmetric_csr(A: sp.spmatrix) -> sp.csr_matrix:
     return A
 
 
-def factorize_free(tissue, K_upper: sp.csr_matrix) -> Factorization:
+def factorize_free(tissue, K_upper: sp.csr_matrix, factors: dict | None = None) -> Factorization:
     """A positive definite factorisation of K_ff from its upper triangle (Nf, Nf).
 
-    Refactors the symbolic analysis cached on the tissue (one per mesh and
-    boundary set, shared by every solve on it); raises SolverError if K_ff is
-    not positive definite (Newton then projects).
+    Refactors the symbolic analysis kept in `factors["free"]` (default: the
+    tissue's own slot, one per mesh and boundary set, shared by every solve
+    on it; the controller's trackers keep their own); raises SolverError if
+    K_ff is not positive definite (Newton then projects).
     """
-    factor = tissue.factor_cache.get("free")
+    factors = tissue.factor_cache if factors is None else factors
+    factor = factors.get("free")
     if factor is None:
-        factor = tissue.factor_cache["free"] = Factorization(K_upper, definite=True, upper=True)
+        factor = factors["free"] = Factorization(K_upper, definite=True, upper=True)
         return factor
     return factor.refactor(K_upper)

@@ -1,4 +1,4 @@
-"""Newton's method on the tissue energy: the exact reference (MODEL.md §4).
+"""Newton's method on the tissue energy: the exact reference, and the one Newton loop (docs/model.md §4).
 
 Far from the solution the Hessian is PSD-projected per element, so every
 step is a descent direction; near it (relative residual below
@@ -10,6 +10,13 @@ rest at the old state can invert the elements next to the cup. So a solve
 starts from a tangent predictor (the linearised response to the stroke
 increment) and, if even that inverts an element, splits the stroke
 increment into steps (load continuation).
+
+This is the only Newton iteration in scissor: forward cases, the planner,
+trials and the controller's incremental tracker (`solvers.tracking`) all
+run `newton_iterations`. External loads and extra held dofs come in as
+`Conditions`; held dofs keep the pattern of K_ff (their rows and columns
+become identity rows), so a factorisation's symbolic analysis is reused.
+Callers normally go through `solvers.equilibrium.solve_equilibrium`.
 """
 
 from __future__ import annotations
@@ -20,7 +27,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from scissor_cli.solvers.linear import factorize_free
-from scissor_cli.solvers.common import Inertia, SolveResult, SolverError, check_finite, objective_gradient, relative_residual
+from scissor_cli.solvers.common import (
+    NO_CONDITIONS, Conditions, Inertia, SolveResult, SolverError, check_finite, objective_gradient, relative_residual,
+)
 from scissor_cli.mechanics.tissue import Tissue
 
 ARMIJO = 1e-4
@@ -38,28 +47,77 @@ CHORD_CONTRACTION = 0.3
 CHORD_ABOVE = 1e-3
 
 
-def tangent_predictor(tissue: Tissue, x: np.ndarray, strokes: np.ndarray, inertia: Inertia | None = None) -> np.ndarray:
+class _Held:
+    """Held free dofs (H,) in a solve: zero in every step, identity rows in every K_ff.
+
+    Keeping them in the system as identity rows (instead of dropping them)
+    leaves the sparsity pattern, and so the symbolic factorisation, unchanged.
+    """
+
+    def __init__(self, tissue: Tissue, conditions: Conditions):
+        self.pos = conditions.held_free(tissue)
+        self._mask: tuple | None = None
+
+    def __bool__(self) -> bool:
+        return bool(len(self.pos))
+
+    def vector(self, g: np.ndarray) -> np.ndarray:
+        """g (Nf,) with the held entries zeroed (a copy when there are any)."""
+        if not len(self.pos):
+            return g
+        g = g.copy()
+        g[self.pos] = 0.0
+        return g
+
+    def matrix(self, K: sp.csr_matrix) -> sp.csr_matrix:
+        """K (Nf, Nf), upper triangle, with held rows and columns replaced by the identity."""
+        if not len(self.pos):
+            return K
+        if self._mask is None or self._mask[0] != K.nnz:
+            rows = np.repeat(np.arange(K.shape[0]), np.diff(K.indptr))
+            is_held = np.zeros(K.shape[0], bool)
+            is_held[self.pos] = True
+            touched = is_held[rows] | is_held[K.indices]
+            diag = touched & (rows == K.indices)
+            self._mask = (K.nnz, touched, diag)
+        _, touched, diag = self._mask
+        K = K.copy()
+        K.data[touched] = 0.0
+        K.data[diag] = 1.0
+        return K
+
+
+def tangent_predictor(
+    tissue: Tissue,
+    x: np.ndarray,
+    strokes: np.ndarray,
+    inertia: Inertia | None = None,
+    conditions: Conditions = NO_CONDITIONS,
+    factors: dict | None = None,
+) -> np.ndarray:
     """First-order response of the free nodes when the Dirichlet nodes move to `strokes`.
 
     x (N, 2) is an equilibrium (or the rest state); returns positions (N, 2)
-    with K_ff δx_f = −K_fd δx_d − ∇Φ_f(x) solved at x's tangent.
+    with K_ff δx_f = −K_fd δx_d − ∇Φ_f(x) solved at x's tangent (held dofs
+    stay). `factors` is the slot of the reusable factorisation (default: the
+    tissue's shared one).
     """
+    held = _Held(tissue, conditions)
     x_new = tissue.apply_strokes(x, strokes)
     delta = (x_new - x).ravel()
-    _, grad = objective_gradient(tissue, x, inertia)
+    _, grad = objective_gradient(tissue, x, inertia, conditions.loads)
     Ke = tissue.element_stiffness(x)
     rhs = -tissue.stiffness_times(x, delta, Ke)[tissue.free_dofs] - grad[tissue.free_dofs]
     if inertia is not None:
         rhs -= inertia.weight[tissue.free_dofs] * delta[tissue.free_dofs]
+    rhs = held.vector(rhs)
     # The exact tangent of a stable equilibrium is positive definite; the
     # per-element projection only where it is not (the factorisation says).
     dx = None
     for project in (False, True):
-        K = tissue.stiffness_free(x, project=project, Ke=None if project else Ke, upper=True)
-        if inertia is not None:
-            K = K + _diag(inertia.weight[tissue.free_dofs])
+        K = _system(tissue, x, project, inertia, held, None if project else Ke)
         try:
-            dx = factorize_free(tissue, K).solve(rhs)
+            dx = factorize_free(tissue, K, factors).solve(rhs)
         except SolverError:
             continue
         if np.all(np.isfinite(dx)):
@@ -69,6 +127,14 @@ def tangent_predictor(tissue: Tissue, x: np.ndarray, strokes: np.ndarray, inerti
     flat = x_new.ravel().copy()
     flat[tissue.free_dofs] += dx
     return flat.reshape(-1, 2)
+
+
+def _system(tissue, x, project, inertia, held, Ke=None) -> sp.csr_matrix:
+    """The upper triangle of K_ff (+ M/Δt²) at x, held rows made identity rows."""
+    K = tissue.stiffness_free(x, project=project, Ke=Ke, upper=True)
+    if inertia is not None:
+        K = K + _diag(inertia.weight[tissue.free_dofs])
+    return held.matrix(K)
 
 
 def _diag(v: np.ndarray) -> sp.csr_matrix:
@@ -84,6 +150,8 @@ def newton_iterations(
     exact_below: float = 1.0,
     chord: bool = False,
     chord_above: float = CHORD_ABOVE,
+    conditions: Conditions = NO_CONDITIONS,
+    factors: dict | None = None,
 ) -> SolveResult:
     """Newton from a feasible start x (N, 2) with the Dirichlet nodes already placed.
 
@@ -95,34 +163,37 @@ def newton_iterations(
     still ends quadratic. Above a relative residual of `exact_below` the Hessian is
     PSD-projected per element (far from equilibrium the exact one sends
     pull8 wandering); below it the exact one, falling back to the projected
-    one when its step is not a descent direction.
+    one when its step is not a descent direction. `conditions` adds loads and
+    held dofs; `factors` is the factorisation slot (default: the tissue's).
     """
     t0 = time.perf_counter()
+    factors = tissue.factor_cache if factors is None else factors
+    held = _Held(tissue, conditions)
     x = np.array(x, dtype=float)
-    phi, grad = objective_gradient(tissue, x, inertia)
+    phi, grad = objective_gradient(tissue, x, inertia, conditions.loads)
     history = []
     free = tissue.free_dofs
+    n_factor = 0
     for it in range(max_iter + 1):
         check_finite(grad, "the Newton gradient")
-        res = relative_residual(tissue, grad)
+        res = relative_residual(tissue, grad, held.pos)
         history.append(res)
         if res <= tol:
-            return SolveResult(x, True, it, res, time.perf_counter() - t0, "newton", "converged", history)
+            return SolveResult(x, True, it, res, time.perf_counter() - t0, "newton", "converged", history, n_factor)
         if it == max_iter:
             break
-        g = grad[free]
-        if chord and res > chord_above and "free" in tissue.factor_cache:
-            kept = _chord_step(tissue, x, g, inertia, res)
+        g = held.vector(grad[free])
+        if chord and res > chord_above and "free" in factors:
+            kept = _chord_step(tissue, x, g, inertia, res, conditions, held, factors)
             if kept is not None:
                 x, phi, grad = kept
                 continue
         step = None
         for project in ([False, True] if res < exact_below else [True]):
-            K = tissue.stiffness_free(x, project=project, upper=True)
-            if inertia is not None:
-                K = K + _diag(inertia.weight[free])
+            K = _system(tissue, x, project, inertia, held)
+            n_factor += 1
             try:
-                d = -factorize_free(tissue, K).solve(g)
+                d = -factorize_free(tissue, K, factors).solve(g)
             except SolverError:  # singular exact Hessian: the projected one is next
                 continue
             if np.all(np.isfinite(d)) and np.dot(g, d) < 0:
@@ -131,18 +202,18 @@ def newton_iterations(
         if step is None:
             raise SolverError(
                 f"Newton found no descent direction at iteration {it} (residual {res:.3g})",
-                SolveResult(x, False, it, res, time.perf_counter() - t0, "newton", "no descent direction", history),
+                SolveResult(x, False, it, res, time.perf_counter() - t0, "newton", "no descent direction", history, n_factor),
             )
-        x, phi, grad = _line_search(tissue, x, phi, grad, step, inertia, res)
+        x, phi, grad = _line_search(tissue, x, phi, grad, step, inertia, res, conditions.loads, held)
     return SolveResult(
         x, False, max_iter, history[-1], time.perf_counter() - t0, "newton",
-        f"not converged in {max_iter} iterations (relative residual {history[-1]:.3g} > {tol:g})", history,
+        f"not converged in {max_iter} iterations (relative residual {history[-1]:.3g} > {tol:g})", history, n_factor,
     )
 
 
-def _chord_step(tissue, x, g, inertia, res):
+def _chord_step(tissue, x, g, inertia, res, conditions, held, factors):
     """A full step on the cached factorisation, if it is feasible and contracts the residual enough."""
-    d = -tissue.factor_cache["free"].solve(g)
+    d = -factors["free"].solve(g)
     if not np.all(np.isfinite(d)) or np.dot(g, d) >= 0:
         return None
     step = np.zeros(x.size)
@@ -150,13 +221,13 @@ def _chord_step(tissue, x, g, inertia, res):
     trial = x + step.reshape(-1, 2)
     if not np.min(tissue.jacobians(trial)) > 0:
         return None
-    phi_t, grad_t = objective_gradient(tissue, trial, inertia)
-    if relative_residual(tissue, grad_t) > CHORD_CONTRACTION * res:
+    phi_t, grad_t = objective_gradient(tissue, trial, inertia, conditions.loads)
+    if relative_residual(tissue, grad_t, held.pos) > CHORD_CONTRACTION * res:
         return None
     return trial, phi_t, grad_t
 
 
-def _line_search(tissue, x, phi, grad, d_free, inertia, res):
+def _line_search(tissue, x, phi, grad, d_free, inertia, res, loads=None, held=None):
     """Backtracking: keep every J > 0, then Armijo on Φ (or a smaller residual once Φ is flat).
 
     A full step that lowers Φ by nearly its linear prediction met (almost) no
@@ -166,23 +237,25 @@ def _line_search(tissue, x, phi, grad, d_free, inertia, res):
     unit steps (30 such iterations on a 10 mm push of the 15.7k mesh).
     """
     free = tissue.free_dofs
-    slope = float(np.dot(grad[free], d_free))
+    g = grad[free] if held is None else held.vector(grad[free])
+    slope = float(np.dot(g, d_free))
     step = np.zeros(x.size)
     step[free] = d_free
     step = step.reshape(-1, 2)
     feasible = 0.95 * tissue.max_feasible_step(x, step)
     alpha = min(1.0, feasible)
-    g_norm = np.linalg.norm(grad[free])
+    g_norm = np.linalg.norm(g)
     while alpha > 1e-12:
         trial = x + alpha * step
         if np.min(tissue.jacobians(trial)) > 0:
-            phi_t, grad_t = objective_gradient(tissue, trial, inertia)
+            phi_t, grad_t = objective_gradient(tissue, trial, inertia, loads)
+            g_t = grad_t[free] if held is None else held.vector(grad_t[free])
             # Near the solution Φ changes below round-off; a falling residual decides there.
             if phi_t <= phi + ARMIJO * alpha * slope or (
-                abs(phi_t - phi) <= 1e-12 * max(abs(phi), 1.0) and np.linalg.norm(grad_t[free]) < g_norm
+                abs(phi_t - phi) <= 1e-12 * max(abs(phi), 1.0) and np.linalg.norm(g_t) < g_norm
             ):
                 if alpha == 1.0 and phi_t - phi <= EXTRAPOLATE_RATIO * slope:
-                    return _extrapolate(tissue, x, step, phi_t, (trial, phi_t, grad_t), feasible, inertia)
+                    return _extrapolate(tissue, x, step, phi_t, (trial, phi_t, grad_t), feasible, inertia, loads)
                 return trial, phi_t, grad_t
         alpha *= 0.5
     raise SolverError(
@@ -191,14 +264,14 @@ def _line_search(tissue, x, phi, grad, d_free, inertia, res):
     )
 
 
-def _extrapolate(tissue, x, step, phi_best, best, feasible, inertia):
+def _extrapolate(tissue, x, step, phi_best, best, feasible, inertia, loads=None):
     """Double a full step (up to MAX_EXTRAPOLATION, inside the feasible range) while Φ falls."""
     alpha = 2.0
     while alpha <= min(MAX_EXTRAPOLATION, feasible):
         trial = x + alpha * step
         if not np.min(tissue.jacobians(trial)) > 0:
             break
-        phi_t, grad_t = objective_gradient(tissue, trial, inertia)
+        phi_t, grad_t = objective_gradient(tissue, trial, inertia, loads)
         if not phi_t < phi_best:
             break
         phi_best, best = phi_t, (trial, phi_t, grad_t)
@@ -215,12 +288,15 @@ def solve_newton(
     tol: float = 1e-10,
     max_iter: int = 100,
     max_substeps: int = 64,
+    conditions: Conditions = NO_CONDITIONS,
+    factors: dict | None = None,
 ) -> SolveResult:
     """Equilibrium (or one implicit-Euler step) for cup strokes (C,) in mm.
 
     x0 (N, 2) is the warm start, an equilibrium for strokes0 (default: rest,
     zero strokes). A warm start with inverted elements is replaced by the
-    rest state, and the message says so.
+    rest state, and the message says so. Held dofs of `conditions` stay where
+    x0 (or rest) has them.
     """
     t0 = time.perf_counter()
     strokes = np.asarray(strokes, float)
@@ -238,9 +314,10 @@ def solve_newton(
     # largest fraction of it that keeps every J > 0 is known in closed form; an
     # intermediate state goes to STEP_FRACTION of that and is solved loosely
     # (it only has to be a good start for the next step).
-    iterations, substeps = 0, 0
+    iterations, substeps, n_factor = 0, 0, 0
     while True:
-        pred = tangent_predictor(tissue, x, strokes, inertia)
+        pred = tangent_predictor(tissue, x, strokes, inertia, conditions, factors)
+        n_factor += 1
         alpha = tissue.max_feasible_step(x, pred - x)
         final = alpha > 1.0 / STEP_FRACTION
         fraction = 1.0 if final else STEP_FRACTION * alpha
@@ -251,8 +328,11 @@ def solve_newton(
             )
         s_next = s_done + fraction * (strokes - s_done)
         start = x + fraction * (pred - x)
-        result = newton_iterations(tissue, start, inertia, tol if final else max(tol, SUBSTEP_TOL), max_iter)
+        result = newton_iterations(tissue, start, inertia, tol if final else max(tol, SUBSTEP_TOL), max_iter,
+                                   conditions=conditions, factors=factors)
         iterations += result.iterations
+        n_factor += result.factorizations
+        result.factorizations = n_factor
         if not result.converged:
             result.message = note + result.message
             raise SolverError(result.message, result)

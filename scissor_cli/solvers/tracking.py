@@ -1,0 +1,134 @@
+"""An equilibrium followed as the cup strokes change: what a control loop solves (docs/model.md §5, §6).
+
+Each move starts from the tangent predictor x + (∂x/∂s) Δs and is corrected
+by the one Newton iteration of `solvers.newton` with chord steps on the
+tracker's last factorisation of K_ff (kept while they shrink the residual
+≥ 3×, refactored otherwise: same sparsity pattern, numeric work only). When
+∂x/∂s is wanted — the controller's Jacobian — the exact tangent is factored
+once at the converged state; that factorisation is also the next move's
+chord matrix. A move the fast path cannot finish (the predictor inverts an
+element, or Newton does not converge from it) is solved by
+`solvers.newton.solve_newton` with load continuation.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+from scissor_cli.mechanics import fem
+from scissor_cli.mechanics.tissue import Tissue
+from scissor_cli.solvers.common import SolverError, check_finite
+from scissor_cli.solvers.linear import Factorization, factorize_free
+from scissor_cli.solvers.newton import newton_iterations, solve_newton
+
+
+class Equilibrium:
+    """The quasi-static equilibrium of one tissue, followed as the strokes change.
+
+    x (N, 2) mm: node positions at `strokes` (C,) mm. `response` (2N, C) is
+    ∂x/∂s (mm/mm) at `tangent_x`, the point where K_ff was last factored
+    exactly (the equilibrium itself right after `move_to(..., tangent=True)`).
+    Arrays are replaced, never written in place, so another tracker may
+    hold them (see `adopt`). Each tracker keeps its own factorisation slot
+    (`factors`), so a model and a truth on the same mesh do not overwrite
+    each other's chord matrix.
+    """
+
+    def __init__(self, tissue: Tissue, tol: float = 1e-10, max_iter: int = 30):
+        self.tissue, self.tol, self.max_iter = tissue, tol, max_iter
+        self.x = tissue.rest
+        self.strokes = np.zeros(tissue.n_cups)
+        self.factors: dict = {}
+        self._B = np.column_stack([tissue.cup_displacement(c) for c in range(tissue.n_cups)])  # (2N, C)
+        self._cup_elems = np.flatnonzero(np.any(self._B[tissue.ops.elem_dofs] != 0, axis=(1, 2)))
+        self.response: Optional[np.ndarray] = None
+        self.tangent_x: Optional[np.ndarray] = None
+        self.stats = {"moves": 0, "refactors": 0, "fallbacks": 0, "newton_iterations": 0}
+        # Known (near-)equilibria (strokes (C,), x (N, 2)) to start a big move from, e.g. the planner's.
+        self.guesses: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def refactor(self, x: np.ndarray) -> None:
+        """Factor the exact K_ff at x (N, 2) and compute ∂x/∂s there (docs/model.md §5)."""
+        t = self.tissue
+        self.stats["refactors"] += 1
+        Ke = t.element_stiffness(x)
+        K = t.pattern_free_upper.assemble(Ke)
+        try:
+            factor = factorize_free(t, K, self.factors)
+        except SolverError:  # not positive definite (an unstable state): LDLᵀ for the response only
+            factor = Factorization(K, upper=True)
+        # K_fc B from the elements that touch a cup: B vanishes on every other element's dofs.
+        e = self._cup_elems
+        dofs = t.ops.elem_dofs[e]
+        KB_e = np.einsum("eij,ejc->eic", fem.unpack(Ke[:, e]), self._B[dofs])
+        D = self._B.copy()
+        for c in range(t.n_cups):  # a few cups, not elements
+            KB = np.bincount(dofs.ravel(), weights=KB_e[:, :, c].ravel(), minlength=self._B.shape[0])
+            D[t.free_dofs, c] = factor.solve(-KB[t.free_dofs])
+        check_finite(D, "the cup response (K_ff singular?)")
+        self.response, self.tangent_x = D, x
+
+    @property
+    def jacobian_is_current(self) -> bool:
+        return self.tangent_x is self.x
+
+    def move_to(self, strokes: np.ndarray, tangent: bool = True) -> None:
+        """Solve the equilibrium at `strokes` (C,) mm, warm-started from the current one.
+
+        tangent=True also leaves the exact ∂x/∂s at the new equilibrium
+        (what the controller's J needs); the truth does without it.
+        Raises SolverError if even the load-continuation Newton fails.
+        """
+        strokes = np.asarray(strokes, float)
+        self.stats["moves"] += 1
+        if self.response is None:
+            self.refactor(self.x)
+        if not np.array_equal(strokes, self.strokes):
+            x0, s0 = self._start(strokes)
+            x = self._corrected(strokes, x0, s0)
+            if x is None:
+                self.stats["fallbacks"] += 1
+                r = solve_newton(self.tissue, strokes, x0=self.x, strokes0=self.strokes, tol=self.tol, factors=self.factors)
+                x = r.x
+                self.stats["refactors"] += r.factorizations
+                self.refactor(x)  # the old tangent just failed as a predictor
+            self.x, self.strokes = x, strokes.copy()
+        if tangent and not self.jacobian_is_current:
+            self.refactor(self.x)
+
+    def _start(self, strokes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where a move to `strokes` starts: the current state, or a guess much nearer in stroke.
+
+        A guess gets this tissue's own tangent (one factorisation), so it
+        may come from another tissue on the same mesh (the model's state for
+        the truth): it is only a starting point.
+        """
+        if self.guesses:
+            s_g, x_g = min(self.guesses, key=lambda g: np.linalg.norm(g[0] - strokes))
+            if np.linalg.norm(s_g - strokes) < 0.5 * np.linalg.norm(self.strokes - strokes):
+                self.refactor(x_g)
+                return x_g, s_g
+        return self.x, self.strokes
+
+    def _corrected(self, strokes: np.ndarray, x0: np.ndarray, s0: np.ndarray) -> Optional[np.ndarray]:
+        """Tangent predictor from (x0, s0), then Newton with chord steps; None if that fails."""
+        t = self.tissue
+        start = t.apply_strokes(x0 + (self.response @ (strokes - s0)).reshape(-1, 2), strokes)
+        if not np.min(t.jacobians(start)) > 0:
+            return None  # the predictor inverts an element
+        try:
+            r = newton_iterations(t, start, tol=self.tol, max_iter=self.max_iter, chord=True, chord_above=0.0,
+                                  factors=self.factors)
+        except SolverError:
+            return None
+        self.stats["newton_iterations"] += r.iterations
+        self.stats["refactors"] += r.factorizations
+        return r.x if r.converged else None
+
+    def adopt(self, other: "Equilibrium") -> None:
+        """Take another tracker's state of the same tissue (same x, strokes and ∂x/∂s)."""
+        self.x, self.strokes = other.x, other.strokes.copy()
+        self.response, self.tangent_x = other.response, other.tangent_x
+        # Our own factorisation is now at some other state; the next move refreshes it when it matters.
