@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from scissor_cli import runtime  # noqa: E402
-from scissor_cli.control import loop as ct
+from scissor_cli import control as ct
 from scissor_cli.scene.camera import Camera
 from scissor_cli.config import load_config
 from scissor_cli.mesh.probe import probe_targets

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from scissor_cli.solvers.tracking import Equilibrium
-from scissor_cli.control import loop as ct
+from scissor_cli import control as ct
+from scissor_cli.output.manipulation import manipulation_figure_inputs
 from scissor_cli.output import figures
 from scissor_cli.scene.camera import Camera
 from scissor_cli.config import ControllerConfig, load_config
@@ -315,7 +316,7 @@ def test_manipulation_figure(tmp_path):
     cfg, tissue, plans = setup("paper_pull")
     corridor = ct.Corridor.from_plan(plans[0], corridor_radius(cfg.needle))
     r = manipulate("paper_pull", 0)
-    kw = ct.figure_inputs(tissue, r, tissue.scene.targets[0].rest, corridor)
+    kw = manipulation_figure_inputs(tissue, r, tissue.scene.targets[0].rest, corridor)
     assert kw["corridor_before"].shape == (2, 2) and np.all(np.isfinite(kw["corridor_after"]))
     fig = figures.manipulation_figure(**kw)
     path = figures.save(fig, tmp_path / "manipulation_T1.png")

@@ -4,7 +4,7 @@ import h5py
 import numpy as np
 import pytest
 
-from scissor_cli.control import loop as control
+from scissor_cli import control
 from scissor_cli.config import load_config
 from scissor_cli.experiments.profiles import draw_trial, error_model
 from scissor_cli.experiments.simulate import Execution, TrialsFailed, resume_simulation, run_simulation

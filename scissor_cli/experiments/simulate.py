@@ -16,7 +16,8 @@ import numpy as np
 
 import h5py
 
-from scissor_cli.control import loop as control
+from scissor_cli import control
+from scissor_cli.output.manipulation import manipulation_figure_inputs
 from scissor_cli.output import figures
 from scissor_cli.output import results
 from scissor_cli.config import Config, SolverConfig, parse_config, resolved_yaml
@@ -176,7 +177,7 @@ def _manipulation_stage(cfg: Config, tissue: Tissue, plans: list[NeedlePlan], ou
         })
         names, table = closed.history_table()
         out.dataset(f"manipulation/{target.name}/history", table, "mm (time_s: s)", columns=names)
-        fig = figures.manipulation_figure(**control.figure_inputs(tissue, closed, target.rest, corridor))
+        fig = figures.manipulation_figure(**manipulation_figure_inputs(tissue, closed, target.rest, corridor))
         figures.save(fig, out.path.parent / f"manipulation_{target.name}.png")
         reporter.info(
             f"manipulation {target.name}: closed loop {closed.iterations} iterations ({closed.stop_reason}), "

@@ -19,7 +19,7 @@ from typing import Iterator, Optional
 import numpy as np
 
 from scissor_cli import runtime
-from scissor_cli.control import loop as control
+from scissor_cli import control
 from scissor_cli.scene.camera import Camera
 from scissor_cli.config import parse_config
 from scissor_cli.solvers.equilibrium import solve_equilibrium

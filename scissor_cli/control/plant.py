@@ -1,0 +1,117 @@
+"""The two tissues of a manipulation: the simulated truth (plant) and the controller's model (docs/model.md §6, §10).
+
+They are kept apart on purpose: a trial perturbs the truth (E, ν, η, fiber
+angle, actuator, measurement) without touching the controller. When the
+truth *is* the model (the same `Tissue` object) and the actuator realised
+the command exactly, the controller adopts the plant's equilibrium instead
+of solving it again.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from scissor_cli.control.actuator import Actuator
+from scissor_cli.mechanics.tissue import Tissue
+from scissor_cli.mesh.probe import TargetProbe, apply_probe, target_positions
+from scissor_cli.solvers.tracking import Equilibrium
+
+
+class Plant:
+    """The simulated truth: tissue + actuator + current equilibrium + the target's probe."""
+
+    def __init__(self, tissue: Tissue, actuator: Actuator, probe: TargetProbe, tol: float = 1e-10):
+        self.tissue, self.actuator, self.probe = tissue, actuator, probe
+        self.eq = Equilibrium(tissue, tol)
+
+    @property
+    def position(self) -> np.ndarray:
+        """The true target (2,) mm."""
+        return target_positions(self.probe, self.eq.x)[0]
+
+    @property
+    def strokes(self) -> np.ndarray:
+        return self.eq.strokes
+
+    def apply(self, command: np.ndarray, tangent: bool = False) -> np.ndarray:
+        """Actuate `command` (C,) mm and settle the truth; returns the actual strokes (C,) mm."""
+        actual = self.actuator.apply(command)
+        self.eq.move_to(actual, tangent=tangent)
+        return actual
+
+
+class Controller:
+    """The controller's model: tissue + equilibrium at the commanded strokes + J there.
+
+    lo, hi (C,) mm and resolution_mm are what it may command (the drives'
+    nominal limits; it does not know the backlash).
+    """
+
+    def __init__(self, tissue: Tissue, probe: TargetProbe, lo, hi, resolution_mm: float = 0.0, tol: float = 1e-10):
+        self.tissue, self.probe = tissue, probe
+        self.lo, self.hi = np.asarray(lo, float), np.asarray(hi, float)
+        self.resolution_mm = resolution_mm
+        self.eq = Equilibrium(tissue, tol)
+        self.eq.move_to(self.eq.strokes, tangent=True)
+
+    @property
+    def jacobian(self) -> np.ndarray:
+        """J (2, C) mm/mm of the target at the model equilibrium."""
+        return apply_probe(self.probe, self.eq.response)
+
+    @property
+    def strokes(self) -> np.ndarray:
+        return self.eq.strokes
+
+    def shares(self, plant: Plant) -> bool:
+        return plant.tissue is self.tissue
+
+    def update(self, commanded: np.ndarray, plant: Optional[Plant] = None) -> None:
+        """Move the model to the commanded strokes (C,) mm and update J there.
+
+        When the plant is this very tissue and sits at exactly these strokes,
+        its equilibrium (solved with its tangent) is taken over.
+        """
+        same_state = plant is not None and self.shares(plant) and np.array_equal(plant.strokes, commanded)
+        if same_state and plant.eq.jacobian_is_current:
+            self.eq.adopt(plant.eq)
+        else:
+            self.eq.move_to(commanded, tangent=True)
+
+
+@dataclass(frozen=True)
+class TruthPerturbation:
+    """How the simulated truth differs from the controller's model (MODEL.md §10).
+
+    E_scale multiplies every element's E: a scalar or a field (M,) (e.g.
+    `profiles.TrialDraw.E_field`); fiber_offset_rad turns the fiber (the
+    model's global angle + offset); nu and eta_kPa replace the model's when
+    given, eta_scale multiplies the model's η otherwise. The neutral
+    perturbation leaves the truth = the model.
+
+    Note: with displacement-controlled cups a uniform E scale alone does
+    not change the equilibrium (U scales as a whole); it acts through the
+    ratio to η, which is not scaled, and through heterogeneity.
+    """
+
+    E_scale: float | np.ndarray = 1.0
+    fiber_offset_rad: float = 0.0
+    nu: Optional[float] = None
+    eta_kPa: Optional[float] = None
+    eta_scale: float = 1.0
+
+
+def true_tissue(model: Tissue, truth: TruthPerturbation) -> Tissue:
+    """The trial's true tissue; the model itself when nothing differs (so one solve serves both)."""
+    m = model.scene.material
+    nu = None if truth.nu is None or truth.nu == m.nu else truth.nu
+    eta = truth.eta_kPa if truth.eta_kPa is not None else (m.eta_kPa * truth.eta_scale if truth.eta_scale != 1 else None)
+    eta = None if eta == m.eta_kPa else eta
+    E_uniform = np.all(np.asarray(truth.E_scale) == 1.0)
+    if E_uniform and truth.fiber_offset_rad == 0 and nu is None and eta is None:
+        return model
+    angle = m.fiber_angle_rad + truth.fiber_offset_rad if truth.fiber_offset_rad else None
+    return model.with_material(truth.E_scale, nu, eta, angle)

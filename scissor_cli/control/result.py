@@ -1,0 +1,129 @@
+"""What one manipulation leaves: the final state and the per-measurement history (docs/contract.md)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from scissor_cli.control.law import split_error
+from scissor_cli.control.plant import Controller, Plant
+
+
+@dataclass
+class LoopResult:
+    """One manipulation of one target (closed or open loop). mm, s.
+
+    final_position (2,): true target at the end; final_error (2,) = true −
+    desired (x, y); correctable_error_mm / uncorrectable_error_mm: norms of
+    the parts of (desired − true) inside / orthogonal to range(J) at the
+    end (J the controller's). iterations: moves applied. time_s: wall clock
+    of the loop; sim_time_s: the robot's time (moves at the drives' speed,
+    at least 1/rate_hz each).
+
+    History, one row per measurement (K = iterations + 1 rows, row 0 at
+    rest before any move): time_s (K,) robot time, strokes_cmd (K, C) the
+    commanded strokes in effect, strokes (K, C) the actual ones, measured
+    (K, 2), true (K, 2), error (K, 2) = true − desired, correctable (K,) and
+    uncorrectable (K,) norms of the measured error the controller saw.
+    step_wall_s (K − 1,) is the compute time of each iteration (truth solve
+    + model solve + J update), not part of the deterministic history.
+    """
+
+    target: str
+    mode: str  # "closed" | "open"
+    desired: np.ndarray
+    final_position: np.ndarray
+    final_error: np.ndarray
+    correctable_error_mm: float
+    uncorrectable_error_mm: float
+    iterations: int
+    time_s: float
+    sim_time_s: float
+    stop_reason: str
+    converged: bool
+    cup_names: list[str]
+    hist_time_s: np.ndarray
+    hist_strokes_cmd: np.ndarray
+    hist_strokes: np.ndarray
+    hist_measured: np.ndarray
+    hist_true: np.ndarray
+    hist_error: np.ndarray
+    hist_correctable: np.ndarray
+    hist_uncorrectable: np.ndarray
+    step_wall_s: np.ndarray
+    message: str = ""
+    final_x: Optional[np.ndarray] = None  # (N, 2) true node positions at the end
+    corridor_clear: Optional[bool] = None  # None: no corridor to check
+    clearance_mm: float = float("nan")
+    corridor_entry: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))
+    corridor_direction: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))
+
+    @property
+    def history(self) -> dict[str, np.ndarray]:
+        """The history arrays by name: time_s (K,), strokes_cmd (K, C), strokes (K, C), measured,
+        true, error (K, 2), correctable_mm, uncorrectable_mm (K,)."""
+        return {
+            "time_s": self.hist_time_s, "strokes_cmd": self.hist_strokes_cmd, "strokes": self.hist_strokes,
+            "measured": self.hist_measured, "true": self.hist_true, "error": self.hist_error,
+            "correctable_mm": self.hist_correctable, "uncorrectable_mm": self.hist_uncorrectable,
+        }
+
+    @property
+    def final_strokes(self) -> np.ndarray:
+        """Actual strokes (C,) mm at the end."""
+        return self.hist_strokes[-1]
+
+    @property
+    def final_error_mm(self) -> float:
+        return float(np.linalg.norm(self.final_error))
+
+    def history_table(self) -> tuple[list[str], np.ndarray]:
+        """Column names and the (K, n) float64 table of the history, for HDF5.
+
+        Columns: time_s, stroke_cmd_<cup>..., stroke_<cup>..., measured_x,
+        measured_y, true_x, true_y, error_x, error_y, correctable_mm,
+        uncorrectable_mm (all mm except time_s in s).
+        """
+        names = (
+            ["time_s"]
+            + [f"stroke_cmd_{c}" for c in self.cup_names]
+            + [f"stroke_{c}" for c in self.cup_names]
+            + ["measured_x", "measured_y", "true_x", "true_y", "error_x", "error_y", "correctable_mm", "uncorrectable_mm"]
+        )
+        table = np.column_stack(
+            [
+                self.hist_time_s, self.hist_strokes_cmd, self.hist_strokes, self.hist_measured,
+                self.hist_true, self.hist_error, self.hist_correctable, self.hist_uncorrectable,
+            ]
+        ).astype(np.float64)
+        return names, table
+
+
+class History:
+    """Rows collected during a loop."""
+
+    def __init__(self):
+        self.rows: dict[str, list] = {k: [] for k in ("t", "cmd", "act", "meas", "true", "corr", "unc")}
+        self.wall: list[float] = []
+
+    def add(self, t, cmd, act, meas, true, corr, unc):
+        for k, v in zip(("t", "cmd", "act", "meas", "true", "corr", "unc"), (t, cmd, act, meas, true, corr, unc)):
+            self.rows[k].append(np.array(v, float))
+
+    def result(self, plant: Plant, controller: Controller, desired, target, mode, reason, message, wall,
+               cup_names) -> LoopResult:
+        r = {k: np.array(v) for k, v in self.rows.items()}
+        true = plant.position
+        _, corr, unc = split_error(controller.jacobian, desired - true)
+        return LoopResult(
+            target=target, mode=mode, desired=np.asarray(desired, float), final_position=true,
+            final_error=true - desired,
+            correctable_error_mm=float(np.linalg.norm(corr)), uncorrectable_error_mm=float(np.linalg.norm(unc)),
+            iterations=len(r["t"]) - 1, time_s=wall, sim_time_s=float(r["t"][-1]),
+            stop_reason=reason, converged=reason == "tolerance", cup_names=list(cup_names),
+            hist_time_s=r["t"], hist_strokes_cmd=r["cmd"], hist_strokes=r["act"], hist_measured=r["meas"],
+            hist_true=r["true"], hist_error=r["true"] - desired, hist_correctable=r["corr"],
+            hist_uncorrectable=r["unc"], step_wall_s=np.array(self.wall), message=message, final_x=plant.eq.x,
+        )
