@@ -5,7 +5,9 @@ import types
 import numpy as np
 import pytest
 
-from scissor_cli.robot.kinematics import RobotModel, ik, ik_batch, layer_to_base, direction_layer_to_base, plan_to_joints
+from scissor_cli.robot.chain import RobotModel
+from scissor_cli.robot.ik import ik, ik_batch
+from scissor_cli.robot.registration import direction_layer_to_base, layer_to_base, plan_to_joints
 from scissor_cli.robot.workspace import sample_joints
 
 PAPER = RobotModel.paper()
