@@ -51,7 +51,8 @@ from scissor_cli.scene.camera import Camera
 from scissor_cli.config import ControllerConfig
 from scissor_cli.mesh.probe import TargetProbe, apply_probe, probe_targets, target_positions
 from scissor_cli.solvers.tracking import Equilibrium
-from scissor_cli.planning.needle import Embedding, boundary_loop, corridor_clearance, deformed_outlines, embed_outlines, entry_points
+from scissor_cli.mesh.outlines import Embedding, boundary_loop, deformed_outlines, embed_outlines
+from scissor_cli.planning.corridor import corridor_clearance, entry_points
 from scissor_cli.solvers.common import SolverError
 from scissor_cli.mechanics.tissue import Tissue
 
