@@ -7,8 +7,8 @@ import time
 import numpy as np
 import pytest
 
-from scissor_cli.solvers import admm
-from scissor_cli.solvers.admm import AdmmSolver, AdmmState, implicit_euler
+from scissor_cli.solvers.admm import solver as admm
+from scissor_cli.solvers.admm.solver import AdmmSolver, AdmmState, implicit_euler
 from scissor_cli.config import load_config
 from scissor_cli.mesh.mesh import mesh_for_config
 from scissor_cli.solvers.newton import solve_newton
