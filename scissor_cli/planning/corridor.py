@@ -116,9 +116,10 @@ def entry_points(target: np.ndarray, candidates: Sequence[Candidate], outline: n
 
 
 def corridor_clearance(entry, target, obstacle_outlines: Sequence[np.ndarray], radius: float) -> float:
-    """Clearance (mm) of the corridor entry → target: min distance to any obstacle − radius.
+    """Clearance (mm) of the corridor entry (2,) mm → target (2,) mm: min distance to any obstacle − radius.
 
-    `radius` is the corridor half-width (needle radius + margin). Clear when
+    obstacle_outlines: polygons (K_i, 2) mm; `radius` (mm) is the corridor
+    half-width (needle radius + margin, `corridor_radius`). Clear when
     > 0; +inf with no obstacles. An overlapping obstacle counts as distance 0,
     so the clearance is never below −radius.
     """
@@ -164,7 +165,8 @@ def ranked_insertions(
 ) -> list[Insertion]:
     """Every candidate that has an entry, as an `Insertion`, largest clearance first.
 
-    Ties keep the candidates' order (entry sides and tilts as configured).
+    Arguments as for `best_insertion`. Ties keep the candidates' order
+    (entry sides and tilts as configured).
     """
     target = np.asarray(target_position, float)
     entries = entry_points(target, candidates, outline)
