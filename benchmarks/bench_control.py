@@ -32,7 +32,9 @@ from scissor_cli import control as ct
 from scissor_cli.scene.camera import Camera
 from scissor_cli.config import load_config
 from scissor_cli.mesh.probe import probe_targets
-from scissor_cli.planning.needle import StateCache, corridor_radius, plan_targets
+from scissor_cli.planning.corridor import corridor_radius
+from scissor_cli.planning.needle import plan_targets
+from scissor_cli.planning.states import StateCache
 from scissor_cli.experiments.simulate import build_model
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -83,7 +83,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 from scissor_cli import runtime  # noqa: E402
-from scissor_cli.solvers.admm import AdmmSolver  # noqa: E402
+from scissor_cli.solvers.admm.solver import AdmmSolver  # noqa: E402
 from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.mesh.probe import probe_targets, target_positions  # noqa: E402
 from scissor_cli.solvers.newton import solve_newton  # noqa: E402

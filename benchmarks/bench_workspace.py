@@ -16,7 +16,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from scissor_cli import runtime  # noqa: E402
-from scissor_cli.robot.kinematics import RobotModel  # noqa: E402
+from scissor_cli.robot.chain import RobotModel  # noqa: E402
 from scissor_cli.robot.workspace import run_workspace  # noqa: E402
 
 

@@ -180,7 +180,7 @@ def workspace(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Only the output path."),
 ) -> None:
     """Sample the puncture module's joint space: workspace.h5, the Fig. 8 projections, box coverage."""
-    from scissor_cli.robot.kinematics import RobotModel
+    from scissor_cli.robot.chain import RobotModel
     from scissor_cli.output.workspace import plot_workspace, write_workspace_h5
     from scissor_cli.robot.workspace import run_workspace
 

@@ -24,6 +24,11 @@ def limit_blas_threads() -> None:
     large dot product to a second thread, and on a busy 2-core machine that
     hand-off waits for the scheduler: ADMM ran 2.4x slower under load.
     """
+    # threadpoolctl limits only libraries already loaded: load every BLAS
+    # scissor uses (numpy's, scipy's own, cvxopt's) before limiting them.
+    import cvxopt  # noqa: F401
+    import numpy  # noqa: F401
+    import scipy.linalg  # noqa: F401
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(limits=1, user_api="blas")

@@ -1,4 +1,4 @@
-"""ADMM-PD (scissor_cli.admm) against the Newton reference, and its safeguards."""
+"""ADMM-PD (scissor_cli.solvers.admm) against the Newton reference, and its safeguards."""
 
 from __future__ import annotations
 
@@ -6,8 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scissor_cli.solvers import admm
-from scissor_cli.solvers.admm import AdmmSolver, AdmmState, implicit_euler
+from scissor_cli.solvers.admm import local, solver as admm_solver
+from scissor_cli.solvers.admm.anderson import Anderson
+from scissor_cli.solvers.admm.euler import implicit_euler
+from scissor_cli.solvers.admm.solver import AdmmSolver, AdmmState
+from scissor_cli.solvers.admm.weights import curvature_boost, rest_weights
 from scissor_cli.config import load_config
 from scissor_cli.mesh.mesh import mesh_for_config
 from scissor_cli.solvers.newton import solve_newton
@@ -70,9 +73,9 @@ def test_cholesky4_solves_and_flags_indefinite():
     H = A @ A.transpose(0, 2, 1) + 0.1 * np.eye(4)
     H[:5] -= 20 * np.eye(4)  # indefinite
     b = rng.standard_normal((50, 4))
-    L, ok = admm._cholesky4(H)
+    L, ok = local.cholesky4(H)
     assert not ok[:5].any() and ok[5:].all()
-    d = admm._cholesky4_solve(L, b)
+    d = local.cholesky4_solve(L, b)
     np.testing.assert_allclose(d[5:], np.linalg.solve(H[5:], b[5:][..., None])[..., 0], rtol=1e-9, atol=1e-9)
 
 
@@ -80,21 +83,40 @@ def test_local_newton_converges_and_keeps_det_positive(tissue):
     """The vectorised local step solves min Ψ(z) + k/2‖z − v‖², also with inverted targets v."""
     M = tissue.mesh.n_elements
     rng = np.random.default_rng(1)
-    v = np.tile(admm.IDENTITY, (M, 1)) + 0.3 * rng.standard_normal((M, 4))
+    v = np.tile(local.IDENTITY, (M, 1)) + 0.3 * rng.standard_normal((M, 4))
     v[:50, :2] *= -1  # flip the first row: det v < 0
-    assert (admm.det4(v[:50]) < 0).sum() > 30
-    k = admm.rest_weights(tissue.params)
-    cache = admm._evaluate(np.tile(admm.IDENTITY, (M, 1)), tissue.params)
-    scale = np.linalg.norm(v - admm.IDENTITY, axis=1).max()
+    assert (local.det4(v[:50]) < 0).sum() > 30
+    k = rest_weights(tissue.params)
+    cache = local.evaluate_local(np.tile(local.IDENTITY, (M, 1)), tissue.params)
+    scale = np.linalg.norm(v - local.IDENTITY, axis=1).max()
     for _ in range(30):
-        cache, g = admm.local_newton(cache, v, k, tissue.params)
-        assert admm.det4(cache.z).min() > 0
+        cache, g = local.local_newton(cache, v, k, tissue.params)
+        assert local.det4(cache.z).min() > 0
         if (np.linalg.norm(g, axis=1) / k).max() < 1e-10 * scale:
             break
     assert (np.linalg.norm(g, axis=1) / k).max() < 1e-10 * scale
     # a minimum, not just a stationary point: the PSD test of the local Hessian
     H = cache.C + k[:, None, None] * np.eye(4)
     assert np.linalg.eigvalsh(H)[:, 0].min() > -1e-8 * k.max()
+
+
+def test_curvature_boost_needs_persistence_caps_and_only_grows():
+    """Boost k_e to 3·(−λ_min) after two consecutive indefinite local Hessians, at most 16·k0, never down."""
+    C = np.tile(10.0 * np.eye(4), (4, 1, 1))
+    C[1] -= 30.0 * np.eye(4)  # λ_min = −20: C + k/2 I indefinite for k = 10
+    C[2] -= 1000.0 * np.eye(4)  # λ_min = −990: the cap decides
+    k = np.full(4, 10.0)
+    flagged = np.zeros(4, int)
+    assert curvature_boost(C, k, k, flagged) is None  # flagged once: no boost yet
+    assert flagged.tolist() == [0, 1, 1, 0]
+    elems, k_new = curvature_boost(C, k, k, flagged)
+    assert elems.tolist() == [1, 2]
+    np.testing.assert_allclose(k_new, [3 * 20.0, 16 * 10.0])
+    assert flagged.tolist() == [0, 0, 0, 0]
+    # already above what a boost would give: element 1 is now convex enough, element 2 stays at its larger k
+    flagged[:] = [0, 1, 1, 0]
+    assert curvature_boost(C, np.array([10.0, 100.0, 200.0, 10.0]), k, flagged) is None
+    assert flagged.tolist() == [0, 0, 2, 0]
 
 
 def test_anderson_accelerates_a_linear_fixed_point():
@@ -106,7 +128,7 @@ def test_anderson_accelerates_a_linear_fixed_point():
     s_star = np.linalg.solve(np.eye(n) - A, b)
 
     def iterations(memory):
-        aa = admm._Anderson(memory)
+        aa = Anderson(memory)
         s = np.zeros(n)
         for it in range(1, 2000):
             g = A @ s + b
@@ -134,7 +156,7 @@ def test_default_tolerance_matches_newton(tissue, newton_refs, plain_solver, str
     assert result.history[-1] <= 1e-4
     assert result.residual < 1e-3  # the common force residual, comparable with Newton's
     assert result.iterations < 200
-    assert admm.det4(state.z).min() > 0
+    assert local.det4(state.z).min() > 0
 
 
 def test_anderson_matches_newton_and_needs_fewer_iterations(tissue, newton_refs, plain_solver):
@@ -152,12 +174,12 @@ def test_anderson_safeguard_rejects_bad_extrapolation(coarse, monkeypatch):
     ref = solve_newton(coarse, np.array([10.0]))
     rng = np.random.default_rng(3)
 
-    class Wild(admm._Anderson):
+    class Wild(Anderson):
         def step(self, g, f):
             good = super().step(g, f)
             return good + 0.05 * rng.standard_normal(good.shape)  # garbage on top of every extrapolation
 
-    monkeypatch.setattr(admm, "_Anderson", Wild)
+    monkeypatch.setattr(admm_solver, "Anderson", Wild)
     rejected = []
     solver = AdmmSolver(coarse, anderson_memory=5)
     result, _ = solver.solve(np.array([10.0]), callback=lambda it, info: rejected.append(info.get("rejected", False)))
@@ -278,7 +300,7 @@ def test_inverted_start_converges_or_raises(coarse):
     x_bad[tri[0]] = x_bad[tri[1]] + x_bad[tri[2]] - x_bad[tri[0]]
     assert coarse.jacobians(x_bad).min() < 0
     state = solver.state_from_positions(x_bad)
-    assert admm.det4(state.z).min() > 0  # z is always valid
+    assert local.det4(state.z).min() > 0  # z is always valid
     # (b) x fine but z inverted (first rows flipped) → those z replaced by their nearest rotations
     _, good = solver.solve(np.array([9.0]))
     z_flipped = good.z.copy()

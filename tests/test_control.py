@@ -19,7 +19,8 @@ from scissor_cli.config import ControllerConfig, load_config
 from scissor_cli.mesh.probe import apply_probe, probe_targets, target_positions
 from scissor_cli.solvers.jacobian import cup_target_jacobian
 from scissor_cli.solvers.newton import solve_newton
-from scissor_cli.planning.needle import corridor_radius, plan_targets
+from scissor_cli.planning.corridor import corridor_radius
+from scissor_cli.planning.needle import plan_targets
 from scissor_cli.experiments.simulate import build_model
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -1,4 +1,4 @@
-"""Tests of scissor_cli.planner: corridor geometry by hand, the no-manipulation
+"""Tests of scissor_cli.planning: corridor geometry by hand, outlines carried by the mesh, the no-manipulation
 case, the paper's pull/push scenes (Fig. 11) re-checked independently, a
 configured desired position, and an enclosed target that no stroke frees."""
 
@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from scissor_cli import geometry
-from scissor_cli.planning import needle as pl
+from scissor_cli.mesh.outlines import boundary_loop, deformed_outlines, embed_outlines
+from scissor_cli.planning import corridor, needle, states
 from scissor_cli.config import NeedleConfig, load_config, parse_config
 from scissor_cli.mesh.mesh import interpolate, locate, mesh_for_config
 from scissor_cli.solvers.newton import solve_newton
@@ -41,15 +42,15 @@ def _scene_from_yaml(text: str):
 
 def test_corridor_clearance_past_a_square():
     # A horizontal segment 3 mm above the square's top edge.
-    assert pl.corridor_clearance([-5.0, 13.0], [20.0, 13.0], [SQUARE], RADIUS) == pytest.approx(3.0 - RADIUS)
+    assert corridor.corridor_clearance([-5.0, 13.0], [20.0, 13.0], [SQUARE], RADIUS) == pytest.approx(3.0 - RADIUS)
     # A diagonal segment ending short of the corner (10, 10): distance √8.
-    assert pl.corridor_clearance([15.0, 15.0], [12.0, 12.0], [SQUARE], RADIUS) == pytest.approx(np.sqrt(8) - RADIUS)
+    assert corridor.corridor_clearance([15.0, 15.0], [12.0, 12.0], [SQUARE], RADIUS) == pytest.approx(np.sqrt(8) - RADIUS)
     # Through the square: distance 0, so the clearance is -radius.
-    assert pl.corridor_clearance([-5.0, 5.0], [20.0, 5.0], [SQUARE], RADIUS) == pytest.approx(-RADIUS)
+    assert corridor.corridor_clearance([-5.0, 5.0], [20.0, 5.0], [SQUARE], RADIUS) == pytest.approx(-RADIUS)
     # The nearest of two obstacles decides; none at all is +inf.
     far = SQUARE + [0.0, 30.0]
-    assert pl.corridor_clearance([-5.0, 13.0], [20.0, 13.0], [far, SQUARE], RADIUS) == pytest.approx(3.0 - RADIUS)
-    assert pl.corridor_clearance([0.0, 0.0], [1.0, 1.0], [], RADIUS) == np.inf
+    assert corridor.corridor_clearance([-5.0, 13.0], [20.0, 13.0], [far, SQUARE], RADIUS) == pytest.approx(3.0 - RADIUS)
+    assert corridor.corridor_clearance([0.0, 0.0], [1.0, 1.0], [], RADIUS) == np.inf
 
 
 def test_vectorised_clearance_matches_scalar():
@@ -58,16 +59,16 @@ def test_vectorised_clearance_matches_scalar():
     entries = rng.uniform(-20, 30, (40, 2))
     entries[3] = np.nan  # a candidate without an entry
     obstacles = [SQUARE, geometry.circle_polygon([20.0, 20.0], 3.0, 24)]
-    got = pl.corridor_clearances(entries, target, obstacles, RADIUS)
+    got = corridor.corridor_clearances(entries, target, obstacles, RADIUS)
     assert np.isnan(got[3])
-    want = [pl.corridor_clearance(e, target, obstacles, RADIUS) for k, e in enumerate(entries) if k != 3]
+    want = [corridor.corridor_clearance(e, target, obstacles, RADIUS) for k, e in enumerate(entries) if k != 3]
     np.testing.assert_allclose(np.delete(got, 3), want, atol=1e-12)
 
 
 def test_candidate_directions_and_entries():
     scene = _setup("configs/example.yaml")[1]
     cfg = NeedleConfig(entry_sides=["left", "right"], direction_range_deg=[-20.0, 20.0], direction_step_deg=10.0)
-    cands = pl.candidate_directions(cfg, scene)
+    cands = corridor.candidate_directions(cfg, scene)
     assert [s for s, _ in cands] == ["left"] * 5 + ["right"] * 5
     d = np.array([v for _, v in cands])
     np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0)
@@ -75,13 +76,13 @@ def test_candidate_directions_and_entries():
     np.testing.assert_allclose(tilt, [-20, -10, 0, 10, 20], atol=1e-12)
 
     straight = [("left", np.array([1.0, 0.0])), ("right", np.array([-1.0, 0.0]))]
-    np.testing.assert_allclose(pl.entry_points([30.0, 20.0], straight, LAYER), [[0.0, 20.0], [100.0, 20.0]])
+    np.testing.assert_allclose(corridor.entry_points([30.0, 20.0], straight, LAYER), [[0.0, 20.0], [100.0, 20.0]])
     # Tilted 45° up from the left: the ray back from (10, 50) meets x = 0 at y = 40.
     up = [("left", np.array([1.0, 1.0]) / np.sqrt(2))]
-    np.testing.assert_allclose(pl.entry_points([10.0, 50.0], up, LAYER), [[0.0, 40.0]], atol=1e-12)
+    np.testing.assert_allclose(corridor.entry_points([10.0, 50.0], up, LAYER), [[0.0, 40.0]], atol=1e-12)
     # Tilted 60° down from the left near the top: the ray leaves through the top, not the left side.
     down = [("left", np.array([0.5, -np.sqrt(3) / 2]))]
-    assert np.all(np.isnan(pl.entry_points([5.0, 55.0], down, LAYER)))
+    assert np.all(np.isnan(corridor.entry_points([5.0, 55.0], down, LAYER)))
 
 
 def test_best_insertion_picks_largest_clearance():
@@ -89,15 +90,49 @@ def test_best_insertion_picks_largest_clearance():
     cands = [("left", np.array([1.0, 0.0])), ("right", np.array([-1.0, 0.0]))]
     # A square 2 mm above the left path: both clear, the right one by more.
     obstacle = SQUARE + [20.0, 22.0]
-    ranked = pl.ranked_insertions([50.0, 20.0], [obstacle], LAYER, cands, cfg)
+    ranked = corridor.ranked_insertions([50.0, 20.0], [obstacle], LAYER, cands, cfg)
     assert [i.side for i in ranked] == ["right", "left"]
     assert ranked[1].clearance_mm == pytest.approx(2.0 - RADIUS)
-    best = pl.best_insertion([50.0, 20.0], [obstacle], LAYER, cands, cfg)
+    best = corridor.best_insertion([50.0, 20.0], [obstacle], LAYER, cands, cfg)
     assert best.side == "right" and best.clear
     np.testing.assert_allclose(best.entry, [100.0, 20.0])
     assert best.depth_mm == pytest.approx(50.0)
     assert best.clearance_mm == pytest.approx(np.hypot(20.0, 2.0) - RADIUS)  # to the corner (30, 22)
-    assert pl.best_insertion([50.0, 20.0], [obstacle], LAYER, [("top", np.array([1.0, 0.0]))], cfg) is None
+    assert corridor.best_insertion([50.0, 20.0], [obstacle], LAYER, [("top", np.array([1.0, 0.0]))], cfg) is None
+
+
+# --------------------------------------------------------------------------
+# Outlines carried by the mesh
+
+
+def test_boundary_loop_traces_the_outline_counter_clockwise():
+    _, scene, tissue = _setup("configs/example.yaml")
+    mesh = tissue.mesh
+    loop = boundary_loop(mesh)
+    # every boundary edge, once, head to tail, closing the loop
+    assert len(loop) == len(mesh.boundary_edges) == len(set(loop.tolist()))
+    edges = {(int(a), int(b)) for a, b in mesh.boundary_edges}
+    assert {(int(a), int(b)) for a, b in zip(loop, np.roll(loop, -1))} == edges
+    # the outline's corners are on it, and it encloses the outline's area counter-clockwise
+    for corner in scene.outline:
+        assert np.linalg.norm(mesh.nodes[loop] - corner, axis=1).min() < 1e-9
+    assert geometry.signed_area(mesh.nodes[loop]) == pytest.approx(geometry.signed_area(scene.outline), rel=1e-12)
+    assert geometry.signed_area(scene.outline) > 0
+
+
+def test_deformed_outlines_follow_an_affine_map_exactly():
+    """Barycentric weights reproduce affine maps, so carried outlines are the mapped rest outlines."""
+    _, scene, tissue = _setup("configs/example.yaml")
+    mesh = tissue.mesh
+    outlines = [o.outline for o in scene.obstacles] + [np.array([[40.0, 25.0]])]
+    emb = embed_outlines(mesh, outlines)
+    assert emb.splits[-1] == sum(len(o) for o in outlines)
+    A, b = np.array([[1.1, 0.2], [-0.1, 0.9]]), np.array([3.0, -2.0])
+    got = deformed_outlines(emb, mesh.nodes @ A.T + b)
+    assert [g.shape for g in got] == [o.shape for o in outlines]
+    for g, o in zip(got, outlines):
+        np.testing.assert_allclose(g, o @ A.T + b, atol=1e-9)
+    assert deformed_outlines(embed_outlines(mesh, []), mesh.nodes) == []
 
 
 # --------------------------------------------------------------------------
@@ -126,12 +161,12 @@ def _independent_check(scene, tissue, plan):
 @pytest.mark.parametrize("path, sign", [("configs/paper_pull.yaml", -1), ("configs/paper_push.yaml", +1)])
 def test_paper_scenes_blocked_at_rest_clear_after_manipulation(path, sign):
     cfg, scene, tissue = _setup(path)
-    cache = pl.StateCache(tissue)
-    cands = pl.candidate_directions(cfg.needle, scene)
+    cache = states.StateCache(tissue)
+    cands = corridor.candidate_directions(cfg.needle, scene)
     for target in scene.targets:
-        rest = pl.best_insertion(target.rest, [o.outline for o in scene.obstacles], scene.outline, cands, cfg.needle)
+        rest = corridor.best_insertion(target.rest, [o.outline for o in scene.obstacles], scene.outline, cands, cfg.needle)
         assert not rest.clear, f"{target.name} should be blocked at rest"
-        plan = pl.plan_target(tissue, scene, target, cfg.needle, cache=cache)
+        plan = needle.plan_target(tissue, scene, target, cfg.needle, cache=cache)
         assert plan.feasible and plan.reason == ""
         assert plan.manipulated and np.sign(plan.strokes[0]) == sign
         assert plan.clearance_mm >= 0.5
@@ -144,18 +179,18 @@ def test_paper_scenes_blocked_at_rest_clear_after_manipulation(path, sign):
 def test_free_path_at_rest_needs_no_manipulation():
     cfg, scene, tissue = _setup("configs/example.yaml")
     target = replace(scene.targets[1], desired=None)  # T2 without its configured desired position
-    plan = pl.plan_target(tissue, scene, target, cfg.needle)
+    plan = needle.plan_target(tissue, scene, target, cfg.needle)
     assert plan.feasible and not plan.manipulated and plan.solves == 0
     np.testing.assert_array_equal(plan.strokes, [0.0])
     np.testing.assert_allclose(plan.desired, target.rest)
-    expected = pl.corridor_clearance(plan.entry, target.rest, [o.outline for o in scene.obstacles], RADIUS)
+    expected = corridor.corridor_clearance(plan.entry, target.rest, [o.outline for o in scene.obstacles], RADIUS)
     assert plan.clearance_mm == pytest.approx(expected) and plan.clearance_mm > 0
 
 
 def test_configured_desired_overrides_the_search():
     cfg, scene, tissue = _setup("configs/example.yaml")
     target = scene.targets[1]  # T2, desired_mm [58.0, 20.5]
-    plan = pl.plan_target(tissue, scene, target, cfg.needle)
+    plan = needle.plan_target(tissue, scene, target, cfg.needle)
     np.testing.assert_array_equal(plan.desired, [58.0, 20.5])
     assert plan.feasible and plan.manipulated
     # The stroke is where the target comes closest to the desired position.
@@ -177,12 +212,12 @@ def test_robot_check_rejection_falls_back_to_next_clear_insertion():
         ok = direction[0] < 0
         return np.arange(5.0), ok, "ok" if ok else "theta4 out of range"
 
-    plan = pl.plan_target(tissue, scene, target, cfg.needle, robot_check=no_left)
+    plan = needle.plan_target(tissue, scene, target, cfg.needle, robot_check=no_left)
     assert plan.feasible and plan.side == "right" and plan.robot_ok
     np.testing.assert_array_equal(plan.joints, np.arange(5.0))
 
     never = lambda e, d, t: (np.full(5, np.nan), False, "tip outside the workspace")  # noqa: E731
-    plan = pl.plan_target(tissue, scene, target, cfg.needle, robot_check=never)
+    plan = needle.plan_target(tissue, scene, target, cfg.needle, robot_check=never)
     # the corridor stays planned; the robot's refusal is reported beside it
     assert plan.feasible and not plan.robot_ok and "tip outside the workspace" in plan.robot_note
 
@@ -205,7 +240,7 @@ needle: {entry_sides: [left, right, top], direction_range_deg: [-30.0, 30.0], di
 
 def test_enclosed_target_is_infeasible_with_a_reason():
     cfg, scene, tissue = _scene_from_yaml(ENCLOSED)
-    plan = pl.plan_target(tissue, scene, scene.targets[0], cfg.needle, stroke_samples=11, refine_levels=1)
+    plan = needle.plan_target(tissue, scene, scene.targets[0], cfg.needle, stroke_samples=11, refine_levels=1)
     assert not plan.feasible
     assert "no entry side/direction clears the obstacles at any stroke in [-10, 10] mm" in plan.reason
     assert "best clearance" in plan.reason
@@ -215,5 +250,5 @@ def test_enclosed_target_is_infeasible_with_a_reason():
 def test_target_inside_an_obstacle_is_infeasible():
     text = ENCLOSED.replace("position_mm: [50.0, 30.0]", "position_mm: [41.5, 30.0]")
     cfg, scene, tissue = _scene_from_yaml(text)
-    plan = pl.plan_target(tissue, scene, scene.targets[0], cfg.needle)
+    plan = needle.plan_target(tissue, scene, scene.targets[0], cfg.needle)
     assert not plan.feasible and "inside obstacle 'west'" in plan.reason and plan.solves == 0

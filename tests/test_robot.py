@@ -5,14 +5,16 @@ import types
 import numpy as np
 import pytest
 
-from scissor_cli.robot.kinematics import RobotModel, ik, ik_batch, layer_to_base, direction_layer_to_base, plan_to_joints
-from scissor_cli.robot.workspace import sample_joints
+from scissor_cli.robot.chain import RobotModel
+from scissor_cli.robot.ik import ik, ik_batch, linear_interval
+from scissor_cli.robot.registration import direction_layer_to_base, layer_to_base, plan_to_joints
+from scissor_cli.robot.workspace import reachable_coverage, sample_joints
 
 PAPER = RobotModel.paper()
 
 
 def product_of_six(q):
-    """The six modified-DH matrices of MODEL.md §11 multiplied one by one (no shared code with robot.fk)."""
+    """The six modified-DH matrices of docs/model.md §11 multiplied one by one (no shared code with robot.fk)."""
     d1, d2, d3, t4, d5 = q
     rows = [(0, 0, 0, d1), (-np.pi / 2, 60, -np.pi / 2, d2), (-np.pi / 2, 0, -np.pi / 2, d3),
             (-np.pi / 2, 70, t4, 0), (-np.pi / 2, 0, -np.pi / 2, d5), (0, 80, 0, 80)]
@@ -30,7 +32,7 @@ def test_closed_form_equals_product_of_six_matrices():
         T = product_of_six(q[k])
         assert np.abs(tip[k] - T[:3, 3]).max() < 1e-9
         assert np.abs(axis[k] - T[:3, 2]).max() < 1e-12
-    d1, d2, d3, t4, d5 = q.T  # MODEL.md §11 as printed
+    d1, d2, d3, t4, d5 = q.T  # docs/model.md §11 as printed
     L = d5 + 80
     assert np.allclose(tip, np.column_stack([60 + d3 - L * np.cos(t4), 70 + d2 - L * np.sin(t4), d1 + 80]), atol=1e-9)
     assert np.allclose(axis, np.column_stack([-np.cos(t4), -np.sin(t4), np.zeros_like(t4)]), atol=1e-12)
@@ -89,9 +91,29 @@ def test_custom_dh_table_from_config():
     assert np.all(q[:, 3] <= np.pi / 2 + 1e-12)
     # a table the closed form does not describe falls back to the product
     odd = RobotModel.from_config(types.SimpleNamespace(dh=rows[:4]))
-    assert not odd.has_closed_form
+    assert not odd.has_closed_form and odd.closed_form is None
     q = sample_joints(odd, 10, seed=0)
     assert np.allclose(odd.tip_and_axis(q)[0], odd.fk(q)[:, :3, 3])
+    # IK and the sample-free coverage are closed-form only, and say so
+    assert robot.require_closed_form() is robot.closed_form
+    with pytest.raises(NotImplementedError, match="closed-form"):
+        odd.require_closed_form()
+    with pytest.raises(NotImplementedError):
+        ik([100.0, 100.0, 100.0], [1.0, 0.0, 0.0], odd)
+    with pytest.raises(NotImplementedError):
+        reachable_coverage(odd, [0, 0, 0], [10, 10, 10])
+
+
+def test_linear_interval():
+    b = np.array([0.0, 0.0, 5.0, 15.0, 5.0])
+    k = np.array([2.0, -2.0, 0.0, 0.0, 1.0])
+    t_lo, t_hi = linear_interval(b, k, 1.0, 10.0)  # 1 <= b + k t <= 10
+    np.testing.assert_allclose(t_lo, [0.5, -5.0, -np.inf, np.inf, -4.0])
+    np.testing.assert_allclose(t_hi, [5.0, -0.5, np.inf, -np.inf, 5.0])
+    # every t inside is feasible, and the ends are on the limits
+    for i in (0, 1, 4):
+        t = np.linspace(t_lo[i], t_hi[i], 7)
+        assert np.all((b[i] + k[i] * t >= 1.0 - 1e-12) & (b[i] + k[i] * t <= 10.0 + 1e-12))
 
 
 def test_ik_returns_the_shortest_insertion_of_the_one_parameter_family():

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from scissor_cli.solvers.admm import AdmmSolver
+from scissor_cli.solvers.admm.solver import AdmmSolver
 from scissor_cli.config import load_config
 from scissor_cli.mesh.probe import probe_targets, target_positions
 from scissor_cli.solvers.newton import solve_newton

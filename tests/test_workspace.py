@@ -6,7 +6,7 @@ import sys
 import h5py
 import numpy as np
 
-from scissor_cli.robot.kinematics import RobotModel
+from scissor_cli.robot.chain import RobotModel
 from scissor_cli.robot.workspace import DEFAULT_BOX_MAX, DEFAULT_BOX_MIN, coverage, reachable_coverage, run_workspace
 from scissor_cli.output.workspace import plot_workspace, write_workspace_h5
 
@@ -63,7 +63,7 @@ def test_reachable_coverage_inside_and_at_the_default_box():
     assert missed == 3300 and np.allclose(default.missed_bbox_min, [155, 50, 200])
     assert np.allclose(default.missed_bbox_max, [210, 125, 300])
     # a reachable voxel centre really is reachable: IK on one of them
-    from scissor_cli.robot.kinematics import ik
+    from scissor_cli.robot.ik import ik
     assert ik([62.5, 377.5, 202.5], [0.0, 1.0, 0.0], PAPER).reachable
 
 

@@ -8,7 +8,8 @@ from typing import Optional
 import numpy as np
 
 from scissor_cli.mechanics.tissue import Tissue
-from scissor_cli.planning.needle import Embedding, boundary_loop, corridor_clearance, deformed_outlines, embed_outlines, entry_points
+from scissor_cli.mesh.outlines import Embedding, boundary_loop, deformed_outlines, embed_outlines
+from scissor_cli.planning.corridor import corridor_clearance, entry_points
 
 
 @dataclass(frozen=True)

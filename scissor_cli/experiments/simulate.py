@@ -24,9 +24,13 @@ from scissor_cli.config import Config, SolverConfig, parse_config, resolved_yaml
 from scissor_cli.solvers.jacobian import cup_target_jacobian
 from scissor_cli.mesh.probe import probe_targets, target_positions
 from scissor_cli.solvers.equilibrium import EquilibriumSolver
-from scissor_cli.planning.needle import NeedlePlan, StateCache, boundary_loop, corridor_radius, deformed_outlines, embed_outlines, plan_target
+from scissor_cli.mesh.outlines import boundary_loop, deformed_outlines, embed_outlines
+from scissor_cli.planning.corridor import corridor_radius
+from scissor_cli.planning.needle import NeedlePlan, plan_target
+from scissor_cli.planning.states import StateCache
 from scissor_cli.experiments.profiles import error_model
-from scissor_cli.robot.kinematics import RobotModel, plan_to_joints
+from scissor_cli.robot.chain import RobotModel
+from scissor_cli.robot.registration import plan_to_joints
 from scissor_cli.experiments.selection import select
 from scissor_cli.experiments.study import rows_as_columns, run_study
 from scissor_cli.experiments.trials import TargetTask, execute

@@ -23,7 +23,7 @@ from scissor_cli import control
 from scissor_cli.scene.camera import Camera
 from scissor_cli.config import parse_config
 from scissor_cli.solvers.equilibrium import solve_equilibrium
-from scissor_cli.planning.needle import corridor_radius
+from scissor_cli.planning.corridor import corridor_radius
 from scissor_cli.experiments.profiles import ErrorModel, draw_trial, error_model
 from scissor_cli.mechanics.tissue import build_model
 

@@ -9,7 +9,7 @@ import numpy as np
 from scissor_cli.control.corridor import Corridor, corridor_at
 from scissor_cli.control.result import LoopResult
 from scissor_cli.mechanics.tissue import Tissue
-from scissor_cli.planning.needle import boundary_loop, deformed_outlines, embed_outlines
+from scissor_cli.mesh.outlines import boundary_loop, deformed_outlines, embed_outlines
 
 
 def manipulation_figure_inputs(tissue: Tissue, result: LoopResult, target_rest: np.ndarray,

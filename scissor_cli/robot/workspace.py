@@ -1,4 +1,4 @@
-"""Workspace of the puncture module (paper §2.3, Fig. 8; MODEL.md §11).
+"""Workspace of the puncture module (paper §2.3, Fig. 8; docs/model.md §11).
 
 Monte-Carlo (or grid) samples of the joint space are mapped to needle tips;
 the breast box is voxelised and two coverages are measured:
@@ -25,7 +25,8 @@ from typing import Optional
 
 import numpy as np
 
-from scissor_cli.robot.kinematics import RobotModel, _interval_for, _require_closed
+from scissor_cli.robot.chain import RobotModel
+from scissor_cli.robot.ik import linear_interval
 
 #: paper §2.1: the puncture workspace must hold a 150 × 330 × 100 mm box;
 #: this placement is the shipped example scene's.
@@ -261,9 +262,9 @@ def reachable_coverage(robot: RobotModel, box_min, box_max, voxel_mm: float = 5.
     θ4 is swept over its range in angle_step_deg steps (a loop over angles,
     vectorised over voxels); at each angle a centre is reachable when d1 is
     in range and the d5 interval that keeps d2, d3, d5 in range is non-empty
-    (the same test as `robot.ik_batch`). Paper-structure robots only.
+    (the same test as `robot.ik.ik_batch`). Paper-structure robots only.
     """
-    cf = _require_closed(robot)
+    cf = robot.require_closed_form()
     grid = VoxelGrid.of_box(box_min, box_max, voxel_mm)
     P = grid.centres()
     lo, hi, off = robot.lower, robot.upper, cf.offsets
@@ -283,8 +284,8 @@ def reachable_coverage(robot: RobotModel, box_min, box_max, voxel_mm: float = 5.
         c, s = np.cos(th + off[3]), np.sin(th + off[3])
         b3 = P[:, 0] - cf.a1 - off[2] + (cf.d6 + off[4]) * c
         b2 = P[:, 1] - cf.a3 - off[1] + (cf.d6 + off[4]) * s
-        i3 = _interval_for(b3, np.full_like(b3, c), lo[2], hi[2])
-        i2 = _interval_for(b2, np.full_like(b2, s), lo[1], hi[1])
+        i3 = linear_interval(b3, np.full_like(b3, c), lo[2], hi[2])
+        i2 = linear_interval(b2, np.full_like(b2, s), lo[1], hi[1])
         ok = d1_ok & (np.maximum.reduce([lo5, i3[0], i2[0]]) <= np.minimum.reduce([hi5, i3[1], i2[1]]))
         hits += ok
         bins_hit[:, key] |= ok
@@ -346,7 +347,3 @@ def run_workspace(robot: RobotModel, box_min=None, box_max=None, samples: int = 
     return WorkspaceResult(q, tip, axis, cov, reach, box_min, box_max, float(voxel_mm), int(seed), method,
                            robot.joint_names, t)
 
-
-# --------------------------------------------------------------------------- #
-# Output
-# --------------------------------------------------------------------------- #

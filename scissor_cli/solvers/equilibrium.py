@@ -113,7 +113,7 @@ class EquilibriumSolver:
         return result
 
     def _admm_for(self, inertia: Inertia | None):
-        from scissor_cli.solvers.admm import AdmmSolver  # built only when asked for
+        from scissor_cli.solvers.admm.solver import AdmmSolver  # built only when asked for
 
         dt_s = None if inertia is None else inertia.dt_s
         if self._admm is None or self._admm.dt_s != dt_s:

@@ -1,6 +1,6 @@
-"""Puncture-module kinematics (paper §2.3, Table 2; MODEL.md §11).
+"""The puncture module as a serial chain: DH links, forward kinematics, closed form (docs/model.md §11).
 
-A modified (Craig) Denavit–Hartenberg chain,
+Paper §2.3, Table 2. A modified (Craig) Denavit–Hartenberg chain,
 
     ᶦ⁻¹T_i = Rot_x(α_{i−1}) · Trans_x(a_{i−1}) · Rot_z(θ_i) · Trans_z(d_i),
 
@@ -10,7 +10,7 @@ actuated joints, ordered everywhere as
     q = (d1, d2, d3, θ4, d5)        mm, mm, mm, rad, mm
 
 Multiplying the paper's six matrices out (done symbolically and checked in
-the tests to 1e-9 mm) gives exactly the closed form printed in MODEL.md §11:
+the tests to 1e-9 mm) gives exactly the closed form printed in docs/model.md §11:
 
     tip  = (a1 + d3 − (d5+d6) cos θ4,  a3 + d2 − (d5+d6) sin θ4,  d1 + a5)
     axis = (−cos θ4, −sin θ4, 0)        (tool z = approach = travel direction)
@@ -18,7 +18,7 @@ the tests to 1e-9 mm) gives exactly the closed form printed in MODEL.md §11:
 so the needle lies in a horizontal plane and ``tip = C + (d5+d6)·axis`` with
 the arc-RCM centre ``C = (a1+d3, a3+d2, d1+a5)``.
 
-Conventions of this module:
+Conventions of the `robot` package:
 
 * For an actuated joint the table's own θ (revolute) or d (prismatic) entry
   is a constant offset added to the joint value; the paper's offsets are 0.
@@ -27,7 +27,8 @@ Conventions of this module:
 * The closed form is used whenever the table has the paper's structure
   (dimensions, offsets and limits may differ); that is decided by comparing
   it with the matrix product, so a table it does not describe falls back to
-  the product automatically.
+  the product automatically. Inverse kinematics (`robot.ik`) and the
+  sample-free workspace coverage need it (`RobotModel.require_closed_form`).
 """
 
 from __future__ import annotations
@@ -39,9 +40,9 @@ import numpy as np
 
 JOINT_KINDS = ("revolute", "prismatic", "fixed")
 
-# Feasibility slack on joint limits (mm or rad): absorbs round-off so that a
-# configuration exactly on a limit is still reachable after FK → IK.
-_LIMIT_TOL = 1e-10
+#: Feasibility slack on joint limits (mm or rad): absorbs round-off so that a
+#: configuration exactly on a limit is still reachable after FK → IK.
+LIMIT_TOL = 1e-10
 
 
 # --------------------------------------------------------------------------- #
@@ -107,7 +108,7 @@ def link_transform(alpha: float, a: float, theta, d) -> np.ndarray:
 
 
 def paper_links() -> tuple[DHLink, ...]:
-    """Table 2 of the paper as corrected in MODEL.md §11."""
+    """Table 2 of the paper as corrected in docs/model.md §11."""
     m90 = -np.pi / 2
     return (
         DHLink(0.0, 0.0, 0.0, 0.0, "prismatic", 0.0, 430.0, "d1"),
@@ -120,8 +121,13 @@ def paper_links() -> tuple[DHLink, ...]:
 
 
 @dataclass(frozen=True)
-class _ClosedForm:
-    """Parameters of the paper-structure closed form (mm, rad)."""
+class ClosedForm:
+    """Parameters of the paper-structure closed form (docs/model.md §11).
+
+    a1, a3, a5, d6 (mm): the table's constant lengths that enter the closed
+    form; offsets (5,): the table's entries added to q = (d1, d2, d3, θ4, d5),
+    in mm, mm, mm, rad, mm.
+    """
 
     a1: float
     a3: float
@@ -133,7 +139,7 @@ class _ClosedForm:
 _PAPER_KINDS = ("prismatic", "prismatic", "prismatic", "revolute", "prismatic", "fixed")
 
 
-def _closed_tip_axis(q: np.ndarray, cf: _ClosedForm) -> tuple[np.ndarray, np.ndarray]:
+def _closed_tip_axis(q: np.ndarray, cf: ClosedForm) -> tuple[np.ndarray, np.ndarray]:
     """Closed-form tip (M,3) mm and approach axis (M,3) for q (M,5)."""
     D = q + cf.offsets
     c, s = np.cos(D[:, 3]), np.sin(D[:, 3])
@@ -159,7 +165,8 @@ class RobotModel:
     links: tuple[DHLink, ...]
     tool: np.ndarray = field(default_factory=lambda: np.eye(4))
     name: str = "custom"
-    _closed: Optional[_ClosedForm] = field(default=None, init=False, repr=False, compare=False)
+    #: the closed form when the table has the paper's structure (set on construction), else None
+    closed_form: Optional[ClosedForm] = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         links = []
@@ -176,13 +183,13 @@ class RobotModel:
         object.__setattr__(self, "tool", tool)
         if self.n_joints == 0:
             raise ValueError("a robot needs at least one actuated joint")
-        object.__setattr__(self, "_closed", self._detect_closed_form())
+        object.__setattr__(self, "closed_form", self._detect_closed_form())
 
     # -- construction ------------------------------------------------------ #
 
     @classmethod
     def paper(cls) -> "RobotModel":
-        """The puncture module of the paper (Table 2, MODEL.md §11)."""
+        """The puncture module of the paper (Table 2, docs/model.md §11)."""
         return cls(paper_links(), name="paper")
 
     @classmethod
@@ -240,9 +247,22 @@ class RobotModel:
 
     @property
     def has_closed_form(self) -> bool:
-        return self._closed is not None
+        return self.closed_form is not None
 
-    def within_limits(self, q, tol: float = _LIMIT_TOL) -> np.ndarray:
+    def require_closed_form(self) -> ClosedForm:
+        """The closed form; NotImplementedError for a table without the paper's structure.
+
+        Inverse kinematics and the sample-free workspace coverage are solved
+        in closed form only, so they call this first.
+        """
+        if self.closed_form is None:
+            raise NotImplementedError(
+                "inverse kinematics is closed-form for the paper's chain structure "
+                "(P,P,P,R,P + fixed tool with the twists of Table 2); this DH table differs"
+            )
+        return self.closed_form
+
+    def within_limits(self, q, tol: float = LIMIT_TOL) -> np.ndarray:
         """(M,) bool: every joint of q (M,n) inside its limits (± tol)."""
         q = self._as_batch(q)
         return np.all((q >= self.lower - tol) & (q <= self.upper + tol), axis=1)
@@ -284,17 +304,17 @@ class RobotModel:
         and z column from `fk`.
         """
         q = self._as_batch(q)
-        if self._closed is not None:
-            return _closed_tip_axis(q, self._closed)
+        if self.closed_form is not None:
+            return _closed_tip_axis(q, self.closed_form)
         T = self.fk(q)
         return T[:, :3, 3].copy(), T[:, :3, 2].copy()
 
-    def _detect_closed_form(self) -> Optional[_ClosedForm]:
+    def _detect_closed_form(self) -> Optional[ClosedForm]:
         # The closed form is trusted only where it reproduces the product.
         L = self.links
         if len(L) != 6 or tuple(l.joint for l in L) != _PAPER_KINDS:
             return None
-        cf = _ClosedForm(a1=L[1].a_mm, a3=L[3].a_mm, a5=L[5].a_mm, d6=L[5].d_mm,
+        cf = ClosedForm(a1=L[1].a_mm, a3=L[3].a_mm, a5=L[5].a_mm, d6=L[5].d_mm,
                          offsets=np.array([L[0].d_mm, L[1].d_mm, L[2].d_mm, L[3].theta_rad, L[4].d_mm]))
         rng = np.random.default_rng(12345)
         lo, hi = self.lower, self.upper
@@ -305,210 +325,3 @@ class RobotModel:
         if np.allclose(tip, T[:, :3, 3], rtol=0, atol=1e-9 * scale) and np.allclose(axis, T[:, :3, 2], rtol=0, atol=1e-12):
             return cf
         return None
-
-
-# --------------------------------------------------------------------------- #
-# Inverse kinematics (paper structure)
-# --------------------------------------------------------------------------- #
-
-
-@dataclass
-class IKResult:
-    """Joint values for one tip/approach request.
-
-    q: (5,) d1, d2, d3 (mm), θ4 (rad), d5 (mm). When unreachable it is the
-        exact solution with the least total limit violation (it still places
-        the tip; some joints are outside their limits).
-    reachable: every joint inside its limits.
-    violations: joint name → signed excess over the nearest limit, mm or
-        deg (> 0 above the upper limit, < 0 below the lower); empty if
-        reachable.
-    reason: human-readable explanation.
-    """
-
-    q: np.ndarray
-    reachable: bool
-    violations: dict[str, float]
-    reason: str
-
-
-@dataclass
-class IKBatch:
-    """Vectorised IK: q (M,5), reachable (M,), violation (M,5) signed, mm/rad."""
-
-    q: np.ndarray
-    reachable: np.ndarray
-    violation: np.ndarray
-
-
-def _excess(x: np.ndarray, lo, hi) -> np.ndarray:
-    """Signed distance outside [lo, hi] (0 inside, >0 above, <0 below)."""
-    return np.where(x > hi, x - hi, np.where(x < lo, x - lo, 0.0))
-
-
-def _interval_for(b: np.ndarray, k: np.ndarray, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:
-    """t-interval with lo ≤ b + k·t ≤ hi (element-wise); empty → (inf, −inf)."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1, t2 = (lo - b) / k, (hi - b) / k
-    t_lo = np.where(k > 0, t1, t2)
-    t_hi = np.where(k > 0, t2, t1)
-    # k == 0: every t or none, depending on b alone
-    inside = (b >= lo) & (b <= hi)
-    zero = k == 0
-    t_lo = np.where(zero, np.where(inside, -np.inf, np.inf), t_lo)
-    t_hi = np.where(zero, np.where(inside, np.inf, -np.inf), t_hi)
-    return t_lo, t_hi
-
-
-def _wrap_into(angle: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    """The 2π-representative of angle closest to [lo, hi] (inside if possible)."""
-    cands = angle[:, None] + 2 * np.pi * np.array([-1.0, 0.0, 1.0])
-    dist = np.abs(_excess(cands, lo, hi))
-    return cands[np.arange(angle.size), np.argmin(dist, axis=1)]
-
-
-def _require_closed(robot: RobotModel) -> _ClosedForm:
-    if robot._closed is None:
-        raise NotImplementedError(
-            "inverse kinematics is closed-form for the paper's chain structure "
-            "(P,P,P,R,P + fixed tool with the twists of Table 2); this DH table differs"
-        )
-    return robot._closed
-
-
-def _normalised_horizontal(approach: np.ndarray) -> np.ndarray:
-    norm = np.linalg.norm(approach, axis=1)
-    if np.any(norm < 1e-12):
-        raise ValueError("approach direction has zero length")
-    u = approach / norm[:, None]
-    if np.any(np.abs(u[:, 2]) > 1e-6):
-        raise ValueError(
-            "approach must be horizontal (z component 0): this robot keeps the needle "
-            f"in a horizontal plane; got z = {u[np.argmax(np.abs(u[:, 2])), 2]:.3g} after normalising"
-        )
-    return u
-
-
-def ik_batch(tip, approach, robot: RobotModel) -> IKBatch:
-    """IK for M requests: tip (M,3) mm, approach (M,3) → IKBatch.
-
-    θ4 from the direction, d1 from the height; d2 and d3 are linear in the
-    free insertion d5, so the feasible d5 is an interval: take its lower end
-    (shortest insertion). If it is empty, take the d5 in its limits that
-    minimises the total violation of d2 and d3 (ties → shortest).
-    Raises ValueError for a non-horizontal or zero approach.
-    """
-    cf = _require_closed(robot)
-    tip = np.atleast_2d(np.asarray(tip, dtype=float))
-    u = _normalised_horizontal(np.atleast_2d(np.asarray(approach, dtype=float)))
-    tip, u = np.broadcast_arrays(tip, u)
-    lo, hi = robot.lower, robot.upper
-    off = cf.offsets
-    tol = _LIMIT_TOL
-
-    # axis = (−cos Θ4, −sin Θ4, 0) with Θ4 = θ4 + offset
-    th4 = _wrap_into(np.arctan2(-u[:, 1], -u[:, 0]) - off[3], lo[3], hi[3])
-    c, s = np.cos(th4 + off[3]), np.sin(th4 + off[3])
-    q1 = tip[:, 2] - cf.a5 - off[0]
-    # q3 = b3 + c·d5, q2 = b2 + s·d5 (from tip = C + (d5 + d6)·axis)
-    b3 = tip[:, 0] - cf.a1 - off[2] + (cf.d6 + off[4]) * c
-    b2 = tip[:, 1] - cf.a3 - off[1] + (cf.d6 + off[4]) * s
-
-    # Feasibility with a round-off slack; the chosen d5 from the exact limits
-    # so that a configuration on a limit maps back onto it.
-    i3 = _interval_for(b3, c, lo[2] - tol, hi[2] + tol)
-    i2 = _interval_for(b2, s, lo[1] - tol, hi[1] + tol)
-    t_hi = np.minimum.reduce([np.full_like(b3, hi[4] + tol), i3[1], i2[1]])
-    d5_ok = np.maximum.reduce([np.full_like(b3, lo[4] - tol), i3[0], i2[0]]) <= t_hi
-    t_lo = np.maximum.reduce([np.full_like(b3, lo[4]), _interval_for(b3, c, lo[2], hi[2])[0],
-                              _interval_for(b2, s, lo[1], hi[1])[0]])
-    t_lo = np.minimum(t_lo, t_hi)
-
-    # Infeasible d5 interval: least total d2+d3 violation is piecewise
-    # linear and convex in d5, so its minimum sits at a breakpoint.
-    with np.errstate(divide="ignore", invalid="ignore"):
-        cands = np.stack([np.full_like(b3, lo[4]), np.full_like(b3, hi[4]),
-                          (lo[2] - b3) / c, (hi[2] - b3) / c, (lo[1] - b2) / s, (hi[1] - b2) / s], axis=1)
-    cands = np.clip(np.where(np.isfinite(cands), cands, lo[4]), lo[4], hi[4])
-    total = (np.abs(_excess(b3[:, None] + c[:, None] * cands, lo[2], hi[2]))
-             + np.abs(_excess(b2[:, None] + s[:, None] * cands, lo[1], hi[1])))
-    best = total <= total.min(axis=1, keepdims=True) + 1e-9
-    d5_fallback = np.where(best, cands, np.inf).min(axis=1)
-
-    q5 = np.where(d5_ok, np.clip(t_lo, lo[4], hi[4]), d5_fallback)
-    q = np.stack([q1, b2 + s * q5, b3 + c * q5, th4, q5], axis=1)
-    viol = _excess(q, lo, hi)
-    reachable = d5_ok & np.all(np.abs(viol[:, [0, 3]]) <= tol, axis=1)
-    # round-off may leave a feasible value a hair outside: put it on the limit
-    q = np.where(reachable[:, None], np.clip(q, lo, hi), q)
-    viol[reachable] = 0.0
-    return IKBatch(q=q, reachable=reachable, violation=viol)
-
-
-def _describe(robot: RobotModel, q: np.ndarray, viol: np.ndarray) -> tuple[dict[str, float], str]:
-    names, rev = robot.joint_names, robot.revolute_mask
-    violations: dict[str, float] = {}
-    parts = []
-    for j, v in enumerate(viol):
-        if v == 0.0:
-            continue
-        conv = np.rad2deg if rev[j] else (lambda x: x)
-        unit = "deg" if rev[j] else "mm"
-        amount = float(conv(v))
-        violations[names[j]] = amount
-        side, limit = ("above its upper", robot.upper[j]) if v > 0 else ("below its lower", robot.lower[j])
-        parts.append(f"{names[j]} = {float(conv(q[j])):.3f} {unit} is {side} limit "
-                     f"{float(conv(limit)):.3f} {unit} by {abs(amount):.3f} {unit}")
-    if not parts:
-        return {}, "reachable"
-    j5 = robot.n_joints - 1
-    return violations, ("unreachable: " + "; ".join(parts)
-                        + f" (least-violation insertion {names[j5]} = {q[j5]:.3f} mm)")
-
-
-def ik(tip, approach, robot: RobotModel) -> IKResult:
-    """IK for one request: tip (3,) mm in the base frame, approach (3,)
-    (horizontal; the direction the needle travels). Never raises for an
-    unreachable pose — see `IKResult`; raises ValueError for bad input."""
-    tip = np.asarray(tip, dtype=float).reshape(3)
-    approach = np.asarray(approach, dtype=float).reshape(3)
-    res = ik_batch(tip[None], approach[None], robot)
-    q, viol = res.q[0], res.violation[0]
-    violations, reason = _describe(robot, q, viol)
-    return IKResult(q=q, reachable=bool(res.reachable[0]), violations=violations, reason=reason)
-
-
-# --------------------------------------------------------------------------- #
-# Registration: tissue-layer frame ↔ robot base frame
-# --------------------------------------------------------------------------- #
-
-
-def _rot_z(yaw_rad: float) -> np.ndarray:
-    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def layer_to_base(points_2d, origin, yaw_rad: float) -> np.ndarray:
-    """Layer-plane points (K,2) or (2,) mm → base-frame points (K,3) mm.
-
-    The layer frame has origin `origin` (3,) in the base frame and is turned
-    by yaw_rad about base z; the layer is its z = 0 plane.
-    """
-    p = np.atleast_2d(np.asarray(points_2d, dtype=float))
-    p3 = np.column_stack([p, np.zeros(len(p))])
-    return p3 @ _rot_z(yaw_rad).T + np.asarray(origin, dtype=float)
-
-
-def direction_layer_to_base(dir_2d, yaw_rad: float) -> np.ndarray:
-    """Layer-plane directions (K,2) or (2,) → base-frame directions (K,3)."""
-    d = np.atleast_2d(np.asarray(dir_2d, dtype=float))
-    return np.column_stack([d, np.zeros(len(d))]) @ _rot_z(yaw_rad).T
-
-
-def plan_to_joints(robot: RobotModel, target_layer_2d, direction_layer_2d, origin, yaw_rad: float) -> IKResult:
-    """Joint values that put the needle tip on a layer target, travelling
-    along `direction_layer_2d` (unit 2-D, layer frame)."""
-    tip = layer_to_base(target_layer_2d, origin, yaw_rad)[0]
-    d = np.asarray(direction_layer_2d, dtype=float).reshape(2)
-    approach = direction_layer_to_base(d / np.linalg.norm(d), yaw_rad)[0]
-    return ik(tip, approach, robot)
