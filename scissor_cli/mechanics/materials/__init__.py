@@ -1,8 +1,83 @@
-"""Hyperelastic material models (package; see :mod:`.plane_strain`)."""
+"""Hyperelastic material models for 2-D plane-strain P1 elements (docs/model.md §3).
 
-from scissor_cli.mechanics.materials.plane_strain import *  # noqa: F401,F403
-from scissor_cli.mechanics.materials.plane_strain import (  # noqa: F401
-    __all__,
-    _eigensystem,
-    _evaluate_projected,
+Units: stresses and moduli in kPa; energy densities in kPa = µJ/mm³ (multiply
+by ``h * A_e`` in mm³ to get the element energy in µJ).
+
+Conventions
+-----------
+* ``F`` is a stack of deformation gradients, shape ``(M, 2, 2)``,
+  ``F[e, i, j] = dx_i/dX_j``.
+* ``vec(F)`` is row-major: ``[F00, F01, F10, F11]``; tangents are
+  ``(M, 4, 4)`` in that ordering, ``C[e] = d²Ψ/dvec(F)²`` (symmetric).
+* Plane strain: ``F3 = diag(F, 1)``, ``J = det F``, ``I1 = tr(FᵀF) + 1``,
+  ``Ī1 = J^(-2/3) I1``, ``I4 = a0ᵀ FᵀF a0``.
+
+Models
+------
+* ``"linear"``: ``ε = sym(F − I)``, ``Ψ = μ ε:ε + λ/2 (tr ε)²`` with the
+  Lamé ``λ = E ν / ((1+ν)(1−2ν)) = κ − 2μ/3``. Defined for every F (it is
+  not rotation invariant — by design of small-strain theory).
+* ``"neo_hookean"``: ``Ψ = μ/2 (Ī1 − 3) + κ/2 (J − 1)²``.
+* ``"neo_hookean_fiber"``: the above ``+ η/2 (I4 − 1)²``; with
+  ``tension_only`` the fiber term acts only where ``I4 > 1`` (its tangent
+  jumps across ``I4 = 1``).
+
+At ``F = I`` all models have zero energy and zero stress, and the
+neo-Hookean tangent equals the linear one (small-strain consistency).
+
+The neo-Hookean tangent is indefinite in much of the working range (its
+twist eigenvalue ``μ g + s`` is ≈ 0 and negative under compression; the
+fiber term is indefinite in fiber compression). For Newton's method
+:func:`evaluate_projected` returns Ψ, P and a PSD surrogate tangent built
+from closed-form eigensystems of each energy term (no ``eigh``);
+:func:`project_psd` is the general (slower) batched projection of any
+symmetric stack.
+
+Inverted elements
+-----------------
+The nonlinear models are undefined for ``J <= 0``. There ``energy_density``
+returns ``+inf`` (never NaN); stress and tangent are computed with J clipped
+to ``J_FLOOR`` in the singular factors so they stay finite, but they are
+meaningless. Callers must check ``jacobian_det(F) > 0`` (the solvers do) or
+test ``np.isinf(psi)``. For ``0 < J < J_FLOOR`` all three outputs are those
+at ``J_FLOOR`` (finite and huge). Rows whose arithmetic overflows
+(``|F|`` around 1e154 or more) or whose F holds NaN also get ``psi = +inf``;
+their P and C may then be inf/NaN. No floating-point warnings are ever
+emitted. The ``linear`` model has no invalid region (NaN in gives NaN out).
+
+Modules
+-------
+* :mod:`.params`: :data:`MODELS`, :class:`MaterialParams`, :func:`material_params`.
+* :mod:`.evaluation`: the public kernels (:func:`evaluate` and friends).
+* :mod:`.plane_strain`: the fast 2-D row kernels and their scratch buffer.
+* :mod:`.plane_strain_projection`: closed-form PSD projection in 2-D.
+* :mod:`.psd`: :func:`project_psd`, batched projection by ``eigh``.
+"""
+
+from scissor_cli.mechanics.materials.evaluation import (
+    energy_density,
+    evaluate,
+    evaluate_projected,
+    jacobian_det,
+    stress,
+    tangent,
 )
+from scissor_cli.mechanics.materials.params import J_FLOOR, MODELS, MaterialParams, material_params
+from scissor_cli.mechanics.materials.plane_strain import release_workspace
+from scissor_cli.mechanics.materials.plane_strain_projection import _eigensystem, _evaluate_projected
+from scissor_cli.mechanics.materials.psd import project_psd
+
+__all__ = [
+    "MODELS",
+    "J_FLOOR",
+    "MaterialParams",
+    "material_params",
+    "energy_density",
+    "stress",
+    "tangent",
+    "evaluate",
+    "evaluate_projected",
+    "project_psd",
+    "jacobian_det",
+    "release_workspace",
+]

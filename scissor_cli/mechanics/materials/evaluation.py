@@ -1,0 +1,96 @@
+"""The public material kernels: energy density, stress, tangent (docs/model.md §3).
+
+Each function takes a stack of deformation gradients ``F`` of shape
+``(M, d, d)`` and dispatches on d: d = 2 is plane strain
+(:mod:`.plane_strain`, :mod:`.plane_strain_projection`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from scissor_cli.mechanics.materials.params import MaterialParams, _check_F
+from scissor_cli.mechanics.materials.plane_strain import _eval_linear, _eval_neo_hookean
+from scissor_cli.mechanics.materials.plane_strain_projection import _evaluate_projected
+
+
+def jacobian_det(F) -> np.ndarray:
+    """``J = det F`` for a stack ``F`` of shape (M, 2, 2); returns (M,)."""
+    F = np.asarray(F, dtype=np.float64)
+    return F[:, 0, 0] * F[:, 1, 1] - F[:, 0, 1] * F[:, 1, 0]
+
+
+def energy_density(F, params: MaterialParams) -> np.ndarray:
+    """Strain-energy density Ψ(F), shape (M,), kPa (= µJ/mm³).
+
+    ``+inf`` where ``J <= 0`` for the nonlinear models.
+    """
+    return evaluate(F, params, order=0)[0]
+
+
+def stress(F, params: MaterialParams) -> np.ndarray:
+    """First Piola–Kirchhoff stress ``P = dΨ/dF``, shape (M, 2, 2), kPa."""
+    return evaluate(F, params, order=1)[1]
+
+
+def tangent(F, params: MaterialParams) -> np.ndarray:
+    """Tangent ``d²Ψ/dvec(F)²``, shape (M, 4, 4), kPa; symmetric, not PSD-projected."""
+    return evaluate(F, params, order=2)[2]
+
+
+def evaluate(F, params: MaterialParams, order: int = 2):
+    """Energy density, stress and tangent, sharing intermediate work.
+
+    Parameters
+    ----------
+    F : (M, 2, 2) array
+        Deformation gradients.
+    params : MaterialParams
+        With ``params.n_elements == M``.
+    order : {0, 1, 2}
+        0: energy only; 1: energy and stress; 2: all three.
+
+    Returns
+    -------
+    psi : (M,) kPa (+inf where J <= 0, nonlinear models)
+    P : (M, 2, 2) kPa, or None if ``order < 1``
+    C : (M, 4, 4) kPa, C-contiguous, or None if ``order < 2``
+
+    The returned arrays are new (never views of internal scratch memory).
+    """
+    F = _check_F(F, params)
+    if order not in (0, 1, 2):
+        raise ValueError(f"order must be 0, 1 or 2, got {order!r}")
+    # Overflow for absurd F (|F| ~ 1e154) must not warn; it yields inf/NaN rows
+    # that the callers' J and finiteness checks reject.
+    with np.errstate(all="ignore"):
+        if params.model == "linear":
+            return _eval_linear(F, params, order)
+        return _eval_neo_hookean(F, params, order)
+
+
+def evaluate_projected(F, params: MaterialParams):
+    """Energy density, stress and a PSD-projected tangent in one pass.
+
+    Returns ``(psi, P, C_proj)``: ``psi`` and ``P`` are bit-for-bit those of
+    ``evaluate(F, params, 2)``; ``C_proj`` (M, 4, 4) is symmetric positive
+    semidefinite, a new C-contiguous array. It is meant for Newton's method
+    in place of ``project_psd(evaluate(F, params, 2)[2])`` and is much
+    cheaper (no eigendecomposition, no Python loop over elements).
+
+    * ``"linear"``: C is constant and PSD; ``evaluate(F, params, 2)`` is
+      returned unchanged.
+    * Nonlinear models: each energy term (isotropic, fiber) is projected
+      separately with closed-form eigensystems, ``C_proj = proj(C_iso) +
+      proj(C_fiber)`` (see :mod:`.plane_strain_projection`). Wherever every
+      term is already PSD, ``C_proj`` is ``C`` bit-for-bit.
+
+    Invalid rows (psi = +inf: ``J <= 0``, overflow, NaN in F), rows with
+    ``0 < J <= J_FLOOR`` and rows whose closed forms overflow get
+    :func:`project_psd` of their (clipped, meaningless) tangent from
+    :func:`evaluate`, or 0 where that is not finite; so ``C_proj`` is finite
+    and PSD in every row and no floating-point warning is emitted. Callers
+    must still check ``jacobian_det(F) > 0`` / ``np.isinf(psi)`` as for
+    :func:`evaluate`.
+    """
+    return _evaluate_projected(F, params, clamp=True)
