@@ -58,7 +58,7 @@ def evaluate(F, params: MaterialParams, order: int = 2):
 
     The returned arrays are new (never views of internal scratch memory).
     """
-    F = _check_F(F, params)
+    F = _check_F(F, params, dims=(2,))
     if order not in (0, 1, 2):
         raise ValueError(f"order must be 0, 1 or 2, got {order!r}")
     # Overflow for absurd F (|F| ~ 1e154) must not warn; it yields inf/NaN rows

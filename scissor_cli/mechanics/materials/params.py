@@ -42,8 +42,11 @@ class MaterialParams:
         Lamé ``λ = E ν / ((1+ν)(1−2ν)) = κ − 2μ/3``; used by ``linear``.
     eta : (M,) float, kPa
         Fiber strength; zeros unless ``model == "neo_hookean_fiber"``.
-    fiber : (M, 2) float
-        Unit fiber direction ``a0`` in the reference frame.
+    fiber : (M, 2) or (M, 3) float
+        Unit fiber direction ``a0`` in the reference frame. A 2-component
+        fiber lies in the x-y plane: the 3-D kernels use ``(a0, 0)`` (the
+        fiber of a layer, ``(cos θ, sin θ, 0)``). The 2-D kernels need a
+        2-component fiber.
     tension_only : bool
         Fiber term only where ``I4 > 1``.
 
@@ -74,12 +77,19 @@ class MaterialParams:
         set_ = object.__setattr__
         for name in ("mu", "kappa", "lam", "eta"):
             set_(self, name, _readonly(getattr(self, name), (M,), name))
-        set_(self, "fiber", _readonly(self.fiber, (M, 2), "fiber"))
+        fiber = np.asarray(self.fiber)
+        if fiber.ndim != 2 or fiber.shape[1] not in (2, 3):
+            raise ValueError(f"MaterialParams.fiber must have shape (M, 2) or (M, 3), got {fiber.shape}")
+        set_(self, "fiber", _readonly(fiber, (M, fiber.shape[1]), "fiber"))
         set_(self, "tension_only", bool(self.tension_only))
-        # Contiguous fiber components and products, reused by every call.
-        a = np.ascontiguousarray(self.fiber[:, 0])
-        b = np.ascontiguousarray(self.fiber[:, 1])
-        set_(self, "_fib", tuple(_ro(x) for x in (a, b, a * a, a * b, b * b)))
+        # Contiguous fiber components and products, reused by every 2-D call
+        # (None for 3-component fibers, which the 2-D kernels reject).
+        fib = None
+        if fiber.shape[1] == 2:
+            a = np.ascontiguousarray(self.fiber[:, 0])
+            b = np.ascontiguousarray(self.fiber[:, 1])
+            fib = tuple(_ro(x) for x in (a, b, a * a, a * b, b * b))
+        set_(self, "_fib", fib)
 
     @property
     def n_elements(self) -> int:
@@ -125,10 +135,11 @@ def material_params(
     eta_kPa : float or (M,) array or None, kPa
         Fiber strength (>= 0). Stored as zeros unless the model is
         ``"neo_hookean_fiber"``; ``None`` means 0.
-    fiber : (M, 2) or (2,) array, or None
+    fiber : (M, 2), (2,), (M, 3) or (3,) array, or None
         Fiber direction in the reference frame; normalised here. A single
-        (2,) vector is shared by all elements. ``None`` is allowed for the
-        non-fiber models (stored as (1, 0)).
+        vector is shared by all elements. Two components: an in-plane fiber,
+        usable in 2-D and 3-D (see :class:`MaterialParams`); three: 3-D
+        only. ``None`` is allowed for the non-fiber models (stored as (1, 0)).
     tension_only : bool
         Apply the fiber term only where ``I4 > 1``.
 
@@ -150,8 +161,10 @@ def material_params(
         fib = np.asarray(fiber, dtype=np.float64)
         if fib.ndim == 1:
             fib = fib[None, :]
-        if fib.ndim != 2 or fib.shape[1] != 2:
-            raise ValueError(f"fiber must have shape (M, 2) or (2,), got {np.shape(fiber)}")
+        if fib.ndim != 2 or fib.shape[1] not in (2, 3):
+            raise ValueError(
+                f"fiber must have shape (M, 2), (2,), (M, 3) or (3,), got {np.shape(fiber)}"
+            )
     for name, a in (("E_kPa", E), ("nu", nu_a), ("eta_kPa", eta)):
         if a.ndim > 1:
             raise ValueError(f"{name} must be a scalar or a 1-D array, got shape {a.shape}")
@@ -166,7 +179,7 @@ def material_params(
     E = np.broadcast_to(E, (M,))
     nu_a = np.broadcast_to(nu_a, (M,))
     eta = np.broadcast_to(eta, (M,))
-    fib = np.broadcast_to(fib, (M, 2))
+    fib = np.broadcast_to(fib, (M, fib.shape[1]))
 
     if not np.all(np.isfinite(E)) or np.any(E <= 0.0):
         raise ValueError("E_kPa must be finite and > 0")
@@ -175,6 +188,8 @@ def material_params(
     if not np.all(np.isfinite(eta)) or np.any(eta < 0.0):
         raise ValueError("eta_kPa must be finite and >= 0")
     norm = np.hypot(fib[:, 0], fib[:, 1])
+    if fib.shape[1] == 3:
+        norm = np.hypot(norm, fib[:, 2])
     if not np.all(np.isfinite(norm)) or np.any(norm <= 0.0):
         raise ValueError("fiber directions must be finite and non-zero")
 
@@ -186,11 +201,21 @@ def material_params(
     return MaterialParams(model, mu, kappa, lam, eta, fib / norm[:, None], tension_only)
 
 
-def _check_F(F, params) -> np.ndarray:
+def _check_F(F, params, dims=(2, 3)) -> np.ndarray:
+    """``F`` as float64, checked to be (M, d, d) with d in ``dims`` and M matching ``params``.
+
+    2-D F also needs a 2-component fiber in ``params``.
+    """
     F = np.asarray(F, dtype=np.float64)
-    if F.ndim != 3 or F.shape[1:] != (2, 2):
-        raise ValueError(f"F must have shape (M, 2, 2), got {F.shape}")
+    if F.ndim != 3 or F.shape[1] != F.shape[2] or F.shape[1] not in dims:
+        shapes = " or ".join(f"(M, {d}, {d})" for d in dims)
+        raise ValueError(f"F must have shape {shapes}, got {F.shape}")
     if F.shape[0] != params.mu.shape[0]:
         raise ValueError(f"F has {F.shape[0]} elements but params has {params.mu.shape[0]}")
+    if F.shape[1] == 2 and params.fiber.shape[1] != 2:
+        raise ValueError(
+            "2-D (plane-strain) F needs (M, 2) fibers, params has fibers of shape "
+            f"{params.fiber.shape}"
+        )
     return F
 

@@ -84,7 +84,7 @@ def _evaluate_projected(F, params, clamp=True):
     ``C`` minus its own analytic reconstruction, i.e. ≈ 0: this checks the
     closed forms of the fast path against :func:`evaluate`'s tangent.
     """
-    F = _check_F(F, params)
+    F = _check_F(F, params, dims=(2,))
     M = F.shape[0]
     with np.errstate(all="ignore"):
         if params.model == "linear":
@@ -355,7 +355,7 @@ def _eigensystem(F, params):
     """
     if params.model == "linear":
         raise ValueError("_eigensystem is for the nonlinear models")
-    F = _check_F(F, params)
+    F = _check_F(F, params, dims=(2,))
     mu, kappa = params.mu, params.kappa
     with np.errstate(all="ignore"):
         f00, f01, f10, f11 = F[:, 0, 0], F[:, 0, 1], F[:, 1, 0], F[:, 1, 1]
