@@ -1,7 +1,7 @@
 """Tests of the 3-D material kernels of scissor_cli.mechanics.materials:
 closed forms against finite differences, agreement with the 2-D plane-strain
 kernels on F = diag(F2, 1), rest state, frame invariance, inversion handling,
-and 3-component fibers in the parameters."""
+the projected tangent, and 3-component fibers in the parameters."""
 
 import warnings
 
@@ -421,12 +421,143 @@ def test_extreme_input_never_warns(model):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         psi, P, C = mat.evaluate(F, params)
+        psi_p, P_p, Cp = mat.evaluate_projected(F, params)
         mat.jacobian_det(F)
     if model == "linear":
-        assert np.all(np.isnan(psi[4]))  # NaN in, NaN out
+        assert np.all(np.isnan(psi[4])) and np.all(np.isfinite(Cp))  # NaN in, NaN out; C is constant
     else:
         assert not np.isnan(psi).any()
         assert np.all(np.isposinf(psi[[0, 3, 4, 5]]))  # overflow, J < 0, NaN, inf
+        # The projected tangent is finite and PSD in every row, whatever the input.
+        assert np.all(np.isfinite(Cp))
+        np.testing.assert_array_equal(Cp, np.swapaxes(Cp, 1, 2))
+        scale = np.maximum(np.abs(Cp).max(axis=(1, 2)), 1e-300)
+        assert np.all(np.linalg.eigvalsh(Cp / scale[:, None, None])[:, 0] >= -1e-10)
+    np.testing.assert_array_equal(psi_p, psi)
+    np.testing.assert_array_equal(P_p, P)
+
+
+# --------------------------------------------------------------------------
+# evaluate_projected
+# --------------------------------------------------------------------------
+
+
+def per_element_scale(C):
+    return np.abs(C).max(axis=(1, 2))
+
+
+@pytest.mark.parametrize("regime", ["near", "far"])
+@pytest.mark.parametrize("model,tension_only", NONLINEAR, ids=NONLINEAR_IDS)
+def test_projected_tangent_is_psd_and_exact_where_already_psd(model, tension_only, regime):
+    rng = np.random.default_rng(116)
+    M = 400
+    params = random_params(model, M, rng, tension_only)
+    F = random_F(M, rng, regime)
+    if regime == "near":  # volumetric compression (twist modes < 0) and expansion
+        F = F * rng.uniform(0.9, 1.1, M)[:, None, None]
+    psi0, P0, C = mat.evaluate(F, params)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        psi, P, Cp = mat.evaluate_projected(F, params)
+    np.testing.assert_array_equal(psi, psi0)
+    np.testing.assert_array_equal(P, P0)
+    assert Cp.shape == (M, 9, 9) and Cp.flags.c_contiguous
+    np.testing.assert_array_equal(Cp, np.swapaxes(Cp, 1, 2))
+    scale = per_element_scale(C)
+    w = np.linalg.eigvalsh(C)
+    assert np.all(np.linalg.eigvalsh(Cp)[:, 0] >= -1e-10 * scale)
+    psd = w[:, 0] > 1e-9 * scale
+    indefinite = w[:, 0] < -1e-9 * scale
+    assert psd.any() and indefinite.any()
+    # Unchanged (bit for bit) where C is already PSD ...
+    np.testing.assert_array_equal(Cp[psd], C[psd])
+    # ... elsewhere the eigenvalue-clamped C: same eigenvectors, max(λ, 0).
+    assert_close_per_element(Cp[indefinite], mat.project_psd(C[indefinite]), rtol=1e-10)
+    # Only negative parts are removed: Cp − C is PSD.
+    assert np.all(np.linalg.eigvalsh(Cp - C)[:, 0] >= -1e-10 * scale)
+
+
+def test_projected_tangent_clamps_small_negative_eigenvalues():
+    """Slight volumetric compression: the twist modes are barely negative and must still be clamped."""
+    rng = np.random.default_rng(123)
+    M = 60
+    params = random_params("neo_hookean", M, rng)
+    F = (1.0 - np.logspace(-9, -5, M))[:, None, None] * rotations(M, rng)
+    C = mat.tangent(F, params)
+    scale = per_element_scale(C)
+    w = np.linalg.eigvalsh(C)[:, 0]
+    assert np.all(w < -1e-11 * scale) and np.all(w > -1e-4 * scale)
+    _, _, Cp = mat.evaluate_projected(F, params)
+    assert np.all(np.linalg.eigvalsh(Cp)[:, 0] >= -1e-13 * scale)
+    assert_close_per_element(Cp, mat.project_psd(C), rtol=1e-12)
+
+
+def test_scaled_projection_of_huge_matrices_stays_finite():
+    """The helper behind the 3-D evaluate_projected: entries near the float64
+    limit are projected without overflow in eigh; a rebuilt matrix that
+    overflows when scaled back becomes 0 (still PSD), never inf."""
+    from scissor_cli.mechanics.materials.psd import _project_psd_scaled
+
+    C = np.array([[[1.0, 1.0], [1.0, -1.0]], [[2.0, 1.0], [1.0, -3.0]], [[1.0, 0.0], [0.0, 2.0]]])
+    C = C * np.array([1.7e308, 1e307, 1e300])[:, None, None]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with np.errstate(all="ignore"):
+            Cp = _project_psd_scaled(C)
+    assert np.all(np.isfinite(Cp))
+    np.testing.assert_array_equal(Cp[0], 0.0)  # max entry ≈ 1.207 · 1.7e308 overflows
+    w = np.linalg.eigvalsh(Cp[1] / 1e307)
+    assert w[0] >= -1e-15 and w[1] > 2.0  # projected, eigenvalues (0, 2.19...)
+    np.testing.assert_array_equal(Cp[2], C[2])  # already PSD: unchanged
+
+
+def test_projected_tangent_at_rest_and_rotations():
+    """PSD-singular tangents (rest, rigid rotations) stay the exact tangent up to round-off."""
+    rng = np.random.default_rng(117)
+    M = 50
+    params = random_params("neo_hookean_fiber", M, rng)
+    F = np.concatenate([np.broadcast_to(np.eye(3), (M // 2, 3, 3)), rotations(M - M // 2, rng)])
+    C = mat.tangent(F, params)
+    _, _, Cp = mat.evaluate_projected(F, params)
+    assert_close_per_element(Cp, C, rtol=1e-13)
+
+
+def test_projected_frame_behaviour():
+    """Like the exact tangent: C_proj(R F) = K C_proj(F) Kᵀ with K = R ⊗ I."""
+    rng = np.random.default_rng(118)
+    M = 200
+    params = random_params("neo_hookean_fiber", M, rng)
+    F = random_F(M, rng, "far") * rng.uniform(0.85, 1.0, M)[:, None, None]
+    R = rotations(M, rng)
+    K = kron_rotation(R)
+    _, _, Cp = mat.evaluate_projected(F, params)
+    _, _, Cp_r = mat.evaluate_projected(R @ F, params)
+    assert_close_per_element(Cp_r, K @ Cp @ np.swapaxes(K, 1, 2), rtol=1e-9)
+
+
+def test_projected_linear_model_is_evaluate():
+    rng = np.random.default_rng(119)
+    M = 50
+    params = random_params("linear", M, rng)
+    F = np.eye(3) + 0.3 * rng.standard_normal((M, 3, 3))
+    for a, b in zip(mat.evaluate_projected(F, params), mat.evaluate(F, params)):
+        np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("model,tension_only", NONLINEAR, ids=NONLINEAR_IDS)
+def test_projected_invalid_rows_are_finite_psd(model, tension_only):
+    rng = np.random.default_rng(120)
+    F, bad = invalid_F()
+    params = random_params(model, len(F), rng, tension_only)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        psi, _, Cp = mat.evaluate_projected(F, params)
+    assert np.all(np.isposinf(psi[bad]))
+    assert np.all(np.isfinite(Cp))
+    scale = np.maximum(per_element_scale(Cp), 1e-300)
+    assert np.all(np.linalg.eigvalsh(Cp / scale[:, None, None])[:, 0] >= -1e-10)
+    _, _, Cg = mat.evaluate_projected(F[~bad], params.take(~bad))
+    np.testing.assert_array_equal(Cp[~bad], Cg)
 
 
 # --------------------------------------------------------------------------
@@ -458,15 +589,20 @@ def test_evaluate_orders_agree_with_single_functions():
         mat.evaluate(F, params, order=3)
     with pytest.raises(ValueError):
         mat.evaluate(F[:-1], params)
+    with pytest.raises(ValueError):
+        mat.evaluate_projected(F[:-1], params)
     with pytest.raises(ValueError, match=r"\(M, 2, 2\) or \(M, 3, 3\)"):
         mat.evaluate(np.zeros((M, 4, 4)), params)
+    with pytest.raises(ValueError):
+        mat.evaluate_projected(F.reshape(M, 9), params)
 
 
 @pytest.mark.parametrize("model", mat.MODELS)
 def test_empty_stack(model):
     params = mat.material_params(model, np.zeros(0) + 10.0, 0.3, 1.0, np.zeros((0, 3)))
-    psi, P, C = mat.evaluate(np.zeros((0, 3, 3)), params)
-    assert psi.shape == (0,) and P.shape == (0, 3, 3) and C.shape == (0, 9, 9)
+    for psi, P, C in (mat.evaluate(np.zeros((0, 3, 3)), params),
+                      mat.evaluate_projected(np.zeros((0, 3, 3)), params)):
+        assert psi.shape == (0,) and P.shape == (0, 3, 3) and C.shape == (0, 9, 9)
     assert mat.jacobian_det(np.zeros((0, 3, 3))).shape == (0,)
 
 

@@ -38,7 +38,8 @@ The neo-Hookean tangent is indefinite in much of the working range (its
 twist eigenvalue ``μ g + s`` is ≈ 0 and negative under compression; the
 fiber term is indefinite in fiber compression). For Newton's method
 :func:`evaluate_projected` returns Ψ, P and a PSD surrogate tangent built
-(in 2-D) from closed-form eigensystems of each energy term (no ``eigh``);
+in 2-D from closed-form eigensystems of each energy term (no ``eigh``),
+in 3-D by a batched ``eigh`` of the whole tangent;
 :func:`project_psd` is the general (slower) batched projection of any
 symmetric stack.
 

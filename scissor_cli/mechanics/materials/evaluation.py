@@ -14,7 +14,11 @@ import numpy as np
 from scissor_cli.mechanics.materials.params import MaterialParams, _check_F
 from scissor_cli.mechanics.materials.plane_strain import _eval_linear, _eval_neo_hookean
 from scissor_cli.mechanics.materials.plane_strain_projection import _evaluate_projected
-from scissor_cli.mechanics.materials.solid3d import _eval_solid, jacobian_det_3d
+from scissor_cli.mechanics.materials.solid3d import (
+    _eval_solid,
+    _evaluate_projected_solid,
+    jacobian_det_3d,
+)
 
 
 def jacobian_det(F) -> np.ndarray:
@@ -87,19 +91,27 @@ def evaluate(F, params: MaterialParams, order: int = 2):
 def evaluate_projected(F, params: MaterialParams):
     """Energy density, stress and a PSD-projected tangent in one pass.
 
-    Returns ``(psi, P, C_proj)``: ``psi`` and ``P`` are bit-for-bit those of
-    ``evaluate(F, params, 2)`` for F of shape (M, 2, 2) (3-D F is not
-    supported yet); ``C_proj`` (M, 4, 4) is symmetric positive
-    semidefinite, a new C-contiguous array. It is meant for Newton's method
-    in place of ``project_psd(evaluate(F, params, 2)[2])`` and is much
-    cheaper (no eigendecomposition, no Python loop over elements).
+    ``F`` is (M, d, d) with d = 2 or 3, as for :func:`evaluate`. Returns
+    ``(psi, P, C_proj)``: ``psi`` (M,) and ``P`` (M, d, d) are bit-for-bit
+    those of ``evaluate(F, params, 2)``; ``C_proj`` (M, d², d²), kPa, is
+    symmetric positive semidefinite, a new C-contiguous array, meant for
+    Newton's method. No Python loop over elements in either dimension.
 
     * ``"linear"``: C is constant and PSD; ``evaluate(F, params, 2)`` is
       returned unchanged.
-    * Nonlinear models: each energy term (isotropic, fiber) is projected
-      separately with closed-form eigensystems, ``C_proj = proj(C_iso) +
-      proj(C_fiber)`` (see :mod:`.plane_strain_projection`). Wherever every
-      term is already PSD, ``C_proj`` is ``C`` bit-for-bit.
+    * d = 2, nonlinear models: each energy term (isotropic, fiber) is
+      projected separately with closed-form eigensystems, ``C_proj =
+      proj(C_iso) + proj(C_fiber)`` (see :mod:`.plane_strain_projection`),
+      much cheaper than ``project_psd(evaluate(F, params, 2)[2])`` (no
+      eigendecomposition). Wherever every term is already PSD, ``C_proj`` is
+      ``C`` bit-for-bit.
+    * d = 3, nonlinear models: the whole tangent is projected with a batched
+      symmetric eigendecomposition (negative eigenvalues clamped to 0);
+      where ``C`` is already PSD ``C_proj`` is ``C`` bit-for-bit (up to
+      eigenvalues of order round-off below 0, which are clamped). Unlike
+      d = 2 this is ``proj(C_iso + C_fiber)``, not ``proj(C_iso) +
+      proj(C_fiber)``; the two coincide for ``"neo_hookean"`` and wherever
+      every term is PSD. Cost: one batched 9x9 ``eigh`` per call.
 
     Invalid rows (psi = +inf: ``J <= 0``, overflow, NaN in F), rows with
     ``0 < J <= J_FLOOR`` and rows whose closed forms overflow get
@@ -109,4 +121,8 @@ def evaluate_projected(F, params: MaterialParams):
     must still check ``jacobian_det(F) > 0`` / ``np.isinf(psi)`` as for
     :func:`evaluate`.
     """
+    F = _check_F(F, params)
+    if F.shape[1] == 3:
+        with np.errstate(all="ignore"):
+            return _evaluate_projected_solid(F, params)
     return _evaluate_projected(F, params, clamp=True)

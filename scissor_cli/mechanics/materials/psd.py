@@ -53,3 +53,31 @@ def _clearly_positive_definite(C: np.ndarray, floor: float) -> np.ndarray:
         m3 = a[0][0] * c00 - a[0][1] * c01 + a[0][2] * c02
         m4 = np.linalg.det(A)
         return (m1 > 0) & (m2 > 0) & (m3 > 0) & (m4 > 0)
+
+
+def _project_psd_scaled(C: np.ndarray) -> np.ndarray:
+    """PSD projection of a symmetric stack (M, k, k) with arbitrary entries; finite and PSD in every row.
+
+    Non-finite matrices become 0. Each matrix is divided by its largest
+    |entry| before ``eigh`` (the projection is positively homogeneous), so
+    huge finite entries do not overflow inside it; matrices whose smallest
+    eigenvalue (of the scaled matrix) is ``>= 0`` are returned bit for bit,
+    the others are rebuilt from their clamped eigenvalues, symmetrised and
+    scaled back (0 if that overflows). The result is a new array.
+    """
+    out = np.array(C, dtype=np.float64, copy=True, order="C")
+    if out.shape[0] == 0:
+        return out
+    out[~np.isfinite(out).all(axis=(1, 2))] = 0.0
+    scale = np.abs(out).max(axis=(1, 2))
+    scale[scale == 0.0] = 1.0
+    w, V = np.linalg.eigh(out / scale[:, None, None])
+    neg = w[:, 0] < 0.0
+    if neg.any():
+        Vn = V[neg]
+        Cn = (Vn * np.maximum(w[neg], 0.0)[:, None, :]) @ np.swapaxes(Vn, 1, 2)
+        Cn += np.swapaxes(Cn, 1, 2)  # V w Vᵀ is symmetric only to round-off
+        Cn *= 0.5 * scale[neg][:, None, None]
+        Cn[~np.isfinite(Cn).all(axis=(1, 2))] = 0.0
+        out[neg] = Cn
+    return out

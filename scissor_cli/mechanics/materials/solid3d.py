@@ -30,6 +30,12 @@ entries of a symmetric pair are computed by the same operations).
 Inverted elements follow the 2-D policy: ``psi = +inf`` where ``J <= 0``
 (or where the arithmetic overflows or F holds NaN), P and C computed with
 J clipped to ``J_FLOOR`` in the singular factors.
+
+:func:`_evaluate_projected_solid` projects the whole tangent with a batched
+``eigh``, not per energy term as the 2-D closed forms do: it returns
+``proj(C_iso + C_fiber)``, the PSD matrix nearest to C (Frobenius norm),
+rather than ``proj(C_iso) + proj(C_fiber)``. The two coincide for
+``"neo_hookean"`` (one term) and wherever every term is PSD.
 """
 
 from __future__ import annotations
@@ -37,6 +43,7 @@ from __future__ import annotations
 import numpy as np
 
 from scissor_cli.mechanics.materials.params import J_FLOOR
+from scissor_cli.mechanics.materials.psd import _project_psd_scaled
 
 _LEVI = np.zeros((3, 3, 3))
 _LEVI[0, 1, 2] = _LEVI[1, 2, 0] = _LEVI[2, 0, 1] = 1.0
@@ -152,3 +159,17 @@ def _eval_linear_3d(F, params, order):
     C = mu[:, None, None] * _LIN_MU + lam[:, None, None] * _LIN_LAM
     return psi, P, C
 
+
+def _evaluate_projected_solid(F, params):
+    """Ψ, P and a PSD tangent (M, 9, 9) for 3-D F; the caller silences warnings.
+
+    ``"linear"``: the constant PSD tangent, unchanged. Nonlinear models:
+    :func:`_project_psd_scaled` of the exact tangent (batched ``eigh``),
+    so rows whose tangent is already PSD keep it bit for bit, every row is
+    finite and PSD, and invalid rows (``psi = +inf``) get the projection of
+    their clipped, meaningless tangent (0 where it is not finite).
+    """
+    psi, P, C = _eval_solid(F, params, 2)
+    if params.model == "linear":
+        return psi, P, C
+    return psi, P, _project_psd_scaled(C)
