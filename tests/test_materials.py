@@ -1,5 +1,6 @@
-"""Tests of scissor_cli.materials: closed forms against finite differences,
-rest state, invariance, small-strain consistency, inversion handling."""
+"""Tests of the 2-D plane-strain kernels of scissor_cli.mechanics.materials (3-D: test_materials_3d.py):
+closed forms against finite differences, rest state, invariance, small-strain consistency,
+inversion handling."""
 
 import warnings
 
