@@ -8,6 +8,7 @@ from scissor_cli.control import loop as control
 from scissor_cli.config import load_config
 from scissor_cli.experiments.profiles import draw_trial, error_model
 from scissor_cli.experiments.simulate import Execution, TrialsFailed, resume_simulation, run_simulation
+from scissor_cli.output.sink import RunDirectory, open_for_resume
 from helpers import ROOT
 
 
@@ -31,7 +32,7 @@ def final_errors(path):
 @pytest.fixture(scope="module")
 def serial_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("serial")
-    run_simulation(reduced(), out, execution=Execution(jobs=1))
+    run_simulation(reduced(), RunDirectory(out), execution=Execution(jobs=1))
     return out
 
 
@@ -69,7 +70,7 @@ def test_trial_draws_depend_only_on_seed_target_and_index():
 
 
 def test_two_jobs_are_bit_identical(serial_run, tmp_path):
-    run_simulation(reduced(), tmp_path, execution=Execution(jobs=2))
+    run_simulation(reduced(), RunDirectory(tmp_path), execution=Execution(jobs=2))
     a, b = final_errors(serial_run / "results.h5"), final_errors(tmp_path / "results.h5")
     assert all(np.array_equal(a[t], b[t]) for t in a)
 
@@ -77,7 +78,7 @@ def test_two_jobs_are_bit_identical(serial_run, tmp_path):
 def test_dask_local_cluster_is_bit_identical(serial_run, tmp_path):
     distributed = pytest.importorskip("dask.distributed")
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
-        run_simulation(reduced(), tmp_path, execution=Execution(jobs=2, executor="dask", scheduler=cluster.scheduler_address))
+        run_simulation(reduced(), RunDirectory(tmp_path), execution=Execution(jobs=2, executor="dask", scheduler=cluster.scheduler_address))
     a, b = final_errors(serial_run / "results.h5"), final_errors(tmp_path / "results.h5")
     assert all(np.array_equal(a[t], b[t]) for t in a)
 
@@ -95,13 +96,13 @@ def test_crashed_trial_is_kept_marked_and_resumed(serial_run, tmp_path, monkeypa
     flaky.calls = 0
     monkeypatch.setattr(control, "run_target", flaky)
     with pytest.raises(TrialsFailed, match="1 trial"):
-        run_simulation(reduced(), tmp_path, execution=Execution(jobs=1))
+        run_simulation(reduced(), RunDirectory(tmp_path), execution=Execution(jobs=1))
     with h5py.File(tmp_path / "results.h5") as f:
         assert f.attrs["status"] == "failed"
         assert f["trials/T2/failed"][:].sum() == 1 and f["trials/T1/done"][:].all()
         assert "simulated crash" in "".join(m.decode() if isinstance(m, bytes) else m for m in f["trials/T2/message"][:])
     monkeypatch.setattr(control, "run_target", real)
-    assert resume_simulation(tmp_path, execution=Execution(jobs=1)) == 1
+    assert resume_simulation(open_for_resume(tmp_path), execution=Execution(jobs=1)) == 1
     with h5py.File(tmp_path / "results.h5") as f:
         assert f.attrs["status"] == "complete" and not f["trials/T2/failed"][:].any()
     a, b = final_errors(serial_run / "results.h5"), final_errors(tmp_path / "results.h5")
@@ -109,7 +110,7 @@ def test_crashed_trial_is_kept_marked_and_resumed(serial_run, tmp_path, monkeypa
 
 
 def test_ideal_single_trial_is_the_deterministic_check(tmp_path):
-    run_simulation(reduced(trials=1, profile="ideal"), tmp_path, execution=Execution(jobs=1))
+    run_simulation(reduced(trials=1, profile="ideal"), RunDirectory(tmp_path), execution=Execution(jobs=1))
     with h5py.File(tmp_path / "results.h5") as f:
         for t in ("T1", "T2"):
             assert np.linalg.norm(f[f"trials/{t}/final_error"][0]) <= 0.1
