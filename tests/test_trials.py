@@ -115,3 +115,124 @@ def test_ideal_single_trial_is_the_deterministic_check(tmp_path):
         for t in ("T1", "T2"):
             assert np.linalg.norm(f[f"trials/{t}/final_error"][0]) <= 0.1
             assert f[f"trials/{t}/corridor_clear"][0] and f[f"trials/{t}/iterations"][0] <= 20
+
+
+def non_finite(path) -> list[str]:
+    """Every float dataset or attribute of the file holding a NaN or infinity."""
+    bad = []
+    with h5py.File(path) as f:
+        def visit(name, obj):
+            if isinstance(obj, h5py.Dataset) and obj.dtype.kind == "f" and not np.all(np.isfinite(obj[()])):
+                bad.append(name)
+            for key, value in obj.attrs.items():
+                a = np.asarray(value)
+                if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
+                    bad.append(f"{name}@{key}")
+        visit("/", f)
+        f.visititems(visit)
+    return bad
+
+
+def test_no_nan_reaches_the_file_crashed_trials_hold_fill_values(tmp_path, monkeypatch):
+    """A crashed trial, a target without obstacles (clearance +inf) and undone trials: masks and finite fills only."""
+    real = control.run_target
+
+    def flaky(*args, **kw):
+        if kw.get("target") == "T1" and kw.get("rng") is not None:
+            flaky.calls += 1
+            if flaky.calls == 2:
+                raise RuntimeError("simulated crash")
+        return real(*args, **kw)
+
+    flaky.calls = 0
+    monkeypatch.setattr(control, "run_target", flaky)
+    cfg = reduced(trials=3)
+    cfg = cfg.model_copy(update={"obstacles": []})
+    with pytest.raises(TrialsFailed):
+        run_simulation(cfg, RunDirectory(tmp_path), execution=Execution(jobs=1))
+    assert non_finite(tmp_path / "results.h5") == []
+    with h5py.File(tmp_path / "results.h5") as f:
+        g = f["trials/T1"]
+        crashed = np.flatnonzero(g["failed"][:])
+        assert len(crashed) == 1 and g["done"][crashed[0]]
+        assert np.array_equal(g["final_error"][crashed[0]], [0.0, 0.0]) and g["iterations"][crashed[0]] == -1
+        assert g["clearance_mm"][:].tolist() == [0.0] * 3  # no obstacles: undefined, stored as the fill value
+        assert all(g["corridor_clear"][k] for k in range(3) if k != crashed[0])
+        assert f["plan/T1"].attrs["clearance_mm"] == 0.0 and "fill_values" in f["trials"].attrs
+
+
+def test_non_finite_trial_is_a_run_time_error_naming_where(tmp_path, monkeypatch):
+    from scissor_cli.experiments.simulate import NonFiniteError
+
+    real = control.run_target
+
+    def poisoned(*args, **kw):
+        r = real(*args, **kw)
+        if kw.get("target") == "T2" and kw.get("rng") is not None:
+            poisoned.calls += 1
+            if poisoned.calls == 2:
+                r.final_error = np.array([np.nan, 0.0])
+        return r
+
+    poisoned.calls = 0
+    monkeypatch.setattr(control, "run_target", poisoned)
+    with pytest.raises(NonFiniteError, match=r"/trials/T2/final_error \(trial 1\)"):
+        run_simulation(reduced(trials=3), RunDirectory(tmp_path), execution=Execution(jobs=1))
+    assert non_finite(tmp_path / "results.h5") == []
+    with h5py.File(tmp_path / "results.h5") as f:
+        assert f.attrs["status"] == "failed" and "/trials/T2/final_error" in f.attrs["failure"]
+        assert f["trials/T1/done"][:].all() and f["trials/T2/done"][:].tolist() == [True, False, False]
+
+
+def test_writer_refuses_non_finite_values(tmp_path):
+    from scissor_cli.experiments.simulate import NonFiniteError
+    from scissor_cli.output.results import ResultsFile
+
+    out = ResultsFile.create(tmp_path / "results.h5", "name: x\n", 0)
+    with out:
+        out.dataset("a/ok", np.arange(3.0))
+        with pytest.raises(NonFiniteError, match=r"/a/b: nan \(1 of 3"):
+            out.dataset("a/b", np.array([1.0, np.nan, 2.0]))
+        with pytest.raises(NonFiniteError, match=r"/a/ok@scale: inf"):
+            out.attrs("a/ok", {"scale": np.inf})
+        with pytest.raises(NonFiniteError, match=r"/a/ok\[1\]"):
+            out.put("a/ok", 1, -np.inf)
+    assert non_finite(tmp_path / "results.h5") == []
+
+
+def test_journal_ignores_a_torn_last_record(tmp_path):
+    from scissor_cli.output import journal
+
+    path = tmp_path / "results.h5.journal"
+    j = journal.Journal.create(path, "name: x\n", 3)
+    history = np.random.default_rng(0).normal(size=(4, 3))
+    j.append({"target": "T1", "trial": 0, "ok": True, "history": history, "history_columns": ["a", "b", "c"]})
+    j.append({"target": "T1", "trial": 1, "ok": False, "history": np.zeros((0, 0)), "history_columns": []})
+    j.close()
+    whole = path.read_bytes()
+    path.write_bytes(whole[:-7])  # killed while appending the second trial
+    header, records, valid = journal.read(path)
+    assert header["config_yaml"] == "name: x\n" and header["seed"] == 3
+    assert len(records) == 1 and np.array_equal(records[0]["history"], history)  # bit for bit
+    assert records[0]["history_columns"] == ["a", "b", "c"] and records[0]["ok"] is True
+    j = journal.Journal.resume(path, valid)  # the torn tail is cut before appending
+    j.append({"target": "T1", "trial": 1, "ok": False, "history": np.zeros((0, 0)), "history_columns": []})
+    j.close()
+    assert [r["trial"] for r in journal.read(path)[1]] == [0, 1]
+    bad = bytearray(path.read_bytes())
+    bad[valid - 3] ^= 0xFF  # a damaged byte in the first trial: it and everything after it are distrusted
+    path.write_bytes(bytes(bad))
+    assert journal.read(path)[1] == []
+
+
+def test_a_worker_that_dies_is_a_clear_error():
+    from scissor_cli.experiments.pool import WorkerLost, run_pool
+
+    with pytest.raises(WorkerLost, match="worker process died"):
+        list(run_pool(_die, [(0,), (1,)], jobs=2))
+
+
+def _die(k):
+    import os
+
+    os._exit(1)
