@@ -8,7 +8,7 @@ everything it finished.
 **No non-finite number is written.** `ResultsFile` is the only way into
 the file and refuses any NaN or infinity with `NonFiniteError`, naming the
 dataset or attribute. A value that is absent by definition is stored as a
-finite fill value, and a mask tells it apart (docs/contract.md#fill-values):
+finite fill value, and a mask tells it apart (docs/contract.md#no-nan-fill-values):
 
 * trials (`/trials/<target>/…`): a trial not run yet, or crashed, holds
   `FILL` (0.0) in its float arrays, `iterations` −1 and `corridor_clear`
@@ -149,8 +149,8 @@ def temporary(path: Path) -> Path:
 
 
 def failure_reason(exc: BaseException) -> str:
-    if isinstance(exc, KeyboardInterrupt):
-        return "interrupted" + (f" ({exc.args[0]})" if exc.args and exc.args[0] else "")
+    if isinstance(exc, KeyboardInterrupt):  # Ctrl-C: "interrupted"; a termination signal: "interrupted (SIGTERM)"
+        return "interrupted" + (f" ({exc.args[0]})" if exc.args and exc.args[0] not in ("", "SIGINT") else "")
     return f"{type(exc).__name__}: {exc}"
 
 
