@@ -34,7 +34,7 @@ from extract import extract  # noqa: E402
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="process checks read /proc")
 
-TRIALS = 40  # per target; 2 targets
+TRIALS = 30  # per target; 2 targets
 ROOT = Path(__file__).resolve().parents[1]
 
 

@@ -109,6 +109,37 @@ def test_crashed_trial_is_kept_marked_and_resumed(serial_run, tmp_path, monkeypa
     assert all(np.array_equal(a[t], b[t]) for t in a)
 
 
+def test_resume_restores_from_the_journal_what_a_kill_kept_out_of_the_file(serial_run, tmp_path, monkeypatch):
+    """A SIGKILL between journalling a trial and storing it, and one in the middle of storing another."""
+    import sys
+
+    from scissor_cli.output import sink as sink_module
+
+    sys.path.insert(0, str(ROOT / "tests" / "golden"))
+    from extract import extract
+
+    def killed(self, *exc):  # like SIGKILL: nothing is renamed, the journal stays
+        self.out.h5.close()
+        self._journal.close()
+
+    monkeypatch.setattr(sink_module.ResultsSink, "__exit__", killed)
+    run_simulation(reduced(), RunDirectory(tmp_path), execution=Execution(jobs=1))
+    monkeypatch.undo()
+    tmp = tmp_path / "results.h5.tmp"
+    assert tmp.exists() and not (tmp_path / "results.h5").exists()
+    with h5py.File(tmp, "r+") as f:
+        f["trials/T2/done"][4] = False  # journalled, never stored
+        del f["trials/T2/history/3"]  # marked done, its history lost
+    sink = open_for_resume(tmp_path)
+    notes = " ".join(sink.notes())
+    assert "resuming from results.h5.tmp" in notes and "1 trial(s) marked done had no history" in notes
+    assert "restored 2 finished trial(s)" in notes
+    assert resume_simulation(sink, execution=Execution(jobs=1)) == 0  # nothing recomputed
+    now, before = extract(tmp_path / "results.h5"), extract(serial_run / "results.h5")
+    assert sorted(now) == sorted(before) and all(np.array_equal(now[k], before[k]) for k in before)
+    assert not tmp.exists() and not (tmp_path / "results.h5.journal").exists()
+
+
 def test_ideal_single_trial_is_the_deterministic_check(tmp_path):
     run_simulation(reduced(trials=1, profile="ideal"), RunDirectory(tmp_path), execution=Execution(jobs=1))
     with h5py.File(tmp_path / "results.h5") as f:

@@ -110,15 +110,14 @@ class ResultsSink:
         self._apply_replay()
 
     def _apply_replay(self) -> None:
-        """Store the journal's trials that the file lacks (a trial is taken as the journal last recorded it)."""
+        """Store the journal's finished trials that the file lacks (a crashed trial is run again anyway)."""
         pending = {name: set(ks.tolist()) for name, ks in self.pending_trials().items()}
         restored = set()
         for rec in self._replay:
-            if rec["trial"] in pending.get(rec["target"], ()):
+            if rec["ok"] and rec["trial"] in pending.get(rec["target"], ()):
                 results.write_trial(self.out, rec)
                 restored.add((rec["target"], rec["trial"]))
-                if rec["ok"]:
-                    pending[rec["target"]].discard(rec["trial"])
+                pending[rec["target"]].discard(rec["trial"])
         if restored:
             self._notes.append(f"restored {len(restored)} finished trial(s) from {journal.journal_path(self.out.path).name}")
         self._replay = []
