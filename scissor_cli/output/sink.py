@@ -251,5 +251,5 @@ def open_for_resume(run_dir: Path | str) -> ResultsSink:
     out = ResultsFile.create(path, header["config_yaml"], header["seed"])
     notes.append(f"rebuilding {path.name} from the config in {jpath.name}: the stages before the trials run again "
                  f"(the accuracy-driven /selection, if the run had one, is not repeated); "
-                 f"its {len(recs)} finished trial record(s) are kept")
+                 f"the {sum(bool(r['ok']) for r in recs)} finished trial(s) in it are kept")
     return ResultsSink(out, trials_journal=journal.Journal.resume(jpath, valid), replay=recs, notes=notes, rebuilt=True)
