@@ -20,6 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from scissor_cli import runtime  # noqa: E402
 from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.experiments.simulate import Execution, run_simulation  # noqa: E402
+from scissor_cli.output.sink import RunDirectory  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_MAX = {"prosthesis": (0.7, 1.7), "ex_vivo": (1.3, 2.5)}  # max |x|, |y| error (mm), paper section 4.2
@@ -33,7 +34,7 @@ def main() -> None:
         cfg = load_config(ROOT / "configs" / f"paper_trials_{profile}.yaml")
         with tempfile.TemporaryDirectory() as tmp:
             t0 = time.perf_counter()
-            run_simulation(cfg, Path(tmp), execution=Execution(jobs=args.jobs))
+            run_simulation(cfg, RunDirectory(tmp), execution=Execution(jobs=args.jobs))
             wall = time.perf_counter() - t0
             with h5py.File(Path(tmp) / "results.h5") as f:
                 e = np.concatenate([f[f"trials/{t}/final_error"][:] for t in f["trials"]])

@@ -1,7 +1,9 @@
 """The `scissor` command line: thin wrappers over the pipeline modules.
 
-Exit codes (CONTRACT.md): 0 success; 2 bad config or arguments, one message,
-no traceback; 1 a failure at run time, with the reason.
+Exit codes (docs/contract.md#exit-codes-and-messages): 0 success; 2 bad
+config or arguments, one message, no traceback; 1 a failure at run time,
+with the reason; 128 + N when `simulate` is stopped by signal N (130 Ctrl-C,
+143 SIGTERM).
 """
 
 from __future__ import annotations
@@ -116,7 +118,10 @@ def simulate(
 ) -> None:
     """Mesh the scene, solve its forward cases, plan the needle, manipulate the targets, run trials."""
     from scissor_cli.mesh.mesh import MeshError
-    from scissor_cli.experiments.simulate import Execution, ResumeError, TrialsFailed, resume_simulation, run_simulation
+    from scissor_cli.experiments.pool import WorkerLost, install_signal_handlers
+    from scissor_cli.experiments.simulate import (Execution, NonFiniteError, ResumeError, TrialsFailed,
+                                                  resume_simulation, run_simulation)
+    from scissor_cli.output.sink import RunDirectory, open_for_resume
     from scissor_cli.solvers.common import SolverError
     from scissor_cli.mechanics.tissue import BoundaryError
 
@@ -126,18 +131,17 @@ def simulate(
         _fail(2, "--executor dask needs --scheduler ADDRESS (e.g. tcp://127.0.0.1:8786)")
     execution = Execution(jobs or os.cpu_count() or 1, executor, scheduler)
     reporter = ConsoleReporter(quiet)
+    install_signal_handlers()  # SIGTERM, SIGINT, SIGHUP: stop the workers, keep what finished, exit 128 + N
     if resume is not None:
-        if not (resume / "results.h5").is_file():
-            _fail(2, f"--resume {resume}: no results.h5 there")
         try:
-            n = resume_simulation(resume, reporter, execution)
+            n = resume_simulation(open_for_resume(resume), reporter, execution)
         except ResumeError as exc:
             _fail(2, str(exc))
-        except TrialsFailed as exc:
+        except (TrialsFailed, NonFiniteError, WorkerLost) as exc:
+            err.print(f"results so far: {resume / 'results.h5'} (status = failed)")
             _fail(1, str(exc))
-        except KeyboardInterrupt:
-            err.print(f"interrupted; finished trials are kept: resume again with --resume {resume}")
-            raise typer.Exit(130)
+        except KeyboardInterrupt as exc:
+            _stopped(exc, resume, f"resume again with: scissor simulate --resume {resume}")
         reporter.info(f"resumed: {n} trial(s) run")
         out.print(str(resume))
         return
@@ -156,17 +160,25 @@ def simulate(
         cfg = cfg.model_copy(update={"study": StudyConfig()})
     directory = _out_dir(out_dir, stem, force)
     try:
-        summary = run_simulation(cfg, directory, reporter, execution)
+        summary = run_simulation(cfg, RunDirectory(directory), reporter, execution)
     except (BoundaryError, MeshError) as exc:
         _fail(2, f"{config or DEFAULT_SCENE}: {exc}")
-    except (SolverError, TrialsFailed) as exc:
+    except (SolverError, TrialsFailed, NonFiniteError, WorkerLost) as exc:
         err.print(f"results so far: {directory / 'results.h5'} (status = failed)")
         _fail(1, str(exc))
-    except KeyboardInterrupt:
-        err.print(f"interrupted; results so far: {directory / 'results.h5'} (status = failed); "
-                  f"finish the trials with: scissor simulate --resume {directory}")
-        raise typer.Exit(130)
+    except KeyboardInterrupt as exc:
+        _stopped(exc, directory, f"finish the trials with: scissor simulate --resume {directory}")
     out.print(str(summary.out_dir))
+
+
+def _stopped(exc: KeyboardInterrupt, directory: Path, how: str) -> None:
+    """A stopped `simulate`: where the results are, how to go on, exit 128 + the signal (130 for Ctrl-C)."""
+    code = getattr(exc, "exit_code", 130)
+    results = directory / "results.h5"
+    where = (f"results so far: {results} (status = failed)" if results.is_file()
+             else "it stopped before writing any results")
+    err.print(f"interrupted ({exc.args[0] if exc.args else 'SIGINT'}); {where}; {how}")
+    raise typer.Exit(code)
 
 
 @app.command()

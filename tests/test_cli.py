@@ -1,5 +1,6 @@
-"""`scissor simulate` end to end: the HDF5 layout of CONTRACT.md, figures, failures."""
+"""`scissor simulate` end to end: the HDF5 layout of docs/contract.md, figures, failures."""
 
+import os
 import subprocess
 import sys
 
@@ -7,11 +8,14 @@ import h5py
 import numpy as np
 import pytest
 
-from helpers import example_dict, write_scene, deep_update
+from helpers import ROOT, example_dict, write_scene, deep_update
 
 
 def run_cli(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "scissor_cli.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd)
+    """`python -m scissor_cli ARGS` importing this checkout's package, whatever is installed."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    return subprocess.run([sys.executable, "-m", "scissor_cli", *map(str, args)], capture_output=True, text=True,
+                          cwd=cwd, env=env)
 
 
 def small_scene(tmp_path, **changes):
@@ -104,3 +108,46 @@ def test_version_and_bad_solver_option():
     assert proc.returncode == 0 and proc.stdout.startswith("scissor ")
     proc = run_cli("simulate", "--solver", "jacobi", "--trials", "0")
     assert proc.returncode == 2 and "admm" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_non_finite_value_exits_1_naming_where(tmp_path, monkeypatch):
+    """A NaN in a trial's result stops the run: exit 1, the dataset and trial named, nothing non-finite stored."""
+    import signal
+
+    from typer.testing import CliRunner
+
+    from scissor_cli import cli
+    from scissor_cli import control
+
+    real = control.run_target
+
+    def poisoned(*args, **kw):
+        r = real(*args, **kw)
+        if kw.get("rng") is not None:  # a trial, not the nominal manipulation
+            r.final_error = np.array([np.nan, 0.0])
+        return r
+
+    monkeypatch.setattr(control, "run_target", poisoned)
+    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    try:  # in this process, so the patch reaches the trials (--jobs 1)
+        result = CliRunner().invoke(cli.app, ["simulate", str(small_scene(tmp_path)), "--trials", "2", "--jobs", "1",
+                                              "--out", str(tmp_path / "o")])
+    finally:
+        for s, handler in saved.items():
+            signal.signal(s, handler)
+    stderr = " ".join(result.stderr.split())
+    assert result.exit_code == 1, stderr
+    assert "non-finite value to /trials/T1/final_error (trial 0): nan" in stderr and "Traceback" not in stderr
+    assert "status = failed" in stderr
+    with h5py.File(tmp_path / "o" / "results.h5") as f:
+        assert f.attrs["status"] == "failed" and "non-finite" in f.attrs["failure"]
+        assert np.all(np.isfinite(f["trials/T1/final_error"][:])) and not f["trials/T1/done"][:].any()
+
+
+def test_resume_refuses_what_it_cannot_resume(run, tmp_path):
+    _, out = run
+    proc = run_cli("simulate", "--resume", tmp_path)
+    assert proc.returncode == 2 and "no results.h5" in proc.stderr and "Traceback" not in proc.stderr
+    proc = run_cli("simulate", "--resume", out)  # a --trials 0 run
+    assert proc.returncode == 2 and "stopped before its trials" in proc.stderr
+    assert not (out / "results.h5.tmp").exists()

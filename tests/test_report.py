@@ -10,14 +10,15 @@ import pytest
 
 from scissor_cli.output.report import ReportError, report_trials
 from scissor_cli.experiments.simulate import Execution, run_simulation
+from scissor_cli.output.sink import RunDirectory
 from test_trials import reduced
 
 
 @pytest.fixture(scope="module")
 def two_runs(tmp_path_factory):
     a, b = tmp_path_factory.mktemp("pros"), tmp_path_factory.mktemp("exv")
-    run_simulation(reduced(trials=4), a, execution=Execution(jobs=1))
-    run_simulation(reduced(trials=4, profile="ex_vivo"), b, execution=Execution(jobs=1))
+    run_simulation(reduced(trials=4), RunDirectory(a), execution=Execution(jobs=1))
+    run_simulation(reduced(trials=4, profile="ex_vivo"), RunDirectory(b), execution=Execution(jobs=1))
     return a, b
 
 
@@ -61,7 +62,7 @@ def test_study_report(tmp_path):
         "study": StudyConfig(levels=[4.0, 2.0, 1.0], models=["linear", "neo_hookean_fiber"],
                              admm_tolerances=[1e-2, 1e-4], repeats=1, admm_max_elements=10000),
     })
-    run_simulation(cfg, tmp_path / "run")
+    run_simulation(cfg, RunDirectory(tmp_path / "run"))
     with h5py.File(tmp_path / "run" / "results.h5") as f:
         study = f["study"]
         n = len(study["case"])

@@ -68,11 +68,12 @@ def test_selection_is_recorded(tmp_path):
 
     from scissor_cli.config import parse_config
     from scissor_cli.experiments.simulate import run_simulation
+    from scissor_cli.output.sink import RunDirectory
 
     data = yaml.safe_load((ROOT / "configs" / "example.yaml").read_text())
     data["solver"]["accuracy_mm"] = 1.0
     data["trials"]["count"] = 0
-    run_simulation(parse_config(yaml.safe_dump(data)), tmp_path)
+    run_simulation(parse_config(yaml.safe_dump(data)), RunDirectory(tmp_path))
     with h5py.File(tmp_path / "results.h5") as f:
         sel = f["selection"].attrs
         assert sel["accuracy_mm"] == 1.0 and sel["meets_budget"] and "picked" in sel["explanation"]

@@ -8,6 +8,7 @@ from scissor_cli import control
 from scissor_cli.config import load_config
 from scissor_cli.experiments.profiles import draw_trial, error_model
 from scissor_cli.experiments.simulate import Execution, TrialsFailed, resume_simulation, run_simulation
+from scissor_cli.output.sink import RunDirectory, open_for_resume
 from helpers import ROOT
 
 
@@ -31,7 +32,7 @@ def final_errors(path):
 @pytest.fixture(scope="module")
 def serial_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("serial")
-    run_simulation(reduced(), out, execution=Execution(jobs=1))
+    run_simulation(reduced(), RunDirectory(out), execution=Execution(jobs=1))
     return out
 
 
@@ -69,7 +70,7 @@ def test_trial_draws_depend_only_on_seed_target_and_index():
 
 
 def test_two_jobs_are_bit_identical(serial_run, tmp_path):
-    run_simulation(reduced(), tmp_path, execution=Execution(jobs=2))
+    run_simulation(reduced(), RunDirectory(tmp_path), execution=Execution(jobs=2))
     a, b = final_errors(serial_run / "results.h5"), final_errors(tmp_path / "results.h5")
     assert all(np.array_equal(a[t], b[t]) for t in a)
 
@@ -77,7 +78,7 @@ def test_two_jobs_are_bit_identical(serial_run, tmp_path):
 def test_dask_local_cluster_is_bit_identical(serial_run, tmp_path):
     distributed = pytest.importorskip("dask.distributed")
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
-        run_simulation(reduced(), tmp_path, execution=Execution(jobs=2, executor="dask", scheduler=cluster.scheduler_address))
+        run_simulation(reduced(), RunDirectory(tmp_path), execution=Execution(jobs=2, executor="dask", scheduler=cluster.scheduler_address))
     a, b = final_errors(serial_run / "results.h5"), final_errors(tmp_path / "results.h5")
     assert all(np.array_equal(a[t], b[t]) for t in a)
 
@@ -95,22 +96,174 @@ def test_crashed_trial_is_kept_marked_and_resumed(serial_run, tmp_path, monkeypa
     flaky.calls = 0
     monkeypatch.setattr(control, "run_target", flaky)
     with pytest.raises(TrialsFailed, match="1 trial"):
-        run_simulation(reduced(), tmp_path, execution=Execution(jobs=1))
+        run_simulation(reduced(), RunDirectory(tmp_path), execution=Execution(jobs=1))
     with h5py.File(tmp_path / "results.h5") as f:
         assert f.attrs["status"] == "failed"
         assert f["trials/T2/failed"][:].sum() == 1 and f["trials/T1/done"][:].all()
         assert "simulated crash" in "".join(m.decode() if isinstance(m, bytes) else m for m in f["trials/T2/message"][:])
     monkeypatch.setattr(control, "run_target", real)
-    assert resume_simulation(tmp_path, execution=Execution(jobs=1)) == 1
+    assert resume_simulation(open_for_resume(tmp_path), execution=Execution(jobs=1)) == 1
     with h5py.File(tmp_path / "results.h5") as f:
         assert f.attrs["status"] == "complete" and not f["trials/T2/failed"][:].any()
     a, b = final_errors(serial_run / "results.h5"), final_errors(tmp_path / "results.h5")
     assert all(np.array_equal(a[t], b[t]) for t in a)
 
 
+def test_resume_restores_from_the_journal_what_a_kill_kept_out_of_the_file(serial_run, tmp_path, monkeypatch):
+    """A SIGKILL between journalling a trial and storing it, and one in the middle of storing another."""
+    import sys
+
+    from scissor_cli.output import sink as sink_module
+
+    sys.path.insert(0, str(ROOT / "tests" / "golden"))
+    from extract import extract
+
+    def killed(self, *exc):  # like SIGKILL: nothing is renamed, the journal stays
+        self.out.h5.close()
+        self._journal.close()
+
+    monkeypatch.setattr(sink_module.ResultsSink, "__exit__", killed)
+    run_simulation(reduced(), RunDirectory(tmp_path), execution=Execution(jobs=1))
+    monkeypatch.undo()
+    tmp = tmp_path / "results.h5.tmp"
+    assert tmp.exists() and not (tmp_path / "results.h5").exists()
+    with h5py.File(tmp, "r+") as f:
+        f["trials/T2/done"][4] = False  # journalled, never stored
+        del f["trials/T2/history/3"]  # marked done, its history lost
+    sink = open_for_resume(tmp_path)
+    notes = " ".join(sink.notes())
+    assert "resuming from results.h5.tmp" in notes and "1 trial(s) marked done had no history" in notes
+    assert "restored 2 finished trial(s)" in notes
+    assert resume_simulation(sink, execution=Execution(jobs=1)) == 0  # nothing recomputed
+    now, before = extract(tmp_path / "results.h5"), extract(serial_run / "results.h5")
+    assert sorted(now) == sorted(before) and all(np.array_equal(now[k], before[k]) for k in before)
+    assert not tmp.exists() and not (tmp_path / "results.h5.journal").exists()
+
+
 def test_ideal_single_trial_is_the_deterministic_check(tmp_path):
-    run_simulation(reduced(trials=1, profile="ideal"), tmp_path, execution=Execution(jobs=1))
+    run_simulation(reduced(trials=1, profile="ideal"), RunDirectory(tmp_path), execution=Execution(jobs=1))
     with h5py.File(tmp_path / "results.h5") as f:
         for t in ("T1", "T2"):
             assert np.linalg.norm(f[f"trials/{t}/final_error"][0]) <= 0.1
             assert f[f"trials/{t}/corridor_clear"][0] and f[f"trials/{t}/iterations"][0] <= 20
+
+
+def non_finite(path) -> list[str]:
+    """Every float dataset or attribute of the file holding a NaN or infinity."""
+    bad = []
+    with h5py.File(path) as f:
+        def visit(name, obj):
+            if isinstance(obj, h5py.Dataset) and obj.dtype.kind == "f" and not np.all(np.isfinite(obj[()])):
+                bad.append(name)
+            for key, value in obj.attrs.items():
+                a = np.asarray(value)
+                if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
+                    bad.append(f"{name}@{key}")
+        visit("/", f)
+        f.visititems(visit)
+    return bad
+
+
+def test_no_nan_reaches_the_file_crashed_trials_hold_fill_values(tmp_path, monkeypatch):
+    """A crashed trial, a target without obstacles (clearance +inf) and undone trials: masks and finite fills only."""
+    real = control.run_target
+
+    def flaky(*args, **kw):
+        if kw.get("target") == "T1" and kw.get("rng") is not None:
+            flaky.calls += 1
+            if flaky.calls == 2:
+                raise RuntimeError("simulated crash")
+        return real(*args, **kw)
+
+    flaky.calls = 0
+    monkeypatch.setattr(control, "run_target", flaky)
+    cfg = reduced(trials=3)
+    cfg = cfg.model_copy(update={"obstacles": []})
+    with pytest.raises(TrialsFailed):
+        run_simulation(cfg, RunDirectory(tmp_path), execution=Execution(jobs=1))
+    assert non_finite(tmp_path / "results.h5") == []
+    with h5py.File(tmp_path / "results.h5") as f:
+        g = f["trials/T1"]
+        crashed = np.flatnonzero(g["failed"][:])
+        assert len(crashed) == 1 and g["done"][crashed[0]]
+        assert np.array_equal(g["final_error"][crashed[0]], [0.0, 0.0]) and g["iterations"][crashed[0]] == -1
+        assert g["clearance_mm"][:].tolist() == [0.0] * 3  # no obstacles: undefined, stored as the fill value
+        assert all(g["corridor_clear"][k] for k in range(3) if k != crashed[0])
+        assert f["plan/T1"].attrs["clearance_mm"] == 0.0 and "fill_values" in f["trials"].attrs
+
+
+def test_non_finite_trial_is_a_run_time_error_naming_where(tmp_path, monkeypatch):
+    from scissor_cli.experiments.simulate import NonFiniteError
+
+    real = control.run_target
+
+    def poisoned(*args, **kw):
+        r = real(*args, **kw)
+        if kw.get("target") == "T2" and kw.get("rng") is not None:
+            poisoned.calls += 1
+            if poisoned.calls == 2:
+                r.final_error = np.array([np.nan, 0.0])
+        return r
+
+    poisoned.calls = 0
+    monkeypatch.setattr(control, "run_target", poisoned)
+    with pytest.raises(NonFiniteError, match=r"/trials/T2/final_error \(trial 1\)"):
+        run_simulation(reduced(trials=3), RunDirectory(tmp_path), execution=Execution(jobs=1))
+    assert non_finite(tmp_path / "results.h5") == []
+    with h5py.File(tmp_path / "results.h5") as f:
+        assert f.attrs["status"] == "failed" and "/trials/T2/final_error" in f.attrs["failure"]
+        assert f["trials/T1/done"][:].all() and f["trials/T2/done"][:].tolist() == [True, False, False]
+
+
+def test_writer_refuses_non_finite_values(tmp_path):
+    from scissor_cli.experiments.simulate import NonFiniteError
+    from scissor_cli.output.results import ResultsFile
+
+    out = ResultsFile.create(tmp_path / "results.h5", "name: x\n", 0)
+    with out:
+        out.dataset("a/ok", np.arange(3.0))
+        with pytest.raises(NonFiniteError, match=r"/a/b: nan \(1 of 3"):
+            out.dataset("a/b", np.array([1.0, np.nan, 2.0]))
+        with pytest.raises(NonFiniteError, match=r"/a/ok@scale: inf"):
+            out.attrs("a/ok", {"scale": np.inf})
+        with pytest.raises(NonFiniteError, match=r"/a/ok\[1\]"):
+            out.put("a/ok", 1, -np.inf)
+    assert non_finite(tmp_path / "results.h5") == []
+
+
+def test_journal_ignores_a_torn_last_record(tmp_path):
+    from scissor_cli.output import journal
+
+    path = tmp_path / "results.h5.journal"
+    j = journal.Journal.create(path, "name: x\n", 3)
+    history = np.random.default_rng(0).normal(size=(4, 3))
+    j.append({"target": "T1", "trial": 0, "ok": True, "history": history, "history_columns": ["a", "b", "c"]})
+    j.append({"target": "T1", "trial": 1, "ok": False, "history": np.zeros((0, 0)), "history_columns": []})
+    j.close()
+    whole = path.read_bytes()
+    path.write_bytes(whole[:-7])  # killed while appending the second trial
+    header, records, valid = journal.read(path)
+    assert header["config_yaml"] == "name: x\n" and header["seed"] == 3
+    assert len(records) == 1 and np.array_equal(records[0]["history"], history)  # bit for bit
+    assert records[0]["history_columns"] == ["a", "b", "c"] and records[0]["ok"] is True
+    j = journal.Journal.resume(path, valid)  # the torn tail is cut before appending
+    j.append({"target": "T1", "trial": 1, "ok": False, "history": np.zeros((0, 0)), "history_columns": []})
+    j.close()
+    assert [r["trial"] for r in journal.read(path)[1]] == [0, 1]
+    bad = bytearray(path.read_bytes())
+    bad[valid - 3] ^= 0xFF  # a damaged byte in the first trial: it and everything after it are distrusted
+    path.write_bytes(bytes(bad))
+    assert journal.read(path)[1] == []
+
+
+def test_a_worker_that_dies_is_a_clear_error():
+    from scissor_cli.experiments.pool import WorkerLost, run_pool
+
+    with pytest.raises(WorkerLost, match="worker process died"):
+        list(run_pool(_die, [(0,), (1,)], jobs=2))
+
+
+def _die(k):
+    import os
+
+    os._exit(1)

@@ -1,26 +1,24 @@
-"""`scissor simulate`: mesh a scene, solve its forward cases, write results.
+"""`scissor simulate`: the pipeline from a validated config to a finished run (docs/contract.md#simulate).
 
-The pipeline: config → scene → mesh → tissue → forward solves → results.h5
-and one figure per case. Progress and messages go through a `Reporter` so
-the CLI decides what a terminal shows.
+The stages (selection, model, forward cases, Jacobian, study, plans,
+manipulation, trials) compute; they hand every product to a `RunSink`
+(`experiments.sink`), which keeps it: `output` provides the one that writes
+results.h5 and the figures, and `cli.py` passes it in. Progress and messages
+go through a `Reporter` so the CLI decides what a terminal shows.
 """
 
 from __future__ import annotations
 
 import time
+from contextlib import closing
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable, Protocol
 
 import numpy as np
 
-import h5py
-
 from scissor_cli import control
-from scissor_cli.output.manipulation import manipulation_figure_inputs
-from scissor_cli.output import figures
-from scissor_cli.output import results
-from scissor_cli.config import Config, SolverConfig, parse_config, resolved_yaml
+from scissor_cli.config import Config, parse_config, resolved_yaml
 from scissor_cli.solvers.jacobian import cup_target_jacobian
 from scissor_cli.mesh.probe import probe_targets, target_positions
 from scissor_cli.solvers.equilibrium import EquilibriumSolver
@@ -28,11 +26,14 @@ from scissor_cli.mesh.outlines import boundary_loop, deformed_outlines, embed_ou
 from scissor_cli.planning.corridor import corridor_radius
 from scissor_cli.planning.needle import NeedlePlan, plan_target
 from scissor_cli.planning.states import StateCache
+from scissor_cli.experiments.pool import deferred_signals
 from scissor_cli.experiments.profiles import error_model
+from scissor_cli.experiments.sink import ForwardCase, Manipulation, ResumableSink, RunSink, SinkFactory
+from scissor_cli.experiments.sink import NonFiniteError, ResumeError  # noqa: F401 - raised through this module's API
 from scissor_cli.robot.chain import RobotModel
 from scissor_cli.robot.registration import plan_to_joints
 from scissor_cli.experiments.selection import select
-from scissor_cli.experiments.study import rows_as_columns, run_study
+from scissor_cli.experiments.study import run_study
 from scissor_cli.experiments.trials import TargetTask, execute
 from scissor_cli.solvers.common import SolveResult, SolverError
 from scissor_cli.mechanics.tissue import Tissue, build_model  # noqa: F401 - build_model is part of this module's API
@@ -55,11 +56,11 @@ class SilentReporter:
 @dataclass
 class RunSummary:
     out_dir: Path
-    results_path: Path
     n_elements: int
     forward: dict[str, SolveResult] = field(default_factory=dict)
     figures: list[Path] = field(default_factory=list)
     plans: list = field(default_factory=list)
+    trials_run: int = 0
     status: str = "complete"
     failure: str = ""
 
@@ -77,23 +78,58 @@ class Execution:
     scheduler: str | None = None
 
 
-def run_simulation(cfg: Config, out_dir: Path, reporter: Reporter | None = None,
+def run_simulation(cfg: Config, run: SinkFactory, reporter: Reporter | None = None,
                    execution: Execution = Execution()) -> RunSummary:
-    """Everything `scissor simulate` does for a validated config, into out_dir.
+    """Everything `scissor simulate` does for a validated config, into the sink `run` opens.
 
     Forward cases, the rest Jacobian and the needle plans always; with
     `cfg.trials.count` > 0 also the nominal manipulation of every target
-    (Fig. 11) and the trials (Fig. 14). Raises SolverError or TrialsFailed
-    after writing the partial file, marked failed.
+    (Fig. 11) and the trials (Fig. 14). Raises SolverError, TrialsFailed or
+    NonFiniteError after the sink has kept what was finished, marked failed.
     """
     reporter = reporter or SilentReporter()
-    out_dir.mkdir(parents=True, exist_ok=True)
     selection = None
     if cfg.solver.accuracy_mm is not None:
         selection = select(cfg, cfg.solver.accuracy_mm, reporter.info)
         # the file records the config that ran; the budget stays in /selection
         cfg = selection.apply(cfg)
         cfg = cfg.model_copy(update={"solver": cfg.solver.model_copy(update={"accuracy_mm": None})})
+    tissue = _build(cfg, reporter)
+    summary = RunSummary(run.location, tissue.mesh.n_elements)
+    with run.open(resolved_yaml(cfg), cfg.seed) as sink:
+        _stages(cfg, tissue, sink, summary, reporter, execution, selection)
+    return summary
+
+
+def resume_simulation(sink: ResumableSink, reporter: Reporter | None = None, execution: Execution = Execution()) -> int:
+    """Finish the trials of an interrupted, killed or partly failed run in its sink; returns how many ran.
+
+    The stored run's config and plans are reused and finished trials are
+    never recomputed (docs/contract.md#resume). When the sink lost the
+    stored file, the stages before the trials run again (they are
+    deterministic) and the trials the sink recovered are kept.
+    """
+    reporter = reporter or SilentReporter()
+    for note in sink.notes():
+        reporter.info(note)
+    with sink:
+        cfg = parse_config(sink.config_yaml, str(sink.location / "results.h5"))
+        plans = sink.plans()
+        tissue = _build(cfg, reporter) if plans is None else build_model(cfg)[2]
+        if plans is None:
+            summary = RunSummary(sink.location, tissue.mesh.n_elements)
+            _stages(cfg, tissue, sink, summary, reporter, execution)
+            return summary.trials_run
+        tasks = []
+        for index, target in enumerate(tissue.scene.targets):
+            p = plans.get(target.name)
+            if p is not None and bool(p["feasible"]):
+                tasks.append(TargetTask(index, target.name, target.rest, np.asarray(p["desired"]),
+                                        np.asarray(p["strokes"]), str(p["side"]), np.asarray(p["direction"])))
+        return _trial_stage(sink, cfg, tasks, reporter, execution)
+
+
+def _build(cfg: Config, reporter: Reporter) -> Tissue:
     t_mesh = time.perf_counter()
     scene, mesh, tissue = build_model(cfg)
     angles = mesh.angles_deg()
@@ -101,37 +137,40 @@ def run_simulation(cfg: Config, out_dir: Path, reporter: Reporter | None = None,
         f"mesh: {mesh.n_elements} triangles, {mesh.n_nodes} nodes, min angle {angles.min():.1f}°, "
         f"edges {mesh.edge_lengths().min():.2f}–{mesh.edge_lengths().max():.2f} mm ({time.perf_counter() - t_mesh:.2f} s)"
     )
-    summary = RunSummary(out_dir, out_dir / "results.h5", mesh.n_elements)
-    with results.ResultsFile(summary.results_path, resolved_yaml(cfg), cfg.seed) as out:
-        results.write_model(out, tissue, cfg.material)
-        if selection is not None:
-            results.write_selection(out, selection)
-        _forward_stage(cfg, tissue, out, summary, reporter)
-        probe = probe_targets(mesh, np.array([t.rest for t in scene.targets]).reshape(-1, 2))
-        if len(scene.targets):
-            J = cup_target_jacobian(tissue, tissue.rest, probe)
-            for k, target in enumerate(scene.targets):
-                results.write_jacobian(out, target.name, J[2 * k : 2 * k + 2], scene.cup_names)
-        if cfg.study is not None:
-            _study_stage(cfg, out, reporter)
-        summary.plans = _plan_stage(cfg, tissue, out, reporter)
-        if cfg.trials.count > 0:
-            _manipulation_stage(cfg, tissue, summary.plans, out, reporter)
-            tasks = trial_tasks(tissue, summary.plans)
-            allocate_trial_arrays(out, cfg, tasks, summary.plans)
-            _trial_stage(out, cfg, tasks, reporter, execution)
-    return summary
+    return tissue
 
 
-def _study_stage(cfg: Config, out: results.ResultsFile, reporter: Reporter) -> None:
+def _stages(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary, reporter: Reporter,
+            execution: Execution, selection=None) -> None:
+    """The stages after the model is built, in the order of docs/contract.md#simulate."""
+    scene, mesh = tissue.scene, tissue.mesh
+    sink.model(tissue)
+    if selection is not None:
+        sink.selection(selection)
+    _forward_stage(cfg, tissue, sink, summary, reporter)
+    probe = probe_targets(mesh, np.array([t.rest for t in scene.targets]).reshape(-1, 2))
+    if len(scene.targets):
+        J = cup_target_jacobian(tissue, tissue.rest, probe)
+        for k, target in enumerate(scene.targets):
+            sink.jacobian(target.name, J[2 * k : 2 * k + 2], scene.cup_names)
+    if cfg.study is not None:
+        _study_stage(cfg, sink, reporter)
+    summary.plans = _plan_stage(cfg, tissue, sink, reporter)
+    if cfg.trials.count > 0:
+        summary.figures += _manipulation_stage(cfg, tissue, summary.plans, sink, reporter)
+        tasks = trial_tasks(tissue, summary.plans)
+        allocate_trial_arrays(sink, cfg, tasks, summary.plans)
+        summary.trials_run = _trial_stage(sink, cfg, tasks, reporter, execution)
+
+
+def _study_stage(cfg: Config, sink: RunSink, reporter: Reporter) -> None:
     t0 = time.perf_counter()
     study = run_study(cfg, reporter.info)
     seconds = time.perf_counter() - t0
-    results.write_study(out, rows_as_columns(study.rows), study.reference, study.notes, seconds)
-    out.flush()
+    sink.study(study, seconds)
     for note in study.notes:
         reporter.info(f"study: {note}")
-    reporter.info(f"study: {len(study.rows)} combinations in {seconds:.1f} s (speed vs error: scissor report {out.path.parent})")
+    reporter.info(f"study: {len(study.rows)} combinations in {seconds:.1f} s (speed vs error: scissor report {sink.location})")
 
 
 def trial_tasks(tissue: Tissue, plans: list[NeedlePlan]) -> list[TargetTask]:
@@ -144,27 +183,24 @@ def trial_tasks(tissue: Tissue, plans: list[NeedlePlan]) -> list[TargetTask]:
     return tasks
 
 
-def allocate_trial_arrays(out: results.ResultsFile, cfg: Config, tasks: list[TargetTask], plans: list[NeedlePlan]) -> None:
+def allocate_trial_arrays(sink: RunSink, cfg: Config, tasks: list[TargetTask], plans: list[NeedlePlan]) -> None:
+    """Room for every trial, with the error model's resolved values; a target without a plan is done at once."""
     em = error_model(cfg.trials)
     attrs = {"count": cfg.trials.count, "profile": cfg.trials.profile, "seed": cfg.seed,
              **{k: v for k, v in asdict(em).items() if k != "profile"}}
-    results.allocate_trials(out, [p.target for p in plans], cfg.trials.count, attrs)
     planned = {t.name for t in tasks}
-    for plan in plans:  # a target without a plan has nothing to manipulate towards
-        if plan.target not in planned:
-            g = f"trials/{plan.target}"
-            out.h5[f"{g}/done"][:] = True
-            out.h5[f"{g}/stop_reason"][:] = "no_plan"
-            out.h5[f"{g}/message"][:] = f"no plan: {plan.reason}"
+    without_plan = {p.target: p.reason for p in plans if p.target not in planned}
+    sink.allocate_trials([p.target for p in plans], cfg.trials.count, attrs, without_plan)
 
 
-def _manipulation_stage(cfg: Config, tissue: Tissue, plans: list[NeedlePlan], out: results.ResultsFile,
-                        reporter: Reporter) -> None:
+def _manipulation_stage(cfg: Config, tissue: Tissue, plans: list[NeedlePlan], sink: RunSink,
+                        reporter: Reporter) -> list[Path]:
     """The nominal manipulation of each planned target (truth = model, exact camera): Fig. 11.
 
-    The open-loop baseline (one Jacobian step from rest) is stored beside it.
+    The open-loop baseline (one Jacobian step from rest) is kept beside it.
     """
     radius = corridor_radius(cfg.needle)
+    paths = []
     for target, plan in zip(tissue.scene.targets, plans):
         if not plan.feasible:
             continue
@@ -172,96 +208,48 @@ def _manipulation_stage(cfg: Config, tissue: Tissue, plans: list[NeedlePlan], ou
         kw = dict(corridor=corridor, target=target.name)
         closed = control.run_target(tissue, target.rest, plan.desired, cfg.controller, **kw)
         opened = control.run_target(tissue, target.rest, plan.desired, cfg.controller, mode="open", **kw)
-        g = out.group(f"manipulation/{target.name}")
-        g.attrs.update({
-            "closed_final_error": closed.final_error, "closed_iterations": closed.iterations,
-            "closed_stop_reason": closed.stop_reason, "closed_corridor_clear": bool(closed.corridor_clear),
-            "closed_clearance_mm": closed.clearance_mm, "open_final_error": opened.final_error,
-            "uncorrectable_mm": closed.uncorrectable_error_mm, "units": "mm",
-        })
-        names, table = closed.history_table()
-        out.dataset(f"manipulation/{target.name}/history", table, "mm (time_s: s)", columns=names)
-        fig = figures.manipulation_figure(**manipulation_figure_inputs(tissue, closed, target.rest, corridor))
-        figures.save(fig, out.path.parent / f"manipulation_{target.name}.png")
+        path = sink.manipulation(Manipulation(target.name, closed, opened, tissue, target.rest, corridor))
+        if path is not None:
+            paths.append(path)
         reporter.info(
             f"manipulation {target.name}: closed loop {closed.iterations} iterations ({closed.stop_reason}), "
             f"error {np.linalg.norm(closed.final_error):.3f} mm vs open loop {np.linalg.norm(opened.final_error):.3f} mm, "
             f"corridor {'clear' if closed.corridor_clear else 'BLOCKED'}"
         )
+    return paths
 
 
-def _trial_stage(out: results.ResultsFile, cfg: Config, tasks: list[TargetTask], reporter: Reporter,
-                 execution: Execution) -> None:
-    """Run every pending trial of the file and store each as it finishes."""
-    pending = results.pending_trials(out.h5)
+def _trial_stage(sink: RunSink, cfg: Config, tasks: list[TargetTask], reporter: Reporter,
+                 execution: Execution) -> int:
+    """Run every pending trial of the sink and store each as it finishes; returns how many ran.
+
+    Storing a trial is not cut short by a stop signal (`deferred_signals`);
+    leaving the loop for any reason stops the workers at once.
+    """
+    pending = sink.pending_trials()
     by_name = {t.name: t for t in tasks}
+    by_index = {t.index: t for t in tasks}
     work = [(by_name[name], int(k)) for name, ks in pending.items() if name in by_name for k in ks]
     if work:
         reporter.info(f"trials: {len(work)} to run ({cfg.trials.profile} profile, {execution.jobs} job(s), "
                       f"{execution.executor} executor)")
     advance = reporter.progress("trials", len(work))
     t0, failed = time.perf_counter(), 0
-    config_yaml = out.h5.attrs["config_yaml"]
-    for outcome in execute(config_yaml, work, execution.jobs, execution.executor, execution.scheduler):
-        results.write_trial(out, tasks_by_index(tasks)[outcome.target_index].name, outcome)
-        out.flush()
-        failed += not outcome.ok
-        advance(1)
+    with closing(execute(sink.config_yaml, work, execution.jobs, execution.executor, execution.scheduler)) as outcomes:
+        for outcome in outcomes:
+            with deferred_signals():
+                sink.trial(by_index[outcome.target_index].name, outcome)
+            failed += not outcome.ok
+            advance(1)
     if work:
         reporter.info(f"trials done in {time.perf_counter() - t0:.1f} s")
-    write_trial_figures(out.h5, out.path.parent, cfg.name)
+    sink.trial_figures(cfg.name)
     if failed:
         raise TrialsFailed(f"{failed} trial(s) crashed (see /trials/<target>/message); re-run them with --resume")
+    return len(work)
 
 
-def tasks_by_index(tasks: list[TargetTask]) -> dict[int, TargetTask]:
-    return {t.index: t for t in tasks}
-
-
-def write_trial_figures(h5, out_dir: Path, name: str) -> list[Path]:
-    """Fig. 14 box plots of the x and y error per target, and the iterations histogram."""
-    errors = {t: g["final_error"][:][g["done"][:] & ~g["failed"][:]] for t, g in h5["trials"].items()}
-    errors = {t: e[np.isfinite(e).all(axis=1)] for t, e in errors.items()}
-    errors = {t: e for t, e in errors.items() if len(e)}
-    if not errors:
-        return []
-    profile = h5["trials"].attrs.get("profile", "")
-    paths = [figures.save(figures.error_boxplots([(f"{name} ({profile})", errors)]), out_dir / "trials_error_boxplot.png")]
-    iterations = {t: g["iterations"][:][g["iterations"][:] >= 0] for t, g in h5["trials"].items()}
-    paths.append(figures.save(figures.iterations_histogram(iterations, f"{name}: control iterations per trial"),
-                              out_dir / "trials_iterations.png"))
-    return paths
-
-
-def resume_simulation(run_dir: Path, reporter: Reporter | None = None, execution: Execution = Execution()) -> int:
-    """Finish the trials of an interrupted or partly failed run in place; returns how many ran."""
-    reporter = reporter or SilentReporter()
-    path = run_dir / "results.h5"
-    with h5py.File(path, "r") as h5:
-        config_yaml = h5.attrs["config_yaml"]
-        if "trials" not in h5 or "plan" not in h5:
-            raise ResumeError(f"{path}: nothing to resume: the run stopped before its trials; run simulate again")
-        plans = {name: dict(g.attrs) for name, g in h5["plan"].items()}
-        todo = sum(len(v) for v in results.pending_trials(h5).values())
-    cfg = parse_config(config_yaml, str(path))
-    scene, mesh, tissue = build_model(cfg)
-    tasks = []
-    for index, target in enumerate(scene.targets):
-        p = plans.get(target.name)
-        if p is not None and bool(p["feasible"]):
-            tasks.append(TargetTask(index, target.name, target.rest, np.asarray(p["desired"]),
-                                    np.asarray(p["strokes"]), str(p["side"]), np.asarray(p["direction"])))
-    out = results.reopen(path)
-    with out:
-        _trial_stage(out, cfg, tasks, reporter, execution)
-    return todo
-
-
-class ResumeError(ValueError):
-    """The run directory cannot be resumed."""
-
-
-def _forward_stage(cfg: Config, tissue: Tissue, out: results.ResultsFile, summary: RunSummary, reporter: Reporter) -> None:
+def _forward_stage(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary, reporter: Reporter) -> None:
     scene, mesh = tissue.scene, tissue.mesh
     probe = probe_targets(mesh, np.array([t.rest for t in scene.targets]).reshape(-1, 2))
     solver = EquilibriumSolver.from_config(tissue, cfg.solver)
@@ -275,21 +263,21 @@ def _forward_stage(cfg: Config, tissue: Tissue, out: results.ResultsFile, summar
             raise SolverError(summary.failure, exc.result) from None
         summary.forward[case.name] = result
         targets_now = target_positions(probe, result.x)
-        results.write_forward(
-            out, case.name, {c.name: float(s) for c, s in zip(scene.cups, strokes)}, result, mesh.nodes,
-            {t.name: p for t, p in zip(scene.targets, targets_now)},
-        )
-        out.flush()
+        targets = {t.name: p for t, p in zip(scene.targets, targets_now)}
+        figure = _forward_figure_inputs(cfg.name, tissue, case.name, strokes, result, targets)
+        path = sink.forward_case(ForwardCase(case.name, {c.name: float(s) for c, s in zip(scene.cups, strokes)},
+                                             result, mesh.nodes, targets, figure))
         note = "" if result.message.startswith("converged") else f" ({result.message})"
         reporter.info(
             f"forward {case.name}: {result.solver} {result.iterations} iterations, "
             f"residual {result.residual:.2e}, {result.time_s * 1e3:.1f} ms{note}"
         )
-        summary.figures.append(_forward_figure(out.path.parent, cfg.name, tissue, case.name, strokes, result, targets_now))
+        if path is not None:
+            summary.figures.append(path)
         advance(1)
 
 
-def _plan_stage(cfg: Config, tissue: Tissue, out: results.ResultsFile, reporter: Reporter) -> list[NeedlePlan]:
+def _plan_stage(cfg: Config, tissue: Tissue, sink: RunSink, reporter: Reporter) -> list[NeedlePlan]:
     """Plan every target's insertion; the plan's desired position becomes the target's."""
     scene = tissue.scene
     robot_check = robot_joint_check(cfg)
@@ -299,10 +287,7 @@ def _plan_stage(cfg: Config, tissue: Tissue, out: results.ResultsFile, reporter:
     for target in scene.targets:
         plan = plan_target(tissue, scene, target, cfg.needle, robot_check=robot_check, cache=cache)
         plans.append(plan)
-        source = "config" if target.desired is not None else "planner"
-        results.write_target(out, target.name, target.rest, plan.desired, source)
-        results.write_plan(out, plan, plan.robot_note, plan.robot_ok)
-        out.flush()
+        sink.plan(target, plan, "config" if target.desired is not None else "planner")
         how = (f"strokes {_fmt(plan.strokes)} mm" if plan.manipulated else "no manipulation needed")
         if plan.feasible and not plan.robot_ok:
             how += f"; ROBOT: {plan.robot_note}"
@@ -315,7 +300,7 @@ def _plan_stage(cfg: Config, tissue: Tissue, out: results.ResultsFile, reporter:
 
 
 def robot_joint_check(cfg: Config):
-    """The planner's hook: joint values of the puncture module for an insertion (MODEL.md §11)."""
+    """The planner's hook: joint values of the puncture module for an insertion (docs/model.md §11)."""
     robot = RobotModel.from_config(cfg.robot)
     origin = np.asarray(cfg.robot.layer_origin_mm, float)
     yaw = float(np.deg2rad(cfg.robot.layer_yaw_deg))
@@ -335,11 +320,12 @@ def _fmt(values) -> str:
     return ", ".join(f"{v:+.2f}" for v in np.atleast_1d(values))
 
 
-def _forward_figure(out_dir, name, tissue, case, strokes, result, targets_now) -> Path:
+def _forward_figure_inputs(name, tissue, case, strokes, result, targets_now: dict) -> dict:
+    """Keyword arguments of `output.figures.forward_case_figure` for one forward case."""
     mesh, scene = tissue.mesh, tissue.scene
     loop = boundary_loop(mesh)
     obstacles = embed_outlines(mesh, [o.outline for o in scene.obstacles])
-    fig = figures.forward_case_figure(
+    return dict(
         title=f"{name} — forward case {case}: " + ", ".join(f"{c.name} {s:+.1f} mm" for c, s in zip(scene.cups, strokes)),
         rest=mesh.nodes,
         deformed=result.x,
@@ -349,9 +335,7 @@ def _forward_figure(out_dir, name, tissue, case, strokes, result, targets_now) -
         obstacles_rest=[(o.name, o.outline) for o in scene.obstacles],
         obstacles_deformed=deformed_outlines(obstacles, result.x),
         targets_rest={t.name: t.rest for t in scene.targets},
-        targets_deformed={t.name: p for t, p in zip(scene.targets, targets_now)},
+        targets_deformed=dict(targets_now),
         cup_nodes=list(tissue.cup_nodes),
         fixed_nodes=tissue.fixed_nodes,
     )
-    return figures.save(fig, out_dir / f"forward_{case}.png")
-

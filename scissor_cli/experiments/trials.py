@@ -1,4 +1,4 @@
-"""Trials: many closed-loop manipulations per target under drawn error sources (MODEL.md §10).
+"""Trials: many closed-loop manipulations per target under drawn error sources (docs/model.md §10).
 
 A trial is a pure function of (resolved config text, target task, trial
 index): the worker rebuilds the same mesh and model from the config text,
@@ -12,18 +12,17 @@ from __future__ import annotations
 
 import hashlib
 import time
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from typing import Iterator, Optional
 
 import numpy as np
 
-from scissor_cli import runtime
 from scissor_cli import control
 from scissor_cli.scene.camera import Camera
 from scissor_cli.config import parse_config
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 from scissor_cli.planning.corridor import corridor_radius
+from scissor_cli.experiments.pool import run_pool
 from scissor_cli.experiments.profiles import ErrorModel, draw_trial, error_model
 from scissor_cli.mechanics.tissue import build_model
 
@@ -43,6 +42,9 @@ class TargetTask:
 
 @dataclass
 class TrialOutcome:
+    """One finished trial. A crashed one (`ok` False) carries the finite fill values of
+    docs/contract.md#resultsh5: zeros, `iterations` −1 and no history."""
+
     target_index: int
     trial: int
     ok: bool
@@ -123,16 +125,20 @@ def _context(config_yaml: str) -> TrialContext:
 
 
 def run_trial(config_yaml: str, task: TargetTask, trial: int) -> TrialOutcome:
-    """One trial, in whatever process runs it; a failure is an outcome, not an exception."""
+    """One trial, in whatever process runs it; a failure is an outcome, not an exception.
+
+    A crashed trial's numbers are the fill values (no NaN): its `failed`
+    mask in results.h5 says they mean nothing, and `--resume` re-runs it.
+    """
     t0 = time.perf_counter()
     try:
         return _context(config_yaml).run(task, trial)
     except Exception as exc:  # noqa: BLE001 - a crashed trial is recorded and the run goes on
         return TrialOutcome(
             target_index=task.index, trial=trial, ok=False, message=f"{type(exc).__name__}: {exc}",
-            final_error=np.full(2, np.nan), iterations=-1, time_s=time.perf_counter() - t0,
-            corridor_clear=False, clearance_mm=float("nan"), stop_reason="solver_failed",
-            correctable_mm=float("nan"), uncorrectable_mm=float("nan"), history_columns=[], history=np.zeros((0, 0)),
+            final_error=np.zeros(2), iterations=-1, time_s=time.perf_counter() - t0,
+            corridor_clear=False, clearance_mm=0.0, stop_reason="solver_failed",
+            correctable_mm=0.0, uncorrectable_mm=0.0, history_columns=[], history=np.zeros((0, 0)),
         )
 
 
@@ -154,8 +160,10 @@ def execute(
     """Run trials and yield outcomes as they finish (order not guaranteed).
 
     jobs 1 runs in this process; a local pool sends small batches so each
-    worker builds its model once; "dask" submits batches to the
-    dask.distributed scheduler at `scheduler`.
+    worker builds its model once, and its workers die with the run
+    (`pool.run_pool`); "dask" submits batches to the dask.distributed
+    scheduler at `scheduler`. Close the generator (or let an exception leave
+    the loop over it) to stop the workers at once.
     """
     if not work:
         return
@@ -168,18 +176,7 @@ def execute(
         return
     # Batches amortise the per-task overhead while keeping both workers busy to the end.
     size = max(1, min(8, len(work) // (4 * jobs)))
-    with ProcessPoolExecutor(max_workers=jobs, initializer=runtime.configure) as pool:
-        pending = {pool.submit(_run_batch, config_yaml, batch) for batch in _batches(work, size)}
-        try:
-            while pending:
-                done, pending = wait(pending, return_when=FIRST_COMPLETED)
-                for future in done:
-                    yield from future.result()
-        except BaseException:
-            for future in pending:
-                future.cancel()
-            pool.shutdown(wait=False, cancel_futures=True)
-            raise
+    yield from run_pool(_run_batch, [(config_yaml, batch) for batch in _batches(work, size)], jobs)
 
 
 def _execute_dask(config_yaml: str, work, scheduler: Optional[str], jobs: int) -> Iterator[TrialOutcome]:

@@ -1,35 +1,102 @@
-"""results.h5 as CONTRACT.md lays it out.
+"""results.h5 as docs/contract.md#resultsh5 lays it out.
 
-The file is written under a temporary name and renamed when closed, so a
-reader never sees half a file. A run that fails part-way still renames it,
-with `status = "failed"` and the reason, keeping everything it finished.
+The file is written under a temporary name (`results.h5.tmp`) and renamed
+when closed, so a reader never sees half a file. A run that fails part-way
+still renames it, with `status = "failed"` and the reason, keeping
+everything it finished.
+
+**No non-finite number is written.** `ResultsFile` is the only way into
+the file and refuses any NaN or infinity with `NonFiniteError`, naming the
+dataset or attribute. A value that is absent by definition is stored as a
+finite fill value, and a mask tells it apart (docs/contract.md#no-nan-fill-values):
+
+* trials (`/trials/<target>/…`): a trial not run yet, or crashed, holds
+  `FILL` (0.0) in its float arrays, `iterations` −1 and `corridor_clear`
+  false; `done` and `failed` say which trials hold real numbers;
+* clearances (`clearance_mm`, `closed_clearance_mm`): `FILL` where the
+  clearance is undefined: no obstacle to clear (+inf in docs/model.md §7),
+  or no corridor (no plan, or no entry through its side); `corridor_clear`
+  is the verdict;
+* `/plan/<target>`: `entry`, `direction`, `depth_mm` are `FILL` when no
+  insertion was found at all (`side` is then ""); `joints` are `FILL` where
+  inverse kinematics gave none (`robot_reachable` false);
+* `/study/<column>` and `/selection/admm_mm`: `MISSING` (−1.0) for a
+  number that was not measured (Newton has no tolerance, a failed solve no
+  time or error, a tolerance ADMM did not reach). Every genuine value there
+  is ≥ 0. `read_study` turns them back into NaN.
+
+Storing a trial follows a commit order so a kill at any moment leaves the
+file consistent: its `done` flag is cleared, its numbers and history are
+written and flushed, and only then is `done` set and flushed again.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
 import os
+import shutil
 from pathlib import Path
+from typing import Any, Mapping
 
 import h5py
 import numpy as np
 
 from scissor_cli import __version__
+from scissor_cli.experiments.sink import NonFiniteError
+
+FILL = 0.0
+MISSING = -1.0
+TRIAL_FLOATS = ("final_error", "time_s", "clearance_mm", "correctable_mm", "uncorrectable_mm")
+
+
+def check_finite(where: str, value: Any) -> None:
+    """Raise NonFiniteError if `value` holds a float that is NaN or infinite."""
+    if isinstance(value, (str, bytes, bool)) or value is None:
+        return
+    try:
+        a = np.asarray(value)
+    except (TypeError, ValueError):
+        return
+    if a.dtype.kind in "fc" and not np.all(np.isfinite(a)):
+        bad = a[~np.isfinite(a)] if a.ndim else a
+        count = "" if a.ndim == 0 else f" ({int(np.size(bad))} of {a.size} entries)"
+        raise NonFiniteError(f"refusing to write a non-finite value to {where}: {np.ravel(bad)[0].item()}{count}")
+
+
+def filled(value: Any, fill: float = FILL) -> Any:
+    """`value` with its non-finite entries replaced by `fill`: for numbers that are absent by definition."""
+    a = np.asarray(value, float)
+    out = np.where(np.isfinite(a), a, fill)
+    return float(out) if out.ndim == 0 else out
 
 
 class ResultsFile:
-    """An open results.h5 being written; use as a context manager."""
+    """An open results.h5 being written (as results.h5.tmp); use as a context manager."""
 
-    def __init__(self, path: Path | str, config_yaml: str, seed: int):
+    def __init__(self, path: Path | str, h5: h5py.File):
         self.path = Path(path)
-        self.tmp = self.path.with_name(self.path.name + ".tmp")
-        self.h5 = h5py.File(self.tmp, "w")
-        attrs = self.h5.attrs
-        attrs["scissor_version"] = __version__
-        attrs["created"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-        attrs["config_yaml"] = config_yaml
-        attrs["seed"] = int(seed)
-        attrs["status"] = "running"
+        self.tmp = temporary(self.path)
+        self.h5 = h5
+
+    @classmethod
+    def create(cls, path: Path | str, config_yaml: str, seed: int) -> "ResultsFile":
+        """A new file with the provenance attributes and `status = "running"`."""
+        path = Path(path)
+        obj = cls(path, h5py.File(temporary(path), "w"))
+        obj.attrs("/", {
+            "scissor_version": __version__,
+            "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "config_yaml": config_yaml, "seed": int(seed), "status": "running",
+        })
+        return obj
+
+    @classmethod
+    def continue_temporary(cls, path: Path | str) -> "ResultsFile":
+        """Keep writing the existing results.h5.tmp of `path` (a killed run's)."""
+        path = Path(path)
+        obj = cls(path, h5py.File(temporary(path), "r+"))
+        obj.attrs("/", {"status": "running"})
+        return obj
 
     def __enter__(self) -> "ResultsFile":
         return self
@@ -38,7 +105,7 @@ class ResultsFile:
         if exc is None:
             self.close("complete")
         else:
-            self.close("failed", f"{type(exc).__name__}: {exc}" if not isinstance(exc, KeyboardInterrupt) else "interrupted")
+            self.close("failed", failure_reason(exc))
 
     def close(self, status: str, reason: str = "") -> None:
         if not self.h5.id.valid:
@@ -50,14 +117,24 @@ class ResultsFile:
         os.replace(self.tmp, self.path)
 
     def dataset(self, path: str, data, units: str | None = None, **attrs) -> h5py.Dataset:
+        check_finite(f"/{path}", data)
         if path in self.h5:
             del self.h5[path]
         ds = self.h5.create_dataset(path, data=data)
-        if units is not None:
-            ds.attrs["units"] = units
-        for key, value in attrs.items():
-            ds.attrs[key] = value
+        self.attrs(path, ({"units": units} if units is not None else {}) | attrs)
         return ds
+
+    def attrs(self, path: str, values: Mapping[str, Any]) -> None:
+        """Set attributes of the group or dataset at `path` (a group is created if missing)."""
+        for key, value in values.items():
+            check_finite(f"{'/' + path.strip('/') if path.strip('/') else ''}@{key}", value)
+        target = self.h5[path] if path in self.h5 else self.h5.require_group(path)
+        target.attrs.update(values)
+
+    def put(self, path: str, index: int, value) -> None:
+        """Write one entry of an existing dataset."""
+        check_finite(f"/{path}[{index}]", value)
+        self.h5[path][index] = value
 
     def group(self, path: str) -> h5py.Group:
         return self.h5.require_group(path)
@@ -66,7 +143,25 @@ class ResultsFile:
         self.h5.flush()
 
 
-def write_model(out: ResultsFile, tissue, material_cfg) -> None:
+def temporary(path: Path) -> Path:
+    """Where results.h5 is written until it is closed."""
+    return path.with_name(path.name + ".tmp")
+
+
+def failure_reason(exc: BaseException) -> str:
+    if isinstance(exc, KeyboardInterrupt):  # Ctrl-C: "interrupted"; a termination signal: "interrupted (SIGTERM)"
+        return "interrupted" + (f" ({exc.args[0]})" if exc.args and exc.args[0] not in ("", "SIGINT") else "")
+    return f"{type(exc).__name__}: {exc}"
+
+
+def reopen(path: Path | str) -> ResultsFile:
+    """Continue writing a closed results.h5 (for --resume): copied to the temporary name first."""
+    path = Path(path)
+    shutil.copyfile(path, temporary(path))
+    return ResultsFile.continue_temporary(path)
+
+
+def write_model(out: ResultsFile, tissue) -> None:
     """/mesh, /material, /cups: what the run was computed on."""
     mesh = tissue.mesh
     out.dataset("mesh/nodes", mesh.nodes, "mm")
@@ -76,57 +171,37 @@ def write_model(out: ResultsFile, tissue, material_cfg) -> None:
     out.dataset("mesh/element_E_kPa", tissue.element_E_kPa, "kPa")
     out.dataset("mesh/element_obstacle", mesh.element_obstacle.astype(np.int64), description="obstacle index, -1 tissue")
     angles = mesh.angles_deg()
-    out.group("mesh").attrs.update(
-        {"n_nodes": mesh.n_nodes, "n_elements": mesh.n_elements, "min_angle_deg": float(angles.min())}
-    )
+    out.attrs("mesh", {"n_nodes": mesh.n_nodes, "n_elements": mesh.n_elements, "min_angle_deg": float(angles.min())})
     m = tissue.scene.material
-    out.group("material").attrs.update(
-        {
-            "model": tissue.params.model,
-            "E_kPa": m.E_kPa,
-            "nu": m.nu,
-            "eta_kPa": m.eta_kPa,
-            "thickness_mm": tissue.ops.thickness_mm,
-            "density_kg_per_mm3": m.density_kg_per_mm3,
-            "fiber_tension_only": bool(m.tension_only),
-            "fiber_angle_rad": m.fiber_angle_rad,
-        }
-    )
+    out.attrs("material", {
+        "model": tissue.params.model, "E_kPa": m.E_kPa, "nu": m.nu, "eta_kPa": m.eta_kPa,
+        "thickness_mm": tissue.ops.thickness_mm, "density_kg_per_mm3": m.density_kg_per_mm3,
+        "fiber_tension_only": bool(m.tension_only), "fiber_angle_rad": m.fiber_angle_rad,
+    })
     for c, cup in enumerate(tissue.scene.cups):
         out.dataset(f"cups/{cup.name}/nodes", tissue.cup_nodes[c].astype(np.int64))
-        out.group(f"cups/{cup.name}").attrs.update(
-            {
-                "axis": cup.axis,
-                "contact": cup.contact,
-                "radius_mm": cup.radius_mm,
-                "stroke_range_mm": [cup.stroke_min_mm, cup.stroke_max_mm],
-                "speed_mm_per_s": cup.speed_mm_per_s,
-            }
-        )
+        out.attrs(f"cups/{cup.name}", {
+            "axis": cup.axis, "contact": cup.contact, "radius_mm": cup.radius_mm,
+            "stroke_range_mm": [cup.stroke_min_mm, cup.stroke_max_mm], "speed_mm_per_s": cup.speed_mm_per_s,
+        })
 
 
 def write_target(out: ResultsFile, name: str, rest: np.ndarray, desired: np.ndarray, source: str) -> None:
-    g = out.group(f"targets/{name}")
-    g.attrs.update({"rest": np.asarray(rest, float), "desired": np.asarray(desired, float), "desired_source": source, "units": "mm"})
+    out.attrs(f"targets/{name}", {"rest": np.asarray(rest, float), "desired": np.asarray(desired, float),
+                                  "desired_source": source, "units": "mm"})
 
 
-def write_forward(out: ResultsFile, case: str, strokes: dict[str, float], result, rest: np.ndarray, targets: dict[str, np.ndarray]) -> None:
-    g = out.group(f"forward/{case}")
-    out.group(f"forward/{case}/strokes").attrs.update({k: float(v) for k, v in strokes.items()})
-    out.group(f"forward/{case}/strokes").attrs["units"] = "mm"
+def write_forward(out: ResultsFile, case: str, strokes: dict[str, float], result, rest: np.ndarray,
+                  targets: dict[str, np.ndarray]) -> None:
+    out.group(f"forward/{case}")
+    out.attrs(f"forward/{case}/strokes", {k: float(v) for k, v in strokes.items()} | {"units": "mm"})
     out.dataset(f"forward/{case}/displacement", result.x - rest, "mm")
     for name, pos in targets.items():
         out.dataset(f"forward/{case}/targets/{name}", np.asarray(pos, float), "mm")
-    g.attrs.update(
-        {
-            "solver": result.solver,
-            "iterations": int(result.iterations),
-            "time_s": float(result.time_s),
-            "residual": float(result.residual),
-            "converged": bool(result.converged),
-            "message": result.message,
-        }
-    )
+    out.attrs(f"forward/{case}", {
+        "solver": result.solver, "iterations": int(result.iterations), "time_s": float(result.time_s),
+        "residual": float(result.residual), "converged": bool(result.converged), "message": result.message,
+    })
 
 
 def write_jacobian(out: ResultsFile, name: str, J: np.ndarray, cup_names: list[str]) -> None:
@@ -134,42 +209,63 @@ def write_jacobian(out: ResultsFile, name: str, J: np.ndarray, cup_names: list[s
     out.dataset(f"jacobian/{name}", np.asarray(J, float), "mm/mm", columns=cup_names, rows=["x", "y"])
 
 
+def clearance(value: float) -> float:
+    """A clearance (mm) as stored: `FILL` where it is undefined (no obstacles: +inf; no corridor: NaN)."""
+    return filled(value)
+
+
 def write_plan(out: ResultsFile, plan, joints_note: str, robot_reachable: bool) -> None:
-    """/plan/<target>: the needle plan (MODEL.md §7, §11) as attributes."""
-    g = out.group(f"plan/{plan.target}")
-    g.attrs.update(
-        {
-            "entry": np.asarray(plan.entry, float),
-            "direction": np.asarray(plan.direction, float),
-            "depth_mm": float(plan.depth_mm),
-            "clearance_mm": float(plan.clearance_mm),
-            "joints": np.asarray(plan.joints, float),
-            "joints_units": "d1, d2, d3 mm; theta4 rad; d5 mm",
-            "joints_note": joints_note,
-            "robot_reachable": bool(robot_reachable),
-            "feasible": bool(plan.feasible),
-            "reason": plan.reason,
-            "desired": np.asarray(plan.desired, float),
-            "strokes": np.asarray(plan.strokes, float),
-            "side": plan.side,
-            "desired_error_mm": float(plan.desired_error_mm),
-        }
-    )
+    """/plan/<target>: the needle plan (docs/model.md §7, §11) as attributes, absent values filled."""
+    no_insertion = not plan.side
+    geometry = (lambda v: filled(v)) if no_insertion else (lambda v: np.asarray(v, float))
+    joints = np.asarray(plan.joints, float)
+    out.attrs(f"plan/{plan.target}", {
+        "entry": geometry(plan.entry),
+        "direction": geometry(plan.direction),
+        "depth_mm": float(geometry(plan.depth_mm)),
+        "clearance_mm": clearance(plan.clearance_mm),
+        "joints": joints if robot_reachable else filled(joints),
+        "joints_units": "d1, d2, d3 mm; theta4 rad; d5 mm",
+        "joints_note": joints_note,
+        "robot_reachable": bool(robot_reachable),
+        "feasible": bool(plan.feasible),
+        "reason": plan.reason,
+        "desired": np.asarray(plan.desired, float),
+        "strokes": np.asarray(plan.strokes, float),
+        "side": plan.side,
+        "desired_error_mm": float(plan.desired_error_mm),
+    })
+
+
+def write_manipulation(out: ResultsFile, target: str, closed, opened) -> None:
+    """/manipulation/<target>: the nominal closed loop against the open-loop baseline, and its history."""
+    out.attrs(f"manipulation/{target}", {
+        "closed_final_error": closed.final_error, "closed_iterations": closed.iterations,
+        "closed_stop_reason": closed.stop_reason, "closed_corridor_clear": bool(closed.corridor_clear),
+        "closed_clearance_mm": clearance(closed.clearance_mm), "open_final_error": opened.final_error,
+        "uncorrectable_mm": closed.uncorrectable_error_mm, "units": "mm",
+    })
+    names, table = closed.history_table()
+    out.dataset(f"manipulation/{target}/history", table, "mm (time_s: s)", columns=names)
+
+
+TRIALS_FILL_NOTE = ("not done or crashed (see done, failed): final_error, time_s, clearance_mm, correctable_mm, "
+                    "uncorrectable_mm 0, iterations -1; clearance_mm is also 0 where undefined (no obstacles, "
+                    "no corridor)")
 
 
 def allocate_trials(out: ResultsFile, names: list[str], count: int, attrs: dict) -> None:
-    """/trials/<target>/...: arrays for `count` trials, filled as trials finish (done marks which)."""
-    g = out.group("trials")
-    g.attrs.update(attrs)
+    """/trials/<target>/...: arrays for `count` trials holding the fill values, filled as trials finish."""
+    out.attrs("trials", attrs | {"fill_values": TRIALS_FILL_NOTE})
     for name in names:
         t = f"trials/{name}"
-        out.dataset(f"{t}/final_error", np.full((count, 2), np.nan), "mm", description="true minus desired, x and y")
+        out.dataset(f"{t}/final_error", np.full((count, 2), FILL), "mm", description="true minus desired, x and y")
         out.dataset(f"{t}/iterations", np.full(count, -1, np.int64))
-        out.dataset(f"{t}/time_s", np.full(count, np.nan), "s", description="wall time of the loop")
+        out.dataset(f"{t}/time_s", np.full(count, FILL), "s", description="wall time of the loop")
         out.dataset(f"{t}/corridor_clear", np.zeros(count, bool))
-        out.dataset(f"{t}/clearance_mm", np.full(count, np.nan), "mm")
-        out.dataset(f"{t}/correctable_mm", np.full(count, np.nan), "mm")
-        out.dataset(f"{t}/uncorrectable_mm", np.full(count, np.nan), "mm")
+        out.dataset(f"{t}/clearance_mm", np.full(count, FILL), "mm")
+        out.dataset(f"{t}/correctable_mm", np.full(count, FILL), "mm")
+        out.dataset(f"{t}/uncorrectable_mm", np.full(count, FILL), "mm")
         out.dataset(f"{t}/stop_reason", np.array([""] * count, dtype=h5py.string_dtype()))
         out.dataset(f"{t}/done", np.zeros(count, bool), description="trial finished (successfully or not)")
         out.dataset(f"{t}/failed", np.zeros(count, bool), description="trial crashed; see message")
@@ -177,72 +273,99 @@ def allocate_trials(out: ResultsFile, names: list[str], count: int, attrs: dict)
         out.group(f"{t}/history")
 
 
-def write_trial(out: ResultsFile, name: str, o) -> None:
-    """Store one finished trial (a `trials.TrialOutcome`) in its target's arrays."""
-    t, k = f"trials/{name}", o.trial
-    h5 = out.h5
-    h5[f"{t}/final_error"][k] = o.final_error
-    h5[f"{t}/iterations"][k] = o.iterations
-    h5[f"{t}/time_s"][k] = o.time_s
-    h5[f"{t}/corridor_clear"][k] = o.corridor_clear
-    h5[f"{t}/clearance_mm"][k] = o.clearance_mm
-    h5[f"{t}/correctable_mm"][k] = o.correctable_mm
-    h5[f"{t}/uncorrectable_mm"][k] = o.uncorrectable_mm
-    h5[f"{t}/stop_reason"][k] = o.stop_reason
-    h5[f"{t}/message"][k] = o.message
-    h5[f"{t}/failed"][k] = not o.ok
-    if o.ok:
-        ds = out.dataset(f"{t}/history/{k}", o.history, "mm (time_s: s)", columns=o.history_columns)
-        ds.attrs["stop_reason"] = o.stop_reason
-    h5[f"{t}/done"][k] = True
+def mark_without_plan(out: ResultsFile, name: str, reason: str) -> None:
+    """A target with no plan has nothing to manipulate towards: its trials are done, with stop_reason no_plan."""
+    t = f"trials/{name}"
+    out.h5[f"{t}/done"][:] = True
+    out.h5[f"{t}/stop_reason"][:] = "no_plan"
+    out.h5[f"{t}/message"][:] = f"no plan: {reason}"
+
+
+def trial_record(name: str, o) -> dict:
+    """One finished trial (a `trials.TrialOutcome`) as the plain values stored, checked finite.
+
+    A crashed trial's numbers are replaced by the fill values; the history
+    is stored only for a trial that ran to its end.
+    """
+    ok = bool(o.ok)
+    rec = {
+        "target": name, "trial": int(o.trial), "ok": ok, "message": str(o.message), "stop_reason": str(o.stop_reason),
+        "final_error": np.asarray(o.final_error, float) if ok else np.zeros(2),
+        "iterations": int(o.iterations) if ok else -1,
+        "time_s": float(o.time_s) if np.isfinite(o.time_s) else FILL,
+        "corridor_clear": bool(o.corridor_clear) and ok,
+        "clearance_mm": clearance(o.clearance_mm) if ok else FILL,
+        "correctable_mm": float(o.correctable_mm) if ok else FILL,
+        "uncorrectable_mm": float(o.uncorrectable_mm) if ok else FILL,
+        "history_columns": [str(c) for c in o.history_columns] if ok else [],
+        "history": np.asarray(o.history, float) if ok else np.zeros((0, 0)),
+    }
+    where = f"/trials/{name}/{{}} (trial {rec['trial']})"
+    for key in TRIAL_FLOATS:
+        check_finite(where.format(key), rec[key])
+    check_finite(where.format(f"history/{rec['trial']}"), rec["history"])
+    return rec
+
+
+def write_trial(out: ResultsFile, rec: dict) -> None:
+    """Store one trial record (`trial_record`) with the commit order of the module docstring."""
+    t, k = f"trials/{rec['target']}", rec["trial"]
+    if out.h5[f"{t}/done"][k]:  # a crashed trial run again: not done until the new numbers are all in
+        out.put(f"{t}/done", k, False)
+        out.flush()
+    for key in TRIAL_FLOATS + ("iterations", "corridor_clear", "stop_reason", "message"):
+        out.put(f"{t}/{key}", k, rec[key])
+    out.put(f"{t}/failed", k, not rec["ok"])
+    if rec["ok"]:
+        out.dataset(f"{t}/history/{k}", rec["history"], "mm (time_s: s)", columns=rec["history_columns"],
+                    stop_reason=rec["stop_reason"])
+    out.flush()
+    out.put(f"{t}/done", k, True)
+    out.flush()
 
 
 def pending_trials(h5: h5py.File) -> dict[str, np.ndarray]:
     """Trials per target still to run: not done, or done but failed."""
     if "trials" not in h5:
         return {}
-    return {
-        name: np.flatnonzero(~g["done"][:] | g["failed"][:])
-        for name, g in h5["trials"].items()
-    }
-
-
-def reopen(path: Path | str) -> ResultsFile:
-    """Continue writing an existing results.h5 (for --resume): copied to the temporary name first."""
-    import shutil
-
-    path = Path(path)
-    obj = ResultsFile.__new__(ResultsFile)
-    obj.path = path
-    obj.tmp = path.with_name(path.name + ".tmp")
-    shutil.copyfile(path, obj.tmp)
-    obj.h5 = h5py.File(obj.tmp, "r+")
-    obj.h5.attrs["status"] = "running"
-    return obj
+    return {name: np.flatnonzero(~g["done"][:] | g["failed"][:]) for name, g in h5["trials"].items()}
 
 
 def write_study(out: ResultsFile, columns: dict[str, np.ndarray], reference: dict, notes: list[str], seconds: float) -> None:
-    """/study: one row per (case, mesh level, kind, model, solver, tolerance), as column datasets."""
+    """/study: one row per (case, mesh level, kind, model, solver, tolerance), as column datasets.
+
+    A number that was not measured (NaN in the rows) is stored as `MISSING`.
+    """
     units = {"level": "1", "tolerance": "1", "time_s": "s", "error_discrete_mm": "mm", "error_reference_mm": "mm"}
     for name, values in columns.items():
-        data = values if values.dtype.kind != "U" else np.array(values.tolist(), dtype=h5py.string_dtype())
+        if values.dtype.kind == "U":
+            data = np.array(values.tolist(), dtype=h5py.string_dtype())
+        elif values.dtype.kind == "f":
+            data = np.where(np.isnan(values), MISSING, values)
+        else:
+            data = values
         out.dataset(f"study/{name}", data, units.get(name))
-    out.group("study").attrs.update(
-        {f"reference_{k}": v for k, v in reference.items()} | {"notes": "\n".join(notes), "wall_time_s": seconds}
-    )
+    out.attrs("study", {f"reference_{k}": v for k, v in reference.items()}
+              | {"notes": "\n".join(notes), "wall_time_s": seconds, "missing_value": "-1: not measured"})
 
 
 def read_study(h5: h5py.File) -> dict[str, np.ndarray] | None:
+    """The /study columns, with the numbers that were not measured as NaN again."""
     if "study" not in h5:
         return None
-    return {name: ds[:] for name, ds in h5["study"].items()}
+    out = {}
+    for name, ds in h5["study"].items():
+        data = ds[:]
+        if data.dtype.kind == "f":
+            data = np.where(data == MISSING, np.nan, data)
+        out[name] = data
+    return out
 
 
 def write_selection(out: ResultsFile, sel) -> None:
-    """/selection: what `solver.accuracy_mm` picked, why, and the calibration behind it."""
+    """/selection: what `solver.accuracy_mm` picked, why, and the calibration behind it (docs/model.md §9)."""
     p = sel.pick
-    g = out.group("selection")
-    g.attrs.update({
+    out.attrs("selection", {
         "accuracy_mm": sel.accuracy_mm, "meets_budget": sel.meets_budget, "explanation": sel.explain(),
         "level": p.level, "model": p.model, "solver": p.solver, "tolerance": p.tolerance, "n_elements": p.n_elements,
         "predicted_error_mm": p.predicted_error_mm, "predicted_time_s": p.predicted_time_s,
@@ -252,4 +375,5 @@ def write_selection(out: ResultsFile, sel) -> None:
     out.dataset("selection/discretisation_mm", np.array([sel.discretisation_mm[L] for L in levels]), "mm", levels=levels)
     out.dataset("selection/model_mm", np.array(list(sel.model_mm.values())), "mm", models=list(sel.model_mm))
     tols = sorted(sel.solver_mm)
-    out.dataset("selection/admm_mm", np.array([sel.solver_mm[t] for t in tols]), "mm", tolerances=tols)
+    out.dataset("selection/admm_mm", filled([sel.solver_mm[t] for t in tols], MISSING), "mm", tolerances=tols,
+                missing_value="-1: ADMM did not reach this tolerance")

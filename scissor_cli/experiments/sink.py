@@ -1,0 +1,145 @@
+"""What the stages of `scissor simulate` hand over, and to whom: the run sink.
+
+The pipeline (`experiments.simulate`) computes; a sink keeps. The pipeline
+calls the sink once per product of a stage, in the order of the stages, and
+never reads a file or draws a figure itself. `output` implements the sink
+with results.h5 and the figures (docs/contract.md#resultsh5,
+docs/contract.md#figures); `cli.py` wires the two. Tests may pass any
+object with these methods.
+
+A sink's promises:
+
+* **Stored as given.** Every number it is handed is kept exactly (the
+  golden test compares results to 1e-9; trials are bit for bit).
+* **No non-finite number is kept.** A value that is absent by definition
+  (no obstacle to clear, no plan, a trial not run yet) is stored as the
+  finite fill value the contract documents, beside the mask that says so.
+  Any other NaN or infinity is refused with `NonFiniteError`, naming where
+  it was to go; the run then fails (exit 1) keeping what it finished.
+* **A stored trial survives any kill.** `trial` returns only once the
+  trial is durable: a later SIGKILL, even in the middle of storing the next
+  trial, cannot lose it (docs/contract.md#resume).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Optional, Protocol
+
+import numpy as np
+
+if TYPE_CHECKING:  # the types the stages produce; annotations only
+    from scissor_cli.control.corridor import Corridor
+    from scissor_cli.control.result import LoopResult
+    from scissor_cli.experiments.selection import Selection
+    from scissor_cli.experiments.study import StudyResult
+    from scissor_cli.experiments.trials import TrialOutcome
+    from scissor_cli.mechanics.tissue import Tissue
+    from scissor_cli.planning.needle import NeedlePlan
+    from scissor_cli.scene.scene import Target
+    from scissor_cli.solvers.common import SolveResult
+
+
+class NonFiniteError(RuntimeError):
+    """A NaN or infinity was about to be stored; the message names the dataset (and trial) it was for."""
+
+
+class ResumeError(ValueError):
+    """The run directory cannot be resumed."""
+
+
+@dataclass(frozen=True)
+class ForwardCase:
+    """One solved forward case (docs/model.md §4) and the inputs of its figure."""
+
+    name: str
+    strokes: dict[str, float]  # mm per cup
+    result: "SolveResult"  # x (N, 2) mm, the solver's report
+    rest: np.ndarray  # (N, 2) mm
+    targets: dict[str, np.ndarray]  # deformed target positions (2,) mm
+    figure: dict  # keyword arguments of `output.figures.forward_case_figure`
+
+
+@dataclass(frozen=True)
+class Manipulation:
+    """The nominal closed loop of one target beside its open-loop baseline (docs/model.md §6, Fig. 11)."""
+
+    target: str
+    closed: "LoopResult"
+    opened: "LoopResult"
+    tissue: "Tissue"  # the truth the loop ran on (here the model itself)
+    target_rest: np.ndarray  # (2,) mm
+    corridor: Optional["Corridor"]  # the planned corridor to draw, None without one
+
+
+class RunSink(Protocol):
+    """Where the stages' products go. A context manager: leaving it ends the run.
+
+    On a normal exit the run is `complete`; on an exception it is `failed`
+    with the reason (`interrupted` for Ctrl-C or a termination signal).
+    """
+
+    location: Path  # the run directory, for messages
+    config_yaml: str  # the resolved config the run stores (what the trial workers rebuild the model from)
+
+    def __enter__(self) -> "RunSink": ...
+
+    def __exit__(self, exc_type, exc, tb) -> None: ...
+
+    def notes(self) -> list[str]:
+        """What the sink wants the user told (e.g. what a resume recovered or lost)."""
+
+    def model(self, tissue: "Tissue") -> None:
+        """The mesh, material and cups the run computes on."""
+
+    def selection(self, selection: "Selection") -> None:
+        """What `solver.accuracy_mm` picked (docs/model.md §9)."""
+
+    def forward_case(self, case: ForwardCase) -> Optional[Path]:
+        """One forward case and its figure; returns the figure's path."""
+
+    def jacobian(self, target: str, J: np.ndarray, cup_names: list[str]) -> None:
+        """J (2, C) mm/mm of one target at rest (docs/model.md §5)."""
+
+    def study(self, study: "StudyResult", seconds: float) -> None:
+        """The solver study's rows (docs/model.md §9)."""
+
+    def plan(self, target: "Target", plan: "NeedlePlan", desired_source: str) -> None:
+        """A target's definition and its needle plan (docs/model.md §7, §11)."""
+
+    def manipulation(self, manipulation: Manipulation) -> Optional[Path]:
+        """The nominal manipulation of one target and its figure; returns the figure's path."""
+
+    def allocate_trials(self, targets: list[str], count: int, attrs: dict, without_plan: dict[str, str]) -> None:
+        """Room for `count` trials per target; `without_plan` maps a target with no plan to the planner's reason."""
+
+    def pending_trials(self) -> dict[str, np.ndarray]:
+        """Trial indices per target still to run: not done, or done but crashed."""
+
+    def trial(self, target: str, outcome: "TrialOutcome") -> None:
+        """Store one finished trial durably (see the module docstring)."""
+
+    def trial_figures(self, title: str) -> list[Path]:
+        """(Re)draw the figures of the finished trials."""
+
+
+class SinkFactory(Protocol):
+    """Opens the sink of a new run once the config it runs is final (after the selection)."""
+
+    location: Path
+
+    def open(self, config_yaml: str, seed: int) -> RunSink: ...
+
+
+class ResumableSink(RunSink, Protocol):
+    """A run directory opened by `--resume`: the stored run, ready to take the rest of its trials.
+
+    `plans()` is None when the stored file was lost (a run killed in the
+    middle of writing it): the pipeline then redoes the stages before the
+    trials into this sink, which already holds every trial that had
+    finished, so none is computed twice.
+    """
+
+    def plans(self) -> Optional[dict[str, dict]]:
+        """The /plan/<target> attributes of the stored run, or None (see above)."""

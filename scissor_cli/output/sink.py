@@ -1,0 +1,257 @@
+"""The run sink of `scissor simulate`: results.h5, the trial journal and the figures of a run directory.
+
+`RunDirectory(out).open(...)` is the sink of a new run and
+`open_for_resume(run_dir)` the sink that finishes a stored one; both
+implement `experiments.sink.RunSink`, and `cli.py` hands them to the
+pipeline. What goes where is docs/contract.md#resultsh5 and #figures.
+
+How a run survives a kill (docs/contract.md#resume):
+
+* results.h5 is written as `results.h5.tmp` (default HDF5 format, readable
+  by any HDF5 ≥ 1.8), flushed after every stage and trial, each trial in the
+  commit order of `results.write_trial`;
+* each trial is first appended to `results.h5.journal` (`journal.py`),
+  which a kill can only cut at its last record;
+* `--resume` continues `results.h5.tmp` when a killed run left one and it
+  reads back whole; otherwise it falls back to `results.h5` (the state
+  before the last resume) and says what was lost; and if no HDF5 file can
+  be trusted it starts a fresh one, so the pipeline redoes the stages before
+  the trials. In every case it then restores from the journal each trial the
+  file lacks, so no finished trial is computed twice.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import h5py
+import numpy as np
+
+from scissor_cli.experiments.sink import ForwardCase, Manipulation, ResumeError
+from scissor_cli.experiments.study import rows_as_columns
+from scissor_cli.output.manipulation import manipulation_figure_inputs
+from scissor_cli.output import figures, journal, results
+from scissor_cli.output.results import ResultsFile, temporary
+
+
+class ResultsSink:
+    """A run directory being written: implements `experiments.sink.RunSink` (and `ResumableSink`)."""
+
+    def __init__(self, out: ResultsFile, *, trials_journal: Optional[journal.Journal] = None,
+                 replay: list[dict] = (), notes: list[str] = (), rebuilt: bool = False):
+        self.out = out
+        self.location = out.path.parent
+        self.config_yaml = str(out.h5.attrs["config_yaml"])
+        self._journal = trials_journal
+        self._replay = list(replay)
+        self._notes = list(notes)
+        self._rebuilt = rebuilt
+
+    # -- the run's life ----------------------------------------------------
+    def __enter__(self) -> "ResultsSink":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self.out.__exit__(exc_type, exc, tb)
+        if self._journal is not None:
+            if exc is None:  # every trial is in the renamed results.h5 now
+                self._journal.remove()
+            else:  # kept: --resume restores from it what the file may lack
+                self._journal.close()
+
+    def notes(self) -> list[str]:
+        return list(self._notes)
+
+    def plans(self) -> Optional[dict[str, dict]]:
+        if self._rebuilt:
+            return None
+        return {name: dict(g.attrs) for name, g in self.out.h5["plan"].items()}
+
+    # -- the stages --------------------------------------------------------
+    def model(self, tissue) -> None:
+        results.write_model(self.out, tissue)
+        self.out.flush()
+
+    def selection(self, selection) -> None:
+        results.write_selection(self.out, selection)
+        self.out.flush()
+
+    def forward_case(self, case: ForwardCase) -> Path:
+        results.write_forward(self.out, case.name, case.strokes, case.result, case.rest, case.targets)
+        self.out.flush()
+        return figures.save(figures.forward_case_figure(**case.figure), self.location / f"forward_{case.name}.png")
+
+    def jacobian(self, target: str, J: np.ndarray, cup_names: list[str]) -> None:
+        results.write_jacobian(self.out, target, J, cup_names)
+
+    def study(self, study, seconds: float) -> None:
+        results.write_study(self.out, rows_as_columns(study.rows), study.reference, study.notes, seconds)
+        self.out.flush()
+
+    def plan(self, target, plan, desired_source: str) -> None:
+        results.write_target(self.out, target.name, target.rest, plan.desired, desired_source)
+        results.write_plan(self.out, plan, plan.robot_note, plan.robot_ok)
+        self.out.flush()
+
+    def manipulation(self, m: Manipulation) -> Path:
+        results.write_manipulation(self.out, m.target, m.closed, m.opened)
+        self.out.flush()
+        inputs = manipulation_figure_inputs(m.tissue, m.closed, m.target_rest, m.corridor)
+        return figures.save(figures.manipulation_figure(**inputs), self.location / f"manipulation_{m.target}.png")
+
+    # -- the trials --------------------------------------------------------
+    def allocate_trials(self, targets: list[str], count: int, attrs: dict, without_plan: dict[str, str]) -> None:
+        results.allocate_trials(self.out, targets, count, attrs)
+        for name, reason in without_plan.items():
+            results.mark_without_plan(self.out, name, reason)
+        self.out.flush()
+        if self._journal is None:
+            self._journal = journal.Journal.create(journal.journal_path(self.out.path), self.config_yaml,
+                                                   int(self.out.h5.attrs["seed"]))
+        self._apply_replay()
+
+    def _apply_replay(self) -> None:
+        """Store the journal's finished trials that the file lacks (a crashed trial is run again anyway)."""
+        pending = {name: set(ks.tolist()) for name, ks in self.pending_trials().items()}
+        restored = set()
+        for rec in self._replay:
+            if rec["ok"] and rec["trial"] in pending.get(rec["target"], ()):
+                results.write_trial(self.out, rec)
+                restored.add((rec["target"], rec["trial"]))
+                pending[rec["target"]].discard(rec["trial"])
+        if restored:
+            self._notes.append(f"restored {len(restored)} finished trial(s) from {journal.journal_path(self.out.path).name}")
+        self._replay = []
+
+    def pending_trials(self) -> dict[str, np.ndarray]:
+        return results.pending_trials(self.out.h5)
+
+    def trial(self, target: str, outcome) -> None:
+        rec = results.trial_record(target, outcome)  # checked finite before anything is written
+        self._journal.append(rec)
+        results.write_trial(self.out, rec)
+
+    def trial_figures(self, title: str) -> list[Path]:
+        """Fig. 14 box plots of the x and y error per target, and the iterations histogram."""
+        h5 = self.out.h5
+        errors = {t: g["final_error"][:][g["done"][:] & ~g["failed"][:]] for t, g in h5["trials"].items()}
+        errors = {t: e for t, e in errors.items() if len(e)}
+        if not errors:
+            return []
+        profile = h5["trials"].attrs.get("profile", "")
+        paths = [figures.save(figures.error_boxplots([(f"{title} ({profile})", errors)]),
+                              self.location / "trials_error_boxplot.png")]
+        iterations = {t: g["iterations"][:][g["iterations"][:] >= 0] for t, g in h5["trials"].items()}
+        paths.append(figures.save(figures.iterations_histogram(iterations, f"{title}: control iterations per trial"),
+                                  self.location / "trials_iterations.png"))
+        return paths
+
+
+class RunDirectory:
+    """The sink factory of a new run into `path` (`experiments.sink.SinkFactory`)."""
+
+    def __init__(self, path: Path | str):
+        self.location = Path(path)
+
+    def open(self, config_yaml: str, seed: int) -> ResultsSink:
+        self.location.mkdir(parents=True, exist_ok=True)
+        path = self.location / "results.h5"
+        journal.journal_path(path).unlink(missing_ok=True)  # an earlier run's (--force): not this run's trials
+        return ResultsSink(ResultsFile.create(path, config_yaml, seed))
+
+
+def _problem(path: Path) -> Optional[str]:
+    """Why the HDF5 file at `path` cannot be trusted, or None when it reads back whole.
+
+    Opens it, walks every object and reads the trial masks. A file another
+    process is writing is not damaged: that is a ResumeError.
+    """
+    try:
+        with h5py.File(path, "r") as h5:
+            str(h5.attrs["config_yaml"])
+            h5.visititems(lambda name, obj: None)
+            for g in h5.get("trials", {}).values():
+                g["done"][:], g["failed"][:]
+    except OSError as exc:
+        if "unable to lock file" in str(exc):
+            raise ResumeError(f"{path}: another process has it open for writing (is that run still going?); "
+                              f"stop it first") from None
+        return f"{type(exc).__name__}: {exc}"
+    except (KeyError, ValueError, RuntimeError) as exc:
+        return f"{type(exc).__name__}: {exc}"
+    return None
+
+
+def _repair(out: ResultsFile) -> int:
+    """Un-mark trials marked done whose history is missing (a write cut short); returns how many."""
+    n = 0
+    for name, g in out.h5.get("trials", {}).items():
+        planned = np.array(g["stop_reason"].asstr()[:], dtype=str) != "no_plan"
+        ok = np.flatnonzero(g["done"][:] & ~g["failed"][:] & planned)
+        for k in ok:
+            if str(k) not in g["history"]:
+                out.put(f"trials/{name}/done", int(k), False)
+                n += 1
+    if n:
+        out.flush()
+    return n
+
+
+def open_for_resume(run_dir: Path | str) -> ResultsSink:
+    """The sink that finishes the run stored in `run_dir`; ResumeError if there is nothing to resume."""
+    run_dir = Path(run_dir)
+    path = run_dir / "results.h5"
+    tmp, jpath = temporary(path), journal.journal_path(path)
+    header, recs, valid = journal.read(jpath)
+    notes: list[str] = []
+    base = None
+    if tmp.exists():
+        problem = _problem(tmp)
+        if problem is None:
+            base = tmp
+            notes.append(f"resuming from {tmp.name}, left by a run that was killed")
+        else:
+            damaged = tmp.with_name(path.name + ".damaged")
+            tmp.replace(damaged)
+            notes.append(f"{tmp.name} cannot be read ({problem}); a run was killed while writing it. "
+                         f"Moved to {damaged.name}; what it held beyond the journal's trials is lost")
+    if base is None and path.exists():
+        problem = _problem(path)
+        if problem is None:
+            base = path
+            if notes:
+                notes.append(f"falling back to {path.name}, the run as it was before the killed resume")
+        elif header is None:
+            raise ResumeError(f"{path}: cannot be read ({problem}) and there is no trial journal; run simulate again")
+        else:
+            notes.append(f"{path.name} cannot be read either ({problem})")
+    if base is None and header is None:
+        if not notes:
+            raise ResumeError(f"--resume {run_dir}: no results.h5 there")
+        raise ResumeError(f"--resume {run_dir}: {'; '.join(notes)}; and there is no trial journal to rebuild from: "
+                          f"run simulate again")
+    if base is not None:
+        with h5py.File(base, "r") as h5:
+            config_yaml = str(h5.attrs["config_yaml"])
+            if "trials" not in h5 or "plan" not in h5:
+                raise ResumeError(f"{base}: nothing to resume: the run stopped before its trials; run simulate again")
+        if header is not None and header["config_yaml"] != config_yaml:
+            notes.append(f"{jpath.name} belongs to another run; ignored")
+            header, recs, valid = None, [], 0
+        out = ResultsFile.continue_temporary(path) if base == tmp else results.reopen(path)
+        repaired = _repair(out)
+        if repaired:
+            notes.append(f"{repaired} trial(s) marked done had no history (cut short by the kill); "
+                         f"taken from the journal or run again")
+        trials_journal = (journal.Journal.resume(jpath, valid) if header is not None
+                          else journal.Journal.create(jpath, config_yaml, int(out.h5.attrs["seed"])))
+        sink = ResultsSink(out, trials_journal=trials_journal, replay=recs, notes=notes)
+        sink._apply_replay()
+        return sink
+    # No HDF5 file to trust: a fresh one from the journal's config; the stages before the trials run again.
+    out = ResultsFile.create(path, header["config_yaml"], header["seed"])
+    notes.append(f"rebuilding {path.name} from the config in {jpath.name}: the stages before the trials run again "
+                 f"(the accuracy-driven /selection, if the run had one, is not repeated); "
+                 f"the {sum(bool(r['ok']) for r in recs)} finished trial(s) in it are kept")
+    return ResultsSink(out, trials_journal=journal.Journal.resume(jpath, valid), replay=recs, notes=notes, rebuilt=True)

@@ -1,0 +1,218 @@
+"""A `simulate --jobs 2` killed at any moment: nothing it started survives, and `--resume` finishes it exactly.
+
+Each test starts a real run on a small scene with enough trials, waits
+until some trials are stored, and stops it with SIGKILL, SIGTERM or SIGINT
+(to the whole process group, as Ctrl-C in a terminal does). It checks
+(docs/contract.md#resume):
+
+* every process of the run is gone within 5 s of the signal;
+* `--resume` runs exactly the trials that had not finished, keeping the
+  finished ones as they were stored (their wall times are unchanged);
+* the completed results equal an uninterrupted run's bit for bit
+  (`tests/golden/extract.py`'s extractor).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from helpers import deep_update, example_dict, write_scene
+from scissor_cli.output import journal
+
+sys.path.insert(0, str(Path(__file__).parent / "golden"))
+from extract import extract  # noqa: E402
+
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="process checks read /proc")
+
+TRIALS = 30  # per target; 2 targets
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def scene(tmp_path: Path) -> Path:
+    data = example_dict()
+    deep_update(data, "tissue.mesh.max_edge_mm", 8.0)
+    deep_update(data, "tissue.mesh.min_edge_mm", 2.0)
+    deep_update(data, "solver.kind", "newton")
+    deep_update(data, "trials.count", TRIALS)
+    data["forward"] = data["forward"][:1]
+    return write_scene(tmp_path, data)
+
+
+def env() -> dict:
+    """The child imports this checkout's package, whatever is installed."""
+    return {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+
+
+def start(*args) -> subprocess.Popen:
+    # its own session: the run and its workers share a process group we can watch (and Ctrl-C)
+    return subprocess.Popen([sys.executable, "-m", "scissor_cli", "simulate", *map(str, args)], env=env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+
+
+def finish(*args) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "scissor_cli", "simulate", *map(str, args)], env=env(),
+                          capture_output=True, text=True, timeout=240)
+
+
+def group_members(pgid: int) -> list[int]:
+    """Live (not zombie) processes of a process group."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2:].split()
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            pids.append(int(entry.name))
+    return pids
+
+
+def journal_trials(out: Path) -> int:
+    return len(journal.read(journal.journal_path(out / "results.h5"))[1])
+
+
+def wait_for_trials(proc: subprocess.Popen, out: Path, at_least: int, timeout: float = 120.0) -> int:
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        assert proc.poll() is None, f"the run ended before it was killed: {proc.communicate()}"
+        n = journal_trials(out)
+        if n >= at_least:
+            return n
+        time.sleep(0.05)
+    raise AssertionError(f"no {at_least} finished trials within {timeout} s")
+
+
+def stop(proc: subprocess.Popen, sig: int) -> tuple[float, str]:
+    """Send `sig` (SIGINT to the whole group, like Ctrl-C; others to the run): (seconds until all are gone, stderr)."""
+    assert len(group_members(proc.pid)) >= 3, "expected the run and 2 workers"
+    t0 = time.monotonic()
+    if sig == signal.SIGINT:
+        os.killpg(proc.pid, sig)
+    else:
+        os.kill(proc.pid, sig)
+    while group_members(proc.pid) and time.monotonic() - t0 < 30:
+        time.sleep(0.02)
+    gone = time.monotonic() - t0
+    left = group_members(proc.pid)
+    for pid in left:  # do not leave anything behind, even when the test fails
+        os.kill(pid, signal.SIGKILL)
+    _, stderr = proc.communicate(timeout=10)
+    assert not left, f"still alive {gone:.1f} s after the signal: {left}"
+    return gone, " ".join(stderr.split())  # the console wraps long lines
+
+
+def stored(path: Path) -> dict[str, dict[int, tuple]]:
+    """Per target, the finished trials: index -> (final error, iterations, wall time)."""
+    with h5py.File(path, "r") as f:
+        out = {}
+        for t, g in f["trials"].items():
+            ok = np.flatnonzero(g["done"][:] & ~g["failed"][:])
+            out[t] = {int(k): (tuple(g["final_error"][k]), int(g["iterations"][k]), float(g["time_s"][k])) for k in ok}
+        return out
+
+
+def ran(proc: subprocess.CompletedProcess) -> int:
+    found = re.search(r"trials: (\d+) to run", proc.stderr)
+    return int(found.group(1)) if found else 0
+
+
+def assert_same_as_reference(out: Path, reference: dict) -> None:
+    with h5py.File(out / "results.h5", "r") as f:
+        assert f.attrs["status"] == "complete"
+    now = extract(out / "results.h5")
+    assert sorted(now) == sorted(reference)
+    differ = [k for k in reference if not np.array_equal(now[k], reference[k])]
+    assert not differ, f"differ from the uninterrupted run: {differ[:10]}"
+    assert not (out / "results.h5.tmp").exists() and not journal.journal_path(out / "results.h5").exists()
+
+
+def assert_kept(before: dict, out: Path) -> None:
+    after = stored(out / "results.h5")
+    for t, trials in before.items():
+        for k, value in trials.items():
+            assert after[t][k] == value, f"trial {t}/{k} was recomputed or changed"
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("reference")
+    proc = finish(scene(tmp), "--jobs", "2", "--out", tmp / "run", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    return extract(tmp / "run" / "results.h5")
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_stop_signal_keeps_finished_trials_and_resume_completes(sig, reference, tmp_path):
+    out = tmp_path / "run"
+    proc = start(scene(tmp_path), "--jobs", "2", "--out", out)
+    wait_for_trials(proc, out, 8)
+    gone, stderr = stop(proc, sig)
+    print(f"{signal.Signals(sig).name}: all processes gone {gone:.2f} s after the signal")
+    assert gone < 5.0
+    assert proc.returncode == 128 + sig, stderr
+    assert "interrupted" in stderr and f"--resume {out}" in stderr and "Traceback" not in stderr
+    assert not (out / "results.h5.tmp").exists()
+    with h5py.File(out / "results.h5", "r") as f:
+        assert f.attrs["status"] == "failed" and f.attrs["failure"].startswith("interrupted")
+    before = stored(out / "results.h5")
+    finished = sum(len(v) for v in before.values())
+    assert 8 <= finished < 2 * TRIALS
+
+    t0 = time.monotonic()
+    resumed = finish("--resume", out, "--jobs", "2")
+    print(f"resume after {signal.Signals(sig).name}: {time.monotonic() - t0:.1f} s for {ran(resumed)} trials")
+    assert resumed.returncode == 0, resumed.stderr
+    assert ran(resumed) == 2 * TRIALS - finished
+    assert_kept(before, out)
+    assert_same_as_reference(out, reference)
+
+
+def test_sigkill_damaged_file_and_killed_resume_lose_no_trial(reference, tmp_path):
+    """SIGKILL leaves only results.h5.tmp and the journal. Here the kill is made worse: the
+    temporary file is damaged, as a kill in the middle of an HDF5 write can leave it. The resume
+    says so, rebuilds from the journal, and is itself SIGKILLed; the next resume completes."""
+    out = tmp_path / "run"
+    proc = start(scene(tmp_path), "--jobs", "2", "--out", out, "--quiet")
+    wait_for_trials(proc, out, 8)
+    gone, _ = stop(proc, signal.SIGKILL)
+    print(f"SIGKILL: all processes gone {gone:.2f} s after the signal")
+    assert gone < 5.0 and proc.returncode == -signal.SIGKILL
+    tmp = out / "results.h5.tmp"
+    assert tmp.exists() and not (out / "results.h5").exists()
+    first = stored(tmp)
+    in_journal = journal_trials(out)
+    assert sum(len(v) for v in first.values()) >= 8 and in_journal >= 8
+
+    with open(tmp, "r+b") as fh:  # a torn metadata write: the superblock and root group overwritten
+        fh.write(b"\0" * 4096)
+    proc = start("--resume", out, "--jobs", "2")
+    n = wait_for_trials(proc, out, in_journal + 6)
+    gone, stderr = stop(proc, signal.SIGKILL)
+    assert gone < 5.0
+    assert "cannot be read" in stderr and "rebuilding results.h5" in stderr, stderr
+    assert (out / "results.h5.damaged").exists()
+    kept = stored(tmp)  # the rebuilt file the killed resume left
+    assert sum(len(v) for v in kept.values()) >= in_journal
+
+    t0 = time.monotonic()
+    resumed = finish("--resume", out, "--jobs", "2")
+    print(f"resume after SIGKILL of a resume: {time.monotonic() - t0:.1f} s for {ran(resumed)} trials")
+    assert resumed.returncode == 0, resumed.stderr
+    assert "resuming from results.h5.tmp" in " ".join(resumed.stderr.split())
+    assert ran(resumed) <= 2 * TRIALS - n
+    assert_kept(first, out)  # restored from the journal, as first stored
+    assert_kept(kept, out)
+    assert_same_as_reference(out, reference)
