@@ -1,4 +1,4 @@
-"""Time per control iteration of the closed loop (MODEL.md §6) on a scene's full mesh.
+"""Time per control iteration of the closed loop (docs/model.md §6) on a scene's full mesh.
 
 One iteration = actuate and solve the truth (warm-started) + solve the
 controller's model at the command (warm-started) + update J there. Three

@@ -5,7 +5,7 @@
     options: --profile (cProfile of each solver on the largest mesh), --blas-threads N
 
 Problem: configs/example.yaml (fiber-reinforced neo-Hookean, plane strain,
-P1 triangles, MODEL.md §2–3), quasi-static, one 5 mm push of the cup. The
+P1 triangles, docs/model.md §2–3), quasi-static, one 5 mm push of the cup. The
 meshes are the example's own graded meshes, `build_model(cfg, mesh_scale=s)`
 with s = 2.0 / 0.75 / 0.33 / 0.155 (≈ 1.05k / 4.0k / 15.7k / 62k elements):
 the project's refinement path (every feature — targets, obstacles, the cup's
@@ -121,7 +121,7 @@ class PeerResult:
 
 
 class SkfemPeer:
-    """The tissue problem of MODEL.md §2–3 written with scikit-fem, as its docs show.
+    """The tissue problem of docs/model.md §2–3 written with scikit-fem, as its docs show.
 
     Vector P1 (`ElementVector(ElementTriP1())`) on `MeshTri(nodes.T, triangles.T)`;
     per-element μ, κ, η as P0 fields (`basis.with_element(ElementTriP0())`

@@ -1,4 +1,4 @@
-"""Tests of scissor_cli.control: the closed loop of MODEL.md §6 on the paper's
+"""Tests of scissor_cli.control: the closed loop of docs/model.md §6 on the paper's
 scenes (ideal and with a mismatched truth, against the open-loop Jacobian
 step), the uncorrectable part with one cup, the actuator (resolution,
 backlash, anti-windup), the incremental equilibria against the reference

@@ -33,7 +33,7 @@ def split_error(J: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
 
 @dataclass
 class PID:
-    """Discrete PID on δs* (C,) with conditional-integration anti-windup (MODEL.md §6).
+    """Discrete PID on δs* (C,) with conditional-integration anti-windup (docs/model.md §6).
 
     s_{k+1} = s_k + Kp δs*_k + Ki I_k + Kd (δs*_k − δs*_{k−1})/Δt,
     I_k = I_{k−1} + δs*_k Δt unless that integration pushes a saturated

@@ -7,7 +7,7 @@ Two tissues take part in a manipulation and are kept apart on purpose:
   resolution, backlash), the truth settles into its equilibrium and the
   camera sees the target there;
 * the **controller** owns its model tissue, solves it at the *commanded*
-  strokes and keeps the cup–target Jacobian J (MODEL.md §5) at that model
+  strokes and keeps the cup–target Jacobian J (docs/model.md §5) at that model
   equilibrium.
 
 A trial perturbs the truth (E, ν, η, fiber angle, actuator, measurement)
@@ -15,7 +15,7 @@ without touching the controller. When the truth *is* the model (the same
 `Tissue` object) and the actuator realised the command exactly, the
 controller adopts the plant's equilibrium instead of solving it again.
 
-One loop iteration k (MODEL.md §6), Δt = 1/rate_hz:
+One loop iteration k (docs/model.md §6), Δt = 1/rate_hz:
 
     y_k  = measure(true target)                      camera + localisation bias
     e_k  = y_d − y_k,   δs*_k = J⁺ e_k               least squares, (C,)
@@ -68,7 +68,7 @@ def run_loop(
     target: str = "",
     cup_names: Optional[list[str]] = None,
 ) -> LoopResult:
-    """The closed loop of MODEL.md §6 from the plant's and controller's current states.
+    """The closed loop of docs/model.md §6 from the plant's and controller's current states.
 
     desired (2,) mm. Stops when the correctable part of the measured error
     is ≤ cfg.tolerance_mm ("tolerance"), after cfg.max_iterations moves

@@ -84,7 +84,7 @@ class Controller:
 
 @dataclass(frozen=True)
 class TruthPerturbation:
-    """How the simulated truth differs from the controller's model (MODEL.md §10).
+    """How the simulated truth differs from the controller's model (docs/model.md §10).
 
     E_scale multiplies every element's E: a scalar or a field (M,) (e.g.
     `profiles.TrialDraw.E_field`); fiber_offset_rad turns the fiber (the

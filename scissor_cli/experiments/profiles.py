@@ -1,4 +1,4 @@
-"""Error sources of a simulated trial and their distributions (MODEL.md §10).
+"""Error sources of a simulated trial and their distributions (docs/model.md §10).
 
 A trial draws, from a generator seeded by (seed, target, trial), what a real
 bench gets wrong: camera pixel noise, a bias in localising the target, the

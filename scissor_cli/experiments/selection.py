@@ -1,4 +1,4 @@
-"""Model only what a scene needs: pick mesh, model and solver for an accuracy budget (MODEL.md §9).
+"""Model only what a scene needs: pick mesh, model and solver for an accuracy budget (docs/model.md §9).
 
 With `solver.accuracy_mm` set, `simulate` first calibrates on the scene
 itself, cheaply, and then runs with the cheapest setting predicted to keep

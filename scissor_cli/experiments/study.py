@@ -1,4 +1,4 @@
-"""The solver study: speed against error over meshes, models and solvers (MODEL.md §9).
+"""The solver study: speed against error over meshes, models and solvers (docs/model.md §9).
 
 For every forward case it sweeps mesh level (the size field scaled) and
 kind (graded or uniform), material model, and solver (Newton; ADMM at a

@@ -1,4 +1,4 @@
-"""Linear-triangle finite elements on all elements at once (MODEL.md §2).
+"""Linear-triangle finite elements on all elements at once (docs/model.md §2).
 
 Node positions are (N, 2) arrays; degree of freedom 2n + c is coordinate c
 of node n. Deformation gradients are stacked (M, 2, 2) with

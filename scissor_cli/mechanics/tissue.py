@@ -1,4 +1,4 @@
-"""The discrete tissue: mesh + material + boundary conditions (MODEL.md §1–3).
+"""The discrete tissue: mesh + material + boundary conditions (docs/model.md §1–3).
 
 A `Tissue` is everything a solver needs: the FE operators, per-element
 material parameters, the Dirichlet nodes (fixed sides and cup-gripped

@@ -1,4 +1,4 @@
-"""Quality triangulation of a scene with Shewchuk's Triangle (MODEL.md §2, §9).
+"""Quality triangulation of a scene with Shewchuk's Triangle (docs/model.md §2, §9).
 
 Fine only where the scene needs it: the target edge length is `min_edge_mm`
 at targets, obstacle outlines and cup contacts and grows by `grading` per mm

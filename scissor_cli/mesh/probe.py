@@ -17,7 +17,7 @@ from scissor_cli.mesh.mesh import Mesh, locate
 
 @dataclass(frozen=True)
 class TargetProbe:
-    """K points carried by their rest triangles (MODEL.md §1).
+    """K points carried by their rest triangles (docs/model.md §1).
 
     nodes (K, 3) int: the containing triangle's vertices; bary (K, 3): the
     barycentric weights at rest (rows sum to 1); tri_idx (K,) for reference.

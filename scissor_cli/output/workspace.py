@@ -21,7 +21,7 @@ def _attr_value(v):
 
 
 def write_workspace_h5(path, result: WorkspaceResult, attrs: Optional[dict] = None) -> None:
-    """workspace.h5 of CONTRACT.md: /workspace/{joints, tip, axis} and the box
+    """workspace.h5 of docs/contract.md: /workspace/{joints, tip, axis} and the box
     and coverage attributes; `attrs` (provenance) go on the root. Written to
     path + ".tmp" and renamed, so a reader never sees a partial file."""
     import h5py

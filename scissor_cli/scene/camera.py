@@ -1,4 +1,4 @@
-"""A pinhole camera over the tissue layer: projection and simulated measurement (MODEL.md §8).
+"""A pinhole camera over the tissue layer: projection and simulated measurement (docs/model.md §8).
 
     z_c [u, v, 1]ᵀ = Ω T_cb [X, Y, Z, 1]ᵀ,    Ω = [[f/dx, 0, u0], [0, f/dy, v0], [0, 0, 1]]
 

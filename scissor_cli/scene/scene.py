@@ -1,4 +1,4 @@
-"""The scene: what the config describes, as arrays in mm (MODEL.md §1).
+"""The scene: what the config describes, as arrays in mm (docs/model.md §1).
 
 A `Scene` is geometry and physics without a mesh: the layer outline, the
 obstacles, the cups, the targets and the material constants. The mesher and

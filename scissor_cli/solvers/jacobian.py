@@ -1,4 +1,4 @@
-"""The quasi-static Jacobian between cup strokes and target positions (MODEL.md §5).
+"""The quasi-static Jacobian between cup strokes and target positions (docs/model.md §5).
 
 At an equilibrium x⁰ the linearised response of the free nodes to a small
 cup motion δs solves
