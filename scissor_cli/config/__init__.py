@@ -4,12 +4,13 @@ Everything outside this package imports from here, so the package's inner
 split may change.
 """
 
-from scissor_cli.config.schema import (
+from scissor_cli.config.checks import obstacle_outline, scene_problems, tissue_outline
+from scissor_cli.config.loading import ConfigError, load_config, parse_config, resolved_yaml
+from scissor_cli.config.sections import (
     BoxConfig,
     CameraConfig,
     CircleConfig,
     Config,
-    ConfigError,
     ControllerConfig,
     CupConfig,
     DHLinkConfig,
@@ -24,12 +25,6 @@ from scissor_cli.config.schema import (
     TargetConfig,
     TissueConfig,
     TrialsConfig,
-    load_config,
-    obstacle_outline,
-    parse_config,
-    resolved_yaml,
-    scene_problems,
-    tissue_outline,
 )
 
 __all__ = [
