@@ -14,6 +14,7 @@ from typing import Callable, Optional
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from scissor_cli import __version__, runtime
@@ -58,7 +59,12 @@ class ConsoleReporter:
 
 
 def _fail(code: int, message: str) -> None:
-    err.print(f"[bold red]error:[/] {message}" if code == 1 else f"error: {message}", markup=code == 1)
+    # a file name or YAML key may hold lone surrogates (undecodable bytes): show them escaped
+    message = message.encode("utf-8", "backslashreplace").decode("utf-8")
+    if code == 1:
+        err.print(f"[bold red]error:[/] {escape(message)}", soft_wrap=True, emoji=False)
+    else:
+        err.print(f"error: {message}", markup=False, soft_wrap=True, emoji=False)
     raise typer.Exit(code)
 
 
@@ -117,6 +123,7 @@ def simulate(
     """Mesh the scene, solve its forward cases, plan the needle, manipulate the targets, run trials."""
     from scissor_cli.mesh.mesh import MeshError
     from scissor_cli.experiments.simulate import Execution, ResumeError, TrialsFailed, resume_simulation, run_simulation
+    from scissor_cli.experiments.study import StudyError
     from scissor_cli.solvers.common import SolverError
     from scissor_cli.mechanics.tissue import BoundaryError
 
@@ -157,8 +164,10 @@ def simulate(
     directory = _out_dir(out_dir, stem, force)
     try:
         summary = run_simulation(cfg, directory, reporter, execution)
-    except (BoundaryError, MeshError) as exc:
+    except (BoundaryError, MeshError, StudyError) as exc:
         _fail(2, f"{config or DEFAULT_SCENE}: {exc}")
+    except NotImplementedError as exc:  # the needle planner's inverse kinematics for a custom chain
+        _fail(2, f"{config or DEFAULT_SCENE}: robot.dh: {exc}")
     except (SolverError, TrialsFailed) as exc:
         err.print(f"results so far: {directory / 'results.h5'} (status = failed)")
         _fail(1, str(exc))
