@@ -169,7 +169,7 @@ def simulate(
     except NotImplementedError as exc:  # the needle planner's inverse kinematics for a custom chain
         _fail(2, f"{config or DEFAULT_SCENE}: robot.dh: {exc}")
     except (SolverError, TrialsFailed) as exc:
-        err.print(f"results so far: {directory / 'results.h5'} (status = failed)")
+        err.print(f"results so far: {directory / 'results.h5'} (status = failed)", markup=False, soft_wrap=True)
         _fail(1, str(exc))
     except KeyboardInterrupt:
         err.print(f"interrupted; results so far: {directory / 'results.h5'} (status = failed); "

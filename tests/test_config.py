@@ -5,6 +5,7 @@ the file, the dotted field, the YAML line and what is allowed — for bad
 bytes, bad YAML, bad values of any field, and meshes over the element budget.
 """
 
+import os
 import subprocess
 import sys
 import time
@@ -260,12 +261,16 @@ def test_duplicate_key_is_an_error():
         parse_config("seed: 1\nseed: 2\n")
 
 
-def test_odd_keys_are_shown_escaped(tmp_path):
+def test_odd_keys_and_file_names_are_shown_escaped(tmp_path):
     path = tmp_path / "scene.yaml"
-    path.write_text('seed: 1\n"\\ud800\\x1b[2J": 1\n')
+    path.write_text('seed: 1\n"\\x1b[2J\\u00e9": 1\n')
     proc = run_cli("validate", path)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
-    assert "\\ud800\\x1b[2J" in proc.stderr and "\x1b" not in proc.stderr
+    assert "unknown key '\\x1b[2Jé'" in proc.stderr and "\x1b" not in proc.stderr
+    odd = tmp_path / os.fsdecode(b"sc\xffene.yaml")  # a name that is not UTF-8
+    odd.write_text("seed: -1\n")
+    proc = run_cli("validate", odd)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr and "sc\\udcffene.yaml" in proc.stderr
 
 
 def test_polygon_and_ellipse_layers_validate():
@@ -314,21 +319,37 @@ def test_study_and_accuracy_need_targets():
 
 
 def test_largest_scene_file_validates_in_seconds():
-    """64 obstacles of 150 vertices and a 1000-vertex outline (about 230 KiB): bounded work."""
+    """A 1000-vertex outline and 33 obstacles of 150 vertices (about 130 KiB): bounded work."""
     t = np.linspace(0, 2 * np.pi, 1000, endpoint=False)
     outline = np.column_stack([500 + 499 * np.cos(t), 500 + 499 * np.sin(t)]).round(3).tolist()
     s = np.linspace(0, 2 * np.pi, 150, endpoint=False)
     obstacles = [{"name": f"o{k}", "polygon_mm": np.column_stack([
-        250 + 70 * (k % 8) + 20 * np.cos(s), 250 + 70 * (k // 8) + 20 * np.sin(s)]).round(3).tolist()} for k in range(64)]
+        250 + 70 * (k % 6) + 20 * np.cos(s), 250 + 70 * (k // 6) + 20 * np.sin(s)]).round(3).tolist()} for k in range(33)]
     data = {"tissue": {"shape": "polygon", "size_mm": None, "polygon_mm": outline,
                        "mesh": {"min_edge_mm": 20.0, "max_edge_mm": 60.0}},
             "cups": [{"name": "c", "contact_mm": outline[250], "axis": [0.0, -1.0], "radius_mm": 5.0}],
             "obstacles": obstacles}
     text = yaml.safe_dump(data, default_flow_style=None, width=10**6)
-    assert 150 * 1024 < len(text) <= MAX_CONFIG_BYTES
+    assert 100 * 1024 < len(text) <= MAX_CONFIG_BYTES
     t0 = time.perf_counter()
     cfg = parse_config(text)
-    assert len(cfg.obstacles) == 64 and time.perf_counter() - t0 < 10.0
+    assert len(cfg.obstacles) == 33 and time.perf_counter() - t0 < 10.0
+    data["obstacles"].append({"name": "more", "circle": {"center_mm": [500.0, 800.0], "radius_mm": 5.0}})
+    refused(data, "obstacles (line", f"at most {checks.MAX_OBSTACLE_VERTICES}")
+
+
+def test_interleaved_obstacles_validate_in_seconds():
+    """25 thin diagonal strips of 200 vertices: every pair's bounding boxes meet, none overlaps."""
+    u = np.linspace(0, 1, 100)
+    strips = []
+    for k in range(25):
+        x, y = 100 + 600 * u, 100 + 600 * u + 6 * k
+        poly = np.vstack([np.column_stack([x, y]), np.column_stack([x[::-1] + 0.5, y[::-1] + 2.0])])
+        strips.append({"name": f"s{k}", "polygon_mm": poly.round(4).tolist()})
+    data = {"tissue": {"size_mm": [1000.0, 1000.0], "mesh": {"min_edge_mm": 20.0, "max_edge_mm": 60.0}},
+            "cups": [{"name": "c", "contact_mm": [500.0, 1000.0], "axis": [0.0, -1.0]}], "obstacles": strips}
+    t0 = time.perf_counter()
+    assert len(parse(data).obstacles) == 25 and time.perf_counter() - t0 < 10.0
 
 
 # --------------------------------------------------------------------------

@@ -16,18 +16,20 @@ refinement packs smaller triangles); f = 1 + 0.2 per degree of
 up to 80 % more triangles). The integral is taken on a quadtree of
 cells refined until each cell is no larger than the local h, so the fine
 zones around small features are resolved without a fine grid everywhere.
-A_FACTOR and B_FACTOR are fitted to 23 real meshes (rectangles, an
-ellipse, a polygon, 0 to 32 obstacles, 50 targets, grading 0.1-1, uniform
-meshes, 500 to 200 000 triangles): real / estimate was 0.89-1.28
-(tests/test_config.py holds it within a factor 1.5). The one kind of scene it
-overestimates is a sliver narrower than the edge length (a 2 mm strip: 0.43).
+A_FACTOR and B_FACTOR are fitted to real meshes; on 33 of them (rectangles,
+an ellipse, a polygon, 0 to 32 obstacles, 50 targets, grading 0.001-100,
+min_angle 20-33°, uniform meshes, 1 000 to 200 000 triangles) real /
+estimate was 0.89-1.29, the estimate taking 0-70 ms (tests/test_config.py
+holds it within a factor 1.5). Only a sliver narrower than the edge length
+is off by more: a 2 mm × 300 mm strip at 0.43 (the estimate is high) and 1.40.
 
 A config whose mesh is estimated at more than ELEMENT_BUDGET triangles is
 refused before meshing (docs/contract.md, "Config"). So is
 `solver.accuracy_mm` when its calibration would mesh beyond the budget: it
 meshes the scene at SELECTION_FINEST_LEVEL × the size field (16 times the
-elements). The solver study (`study`) skips, with a note, every level whose
-estimate exceeds its `max_elements` (at most half the budget).
+elements). The solver study (`study`) skips, with a note, every level
+estimated above twice its `max_elements` (which is at most half the budget)
+before meshing it, and every level whose mesh has more than `max_elements`.
 """
 
 from __future__ import annotations
@@ -39,7 +41,9 @@ from scissor_cli import geometry
 from scissor_cli.config.checks import Problem, obstacle_outline, tissue_outline
 from scissor_cli.config.sections import Config
 
-#: the most triangles a mesh of any scissor run may have (estimated before meshing)
+#: the most triangles a mesh of any scissor run may have (estimated before meshing). At 236 000
+#: triangles building the tissue took 8 s and one Newton solve 7 s with 1 GB of memory (2-core
+#: machine): a run of trials there takes hours per target, and every worker process holds its own copy.
 ELEMENT_BUDGET = 250_000
 #: the finest mesh level the accuracy selection meshes (experiments/selection.py CANDIDATE_LEVELS)
 SELECTION_FINEST_LEVEL = 0.25
@@ -155,8 +159,9 @@ def estimate_elements(cfg: Config, scale: float | None = None, graded: bool | No
         return int(round(angle * floor))
     h = _SizeField(cfg, outline, obstacles, lo, hi)
     area_part = _area_integral(outline, h, stop / A_FACTOR)
-    ring = np.concatenate([_sample_closed(outline, lo)] + [_sample_closed(o, lo) for o in obstacles])
-    step = np.concatenate([_segment_steps(outline, lo)] + [2 * _segment_steps(o, lo) for o in obstacles])
+    spacing = max(lo, boundary_len / 200_000)  # a long, jagged outline is sampled at most 200 000 times
+    ring = np.concatenate([_sample_closed(outline, spacing)] + [_sample_closed(o, spacing) for o in obstacles])
+    step = np.concatenate([_segment_steps(outline, spacing)] + [2 * _segment_steps(o, spacing) for o in obstacles])
     boundary_part = float(np.sum(step / h(ring)))
     return int(round(angle * max(A_FACTOR * area_part + B_FACTOR * boundary_part, floor)))
 

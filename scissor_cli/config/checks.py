@@ -24,6 +24,8 @@ from scissor_cli.config.sections import MAX_TISSUE_MM, MIN_EDGE_MM, Config, Obst
 MAX_TIME_STEPS = 10_000
 #: voxels of robot.voxel_mm in robot.breast_box_mm (the paper's box at 5 mm has 39 600)
 MAX_VOXELS = 2_000_000
+#: outline vertices of all obstacles together (a circle counts 64): bounds the pairwise overlap test
+MAX_OBSTACLE_VERTICES = 5000
 #: the smallest area of the tissue polygon and of an obstacle, mm²
 MIN_TISSUE_AREA_MM2 = 1.0
 MIN_OBSTACLE_AREA_MM2 = 0.01
@@ -151,6 +153,11 @@ def _obstacle_problems(cfg: Config, outline: np.ndarray) -> list[Problem]:
         if not _inside(poly, outline, cfg.tissue).all():
             problems.append((("obstacles", i, field), f"obstacle {obs.name!r} must lie {_inside_text(cfg.tissue)}"))
         outlines.append(poly)
+    total = sum(len(o) for o in outlines if o is not None)
+    if total > MAX_OBSTACLE_VERTICES:
+        problems.append((("obstacles",), (f"{total} outline vertices in all (a circle counts 64); at most "
+                                          f"{MAX_OBSTACLE_VERTICES}: use fewer or simpler obstacles")))
+        return problems
     boxes = [None if o is None else (o.min(axis=0), o.max(axis=0)) for o in outlines]
     for i in range(len(outlines)):
         for j in range(i + 1, len(outlines)):

@@ -6,8 +6,7 @@ to the command line, which exits with 2. The reading is bounded whatever
 the file holds:
 
 * size: at most MAX_CONFIG_BYTES (256 KiB; the example scene is 3 KiB, a
-  1000-vertex polygon about 25 KiB) — the pure-Python YAML reader takes
-  about a second for that;
+  1000-vertex polygon about 25 KiB): about a second to read;
 * text: UTF-8 (a byte-order mark is allowed), no control characters, one
   YAML document whose top level is a mapping;
 * shape: at most MAX_DEPTH levels of nesting and MAX_NODES values once every
@@ -43,8 +42,8 @@ class ConfigError(Exception):
     """A bad config: the message names the file, field, YAML line and what is allowed."""
 
 
-class _Loader(yaml.SafeLoader):
-    """PyYAML's safe loader whose scalar conversions fail as YAML errors with a line."""
+class _Constructor(yaml.constructor.SafeConstructor):
+    """PyYAML's safe constructor whose scalar conversions fail as YAML errors with a line."""
 
     def construct_object(self, node, deep=False):
         try:
@@ -53,6 +52,35 @@ class _Loader(yaml.SafeLoader):
             raise yaml.constructor.ConstructorError(
                 None, None, f"cannot read the value {show(node.value)}: {exc}", node.start_mark
             ) from None
+
+
+try:  # libyaml scans and parses in C, five times faster than PyYAML's own reader
+    from yaml._yaml import CParser as _CParser
+except ImportError:  # pragma: no cover - PyYAML built without libyaml
+    _CParser = None
+
+if _CParser is not None:
+
+    class _Loader(yaml.composer.Composer, _CParser, _Constructor, yaml.resolver.Resolver):
+        """libyaml's events, composed in Python: a deep file meets Python's recursion limit, not the C stack."""
+
+        def __init__(self, stream):
+            _CParser.__init__(self, stream)
+            _Constructor.__init__(self)
+            yaml.resolver.Resolver.__init__(self)
+            yaml.composer.Composer.__init__(self)
+
+else:  # pragma: no cover
+
+    class _Loader(yaml.reader.Reader, yaml.scanner.Scanner, yaml.parser.Parser, yaml.composer.Composer,
+                  _Constructor, yaml.resolver.Resolver):
+        def __init__(self, stream):
+            yaml.reader.Reader.__init__(self, stream)
+            yaml.scanner.Scanner.__init__(self)
+            yaml.parser.Parser.__init__(self)
+            yaml.composer.Composer.__init__(self)
+            _Constructor.__init__(self)
+            yaml.resolver.Resolver.__init__(self)
 
 
 def _children(node: yaml.Node) -> list[yaml.Node]:
@@ -113,7 +141,8 @@ def _duplicate_key(root: yaml.Node) -> Optional[tuple[tuple, yaml.Node]]:
 
 def _yaml_message(source: str, text: str, exc: yaml.YAMLError) -> str:
     if isinstance(exc, yaml.reader.ReaderError):  # a character YAML does not allow, e.g. NUL
-        line = text[: exc.position].count("\n") + 1
+        before = text.encode("utf-8")[: exc.position] if _CParser is not None else text[: exc.position]  # libyaml counts bytes
+        line = before.count(b"\n" if isinstance(before, bytes) else "\n") + 1
         return (f"{source} (line {line}): not valid YAML: the character {exc.character:#06x} is not allowed "
                 f"(control characters other than tab and newline are not YAML text)")
     mark = getattr(exc, "problem_mark", None)
@@ -127,7 +156,7 @@ def _read_yaml(text: str, source: str) -> tuple[yaml.Node, dict]:
     """The document's root node and its data, or ConfigError."""
     loader = None
     try:
-        loader = _Loader(text)  # checks every character first
+        loader = _Loader(text)
         root = loader.get_single_node()
         if root is None:
             raise ConfigError(f"{source}: the file holds no YAML document (it is empty or only comments); "
@@ -140,12 +169,11 @@ def _read_yaml(text: str, source: str) -> tuple[yaml.Node, dict]:
     except yaml.YAMLError as exc:
         raise ConfigError(_yaml_message(source, text, exc)) from None
     except RecursionError:
-        raise ConfigError(f"{source} (line {loader.line + 1}): not valid YAML: nested too deeply "
-                          f"(a scene nests at most {MAX_DEPTH} levels)") from None
-    except (ValueError, OverflowError) as exc:  # the scanner's escapes, e.g. "\UFFFFFFFF"
-        raise ConfigError(f"{source} (line {loader.line + 1}): not valid YAML: {exc}") from None
+        raise ConfigError(f"{source}: not valid YAML: nested too deeply (a scene nests at most {MAX_DEPTH} levels)") from None
+    except (ValueError, OverflowError) as exc:  # a lone surrogate in the text; PyYAML's scanner on "\UFFFFFFFF"
+        raise ConfigError(f"{source}: not valid YAML: {exc}") from None
     finally:
-        if loader is not None:
+        if loader is not None and hasattr(loader, "dispose"):
             loader.dispose()
     if not isinstance(data, dict):
         raise ConfigError(f"{source} (line {root.start_mark.line + 1}): the top level must be a mapping of sections "
