@@ -109,8 +109,8 @@ def validate(config: Path = typer.Argument(..., help="Scene YAML file.")) -> Non
 def simulate(
     config: Optional[Path] = typer.Argument(None, help="Scene YAML file (default: the shipped example scene)."),
     out_dir: Optional[Path] = typer.Option(None, "--out", help="Output directory (default runs/<config-stem>-<time>/)."),
-    trials: Optional[int] = typer.Option(None, "--trials", min=0, help="Trials per target (0: forward cases and plans only)."),
-    seed: Optional[int] = typer.Option(None, "--seed", min=0, help="Override the config's seed."),
+    trials: Optional[int] = typer.Option(None, "--trials", min=0, max=10_000, help="Trials per target (0: forward cases and plans only)."),
+    seed: Optional[int] = typer.Option(None, "--seed", min=0, max=2**63 - 1, help="Override the config's seed."),
     solver: Optional[str] = typer.Option(None, "--solver", help="Override the config's solver: admm | newton."),
     jobs: Optional[int] = typer.Option(None, "--jobs", min=1, help="Worker processes for trials (default: all cores)."),
     executor: str = typer.Option("local", "--executor", help="Where trials run: local | dask."),
@@ -138,7 +138,7 @@ def simulate(
             _fail(2, f"--resume {resume}: no results.h5 there")
         try:
             n = resume_simulation(resume, reporter, execution)
-        except ResumeError as exc:
+        except (ResumeError, ConfigError) as exc:  # the run's own config no longer validates
             _fail(2, str(exc))
         except TrialsFailed as exc:
             _fail(1, str(exc))
@@ -183,7 +183,7 @@ def workspace(
     config: Optional[Path] = typer.Argument(None, help="Scene YAML file for its `robot` section (default: the paper's robot)."),
     samples: int = typer.Option(1_000_000, "--samples", min=1, help="Joint-space samples."),
     out_dir: Optional[Path] = typer.Option(None, "--out", help="Output directory (default runs/workspace-<time>/)."),
-    seed: Optional[int] = typer.Option(None, "--seed", min=0, help="Sampling seed (default: the config's seed, else 0)."),
+    seed: Optional[int] = typer.Option(None, "--seed", min=0, max=2**63 - 1, help="Sampling seed (default: the config's seed, else 0)."),
     grid: bool = typer.Option(False, "--grid", help="Sample a tensor grid instead of uniformly at random."),
     force: bool = typer.Option(False, "--force", help="Write into a non-empty --out directory."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Only the output path."),

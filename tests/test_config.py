@@ -436,6 +436,12 @@ def test_accuracy_selection_stays_within_the_budget():
     from scissor_cli.experiments.selection import CANDIDATE_LEVELS
 
     assert budget.SELECTION_FINEST_LEVEL == min(CANDIDATE_LEVELS)
+    assert budget.SELECTION_COARSEST_LEVEL == max(CANDIDATE_LEVELS)
+    # every level the selection may pick gives a config that validates again (trials and --resume re-read it)
+    refused(deep_update(deep_update(example_dict(), "solver.accuracy_mm", 0.1), "tissue.mesh.min_edge_mm", 0.1),
+            "solver.accuracy_mm", "below the finest edge 0.05 mm")
+    refused(deep_update(deep_update(example_dict(), "solver.accuracy_mm", 0.1), "tissue.mesh.scale", 50.0),
+            "solver.accuracy_mm", "above the largest scale 100")
     data = deep_update(example_dict(), "solver.accuracy_mm", 0.1)
     assert parse(data).solver.accuracy_mm == 0.1  # the example: ~26 000 triangles at a quarter of its size field
     deep_update(data, "tissue.mesh.min_edge_mm", 0.3)

@@ -280,6 +280,15 @@ def test_validate_subprocess(tmp_path, content):
     assert proc.stderr.startswith(f"error: {path}") and proc.stderr.count("error:") == 1
 
 
+@pytest.mark.parametrize("args", [["--seed", str(2**70)], ["--trials", str(10**9)]], ids=["seed", "trials"])
+def test_overrides_keep_to_the_config_ranges(tmp_path, args):
+    """Command-line overrides bypass the config's validation, so they carry its ranges themselves."""
+    path = tmp_path / "scene.yaml"
+    path.write_text(_dump(COARSE))
+    result = runner.invoke(app, ["simulate", str(path), "--out", str(tmp_path / "o"), "--quiet", *args])
+    assert result.exit_code == 2 and args[0] in result.output and not (tmp_path / "o").exists()
+
+
 # --------------------------------------------------------------------------
 # Long profile: python3 -m pytest -m fuzz tests/test_fuzz.py
 

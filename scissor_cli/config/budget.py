@@ -39,14 +39,15 @@ from scipy.spatial import cKDTree
 
 from scissor_cli import geometry
 from scissor_cli.config.checks import Problem, obstacle_outline, tissue_outline
-from scissor_cli.config.sections import Config
+from scissor_cli.config.sections import MAX_SCALE, MIN_EDGE_MM, Config
 
 #: the most triangles a mesh of any scissor run may have (estimated before meshing). At 236 000
 #: triangles building the tissue took 8 s and one Newton solve 7 s with 1 GB of memory (2-core
 #: machine): a run of trials there takes hours per target, and every worker process holds its own copy.
 ELEMENT_BUDGET = 250_000
-#: the finest mesh level the accuracy selection meshes (experiments/selection.py CANDIDATE_LEVELS)
+#: the finest and coarsest mesh levels the accuracy selection meshes (experiments/selection.py CANDIDATE_LEVELS)
 SELECTION_FINEST_LEVEL = 0.25
+SELECTION_COARSEST_LEVEL = 4.0
 #: fitted: real count / area integral, and per unit of the boundary integral
 A_FACTOR = 1.55
 B_FACTOR = 1.55
@@ -185,6 +186,17 @@ def budget_problems(cfg: Config) -> list[Problem]:
             f"grading {m.grading:g}, scale {m.scale:g}); the budget is {ELEMENT_BUDGET} — "
             f"use larger edges or more grading")))
     elif cfg.solver.accuracy_mm is not None:
+        m = cfg.tissue.mesh
+        # the run goes on with the picked level's config, which must validate too (trials re-read it)
+        if m.min_edge_mm * m.scale * SELECTION_FINEST_LEVEL < MIN_EDGE_MM * (1 - 1e-12):
+            return [(("solver", "accuracy_mm"), (
+                f"the accuracy selection meshes down to {SELECTION_FINEST_LEVEL:g} x the size field: min_edge_mm "
+                f"× scale × {SELECTION_FINEST_LEVEL:g} = {m.min_edge_mm * m.scale * SELECTION_FINEST_LEVEL:.3g} mm "
+                f"is below the finest edge {MIN_EDGE_MM:g} mm; use larger edges or leave accuracy_mm out"))]
+        if m.scale * SELECTION_COARSEST_LEVEL > MAX_SCALE:
+            return [(("solver", "accuracy_mm"), (
+                f"the accuracy selection meshes up to {SELECTION_COARSEST_LEVEL:g} x the size field: scale "
+                f"{m.scale:g} × {SELECTION_COARSEST_LEVEL:g} is above the largest scale {MAX_SCALE:g}"))]
         fine = estimate_elements(cfg, scale=cfg.tissue.mesh.scale * SELECTION_FINEST_LEVEL)
         if fine > ELEMENT_BUDGET:
             problems.append((("solver", "accuracy_mm"), (

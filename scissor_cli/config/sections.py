@@ -63,6 +63,8 @@ class _Section(BaseModel):
 
 #: the finest element edge a mesh may ask for, mm (min_edge_mm × scale; checks)
 MIN_EDGE_MM = 0.05
+#: the largest `tissue.mesh.scale`
+MAX_SCALE = 100.0
 
 
 class MeshConfig(_Section):
@@ -74,7 +76,7 @@ class MeshConfig(_Section):
     #: false: a uniform mesh at min_edge_mm (the study's reference for grading)
     graded: bool = True
     #: multiplies both edge lengths (the study's refinement levels)
-    scale: Num(0.01, 100.0) = 1.0
+    scale: Num(0.01, MAX_SCALE) = 1.0
 
 
 class TissueConfig(_Section):
