@@ -66,7 +66,7 @@ def test_validate_command_prints_resolved_config():
 BAD = [
     # (dotted field, value, words the message must contain)
     ("material.E_kPa", 0.0, ["material.E_kPa", "a finite number in [0.001, 1e+06]", "got 0.0"]),
-    ("material.E_kPa", "10", ["material.E_kPa", "a finite number", "got '10'"]),
+    ("material.E_kPa", "10", ["material.E_kPa", "a finite number", "YAML read 10 as text", "got '10'"]),
     ("material.E_kPa", float("nan"), ["material.E_kPa", "a finite number in [0.001, 1e+06]", "got nan"]),
     ("material.E_kPa", float("-inf"), ["material.E_kPa", "finite", "got -inf"]),
     ("material.E_kPa", True, ["material.E_kPa", "a finite number", "got True"]),
@@ -79,7 +79,7 @@ BAD = [
     ("controller.max_iterations", 10**9, ["controller.max_iterations", "an integer in [1, 10000]"]),
     ("solver.max_iterations", 10**6, ["solver.max_iterations", "[1, 50000]"]),
     ("solver.tolerance", 1e-300, ["solver.tolerance", "[1e-12, 1)"]),
-    ("camera.position_mm", [1.0, 2.0], ["camera.position_mm", "at least 3 items"]),
+    ("camera.position_mm", [1.0, 2.0], ["camera.position_mm", "must be a list of 3 items"]),
     ("camera.position_mm", [1e308, 2.0, 3.0], ["camera.position_mm[0]", "[-10000, 10000]"]),
     ("cups.0.name", "a/b", ["cups[0].name", "letters, digits"]),
     ("targets.0.position_mm", [150.0, 30.0], ["targets[0].position_mm", "inside the tissue"]),
@@ -91,7 +91,7 @@ BAD = [
     ("cups.0.stroke_mm", [15.0, -15.0], ["cups[0].stroke_mm", "min < max"]),
     ("tissue.mesh.min_edge_mm", 5.0, ["tissue.mesh.min_edge_mm", "max_edge_mm"]),
     ("tissue.size_mm", None, ["tissue.size_mm", "required when shape is 'rectangle'"]),
-    ("tissue.fixed", [], ["tissue.fixed", "at least 1"]),
+    ("tissue.fixed", [], ["tissue.fixed", "a list of 1 to 4 items"]),
     ("tissue.fixed", ["front"], ["tissue.fixed[0]", "'bottom'"]),
     ("tissue.colour", "pink", ["tissue.colour", "unknown key", "thickness_mm"]),
     ("forward.0.strokes", {"cup": 40.0}, ["forward[0].strokes.cup", "outside"]),

@@ -181,6 +181,17 @@ def pydantic_problem(err: dict) -> tuple[tuple, str]:
         return loc, "required field is missing" + (f"; allowed: {allowed(loc)}" if allowed(loc) else "")
     what = err["msg"]
     allow = allowed(loc)
-    if allow and kind not in ("too_short", "too_long", "value_error", "assertion_error"):
+    got = err.get("input")
+    if allow and kind not in ("value_error", "assertion_error"):
         what = f"must be {allow}"  # says more than pydantic's words: the whole range, the name's characters
-    return loc, f"{what}; got {show(err.get('input'))}"
+    if allow.startswith(("a finite number", "an integer")) and isinstance(got, str) and _number_like(got):
+        what += f" (YAML read {got} as text: write exponents with a sign, 1.0e+3, and no quotes)"
+    return loc, f"{what}; got {show(got)}"
+
+
+def _number_like(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
