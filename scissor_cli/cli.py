@@ -16,6 +16,7 @@ from typing import Callable, Optional
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from scissor_cli import __version__, runtime
@@ -60,7 +61,12 @@ class ConsoleReporter:
 
 
 def _fail(code: int, message: str) -> None:
-    err.print(f"[bold red]error:[/] {message}" if code == 1 else f"error: {message}", markup=code == 1)
+    # a file name or YAML key may hold lone surrogates (undecodable bytes): show them escaped
+    message = message.encode("utf-8", "backslashreplace").decode("utf-8")
+    if code == 1:
+        err.print(f"[bold red]error:[/] {escape(message)}", soft_wrap=True, emoji=False)
+    else:
+        err.print(f"error: {message}", markup=False, soft_wrap=True, emoji=False)
     raise typer.Exit(code)
 
 
@@ -105,8 +111,8 @@ def validate(config: Path = typer.Argument(..., help="Scene YAML file.")) -> Non
 def simulate(
     config: Optional[Path] = typer.Argument(None, help="Scene YAML file (default: the shipped example scene)."),
     out_dir: Optional[Path] = typer.Option(None, "--out", help="Output directory (default runs/<config-stem>-<time>/)."),
-    trials: Optional[int] = typer.Option(None, "--trials", min=0, help="Trials per target (0: forward cases and plans only)."),
-    seed: Optional[int] = typer.Option(None, "--seed", min=0, help="Override the config's seed."),
+    trials: Optional[int] = typer.Option(None, "--trials", min=0, max=10_000, help="Trials per target (0: forward cases and plans only)."),
+    seed: Optional[int] = typer.Option(None, "--seed", min=0, max=2**63 - 1, help="Override the config's seed."),
     solver: Optional[str] = typer.Option(None, "--solver", help="Override the config's solver: admm | newton."),
     jobs: Optional[int] = typer.Option(None, "--jobs", min=1, help="Worker processes for trials (default: all cores)."),
     executor: str = typer.Option("local", "--executor", help="Where trials run: local | dask."),
@@ -122,6 +128,7 @@ def simulate(
     from scissor_cli.experiments.simulate import (Execution, NonFiniteError, ResumeError, TrialsFailed,
                                                   resume_simulation, run_simulation)
     from scissor_cli.output.sink import RunDirectory, open_for_resume
+    from scissor_cli.experiments.study import StudyError
     from scissor_cli.solvers.common import SolverError
     from scissor_cli.mechanics.tissue import BoundaryError
 
@@ -135,7 +142,7 @@ def simulate(
     if resume is not None:
         try:
             n = resume_simulation(open_for_resume(resume), reporter, execution)
-        except ResumeError as exc:
+        except (ResumeError, ConfigError) as exc:  # also: the run's own config no longer validates
             _fail(2, str(exc))
         except (TrialsFailed, NonFiniteError, WorkerLost) as exc:
             err.print(f"results so far: {resume / 'results.h5'} (status = failed)")
@@ -161,10 +168,12 @@ def simulate(
     directory = _out_dir(out_dir, stem, force)
     try:
         summary = run_simulation(cfg, RunDirectory(directory), reporter, execution)
-    except (BoundaryError, MeshError) as exc:
+    except (BoundaryError, MeshError, StudyError) as exc:
         _fail(2, f"{config or DEFAULT_SCENE}: {exc}")
+    except NotImplementedError as exc:  # the needle planner's inverse kinematics for a custom chain
+        _fail(2, f"{config or DEFAULT_SCENE}: robot.dh: {exc}")
     except (SolverError, TrialsFailed, NonFiniteError, WorkerLost) as exc:
-        err.print(f"results so far: {directory / 'results.h5'} (status = failed)")
+        err.print(f"results so far: {directory / 'results.h5'} (status = failed)", markup=False, soft_wrap=True)
         _fail(1, str(exc))
     except KeyboardInterrupt as exc:
         _stopped(exc, directory, f"finish the trials with: scissor simulate --resume {directory}")
@@ -186,7 +195,7 @@ def workspace(
     config: Optional[Path] = typer.Argument(None, help="Scene YAML file for its `robot` section (default: the paper's robot)."),
     samples: int = typer.Option(1_000_000, "--samples", min=1, help="Joint-space samples."),
     out_dir: Optional[Path] = typer.Option(None, "--out", help="Output directory (default runs/workspace-<time>/)."),
-    seed: Optional[int] = typer.Option(None, "--seed", min=0, help="Sampling seed (default: the config's seed, else 0)."),
+    seed: Optional[int] = typer.Option(None, "--seed", min=0, max=2**63 - 1, help="Sampling seed (default: the config's seed, else 0)."),
     grid: bool = typer.Option(False, "--grid", help="Sample a tensor grid instead of uniformly at random."),
     force: bool = typer.Option(False, "--force", help="Write into a non-empty --out directory."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Only the output path."),

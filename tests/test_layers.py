@@ -63,19 +63,13 @@ def _imports(path: Path) -> set[str]:
 
 MODULES = {_module_name(p): p for p in sorted(PACKAGE.rglob("*.py"))}
 
-#: Known violations being removed by work in progress; strict: a fixed one fails until it leaves this list.
-KNOWN_LAYER_VIOLATIONS: set[str] = set()
-KNOWN_OVERSIZED = {"scissor_cli.config.schema"}
-
 
 def test_every_package_is_a_known_layer():
     unknown = {_layer(m) for m in MODULES} - set(RANK)
     assert not unknown, f"packages without a place in LAYERS: {unknown}"
 
 
-@pytest.mark.parametrize("module", [
-    pytest.param(m, marks=pytest.mark.xfail(strict=True, reason="being moved behind a sink")) if m in KNOWN_LAYER_VIOLATIONS
-    else m for m in sorted(MODULES)])
+@pytest.mark.parametrize("module", sorted(MODULES))
 def test_imports_only_from_earlier_layers(module):
     mine = _layer(module)
     bad = []
@@ -111,8 +105,7 @@ def test_no_import_cycles():
 
 def test_no_module_over_500_lines():
     big = {m: n for m, p in MODULES.items() if (n := len(p.read_text().splitlines())) > 500}
-    assert set(big) <= KNOWN_OVERSIZED, f"modules over 500 lines (one concern each): {big}"
-    assert set(big) == KNOWN_OVERSIZED & set(MODULES), f"split, remove from KNOWN_OVERSIZED: {KNOWN_OVERSIZED - set(big)}"
+    assert not big, f"modules over 500 lines (one concern each): {big}"
 
 
 def test_importing_has_no_process_side_effects():

@@ -4,12 +4,14 @@ Everything outside this package imports from here, so the package's inner
 split may change.
 """
 
-from scissor_cli.config.schema import (
+from scissor_cli.config.budget import ELEMENT_BUDGET, estimate_elements
+from scissor_cli.config.checks import obstacle_outline, scene_problems, tissue_outline
+from scissor_cli.config.loading import MAX_CONFIG_BYTES, ConfigError, load_config, parse_config, read_config_text, resolved_yaml
+from scissor_cli.config.sections import (
     BoxConfig,
     CameraConfig,
     CircleConfig,
     Config,
-    ConfigError,
     ControllerConfig,
     CupConfig,
     DHLinkConfig,
@@ -24,17 +26,13 @@ from scissor_cli.config.schema import (
     TargetConfig,
     TissueConfig,
     TrialsConfig,
-    load_config,
-    obstacle_outline,
-    parse_config,
-    resolved_yaml,
-    scene_problems,
-    tissue_outline,
 )
 
 __all__ = [
+    "ELEMENT_BUDGET", "MAX_CONFIG_BYTES",
     "BoxConfig", "CameraConfig", "CircleConfig", "Config", "ConfigError", "ControllerConfig", "CupConfig",
     "DHLinkConfig", "ForwardCase", "MaterialConfig", "MeshConfig", "NeedleConfig", "ObstacleConfig",
     "RobotConfig", "SolverConfig", "StudyConfig", "TargetConfig", "TissueConfig", "TrialsConfig",
-    "load_config", "obstacle_outline", "parse_config", "resolved_yaml", "scene_problems", "tissue_outline",
+    "estimate_elements", "load_config", "obstacle_outline", "parse_config", "read_config_text", "resolved_yaml",
+    "scene_problems", "tissue_outline",
 ]

@@ -21,7 +21,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from scissor_cli.config import Config, StudyConfig
+from scissor_cli.config import Config, StudyConfig, estimate_elements
 from scissor_cli.mesh.probe import probe_targets, target_positions
 from scissor_cli.mesh.mesh import Mesh, mesh_for_config
 from scissor_cli.solvers.equilibrium import EquilibriumSolver, solve_equilibrium
@@ -79,8 +79,8 @@ def mesh_variants(cfg: Config, scene: Scene, study: StudyConfig, notes: list[str
     for kind in kinds:
         mesh_cfg = cfg.tissue.mesh.model_copy(update={"graded": kind == "graded"})
         for level in sorted(study.levels, reverse=True):
-            # a uniform mesh's size is known before meshing: skip it without paying for it
-            estimate = _uniform_estimate(scene, mesh_cfg.min_edge_mm * level) if kind == "uniform" else 0
+            # the size is estimated before meshing: skip a mesh without paying for it (and never past the budget)
+            estimate = estimate_elements(cfg, scale=level * cfg.tissue.mesh.scale, graded=kind == "graded")
             if estimate > 2 * study.max_elements:
                 notes.append(f"{kind} level {level:g}: about {estimate} elements > max_elements, skipped")
                 continue
@@ -90,12 +90,6 @@ def mesh_variants(cfg: Config, scene: Scene, study: StudyConfig, notes: list[str
                 continue
             out.append((level, kind, mesh))
     return out
-
-
-def _uniform_estimate(scene: Scene, h: float) -> int:
-    from scissor_cli.geometry import signed_area
-
-    return int(abs(signed_area(scene.outline)) / (np.sqrt(3) / 4 * h * h))
 
 
 def run_study(cfg: Config, progress: Optional[Callable[[str], None]] = None) -> StudyResult:
@@ -110,6 +104,8 @@ def run_study(cfg: Config, progress: Optional[Callable[[str], None]] = None) -> 
         raise StudyError("the study needs at least one forward case")
     notes: list[str] = []
     variants = mesh_variants(cfg, scene, study, notes)
+    if not any(kind == "graded" for _, kind, _ in variants):
+        raise StudyError(f"every graded mesh level has more than study.max_elements = {study.max_elements} elements")
     rest = np.array([t.rest for t in scene.targets])
     rows: list[StudyRow] = []
     finest = min(level for level, kind, _ in variants if kind == "graded")

@@ -1,0 +1,292 @@
+"""Checks that need several fields of a scene at once, and the outlines they use.
+
+pydantic validates each field on its own (`sections`); `scene_problems`
+then checks the scene as a whole: a target inside the tissue, a cup on the
+boundary, obstacles inside and apart, forward strokes within the cups'
+limits (docs/contract.md, "Config"). Each problem is a (location, message)
+pair that `loading` turns into a message pointing into the YAML file.
+
+Besides geometry, two checks bound the work a scene can ask for:
+`MAX_TIME_STEPS` implicit-Euler steps per forward case (with `solver.dt_s`)
+and `MAX_VOXELS` coverage voxels in the robot's breast box.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from scissor_cli import geometry
+from scissor_cli.config.sections import MAX_TISSUE_MM, MIN_EDGE_MM, Config, ObstacleConfig, TissueConfig
+
+#: implicit-Euler steps (ramp + settling) one forward case may take with solver.dt_s
+MAX_TIME_STEPS = 10_000
+#: voxels of robot.voxel_mm in robot.breast_box_mm (the paper's box at 5 mm has 39 600)
+MAX_VOXELS = 2_000_000
+#: outline vertices of all obstacles together (a circle counts 64): bounds the pairwise overlap test
+MAX_OBSTACLE_VERTICES = 5000
+#: the smallest area of the tissue polygon and of an obstacle, mm²
+MIN_TISSUE_AREA_MM2 = 1.0
+MIN_OBSTACLE_AREA_MM2 = 0.01
+#: the fewest straight edges the mesher follows an ellipse with (scissor_cli/scene/scene.py);
+#: every such inscribed polygon holds the ellipse scaled by cos(pi / n) about its centre
+ELLIPSE_MIN_POINTS = 32
+
+def tissue_outline(tissue: TissueConfig, n_curve: int = 256) -> np.ndarray:
+    """The layer's outline (K, 2), counter-clockwise, in mm.
+
+    A rectangle or ellipse spans `size_mm` from the origin at its lower-left
+    corner (docs/model.md §1); an ellipse is sampled at `n_curve` points.
+    """
+    if tissue.shape == "rectangle":
+        w, h = tissue.size_mm
+        return np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]])
+    if tissue.shape == "ellipse":
+        w, h = tissue.size_mm
+        return geometry.ellipse_polygon((w / 2, h / 2), (w / 2, h / 2), n_curve)
+    return geometry.ccw(np.asarray(tissue.polygon_mm, dtype=float))
+
+
+def obstacle_outline(obstacle: ObstacleConfig, n_curve: int = 64) -> np.ndarray:
+    """An obstacle's outline (K, 2), counter-clockwise, in mm."""
+    if obstacle.circle is not None:
+        return geometry.circle_polygon(obstacle.circle.center_mm, obstacle.circle.radius_mm, n_curve)
+    return geometry.ccw(np.asarray(obstacle.polygon_mm, dtype=float))
+
+
+Problem = tuple[tuple[Any, ...], str]
+
+
+def _unique(items, section: str) -> list[Problem]:
+    seen: dict[str, int] = {}
+    out = []
+    for i, item in enumerate(items):
+        if item.name in seen:
+            out.append(((section, i, "name"), f"duplicate name {item.name!r} (also {section}[{seen[item.name]}])"))
+        seen.setdefault(item.name, i)
+    return out
+
+
+def _polygon_problem(poly: np.ndarray, min_area: float) -> str | None:
+    """Why a user-given polygon cannot be meshed, or None."""
+    if np.any(np.linalg.norm(np.roll(poly, -1, axis=0) - poly, axis=1) < 1e-6):
+        return "must have distinct consecutive vertices (an edge has length 0)"
+    if not geometry.is_simple(poly):
+        return "must be a simple polygon (its edges cross)"
+    area = abs(geometry.signed_area(poly))
+    if area < min_area:
+        return f"must enclose at least {min_area:g} mm²; encloses {area:.3g} mm²"
+    return None
+
+
+def _tissue_problems(cfg: Config) -> tuple[list[Problem], np.ndarray | None]:
+    """Problems of the layer itself and, when it has none that stop the rest, its outline."""
+    t = cfg.tissue
+    problems: list[Problem] = []
+    if t.shape == "polygon":
+        if t.polygon_mm is None:
+            return [(("tissue", "polygon_mm"), "required when shape is 'polygon': a list of [x, y] vertices")], None
+        poly = np.asarray(t.polygon_mm, float)
+        why = _polygon_problem(poly, MIN_TISSUE_AREA_MM2)
+        if why is None and np.ptp(poly, axis=0).max() > MAX_TISSUE_MM:
+            why = f"must span at most {MAX_TISSUE_MM:g} mm; spans {np.ptp(poly, axis=0).max():.4g} mm"
+        if why is not None:
+            return [(("tissue", "polygon_mm"), why)], None
+    else:
+        if t.size_mm is None:
+            return [(("tissue", "size_mm"), f"required when shape is {t.shape!r}: [width, height] in mm")], None
+        if t.polygon_mm is not None:
+            problems.append((("tissue", "polygon_mm"), f"only allowed with shape 'polygon' (shape is {t.shape!r})"))
+    m = t.mesh
+    if m.min_edge_mm > m.max_edge_mm:
+        problems.append(
+            (("tissue", "mesh", "min_edge_mm"), f"must be <= max_edge_mm ({m.max_edge_mm}); got {m.min_edge_mm}")
+        )
+    if m.min_edge_mm * m.scale < MIN_EDGE_MM * (1 - 1e-12):
+        problems.append((("tissue", "mesh", "scale"), (
+            f"min_edge_mm × scale = {m.min_edge_mm * m.scale:.3g} mm; the finest edge a mesh may ask for is "
+            f"{MIN_EDGE_MM:g} mm")))
+    return problems, tissue_outline(t)
+
+
+def _inside(points, outline: np.ndarray, tissue: TissueConfig) -> np.ndarray:
+    """(K,) True where points (K, 2) are strictly inside the tissue (not on its outline).
+
+    An ellipse is meshed as an inscribed polygon of ELLIPSE_MIN_POINTS or more
+    edges, so a point counts as inside only within the ellipse scaled by
+    cos(pi / ELLIPSE_MIN_POINTS), which every such polygon holds.
+    """
+    p = np.asarray(points, float).reshape(-1, 2)
+    if tissue.shape == "ellipse":
+        a, b = tissue.size_mm[0] / 2, tissue.size_mm[1] / 2
+        q = ((p[:, 0] - a) / a) ** 2 + ((p[:, 1] - b) / b) ** 2
+        return q < np.cos(np.pi / ELLIPSE_MIN_POINTS) ** 2 * (1 - 1e-9)
+    return geometry.points_in_polygon(p, outline) & (geometry.distance_to_boundary(p, outline) > 0)
+
+
+def _inside_text(tissue: TissueConfig) -> str:
+    if tissue.shape != "ellipse":
+        return "inside the tissue"
+    return (f"inside the tissue (of an ellipse, the part within {np.cos(np.pi / ELLIPSE_MIN_POINTS):.4f} of its "
+            f"semi-axes: the mesh follows the outline with {ELLIPSE_MIN_POINTS} or more straight edges)")
+
+
+def _obstacle_problems(cfg: Config, outline: np.ndarray) -> list[Problem]:
+    problems: list[Problem] = []
+    outlines: list[np.ndarray | None] = []
+    for i, obs in enumerate(cfg.obstacles):
+        if (obs.circle is None) == (obs.polygon_mm is None):
+            problems.append((("obstacles", i), "give exactly one of 'circle' or 'polygon_mm'"))
+            outlines.append(None)
+            continue
+        why = None if obs.polygon_mm is None else _polygon_problem(np.asarray(obs.polygon_mm, float), MIN_OBSTACLE_AREA_MM2)
+        if why is not None:
+            problems.append((("obstacles", i, "polygon_mm"), why))
+            outlines.append(None)
+            continue
+        poly = obstacle_outline(obs)
+        field = "circle" if obs.circle is not None else "polygon_mm"
+        if obs.circle is not None:  # the 64-gon pushed out to hold the circle, and so any polygon inscribed in it
+            c = np.asarray(obs.circle.center_mm)
+            poly = c + (poly - c) / np.cos(np.pi / len(poly))
+        if not _inside(poly, outline, cfg.tissue).all():
+            problems.append((("obstacles", i, field), f"obstacle {obs.name!r} must lie {_inside_text(cfg.tissue)}"))
+        outlines.append(poly)
+    total = sum(len(o) for o in outlines if o is not None)
+    if total > MAX_OBSTACLE_VERTICES:
+        problems.append((("obstacles",), (f"{total} outline vertices in all (a circle counts 64); at most "
+                                          f"{MAX_OBSTACLE_VERTICES}: use fewer or simpler obstacles")))
+        return problems
+    boxes = [None if o is None else (o.min(axis=0), o.max(axis=0)) for o in outlines]
+    for i in range(len(outlines)):
+        for j in range(i + 1, len(outlines)):
+            if boxes[i] is None or boxes[j] is None:
+                continue
+            if np.any(boxes[i][1] < boxes[j][0]) or np.any(boxes[j][1] < boxes[i][0]):
+                continue  # bounding boxes apart: no overlap to test
+            if geometry.polygons_overlap(outlines[i], outlines[j]):
+                problems.append(
+                    (("obstacles", j), f"obstacle {cfg.obstacles[j].name!r} overlaps {cfg.obstacles[i].name!r}")
+                )
+    return problems
+
+
+def _cup_and_target_problems(cfg: Config, outline: np.ndarray) -> list[Problem]:
+    problems: list[Problem] = []
+    on_boundary_tol = max(1e-6 * float(np.ptp(outline, axis=0).max()) + 1e-9, 1e-3)
+    fixed = np.zeros(len(outline), bool)
+    for side in cfg.tissue.fixed:
+        facing = geometry.side_edge_mask(outline, side)
+        if not facing.any():
+            problems.append((("tissue", "fixed"), f"the outline has no edge facing {side!r} to hold"))
+        fixed |= facing
+    a, b = geometry.edges(outline)
+    for i, cup in enumerate(cfg.cups):
+        d = geometry.distance_to_boundary(np.asarray(cup.contact_mm)[None], outline)[0]
+        if d > on_boundary_tol:
+            problems.append(
+                (("cups", i, "contact_mm"), f"must lie on the tissue boundary; {cup.contact_mm} is {d:.3g} mm from it")
+            )
+            continue
+        if fixed.any():
+            reach = geometry.point_segment_distance(np.asarray(cup.contact_mm)[None], a[fixed], b[fixed]).min()
+            if reach <= cup.radius_mm:
+                problems.append((("cups", i, "radius_mm"), (
+                    f"the grip ({cup.radius_mm:g} mm around the contact) reaches a fixed side "
+                    f"({', '.join(cfg.tissue.fixed)}) {reach:.3g} mm away; move the cup or shrink radius_mm")))
+        lo, hi = cup.stroke_mm
+        if not lo < hi:
+            problems.append((("cups", i, "stroke_mm"), f"must be [min, max] with min < max; got {cup.stroke_mm}"))
+    for i, target in enumerate(cfg.targets):
+        if not _inside(target.position_mm, outline, cfg.tissue)[0]:
+            problems.append((("targets", i, "position_mm"), f"must be {_inside_text(cfg.tissue)}; got {target.position_mm}"))
+        if target.desired_mm is not None and not _inside(target.desired_mm, outline, cfg.tissue)[0]:
+            problems.append((("targets", i, "desired_mm"), f"must be {_inside_text(cfg.tissue)}; got {target.desired_mm}"))
+    return problems
+
+
+def _forward_problems(cfg: Config) -> list[Problem]:
+    problems: list[Problem] = []
+    cups = {c.name: c for c in cfg.cups}
+    for i, case in enumerate(cfg.forward):
+        for name, stroke in case.strokes.items():
+            if name not in cups:
+                problems.append((("forward", i, "strokes", name), f"unknown cup {name!r}; cups are {sorted(cups)}"))
+            elif not cups[name].stroke_mm[0] <= stroke <= cups[name].stroke_mm[1]:
+                problems.append((("forward", i, "strokes", name),
+                                 f"stroke {stroke} mm is outside cup {name!r}'s stroke_mm {cups[name].stroke_mm}"))
+    dt = cfg.solver.dt_s
+    if dt is not None and cfg.forward and not problems:
+        speed = {c.name: c.speed_mm_per_s for c in cfg.cups}
+        ramp_s = max((abs(v) / speed[k] for case in cfg.forward for k, v in case.strokes.items()), default=0.0)
+        steps = max(int(np.ceil(ramp_s / dt)), 1) + cfg.solver.steps
+        if steps > MAX_TIME_STEPS:
+            problems.append((("solver", "dt_s"), (
+                f"a forward case would take {steps} implicit-Euler steps (ramp {ramp_s:.4g} s at the cups' speed, "
+                f"plus solver.steps {cfg.solver.steps}); at most {MAX_TIME_STEPS} — use a larger dt_s or faster cups")))
+    return problems
+
+
+def _run_problems(cfg: Config) -> list[Problem]:
+    """What the solver study and the accuracy selection need of the scene."""
+    problems: list[Problem] = []
+    if cfg.study is not None:
+        if not cfg.targets:
+            problems.append((("study",), "the study measures target errors: the scene needs at least one target"))
+        if not cfg.forward:
+            problems.append((("study",), "the study solves the forward cases: the scene needs at least one"))
+        names = {c.name for c in cfg.forward}
+        for i, case in enumerate(cfg.study.cases or []):
+            if case not in names:
+                problems.append((("study", "cases", i), f"unknown forward case {case!r}; cases are {sorted(names)}"))
+    if cfg.solver.accuracy_mm is not None and not cfg.targets:
+        problems.append((("solver", "accuracy_mm"), "the accuracy is measured at the targets: the scene needs at least one"))
+    return problems
+
+
+def _robot_problems(cfg: Config) -> list[Problem]:
+    problems: list[Problem] = []
+    r = cfg.robot
+    lo, hi = np.asarray(r.breast_box_mm.min), np.asarray(r.breast_box_mm.max)
+    if not np.all(hi > lo):
+        problems.append((("robot", "breast_box_mm"), f"max must exceed min on every axis; got min {r.breast_box_mm.min}, "
+                                                     f"max {r.breast_box_mm.max}"))
+    else:
+        voxels = float(np.prod(np.maximum(1, np.ceil((hi - lo) / r.voxel_mm - 1e-9))))
+        if voxels > MAX_VOXELS:
+            problems.append((("robot", "voxel_mm"), (f"the breast box holds {voxels:.3g} voxels of {r.voxel_mm:g} mm; "
+                                                     f"at most {MAX_VOXELS} — use larger voxels")))
+    if r.dh is not None:
+        if all(row.joint == "fixed" for row in r.dh):
+            problems.append((("robot", "dh"), "a robot needs at least one revolute or prismatic joint"))
+        for i, row in enumerate(r.dh):
+            if row.joint == "fixed":
+                continue
+            if row.limits is None:
+                problems.append((("robot", "dh", i, "limits"), f"required for a {row.joint} joint: [lo, hi]"))
+            elif not row.limits[0] <= row.limits[1]:
+                problems.append((("robot", "dh", i, "limits"), f"must be [lo, hi] with lo <= hi; got {row.limits}"))
+    return problems
+
+
+def scene_problems(cfg: Config) -> list[Problem]:
+    """Cross-field checks pydantic cannot do field by field: [(location, message)]."""
+    problems, outline = _tissue_problems(cfg)
+    if outline is None:
+        return problems
+    problems += _unique(cfg.cups, "cups") + _unique(cfg.targets, "targets")
+    problems += _unique(cfg.obstacles, "obstacles") + _unique(cfg.forward, "forward")
+    problems += _cup_and_target_problems(cfg, outline)
+    problems += _obstacle_problems(cfg, outline)
+    problems += _forward_problems(cfg)
+    problems += _run_problems(cfg)
+    lo, hi = cfg.needle.direction_range_deg
+    if lo > hi or lo < -89 or hi > 89:
+        problems.append(
+            (("needle", "direction_range_deg"), f"must be [min, max] with -89 <= min <= max <= 89; got {[lo, hi]}")
+        )
+    if cfg.camera.position_mm[2] <= 0:
+        problems.append((("camera", "position_mm"), "the camera must be above the layer (z > 0)"))
+    problems += _robot_problems(cfg)
+    return problems

@@ -1,0 +1,302 @@
+"""The scene configuration's sections: one pydantic model per YAML section.
+
+Every section of the normative example scene has a model here with its
+defaults (docs/contract.md, "Config"). pydantic checks each field on its own:
+type, range, allowed values, unknown keys. What needs several fields at once
+lives in `checks`, the element budget in `budget`, the YAML reading and its
+messages in `loading`.
+
+Every number has a finite range, written next to the field (`Num(lo, hi)`:
+lo <= x <= hi; `gt`/`lt` for open ends); NaN and ±inf are refused everywhere.
+The ranges are wide — they admit every physically sensible scene and refuse
+values that would overflow, never finish, or fill the memory — and a value
+outside one is an error naming the range. Lists have documented lengths.
+Units follow docs/model.md §0: mm, s, kPa, kg; angles in degrees in the config.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal, Optional
+
+import numpy as np
+from annotated_types import Len
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+#: Any position (layer or robot frame), in mm: ±10 m.
+COORD_MM = 10_000.0
+#: The largest tissue layer, mm per side.
+MAX_TISSUE_MM = 1000.0
+#: Names of cups, targets, obstacles and forward cases become HDF5 groups
+#: and file names: letters, digits, '_', '.', '+', '-', starting with a letter
+#: or digit, at most 64 characters.
+NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.+-]{0,63}$"
+#: The scene's own name (a title in figures): the same characters and spaces.
+SCENE_NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9 _.+-]{0,127}$"
+
+
+def Num(lo: float | None = None, hi: float | None = None, *, gt: float | None = None, lt: float | None = None):
+    """A finite float in a range: lo <= x <= hi, or gt < x / x < lt for open ends."""
+    return Annotated[float, Field(ge=lo, le=hi, gt=gt, lt=lt)]
+
+
+def Int(lo: int, hi: int):
+    """An integer lo <= n <= hi (a YAML float such as 5.0 is not an integer)."""
+    return Annotated[int, Field(ge=lo, le=hi)]
+
+
+Side = Literal["bottom", "top", "left", "right"]
+Name = Annotated[str, Field(pattern=NAME_PATTERN)]
+Coord = Num(-COORD_MM, COORD_MM)
+Vec2 = Annotated[list[Coord], Len(2, 2)]
+Vec3 = Annotated[list[Coord], Len(3, 3)]
+Angle = Num(-360.0, 360.0)
+#: relative solver tolerances: below 1e-12 a residual is rounding noise (ADMM stalls near 1e-13)
+Tolerance = Num(1e-12, lt=1.0)
+Spread = Num(0.0, 3.0)  # σ of a logarithm: exp(3σ) ≈ 8100 at σ = 3
+
+
+class _Section(BaseModel):
+    # strict: a YAML string "10" is not silently a number; extra: typos fail;
+    # allow_inf_nan=False: .nan and .inf are not numbers a scene can use.
+    model_config = ConfigDict(extra="forbid", strict=True, validate_default=True, allow_inf_nan=False)
+
+
+#: the finest element edge a mesh may ask for, mm (min_edge_mm × scale; checks)
+MIN_EDGE_MM = 0.05
+#: the largest `tissue.mesh.scale`
+MAX_SCALE = 100.0
+
+
+class MeshConfig(_Section):
+    max_edge_mm: Num(MIN_EDGE_MM, 100.0) = 4.0
+    min_edge_mm: Num(MIN_EDGE_MM, 100.0) = 1.0
+    min_angle_deg: Num(gt=0.0, hi=34.0) = 28.0
+    #: growth of the target edge length per mm of distance from a feature
+    grading: Num(0.001, 100.0) = 0.3
+    #: false: a uniform mesh at min_edge_mm (the study's reference for grading)
+    graded: bool = True
+    #: multiplies both edge lengths (the study's refinement levels)
+    scale: Num(0.01, MAX_SCALE) = 1.0
+
+
+class TissueConfig(_Section):
+    shape: Literal["rectangle", "ellipse", "polygon"] = "rectangle"
+    #: rectangle and ellipse: width and height, 1 mm to MAX_TISSUE_MM
+    size_mm: Optional[Annotated[list[Num(1.0, MAX_TISSUE_MM)], Len(2, 2)]] = [100.0, 60.0]
+    #: polygon: 3 to 1000 vertices [x, y] (spanning at most MAX_TISSUE_MM, see checks)
+    polygon_mm: Optional[Annotated[list[Vec2], Len(3, 1000)]] = None
+    thickness_mm: Num(0.01, MAX_TISSUE_MM) = 10.0
+    fixed: Annotated[list[Side], Len(1, 4)] = ["bottom"]
+    mesh: MeshConfig = MeshConfig()
+
+
+class MaterialConfig(_Section):
+    model: Literal["linear", "neo_hookean", "neo_hookean_fiber"] = "neo_hookean_fiber"
+    #: 1 Pa to 1 GPa: fat is ~1-5 kPa, tumours ~10-100 kPa, silicone phantoms below 1 MPa
+    E_kPa: Num(0.001, 1.0e6) = 10.0
+    nu: Num(gt=-1.0, lt=0.5) = 0.45
+    eta_kPa: Num(0.0, 1.0e6) = 0.0
+    fiber_angle_deg: Angle = 0.0
+    fiber_tension_only: bool = False
+    #: water is 1e-6 kg/mm³
+    density_kg_per_mm3: Num(1.0e-12, 1.0e-3) = 1.0e-6
+
+
+class CupConfig(_Section):
+    name: Name
+    contact_mm: Vec2
+    axis: Vec2
+    radius_mm: Num(0.1, MAX_TISSUE_MM) = 5.0
+    stroke_mm: Annotated[list[Num(-MAX_TISSUE_MM, MAX_TISSUE_MM)], Len(2, 2)] = [-15.0, 15.0]
+    speed_mm_per_s: Num(0.01, 1000.0) = 5.0
+
+    @field_validator("axis")
+    @classmethod
+    def _unit_axis(cls, v: list[float]) -> list[float]:
+        n = float(np.hypot(*v))
+        if abs(n - 1.0) > 1e-3:
+            raise ValueError(f"must be a unit vector (length 1 ± 0.001); got length {n:.4g}")
+        return [v[0] / n, v[1] / n]
+
+
+class TargetConfig(_Section):
+    name: Name
+    position_mm: Vec2
+    desired_mm: Optional[Vec2] = None
+
+
+class CircleConfig(_Section):
+    center_mm: Vec2
+    radius_mm: Num(0.05, MAX_TISSUE_MM)
+
+
+class ObstacleConfig(_Section):
+    name: Name
+    circle: Optional[CircleConfig] = None
+    #: 3 to 500 vertices [x, y]
+    polygon_mm: Optional[Annotated[list[Vec2], Len(3, 500)]] = None
+    stiffness_factor: Num(0.001, 1000.0) = 1.0
+
+
+class NeedleConfig(_Section):
+    diameter_mm: Num(0.05, 50.0) = 1.2
+    margin_mm: Num(0.0, 100.0) = 1.0
+    entry_sides: Annotated[list[Side], Len(1, 4)] = ["left", "right"]
+    #: [min, max] tilt, -89 <= min <= max <= 89 (checks)
+    direction_range_deg: Annotated[list[Angle], Len(2, 2)] = [0.0, 0.0]
+    direction_step_deg: Num(0.5, 90.0) = 5.0
+
+
+class ControllerConfig(_Section):
+    kp: Num(0.0, 100.0) = 0.8
+    ki: Num(0.0, 100.0) = 0.1
+    kd: Num(0.0, 100.0) = 0.0
+    tolerance_mm: Num(1.0e-6, 1000.0) = 0.1
+    #: each iteration is one solve of the tissue: 10 000 is hours on a fine mesh
+    max_iterations: Int(1, 10_000) = 50
+    rate_hz: Num(0.01, 1000.0) = 10.0
+
+
+class SolverConfig(_Section):
+    kind: Literal["admm", "newton"] = "admm"
+    #: relative tolerance of the chosen solver's residual
+    tolerance: Tolerance = 1.0e-4
+    #: ADMM iterations per solve: a few thousand reach 1e-6; the cap bounds a solve that cannot
+    #: converge (50 000 iterations take about 40 s on a 600-element mesh, minutes on a fine one)
+    max_iterations: Int(1, 50_000) = 2000
+    #: implicit-Euler step; absent means quasi-static equilibrium
+    dt_s: Optional[Num(1.0e-4, 10.0)] = None
+    #: number of implicit-Euler steps taken to reach a forward case's strokes
+    steps: Int(1, 10_000) = 20
+    #: Newton: relative gradient norm of the exact reference
+    newton_tolerance: Tolerance = 1.0e-10
+    newton_max_iterations: Int(1, 1000) = 100
+    #: ADMM: Anderson acceleration memory (0 switches it off)
+    anderson_memory: Int(0, 50) = 0
+    #: target accuracy (mm): simulate calibrates on the scene and picks the cheapest
+    #: mesh level, material model and solver predicted to meet it (None: use the config as is)
+    accuracy_mm: Optional[Num(1.0e-4, 1000.0)] = None
+    #: start of a forward solve: the rest state, or (a stress test of the
+    #: solvers' recovery) the rest state mirrored top-to-bottom, every element inverted
+    initial_guess: Literal["rest", "mirrored"] = "rest"
+
+
+class ForwardCase(_Section):
+    name: Name
+    #: cup name -> stroke (mm), within the cup's stroke_mm (checks)
+    strokes: Annotated[dict[str, Num(-MAX_TISSUE_MM, MAX_TISSUE_MM)], Len(0, 16)]
+
+
+class CameraConfig(_Section):
+    focal_mm: Num(0.1, 1000.0) = 8.0
+    pixel_size_mm: Annotated[list[Num(1.0e-5, 1.0)], Len(2, 2)] = [0.0048, 0.0048]
+    principal_point_px: Annotated[list[Num(-1.0e5, 1.0e5)], Len(2, 2)] = [640.0, 512.0]
+    position_mm: Vec3 = [50.0, 30.0, 400.0]
+    pixel_noise_px: Num(0.0, 1000.0) = 0.5
+
+
+class DHLinkConfig(_Section):
+    alpha_deg: Angle
+    a_mm: Coord
+    theta_deg: Angle
+    d_mm: Coord
+    joint: Literal["revolute", "prismatic", "fixed"]
+    #: [lo, hi] in mm (prismatic) or degrees (revolute), lo <= hi (checks)
+    limits: Optional[Vec2] = None
+
+
+class BoxConfig(_Section):
+    min: Vec3
+    max: Vec3
+
+
+class RobotConfig(_Section):
+    #: modified-DH table of 1 to 12 links; absent means the paper's Table 2 (docs/model.md §11)
+    dh: Optional[Annotated[list[DHLinkConfig], Len(1, 12)]] = None
+    layer_origin_mm: Vec3 = [60.0, 50.0, 250.0]
+    layer_yaw_deg: Angle = 0.0
+    breast_box_mm: BoxConfig = BoxConfig(min=[60.0, 50.0, 200.0], max=[210.0, 380.0, 300.0])
+    #: coverage voxels; at most MAX_VOXELS of them in the box (checks)
+    voxel_mm: Num(0.1, 1000.0) = 5.0
+
+
+class TrialsConfig(_Section):
+    """Trials per target and the error sources they draw (docs/model.md §10).
+
+    `profile` sets every distribution (see scissor_cli/experiments/profiles.py for the
+    values and their sources); each field below, when given, overrides the
+    profile's value. Spreads are standard deviations.
+    """
+
+    count: Int(0, 10_000) = 30
+    profile: Literal["ideal", "prosthesis", "ex_vivo"] = "prosthesis"
+    #: camera pixel noise σ (px); ideal: no camera error at all (no rounding)
+    pixel_noise_px: Optional[Num(0.0, 1000.0)] = None
+    #: per-trial bias of the target localisation, σ per axis (mm)
+    localisation_error_mm: Optional[Num(0.0, 100.0)] = None
+    #: true E / model E is log-normal with this σ of its logarithm
+    E_log_sd: Optional[Spread] = None
+    #: true ν = model ν + N(0, σ), kept below 0.499
+    nu_sd: Optional[Num(0.0, 0.5)] = None
+    #: true η / model η is log-normal with this σ of its logarithm
+    eta_log_sd: Optional[Spread] = None
+    #: true fiber angle = model angle + N(0, σ) (deg)
+    fiber_angle_sd_deg: Optional[Num(0.0, 180.0)] = None
+    #: smooth random field of E across the layer: σ of log E (correlation length below)
+    heterogeneity_log_sd: Optional[Spread] = None
+    heterogeneity_length_mm: Num(0.1, COORD_MM) = 20.0
+    #: actuator resolution (mm; commands are quantised to it) and backlash (mm)
+    actuator_resolution_mm: Optional[Num(0.0, 100.0)] = None
+    backlash_mm: Optional[Num(0.0, 100.0)] = None
+    #: slip of the tissue in the cup along the push axis after the loop stops,
+    #: σ (mm): the prone position and vertical restraint the paper's bench lacked
+    release_slip_mm: Optional[Num(0.0, 100.0)] = None
+
+
+ModelName = Literal["linear", "neo_hookean", "neo_hookean_fiber"]
+#: the study's and the selection's meshes stay within the element budget (see `budget`)
+_STUDY_ELEMENTS = Int(100, 125_000)
+
+
+class StudyConfig(_Section):
+    """The solver study (`simulate --study`): speed against error (docs/model.md §9)."""
+
+    #: size-field scale factors (×2 coarser … ×¼ finer than the config's mesh), 1 to 12 of them
+    levels: Annotated[list[Num(0.01, 100.0)], Len(1, 12)] = [2.0, 1.0, 0.5, 0.25]
+    #: also uniform meshes at min_edge × level, the comparison for grading
+    uniform: bool = True
+    #: meshes with more elements are skipped (and said so); at most half the element budget
+    max_elements: _STUDY_ELEMENTS = 60000
+    models: Annotated[list[ModelName], Len(1, 3)] = ["linear", "neo_hookean", "neo_hookean_fiber"]
+    admm_tolerances: Annotated[list[Tolerance], Len(1, 12)] = [1e-2, 1e-3, 1e-4, 1e-5, 1e-6]
+    #: Anderson memory of the accelerated ADMM variant (0: no accelerated variant)
+    anderson_memory: Int(0, 50) = 5
+    admm_max_iterations: Int(1, 50_000) = 5000
+    #: the ADMM sweep runs on meshes up to this size (its cost is iterations × elements)
+    admm_max_elements: _STUDY_ELEMENTS = 20000
+    #: timing repeats (median); a solve slower than `repeat_below_s` runs once
+    repeats: Int(1, 100) = 3
+    repeat_below_s: Num(gt=0.0, hi=3600.0) = 1.0
+    #: forward cases to study (default: all)
+    cases: Optional[Annotated[list[Name], Len(1, 64)]] = None
+
+
+class Config(_Section):
+    name: Annotated[str, Field(pattern=SCENE_NAME_PATTERN)] = "scene"
+    #: stored in results.h5 as a signed 64-bit integer
+    seed: Int(0, 2**63 - 1) = 0
+    tissue: TissueConfig = TissueConfig()
+    material: MaterialConfig = MaterialConfig()
+    cups: Annotated[list[CupConfig], Len(1, 16)] = [
+        CupConfig(name="cup", contact_mm=[50.0, 60.0], axis=[0.0, -1.0])
+    ]
+    targets: Annotated[list[TargetConfig], Len(0, 64)] = []
+    obstacles: Annotated[list[ObstacleConfig], Len(0, 64)] = []
+    needle: NeedleConfig = NeedleConfig()
+    controller: ControllerConfig = ControllerConfig()
+    solver: SolverConfig = SolverConfig()
+    forward: Annotated[list[ForwardCase], Len(0, 64)] = []
+    camera: CameraConfig = CameraConfig()
+    robot: RobotConfig = RobotConfig()
+    trials: TrialsConfig = TrialsConfig()
+    study: Optional[StudyConfig] = None
