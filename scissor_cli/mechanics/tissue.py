@@ -11,6 +11,7 @@ controller's model.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -117,9 +118,16 @@ class Tissue:
         psi, _, _ = materials.evaluate(fem.deformation_gradients(self.ops, x), self.params, order=0)
         return float(np.dot(psi, self.ops.volume))
 
-    def energy_gradient(self, x: np.ndarray) -> tuple[float, np.ndarray]:
-        """U (µJ) and ∇U (2N,) in mN at positions x (N, 2)."""
-        psi, P, _ = materials.evaluate(fem.deformation_gradients(self.ops, x), self.params, order=1)
+    def energy_gradient(self, x: np.ndarray, require_positive_J: bool = False) -> tuple[float, np.ndarray | None]:
+        """U (µJ) and ∇U (2N,) in mN at positions x (N, 2).
+
+        With require_positive_J, (inf, None) when an element has J ≤ 0 — one
+        evaluation of F for the check and the energy (a solver's trial step).
+        """
+        F = fem.deformation_gradients(self.ops, x)
+        if require_positive_J and not np.min(materials.jacobian_det(F), initial=np.inf) > 0:
+            return float("inf"), None
+        psi, P, _ = materials.evaluate(F, self.params, order=1)
         return float(np.dot(psi, self.ops.volume)), fem.scatter_vector(self.ops, fem.element_forces(self.ops, P))
 
     def element_stiffness(self, x: np.ndarray, project: bool = False) -> np.ndarray:
@@ -159,9 +167,13 @@ class Tissue:
         Floored at 1e-3·E·h·L (about the reaction of a 0.1 mm stroke), so
         a tiny stroke does not ask for a residual below round-off.
         """
-        reactions = float(np.linalg.norm(grad[self.dirichlet_dofs]))
+        return max(float(np.linalg.norm(grad[self.dirichlet_dofs])), self.force_floor)
+
+    @cached_property
+    def force_floor(self) -> float:
+        """1e-3·E_max·h·L in mN (L the layer's largest extent): the floor of `force_scale`."""
         size = float(np.ptp(self.mesh.nodes, axis=0).max())
-        return max(reactions, 1e-3 * float(self.element_E_kPa.max()) * self.ops.thickness_mm * size)
+        return 1e-3 * float(self.element_E_kPa.max()) * self.ops.thickness_mm * size
 
     def with_material(
         self,

@@ -103,10 +103,16 @@ class SolverError(RuntimeError):
 
 
 def objective_gradient(
-    tissue: Tissue, x: np.ndarray, inertia: Inertia | None, loads: np.ndarray | None = None
-) -> tuple[float, np.ndarray]:
-    """Φ (µJ) and ∇Φ (2N,) in mN at positions x (N, 2), with external loads (2N,) mN if given."""
-    energy, grad = tissue.energy_gradient(x)
+    tissue: Tissue, x: np.ndarray, inertia: Inertia | None, loads: np.ndarray | None = None,
+    require_positive_J: bool = False,
+) -> tuple[float, np.ndarray | None]:
+    """Φ (µJ) and ∇Φ (2N,) in mN at positions x (N, 2), with external loads (2N,) mN if given.
+
+    With require_positive_J, (inf, None) when an element is inverted (a trial step to reject).
+    """
+    energy, grad = tissue.energy_gradient(x, require_positive_J)
+    if grad is None:
+        return energy, None
     if loads is not None:
         energy -= float(np.dot(loads, x.ravel()))
         grad = grad - loads

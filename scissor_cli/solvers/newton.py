@@ -219,9 +219,9 @@ def _chord_step(tissue, x, g, inertia, res, conditions, held, factors):
     step = np.zeros(x.size)
     step[tissue.free_dofs] = d
     trial = x + step.reshape(-1, 2)
-    if not np.min(tissue.jacobians(trial)) > 0:
+    phi_t, grad_t = objective_gradient(tissue, trial, inertia, conditions.loads, require_positive_J=True)
+    if grad_t is None:  # the step inverts an element
         return None
-    phi_t, grad_t = objective_gradient(tissue, trial, inertia, conditions.loads)
     if relative_residual(tissue, grad_t, held.pos) > CHORD_CONTRACTION * res:
         return None
     return trial, phi_t, grad_t
@@ -247,8 +247,8 @@ def _line_search(tissue, x, phi, grad, d_free, inertia, res, loads=None, held=No
     g_norm = np.linalg.norm(g)
     while alpha > 1e-12:
         trial = x + alpha * step
-        if np.min(tissue.jacobians(trial)) > 0:
-            phi_t, grad_t = objective_gradient(tissue, trial, inertia, loads)
+        phi_t, grad_t = objective_gradient(tissue, trial, inertia, loads, require_positive_J=True)
+        if grad_t is not None:
             g_t = grad_t[free] if held is None else held.vector(grad_t[free])
             # Near the solution Φ changes below round-off; a falling residual decides there.
             if phi_t <= phi + ARMIJO * alpha * slope or (
@@ -269,10 +269,8 @@ def _extrapolate(tissue, x, step, phi_best, best, feasible, inertia, loads=None)
     alpha = 2.0
     while alpha <= min(MAX_EXTRAPOLATION, feasible):
         trial = x + alpha * step
-        if not np.min(tissue.jacobians(trial)) > 0:
-            break
-        phi_t, grad_t = objective_gradient(tissue, trial, inertia, loads)
-        if not phi_t < phi_best:
+        phi_t, grad_t = objective_gradient(tissue, trial, inertia, loads, require_positive_J=True)
+        if grad_t is None or not phi_t < phi_best:
             break
         phi_best, best = phi_t, (trial, phi_t, grad_t)
         alpha *= 2.0
