@@ -8,20 +8,7 @@ import numpy as np
 import pytest
 
 from scissor_cli.mechanics import materials as mat
-
-FD_STEP = 1e-6
-RTOL = 1e-6
-
-# (model, tension_only)
-VARIANTS = [
-    ("linear", False),
-    ("neo_hookean", False),
-    ("neo_hookean_fiber", False),
-    ("neo_hookean_fiber", True),
-]
-VARIANT_IDS = [f"{m}{'-tension_only' if t else ''}" for m, t in VARIANTS]
-NONLINEAR = [v for v in VARIANTS if v[0] != "linear"]
-NONLINEAR_IDS = [i for i, v in zip(VARIANT_IDS, VARIANTS) if v[0] != "linear"]
+from material_checks import VARIANTS, VARIANT_IDS, NONLINEAR, NONLINEAR_IDS, away_from_fiber_kink, fd_gradient, assert_close_per_element, per_element_scale
 
 
 def random_params(model, M, rng, tension_only=False):
@@ -54,36 +41,6 @@ def random_F(M, rng, regime):
         F = R1 @ (lam[:, :, None] * R2)
     assert np.all(mat.jacobian_det(F) > 0.1)
     return F
-
-
-def away_from_fiber_kink(F, params):
-    """Drop elements with I4 within 1e-3 of 1 (the tension-only tangent jumps there)."""
-    v = np.einsum("eij,ej->ei", F, params.fiber)
-    keep = np.abs(np.sum(v * v, axis=1) - 1.0) > 1e-3
-    return F[keep], params.take(keep)
-
-
-def fd_gradient(fun, F, h=FD_STEP):
-    """Central differences of fun (M,...) with respect to each vec(F) entry."""
-    cols = []
-    for k in range(4):
-        i, j = divmod(k, 2)
-        Fp = F.copy()
-        Fm = F.copy()
-        Fp[:, i, j] += h
-        Fm[:, i, j] -= h
-        cols.append((fun(Fp) - fun(Fm)) / (2.0 * h))
-    return np.stack(cols, axis=-1)
-
-
-def assert_close_per_element(actual, expected, rtol=RTOL):
-    """Relative comparison scaled by each element's largest entry."""
-    M = actual.shape[0]
-    a = actual.reshape(M, -1)
-    e = expected.reshape(M, -1)
-    scale = np.maximum(np.abs(e).max(axis=1, keepdims=True), 1e-12)
-    err = np.abs(a - e) / scale
-    assert err.max() < rtol, f"max relative error {err.max():.3e}"
 
 
 @pytest.mark.parametrize("regime", ["near", "far"])
@@ -409,10 +366,6 @@ def state(regime, M, rng):
 def outer_sum(lam, vec):
     """Σ_k lam[e, k] vec[e, k] vec[e, k]ᵀ."""
     return np.einsum("ek,eki,ekj->eij", lam, vec, vec)
-
-
-def per_element_scale(C):
-    return np.abs(C).max(axis=(1, 2))
 
 
 REGIMES = ["near", "far", "special"]

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from scissor_cli.mechanics import materials as mat
+from material_checks import VARIANTS, VARIANT_IDS, NONLINEAR, NONLINEAR_IDS, fiber_I4, away_from_fiber_kink, fd_gradient, assert_close_per_element, per_element_scale
 
 
 def test_material_params_accepts_3d_fibers():
@@ -35,19 +36,6 @@ def test_material_params_accepts_3d_fibers():
         mat.evaluate_projected(np.broadcast_to(np.eye(2), (2, 2, 2)), p)
 
 
-FD_STEP = 1e-6
-RTOL = 1e-6
-
-# (model, tension_only)
-VARIANTS = [
-    ("linear", False),
-    ("neo_hookean", False),
-    ("neo_hookean_fiber", False),
-    ("neo_hookean_fiber", True),
-]
-VARIANT_IDS = [f"{m}{'-tension_only' if t else ''}" for m, t in VARIANTS]
-NONLINEAR = [v for v in VARIANTS if v[0] != "linear"]
-NONLINEAR_IDS = [i for i, v in zip(VARIANT_IDS, VARIANTS) if v[0] != "linear"]
 IN_PLANE = [0, 1, 3, 4]  # vec(F) indices of F00, F01, F10, F11 in 3-D
 
 
@@ -89,42 +77,6 @@ def random_F(M, rng, regime):
         F = rotations(M, rng) @ (lam[:, :, None] * rotations(M, rng))
     assert np.all(mat.jacobian_det(F) > 0.05)
     return F
-
-
-def fiber_I4(F, params):
-    a = params.fiber if params.fiber.shape[1] == 3 else np.c_[params.fiber, np.zeros(len(params.fiber))]
-    v = np.einsum("eij,ej->ei", F, a)
-    return np.sum(v * v, axis=1)
-
-
-def away_from_fiber_kink(F, params):
-    """Drop elements with I4 within 1e-3 of 1 (the tension-only tangent jumps there)."""
-    keep = np.abs(fiber_I4(F, params) - 1.0) > 1e-3
-    return F[keep], params.take(keep)
-
-
-def fd_gradient(fun, F, h=FD_STEP):
-    """Central differences of fun (M, ...) with respect to each entry of vec(F) (row-major)."""
-    d = F.shape[1]
-    cols = []
-    for k in range(d * d):
-        i, j = divmod(k, d)
-        Fp = F.copy()
-        Fm = F.copy()
-        Fp[:, i, j] += h
-        Fm[:, i, j] -= h
-        cols.append((fun(Fp) - fun(Fm)) / (2.0 * h))
-    return np.stack(cols, axis=-1)
-
-
-def assert_close_per_element(actual, expected, rtol=RTOL):
-    """Relative comparison scaled by each element's largest entry."""
-    M = actual.shape[0]
-    a = actual.reshape(M, -1)
-    e = expected.reshape(M, -1)
-    scale = np.maximum(np.abs(e).max(axis=1, keepdims=True), 1e-12)
-    err = np.abs(a - e) / scale
-    assert err.max() < rtol, f"max relative error {err.max():.3e}"
 
 
 def kron_rotation(R):
@@ -440,10 +392,6 @@ def test_extreme_input_never_warns(model):
 # --------------------------------------------------------------------------
 # evaluate_projected
 # --------------------------------------------------------------------------
-
-
-def per_element_scale(C):
-    return np.abs(C).max(axis=(1, 2))
 
 
 @pytest.mark.parametrize("regime", ["near", "far"])
