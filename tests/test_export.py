@@ -8,6 +8,7 @@ docs/contract.md) gives the time series and the 3-D slab.
 from __future__ import annotations
 
 import csv
+import os
 import shutil
 import subprocess
 import sys
@@ -26,9 +27,21 @@ from scissor_cli.output.export import ExportError, export_run  # noqa: E402
 FORMATS = ["xdmf", "vtu"]
 
 
-def cli(*args, cwd=None):
+def cli(*args):
+    """`scissor ARGS` in a subprocess, as a user runs it."""
     return subprocess.run([sys.executable, "-m", "scissor_cli", *map(str, args)], capture_output=True, text=True,
-                          cwd=cwd, env={**__import__("os").environ, "PYTHONPATH": str(ROOT)})
+                          env={**os.environ, "PYTHONPATH": str(ROOT)})
+
+
+def invoke(*args):
+    """`scissor ARGS` in this process (faster): (exit code, stdout, stderr); any exception but an exit fails."""
+    from typer.testing import CliRunner
+
+    from scissor_cli import cli as app
+
+    result = CliRunner().invoke(app.app, list(map(str, args)))
+    assert result.exception is None or isinstance(result.exception, SystemExit), result.exception
+    return result.exit_code, result.stdout, result.stderr
 
 
 @pytest.fixture(scope="module")
@@ -198,11 +211,11 @@ def test_export_default_out_and_force(run, tmp_path):
     """Default out is RUN_DIR/export (xdmf); a second export there needs --force."""
     directory = tmp_path / "run"
     shutil.copytree(run, directory)
-    assert cli("export", directory).returncode == 0
+    assert invoke("export", directory)[0] == 0
     assert (directory / "export" / "forward_push10.xdmf").is_file()
-    proc = cli("export", directory)
-    assert proc.returncode == 2 and "--force" in proc.stderr and "Traceback" not in proc.stderr
-    assert cli("export", directory, "--force").returncode == 0
+    code, _, stderr = invoke("export", directory)
+    assert code == 2 and "--force" in stderr
+    assert invoke("export", directory, "--force")[0] == 0
 
 
 @pytest.mark.parametrize("fmt", FORMATS)
@@ -244,11 +257,12 @@ def test_refused_and_bad_input(run, tmp_path):
         ((run, "--format", "vtk"), "--format"),
     ]
     for args, message in cases:
-        proc = cli("export", *args, "--out", tmp_path / "o")
-        assert proc.returncode == 2, (args, proc.stderr)
-        assert message in proc.stderr and "Traceback" not in proc.stderr
-        assert len(proc.stderr.strip().splitlines()) == 1
-    assert cli("export", bad, "--partial", "--out", tmp_path / "p").returncode == 0
+        code, _, stderr = invoke("export", *args, "--out", tmp_path / "o")
+        assert code == 2, (args, stderr)
+        assert message in stderr and len(stderr.strip().splitlines()) == 1, stderr
+    proc = cli("export", garbage, "--out", tmp_path / "o")  # as a user sees it: one line, no traceback
+    assert proc.returncode == 2 and proc.stderr.startswith("error: ") and "Traceback" not in proc.stderr
+    assert invoke("export", bad, "--partial", "--out", tmp_path / "p")[0] == 0
     assert not (tmp_path / "o").exists()
     wrong = tmp_path / "wrong"
     shutil.copytree(run, wrong)
@@ -257,3 +271,13 @@ def test_refused_and_bad_input(run, tmp_path):
         f["forward/push10/displacement"] = np.zeros((3, 2))
     with pytest.raises(ExportError, match="/forward/push10/displacement has shape"):
         export_run(wrong, tmp_path / "w")
+
+
+def test_unconverged_case_is_flagged(run, tmp_path):
+    """A forward case whose solve did not converge (a --partial run) is still exported, and the listing says so."""
+    directory = tmp_path / "run"
+    shutil.copytree(run, directory)
+    with h5py.File(directory / "results.h5", "r+") as f:
+        f["forward/pull8"].attrs["converged"] = False
+    written = {w.path.name: w.what for w in export_run(directory, tmp_path / "out", "vtu")}
+    assert "NOT CONVERGED" in written["forward_pull8.vtu"] and "NOT" not in written["forward_push10.vtu"]

@@ -71,6 +71,7 @@ class RunData:
     point_data: dict[str, np.ndarray]  # markers, (N,)
     cell_data: dict[str, np.ndarray]  # (M,) or (M, 3)
     forward: dict[str, np.ndarray] = field(default_factory=dict)  # case -> (N, 2) mm
+    unconverged: set[str] = field(default_factory=set)  # forward cases whose solve did not converge
     insertion: list[Insertion] = field(default_factory=list)
     layer_check: LayerCheck | None = None
 
@@ -147,6 +148,8 @@ def _read(f: h5py.File, path: Path) -> RunData:
     data = RunData(nodes, triangles, point_data, cell_data)
     for case in f.get("forward", {}):
         data.forward[case] = _array(f, f"forward/{case}/displacement", (n, 2), path)
+        if not f[f"forward/{case}"].attrs.get("converged", True):
+            data.unconverged.add(case)
     for target, g in f.get("insertion", {}).items():
         for strategy in g:
             base = f"insertion/{target}/{strategy}"
@@ -205,7 +208,8 @@ def export_run(run_dir: Path, out_dir: Path, fmt: str = "xdmf", partial: bool = 
                 f"cell data {', '.join(data.cell_data) or 'none'}")
     for case, u in data.forward.items():
         writer.mesh(f"forward_{case}", points, cells, {"displacement": _lift(u), **data.point_data}, data.cell_data,
-                    f"forward case {case}: displacement (max |u| {_max_norm(u):.3g} mm)")
+                    f"forward case {case}: displacement (max |u| {_max_norm(u):.3g} mm)"
+                    + (" -- NOT CONVERGED" if case in data.unconverged else ""))
     for ins in data.insertion:
         name = f"insertion_{ins.target}_{ins.strategy}"
         k = len(ins.displacement)
