@@ -281,3 +281,59 @@ def test_unconverged_case_is_flagged(run, tmp_path):
         f["forward/pull8"].attrs["converged"] = False
     written = {w.path.name: w.what for w in export_run(directory, tmp_path / "out", "vtu")}
     assert "NOT CONVERGED" in written["forward_pull8.vtu"] and "NOT" not in written["forward_push10.vtu"]
+
+
+def test_names_made_safe_and_unique(synthetic, tmp_path):
+    """A strategy name with a '/'-free but unsafe character, and two names that clash once made safe."""
+    directory = tmp_path / "run"
+    shutil.copytree(synthetic, directory)
+    with h5py.File(directory / "results.h5", "r+") as f:
+        f.copy(f["insertion/T1/straight"], f["insertion/T1"], "a b")
+        f.copy(f["insertion/T1/straight"], f["insertion/T1"], "a:b")
+    names = {w.path.name for w in export_run(directory, tmp_path / "out", "vtu")}
+    assert {"insertion_T1_a_b.pvd", "insertion_T1_a_b.csv", "insertion_T1_a_b-2.pvd", "insertion_T1_a_b-2.csv"} <= names
+    assert (tmp_path / "out" / "insertion_T1_a_b-2" / "insertion_T1_a_b-2_0000.vtu").is_file()
+
+
+def test_unwritable_out(run, tmp_path):
+    """An --out that cannot be written: exit 2, one message."""
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    with pytest.raises(ExportError, match="cannot"):
+        export_run(run, blocker / "sub")
+
+
+def test_vtk_reads_the_files(synthetic, tmp_path):
+    """Where VTK is installed (not a dependency): its XDMF reader, ParaView's 'XDMF Reader', opens the files,
+    time steps included, and its VTU reader the .vtu; the arrays are those of results.h5."""
+    pytest.importorskip("vtkmodules.vtkIOXdmf2")
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+    from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as Pipeline
+    from vtkmodules.vtkIOXdmf2 import vtkXdmfReader
+    from vtkmodules.vtkIOXML import vtkXMLUnstructuredGridReader
+
+    def grid_of(reader):
+        out = reader.GetOutputDataObject(0)
+        return out.GetBlock(0) if out.IsA("vtkMultiBlockDataSet") else out
+
+    export_run(synthetic, tmp_path / "x", "xdmf")
+    export_run(synthetic, tmp_path / "v", "vtu")
+    with h5py.File(synthetic / "results.h5") as f:
+        push = f["forward/push10/displacement"][:]
+        n_triangles = len(f["mesh/triangles"])
+        steps = f["insertion/T2/straight/displacement"][:]
+    reader = vtkXdmfReader()
+    reader.SetFileName(str(tmp_path / "x" / "insertion_T2_straight.xdmf"))
+    reader.UpdateInformation()
+    assert reader.GetOutputInformation(0).Get(Pipeline.TIME_STEPS()) == tuple(float(k) for k in range(len(steps)))
+    reader.UpdateTimeStep(2.0)
+    u = vtk_to_numpy(grid_of(reader).GetPointData().GetArray("displacement"))
+    np.testing.assert_array_equal(u[:, :2], steps[2])
+    for path, r in ((tmp_path / "x" / "forward_push10.xdmf", vtkXdmfReader()),
+                    (tmp_path / "v" / "forward_push10.vtu", vtkXMLUnstructuredGridReader())):
+        r.SetFileName(str(path))
+        r.Update()
+        grid = grid_of(r)
+        assert grid.GetNumberOfCells() == n_triangles
+        np.testing.assert_array_equal(vtk_to_numpy(grid.GetPointData().GetArray("displacement"))[:, :2], push)
+        assert grid.GetCellData().GetArray("E_kPa") is not None

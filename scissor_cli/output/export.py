@@ -200,6 +200,15 @@ def export_run(run_dir: Path, out_dir: Path, fmt: str = "xdmf", partial: bool = 
     except OSError as exc:
         raise ExportError(f"--out {out_dir}: cannot create it ({exc.strerror})") from None
     writer = _Writer(out_dir, fmt)
+    try:
+        _write(data, writer)
+    except OSError as exc:
+        raise ExportError(f"--out {out_dir}: cannot write {exc.filename or 'there'}: "
+                          f"{exc.strerror or exc}") from None
+    return writer.written
+
+
+def _write(data: RunData, writer: "_Writer") -> None:
     points = _lift(data.nodes)
     cells = [("triangle", data.triangles)]
     nn, ne = len(data.nodes), len(data.triangles)
@@ -213,9 +222,10 @@ def export_run(run_dir: Path, out_dir: Path, fmt: str = "xdmf", partial: bool = 
     for ins in data.insertion:
         name = f"insertion_{ins.target}_{ins.strategy}"
         k = len(ins.displacement)
-        writer.series(name, points, cells, [{"displacement": _lift(u)} for u in ins.displacement],
-                      f"insertion {ins.target} / {ins.strategy}: {k} step(s), displacement per step (time = step)")
-        writer.table(f"{name}.csv", *_step_table(ins), f"insertion {ins.target} / {ins.strategy}: per-step numbers")
+        stem = writer.series(name, points, cells, [{"displacement": _lift(u)} for u in ins.displacement],
+                             f"insertion {ins.target} / {ins.strategy}: {k} step(s), displacement per step "
+                             "(time = step)")
+        writer.table(f"{stem}.csv", *_step_table(ins), f"insertion {ins.target} / {ins.strategy}: per-step numbers")
     if data.layer_check is not None:
         lc = data.layer_check
         tets = [("tetra", lc.tetrahedra)]
@@ -228,7 +238,6 @@ def export_run(run_dir: Path, out_dir: Path, fmt: str = "xdmf", partial: bool = 
         if rows:
             writer.table("layer_check_targets.csv", ["case", "target", "x_mm", "y_mm", "z_mm"], rows,
                          "3-D slab: deformed target positions per case")
-    return writer.written
 
 
 def _max_norm(u: np.ndarray) -> float:
@@ -281,7 +290,8 @@ class _Writer:
         meshio.write(path, mesh, file_format=self.fmt)
         self.written.append(Written(path, what))
 
-    def series(self, name: str, points, cells, steps: list[dict], what: str) -> None:
+    def series(self, name: str, points, cells, steps: list[dict], what: str) -> str:
+        """A time series (time = step index); returns the stem its files got."""
         stem = self._stem(name)
         if self.fmt == "xdmf":
             path = self.out_dir / f"{stem}.xdmf"
@@ -306,6 +316,7 @@ class _Writer:
             ET.indent(root)
             ET.ElementTree(root).write(path, encoding="utf-8", xml_declaration=True)
         self.written.append(Written(path, what))
+        return stem
 
     def table(self, name: str, header: list[str], rows: list[list], what: str) -> None:
         path = self.out_dir / name
