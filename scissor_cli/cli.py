@@ -258,6 +258,28 @@ def report(
         err.print(f"wrote {path}")
 
 
+@app.command()
+def export(
+    run_dir: Path = typer.Argument(..., help="Run directory (with a results.h5)."),
+    fmt: str = typer.Option("xdmf", "--format", help="xdmf (.xdmf + .h5) | vtu (.vtu, time series as .pvd)."),
+    out_dir: Optional[Path] = typer.Option(None, "--out", help="Where to write (default: RUN_DIR/export/)."),
+    partial: bool = typer.Option(False, "--partial", help="Also export a run whose status is not 'complete'."),
+    force: bool = typer.Option(False, "--force", help="Write into a non-empty --out directory."),
+) -> None:
+    """Write the run's mesh, forward cases, insertion steps and 3-D slab as files ParaView opens."""
+    from scissor_cli.output.export import FORMATS, ExportError, export_run
+
+    if fmt not in FORMATS:
+        _fail(2, f"--format: must be 'xdmf' or 'vtu'; got {fmt!r}")
+    directory = _out_dir(out_dir or run_dir / "export", "export", force)
+    try:
+        written = export_run(run_dir, directory, fmt, partial)
+    except ExportError as exc:
+        _fail(2, str(exc))
+    for item in written:
+        out.print(f"{item.path}: {item.what}", markup=False, soft_wrap=True)
+
+
 def run() -> None:  # pragma: no cover - console entry for `python -m scissor_cli`
     app()
 
