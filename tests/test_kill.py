@@ -211,7 +211,9 @@ def test_sigkill_damaged_file_and_killed_resume_lose_no_trial(reference, tmp_pat
     resumed = finish("--resume", out, "--jobs", "2")
     print(f"resume after SIGKILL of a resume: {time.monotonic() - t0:.1f} s for {ran(resumed)} trials")
     assert resumed.returncode == 0, resumed.stderr
-    assert "resuming from results.h5.tmp" in " ".join(resumed.stderr.split())
+    said = " ".join(resumed.stderr.split())
+    # the killed rebuild may have left its own file torn too (a kill mid-write): then the journal rebuilds it again
+    assert "resuming from results.h5.tmp" in said or ("cannot be read" in said and "rebuilding results.h5" in said), said
     assert ran(resumed) <= 2 * TRIALS - n
     assert_kept(first, out)  # restored from the journal, as first stored
     assert_kept(kept, out)

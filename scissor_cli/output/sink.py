@@ -164,15 +164,21 @@ class RunDirectory:
 def _problem(path: Path) -> Optional[str]:
     """Why the HDF5 file at `path` cannot be trusted, or None when it reads back whole.
 
-    Opens it, walks every object and reads the trial masks. A file another
+    Opens it and reads every dataset and attribute back (a kill mid-write
+    can break a group's heap or the global heap of variable-length strings
+    such as the trials' stop reasons, not only the masks). A file another
     process is writing is not damaged: that is a ResumeError.
     """
+    def read(name, obj):
+        for key in obj.attrs:
+            obj.attrs[key]
+        if isinstance(obj, h5py.Dataset):
+            obj[()]
+
     try:
         with h5py.File(path, "r") as h5:
             str(h5.attrs["config_yaml"])
-            h5.visititems(lambda name, obj: None)
-            for g in h5.get("trials", {}).values():
-                g["done"][:], g["failed"][:]
+            h5.visititems(read)
     except OSError as exc:
         if "unable to lock file" in str(exc):
             raise ResumeError(f"{path}: another process has it open for writing (is that run still going?); "
