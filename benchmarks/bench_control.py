@@ -6,13 +6,20 @@ measurements, each the median over iterations (time.perf_counter):
 
 * corrective steps: both tissues at an operating stroke, then small moves
   (a few tenths of a mm, with reversals) as in the loop's later iterations,
-  truth ≠ model (E ×1.3, fibers +10°);
+  truth ≠ model (E ×1.3, fibers +10°); the step of the law
+  (`control.allocation.stroke_step`, the miss across +x) is included;
+  with the scene's cups and, for the table, with configs/example.yaml (one
+  cup) and configs/two_cups.yaml (two);
+* the manipulation-point search (`planning.manipulation_points`): the
+  candidates on the top, left and right sides every 2 mm, the adjoint
+  responses and the ranking (without the verifying solves, timed apart);
 * the same with truth = model (one solve serves both);
 * real closed loops over the scene's targets: ideal, and trials with
   camera noise, localisation bias, backlash and a mismatched truth; the
   first iteration (the big move from rest) is reported apart.
 
     python benchmarks/bench_control.py [CONFIG.yaml] [--repeats N]
+    python benchmarks/bench_control.py --table      # the goal table of docs/performance.md
 
 The machine has 2 cores and other work may share them: the numbers are
 wall-clock medians, not CPU time.
@@ -30,7 +37,9 @@ import numpy as np
 from scissor_cli import runtime  # noqa: E402
 from scissor_cli import control as ct
 from scissor_cli.scene.camera import Camera
-from scissor_cli.config import load_config
+from scissor_cli.config import ManipulationPointsConfig, load_config
+from scissor_cli.control.allocation import stroke_step
+from scissor_cli.planning.manipulation_points import plan_grips
 from scissor_cli.mesh.probe import probe_targets
 from scissor_cli.planning.corridor import corridor_radius
 from scissor_cli.planning.needle import plan_targets
@@ -41,7 +50,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def corrective_steps(model, truth_tissue, target, operating_mm: float, n: int) -> np.ndarray:
-    """Wall time (n,) s of n small control iterations around operating_mm."""
+    """Wall time (n,) s of n small control iterations around operating_mm (every cup)."""
     probe = probe_targets(model.mesh, target.rest[None])
     act = ct.Actuator.from_scene(model.scene)
     plant = ct.Plant(truth_tissue, act, probe)
@@ -49,18 +58,54 @@ def corrective_steps(model, truth_tissue, target, operating_mm: float, n: int) -
     shared = ctrl.shares(plant)
     if shared:
         plant.eq.adopt(ctrl.eq)
-    s = np.array([operating_mm])
+    C = model.n_cups
+    s = np.full(C, operating_mm)
     plant.apply(s, tangent=shared)
     ctrl.update(s, plant)
     rng = np.random.default_rng(0)
+    axis, desired = np.array([1.0, 0.0]), plant.position + [0.3, 0.2]
     times = []
     for _ in range(n):
-        s = np.clip(s + rng.choice([-1, 1]) * rng.uniform(0.02, 0.5), act.lo, act.hi)
         t0 = time.perf_counter()
+        stroke_step(ctrl.jacobian, desired - plant.position, s, act.lo, act.hi, act.speed_mm_per_s * 0.1, axis)
+        s = np.clip(s + rng.choice([-1, 1], C) * rng.uniform(0.02, 0.5, C), act.lo, act.hi)
         plant.apply(s, tangent=shared)
         ctrl.update(s, plant)
         times.append(time.perf_counter() - t0)
     return np.array(times)
+
+
+def grip_search(path: Path, repeats: int = 3) -> tuple[float, float, int]:
+    """(median search s, verification s, candidates) of the manipulation-point plan on a scene."""
+    cfg = load_config(path)
+    cfg = cfg.model_copy(update={"manipulation_points": ManipulationPointsConfig(
+        sides=["top", "left", "right"], spacing_mm=2.0, cups=1)})
+    _, _, model = build_model(cfg)
+    search, verify, n = [], [], 0
+    for _ in range(repeats):
+        plan = plan_grips(cfg, model, lambda c: build_model(c)[2])
+        search.append(plan.search_s)
+        verify.append(plan.verify_s)
+        n = len(plan.candidates)
+    return float(np.median(search)), float(np.median(verify)), n
+
+
+def table(repeats: int) -> None:
+    """The goals of docs/model.md §6 and §7 on the example scene with one and with two cups."""
+    print("| measurement | scene | median | goal |")
+    print("|---|---|---|---|")
+    for name in ("example", "two_cups"):
+        cfg = load_config(ROOT / "configs" / f"{name}.yaml")
+        scene, _, model = build_model(cfg)
+        truth = model.with_material(1.3, fiber_angle_rad=scene.material.fiber_angle_rad + np.deg2rad(10))
+        operating = 0.6 * scene.cups[0].stroke_max_mm
+        corrective_steps(model, truth, scene.targets[0], operating, 3)
+        t = corrective_steps(model, truth, scene.targets[0], operating, repeats)
+        print(f"| corrective control iteration, truth != model | {name} ({model.n_cups} cup(s)) | "
+              f"{np.median(t) * 1e3:.1f} ms | <= 10 ms |")
+    search, verify, n = grip_search(ROOT / "configs" / "example.yaml")
+    print(f"| manipulation-point search, {n} candidates (adjoint + ranking) | example | {search * 1e3:.0f} ms | <= 500 ms |")
+    print(f"| its verification (3 re-meshed full solves) | example | {verify * 1e3:.0f} ms | - |")
 
 
 def loop_steps(cfg, model, plans, trials: int, cache=None) -> tuple[np.ndarray, np.ndarray, list[int]]:
@@ -103,7 +148,13 @@ def main() -> None:
     ap.add_argument("config", nargs="?", default=str(ROOT / "configs" / "example.yaml"))
     ap.add_argument("--repeats", type=int, default=60, help="corrective steps per measurement")
     ap.add_argument("--trials", type=int, default=3, help="noisy trials per target in the loop measurement")
+    ap.add_argument("--table", action="store_true", help="only the goal table (one and two cups, grip search)")
     args = ap.parse_args()
+    if args.table:
+        print(f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}")
+        table(args.repeats)
+        print(f"load average now {os.getloadavg()[0]:.2f}")
+        return
 
     cfg = load_config(args.config)
     scene, mesh, model = build_model(cfg)

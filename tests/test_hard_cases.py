@@ -17,7 +17,7 @@ HARD = sorted((ROOT / "configs" / "hard").glob("*.yaml"))
 def test_every_hard_case_is_shipped():
     names = {p.stem for p in HARD}
     assert names == {"nearly_incompressible", "compression40", "stiff_fibers", "stiff_obstacle", "thin_polygon",
-                     "dynamics_large_dt", "inverted_start"}
+                     "dynamics_large_dt", "inverted_start", "robot_unreachable"}
 
 
 @pytest.mark.parametrize("solver", ["newton", "admm"])

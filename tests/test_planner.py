@@ -252,3 +252,24 @@ def test_target_inside_an_obstacle_is_infeasible():
     cfg, scene, tissue = _scene_from_yaml(text)
     plan = needle.plan_target(tissue, scene, scene.targets[0], cfg.needle)
     assert not plan.feasible and "inside obstacle 'west'" in plan.reason and plan.solves == 0
+
+
+def test_default_scene_has_a_plan_the_robot_realises_for_every_target():
+    """Plans are ranked by clearance among the insertions the inverse kinematics accepts (docs/model.md §7)."""
+    from scissor_cli.experiments.simulate import robot_joint_check
+
+    cfg, scene, tissue = _setup("configs/example.yaml")
+    for plan in needle.plan_targets(tissue, scene, cfg.needle, robot_check=robot_joint_check(cfg)):
+        assert plan.feasible and plan.robot_ok, (plan.target, plan.robot_note)
+        assert plan.clearance_mm > 0 and np.all(np.isfinite(plan.joints))
+    t1 = needle.plan_target(tissue, scene, scene.targets[0], cfg.needle, robot_check=robot_joint_check(cfg))
+    assert t1.side == "right" and t1.manipulated  # blocked by the nerve at rest, cleared by a push
+
+
+def test_hard_case_without_a_realisable_plan_says_why():
+    from scissor_cli.experiments.simulate import robot_joint_check
+
+    cfg, scene, tissue = _setup("configs/hard/robot_unreachable.yaml")
+    plan = needle.plan_target(tissue, scene, scene.targets[0], cfg.needle, robot_check=robot_joint_check(cfg))
+    assert plan.feasible and not plan.robot_ok and plan.side == "left"
+    assert "cannot realise" in plan.robot_note and "theta4" in plan.robot_note

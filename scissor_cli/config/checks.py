@@ -270,6 +270,26 @@ def _robot_problems(cfg: Config) -> list[Problem]:
     return problems
 
 
+def _manipulation_point_problems(cfg: Config) -> list[Problem]:
+    """Candidate sides must be free, and there must be cups to place (docs/model.md §7)."""
+    mp = cfg.manipulation_points
+    if mp is None:
+        return []
+    problems: list[Problem] = []
+    for i, side in enumerate(mp.sides):
+        if side in cfg.tissue.fixed:
+            problems.append((("manipulation_points", "sides", i), (
+                f"side {side!r} is fixed (tissue.fixed {list(cfg.tissue.fixed)}): a cup cannot grip a held side")))
+    if mp.cups == 0:
+        problems.append((("manipulation_points", "cups"),
+                         "0 cups to place: ask for at least 1, or leave out the manipulation_points section"))
+    elif mp.cups > len(cfg.cups):
+        problems.append((("manipulation_points", "cups"), (
+            f"{mp.cups} cups to place but the scene lists {len(cfg.cups)} in `cups`; the chosen points replace "
+            f"contact_mm and axis of the first entries, so add entries or place fewer")))
+    return problems
+
+
 def scene_problems(cfg: Config) -> list[Problem]:
     """Cross-field checks pydantic cannot do field by field: [(location, message)]."""
     problems, outline = _tissue_problems(cfg)
@@ -289,4 +309,5 @@ def scene_problems(cfg: Config) -> list[Problem]:
     if cfg.camera.position_mm[2] <= 0:
         problems.append((("camera", "position_mm"), "the camera must be above the layer (z > 0)"))
     problems += _robot_problems(cfg)
+    problems += _manipulation_point_problems(cfg)
     return problems

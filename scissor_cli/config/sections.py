@@ -155,6 +155,19 @@ class ControllerConfig(_Section):
     #: each iteration is one solve of the tissue: 10 000 is hours on a fine mesh
     max_iterations: Int(1, 10_000) = 50
     rate_hz: Num(0.01, 1000.0) = 10.0
+    #: miss: drive the error across the needle axis (docs/model.md §6); position: the full 2-D error (the paper)
+    error: Literal["miss", "position"] = "miss"
+
+
+class ManipulationPointsConfig(_Section):
+    """Where the cups grip, chosen by the planner (docs/model.md §7)."""
+
+    #: accessible sides for candidate contact points (never a fixed side: checks)
+    sides: Annotated[list[Side], Len(1, 4)] = ["top"]
+    #: spacing of the candidates along the boundary
+    spacing_mm: Num(0.1, MAX_TISSUE_MM) = 2.0
+    #: how many cups to place: the first `cups` entries of `cups` (1 <= cups <= len(cups): checks)
+    cups: Int(0, 16) = 1
 
 
 class SolverConfig(_Section):
@@ -300,3 +313,4 @@ class Config(_Section):
     robot: RobotConfig = RobotConfig()
     trials: TrialsConfig = TrialsConfig()
     study: Optional[StudyConfig] = None
+    manipulation_points: Optional[ManipulationPointsConfig] = None

@@ -18,7 +18,8 @@ controller adopts the plant's equilibrium instead of solving it again.
 One loop iteration k (docs/model.md §6), Δt = 1/rate_hz:
 
     y_k  = measure(true target)                      camera + localisation bias
-    e_k  = y_d − y_k,   δs*_k = J⁺ e_k               least squares, (C,)
+    e_k  = P (y_d − y_k)   (the miss across the needle axis n, P = I − n nᵀ)
+    δs*_k = argmin ‖P J δs − e_k‖² + λ‖δs‖²      bounded: strokes, speed·Δt
     s_{k+1} = s_k + Kp δs*_k + Ki Σ δs*·Δt + Kd (δs*_k − δs*_{k−1})/Δt
     clip to the stroke limits (anti-windup: no integration while that
     saturates), quantise to the resolution, actuate, solve the truth, solve
@@ -30,8 +31,8 @@ leaves a slow mode (for the default gains a pole near 0.99 per iteration).
 The loop therefore stops as soon as the correctable error is within
 tolerance, and declares "stalled" when the error stops improving.
 
-With fewer cups than target coordinates only the part of e in range(J) can
-be corrected; the rest, e − J J⁺ e, is reported as the uncorrectable error.
+The part of the driven error no stroke within the limits can remove is
+reported as the uncorrectable error (`control.allocation`).
 
 Both tissues follow their equilibria with `solvers.tracking.Equilibrium`
 (tangent predictor, then the one Newton iteration with chord steps; the
@@ -49,13 +50,17 @@ import numpy as np
 from scissor_cli.config import ControllerConfig
 from scissor_cli.control.actuator import Actuator, quantise
 from scissor_cli.control.corridor import Corridor, corridor_at
-from scissor_cli.control.law import PID, split_error, stalled
+from scissor_cli.control.allocation import stroke_step
+from scissor_cli.control.law import PID, stalled
 from scissor_cli.control.measurement import Measurement
 from scissor_cli.control.plant import Controller, Plant, TruthPerturbation, true_tissue
 from scissor_cli.control.result import History, LoopResult
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import probe_targets
 from scissor_cli.solvers.common import SolverError
+
+#: A step this small (mm) towards a stroke limit the command sits at ends the loop ("stroke_limit").
+LIMIT_SLACK_MM = 1.0e-3
 
 
 def run_loop(
@@ -67,10 +72,15 @@ def run_loop(
     rng: Optional[np.random.Generator] = None,
     target: str = "",
     cup_names: Optional[list[str]] = None,
+    direction: Optional[np.ndarray] = None,
 ) -> LoopResult:
     """The closed loop of docs/model.md §6 from the plant's and controller's current states.
 
-    desired (2,) mm. Stops when the correctable part of the measured error
+    desired (2,) mm; direction (2,) the needle axis n: with cfg.error
+    "miss" the loop drives the miss P (y_d − y) across it (the along-axis
+    part is reported, for the depth); "position" or no axis: the full error.
+    Each step is the bounded least-squares step of `allocation.stroke_step`
+    (stroke limits, and the drives' speed over one control period). Stops when the correctable part of the measured error
     is ≤ cfg.tolerance_mm ("tolerance"), after cfg.max_iterations moves
     ("max_iterations"), when the best correctable error has not improved by
     10 % over the last 5 measurements ("stalled"), when the command sits at
@@ -87,16 +97,27 @@ def run_loop(
     tangent = controller.shares(plant)
     hist, corr_norms = History(), []
     command, sim_t, reason, message = controller.strokes.copy(), 0.0, "", ""
+    max_step = plant.actuator.speed_mm_per_s * dt
     for k in range(cfg.max_iterations + 1):
         y = measurement.measure(plant.position, rng)
-        ds, corr, unc = split_error(controller.jacobian, desired - y)
-        corr_norms.append(float(np.linalg.norm(corr)))
-        hist.add(sim_t, command, plant.strokes, y, plant.position, corr_norms[-1], np.linalg.norm(unc))
-        if corr_norms[-1] <= cfg.tolerance_mm:
+        step = stroke_step(controller.jacobian, desired - y, command, controller.lo, controller.hi, max_step,
+                           direction, cfg.error)
+        ds = step.ds
+        corr_norms.append(float(np.hypot(np.linalg.norm(step.correctable), step.along_correctable_mm)))
+        hist.add(sim_t, command, plant.strokes, y, plant.position, corr_norms[-1],
+                 np.linalg.norm(step.uncorrectable), step.along_mm)
+        if controller.tissue.n_cups == 0:
+            reason = "tolerance" if corr_norms[-1] <= cfg.tolerance_mm else "stalled"
+            message = "no cups: nothing to correct; the miss stays as it is"
+            break
+        pinned = step.at_limit and np.linalg.norm(step.uncorrectable) > cfg.tolerance_mm
+        if pinned and np.max(np.abs(ds), initial=0.0) <= max(controller.resolution_mm, LIMIT_SLACK_MM):
+            reason, message = "stroke_limit", "the command sits at a stroke limit and asks to go further"
+        elif corr_norms[-1] <= cfg.tolerance_mm and not pinned:
             reason = "tolerance"
         elif k == cfg.max_iterations:
             reason = "max_iterations"
-        elif stalled(corr_norms):
+        elif not step.limited and stalled(corr_norms):  # moving at the drives' top speed is not stalling
             reason = "stalled"
         if reason:
             break
@@ -115,7 +136,8 @@ def run_loop(
         hist.wall.append(time.perf_counter() - tw)
         sim_t += max(dt, plant.actuator.last_move_s)
         command = new
-    return hist.result(plant, controller, desired, target, "closed", reason, message, time.perf_counter() - t0, cup_names)
+    return hist.result(plant, controller, desired, target, "closed", reason, message, time.perf_counter() - t0, cup_names,
+                       direction, cfg.error)
 
 
 def open_loop(
@@ -127,6 +149,8 @@ def open_loop(
     rate_hz: float = 10.0,
     target: str = "",
     cup_names: Optional[list[str]] = None,
+    direction: Optional[np.ndarray] = None,
+    mode: str = "miss",
 ) -> LoopResult:
     """One Jacobian step from the current (rest) state: s = s_0 + J⁺ (y_d − y_0), applied once.
 
@@ -139,9 +163,11 @@ def open_loop(
     cup_names = cup_names or [f"cup{c}" for c in range(controller.tissue.n_cups)]
     hist = History()
     y = measurement.measure(plant.position, rng)
-    ds, corr, unc = split_error(controller.jacobian, desired - y)
     s0 = controller.strokes.copy()
-    hist.add(0.0, s0, plant.strokes, y, plant.position, np.linalg.norm(corr), np.linalg.norm(unc))
+    step = stroke_step(controller.jacobian, desired - y, s0, controller.lo, controller.hi, None, direction, mode)
+    ds = step.ds
+    hist.add(0.0, s0, plant.strokes, y, plant.position, np.linalg.norm(step.correctable),
+             np.linalg.norm(step.uncorrectable), step.along_mm)
     command = quantise(s0 + ds, controller.lo, controller.hi, controller.resolution_mm)
     reason, message = "max_iterations", "open loop: one Jacobian step"
     tw = time.perf_counter()
@@ -152,10 +178,12 @@ def open_loop(
     else:
         hist.wall.append(time.perf_counter() - tw)
         y = measurement.measure(plant.position, rng)
-        _, corr, unc = split_error(controller.jacobian, desired - y)
+        step = stroke_step(controller.jacobian, desired - y, command, controller.lo, controller.hi, None, direction,
+                           mode)
         hist.add(max(1.0 / rate_hz, plant.actuator.last_move_s), command, plant.strokes, y, plant.position,
-                 np.linalg.norm(corr), np.linalg.norm(unc))
-    return hist.result(plant, controller, desired, target, "open", reason, message, time.perf_counter() - t0, cup_names)
+                 np.linalg.norm(step.correctable), np.linalg.norm(step.uncorrectable), step.along_mm)
+    return hist.result(plant, controller, desired, target, "open", reason, message, time.perf_counter() - t0, cup_names,
+                       direction, mode)
 
 
 def run_target(
@@ -174,6 +202,7 @@ def run_target(
     target: str = "",
     tol: float = 1e-10,
     guess: Optional[tuple[np.ndarray, np.ndarray]] = None,
+    direction: Optional[np.ndarray] = None,
 ) -> LoopResult:
     """Manipulate one target from rest to `desired` (2,) mm; closed loop or the open-loop baseline.
 
@@ -183,8 +212,11 @@ def run_target(
     the backlash), and runs `run_loop` (mode "closed") or `open_loop`
     ("open"). With a `corridor`, the needle corridor through the reached
     true target is checked on the final true state: `corridor_clear`,
-    `clearance_mm`, `corridor_entry`.
+    `clearance_mm`, `corridor_entry`. The needle axis of the miss is
+    `direction`, else the corridor's (the plan's direction).
     """
+    if direction is None and corridor is not None:
+        direction = corridor.direction
     scene = model.scene
     probe = probe_targets(model.mesh, np.asarray(target_rest, float)[None])
     actuator = Actuator.from_scene(scene, resolution_mm, backlash_mm)
@@ -197,9 +229,10 @@ def run_target(
             eq.guesses.append((np.asarray(guess[0], float), np.asarray(guess[1], float)))
     names = list(scene.cup_names)
     if mode == "closed":
-        result = run_loop(plant, controller, desired, cfg, measurement, rng, target, names)
+        result = run_loop(plant, controller, desired, cfg, measurement, rng, target, names, direction)
     elif mode == "open":
-        result = open_loop(plant, controller, desired, measurement, rng, cfg.rate_hz, target, names)
+        result = open_loop(plant, controller, desired, measurement, rng, cfg.rate_hz, target, names, direction,
+                           cfg.error)
     else:
         raise ValueError(f"mode must be 'closed' or 'open', got {mode!r}")
     if corridor is not None:

@@ -59,7 +59,9 @@ class Controller:
 
     @property
     def jacobian(self) -> np.ndarray:
-        """J (2, C) mm/mm of the target at the model equilibrium."""
+        """J (2, C) mm/mm of the target at the model equilibrium ((2, 0) without cups)."""
+        if self.tissue.n_cups == 0:
+            return np.zeros((2, 0))
         return apply_probe(self.probe, self.eq.response)
 
     @property

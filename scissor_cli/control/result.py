@@ -7,7 +7,7 @@ from typing import Optional
 
 import numpy as np
 
-from scissor_cli.control.law import split_error
+from scissor_cli.control.allocation import along_mm, miss_mm, stroke_step
 from scissor_cli.control.plant import Controller, Plant
 
 
@@ -16,9 +16,13 @@ class LoopResult:
     """One manipulation of one target (closed or open loop). mm, s.
 
     final_position (2,): true target at the end; final_error (2,) = true −
-    desired (x, y); correctable_error_mm / uncorrectable_error_mm: norms of
-    the parts of (desired − true) inside / orthogonal to range(J) at the
-    end (J the controller's). iterations: moves applied. time_s: wall clock
+    desired (x, y); miss_mm: |P (desired − true)| across the needle axis
+    (|final_error| without an axis); along_error_mm: n·(desired − true), the
+    signed along-axis part handed to the insertion depth (0 without an
+    axis); correctable_error_mm / uncorrectable_error_mm: norms of the parts
+    of the driven error (the miss, or the full error for
+    `controller.error: position`) that strokes within their limits can /
+    cannot remove at the end (J the controller's, docs/model.md §6). iterations: moves applied. time_s: wall clock
     of the loop; sim_time_s: the robot's time (moves at the drives' speed,
     at least 1/rate_hz each).
 
@@ -26,7 +30,8 @@ class LoopResult:
     rest before any move): time_s (K,) robot time, strokes_cmd (K, C) the
     commanded strokes in effect, strokes (K, C) the actual ones, measured
     (K, 2), true (K, 2), error (K, 2) = true − desired, correctable (K,) and
-    uncorrectable (K,) norms of the measured error the controller saw.
+    uncorrectable (K,) norms of the measured driven error the controller
+    saw, along (K,) its signed along-axis part.
     step_wall_s (K − 1,) is the compute time of each iteration (truth solve
     + model solve + J update), not part of the deterministic history.
     """
@@ -54,6 +59,10 @@ class LoopResult:
     hist_uncorrectable: np.ndarray
     step_wall_s: np.ndarray
     message: str = ""
+    miss_mm: float = float("nan")
+    along_error_mm: float = 0.0
+    error_mode: str = "miss"
+    hist_along: np.ndarray = field(default_factory=lambda: np.zeros(0))
     final_x: Optional[np.ndarray] = None  # (N, 2) true node positions at the end
     corridor_clear: Optional[bool] = None  # None: no corridor to check
     clearance_mm: float = float("nan")
@@ -68,6 +77,7 @@ class LoopResult:
             "time_s": self.hist_time_s, "strokes_cmd": self.hist_strokes_cmd, "strokes": self.hist_strokes,
             "measured": self.hist_measured, "true": self.hist_true, "error": self.hist_error,
             "correctable_mm": self.hist_correctable, "uncorrectable_mm": self.hist_uncorrectable,
+            "along_mm": self.hist_along,
         }
 
     @property
@@ -84,18 +94,19 @@ class LoopResult:
 
         Columns: time_s, stroke_cmd_<cup>..., stroke_<cup>..., measured_x,
         measured_y, true_x, true_y, error_x, error_y, correctable_mm,
-        uncorrectable_mm (all mm except time_s in s).
+        uncorrectable_mm, along_mm (all mm except time_s in s).
         """
         names = (
             ["time_s"]
             + [f"stroke_cmd_{c}" for c in self.cup_names]
             + [f"stroke_{c}" for c in self.cup_names]
-            + ["measured_x", "measured_y", "true_x", "true_y", "error_x", "error_y", "correctable_mm", "uncorrectable_mm"]
+            + ["measured_x", "measured_y", "true_x", "true_y", "error_x", "error_y", "correctable_mm", "uncorrectable_mm", "along_mm"]
         )
         table = np.column_stack(
             [
                 self.hist_time_s, self.hist_strokes_cmd, self.hist_strokes, self.hist_measured,
                 self.hist_true, self.hist_error, self.hist_correctable, self.hist_uncorrectable,
+                self.hist_along,
             ]
         ).astype(np.float64)
         return names, table
@@ -105,18 +116,25 @@ class History:
     """Rows collected during a loop."""
 
     def __init__(self):
-        self.rows: dict[str, list] = {k: [] for k in ("t", "cmd", "act", "meas", "true", "corr", "unc")}
+        self.rows: dict[str, list] = {k: [] for k in ("t", "cmd", "act", "meas", "true", "corr", "unc", "along")}
         self.wall: list[float] = []
 
-    def add(self, t, cmd, act, meas, true, corr, unc):
-        for k, v in zip(("t", "cmd", "act", "meas", "true", "corr", "unc"), (t, cmd, act, meas, true, corr, unc)):
+    def add(self, t, cmd, act, meas, true, corr, unc, along=0.0):
+        keys = ("t", "cmd", "act", "meas", "true", "corr", "unc", "along")
+        for k, v in zip(keys, (t, cmd, act, meas, true, corr, unc, along)):
             self.rows[k].append(np.array(v, float))
 
     def result(self, plant: Plant, controller: Controller, desired, target, mode, reason, message, wall,
-               cup_names) -> LoopResult:
+               cup_names, direction=None, error_mode: str = "miss") -> LoopResult:
         r = {k: np.array(v) for k, v in self.rows.items()}
         true = plant.position
-        _, corr, unc = split_error(controller.jacobian, desired - true)
+        if len(r["cmd"]):
+            r["cmd"] = r["cmd"].reshape(len(r["t"]), -1)
+            r["act"] = r["act"].reshape(len(r["t"]), -1)
+        step = stroke_step(controller.jacobian, desired - true, controller.strokes, controller.lo, controller.hi,
+                           None, direction, error_mode)
+        corr, unc = step.correctable, step.uncorrectable
+        axis = direction if error_mode == "miss" else None
         return LoopResult(
             target=target, mode=mode, desired=np.asarray(desired, float), final_position=true,
             final_error=true - desired,
@@ -126,4 +144,6 @@ class History:
             hist_time_s=r["t"], hist_strokes_cmd=r["cmd"], hist_strokes=r["act"], hist_measured=r["meas"],
             hist_true=r["true"], hist_error=r["true"] - desired, hist_correctable=r["corr"],
             hist_uncorrectable=r["unc"], step_wall_s=np.array(self.wall), message=message, final_x=plant.eq.x,
+            miss_mm=miss_mm(desired - true, axis), along_error_mm=along_mm(desired - true, axis), error_mode=error_mode,
+            hist_along=r["along"],
         )

@@ -94,11 +94,40 @@ def run_simulation(cfg: Config, run: SinkFactory, reporter: Reporter | None = No
         # the file records the config that ran; the budget stays in /selection
         cfg = selection.apply(cfg)
         cfg = cfg.model_copy(update={"solver": cfg.solver.model_copy(update={"accuracy_mm": None})})
+    grips = None
+    if cfg.manipulation_points is not None:
+        cfg, grips = grip_stage(cfg, reporter)
     tissue = _build(cfg, reporter)
     summary = RunSummary(run.location, tissue.mesh.n_elements)
     with run.open(resolved_yaml(cfg), cfg.seed) as sink:
+        if grips is not None and hasattr(sink, "manipulation_points"):
+            path = sink.manipulation_points(grips, tissue.scene)
+            if path is not None:
+                summary.figures.append(path)
         _stages(cfg, tissue, sink, summary, reporter, execution, selection)
     return summary
+
+
+def grip_stage(cfg: Config, reporter: Reporter):
+    """Choose where the cups grip (docs/model.md §7); the run goes on with the chosen contacts and axes.
+
+    The config the run records has the chosen points in its first
+    `manipulation_points.cups` cups and no `manipulation_points` section, so
+    trials and `--resume` rebuild exactly the model that ran; the search
+    itself is stored in /manipulation_points.
+    """
+    from scissor_cli.planning.manipulation_points import plan_grips, with_grips  # noqa: PLC0415
+
+    _, _, tissue = build_model(cfg)
+    plan = plan_grips(cfg, tissue, lambda c: build_model(c)[2])
+    placed = with_grips(cfg, plan.contacts, plan.axes).model_copy(update={"manipulation_points": None})
+    where = "; ".join(f"{c.name} at {_fmt(p)} mm pushing {_fmt(a)}" for c, p, a in
+                      zip(placed.cups, plan.contacts, plan.axes))
+    reporter.info(f"manipulation points: {len(plan.candidates)} candidates ranked in {plan.search_s:.2f} s, "
+                  f"verified in {plan.verify_s:.2f} s: {where}")
+    for note in plan.notes:
+        reporter.info(f"manipulation points: {note}")
+    return placed, plan
 
 
 def resume_simulation(sink: ResumableSink, reporter: Reporter | None = None, execution: Execution = Execution()) -> int:
@@ -213,7 +242,8 @@ def _manipulation_stage(cfg: Config, tissue: Tissue, plans: list[NeedlePlan], si
             paths.append(path)
         reporter.info(
             f"manipulation {target.name}: closed loop {closed.iterations} iterations ({closed.stop_reason}), "
-            f"error {np.linalg.norm(closed.final_error):.3f} mm vs open loop {np.linalg.norm(opened.final_error):.3f} mm, "
+            f"miss {closed.miss_mm:.3f} mm (along the needle {closed.along_error_mm:+.3f} mm, for the depth) "
+            f"vs open loop {opened.miss_mm:.3f} mm, "
             f"corridor {'clear' if closed.corridor_clear else 'BLOCKED'}"
         )
     return paths

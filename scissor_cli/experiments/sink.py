@@ -108,6 +108,9 @@ class RunSink(Protocol):
     def plan(self, target: "Target", plan: "NeedlePlan", desired_source: str) -> None:
         """A target's definition and its needle plan (docs/model.md §7, §11)."""
 
+    # Optional: `manipulation_points(plan, scene) -> Optional[Path]` keeps the manipulation-point plan
+    # (docs/model.md §7); a sink without it skips it.
+
     def manipulation(self, manipulation: Manipulation) -> Optional[Path]:
         """The nominal manipulation of one target and its figure; returns the figure's path."""
 

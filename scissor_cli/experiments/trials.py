@@ -18,6 +18,7 @@ from typing import Iterator, Optional
 import numpy as np
 
 from scissor_cli import control
+from scissor_cli.control.allocation import along_mm, miss_mm
 from scissor_cli.scene.camera import Camera
 from scissor_cli.config import parse_config
 from scissor_cli.solvers.equilibrium import solve_equilibrium
@@ -59,6 +60,8 @@ class TrialOutcome:
     uncorrectable_mm: float
     history_columns: list[str]
     history: np.ndarray  # (K, n)
+    miss_mm: float = 0.0  # across the plan's needle axis after the loop (docs/model.md §6)
+    along_mm: float = 0.0  # desired − true along the axis, for the depth
 
 
 class TrialContext:
@@ -103,13 +106,15 @@ class TrialContext:
         # The optional release slip moves the target along the (first) cup's axis after the loop.
         slip = draw.release_slip_mm * self.scene.cups[0].axis if len(self.scene.cups) else np.zeros(2)
         columns, table = r.history_table()
+        final = np.asarray(r.final_error, float) + slip
         return TrialOutcome(
             target_index=task.index, trial=trial, ok=True, message=r.message,
-            final_error=np.asarray(r.final_error, float) + slip, iterations=int(r.iterations), time_s=float(r.time_s),
+            final_error=final, iterations=int(r.iterations), time_s=float(r.time_s),
             corridor_clear=bool(r.corridor_clear) if r.corridor_clear is not None else False,
             clearance_mm=float(r.clearance_mm), stop_reason=r.stop_reason,
             correctable_mm=float(r.correctable_error_mm), uncorrectable_mm=float(r.uncorrectable_error_mm),
             history_columns=list(columns), history=table,
+            miss_mm=miss_mm(final, task.direction), along_mm=along_mm(-final, task.direction),
         )
 
 

@@ -29,6 +29,8 @@ class TargetTrials:
     iterations: np.ndarray  # (T,)
     time_s: np.ndarray  # (T,)
     corridor_clear: np.ndarray  # (T,) bool
+    miss: np.ndarray = None  # (T,) mm across the needle (runs before it was stored: None)
+    along: np.ndarray = None  # (T,) mm along the needle, for the depth
 
 
 @dataclass
@@ -37,6 +39,7 @@ class RunTrials:
     path: Path
     status: str
     targets: dict[str, TargetTrials]
+    cups: int = 0
 
 
 def load_run(run_dir: Path, partial: bool = False) -> RunTrials:
@@ -50,9 +53,12 @@ def load_run(run_dir: Path, partial: bool = False) -> RunTrials:
         targets = {}
         for t, g in f["trials"].items():
             ok = g["done"][:] & ~g["failed"][:] & np.isfinite(g["final_error"][:]).all(axis=1)
+            miss = g["manipulation_miss_mm"][:][ok] if "manipulation_miss_mm" in g else None
+            along = g["along_mm"][:][ok] if "along_mm" in g else None
             targets[t] = TargetTrials(g["final_error"][:][ok], g["iterations"][:][ok], g["time_s"][:][ok],
-                                      g["corridor_clear"][:][ok])
-    return RunTrials(f"{name} ({profile})", Path(run_dir), status, targets)
+                                      g["corridor_clear"][:][ok], miss, along)
+        cups = len(f["cups"]) if "cups" in f else 0
+    return RunTrials(f"{name} ({profile})", Path(run_dir), status, targets, cups)
 
 
 def _config_name(text: str) -> str:
@@ -65,6 +71,7 @@ def _config_name(text: str) -> str:
 COLUMNS = [
     "run", "target", "trials", "mean_x", "median_x", "max_x", "p95_x", "mean_y", "median_y", "max_y", "p95_y",
     "iterations_mean", "iterations_max", "time_s_mean", "corridor_clear_pct",
+    "cups", "miss_median", "miss_p95", "miss_max", "along_median_abs",
 ]
 
 
@@ -85,6 +92,11 @@ def summary_rows(runs: list[RunTrials]) -> list[dict]:
                 row["iterations_max"] = int(d.iterations.max())
                 row["time_s_mean"] = d.time_s.mean()
                 row["corridor_clear_pct"] = 100.0 * d.corridor_clear.mean()
+                row["cups"] = run.cups
+                if d.miss is not None:
+                    row["miss_median"], row["miss_max"] = np.median(d.miss), d.miss.max()
+                    row["miss_p95"] = np.percentile(d.miss, 95)
+                    row["along_median_abs"] = np.median(np.abs(d.along))
             rows.append(row)
     return rows
 
@@ -220,6 +232,12 @@ def report_trials(run_dirs: list[Path], out_dir: Path, partial: bool = False) ->
     files = []
     if panels:
         files.append(figures.save(figures.error_boxplots(panels), out_dir / "error_boxplots.png"))
+    misses = [(f"{r.label}, {r.cups} cup(s)", {t: d.miss for t, d in r.targets.items() if d.miss is not None})
+              for r in runs]
+    if any(m for _, m in misses):
+        from scissor_cli.output.miss_figures import miss_boxplots  # noqa: PLC0415
+
+        files.append(figures.save(miss_boxplots([m for m in misses if m[1]]), out_dir / "miss_boxplots.png"))
     rows = summary_rows(runs)
     table = markdown_table(rows)
     (out_dir / "summary.md").write_text(table)

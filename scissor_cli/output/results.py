@@ -46,7 +46,8 @@ from scissor_cli.experiments.sink import NonFiniteError
 
 FILL = 0.0
 MISSING = -1.0
-TRIAL_FLOATS = ("final_error", "time_s", "clearance_mm", "correctable_mm", "uncorrectable_mm")
+TRIAL_FLOATS = ("final_error", "time_s", "clearance_mm", "correctable_mm", "uncorrectable_mm", "manipulation_miss_mm",
+                "along_mm")
 
 
 def check_finite(where: str, value: Any) -> None:
@@ -244,13 +245,15 @@ def write_manipulation(out: ResultsFile, target: str, closed, opened) -> None:
         "closed_stop_reason": closed.stop_reason, "closed_corridor_clear": bool(closed.corridor_clear),
         "closed_clearance_mm": clearance(closed.clearance_mm), "open_final_error": opened.final_error,
         "uncorrectable_mm": closed.uncorrectable_error_mm, "units": "mm",
+        "closed_miss_mm": closed.miss_mm, "closed_along_mm": closed.along_error_mm, "open_miss_mm": opened.miss_mm,
+        "error": closed.error_mode,
     })
     names, table = closed.history_table()
     out.dataset(f"manipulation/{target}/history", table, "mm (time_s: s)", columns=names)
 
 
 TRIALS_FILL_NOTE = ("not done or crashed (see done, failed): final_error, time_s, clearance_mm, correctable_mm, "
-                    "uncorrectable_mm 0, iterations -1; clearance_mm is also 0 where undefined (no obstacles, "
+                    "uncorrectable_mm, manipulation_miss_mm, along_mm 0, iterations -1; clearance_mm is also 0 where undefined (no obstacles, "
                     "no corridor)")
 
 
@@ -266,6 +269,10 @@ def allocate_trials(out: ResultsFile, names: list[str], count: int, attrs: dict)
         out.dataset(f"{t}/clearance_mm", np.full(count, FILL), "mm")
         out.dataset(f"{t}/correctable_mm", np.full(count, FILL), "mm")
         out.dataset(f"{t}/uncorrectable_mm", np.full(count, FILL), "mm")
+        out.dataset(f"{t}/manipulation_miss_mm", np.full(count, FILL), "mm",
+                    description="after the loop: true target's distance across the plan's needle axis")
+        out.dataset(f"{t}/along_mm", np.full(count, FILL), "mm",
+                    description="after the loop: desired minus true along the needle axis, left to the depth")
         out.dataset(f"{t}/stop_reason", np.array([""] * count, dtype=h5py.string_dtype()))
         out.dataset(f"{t}/done", np.zeros(count, bool), description="trial finished (successfully or not)")
         out.dataset(f"{t}/failed", np.zeros(count, bool), description="trial crashed; see message")
@@ -297,6 +304,8 @@ def trial_record(name: str, o) -> dict:
         "clearance_mm": clearance(o.clearance_mm) if ok else FILL,
         "correctable_mm": float(o.correctable_mm) if ok else FILL,
         "uncorrectable_mm": float(o.uncorrectable_mm) if ok else FILL,
+        "manipulation_miss_mm": float(getattr(o, "miss_mm", FILL)) if ok else FILL,
+        "along_mm": float(getattr(o, "along_mm", FILL)) if ok else FILL,
         "history_columns": [str(c) for c in o.history_columns] if ok else [],
         "history": np.asarray(o.history, float) if ok else np.zeros((0, 0)),
     }

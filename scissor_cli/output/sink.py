@@ -94,6 +94,14 @@ class ResultsSink:
         results.write_plan(self.out, plan, plan.robot_note, plan.robot_ok)
         self.out.flush()
 
+    def manipulation_points(self, plan, scene) -> Path:
+        """The manipulation-point plan (docs/model.md §7): /manipulation_points and its figure."""
+        from scissor_cli.output.grip_figures import save_grip_figure, write_manipulation_points  # noqa: PLC0415
+
+        write_manipulation_points(self.out, plan)
+        self.out.flush()
+        return save_grip_figure(plan, scene, self.location)
+
     def manipulation(self, m: Manipulation) -> Path:
         results.write_manipulation(self.out, m.target, m.closed, m.opened)
         self.out.flush()

@@ -78,8 +78,10 @@ class NeedlePlan:
 class _Sample:
     strokes: np.ndarray  # (C,)
     target: np.ndarray  # (2,) deformed target
-    insertion: Optional[Insertion]  # best at this state
-    clearance: float  # -inf without an entry
+    insertion: Optional[Insertion]  # best the robot accepts at this state (best of all without a robot check)
+    clearance: float  # of that insertion; -inf without one
+    any_insertion: Optional[Insertion] = None  # best at this state, robot or not
+    any_clearance: float = -np.inf
 
     @property
     def size(self) -> float:
@@ -89,8 +91,9 @@ class _Sample:
 class _Evaluator:
     """Evaluates the target's best insertion on the deformed scene at given strokes."""
 
-    def __init__(self, tissue: Tissue, scene: Scene, target: Target, needle_cfg: NeedleConfig, cache: StateCache):
-        self.scene, self.needle_cfg, self.cache = scene, needle_cfg, cache
+    def __init__(self, tissue: Tissue, scene: Scene, target: Target, needle_cfg: NeedleConfig, cache: StateCache,
+                 robot_check: Optional[RobotCheck] = None):
+        self.scene, self.needle_cfg, self.cache, self.robot_check = scene, needle_cfg, cache, robot_check
         mesh = tissue.mesh
         self.obstacles = embed_outlines(mesh, [o.outline for o in scene.obstacles])
         self.target = embed_outlines(mesh, [target.rest])
@@ -114,10 +117,27 @@ class _Evaluator:
         if x is None:
             return None
         y, obstacles, outline = self.scene_at(x)
-        best = best_insertion(y, obstacles, outline, self.candidates, self.needle_cfg)
-        s = _Sample(np.array(key), y, best, -np.inf if best is None else best.clearance_mm)
+        if self.robot_check is None:
+            best = best_insertion(y, obstacles, outline, self.candidates, self.needle_cfg)
+            c = -np.inf if best is None else best.clearance_mm
+            s = _Sample(np.array(key), y, best, c, best, c)
+        else:
+            ranked = ranked_insertions(y, obstacles, outline, self.candidates, self.needle_cfg)
+            # Ranked by clearance among the insertions the inverse kinematics accepts (docs/model.md §7).
+            ok = next((i for i in ranked if self.robot_check(i.entry, i.direction, y)[1]), None)
+            top = ranked[0] if ranked else None
+            s = _Sample(np.array(key), y, ok, -np.inf if ok is None else ok.clearance_mm,
+                        top, -np.inf if top is None else top.clearance_mm)
         self.samples[key] = s
         return s
+
+    def robot_pool(self, samples: Sequence[_Sample]) -> Sequence[_Sample]:
+        """The samples as the choice sees them: by robot-accepted clearance when some state has a clear,
+        realisable insertion; else by any insertion (the plan then reports that the robot cannot realise it)."""
+        if any(s.clearance > 0 for s in samples):
+            return samples
+        return [_Sample(s.strokes, s.target, s.any_insertion, s.any_clearance, s.any_insertion, s.any_clearance)
+                for s in samples]
 
 
 def _choose_clearance(samples: Sequence[_Sample], tie_mm: float) -> _Sample:
@@ -247,7 +267,7 @@ def plan_target(
     t0 = time.perf_counter()
     cache = cache or StateCache(tissue)
     solves0 = cache.solves
-    ev = _Evaluator(tissue, scene, target, needle_cfg, cache)
+    ev = _Evaluator(tissue, scene, target, needle_cfg, cache, robot_check)
     zero = np.zeros(len(scene.cups))
     rest = ev.sample(zero)
 
@@ -262,7 +282,7 @@ def plan_target(
     inside = [o.name for o in scene.obstacles if geometry.points_in_polygon(target.rest[None], o.outline)[0]]
     if inside:
         reason = f"target {target.name!r} lies inside obstacle {inside[0]!r}: no corridor can reach it without crossing it"
-        return done(_plan(target, False, reason, target.rest, zero, rest.insertion), [])
+        return done(_plan(target, False, reason, target.rest, zero, rest.any_insertion), [])
 
     if target.desired is None and rest.clearance > 0:
         ranked = ev.insertions_at(rest.target, tissue.rest)
@@ -309,7 +329,7 @@ def _plan_by_search(ev: _Evaluator, target: Target, step: np.ndarray, levels: in
     """y_d chosen by the sweep: the deformed state with the largest clearance (least stroke among ties)."""
 
     def choose(samples):
-        return _choose_clearance(samples, tie_mm)
+        return _choose_clearance(ev.robot_pool(samples), tie_mm)
 
     chosen = _refine(ev, choose(list(ev.samples.values())), step, levels, choose)
     ranked = ev.insertions_at(chosen.target, ev.cache.state(chosen.strokes))

@@ -41,7 +41,8 @@ class Equilibrium:
         self.x = tissue.rest
         self.strokes = np.zeros(tissue.n_cups)
         self.factors: dict = {}
-        self._B = np.column_stack([tissue.cup_displacement(c) for c in range(tissue.n_cups)])  # (2N, C)
+        self._B = np.column_stack([tissue.cup_displacement(c) for c in range(tissue.n_cups)]
+                                  + [np.zeros((2 * tissue.mesh.n_nodes, 0))])  # (2N, C); C may be 0
         self._cup_elems = np.flatnonzero(np.any(self._B[tissue.ops.elem_dofs] != 0, axis=(1, 2)))
         self.response: Optional[np.ndarray] = None
         self.tangent_x: Optional[np.ndarray] = None

@@ -1,0 +1,177 @@
+"""The stroke step: the miss across the needle and the bounded, regularised least squares over any number of cups (docs/model.md §6).
+
+For one target with needle axis n (unit, (2,)) the miss is
+
+    e⊥ = P e,   P = I − n nᵀ,   e = y_d − y,
+
+and the along-axis part n·e is left to the insertion depth. The step is
+
+    δs* = argmin ‖A δs − b‖² + λ ‖δs‖²   subject to  lb ≤ δs ≤ ub,
+
+with A = P J, b = e⊥ (or A = J, b = e for `controller.error: position`),
+solved by scipy's `lsq_linear` on the stacked system [A; √λ I] δs ≈ [b; 0].
+λ = `REGULARISATION` (mm²/mm², dimensionless as J is): small enough that
+the bias it puts on a step (relative λ/σ², σ the smallest singular value
+that matters, ≥ 0.05 in the scenes shipped) is below 1e-3 and removed by
+the feedback, large enough to pick the least-stroke step when several cups
+could correct the same miss (A has more columns than rows).
+
+Two bounded solves give the two numbers the loop needs:
+
+* with the stroke limits only (lo − s ≤ δs ≤ hi − s): the *correctable*
+  part A δs and the *uncorrectable* rest b − A δs that no admissible stroke
+  can remove (what the tolerance and stall checks look at);
+* with the speed limit over one control period as well
+  (|δs| ≤ speed · Δt): the step handed to the PID. When the first solution
+  already respects the speed limit it is reused.
+
+**Spare cups.** With more cups than the miss needs (C ≥ 2 in 2-D), the
+miss alone leaves a null space, and λ would pick the least-stroke step in
+it, which may carry the target far along the needle to where the planner
+never checked the corridor. So with C ≥ 2 the along-axis error gets a
+small secondary weight μ = `ALONG_WEIGHT`:
+
+    min ‖P J δs − P e‖² + μ (nᵀJ δs − nᵀe)² + λ‖δs‖²,
+
+which, when both parts are reachable, cancels the miss exactly and brings
+the target to the plan's y_d (where the corridor was verified); when they
+are not, the miss wins by a factor 1/μ. With one cup μ = 0 (the square
+problem of docs/model.md §6: the miss is cancelled exactly and the along
+part left to the depth).
+
+With zero cups nothing can be corrected: the step is empty and the whole
+miss is uncorrectable.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+from scipy.optimize import lsq_linear
+
+#: λ of the regularised step (dimensionless, per mm² of stroke): see the module docstring.
+REGULARISATION = 1.0e-6
+
+#: μ: weight of the along-axis error when spare cups can also correct it (C ≥ 2); see the module docstring.
+ALONG_WEIGHT = 1.0e-2
+
+#: How the controller reads the error (config `controller.error`).
+ERROR_MODES = ("miss", "position")
+
+
+@dataclass(frozen=True)
+class Step:
+    """One step of the law. ds (C,) mm the speed-limited step; correctable, uncorrectable (2,) mm the parts
+    of the driven error (e⊥ or e) that strokes within their limits can / cannot remove; along_mm the
+    signed along-axis error n·e (0 without an axis); limited: the speed limit cut the step; at_limit: a
+    stroke limit keeps the step from the unbounded optimum (part of `uncorrectable` is the limit's)."""
+
+    ds: np.ndarray
+    correctable: np.ndarray
+    uncorrectable: np.ndarray
+    along_mm: float
+    limited: bool
+    at_limit: bool = False
+    along_correctable_mm: float = 0.0  # with spare cups: the along-axis part they can still remove
+
+
+def projector(direction: Optional[np.ndarray], mode: str = "miss") -> Optional[np.ndarray]:
+    """P = I − n nᵀ (2, 2) for the needle axis `direction` (2,), or None (use the full error).
+
+    None for `mode` "position" or when there is no finite axis.
+    """
+    if mode not in ERROR_MODES:
+        raise ValueError(f"error mode must be one of {ERROR_MODES}, got {mode!r}")
+    if mode == "position" or direction is None:
+        return None
+    n = np.asarray(direction, float)
+    if n.shape != (2,) or not np.all(np.isfinite(n)) or np.linalg.norm(n) == 0:
+        return None
+    n = n / np.linalg.norm(n)
+    return np.eye(2) - np.outer(n, n)
+
+
+def miss_mm(error: np.ndarray, direction: Optional[np.ndarray]) -> float:
+    """|P e| mm: the distance across the needle axis (the full |e| without an axis)."""
+    P = projector(direction)
+    e = np.asarray(error, float)
+    return float(np.linalg.norm(e if P is None else P @ e))
+
+
+def along_mm(error: np.ndarray, direction: Optional[np.ndarray]) -> float:
+    """n·e mm: the signed error along the needle axis, for the depth (0 without an axis)."""
+    if projector(direction) is None:
+        return 0.0
+    n = np.asarray(direction, float)
+    return float(np.dot(n / np.linalg.norm(n), np.asarray(error, float)))
+
+
+def _bounded(A: np.ndarray, b: np.ndarray, lb: np.ndarray, ub: np.ndarray, lam: float) -> np.ndarray:
+    """argmin ‖A x − b‖² + λ‖x‖² over lb ≤ x ≤ ub (C,); `_bounded.inside` says whether the unbounded optimum was admissible."""
+    _bounded.inside = True
+    C = A.shape[1]
+    lb, ub = np.minimum(lb, 0.0), np.maximum(ub, 0.0)  # δs = 0 is always admissible
+    Aa = np.vstack([A, np.sqrt(lam) * np.eye(C)])
+    ba = np.concatenate([b, np.zeros(C)])
+    if np.all(lb == ub):
+        _bounded.inside = False
+        return lb.copy()
+    free = lb < ub
+    if not np.all(free):  # a cup with no room stays put
+        x = np.zeros(C)
+        x[~free] = lb[~free]
+        x[free] = _bounded(A[:, free], b - A[:, ~free] @ x[~free], lb[free], ub[free], lam)
+        _bounded.inside = False
+        return x
+    x0 = np.linalg.lstsq(Aa, ba, rcond=None)[0]
+    if np.all(x0 >= lb) and np.all(x0 <= ub):
+        return x0  # the unconstrained optimum is admissible: no iterative solve
+    _bounded.inside = False
+    return lsq_linear(Aa, ba, bounds=(lb, ub), method="bvls").x
+
+
+def stroke_step(
+    J: np.ndarray,
+    error: np.ndarray,
+    strokes: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    max_step: Optional[np.ndarray] = None,
+    direction: Optional[np.ndarray] = None,
+    mode: str = "miss",
+    lam: float = REGULARISATION,
+) -> Step:
+    """The law's step for J (2, C) mm/mm, error e = y_d − y (2,) mm at strokes (C,) mm within [lo, hi] (C,).
+
+    max_step (C,) mm: the most each cup may move in one control period
+    (speed · Δt; None: no speed limit). direction (2,): the needle axis n;
+    with mode "miss" the driven error is P e, else e.
+    """
+    J = np.asarray(J, float).reshape(2, -1)
+    e = np.asarray(error, float)
+    P = projector(direction, mode)
+    A, b = (J, e) if P is None else (P @ J, P @ e)
+    along = along_mm(e, direction) if P is not None else 0.0
+    C = J.shape[1]
+    if C == 0:
+        return Step(np.zeros(0), np.zeros(2), b.copy(), along, False)
+    As, bs = A, b
+    if P is not None and C >= 2:  # spare cups: the along-axis error as a secondary objective
+        n = np.asarray(direction, float) / np.linalg.norm(direction)
+        w = np.sqrt(ALONG_WEIGHT)
+        As, bs = np.vstack([A, w * (n @ J)[None]]), np.append(b, w * along)
+    s = np.asarray(strokes, float)
+    lb, ub = np.asarray(lo, float) - s, np.asarray(hi, float) - s
+    full = _bounded(As, bs, lb, ub, lam)
+    at_limit = not _bounded.inside
+    corr = A @ full
+    along_corr = abs(float(n @ J @ full)) if As is not A else 0.0
+    ds, limited = full, False
+    if max_step is not None:
+        m = np.asarray(max_step, float)
+        if np.any(np.abs(full) > m):
+            ds, limited = _bounded(As, bs, np.maximum(lb, -m), np.minimum(ub, m), lam), True
+    return Step(ds, corr, b - corr, along, limited, at_limit, along_corr)
+
