@@ -32,6 +32,7 @@ from scissor_cli.experiments.sink import ForwardCase, Manipulation, ResumableSin
 from scissor_cli.experiments.sink import NonFiniteError, ResumeError  # noqa: F401 - raised through this module's API
 from scissor_cli.robot.chain import RobotModel
 from scissor_cli.robot.registration import plan_to_joints
+from scissor_cli.experiments.insertion_stage import insertion_stage
 from scissor_cli.experiments.selection import select
 from scissor_cli.experiments.study import run_study
 from scissor_cli.experiments.trials import TargetTask, execute
@@ -158,6 +159,9 @@ def _stages(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary, rep
     summary.plans = _plan_stage(cfg, tissue, sink, reporter)
     if cfg.trials.count > 0:
         summary.figures += _manipulation_stage(cfg, tissue, summary.plans, sink, reporter)
+    if cfg.insertion is not None:
+        summary.figures += insertion_stage(cfg, tissue, summary.plans, sink, reporter)
+    if cfg.trials.count > 0:
         tasks = trial_tasks(tissue, summary.plans)
         allocate_trial_arrays(sink, cfg, tasks, summary.plans)
         summary.trials_run = _trial_stage(sink, cfg, tasks, reporter, execution)
