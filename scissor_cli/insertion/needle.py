@@ -40,6 +40,9 @@ from scissor_cli.solvers.equilibrium import solve_equilibrium
 
 #: Newton's relative residual in an insertion step
 STEP_TOL = 1e-8
+#: the active-set passes before the set settles are solved to this residual only;
+#: the settled set is then solved to STEP_TOL (and checked once more)
+PASS_TOL = 1e-5
 #: active-set passes per step before the step is reported as unsettled
 MAX_ACTIVE_SET = 50
 #: halvings of a step whose start would invert an element (a 0.5 mm step
@@ -89,6 +92,8 @@ class NeedleState:
     lengths: np.ndarray = field(default_factory=lambda: np.zeros(0))
     #: direction of the kinetic friction on each slipping node (+1 along n, −1 against; 0 stuck)
     sign: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: the last step's node increment per mm of advance (N, 2), the next step's predictor
+    rate: np.ndarray | None = None
 
     @property
     def across(self) -> np.ndarray:
@@ -208,9 +213,13 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
     # The start: stuck nodes (all, at first) ride along; a node captured in this
     # step rides along from where the tip passed it (d − s_i of the step).
     start = x.copy()
+    if state.rate is not None:  # the tissue keeps moving as in the last step (if that inverts nothing)
+        guess = state.rate * step_mm
+        if tissue.max_feasible_step(x, guess) > FEASIBLE_MARGIN:
+            start += guess
     ride = np.concatenate([np.full(old.size, step_mm),
                            np.clip(state.depth_mm - (x[new] - state.entry) @ n, 0.0, step_mm)])
-    start[captured] += ride[:, None] * n
+    start[captured] = x[captured] + ride[:, None] * n
     stuck = np.ones(captured.size, bool)
     sign = np.ones(captured.size)
     fs, fk = params.friction_static_mN_per_mm, params.friction_kinetic_mN_per_mm
@@ -218,7 +227,7 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
     # it slips against that too, it is stuck again and stays stuck in this step.
     flipped = np.zeros(captured.size, bool)
     locked = np.zeros(captured.size, bool)
-    passes, iterations, settled = 0, 0, False
+    passes, iterations, settled, tol = 0, 0, False, PASS_TOL
     result_x, loads, axial = start, base, np.zeros(captured.size)
     while passes < MAX_ACTIVE_SET:
         loads = base.copy()
@@ -228,7 +237,7 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
         np.add.at(loads, 2 * captured[slip] + 1, friction * n[1])
         held = np.concatenate([2 * captured[stuck], 2 * captured[stuck] + 1])
         cond = Conditions(loads=loads, held=held, along_nodes=captured[slip], along=np.tile(t, (int(slip.sum()), 1)))
-        r = solve_equilibrium(tissue, strokes, start=start, start_strokes=strokes, conditions=cond, tol=STEP_TOL)
+        r = solve_equilibrium(tissue, strokes, start=start, start_strokes=strokes, conditions=cond, tol=tol)
         passes += 1
         iterations += r.iterations
         result_x = r.x
@@ -241,8 +250,11 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
         lag = (r.x[captured] - x[captured]) @ n - ride
         against = ~stuck & (sign * lag > 1e-9 * step_mm)
         if not np.any(release) and not np.any(against):
-            settled = True
-            break
+            if tol <= STEP_TOL:
+                settled = True
+                break
+            tol, start = STEP_TOL, r.x
+            continue
         sign[release] = np.sign(axial[release])
         flip, restick = against & ~flipped, against & flipped
         sign[flip] = -sign[flip]
@@ -254,6 +266,7 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
     force = float(axial[stuck].sum() + (fk * lengths[~stuck] * sign[~stuck]).sum() + params.tip_force_mN)
     state.captured, state.offset, state.stuck, state.lengths = captured, offset, stuck, lengths
     state.sign = np.where(stuck, 0.0, sign)
+    state.rate = (result_x - x) / step_mm
     return StepOutcome(result_x, force, int(stuck.sum()), int((~stuck).sum()), loads, settled, passes, iterations)
 
 
