@@ -251,6 +251,9 @@ class TrialsConfig(_Section):
     #: slip of the tissue in the cup along the push axis after the loop stops,
     #: σ (mm): the prone position and vertical restraint the paper's bench lacked
     release_slip_mm: Optional[Num(0.0, 100.0)] = None
+    #: with `insertion`: σ of log of the factor on the config's friction, and on its tip force
+    friction_log_sd: Optional[Spread] = None
+    tip_force_log_sd: Optional[Spread] = None
 
 
 class InsertionConfig(_Section):

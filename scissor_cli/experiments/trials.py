@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import Iterator, Optional
 
 import numpy as np
@@ -23,7 +23,8 @@ from scissor_cli.config import parse_config
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 from scissor_cli.planning.corridor import corridor_radius
 from scissor_cli.experiments.pool import run_pool
-from scissor_cli.experiments.profiles import ErrorModel, draw_trial, error_model
+from scissor_cli.experiments.profiles import ErrorModel, draw_insertion, draw_trial, error_model
+from scissor_cli.insertion import NeedleParams, run_insertion
 from scissor_cli.mechanics.tissue import build_model
 
 
@@ -38,6 +39,8 @@ class TargetTask:
     plan_strokes: np.ndarray  # (C,) where the planner found the desired position
     side: str  # corridor entry side, "" when there is no corridor
     direction: np.ndarray  # (2,) corridor direction, NaN when none
+    entry: Optional[np.ndarray] = None  # (2,) the plan's needle entry (insertion)
+    depth_mm: float = 0.0  # the plan's depth (insertion)
 
 
 @dataclass
@@ -59,6 +62,9 @@ class TrialOutcome:
     uncorrectable_mm: float
     history_columns: list[str]
     history: np.ndarray  # (K, n)
+    #: with insertion: the final miss and depth error (mm) per strategy (S,), in the config's order
+    insertion_miss_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    insertion_depth_error_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 class TrialContext:
@@ -103,6 +109,7 @@ class TrialContext:
         # The optional release slip moves the target along the (first) cup's axis after the loop.
         slip = draw.release_slip_mm * self.scene.cups[0].axis if len(self.scene.cups) else np.zeros(2)
         columns, table = r.history_table()
+        miss, depth_error = self.insert(task, trial, truth, draw, r)
         return TrialOutcome(
             target_index=task.index, trial=trial, ok=True, message=r.message,
             final_error=np.asarray(r.final_error, float) + slip, iterations=int(r.iterations), time_s=float(r.time_s),
@@ -110,7 +117,37 @@ class TrialContext:
             clearance_mm=float(r.clearance_mm), stop_reason=r.stop_reason,
             correctable_mm=float(r.correctable_error_mm), uncorrectable_mm=float(r.uncorrectable_error_mm),
             history_columns=list(columns), history=table,
+            insertion_miss_mm=miss, insertion_depth_error_mm=depth_error,
         )
+
+    def insert(self, task: TargetTask, trial: int, truth, draw, loop) -> tuple[np.ndarray, np.ndarray]:
+        """With `insertion:`, each strategy from the loop's final true state (docs/model.md §12): miss, depth error (S,).
+
+        The truth tissue carries the trial's drawn friction and tip force;
+        the plan's entry and direction are the ones the robot was given; the
+        camera measures the target during insertion as during the loop. The
+        `loop` strategy's Jacobian is the truth's tangent (a simplification:
+        the controller would use its model).
+        """
+        ins = self.cfg.insertion
+        if ins is None or loop.final_x is None or task.entry is None:
+            return np.zeros(0), np.zeros(0)
+        f_scale, tip_scale = draw_insertion(self.errors, self.cfg.seed, task.index, trial)
+        base = NeedleParams.from_config(ins, self.cfg)
+        params = replace(base, friction_static_mN_per_mm=base.friction_static_mN_per_mm * f_scale,
+                         friction_kinetic_mN_per_mm=base.friction_kinetic_mN_per_mm * f_scale,
+                         tip_force_mN=base.tip_force_mN * tip_scale)
+        tissue = control.true_tissue(self.tissue, truth)
+        meas = self.measurement(draw)
+        rng = np.random.default_rng([int(self.cfg.seed), task.index, trial, 13])
+        miss, depth_error = [], []
+        for strategy in ins.strategies:
+            r = run_insertion(tissue, loop.final_x, loop.final_strokes, task.entry, task.direction, task.depth_mm,
+                              task.rest, params, strategy, controller=self.cfg.controller,
+                              measure=lambda y: meas.measure(y, rng), keep_displacement=False)
+            miss.append(r.miss_mm)
+            depth_error.append(r.depth_error_mm)
+        return np.array(miss), np.array(depth_error)
 
 
 _CONTEXTS: dict[str, TrialContext] = {}
