@@ -191,3 +191,14 @@ def test_bad_insertion_input_exits_2_with_one_message(tmp_path, field, value, wo
     assert result.exit_code == 2
     err = result.stderr.strip()
     assert err.count("\n") == 0 and f"insertion.{field}" in err and "line" in err and words in err
+
+
+def test_a_long_step_is_split_not_restarted_from_rest(model):
+    """A 5 mm step whose start would invert elements is split; it never loses the needle's hold."""
+    cfg, tissue = model
+    long = _insert(tissue, _params(cfg, step_mm=5.0))
+    short = _insert(tissue, _params(cfg, step_mm=1.0))
+    _finite(long)
+    assert long.completed
+    moved = np.linalg.norm(short.target[-1] - np.array([45.0, 32.0]))
+    assert np.linalg.norm(long.target[-1] - short.target[-1]) <= 0.25 * moved

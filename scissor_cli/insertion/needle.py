@@ -30,6 +30,7 @@ pattern.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -48,8 +49,6 @@ MAX_ACTIVE_SET = 50
 #: halvings of a step whose start would invert an element (a 0.5 mm step
 #: on 1 mm elements never needs one; 10× friction or a coarse mesh may)
 MAX_SPLITS = 6
-#: a start is used when the element-inversion limit lies this far beyond it
-FEASIBLE_MARGIN = 1.25
 
 
 @dataclass(frozen=True)
@@ -173,27 +172,36 @@ def advance(
 ) -> StepOutcome:
     """Advance the needle by step_mm from the equilibrium x (N, 2) at cup strokes (C,) mm; updates `state`.
 
-    A step whose start would invert an element is split into halves (at
-    most MAX_SPLITS times). Raises SolverError when a solve fails.
+    A step whose start (stuck nodes moved with the needle) would invert an
+    element is split into 2, 4, … equal parts (at most 2^MAX_SPLITS), the
+    state restored before each retry: Newton never sees an inverted start
+    (it would restart from rest and lose the needle's hold). Raises
+    SolverError when a solve fails or no split is feasible.
     """
     parts = 1
-    while _feasible_fraction(tissue, state, x, step_mm / parts) < FEASIBLE_MARGIN:
-        parts *= 2
-        if parts > 2 ** MAX_SPLITS:
-            raise SolverError(f"the needle step inverts an element even when split into {parts // 2} parts")
-    out = None
-    for _ in range(parts):
-        out = _advance_once(tissue, state, x, strokes, step_mm / parts, params, candidates)
-        x = out.x
-    return out
+    while True:
+        saved = dataclasses.replace(state)
+        try:
+            out, y = None, x
+            for _ in range(parts):
+                out = _advance_once(tissue, state, y, strokes, step_mm / parts, params, candidates)
+                y = out.x
+            return out
+        except _Infeasible:
+            for f in dataclasses.fields(state):
+                setattr(state, f.name, getattr(saved, f.name))
+            parts *= 2
+            if parts > 2 ** MAX_SPLITS:
+                raise SolverError(f"the needle step inverts an element even when split into {parts // 2} parts") from None
 
 
-def _feasible_fraction(tissue, state, x, step_mm) -> float:
-    if not state.captured.size or not np.any(state.stuck):
-        return 2.0
-    dx = np.zeros_like(x)
-    dx[state.captured[state.stuck]] = step_mm * state.direction  # new captures ride less than a step
-    return tissue.max_feasible_step(x, dx)
+class _Infeasible(Exception):
+    """A step's start inverts an element (so Newton would not start from it): split the step."""
+
+
+def _check_start(tissue: Tissue, start: np.ndarray) -> None:
+    if np.min(tissue.jacobians(start)) <= 0:
+        raise _Infeasible
 
 
 def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> StepOutcome:
@@ -213,13 +221,15 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
     # The start: stuck nodes (all, at first) ride along; a node captured in this
     # step rides along from where the tip passed it (d − s_i of the step).
     start = x.copy()
-    if state.rate is not None:  # the tissue keeps moving as in the last step (if that inverts nothing)
-        guess = state.rate * step_mm
-        if tissue.max_feasible_step(x, guess) > FEASIBLE_MARGIN:
-            start += guess
     ride = np.concatenate([np.full(old.size, step_mm),
                            np.clip(state.depth_mm - (x[new] - state.entry) @ n, 0.0, step_mm)])
+    if state.rate is not None:  # the tissue keeps moving as in the last step (unless that inverts an element)
+        start += state.rate * step_mm
     start[captured] = x[captured] + ride[:, None] * n
+    if np.min(tissue.jacobians(start)) <= 0:
+        start = x.copy()
+        start[captured] = x[captured] + ride[:, None] * n
+        _check_start(tissue, start)
     stuck = np.ones(captured.size, bool)
     sign = np.ones(captured.size)
     fs, fk = params.friction_static_mN_per_mm, params.friction_kinetic_mN_per_mm
@@ -261,8 +271,9 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
         flipped |= flip
         stuck = (stuck & ~release) | restick
         locked |= restick
-        start = r.x
+        start = r.x.copy()
         start[captured[restick]] = x[captured[restick]] + ride[restick, None] * n
+        _check_start(tissue, start)
     force = float(axial[stuck].sum() + (fk * lengths[~stuck] * sign[~stuck]).sum() + params.tip_force_mN)
     state.captured, state.offset, state.stuck, state.lengths = captured, offset, stuck, lengths
     state.sign = np.where(stuck, 0.0, sign)
