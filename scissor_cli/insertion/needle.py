@@ -49,6 +49,9 @@ MAX_ACTIVE_SET = 50
 #: halvings of a step whose start would invert an element (a 0.5 mm step
 #: on 1 mm elements never needs one; 10× friction or a coarse mesh may)
 MAX_SPLITS = 6
+#: a start must keep every element's area ratio J above this (a nearly flat
+#: element makes K_ff numerically singular); else the step is split
+MIN_START_J = 0.2
 
 
 @dataclass(frozen=True)
@@ -200,7 +203,7 @@ class _Infeasible(Exception):
 
 
 def _check_start(tissue: Tissue, start: np.ndarray) -> None:
-    if np.min(tissue.jacobians(start)) <= 0:
+    if np.min(tissue.jacobians(start)) <= MIN_START_J:
         raise _Infeasible
 
 
@@ -226,7 +229,7 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
     if state.rate is not None:  # the tissue keeps moving as in the last step (unless that inverts an element)
         start += state.rate * step_mm
     start[captured] = x[captured] + ride[:, None] * n
-    if np.min(tissue.jacobians(start)) <= 0:
+    if np.min(tissue.jacobians(start)) <= MIN_START_J:
         start = x.copy()
         start[captured] = x[captured] + ride[:, None] * n
         _check_start(tissue, start)
