@@ -202,3 +202,38 @@ def test_a_long_step_is_split_not_restarted_from_rest(model):
     assert long.completed
     moved = np.linalg.norm(short.target[-1] - np.array([45.0, 32.0]))
     assert np.linalg.norm(long.target[-1] - short.target[-1]) <= 0.25 * moved
+
+
+def test_simulate_and_report_with_insertion(tmp_path):
+    """The contract paths, finite values, the printed miss per strategy, the figures and the report."""
+    import h5py
+
+    from scissor_cli import cli
+
+    data = example_dict()
+    data["tissue"]["mesh"].update(max_edge_mm=8.0, min_edge_mm=2.5)
+    data["insertion"] = dict(INSERTION, step_mm=2.0, strategies=["none", "depth"])
+    data["trials"] = {"count": 1, "profile": "prosthesis"}
+    data.pop("forward", None)
+    path = write_scene(tmp_path, data)
+    out = tmp_path / "run"
+    result = CliRunner().invoke(cli.app, ["simulate", str(path), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "insertion T1: miss none" in result.output and "depth" in result.output
+    with h5py.File(out / "results.h5") as f:
+        for s in ("none", "depth"):
+            g = f[f"insertion/T1/{s}"]
+            k = int(g.attrs["steps"])
+            assert k > 0 and g["depth_mm"].shape == (k,) and g["tip"].shape == (k, 2)
+            assert g["displacement"].shape[0] == k and g["displacement"].compression == "gzip"
+            assert g["stuck"].dtype == np.int64 and g.attrs["entry"].shape == (2,)
+            for key in ("miss_mm", "depth_error_mm", "time_s"):
+                assert np.isfinite(g.attrs[key])
+        assert f["trials/T1/miss_mm"].shape == (1, 2)
+        assert list(f["trials/T1/miss_mm"].attrs["strategies"]) == ["none", "depth"]
+    for name in ("insertion_force_T1.png", "insertion_path_T1.png", "insertion_T1.gif"):
+        assert (out / name).stat().st_size > 1000
+    rep = CliRunner().invoke(cli.app, ["report", str(out), "--out", str(tmp_path / "rep")])
+    assert rep.exit_code == 0, rep.output
+    assert (tmp_path / "rep" / "insertion_boxplots.png").exists()
+    assert "miss (depth)" in (tmp_path / "rep" / "insertion_summary.md").read_text()
