@@ -49,8 +49,9 @@ MAX_ACTIVE_SET = 50
 #: halvings of a step whose start would invert an element (a 0.5 mm step
 #: on 1 mm elements never needs one; 10× friction or a coarse mesh may)
 MAX_SPLITS = 6
-#: a start must keep every element's area ratio J above this (a nearly flat
-#: element makes K_ff numerically singular); else the step is split
+#: a start must keep every element's area above this fraction of its area in
+#: the last equilibrium (a nearly flat element makes K_ff numerically
+#: singular); else the step is split
 MIN_START_J = 0.2
 
 
@@ -202,8 +203,13 @@ class _Infeasible(Exception):
     """A step's start inverts an element (so Newton would not start from it): split the step."""
 
 
-def _check_start(tissue: Tissue, start: np.ndarray) -> None:
-    if np.min(tissue.jacobians(start)) <= MIN_START_J:
+def _flattens(tissue: Tissue, start: np.ndarray, J_now: np.ndarray) -> bool:
+    """Whether the start shrinks some element's area below MIN_START_J of its area in the equilibrium."""
+    return bool(np.min(tissue.jacobians(start) / J_now) <= MIN_START_J)
+
+
+def _check_start(tissue: Tissue, start: np.ndarray, J_now: np.ndarray) -> None:
+    if _flattens(tissue, start, J_now):
         raise _Infeasible
 
 
@@ -229,10 +235,11 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
     if state.rate is not None:  # the tissue keeps moving as in the last step (unless that inverts an element)
         start += state.rate * step_mm
     start[captured] = x[captured] + ride[:, None] * n
-    if np.min(tissue.jacobians(start)) <= MIN_START_J:
+    J_now = tissue.jacobians(x)
+    if _flattens(tissue, start, J_now):
         start = x.copy()
         start[captured] = x[captured] + ride[:, None] * n
-        _check_start(tissue, start)
+        _check_start(tissue, start, J_now)
     stuck = np.ones(captured.size, bool)
     sign = np.ones(captured.size)
     fs, fk = params.friction_static_mN_per_mm, params.friction_kinetic_mN_per_mm
@@ -276,7 +283,7 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
         locked |= restick
         start = r.x.copy()
         start[captured[restick]] = x[captured[restick]] + ride[restick, None] * n
-        _check_start(tissue, start)
+        _check_start(tissue, start, J_now)
     force = float(axial[stuck].sum() + (fk * lengths[~stuck] * sign[~stuck]).sum() + params.tip_force_mN)
     state.captured, state.offset, state.stuck, state.lengths = captured, offset, stuck, lengths
     state.sign = np.where(stuck, 0.0, sign)
