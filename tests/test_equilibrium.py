@@ -126,3 +126,45 @@ def test_unknown_method_and_failure_are_clear(tissue):
     with pytest.raises(SolverError) as err:
         solve_equilibrium(tissue, np.full(tissue.n_cups, 8.0), max_iter=1)
     assert err.value.result is not None and "not converged" in str(err.value)
+
+
+@pytest.mark.parametrize("angle_deg", [0.0, 90.0, 37.0])
+def test_nodes_held_along_a_direction_keep_that_component_only(tissue, angle_deg):
+    """Conditions.along_nodes: the component along u stays, the one across is in equilibrium.
+
+    At 0° and 90° it is the same as holding the x or the y dof (the existing
+    held dofs); at any angle the force the hold carries is along u only.
+    """
+    nodes = _interior_nodes(tissue, 5, seed=4)
+    a = np.deg2rad(angle_deg)
+    u = np.array([np.cos(a), np.sin(a)])
+    strokes = np.full(tissue.n_cups, 5.0)
+    cond = Conditions(along_nodes=nodes, along=np.tile(u, (nodes.size, 1)))
+    r = solve_equilibrium(tissue, strokes, conditions=cond)
+    np.testing.assert_allclose((r.x[nodes] - tissue.rest[nodes]) @ u, 0.0, atol=1e-12)
+    _, grad = tissue.energy_gradient(r.x)
+    g = grad.reshape(-1, 2)[nodes]
+    across = np.array([-u[1], u[0]])
+    scale = tissue.force_scale(grad)
+    assert np.abs(g @ across).max() <= 1e-8 * scale  # free across: no reaction
+    assert np.abs(g @ u).max() > 1e-3  # held along u: a reaction
+    if angle_deg in (0.0, 90.0):
+        k = 0 if angle_deg == 0.0 else 1
+        ref = solve_equilibrium(tissue, strokes, conditions=Conditions(held=2 * nodes + k))
+        np.testing.assert_allclose(r.x, ref.x, atol=1e-8)
+
+
+def test_along_holds_reuse_the_symbolic_factorisation(tissue):
+    nodes = _interior_nodes(tissue, 4, seed=5)
+    u = np.tile([0.6, 0.8], (nodes.size, 1))
+    solve_equilibrium(tissue, np.full(tissue.n_cups, 2.0), conditions=Conditions(held=2 * nodes))
+    factor = tissue.factor_cache["free"]
+    solve_equilibrium(tissue, np.full(tissue.n_cups, 2.0), conditions=Conditions(along_nodes=nodes, along=u))
+    assert tissue.factor_cache["free"] is factor
+
+
+def test_along_holds_reject_dirichlet_nodes(tissue):
+    node = int(tissue.dirichlet_dofs[0] // 2)
+    with pytest.raises(ValueError):
+        solve_equilibrium(tissue, np.zeros(tissue.n_cups),
+                          conditions=Conditions(along_nodes=np.array([node]), along=np.array([[1.0, 0.0]])))

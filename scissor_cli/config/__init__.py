@@ -17,6 +17,7 @@ from scissor_cli.config.sections import (
     DHLinkConfig,
     ForwardCase,
     ManipulationPointsConfig,
+    InsertionConfig,
     MaterialConfig,
     MeshConfig,
     NeedleConfig,
@@ -32,7 +33,8 @@ from scissor_cli.config.sections import (
 __all__ = [
     "ELEMENT_BUDGET", "MAX_CONFIG_BYTES",
     "BoxConfig", "CameraConfig", "CircleConfig", "Config", "ConfigError", "ControllerConfig", "CupConfig",
-    "DHLinkConfig", "ForwardCase", "ManipulationPointsConfig", "MaterialConfig", "MeshConfig", "NeedleConfig", "ObstacleConfig",
+    "DHLinkConfig", "ForwardCase", "InsertionConfig", "ManipulationPointsConfig", "MaterialConfig", "MeshConfig",
+    "NeedleConfig", "ObstacleConfig",
     "RobotConfig", "SolverConfig", "StudyConfig", "TargetConfig", "TissueConfig", "TrialsConfig",
     "estimate_elements", "load_config", "obstacle_outline", "parse_config", "read_config_text", "resolved_yaml",
     "scene_problems", "tissue_outline",

@@ -310,4 +310,24 @@ def scene_problems(cfg: Config) -> list[Problem]:
         problems.append((("camera", "position_mm"), "the camera must be above the layer (z > 0)"))
     problems += _robot_problems(cfg)
     problems += _manipulation_point_problems(cfg)
+    problems += _insertion_problems(cfg, outline)
+    return problems
+
+
+def _insertion_problems(cfg: Config, outline: np.ndarray) -> list[Problem]:
+    """Kinetic friction at most static, a step shorter than the tissue, strategies once each (docs/model.md §12)."""
+    ins = cfg.insertion
+    if ins is None:
+        return []
+    problems: list[Problem] = []
+    if ins.friction_kinetic_mN_per_mm > ins.friction_static_mN_per_mm:
+        problems.append((("insertion", "friction_kinetic_mN_per_mm"), (
+            f"kinetic friction {ins.friction_kinetic_mN_per_mm:g} mN/mm exceeds the static friction "
+            f"{ins.friction_static_mN_per_mm:g} mN/mm; it must be at most the static one")))
+    extent = float(np.max(outline.max(axis=0) - outline.min(axis=0)))
+    if ins.step_mm > extent:
+        problems.append((("insertion", "step_mm"),
+                         f"a step of {ins.step_mm:g} mm is longer than the tissue ({extent:g} mm across)"))
+    if len(set(ins.strategies)) != len(ins.strategies):
+        problems.append((("insertion", "strategies"), f"each strategy at most once; got {ins.strategies}"))
     return problems

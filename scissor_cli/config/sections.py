@@ -264,6 +264,29 @@ class TrialsConfig(_Section):
     #: slip of the tissue in the cup along the push axis after the loop stops,
     #: σ (mm): the prone position and vertical restraint the paper's bench lacked
     release_slip_mm: Optional[Num(0.0, 100.0)] = None
+    #: with `insertion`: σ of log of the factor on the config's friction, and on its tip force
+    friction_log_sd: Optional[Spread] = None
+    tip_force_log_sd: Optional[Spread] = None
+
+
+class InsertionConfig(_Section):
+    """Needle–tissue interaction during the insertion (docs/model.md §12).
+
+    Friction is per unit length of inserted shaft (mN/mm), static ≥ kinetic
+    (checks); the defaults and their sources are in docs/model.md §12.
+    """
+
+    #: needle advance per quasi-static step (mm); positive and at most the tissue's extent (checks)
+    step_mm: Num(gt=0.0, hi=COORD_MM) = 0.5
+    friction_static_mN_per_mm: Num(0.0, 1.0e6) = 15.0
+    friction_kinetic_mN_per_mm: Num(0.0, 1.0e6) = 10.0
+    tip_force_mN: Num(0.0, 1.0e7) = 100.0
+    #: radius of the disc about the tip that the tip force is spread over (mm)
+    tip_zone_mm: Num(gt=0.0, hi=COORD_MM) = 2.0
+    #: a node this close to the axis is captured when the tip passes it (mm);
+    #: None: half the mesh's coarsest edge (max_edge_mm × scale)
+    capture_radius_mm: Optional[Num(gt=0.0, hi=COORD_MM)] = None
+    strategies: Annotated[list[Literal["none", "depth", "loop"]], Len(1, 3)] = ["none", "depth", "loop"]
 
 
 ModelName = Literal["linear", "neo_hookean", "neo_hookean_fiber"]
@@ -314,3 +337,4 @@ class Config(_Section):
     trials: TrialsConfig = TrialsConfig()
     study: Optional[StudyConfig] = None
     manipulation_points: Optional[ManipulationPointsConfig] = None
+    insertion: Optional[InsertionConfig] = None

@@ -40,6 +40,23 @@ surface:
 measurement is exact (no pixel rounding). With `trials.count: 1` it is the
 deterministic check of the loop.
 
+Needle–tissue interaction (only with an `insertion:` section, docs/model.md
+§12): each trial scales the config's friction (static and kinetic by one
+factor, so f_k ≤ f_s stays) and its tip force by log-normal factors,
+σ(log) ``friction_log_sd`` and ``tip_force_log_sd``:
+
+* prosthesis 0.2 and 0.2: a cast silicone phantom is repeatable, but
+  friction depends on insertion speed and surface state (DiMaio &
+  Salcudean 2003 measured the force along the shaft in a PVC phantom;
+  Okamura et al. 2004 show friction changing with speed in liver);
+* ex_vivo 0.4 and 0.4: tissue-to-tissue spread of pork (fat, muscle,
+  fascia); needle forces in soft tissue vary by a factor of ~2 between
+  samples and sites (Abolhassani et al. 2007 review). These spreads are
+  assumptions of the order those papers show, not fitted values.
+
+They are drawn from a stream of their own (seeded by seed, target, trial and
+a fixed tag), so a scene without insertion draws exactly what it drew before.
+
 ``release_slip_mm`` (default 0 in every profile) is an optional extra source:
 the tissue slipping in the cup along the push axis after the loop stops,
 which the paper names as its main error (no prone position, no vertical
@@ -59,17 +76,17 @@ PROFILES: dict[str, dict[str, float]] = {
     "ideal": dict(
         pixel_noise_px=0.0, localisation_error_mm=0.0, E_log_sd=0.0, nu_sd=0.0, eta_log_sd=0.0,
         fiber_angle_sd_deg=0.0, heterogeneity_log_sd=0.0, actuator_resolution_mm=0.0, backlash_mm=0.0,
-        release_slip_mm=0.0,
+        release_slip_mm=0.0, friction_log_sd=0.0, tip_force_log_sd=0.0,
     ),
     "prosthesis": dict(
         pixel_noise_px=0.5, localisation_error_mm=0.3, E_log_sd=0.10, nu_sd=0.01, eta_log_sd=0.2,
         fiber_angle_sd_deg=10.0, heterogeneity_log_sd=0.05, actuator_resolution_mm=0.01, backlash_mm=0.02,
-        release_slip_mm=0.0,
+        release_slip_mm=0.0, friction_log_sd=0.2, tip_force_log_sd=0.2,
     ),
     "ex_vivo": dict(
         pixel_noise_px=1.0, localisation_error_mm=0.6, E_log_sd=0.30, nu_sd=0.02, eta_log_sd=0.5,
         fiber_angle_sd_deg=20.0, heterogeneity_log_sd=0.30, actuator_resolution_mm=0.01, backlash_mm=0.02,
-        release_slip_mm=0.0,
+        release_slip_mm=0.0, friction_log_sd=0.4, tip_force_log_sd=0.4,
     ),
 }
 
@@ -95,6 +112,8 @@ class ErrorModel:
     actuator_resolution_mm: float
     backlash_mm: float
     release_slip_mm: float
+    friction_log_sd: float = 0.0
+    tip_force_log_sd: float = 0.0
 
     @property
     def exact_measurement(self) -> bool:
@@ -160,3 +179,15 @@ def draw_trial(model: ErrorModel, nu_model: float, centroids: np.ndarray, seed: 
         release_slip_mm=slip,
         rng=np.random.default_rng(rng.integers(0, 2**63 - 1)),
     )
+
+
+#: the ErrorModel fields that only a scene with insertion uses (and stores)
+INSERTION_SPREADS = ("friction_log_sd", "tip_force_log_sd")
+#: the tag of the insertion draws' own stream
+INSERTION_STREAM = 12
+
+
+def draw_insertion(model: ErrorModel, seed: int, target_index: int, trial: int) -> tuple[float, float]:
+    """Trial k's factors (friction, tip force) on the config's needle forces, log-normal (docs/model.md §12)."""
+    z = np.random.default_rng([int(seed), int(target_index), int(trial), INSERTION_STREAM]).standard_normal(2)
+    return float(np.exp(model.friction_log_sd * z[0])), float(np.exp(model.tip_force_log_sd * z[1]))

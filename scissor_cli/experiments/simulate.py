@@ -27,11 +27,12 @@ from scissor_cli.planning.corridor import corridor_radius
 from scissor_cli.planning.needle import NeedlePlan, plan_target
 from scissor_cli.planning.states import StateCache
 from scissor_cli.experiments.pool import deferred_signals
-from scissor_cli.experiments.profiles import error_model
+from scissor_cli.experiments.profiles import INSERTION_SPREADS, error_model
 from scissor_cli.experiments.sink import ForwardCase, Manipulation, ResumableSink, RunSink, SinkFactory
 from scissor_cli.experiments.sink import NonFiniteError, ResumeError  # noqa: F401 - raised through this module's API
 from scissor_cli.robot.chain import RobotModel
 from scissor_cli.robot.registration import plan_to_joints
+from scissor_cli.experiments.insertion_stage import insertion_stage
 from scissor_cli.experiments.selection import select
 from scissor_cli.experiments.study import run_study
 from scissor_cli.experiments.trials import TargetTask, execute
@@ -154,7 +155,9 @@ def resume_simulation(sink: ResumableSink, reporter: Reporter | None = None, exe
             p = plans.get(target.name)
             if p is not None and bool(p["feasible"]):
                 tasks.append(TargetTask(index, target.name, target.rest, np.asarray(p["desired"]),
-                                        np.asarray(p["strokes"]), str(p["side"]), np.asarray(p["direction"])))
+                                        np.asarray(p["strokes"]), str(p["side"]), np.asarray(p["direction"]),
+                                        np.asarray(p["entry"]) if "entry" in p else None,
+                                        float(p["depth_mm"]) if "depth_mm" in p else 0.0))
         return _trial_stage(sink, cfg, tasks, reporter, execution)
 
 
@@ -187,6 +190,9 @@ def _stages(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary, rep
     summary.plans = _plan_stage(cfg, tissue, sink, reporter)
     if cfg.trials.count > 0:
         summary.figures += _manipulation_stage(cfg, tissue, summary.plans, sink, reporter)
+    if cfg.insertion is not None:
+        summary.figures += insertion_stage(cfg, tissue, summary.plans, sink, reporter)
+    if cfg.trials.count > 0:
         tasks = trial_tasks(tissue, summary.plans)
         allocate_trial_arrays(sink, cfg, tasks, summary.plans)
         summary.trials_run = _trial_stage(sink, cfg, tasks, reporter, execution)
@@ -208,7 +214,8 @@ def trial_tasks(tissue: Tissue, plans: list[NeedlePlan]) -> list[TargetTask]:
     for index, (target, plan) in enumerate(zip(tissue.scene.targets, plans)):
         if plan.feasible:
             tasks.append(TargetTask(index, target.name, target.rest, np.asarray(plan.desired, float),
-                                    np.asarray(plan.strokes, float), plan.side, np.asarray(plan.direction, float)))
+                                    np.asarray(plan.strokes, float), plan.side, np.asarray(plan.direction, float),
+                                    np.asarray(plan.entry, float), float(plan.depth_mm)))
     return tasks
 
 
@@ -216,7 +223,10 @@ def allocate_trial_arrays(sink: RunSink, cfg: Config, tasks: list[TargetTask], p
     """Room for every trial, with the error model's resolved values; a target without a plan is done at once."""
     em = error_model(cfg.trials)
     attrs = {"count": cfg.trials.count, "profile": cfg.trials.profile, "seed": cfg.seed,
-             **{k: v for k, v in asdict(em).items() if k != "profile"}}
+             **{k: v for k, v in asdict(em).items() if k not in ("profile",) + INSERTION_SPREADS}}
+    if cfg.insertion is not None:
+        attrs.update({k: getattr(em, k) for k in INSERTION_SPREADS})
+        attrs["insertion_strategies"] = list(cfg.insertion.strategies)
     planned = {t.name for t in tasks}
     without_plan = {p.target: p.reason for p in plans if p.target not in planned}
     sink.allocate_trials([p.target for p in plans], cfg.trials.count, attrs, without_plan)

@@ -73,6 +73,24 @@ class Manipulation:
     corridor: Optional["Corridor"]  # the planned corridor to draw, None without one
 
 
+@dataclass(frozen=True)
+class Insertion:
+    """The nominal insertions of one target, one per strategy (docs/model.md §12).
+
+    results: `insertion.InsertionResult` per strategy; manipulation_frames:
+    node positions (N, 2) mm from rest to the insertion's start (the cups
+    ramping to the plan's strokes), for the animation; animate: draw the GIF.
+    """
+
+    target: str
+    results: list
+    tissue: "Tissue"
+    target_rest: np.ndarray  # (2,) mm
+    desired: np.ndarray  # (2,) mm, the planned position
+    manipulation_frames: list
+    animate: bool = False
+
+
 class RunSink(Protocol):
     """Where the stages' products go. A context manager: leaving it ends the run.
 
@@ -113,6 +131,9 @@ class RunSink(Protocol):
 
     def manipulation(self, manipulation: Manipulation) -> Optional[Path]:
         """The nominal manipulation of one target and its figure; returns the figure's path."""
+
+    def insertion(self, insertion: Insertion) -> list[Path]:
+        """One target's insertions under every strategy and their figures; returns the figures' paths."""
 
     def allocate_trials(self, targets: list[str], count: int, attrs: dict, without_plan: dict[str, str]) -> None:
         """Room for `count` trials per target; `without_plan` maps a target with no plan to the planner's reason."""

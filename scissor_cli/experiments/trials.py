@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import Iterator, Optional
 
 import numpy as np
@@ -24,7 +24,8 @@ from scissor_cli.config import parse_config
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 from scissor_cli.planning.corridor import corridor_radius
 from scissor_cli.experiments.pool import run_pool
-from scissor_cli.experiments.profiles import ErrorModel, draw_trial, error_model
+from scissor_cli.experiments.profiles import ErrorModel, draw_insertion, draw_trial, error_model
+from scissor_cli.insertion import NeedleParams, run_insertion
 from scissor_cli.mechanics.tissue import build_model
 
 
@@ -39,6 +40,8 @@ class TargetTask:
     plan_strokes: np.ndarray  # (C,) where the planner found the desired position
     side: str  # corridor entry side, "" when there is no corridor
     direction: np.ndarray  # (2,) corridor direction, NaN when none
+    entry: Optional[np.ndarray] = None  # (2,) the plan's needle entry (insertion)
+    depth_mm: float = 0.0  # the plan's depth (insertion)
 
 
 @dataclass
@@ -62,6 +65,9 @@ class TrialOutcome:
     history: np.ndarray  # (K, n)
     miss_mm: float = 0.0  # across the plan's needle axis after the loop (docs/model.md §6)
     along_mm: float = 0.0  # desired − true along the axis, for the depth
+    #: with insertion: the final miss and depth error (mm) per strategy (S,), in the config's order
+    insertion_miss_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    insertion_depth_error_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 class TrialContext:
@@ -107,6 +113,7 @@ class TrialContext:
         slip = draw.release_slip_mm * self.scene.cups[0].axis if len(self.scene.cups) else np.zeros(2)
         columns, table = r.history_table()
         final = np.asarray(r.final_error, float) + slip
+        miss, depth_error = self.insert(task, trial, truth, draw, r)
         return TrialOutcome(
             target_index=task.index, trial=trial, ok=True, message=r.message,
             final_error=final, iterations=int(r.iterations), time_s=float(r.time_s),
@@ -115,7 +122,37 @@ class TrialContext:
             correctable_mm=float(r.correctable_error_mm), uncorrectable_mm=float(r.uncorrectable_error_mm),
             history_columns=list(columns), history=table,
             miss_mm=miss_mm(final, task.direction), along_mm=along_mm(-final, task.direction),
+            insertion_miss_mm=miss, insertion_depth_error_mm=depth_error,
         )
+
+    def insert(self, task: TargetTask, trial: int, truth, draw, loop) -> tuple[np.ndarray, np.ndarray]:
+        """With `insertion:`, each strategy from the loop's final true state (docs/model.md §12): miss, depth error (S,).
+
+        The truth tissue carries the trial's drawn friction and tip force;
+        the plan's entry and direction are the ones the robot was given; the
+        camera measures the target during insertion as during the loop. The
+        `loop` strategy's Jacobian is the truth's tangent (a simplification:
+        the controller would use its model).
+        """
+        ins = self.cfg.insertion
+        if ins is None or loop.final_x is None or task.entry is None:
+            return np.zeros(0), np.zeros(0)
+        f_scale, tip_scale = draw_insertion(self.errors, self.cfg.seed, task.index, trial)
+        base = NeedleParams.from_config(ins, self.cfg)
+        params = replace(base, friction_static_mN_per_mm=base.friction_static_mN_per_mm * f_scale,
+                         friction_kinetic_mN_per_mm=base.friction_kinetic_mN_per_mm * f_scale,
+                         tip_force_mN=base.tip_force_mN * tip_scale)
+        tissue = control.true_tissue(self.tissue, truth)
+        meas = self.measurement(draw)
+        rng = np.random.default_rng([int(self.cfg.seed), task.index, trial, 13])
+        miss, depth_error = [], []
+        for strategy in ins.strategies:
+            r = run_insertion(tissue, loop.final_x, loop.final_strokes, task.entry, task.direction, task.depth_mm,
+                              task.rest, params, strategy, controller=self.cfg.controller,
+                              measure=lambda y: meas.measure(y, rng), keep_displacement=False)
+            miss.append(r.miss_mm)
+            depth_error.append(r.depth_error_mm)
+        return np.array(miss), np.array(depth_error)
 
 
 _CONTEXTS: dict[str, TrialContext] = {}

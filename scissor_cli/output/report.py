@@ -16,6 +16,7 @@ import numpy as np
 
 from scissor_cli.output import figures
 from scissor_cli.experiments import study as study_mod
+from scissor_cli.output.insertion_report import report_insertion
 from scissor_cli.output.results import read_study
 
 
@@ -243,4 +244,8 @@ def report_trials(run_dirs: list[Path], out_dir: Path, partial: bool = False) ->
     (out_dir / "summary.md").write_text(table)
     write_csv(out_dir / "summary.csv", rows)
     files += [out_dir / "summary.md", out_dir / "summary.csv"]
+    ins_files, ins_table = report_insertion([(r.label, _check_status(r.path, True)) for r in runs], out_dir)
+    if ins_files:
+        files += ins_files
+        table += "\n" + ins_table
     return ReportOutput(out_dir, files, table)

@@ -278,6 +278,12 @@ def allocate_trials(out: ResultsFile, names: list[str], count: int, attrs: dict)
         out.dataset(f"{t}/failed", np.zeros(count, bool), description="trial crashed; see message")
         out.dataset(f"{t}/message", np.array([""] * count, dtype=h5py.string_dtype()))
         out.group(f"{t}/history")
+        strategies = list(attrs.get("insertion_strategies", []))
+        if strategies:
+            out.dataset(f"{t}/miss_mm", np.full((count, len(strategies)), FILL), "mm", strategies=strategies,
+                        description="final miss at the needle (target to the needle line) per strategy")
+            out.dataset(f"{t}/depth_error_mm", np.full((count, len(strategies)), FILL), "mm", strategies=strategies,
+                        description="final tip minus target along the needle per strategy")
 
 
 def mark_without_plan(out: ResultsFile, name: str, reason: str) -> None:
@@ -309,10 +315,17 @@ def trial_record(name: str, o) -> dict:
         "history_columns": [str(c) for c in o.history_columns] if ok else [],
         "history": np.asarray(o.history, float) if ok else np.zeros((0, 0)),
     }
+    miss = np.asarray(getattr(o, "insertion_miss_mm", np.zeros(0)), float)
+    if miss.size:  # with insertion: per strategy; a crashed trial keeps the fill values
+        rec["miss_mm"] = miss if ok else np.zeros_like(miss)
+        rec["depth_error_mm"] = np.asarray(o.insertion_depth_error_mm, float) if ok else np.zeros_like(miss)
     where = f"/trials/{name}/{{}} (trial {rec['trial']})"
     for key in TRIAL_FLOATS:
         check_finite(where.format(key), rec[key])
     check_finite(where.format(f"history/{rec['trial']}"), rec["history"])
+    for key in ("miss_mm", "depth_error_mm"):
+        if key in rec:
+            check_finite(where.format(key), rec[key])
     return rec
 
 
@@ -324,6 +337,9 @@ def write_trial(out: ResultsFile, rec: dict) -> None:
         out.flush()
     for key in TRIAL_FLOATS + ("iterations", "corridor_clear", "stop_reason", "message"):
         out.put(f"{t}/{key}", k, rec[key])
+    for key in ("miss_mm", "depth_error_mm"):
+        if key in rec and f"{t}/{key}" in out.h5:
+            out.put(f"{t}/{key}", k, rec[key])
     out.put(f"{t}/failed", k, not rec["ok"])
     if rec["ok"]:
         out.dataset(f"{t}/history/{k}", rec["history"], "mm (time_s: s)", columns=rec["history_columns"],

@@ -33,6 +33,7 @@ from scissor_cli.experiments.study import rows_as_columns
 from scissor_cli.output.manipulation import manipulation_figure_inputs
 from scissor_cli.output import figures, journal, results
 from scissor_cli.output.results import ResultsFile, temporary
+from scissor_cli.output.insertion_results import write_insertion
 
 
 class ResultsSink:
@@ -107,6 +108,14 @@ class ResultsSink:
         self.out.flush()
         inputs = manipulation_figure_inputs(m.tissue, m.closed, m.target_rest, m.corridor)
         return figures.save(figures.manipulation_figure(**inputs), self.location / f"manipulation_{m.target}.png")
+
+    def insertion(self, ins) -> list[Path]:
+        from scissor_cli.output.insertion_output import insertion_outputs
+
+        for r in ins.results:
+            write_insertion(self.out, r)
+        self.out.flush()
+        return insertion_outputs(ins, self.location)
 
     # -- the trials --------------------------------------------------------
     def allocate_trials(self, targets: list[str], count: int, attrs: dict, without_plan: dict[str, str]) -> None:

@@ -47,6 +47,12 @@ class Conditions:
 
     loads: np.ndarray | None = None
     held: np.ndarray | None = None
+    #: nodes (A,) whose displacement component along `along` (A, 2) unit
+    #: vectors stays where the start puts it, the other component free (a
+    #: needle holding a node across its axis, any axis direction). Solved by
+    #: rotating each such node's 2×2 block, so K_ff keeps its pattern.
+    along_nodes: np.ndarray | None = None
+    along: np.ndarray | None = None
 
     def held_free(self, tissue: Tissue) -> np.ndarray:
         """Positions of the held dofs among the free ones (H,); ValueError if one is not free."""
@@ -60,9 +66,33 @@ class Conditions:
             raise ValueError(f"held dofs {held[pos < 0][:5].tolist()} are already Dirichlet dofs (fixed or gripped)")
         return pos
 
+    def along_free(self, tissue: Tissue) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Free positions of the x and y dofs of the `along_nodes` (A,), (A,) and the unit vectors (A, 2).
+
+        ValueError if a node is not fully free or is also in `held`.
+        """
+        if self.along_nodes is None or len(self.along_nodes) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2))
+        nodes = np.asarray(self.along_nodes, np.int64)
+        u = np.asarray(self.along, float).reshape(-1, 2)
+        if u.shape[0] != nodes.size or np.unique(nodes).size != nodes.size:
+            raise ValueError("along_nodes must be distinct, one unit vector (2,) per node")
+        norm = np.linalg.norm(u, axis=1)
+        if np.any(np.abs(norm - 1.0) > 1e-9):
+            raise ValueError("the `along` vectors must be unit vectors")
+        if nodes.min() < 0 or 2 * nodes.max() + 1 >= tissue.free_index.size:
+            raise ValueError("along_nodes out of range")
+        px, py = tissue.free_index[2 * nodes], tissue.free_index[2 * nodes + 1]
+        if np.any(px < 0) or np.any(py < 0):
+            raise ValueError(f"along_nodes {nodes[(px < 0) | (py < 0)][:5].tolist()} have Dirichlet dofs (fixed or gripped)")
+        if self.held is not None and np.isin(np.concatenate([2 * nodes, 2 * nodes + 1]), self.held).any():
+            raise ValueError("a node is both in along_nodes and in held")
+        return px, py, u
+
     @property
     def trivial(self) -> bool:
-        return self.loads is None and (self.held is None or len(self.held) == 0)
+        return (self.loads is None and (self.held is None or len(self.held) == 0)
+                and (self.along_nodes is None or len(self.along_nodes) == 0))
 
 
 NO_CONDITIONS = Conditions()

@@ -52,25 +52,57 @@ class _Held:
 
     Keeping them in the system as identity rows (instead of dropping them)
     leaves the sparsity pattern, and so the symbolic factorisation, unchanged.
+
+    Nodes held along a direction (`Conditions.along_nodes`) are solved in
+    rotated coordinates: each such node's dofs (x, y) become (along u,
+    along u⊥) by the orthogonal 2×2 block [u u⊥], K_ff becomes RᵀK_ffR (the
+    same node blocks, so the same pattern) and the `along u` dof is held like
+    any other. `vector` and `matrix` map to these coordinates, `unrotate`
+    maps a step back; with no such nodes all three are the identity.
     """
 
     def __init__(self, tissue: Tissue, conditions: Conditions):
-        self.pos = conditions.held_free(tissue)
+        plain = conditions.held_free(tissue)
+        self.px, self.py, self.u = conditions.along_free(tissue)
+        self.pos = np.concatenate([plain, self.px]) if len(self.px) else plain
+        self.n_free = tissue.free_dofs.size
         self._mask: tuple | None = None
 
     def __bool__(self) -> bool:
         return bool(len(self.pos))
 
+    def rotate(self, v: np.ndarray) -> np.ndarray:
+        """v (Nf,) in the rotated coordinates (v itself when nothing is rotated)."""
+        if not len(self.px):
+            return v
+        v = v.copy()
+        vx, vy = v[self.px], v[self.py]
+        ux, uy = self.u[:, 0], self.u[:, 1]
+        v[self.px] = ux * vx + uy * vy
+        v[self.py] = -uy * vx + ux * vy
+        return v
+
+    def unrotate(self, q: np.ndarray) -> np.ndarray:
+        """q (Nf,) in rotated coordinates back to x/y dofs."""
+        if not len(self.px):
+            return q
+        q = q.copy()
+        qa, qb = q[self.px], q[self.py]
+        ux, uy = self.u[:, 0], self.u[:, 1]
+        q[self.px] = ux * qa - uy * qb
+        q[self.py] = uy * qa + ux * qb
+        return q
+
     def vector(self, g: np.ndarray) -> np.ndarray:
-        """g (Nf,) with the held entries zeroed (a copy when there are any)."""
+        """g (Nf,) rotated, with the held entries zeroed (a copy when there are any)."""
         if not len(self.pos):
             return g
-        g = g.copy()
+        g = self.rotate(g.copy())
         g[self.pos] = 0.0
         return g
 
     def matrix(self, K: sp.csr_matrix) -> sp.csr_matrix:
-        """K (Nf, Nf), upper triangle, with held rows and columns replaced by the identity."""
+        """K (Nf, Nf), upper triangle, rotated, with held rows and columns replaced by the identity."""
         if not len(self.pos):
             return K
         if self._mask is None or self._mask[0] != K.nnz:
@@ -79,12 +111,59 @@ class _Held:
             is_held[self.pos] = True
             touched = is_held[rows] | is_held[K.indices]
             diag = touched & (rows == K.indices)
-            self._mask = (K.nnz, touched, diag)
-        _, touched, diag = self._mask
+            self._mask = (K.nnz, touched, diag, self._rotation_plan(K, rows, touched))
+        _, touched, diag, plan = self._mask
         K = K.copy()
+        if plan is not None:
+            rotated, idx, cr, cc = plan
+            K.data[rotated] = np.einsum("ei,eij,ej->e", cr, K.data[idx], cc)
         K.data[touched] = 0.0
         K.data[diag] = 1.0
         return K
+
+    def _rotation_plan(self, K: sp.csr_matrix, rows: np.ndarray, touched: np.ndarray):
+        """For each stored entry (r, c) of RᵀKR that rotation changes: its 2×2 source entries and weights.
+
+        (RᵀKR)[r, c] = Σ_ij R[a_i, r] K[a_i, b_j] R[b_j, c] over the (at most)
+        two dofs a_i of r's node and b_j of c's; the node blocks of P1
+        elements are full, so every K[a_i, b_j] is a stored entry.
+        """
+        if not len(self.px):
+            return None
+        n = K.shape[0]
+        cols = K.indices
+        is_rot = np.zeros(n, bool)
+        is_rot[self.px] = is_rot[self.py] = True
+        rotated = np.flatnonzero((is_rot[rows] | is_rot[cols]) & ~touched)
+        # per dof: the two source dofs and their weights (R's column)
+        src = np.stack([np.arange(n), np.arange(n)], axis=1)
+        w = np.zeros((n, 2))
+        w[:, 0] = 1.0
+        ux, uy = self.u[:, 0], self.u[:, 1]
+        src[self.px] = src[self.py] = np.stack([self.px, self.py], axis=1)
+        w[self.px] = np.stack([ux, uy], axis=1)
+        w[self.py] = np.stack([-uy, ux], axis=1)
+        r, c = rows[rotated], cols[rotated]
+        a, b = src[r][:, :, None], src[c][:, None, :]
+        keys = np.minimum(a, b) * n + np.maximum(a, b)  # (E, 2, 2), symmetric lookup in the upper triangle
+        stored = rows.astype(np.int64) * n + cols
+        order = np.argsort(stored, kind="stable")
+        pos = np.searchsorted(stored[order], keys)
+        pos = np.minimum(pos, stored.size - 1)
+        idx = order[pos]
+        ok = stored[idx] == keys
+        cr, cc = w[r], w[c]
+        weight = cr[:, :, None] * cc[:, None, :]
+        if not np.all(ok | (weight == 0.0)):
+            raise ValueError("a rotated node's 2×2 block is not stored in K_ff's pattern")
+        return rotated, np.where(ok, idx, 0), cr, cc
+
+    def residual(self, tissue: Tissue, grad: np.ndarray) -> float:
+        """The relative residual (`relative_residual`) without the held (rotated) components."""
+        if not len(self.px):
+            return relative_residual(tissue, grad, self.pos)
+        g = self.vector(grad[tissue.free_dofs])
+        return float(np.linalg.norm(g)) / tissue.force_scale(grad)
 
 
 def tangent_predictor(
@@ -117,7 +196,7 @@ def tangent_predictor(
     for project in (False, True):
         K = _system(tissue, x, project, inertia, held, None if project else Ke)
         try:
-            dx = factorize_free(tissue, K, factors).solve(rhs)
+            dx = held.unrotate(factorize_free(tissue, K, factors).solve(rhs))
         except SolverError:
             continue
         if np.all(np.isfinite(dx)):
@@ -176,7 +255,7 @@ def newton_iterations(
     n_factor = 0
     for it in range(max_iter + 1):
         check_finite(grad, "the Newton gradient")
-        res = relative_residual(tissue, grad, held.pos)
+        res = held.residual(tissue, grad)
         history.append(res)
         if res <= tol:
             return SolveResult(x, True, it, res, time.perf_counter() - t0, "newton", "converged", history, n_factor)
@@ -197,7 +276,7 @@ def newton_iterations(
             except SolverError:  # singular exact Hessian: the projected one is next
                 continue
             if np.all(np.isfinite(d)) and np.dot(g, d) < 0:
-                step = d
+                step = held.unrotate(d)
                 break
         if step is None:
             raise SolverError(
@@ -217,12 +296,12 @@ def _chord_step(tissue, x, g, inertia, res, conditions, held, factors):
     if not np.all(np.isfinite(d)) or np.dot(g, d) >= 0:
         return None
     step = np.zeros(x.size)
-    step[tissue.free_dofs] = d
+    step[tissue.free_dofs] = held.unrotate(d)
     trial = x + step.reshape(-1, 2)
     phi_t, grad_t = objective_gradient(tissue, trial, inertia, conditions.loads, require_positive_J=True)
     if grad_t is None:  # the step inverts an element
         return None
-    if relative_residual(tissue, grad_t, held.pos) > CHORD_CONTRACTION * res:
+    if held.residual(tissue, grad_t) > CHORD_CONTRACTION * res:
         return None
     return trial, phi_t, grad_t
 
@@ -238,7 +317,7 @@ def _line_search(tissue, x, phi, grad, d_free, inertia, res, loads=None, held=No
     """
     free = tissue.free_dofs
     g = grad[free] if held is None else held.vector(grad[free])
-    slope = float(np.dot(g, d_free))
+    slope = float(np.dot(g, d_free if held is None else held.rotate(d_free)))
     step = np.zeros(x.size)
     step[free] = d_free
     step = step.reshape(-1, 2)

@@ -1,0 +1,298 @@
+"""One quasi-static step of a rigid straight needle in the layer (docs/model.md §12).
+
+The needle enters at `entry` p0 along the unit axis n; at depth d its tip is
+p0 + d n. A step advances it by Δd and finds the tissue's equilibrium with
+
+* the captured nodes held by the shaft: across the axis always (the
+  transverse offset they had at capture), and along it too while they
+  *stick* (they move axially with the needle);
+* *slipping* captured nodes pulled along the axis by the kinetic friction
+  f_k l_i, l_i their share of the inserted shaft;
+* the tip force F_tip along n spread over the uncaptured nodes within
+  `tip_zone_mm` of the tip with the weights (1 − (r/R)²)², normalised to
+  sum to F_tip (the nearest uncaptured node when the disc holds none).
+
+Stick or slip is an active set: every captured node starts stuck (riding
+Δd with the needle; a node captured in this step from where the tip passed
+it); those whose axial reaction exceeds f_s l_i in magnitude are released,
+with the kinetic friction in the reaction's direction, and the step is
+solved again, until no node changes. A slipping node that ends up moving
+against its friction (ahead of the needle while pulled forward, or behind
+it while held back: possible once its neighbours slipped too) has its
+friction reversed; if it moves against that too, its true state is stuck
+(the reaction then lies within ±f_k l_i) and it stays stuck for the rest
+of the step. So the loop ends within 3P + 1 passes. Every solve goes through
+`solvers.equilibrium.solve_equilibrium` with `Conditions` (held dofs for
+stuck nodes, `along_nodes` across the axis for slipping ones, loads), warm
+started from the previous equilibrium, on the tissue's one factorisation
+pattern.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from scissor_cli.mechanics.tissue import Tissue
+from scissor_cli.solvers.common import Conditions, SolverError
+from scissor_cli.solvers.equilibrium import solve_equilibrium
+
+#: Newton's relative residual in an insertion step
+STEP_TOL = 1e-8
+#: the active-set passes before the set settles are solved to this residual only;
+#: the settled set is then solved to STEP_TOL (and checked once more)
+PASS_TOL = 1e-5
+#: active-set passes per step before the step is reported as unsettled
+MAX_ACTIVE_SET = 50
+#: halvings of a step whose start would invert an element (a 0.5 mm step
+#: on 1 mm elements never needs one; 10× friction or a coarse mesh may)
+MAX_SPLITS = 6
+#: a start must keep every element's area above this fraction of its area in
+#: the last equilibrium (a nearly flat element makes K_ff numerically
+#: singular); else the step is split
+MIN_START_J = 0.2
+
+
+@dataclass(frozen=True)
+class NeedleParams:
+    """The needle–tissue parameters of docs/model.md §12 (mm, mN, mN/mm)."""
+
+    step_mm: float = 0.5
+    friction_static_mN_per_mm: float = 15.0
+    friction_kinetic_mN_per_mm: float = 10.0
+    tip_force_mN: float = 100.0
+    tip_zone_mm: float = 2.0
+    capture_radius_mm: float = 2.0
+    radius_mm: float = 0.6  # half the needle diameter: obstacle clearance
+
+    @classmethod
+    def from_config(cls, ins, cfg) -> "NeedleParams":
+        """From the `insertion` section and the whole config (capture radius default: half the coarsest edge)."""
+        capture = ins.capture_radius_mm
+        if capture is None:
+            capture = 0.5 * cfg.tissue.mesh.max_edge_mm * cfg.tissue.mesh.scale
+        return cls(ins.step_mm, ins.friction_static_mN_per_mm, ins.friction_kinetic_mN_per_mm, ins.tip_force_mN,
+                   ins.tip_zone_mm, capture, 0.5 * cfg.needle.diameter_mm)
+
+
+@dataclass
+class NeedleState:
+    """The needle and what it holds: entry p0 (2,), axis n (2,), depth d (mm), captured nodes.
+
+    captured (P,) node indices, offset (P,) mm their transverse offset at
+    capture, stuck (P,) bool after the last step, lengths (P,) mm their
+    shares of the shaft.
+    """
+
+    entry: np.ndarray
+    direction: np.ndarray
+    depth_mm: float = 0.0
+    captured: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    offset: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    stuck: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    lengths: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: direction of the kinetic friction on each slipping node (+1 along n, −1 against; 0 stuck)
+    sign: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: the last step's node increment per mm of advance (N, 2), the next step's predictor
+    rate: np.ndarray | None = None
+
+    @property
+    def across(self) -> np.ndarray:
+        """t (2,): the unit normal of the axis, n rotated by +90°."""
+        return np.array([-self.direction[1], self.direction[0]])
+
+    @property
+    def tip(self) -> np.ndarray:
+        return self.entry + self.depth_mm * self.direction
+
+
+@dataclass
+class StepOutcome:
+    """One step: positions x (N, 2) mm, axial needle force (mN), stuck/slipping counts, loads (2N,) mN.
+
+    settled is False when the active set still changed after MAX_ACTIVE_SET
+    passes; passes counts the solves.
+    """
+
+    x: np.ndarray
+    force_mN: float
+    stuck: int
+    slipping: int
+    loads: np.ndarray
+    settled: bool
+    passes: int
+    iterations: int
+
+
+def free_nodes(tissue: Tissue) -> np.ndarray:
+    """Nodes (F,) whose both dofs are free: the only ones a needle can capture or push."""
+    fi = tissue.free_index
+    return np.flatnonzero((fi[0::2] >= 0) & (fi[1::2] >= 0))
+
+
+def shaft_lengths(axial: np.ndarray, depth_mm: float) -> np.ndarray:
+    """Shares l_i (P,) mm of the inserted length for captured nodes at axial positions (P,) mm.
+
+    Half of each neighbouring gap along the axis; the first node also takes
+    the gap to the entry, the last the gap to the tip, so Σ l_i = depth.
+    """
+    p = axial.size
+    if p == 0:
+        return np.zeros(0)
+    order = np.argsort(axial, kind="stable")
+    s = np.clip(axial[order], 0.0, depth_mm)
+    bounds = np.concatenate([[0.0], 0.5 * (s[1:] + s[:-1]), [depth_mm]])
+    lengths = np.empty(p)
+    lengths[order] = np.diff(bounds)
+    return lengths
+
+
+def capture(tissue: Tissue, state: NeedleState, x: np.ndarray, candidates: np.ndarray, radius_mm: float) -> np.ndarray:
+    """Newly captured nodes (Q,): not yet captured, projecting behind the tip and within radius_mm of the axis."""
+    rel = x[candidates] - state.entry
+    s = rel @ state.direction
+    h = rel @ state.across
+    new = (s >= -1e-9) & (s <= state.depth_mm) & (np.abs(h) <= radius_mm)
+    new_nodes = candidates[new]
+    return new_nodes[~np.isin(new_nodes, state.captured)]
+
+
+def tip_weights(x: np.ndarray, tip: np.ndarray, candidates: np.ndarray, zone_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Nodes (Z,) and weights (Z,) summing to 1 of the tip zone; the nearest free node if the disc holds none."""
+    r = np.linalg.norm(x[candidates] - tip, axis=1)
+    inside = r < zone_mm
+    if not np.any(inside):
+        k = int(np.argmin(r))
+        return candidates[k:k + 1], np.ones(1)
+    w = (1.0 - (r[inside] / zone_mm) ** 2) ** 2
+    return candidates[inside], w / w.sum()
+
+
+def advance(
+    tissue: Tissue, state: NeedleState, x: np.ndarray, strokes: np.ndarray, step_mm: float, params: NeedleParams,
+    candidates: np.ndarray,
+) -> StepOutcome:
+    """Advance the needle by step_mm from the equilibrium x (N, 2) at cup strokes (C,) mm; updates `state`.
+
+    A step whose start (stuck nodes moved with the needle) would invert an
+    element is split into 2, 4, … equal parts (at most 2^MAX_SPLITS), the
+    state restored before each retry: Newton never sees an inverted start
+    (it would restart from rest and lose the needle's hold). Raises
+    SolverError when a solve fails or no split is feasible.
+    """
+    parts = 1
+    while True:
+        saved = dataclasses.replace(state)
+        try:
+            out, y = None, x
+            for _ in range(parts):
+                out = _advance_once(tissue, state, y, strokes, step_mm / parts, params, candidates)
+                y = out.x
+            return out
+        except _Infeasible:
+            for f in dataclasses.fields(state):
+                setattr(state, f.name, getattr(saved, f.name))
+            parts *= 2
+            if parts > 2 ** MAX_SPLITS:
+                raise SolverError(f"the needle step inverts an element even when split into {parts // 2} parts") from None
+
+
+class _Infeasible(Exception):
+    """A step's start inverts an element (so Newton would not start from it): split the step."""
+
+
+def _flattens(tissue: Tissue, start: np.ndarray, J_now: np.ndarray) -> bool:
+    """Whether the start shrinks some element's area below MIN_START_J of its area in the equilibrium."""
+    return bool(np.min(tissue.jacobians(start) / J_now) <= MIN_START_J)
+
+
+def _check_start(tissue: Tissue, start: np.ndarray, J_now: np.ndarray) -> None:
+    if _flattens(tissue, start, J_now):
+        raise _Infeasible
+
+
+def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> StepOutcome:
+    n, t = state.direction, state.across
+    old = state.captured.copy()
+    state.depth_mm += step_mm
+    new = capture(tissue, state, x, candidates, params.capture_radius_mm)
+    captured = np.concatenate([old, new]).astype(np.int64)
+    offset = np.concatenate([state.offset, (x[new] - state.entry) @ t])
+    rel = x[captured] - state.entry
+    lengths = shaft_lengths(rel @ n, state.depth_mm)
+    uncut = candidates[~np.isin(candidates, captured)]  # the shaft's nodes are not being cut
+    tip_nodes, w = tip_weights(x, state.tip, uncut if uncut.size else candidates, params.tip_zone_mm)
+    base = np.zeros(x.size)
+    base[2 * tip_nodes] += params.tip_force_mN * w * n[0]
+    base[2 * tip_nodes + 1] += params.tip_force_mN * w * n[1]
+    # The start: stuck nodes (all, at first) ride along; a node captured in this
+    # step rides along from where the tip passed it (d − s_i of the step).
+    start = x.copy()
+    ride = np.concatenate([np.full(old.size, step_mm),
+                           np.clip(state.depth_mm - (x[new] - state.entry) @ n, 0.0, step_mm)])
+    if state.rate is not None:  # the tissue keeps moving as in the last step (unless that inverts an element)
+        start += state.rate * step_mm
+    start[captured] = x[captured] + ride[:, None] * n
+    J_now = tissue.jacobians(x)
+    if _flattens(tissue, start, J_now):
+        start = x.copy()
+        start[captured] = x[captured] + ride[:, None] * n
+        _check_start(tissue, start, J_now)
+    stuck = np.ones(captured.size, bool)
+    sign = np.ones(captured.size)
+    fs, fk = params.friction_static_mN_per_mm, params.friction_kinetic_mN_per_mm
+    # A node slipping against its friction has its friction reversed once; if
+    # it slips against that too, it is stuck again and stays stuck in this step.
+    flipped = np.zeros(captured.size, bool)
+    locked = np.zeros(captured.size, bool)
+    passes, iterations, settled, tol = 0, 0, False, PASS_TOL
+    result_x, loads, axial = start, base, np.zeros(captured.size)
+    while passes < MAX_ACTIVE_SET:
+        loads = base.copy()
+        slip = ~stuck
+        friction = fk * lengths[slip] * sign[slip]
+        np.add.at(loads, 2 * captured[slip], friction * n[0])
+        np.add.at(loads, 2 * captured[slip] + 1, friction * n[1])
+        held = np.concatenate([2 * captured[stuck], 2 * captured[stuck] + 1])
+        cond = Conditions(loads=loads, held=held, along_nodes=captured[slip], along=np.tile(t, (int(slip.sum()), 1)))
+        r = solve_equilibrium(tissue, strokes, start=start, start_strokes=strokes, conditions=cond, tol=tol)
+        passes += 1
+        iterations += r.iterations
+        result_x = r.x
+        _, grad = tissue.energy_gradient(r.x)
+        c = grad.reshape(-1, 2)[captured] - loads.reshape(-1, 2)[captured]  # what the needle must supply
+        axial = c @ n
+        limit = fs * lengths * (1.0 + 1e-9) + 1e-9 * tissue.force_scale(grad)
+        release = stuck & ~locked & (np.abs(axial) > limit)
+        # Kinetic friction opposes the slip: a node pulled forward (+n) must lag the needle, and the reverse.
+        lag = (r.x[captured] - x[captured]) @ n - ride
+        against = ~stuck & (sign * lag > 1e-9 * step_mm)
+        if not np.any(release) and not np.any(against):
+            if tol <= STEP_TOL:
+                settled = True
+                break
+            tol, start = STEP_TOL, r.x
+            continue
+        sign[release] = np.sign(axial[release])
+        flip, restick = against & ~flipped, against & flipped
+        sign[flip] = -sign[flip]
+        flipped |= flip
+        stuck = (stuck & ~release) | restick
+        locked |= restick
+        start = r.x.copy()
+        start[captured[restick]] = x[captured[restick]] + ride[restick, None] * n
+        _check_start(tissue, start, J_now)
+    force = float(axial[stuck].sum() + (fk * lengths[~stuck] * sign[~stuck]).sum() + params.tip_force_mN)
+    state.captured, state.offset, state.stuck, state.lengths = captured, offset, stuck, lengths
+    state.sign = np.where(stuck, 0.0, sign)
+    state.rate = (result_x - x) / step_mm
+    return StepOutcome(result_x, force, int(stuck.sum()), int((~stuck).sum()), loads, settled, passes, iterations)
+
+
+def needle_conditions(state: NeedleState, loads: np.ndarray | None = None) -> Conditions:
+    """The needle's hold on the tissue as it stands (stuck: both dofs; slipping: across the axis)."""
+    stuck, slip = state.captured[state.stuck], state.captured[~state.stuck]
+    return Conditions(loads=loads, held=np.concatenate([2 * stuck, 2 * stuck + 1]),
+                      along_nodes=slip, along=np.tile(state.across, (slip.size, 1)))

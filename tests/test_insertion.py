@@ -1,0 +1,239 @@
+"""Needle insertion (docs/model.md §12): capture, stick–slip friction, tip force, strategies, hard cases."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from scissor_cli.config import load_config
+from scissor_cli.insertion import NeedleParams, run_insertion, shaft_lengths
+from scissor_cli.insertion.needle import NeedleState, advance, free_nodes
+from scissor_cli.mechanics.tissue import build_model
+from helpers import example_dict, write_scene
+
+INSERTION = {"step_mm": 1.0, "friction_static_mN_per_mm": 15.0, "friction_kinetic_mN_per_mm": 10.0,
+             "tip_force_mN": 100.0, "tip_zone_mm": 2.0, "strategies": ["none", "depth", "loop"]}
+#: a left entry at T1's height, straight along +x, 25 mm deep (a coarse mesh keeps the tests quick)
+ENTRY, AXIS, DEPTH = np.array([0.0, 32.0]), np.array([1.0, 0.0]), 25.0
+
+
+def _tissue(tmp_path, **changes):
+    data = example_dict()
+    data["tissue"]["mesh"]["scale"] = 2.0
+    data["insertion"] = dict(INSERTION)
+    for k, v in changes.items():
+        data[k] = v
+    cfg = load_config(write_scene(tmp_path, data))
+    return cfg, build_model(cfg)[2]
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory):
+    return _tissue(tmp_path_factory.mktemp("ins"))
+
+
+def _params(cfg, **kw):
+    return dataclasses.replace(NeedleParams.from_config(cfg.insertion, cfg), **kw)
+
+
+def _insert(tissue, params, strategy="none", entry=ENTRY, axis=AXIS, depth=DEPTH, target=(45.0, 32.0), cfg=None):
+    x0 = tissue.rest.copy()
+    s0 = np.zeros(tissue.n_cups)
+    return run_insertion(tissue, x0, s0, entry, axis, depth, np.asarray(target, float), params, strategy,
+                         controller=None if cfg is None else cfg.controller)
+
+
+def _finite(r):
+    for name in ("depth_mm", "tip", "target", "needle_force_mN", "min_clearance_mm", "displacement", "x"):
+        assert np.all(np.isfinite(getattr(r, name))), name
+    assert np.isfinite(r.miss_mm) and np.isfinite(r.depth_error_mm)
+
+
+def test_shaft_lengths_sum_to_the_inserted_length():
+    s = np.array([3.0, 0.2, 7.5, 7.5, 9.9])
+    lengths = shaft_lengths(s, 10.0)
+    assert lengths.sum() == pytest.approx(10.0, abs=1e-12)
+    assert np.all(lengths >= 0)
+    assert lengths[1] == pytest.approx(0.2 + (3.0 - 0.2) / 2)  # the first takes the gap to the entry
+    assert shaft_lengths(np.zeros(0), 5.0).size == 0
+
+
+def test_captured_lengths_sum_to_the_depth_every_step(model):
+    cfg, tissue = model
+    state = NeedleState(ENTRY, AXIS)
+    x, params = tissue.rest.copy(), _params(cfg)
+    for _ in range(8):
+        x = advance(tissue, state, x, np.zeros(tissue.n_cups), 1.0, params, free_nodes(tissue)).x
+        assert state.lengths.sum() == pytest.approx(state.depth_mm, abs=1e-9)
+    assert state.captured.size >= 2
+
+
+def test_no_friction_and_no_tip_force_move_nothing(model):
+    cfg, tissue = model
+    r = _insert(tissue, _params(cfg, friction_static_mN_per_mm=0.0, friction_kinetic_mN_per_mm=0.0, tip_force_mN=0.0))
+    assert r.completed and r.steps == 25
+    assert np.abs(r.displacement).max() <= 1e-6
+    np.testing.assert_allclose(r.needle_force_mN, 0.0, atol=1e-6)
+
+
+def test_when_every_node_slips_the_force_is_tip_plus_kinetic_friction(model):
+    cfg, tissue = model
+    params = _params(cfg, friction_static_mN_per_mm=1.0, friction_kinetic_mN_per_mm=1.0, tip_force_mN=5.0)
+    r = _insert(tissue, params)
+    all_slip = (r.stuck == 0) & (r.slipping > 0)
+    assert all_slip.sum() >= 5
+    expected = 5.0 + 1.0 * r.depth_mm[all_slip]
+    np.testing.assert_allclose(r.needle_force_mN[all_slip], expected, rtol=1e-12)
+
+
+def test_boundary_and_cup_reactions_balance_the_needle_force(model):
+    cfg, tissue = model
+    r = _insert(tissue, _params(cfg))
+    _, grad = tissue.energy_gradient(r.x)  # Σ ∇U over all dofs is 0: the supports carry what the needle pushes
+    d = tissue.dirichlet_dofs
+    axial_reaction = float(np.sum(grad[d] * AXIS[d % 2]))
+    assert r.needle_force_mN[-1] > 100.0
+    assert axial_reaction + r.needle_force_mN[-1] == pytest.approx(0.0, abs=1e-6 * r.needle_force_mN[-1])
+
+
+def test_drag_grows_with_friction(model):
+    cfg, tissue = model
+    drag = []
+    for fs, fk in ((2.0, 1.0), (15.0, 10.0), (40.0, 30.0)):
+        r = _insert(tissue, _params(cfg, friction_static_mN_per_mm=fs, friction_kinetic_mN_per_mm=fk, tip_force_mN=0.0))
+        drag.append(float((r.target[-1] - r.target[0]) @ AXIS + (r.target[0] - np.array([45.0, 32.0])) @ AXIS))
+    assert drag[0] < drag[1] < drag[2] and drag[0] > 0
+
+
+def test_halving_the_step_changes_the_final_target_little(model):
+    """docs/model.md §12 reports the measured difference (0.5 vs 1 mm steps)."""
+    cfg, tissue = model
+    coarse = _insert(tissue, _params(cfg, step_mm=1.0))
+    fine = _insert(tissue, _params(cfg, step_mm=0.5))
+    moved = np.linalg.norm(coarse.target[-1] - np.array([45.0, 32.0]))
+    assert moved > 0.1
+    assert np.linalg.norm(coarse.target[-1] - fine.target[-1]) <= 0.25 * moved
+
+
+def test_strategies_depth_and_loop_stop_at_the_target(model):
+    cfg, tissue = model
+    params = _params(cfg)
+    # a target 1 mm off the axis: only the loop corrects the miss
+    none = _insert(tissue, params, "none", target=(30.0, 33.0), depth=30.0, cfg=cfg)
+    depth = _insert(tissue, params, "depth", target=(30.0, 33.0), depth=30.0, cfg=cfg)
+    loop = _insert(tissue, params, "loop", target=(30.0, 33.0), depth=30.0, cfg=cfg)
+    for r in (none, depth, loop):
+        _finite(r)
+        assert r.completed
+    assert abs(depth.depth_error_mm) < abs(none.depth_error_mm)
+    assert abs(loop.depth_error_mm) < 0.5
+    assert loop.miss_mm < 0.5 * depth.miss_mm
+
+
+def test_an_oblique_needle_keeps_each_captured_node_across_the_axis(model):
+    cfg, tissue = model
+    a = np.deg2rad(20.0)
+    axis = np.array([np.cos(a), np.sin(a)])
+    state = NeedleState(np.array([0.0, 20.0]), axis)
+    x, params = tissue.rest.copy(), _params(cfg)
+    for _ in range(15):
+        x = advance(tissue, state, x, np.zeros(tissue.n_cups), 1.0, params, free_nodes(tissue)).x
+    offsets = (x[state.captured] - state.entry) @ state.across
+    np.testing.assert_allclose(offsets, state.offset, atol=1e-9)
+    assert np.any(~state.stuck) and state.captured.size >= 3
+
+
+def test_hard_ten_times_friction(model):
+    cfg, tissue = model
+    r = _insert(tissue, _params(cfg, friction_static_mN_per_mm=150.0, friction_kinetic_mN_per_mm=100.0))
+    _finite(r)
+    assert r.completed or r.stop_reason
+
+
+def test_hard_stiff_obstacle_beside_the_path(tmp_path):
+    obstacles = [{"name": "rib", "circle": {"center_mm": [25.0, 35.0], "radius_mm": 2.0}, "stiffness_factor": 20.0}]
+    cfg, tissue = _tissue(tmp_path, obstacles=obstacles)
+    r = _insert(tissue, _params(cfg))
+    _finite(r)
+    assert r.completed and r.has_obstacles
+    assert r.min_clearance_mm.min() > 0 and not r.obstacle_touched
+    touching = _insert(tissue, _params(cfg), entry=np.array([0.0, 34.0]))
+    _finite(touching)
+    assert touching.obstacle_touched or not touching.completed
+
+
+def test_hard_entry_at_a_cups_edge(model):
+    cfg, tissue = model
+    cup = tissue.scene.cups[0]
+    entry = cup.contact + np.array([cup.radius_mm + 0.2, 0.0])  # just beside the grip, going down
+    r = _insert(tissue, _params(cfg), entry=entry, axis=np.array([0.0, -1.0]), depth=20.0, target=entry + [0, -20])
+    _finite(r)
+    assert r.completed or r.stop_reason
+
+
+@pytest.mark.parametrize("field, value, words", [
+    ("friction_static_mN_per_mm", -1.0, "must be"),
+    ("tip_force_mN", -5.0, "must be"),
+    ("friction_kinetic_mN_per_mm", 20.0, "exceeds the static"),
+    ("step_mm", 0.0, "must be"),
+    ("step_mm", 150.0, "longer than the tissue"),
+])
+def test_bad_insertion_input_exits_2_with_one_message(tmp_path, field, value, words):
+    from scissor_cli import cli
+
+    data = example_dict()
+    data["insertion"] = dict(INSERTION, **{field: value})
+    path = write_scene(tmp_path, data)
+    result = CliRunner().invoke(cli.app, ["validate", str(path)])
+    assert result.exit_code == 2
+    err = result.stderr.strip()
+    assert err.count("\n") == 0 and f"insertion.{field}" in err and "line" in err and words in err
+
+
+def test_a_long_step_is_split_not_restarted_from_rest(model):
+    """A 5 mm step whose start would invert elements is split; it never loses the needle's hold."""
+    cfg, tissue = model
+    long = _insert(tissue, _params(cfg, step_mm=5.0))
+    short = _insert(tissue, _params(cfg, step_mm=1.0))
+    _finite(long)
+    assert long.completed
+    moved = np.linalg.norm(short.target[-1] - np.array([45.0, 32.0]))
+    assert np.linalg.norm(long.target[-1] - short.target[-1]) <= 0.25 * moved
+
+
+def test_simulate_and_report_with_insertion(tmp_path):
+    """The contract paths, finite values, the printed miss per strategy, the figures and the report."""
+    import h5py
+
+    from scissor_cli import cli
+
+    data = example_dict()
+    data["tissue"]["mesh"].update(max_edge_mm=8.0, min_edge_mm=2.5)
+    data["insertion"] = dict(INSERTION, step_mm=2.0, strategies=["none", "depth"])
+    data["trials"] = {"count": 1, "profile": "prosthesis"}
+    data.pop("forward", None)
+    path = write_scene(tmp_path, data)
+    out = tmp_path / "run"
+    result = CliRunner().invoke(cli.app, ["simulate", str(path), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "insertion T1: miss none" in result.output and "depth" in result.output
+    with h5py.File(out / "results.h5") as f:
+        for s in ("none", "depth"):
+            g = f[f"insertion/T1/{s}"]
+            k = int(g.attrs["steps"])
+            assert k > 0 and g["depth_mm"].shape == (k,) and g["tip"].shape == (k, 2)
+            assert g["displacement"].shape[0] == k and g["displacement"].compression == "gzip"
+            assert g["stuck"].dtype == np.int64 and g.attrs["entry"].shape == (2,)
+            for key in ("miss_mm", "depth_error_mm", "time_s"):
+                assert np.isfinite(g.attrs[key])
+        assert f["trials/T1/miss_mm"].shape == (1, 2)
+        assert list(f["trials/T1/miss_mm"].attrs["strategies"]) == ["none", "depth"]
+    for name in ("insertion_force_T1.png", "insertion_path_T1.png", "insertion_T1.gif"):
+        assert (out / name).stat().st_size > 1000
+    rep = CliRunner().invoke(cli.app, ["report", str(out), "--out", str(tmp_path / "rep")])
+    assert rep.exit_code == 0, rep.output
+    assert (tmp_path / "rep" / "insertion_boxplots.png").exists()
+    assert "miss (depth)" in (tmp_path / "rep" / "insertion_summary.md").read_text()
