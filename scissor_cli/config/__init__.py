@@ -23,6 +23,7 @@ from scissor_cli.config.sections import (
     RobotConfig,
     SolverConfig,
     StudyConfig,
+    LayerCheckConfig,
     TargetConfig,
     TissueConfig,
     TrialsConfig,
@@ -32,7 +33,7 @@ __all__ = [
     "ELEMENT_BUDGET", "MAX_CONFIG_BYTES",
     "BoxConfig", "CameraConfig", "CircleConfig", "Config", "ConfigError", "ControllerConfig", "CupConfig",
     "DHLinkConfig", "ForwardCase", "MaterialConfig", "MeshConfig", "NeedleConfig", "ObstacleConfig",
-    "RobotConfig", "SolverConfig", "StudyConfig", "TargetConfig", "TissueConfig", "TrialsConfig",
+    "RobotConfig", "SolverConfig", "StudyConfig", "LayerCheckConfig", "TargetConfig", "TissueConfig", "TrialsConfig",
     "estimate_elements", "load_config", "obstacle_outline", "parse_config", "read_config_text", "resolved_yaml",
     "scene_problems", "tissue_outline",
 ]
