@@ -153,9 +153,10 @@ def graded_levels(height_mm: float, layer_z_mm: float, first_mm: float, max_laye
     def side(length: float) -> np.ndarray:
         if length <= 0:
             return np.zeros(0)
-        steps, h = [], first
-        while sum(steps) < length * (1 - 1e-9):
+        steps, h, total = [], first, 0.0
+        while total < length * (1 - 1e-9):
             steps.append(h)
+            total += h
             h = min(h * LEVEL_GROWTH, max_layer_mm)
         steps = np.array(steps)
         if len(steps) > 1 and steps.sum() - length > 0.5 * steps[-1]:
