@@ -115,7 +115,7 @@ class Equilibrium:
     def _corrected(self, strokes: np.ndarray, x0: np.ndarray, s0: np.ndarray) -> Optional[np.ndarray]:
         """Tangent predictor from (x0, s0), then Newton with chord steps; None if that fails."""
         t = self.tissue
-        start = t.apply_strokes(x0 + (self.response @ (strokes - s0)).reshape(-1, 2), strokes)
+        start = t.apply_strokes(x0 + (self.response @ (strokes - s0)).reshape(x0.shape), strokes)
         if not np.min(t.jacobians(start)) > 0:
             return None  # the predictor inverts an element
         try:
