@@ -114,6 +114,7 @@ def simulate(
     trials: Optional[int] = typer.Option(None, "--trials", min=0, max=10_000, help="Trials per target (0: forward cases and plans only)."),
     seed: Optional[int] = typer.Option(None, "--seed", min=0, max=2**63 - 1, help="Override the config's seed."),
     solver: Optional[str] = typer.Option(None, "--solver", help="Override the config's solver: admm | newton."),
+    truth: Optional[str] = typer.Option(None, "--truth", help="Override trials.truth: layer | slab (the 3-D slab of layer_check)."),
     jobs: Optional[int] = typer.Option(None, "--jobs", min=1, help="Worker processes for trials (default: all cores)."),
     executor: str = typer.Option("local", "--executor", help="Where trials run: local | dask."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address (with --executor dask)."),
@@ -157,6 +158,12 @@ def simulate(
         if solver not in ("admm", "newton"):
             _fail(2, f"--solver: must be 'admm' or 'newton'; got {solver!r}")
         cfg = cfg.model_copy(update={"solver": cfg.solver.model_copy(update={"kind": solver})})
+    if truth is not None:
+        if truth not in ("layer", "slab"):
+            _fail(2, f"--truth: must be 'layer' or 'slab'; got {truth!r}")
+        if truth == "slab" and cfg.layer_check is None:
+            _fail(2, f"--truth slab: {config or DEFAULT_SCENE} has no layer_check section (the slab to use as the truth)")
+        cfg = cfg.model_copy(update={"trials": cfg.trials.model_copy(update={"truth": truth})})
     if seed is not None:
         cfg = cfg.model_copy(update={"seed": seed})
     if trials is not None:

@@ -135,3 +135,36 @@ def side_edge_mask(poly: np.ndarray, side: str) -> np.ndarray:
     ellipse it is the quarter arc facing that way.
     """
     return outward_normals(poly) @ SIDE_NORMALS[side] > np.cos(np.pi / 4) + 1e-9
+
+
+#: thickness ratio of neighbouring prism layers of the slab away from the simulated layer (docs/model.md §13)
+LEVEL_GROWTH = 1.5
+
+
+def graded_levels(height_mm: float, layer_z_mm: float, first_mm: float, max_layer_mm: float) -> tuple[np.ndarray, int]:
+    """z levels (L,) mm from 0 to H with one at layer_z, and that level's index.
+
+    Prism layers are `first_mm` thick next to layer_z, then LEVEL_GROWTH times
+    thicker each, at most max_layer_mm, on either side; each side is scaled
+    to fit exactly. A side of zero length (the layer on a face) has none.
+    """
+    first = min(first_mm, max_layer_mm)
+
+    def side(length: float) -> np.ndarray:
+        if length <= 0:
+            return np.zeros(0)
+        steps, h, total = [], first, 0.0
+        while total < length * (1 - 1e-9):
+            steps.append(h)
+            total += h
+            h = min(h * LEVEL_GROWTH, max_layer_mm)
+        steps = np.array(steps)
+        if len(steps) > 1 and steps.sum() - length > 0.5 * steps[-1]:
+            steps = steps[:-1]  # drop a last layer mostly outside, stretch the rest
+        return np.cumsum(steps * (length / steps.sum()))
+
+    up = side(height_mm - layer_z_mm)
+    down = side(layer_z_mm)
+    levels = np.concatenate([layer_z_mm - down[::-1], [layer_z_mm], layer_z_mm + up])
+    levels[0], levels[-1] = 0.0, height_mm  # exact faces, not layer_z ± a rounded sum
+    return levels, len(down)

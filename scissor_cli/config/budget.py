@@ -45,6 +45,10 @@ from scissor_cli.config.sections import MAX_SCALE, MIN_EDGE_MM, Config
 #: triangles building the tissue took 8 s and one Newton solve 7 s with 1 GB of memory (2-core
 #: machine): a run of trials there takes hours per target, and every worker process holds its own copy.
 ELEMENT_BUDGET = 250_000
+#: the most tetrahedra of the layer check's slab (docs/model.md §13), estimated before meshing as
+#: 3 × (estimated triangles) × (prism layers of `geometry.graded_levels`). At 100k tetrahedra one 3-D
+#: Newton solve takes a few seconds (benchmarks/bench_slab.py); 300k is about 3x that per forward case.
+TETRAHEDRA_BUDGET = 300_000
 #: the finest and coarsest mesh levels the accuracy selection meshes (experiments/selection.py CANDIDATE_LEVELS)
 SELECTION_FINEST_LEVEL = 0.25
 SELECTION_COARSEST_LEVEL = 4.0
@@ -179,6 +183,15 @@ def budget_problems(cfg: Config) -> list[Problem]:
     """The mesh a config asks for, and the finer ones its accuracy selection makes, against the budget."""
     problems: list[Problem] = []
     n = estimate_elements(cfg)
+    lc = cfg.layer_check
+    if lc is not None and n <= ELEMENT_BUDGET and 0 <= lc.layer_z_mm <= lc.height_mm:
+        m = cfg.tissue.mesh
+        layers = len(geometry.graded_levels(lc.height_mm, lc.layer_z_mm, m.min_edge_mm * m.scale, lc.max_layer_mm)[0]) - 1
+        tets = 3 * n * layers
+        if tets > TETRAHEDRA_BUDGET:
+            problems.append((("layer_check",), (
+                f"the slab would have about {tets} tetrahedra ({n} triangles × 3 × {layers} prism layers); the budget "
+                f"is {TETRAHEDRA_BUDGET} — use a larger max_layer_mm, a thinner slab or a coarser tissue.mesh")))
     if n > ELEMENT_BUDGET:
         m = cfg.tissue.mesh
         problems.append((("tissue", "mesh"), (

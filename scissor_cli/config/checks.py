@@ -290,6 +290,25 @@ def _manipulation_point_problems(cfg: Config) -> list[Problem]:
     return problems
 
 
+def _layer_check_problems(cfg: Config) -> list[Problem]:
+    """The slab of docs/model.md §13: the layer inside it, room for one prism layer; truth: slab needs it."""
+    problems: list[Problem] = []
+    lc = cfg.layer_check
+    if lc is None:
+        if cfg.trials.truth == "slab":
+            problems.append((("trials", "truth"), "truth 'slab' is the 3-D slab of layer_check: add a layer_check section"))
+        return problems
+    if lc.layer_z_mm > lc.height_mm:
+        problems.append((("layer_check", "layer_z_mm"),
+                         f"the layer must lie inside the slab: 0 <= layer_z_mm <= height_mm {lc.height_mm:g}; got {lc.layer_z_mm:g}"))
+    finest = cfg.tissue.mesh.min_edge_mm * cfg.tissue.mesh.scale
+    if lc.height_mm < finest:
+        problems.append((("layer_check", "height_mm"), (
+            f"the slab is too thin for one prism layer: height_mm {lc.height_mm:g} is below the layer's finest edge "
+            f"(tissue.mesh.min_edge_mm × scale = {finest:g} mm)")))
+    return problems
+
+
 def scene_problems(cfg: Config) -> list[Problem]:
     """Cross-field checks pydantic cannot do field by field: [(location, message)]."""
     problems, outline = _tissue_problems(cfg)
@@ -311,6 +330,7 @@ def scene_problems(cfg: Config) -> list[Problem]:
     problems += _robot_problems(cfg)
     problems += _manipulation_point_problems(cfg)
     problems += _insertion_problems(cfg, outline)
+    problems += _layer_check_problems(cfg)
     return problems
 
 

@@ -243,6 +243,8 @@ class TrialsConfig(_Section):
 
     count: Int(0, 10_000) = 30
     profile: Literal["ideal", "prosthesis", "ex_vivo"] = "prosthesis"
+    #: the closed loop's true tissue: the 2-D layer, or the 3-D slab of `layer_check` (docs/model.md §13)
+    truth: Literal["layer", "slab"] = "layer"
     #: camera pixel noise σ (px); ideal: no camera error at all (no rounding)
     pixel_noise_px: Optional[Num(0.0, 1000.0)] = None
     #: per-trial bias of the target localisation, σ per axis (mm)
@@ -317,6 +319,21 @@ class StudyConfig(_Section):
     cases: Optional[Annotated[list[Name], Len(1, 64)]] = None
 
 
+class LayerCheckConfig(_Section):
+    """The 3-D slab around the layer that checks the layer assumption (docs/model.md §13).
+
+    z runs from the chest wall (0) to height_mm; the simulated layer lies at
+    layer_z_mm. Prism layers are thinnest (the 2-D mesh's finest edge) at the
+    layer and at most max_layer_mm thick away from it.
+    """
+
+    height_mm: Num(0.01, MAX_TISSUE_MM) = 40.0
+    layer_z_mm: Num(0.0, MAX_TISSUE_MM) = 20.0
+    chest_wall_fixed: bool = True
+    cup_holds_z: bool = True
+    max_layer_mm: Num(0.01, MAX_TISSUE_MM) = 5.0
+
+
 class Config(_Section):
     name: Annotated[str, Field(pattern=SCENE_NAME_PATTERN)] = "scene"
     #: stored in results.h5 as a signed 64-bit integer
@@ -338,3 +355,4 @@ class Config(_Section):
     study: Optional[StudyConfig] = None
     manipulation_points: Optional[ManipulationPointsConfig] = None
     insertion: Optional[InsertionConfig] = None
+    layer_check: Optional[LayerCheckConfig] = None

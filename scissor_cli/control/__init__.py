@@ -8,11 +8,11 @@ from scissor_cli.control.corridor import Corridor, corridor_at
 from scissor_cli.control.law import PID, STOP_REASONS, split_error
 from scissor_cli.control.loop import open_loop, run_loop, run_target
 from scissor_cli.control.measurement import Measurement
-from scissor_cli.control.plant import Controller, Plant, TruthPerturbation, true_tissue
+from scissor_cli.control.plant import Controller, Plant, TruthPerturbation, TruthView, true_tissue
 from scissor_cli.control.result import LoopResult
 
 __all__ = [
     "Actuator", "Controller", "Corridor", "LoopResult", "Measurement", "PID", "Plant", "STOP_REASONS",
-    "TruthPerturbation", "corridor_at", "open_loop", "quantise", "run_loop", "run_target", "split_error",
+    "TruthPerturbation", "TruthView", "corridor_at", "open_loop", "quantise", "run_loop", "run_target", "split_error",
     "true_tissue",
 ]

@@ -53,7 +53,7 @@ from scissor_cli.control.corridor import Corridor, corridor_at
 from scissor_cli.control.allocation import stroke_step
 from scissor_cli.control.law import PID, stalled
 from scissor_cli.control.measurement import Measurement
-from scissor_cli.control.plant import Controller, Plant, TruthPerturbation, true_tissue
+from scissor_cli.control.plant import Controller, Plant, TruthFactory, TruthPerturbation, true_tissue
 from scissor_cli.control.result import History, LoopResult
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import probe_targets
@@ -203,6 +203,7 @@ def run_target(
     tol: float = 1e-10,
     guess: Optional[tuple[np.ndarray, np.ndarray]] = None,
     direction: Optional[np.ndarray] = None,
+    truth_factory: Optional[TruthFactory] = None,
 ) -> LoopResult:
     """Manipulate one target from rest to `desired` (2,) mm; closed loop or the open-loop baseline.
 
@@ -214,18 +215,24 @@ def run_target(
     true target is checked on the final true state: `corridor_clear`,
     `clearance_mm`, `corridor_entry`. The needle axis of the miss is
     `direction`, else the corridor's (the plan's direction).
+    `clearance_mm`, `corridor_entry`. A `truth_factory` makes the truth
+    instead (another tissue, e.g. the 3-D slab, and its `TruthView`) from
+    the same perturbation; the controller still runs on `model`.
     """
     if direction is None and corridor is not None:
         direction = corridor.direction
     scene = model.scene
     probe = probe_targets(model.mesh, np.asarray(target_rest, float)[None])
     actuator = Actuator.from_scene(scene, resolution_mm, backlash_mm)
-    plant = Plant(true_tissue(model, truth), actuator, probe, tol)
+    if truth_factory is None:
+        plant = Plant(true_tissue(model, truth), actuator, probe, tol)
+    else:
+        plant = Plant(**_made(truth_factory, truth), actuator=actuator, probe=probe, tol=tol)
     controller = Controller(model, probe, actuator.lo, actuator.hi, resolution_mm, tol)
     if controller.shares(plant):
         plant.eq.adopt(controller.eq)  # both at rest: one tangent serves both
     if guess is not None:
-        for eq in (plant.eq, controller.eq):
+        for eq in (plant.eq, controller.eq) if truth_factory is None else (controller.eq,):
             eq.guesses.append((np.asarray(guess[0], float), np.asarray(guess[1], float)))
     names = list(scene.cup_names)
     if mode == "closed":
@@ -236,8 +243,13 @@ def run_target(
     else:
         raise ValueError(f"mode must be 'closed' or 'open', got {mode!r}")
     if corridor is not None:
-        entry, clearance = corridor_at(plant.tissue, plant.eq.x, result.final_position, corridor)
+        entry, clearance = corridor_at(model if truth_factory else plant.tissue, plant.layer_x, result.final_position, corridor)
         result.corridor_entry, result.clearance_mm = entry, clearance
         result.corridor_direction = corridor.direction
         result.corridor_clear = bool(clearance > 0)
     return result
+
+
+def _made(factory: TruthFactory, truth: TruthPerturbation) -> dict:
+    tissue, view = factory(truth)
+    return {"tissue": tissue, "view": view}

@@ -10,7 +10,7 @@ of solving it again.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -20,17 +20,46 @@ from scissor_cli.mesh.probe import TargetProbe, apply_probe, target_positions
 from scissor_cli.solvers.tracking import Equilibrium
 
 
-class Plant:
-    """The simulated truth: tissue + actuator + current equilibrium + the target's probe."""
+@dataclass(frozen=True)
+class TruthView:
+    """How the loop reads a true tissue that is not the layer itself (the 3-D slab, docs/model.md §13).
 
-    def __init__(self, tissue: Tissue, actuator: Actuator, probe: TargetProbe, tol: float = 1e-10):
-        self.tissue, self.actuator, self.probe = tissue, actuator, probe
+    target(x) -> (2,) mm: the target as the camera sees it (in-plane) for the
+    truth's node positions x; layer(x) -> (N2, 2) mm: the layer's nodes there
+    (for the corridor check on the controller's mesh).
+    """
+
+    target: Callable[[np.ndarray], np.ndarray]
+    layer: Callable[[np.ndarray], np.ndarray]
+
+
+#: makes the true tissue and its view for a trial's perturbation (`trials.truth: slab`)
+TruthFactory = Callable[["TruthPerturbation"], tuple[Tissue, TruthView]]
+
+
+class Plant:
+    """The simulated truth: tissue + actuator + current equilibrium + the target's probe.
+
+    With a `view`, the truth is another discretisation than the controller's
+    (the slab): the view reads its target and layer; the probe is unused.
+    """
+
+    def __init__(self, tissue: Tissue, actuator: Actuator, probe: TargetProbe, tol: float = 1e-10,
+                 view: Optional[TruthView] = None):
+        self.tissue, self.actuator, self.probe, self.view = tissue, actuator, probe, view
         self.eq = Equilibrium(tissue, tol)
 
     @property
     def position(self) -> np.ndarray:
         """The true target (2,) mm."""
+        if self.view is not None:
+            return self.view.target(self.eq.x)
         return target_positions(self.probe, self.eq.x)[0]
+
+    @property
+    def layer_x(self) -> np.ndarray:
+        """The layer's node positions (N2, 2) mm in the true state."""
+        return self.eq.x if self.view is None else self.view.layer(self.eq.x)
 
     @property
     def strokes(self) -> np.ndarray:

@@ -180,6 +180,10 @@ def _stages(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary, rep
     if selection is not None:
         sink.selection(selection)
     _forward_stage(cfg, tissue, sink, summary, reporter)
+    if cfg.layer_check is not None and cfg.forward:
+        from scissor_cli.experiments.layer_check import run_layer_check
+
+        summary.figures += run_layer_check(cfg, tissue, sink, reporter)
     probe = probe_targets(mesh, np.array([t.rest for t in scene.targets]).reshape(-1, 2))
     if len(scene.targets):
         J = cup_target_jacobian(tissue, tissue.rest, probe)

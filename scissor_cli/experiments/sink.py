@@ -30,6 +30,8 @@ from typing import TYPE_CHECKING, Optional, Protocol
 import numpy as np
 
 if TYPE_CHECKING:  # the types the stages produce; annotations only
+    from scissor_cli.layer3d.check import LayerCheckCase
+    from scissor_cli.layer3d.extrude import SlabMesh
     from scissor_cli.control.corridor import Corridor
     from scissor_cli.control.result import LoopResult
     from scissor_cli.experiments.selection import Selection
@@ -116,6 +118,12 @@ class RunSink(Protocol):
 
     def forward_case(self, case: ForwardCase) -> Optional[Path]:
         """One forward case and its figure; returns the figure's path."""
+
+    def layer_check_mesh(self, mesh: "SlabMesh") -> None:
+        """The slab of the layer check (docs/model.md §13), once before its cases."""
+
+    def layer_check(self, case: "LayerCheckCase", figure: dict) -> Optional[Path]:
+        """One forward case's layer check and its figure (`output.layer_check.layer_check_figure` kwargs)."""
 
     def jacobian(self, target: str, J: np.ndarray, cup_names: list[str]) -> None:
         """J (2, C) mm/mm of one target at rest (docs/model.md §5)."""

@@ -80,6 +80,12 @@ class TrialContext:
         self.camera = Camera.from_config(self.cfg.camera)
         self.centroids = self.mesh.nodes[self.mesh.triangles].mean(axis=1)
         self._guesses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.slab_truth = None  # trials.truth: slab — the 3-D slab is the truth (docs/model.md §13)
+        if self.cfg.trials.truth == "slab":
+            from scissor_cli.layer3d.check import spec_from_config
+            from scissor_cli.layer3d.truth import SlabTruth
+
+            self.slab_truth = SlabTruth(self.tissue, spec_from_config(self.cfg.layer_check))
 
     def guess(self, task: TargetTask) -> Optional[tuple[np.ndarray, np.ndarray]]:
         """The model's equilibrium at the plan's strokes: a warm start for the loop's first big move."""
@@ -108,6 +114,7 @@ class TrialContext:
             truth=truth, measurement=self.measurement(draw),
             resolution_mm=self.errors.actuator_resolution_mm, backlash_mm=self.errors.backlash_mm,
             rng=draw.rng, corridor=corridor, target=task.name, guess=self.guess(task),
+            truth_factory=None if self.slab_truth is None else self.slab_truth.for_target(task.rest),
         )
         # The optional release slip moves the target along the (first) cup's axis after the loop.
         slip = draw.release_slip_mm * self.scene.cups[0].axis if len(self.scene.cups) else np.zeros(2)

@@ -1,10 +1,16 @@
-"""Linear-triangle finite elements on all elements at once (docs/model.md §2).
+"""Linear simplex finite elements on all elements at once (docs/model.md §2, §13).
 
-Node positions are (N, 2) arrays; degree of freedom 2n + c is coordinate c
-of node n. Deformation gradients are stacked (M, 2, 2) with
-F[e, i, j] = ∂x_i/∂X_j and vec(F) = [F00, F01, F10, F11] (row-major), so
-vec(F_e) = G_e x_e with the constant (4, 6) matrix G_e and
-x_e = [x0, y0, x1, y1, x2, y2].
+One code for both dimensions d ∈ {2, 3}: P1 triangles (the layer) and P1
+tetrahedra (the slab of §13). Node positions are (N, d) arrays; degree of
+freedom d·n + c is coordinate c of node n. Deformation gradients are
+stacked (M, d, d) with F[e, i, j] = ∂x_i/∂X_j and vec(F) row-major
+([F00, F01, F10, F11] in 2-D), so vec(F_e) = G_e x_e with the constant
+(d², d(d+1)) matrix G_e and x_e = [x0, y0, (z0,) x1, ...]. Element
+matrices are d(d+1) square: 6x6 (21 packed entries) in 2-D, 12x12 (78) in
+3-D. The loops run over corners, coordinates and packed entries, never
+over elements; in 2-D they do exactly the arithmetic of the former
+triangle-only code (same operations, same order), so results are
+bit-identical.
 
 Sparse assembly goes through a `SparsePattern` computed once per mesh and
 set of unknowns: element matrices are summed into CSR data with one
@@ -23,26 +29,42 @@ from scissor_cli.mesh.mesh import Mesh
 
 @dataclass(frozen=True)
 class FEOperators:
-    triangles: np.ndarray  # (M, 3) int64
-    area: np.ndarray  # (M,) mm², rest area
-    grad_n: np.ndarray  # (M, 3, 2) 1/mm, ∂N_a/∂X_j
-    G: np.ndarray  # (M, 4, 6) 1/mm, vec(F_e) = G_e x_e
-    elem_dofs: np.ndarray  # (M, 6) int64
-    thickness_mm: float
+    triangles: np.ndarray  # (M, d+1) int64: the simplices (triangles in 2-D, tetrahedra in 3-D)
+    area: np.ndarray  # (M,) mm² rest area in 2-D; mm³ rest volume in 3-D
+    grad_n: np.ndarray  # (M, d+1, d) 1/mm, ∂N_a/∂X_j
+    G: np.ndarray  # (M, d², d(d+1)) 1/mm, vec(F_e) = G_e x_e
+    elem_dofs: np.ndarray  # (M, d(d+1)) int64
+    thickness_mm: float  # 2-D: the layer's thickness; 3-D: 1.0 (volumes are real)
     n_nodes: int
     # Component-major copies for the hot loops: gathering and multiplying
     # contiguous (M,) rows is 2.5x faster than strided columns of (M, 3, 2).
-    corners: np.ndarray  # (3, M) int64, triangles.T
-    grad_rows: np.ndarray  # (3, 2, M) 1/mm, grad_n.transpose(1, 2, 0)
+    corners: np.ndarray  # (d+1, M) int64, triangles.T
+    grad_rows: np.ndarray  # (d+1, d, M) 1/mm, grad_n.transpose(1, 2, 0)
+
+    @property
+    def dim(self) -> int:
+        """d, the space dimension: 2 for triangles, 3 for tetrahedra."""
+        return self.grad_n.shape[2]
 
     @property
     def volume(self) -> np.ndarray:
-        """Element volumes h·A_e (M,) in mm³: energy density × volume = µJ."""
+        """Element volumes (M,) in mm³ (h·A_e in 2-D): energy density × volume = µJ."""
         return self.thickness_mm * self.area
 
 
 def build_operators(mesh: Mesh, thickness_mm: float) -> FEOperators:
-    X = mesh.nodes[mesh.triangles]  # (M, 3, 2)
+    """The P1 operators of a triangle mesh (layer of thickness h)."""
+    return simplex_operators(mesh.nodes, mesh.triangles, thickness_mm)
+
+
+def simplex_operators(nodes: np.ndarray, cells: np.ndarray, thickness_mm: float = 1.0) -> FEOperators:
+    """P1 operators of simplices: nodes (N, d) mm, cells (M, d+1) int64 positively oriented.
+
+    d = 2: triangles of a layer of thickness h; d = 3: tetrahedra (pass 1.0).
+    """
+    if nodes.shape[1] == 3:
+        return _tetrahedra_operators(nodes, cells)
+    X = nodes[cells]  # (M, 3, 2)
     Dm = np.stack([X[:, 1] - X[:, 0], X[:, 2] - X[:, 0]], axis=2)  # columns are edges
     det = Dm[:, 0, 0] * Dm[:, 1, 1] - Dm[:, 0, 1] * Dm[:, 1, 0]
     if np.any(det <= 0):
@@ -57,90 +79,139 @@ def build_operators(mesh: Mesh, thickness_mm: float) -> FEOperators:
     for i in range(2):  # G[e, 2i+j, 2a+i] = ∂N_a/∂X_j
         for j in range(2):
             G[:, 2 * i + j, i::2] = grad_n[:, :, j]
-    elem_dofs = (2 * mesh.triangles[:, :, None] + np.arange(2)).reshape(-1, 6)
+    elem_dofs = (2 * cells[:, :, None] + np.arange(2)).reshape(-1, 6)
     return FEOperators(
-        mesh.triangles, 0.5 * det, grad_n, G, elem_dofs, float(thickness_mm), mesh.n_nodes,
-        np.ascontiguousarray(mesh.triangles.T), np.ascontiguousarray(grad_n.transpose(1, 2, 0)),
+        cells, 0.5 * det, grad_n, G, elem_dofs, float(thickness_mm), len(nodes),
+        np.ascontiguousarray(cells.T), np.ascontiguousarray(grad_n.transpose(1, 2, 0)),
+    )
+
+
+def _tetrahedra_operators(nodes: np.ndarray, cells: np.ndarray) -> FEOperators:
+    X = nodes[cells]  # (M, 4, 3)
+    Dm = np.stack([X[:, 1] - X[:, 0], X[:, 2] - X[:, 0], X[:, 3] - X[:, 0]], axis=2)  # columns are edges
+    det = np.linalg.det(Dm)
+    if np.any(det <= 0):
+        raise ValueError(f"{int(np.sum(det <= 0))} mesh tetrahedra are degenerate or negatively oriented")
+    inv = np.linalg.inv(Dm)
+    M = len(det)
+    grad_n = np.empty((M, 4, 3))
+    grad_n[:, 1:] = inv  # row k of Dm⁻¹ is ∇N_{k+1}
+    grad_n[:, 0] = -inv.sum(axis=1)
+    G = np.zeros((M, 9, 12))
+    for i in range(3):  # G[e, 3i+j, 3a+i] = ∂N_a/∂X_j
+        for j in range(3):
+            G[:, 3 * i + j, i::3] = grad_n[:, :, j]
+    elem_dofs = (3 * cells[:, :, None] + np.arange(3)).reshape(-1, 12)
+    return FEOperators(
+        cells, det / 6.0, grad_n, G, elem_dofs, 1.0, len(nodes),
+        np.ascontiguousarray(cells.T), np.ascontiguousarray(grad_n.transpose(1, 2, 0)),
     )
 
 
 def deformation_gradients(ops: FEOperators, x: np.ndarray) -> np.ndarray:
-    """F (M, 2, 2) of every element for node positions x (N, 2).
+    """F (M, d, d) of every element for node positions x (N, d).
 
-    Plain arithmetic on contiguous rows of the three vertices: 0.27 ms at
-    15.7k elements, against 0.67 ms for strided columns and 3x that for the
+    Plain arithmetic on contiguous rows of the d+1 vertices: 0.27 ms at
+    15.7k triangles, against 0.67 ms for strided columns and 3x that for the
     equivalent einsum.
     """
     g = ops.grad_rows
-    F = np.empty((g.shape[2], 2, 2))
-    for i in range(2):
+    d = g.shape[1]
+    F = np.empty((g.shape[2], d, d))
+    for i in range(d):
         xi = np.ascontiguousarray(x[:, i])
-        xa, xb, xc = (xi.take(ops.corners[a]) for a in range(3))
-        for j in range(2):
-            F[:, i, j] = xa * g[0, j] + xb * g[1, j] + xc * g[2, j]
+        xs = [xi.take(ops.corners[a]) for a in range(d + 1)]
+        for j in range(d):
+            acc = xs[0] * g[0, j] + xs[1] * g[1, j] + xs[2] * g[2, j]
+            for a in range(3, d + 1):
+                acc += xs[a] * g[a, j]
+            F[:, i, j] = acc
     return F
 
 
 def element_forces(ops: FEOperators, P: np.ndarray) -> np.ndarray:
-    """Element gradient vectors (M, 6) in mN from first Piola stresses P (M, 2, 2) in kPa."""
+    """Element gradient vectors (M, d(d+1)) in mN from first Piola stresses P (M, d, d) in kPa."""
     g, vol = ops.grad_n, ops.volume
-    f = np.empty((len(g), 3, 2))
-    for i in range(2):  # f[e, a, i] = hA Σ_j P_ij ∂N_a/∂X_j, plain arithmetic (einsum is 3x slower here)
-        Pi0, Pi1 = P[:, i, 0] * vol, P[:, i, 1] * vol
-        for a in range(3):
-            f[:, a, i] = Pi0 * g[:, a, 0] + Pi1 * g[:, a, 1]
-    return f.reshape(-1, 6)
+    d = g.shape[2]
+    f = np.empty((len(g), d + 1, d))
+    for i in range(d):  # f[e, a, i] = V Σ_j P_ij ∂N_a/∂X_j, plain arithmetic (einsum is 3x slower here)
+        Pi = [P[:, i, j] * vol for j in range(d)]
+        for a in range(d + 1):
+            acc = Pi[0] * g[:, a, 0] + Pi[1] * g[:, a, 1]
+            for j in range(2, d):
+                acc += Pi[j] * g[:, a, j]
+            f[:, a, i] = acc
+    return f.reshape(-1, d * (d + 1))
+
+
+def packed_pairs(n: int) -> tuple:
+    """The (p, q), p <= q, of a symmetric n x n element matrix, in packed order."""
+    return tuple((p, q) for p in range(n) for q in range(p, n))
 
 
 #: The 21 (p, q), p <= q, of a symmetric 6x6 element matrix, in its packed order.
-PACKED_PAIRS = tuple((p, q) for p in range(6) for q in range(p, 6))
+PACKED_PAIRS = packed_pairs(6)
+#: The 78 of a 12x12 tetrahedron matrix.
+PACKED_PAIRS_3D = packed_pairs(12)
+
+
+def pairs_for(dim: int) -> tuple:
+    """The packed pairs of a d(d+1) element matrix."""
+    return PACKED_PAIRS if dim == 2 else PACKED_PAIRS_3D
 
 
 def element_matrices(ops: FEOperators, C: np.ndarray, scale: np.ndarray | None = None) -> np.ndarray:
-    """Symmetric element matrices, packed: (21, M), Ke[k, e] = (K_e)[PACKED_PAIRS[k]].
+    """Symmetric element matrices, packed: (P, M), Ke[k, e] = (K_e)[pairs_for(d)[k]], P = 21 or 78.
 
-    K_e = scale_e G_eᵀ C_e G_e from tangents C (M, 4, 4) in kPa, scale the
+    K_e = scale_e G_eᵀ C_e G_e from tangents C (M, d², d²) in kPa, scale the
     element volumes by default (then mN/mm). Only the upper triangle, and
-    component rows: with the gradients' structure (G_e has two nonzeros per
-    column) this is 2.2x faster than two batched matmuls, and an upper-
-    triangle assembly needs nothing else. K_e[2a+i, 2b+k] =
-    Σ_jl ∂N_a/∂X_j C[2i+j, 2k+l] ∂N_b/∂X_l.
+    component rows: with the gradients' structure (G_e has d nonzeros per
+    column) this is 2.2x faster than two batched matmuls in 2-D, and an
+    upper-triangle assembly needs nothing else. K_e[da+i, db+k] =
+    Σ_jl ∂N_a/∂X_j C[di+j, dk+l] ∂N_b/∂X_l.
     """
     M = C.shape[0]
-    g = ops.grad_rows  # (3, 2, M)
-    rows = np.ascontiguousarray(C.reshape(M, 16).T)  # rows[4r + c] = C[:, r, c]
-    # T[r, b, k] = Σ_l C[r, 2k+l] ∂N_b/∂X_l
-    T = np.empty((4, 3, 2, M))
+    g = ops.grad_rows  # (d+1, d, M)
+    d = g.shape[1]
+    dd = d * d
+    rows = np.ascontiguousarray(C.reshape(M, dd * dd).T)  # rows[d²r + c] = C[:, r, c]
+    # T[r, b, k] = Σ_l C[r, dk+l] ∂N_b/∂X_l
+    T = np.empty((dd, d + 1, d, M))
     tmp = np.empty(M)
-    for r in range(4):
-        for k in range(2):
-            for b in range(3):
-                np.multiply(rows[4 * r + 2 * k], g[b, 0], out=T[r, b, k])
-                np.multiply(rows[4 * r + 2 * k + 1], g[b, 1], out=tmp)
-                T[r, b, k] += tmp
+    for r in range(dd):
+        for k in range(d):
+            for b in range(d + 1):
+                np.multiply(rows[dd * r + d * k], g[b, 0], out=T[r, b, k])
+                for l in range(1, d):
+                    np.multiply(rows[dd * r + d * k + l], g[b, l], out=tmp)
+                    T[r, b, k] += tmp
     gs = g * (ops.volume if scale is None else scale)
-    Ke = np.empty((len(PACKED_PAIRS), M))
-    for n, (p, q) in enumerate(PACKED_PAIRS):
-        (a, i), (b, k) = divmod(p, 2), divmod(q, 2)
-        np.multiply(gs[a, 0], T[2 * i, b, k], out=Ke[n])
-        np.multiply(gs[a, 1], T[2 * i + 1, b, k], out=tmp)
-        Ke[n] += tmp
+    pairs = pairs_for(d)
+    Ke = np.empty((len(pairs), M))
+    for n, (p, q) in enumerate(pairs):
+        (a, i), (b, k) = divmod(p, d), divmod(q, d)
+        np.multiply(gs[a, 0], T[d * i, b, k], out=Ke[n])
+        for j in range(1, d):
+            np.multiply(gs[a, j], T[d * i + j, b, k], out=tmp)
+            Ke[n] += tmp
     return Ke
 
 
 def unpack(Ke: np.ndarray) -> np.ndarray:
-    """Packed element matrices (21, M) → full symmetric (M, 6, 6)."""
-    full = np.empty((Ke.shape[1], 6, 6))
-    for n, (p, q) in enumerate(PACKED_PAIRS):
+    """Packed element matrices (P, M) → full symmetric (M, n, n), n = 6 (P = 21) or 12 (P = 78)."""
+    pairs = PACKED_PAIRS if Ke.shape[0] == len(PACKED_PAIRS) else PACKED_PAIRS_3D
+    n_dof = pairs[-1][1] + 1
+    full = np.empty((Ke.shape[1], n_dof, n_dof))
+    for n, (p, q) in enumerate(pairs):
         full[:, p, q] = full[:, q, p] = Ke[n]
     return full
 
 
 def packed_times(ops: FEOperators, Ke: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Σ_e K_e v_e (2N,) for packed element matrices Ke (21, M) and a full vector v (2N,)."""
-    ve = v[ops.elem_dofs].T  # (6, M)
-    out = np.zeros((6, Ke.shape[1]))
-    for n, (p, q) in enumerate(PACKED_PAIRS):
+    """Σ_e K_e v_e (dN,) for packed element matrices Ke (P, M) and a full vector v (dN,)."""
+    ve = v[ops.elem_dofs].T  # (d(d+1), M)
+    out = np.zeros((ve.shape[0], Ke.shape[1]))
+    for n, (p, q) in enumerate(pairs_for(ops.dim)):
         out[p] += Ke[n] * ve[q]
         if p != q:
             out[q] += Ke[n] * ve[p]
@@ -148,29 +219,31 @@ def packed_times(ops: FEOperators, Ke: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def scatter_vector(ops: FEOperators, elem: np.ndarray) -> np.ndarray:
-    """Sum element vectors (M, 6) into a global vector (2N,)."""
-    return np.bincount(ops.elem_dofs.ravel(), weights=elem.ravel(), minlength=2 * ops.n_nodes)
+    """Sum element vectors (M, d(d+1)) into a global vector (dN,)."""
+    return np.bincount(ops.elem_dofs.ravel(), weights=elem.ravel(), minlength=ops.dim * ops.n_nodes)
 
 
 def lumped_mass(ops: FEOperators, density_kg_per_mm3: float) -> np.ndarray:
-    """Lumped mass per degree of freedom (2N,) in kg: ρ h Σ A_e / 3 per vertex."""
-    per_elem = np.repeat(density_kg_per_mm3 * ops.volume / 3.0, 6).reshape(-1, 6)
+    """Lumped mass per degree of freedom (dN,) in kg: ρ V_e / (d+1) per vertex."""
+    d = ops.dim
+    per_elem = np.repeat(density_kg_per_mm3 * ops.volume / (d + 1.0), d * (d + 1)).reshape(-1, d * (d + 1))
     return scatter_vector(ops, per_elem)
 
 
 def reduction_matrix(ops: FEOperators) -> sp.csr_matrix:
-    """The sparse D (4M, 2N) with D x = [vec F_e] stacked (paper eq. 18–20)."""
-    M = len(ops.triangles)
-    rows = np.repeat(np.arange(4 * M).reshape(M, 4), 6, axis=1)
-    cols = np.broadcast_to(ops.elem_dofs[:, None, :], (M, 4, 6)).reshape(M, 24)
-    return sp.csr_matrix((ops.G.reshape(M, 24).ravel(), (rows.ravel(), cols.ravel())), shape=(4 * M, 2 * ops.n_nodes))
+    """The sparse D (d²M, dN) with D x = [vec F_e] stacked (paper eq. 18–20)."""
+    M, d = len(ops.triangles), ops.dim
+    dd, n = d * d, d * (d + 1)
+    rows = np.repeat(np.arange(dd * M).reshape(M, dd), n, axis=1)
+    cols = np.broadcast_to(ops.elem_dofs[:, None, :], (M, dd, n)).reshape(M, dd * n)
+    return sp.csr_matrix((ops.G.reshape(M, dd * n).ravel(), (rows.ravel(), cols.ravel())), shape=(dd * M, d * ops.n_nodes))
 
 
 @dataclass(frozen=True)
 class SparsePattern:
     """Where each entry of the packed element matrices lands in a CSR matrix.
 
-    `entries` selects the entries of the flattened packed (21, M) element
+    `entries` selects the entries of the flattened packed (P, M) element
     matrices that belong to the matrix (free rows and columns only; an
     off-diagonal pair twice in a full pattern, once in an upper one),
     `slot` is the CSR data position of each selected entry. An `upper`
@@ -178,7 +251,7 @@ class SparsePattern:
     Cholesky factorisation reads.
     """
 
-    entries: np.ndarray  # (E,) int64 into the flattened (21*M,) packed data
+    entries: np.ndarray  # (E,) int64 into the flattened (P*M,) packed data
     slot: np.ndarray  # (E,) int64 into csr data
     indptr: np.ndarray
     indices: np.ndarray
@@ -186,7 +259,7 @@ class SparsePattern:
     upper: bool = False
 
     def assemble(self, Ke: np.ndarray) -> sp.csr_matrix:
-        """The CSR matrix of packed element matrices Ke (21, M)."""
+        """The CSR matrix of packed element matrices Ke (P, M)."""
         data = np.bincount(self.slot, weights=Ke.reshape(-1)[self.entries], minlength=len(self.indices))
         return sp.csr_matrix((data, self.indices, self.indptr), shape=self.shape)
 
@@ -194,18 +267,19 @@ class SparsePattern:
 def sparse_pattern(ops: FEOperators, dof_index: np.ndarray | None = None, upper: bool = False) -> SparsePattern:
     """Pattern of the matrix over the dofs with dof_index >= 0 (renumbered by it).
 
-    dof_index (2N,) maps each global dof to its row in the reduced system, or
+    dof_index (dN,) maps each global dof to its row in the reduced system, or
     -1 to drop it (Dirichlet dofs); None keeps every dof. `upper`: only the
     upper triangle (row <= column).
     """
-    n = 2 * ops.n_nodes
+    n = ops.dim * ops.n_nodes
     if dof_index is None:
         dof_index = np.arange(n)
-    local = dof_index[ops.elem_dofs]  # (M, 6)
+    local = dof_index[ops.elem_dofs]  # (M, d(d+1))
     M = len(local)
-    p, q = np.array(PACKED_PAIRS).T
+    pairs = pairs_for(ops.dim)
+    p, q = np.array(pairs).T
     rows, cols = local[:, p].T.ravel(), local[:, q].T.ravel()  # packed order: pair-major
-    packed = np.arange(len(PACKED_PAIRS) * M)
+    packed = np.arange(len(pairs) * M)
     if upper:
         rows, cols = np.minimum(rows, cols), np.maximum(rows, cols)
     else:  # the mirror image of every off-diagonal pair
@@ -219,3 +293,37 @@ def sparse_pattern(ops: FEOperators, dof_index: np.ndarray | None = None, upper:
     r, c = np.divmod(unique, size)
     indptr = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=size))])
     return SparsePattern(packed[keep], slot.ravel(), indptr, c.astype(np.int32), (size, size), upper)
+
+
+def max_feasible_step_3d(F: np.ndarray, dF: np.ndarray) -> float:
+    """The largest α ≥ 0 (inf if unbounded) with det(F_e + α dF_e) > 0 for all e; F, dF (M, 3, 3).
+
+    det(F + α dF) = J (1 + b α + c α² + d α³) is a cubic per element
+    (b = tr(F⁻¹dF) = Σ cof(F)∘dF / J, c = Σ F∘cof(dF) / J, d = det dF / J).
+    With β = 1/α it becomes the monic β³ + b β² + c β + d, whose roots are
+    the eigenvalues of its companion matrix, computed for all elements in one
+    batched call: no division by a vanishing leading coefficient. The first
+    sign change is at 1/β for the largest positive real root β. Roots with an
+    imaginary part below 1e-6·|β| count as real (a double root, where J only
+    touches 0): that can only shorten the step, never let it invert. Needs
+    J > 0 at α = 0.
+    """
+    J = np.linalg.det(F)
+    cofF = _cofactor(F)
+    cofdF = _cofactor(dF)
+    b = np.einsum("eij,eij->e", cofF, dF) / J
+    c = np.einsum("eij,eij->e", F, cofdF) / J
+    d = np.linalg.det(dF) / J
+    comp = np.zeros((len(J), 3, 3))
+    comp[:, 0, 0], comp[:, 0, 1], comp[:, 0, 2] = -b, -c, -d
+    comp[:, 1, 0] = comp[:, 2, 1] = 1.0
+    beta = np.linalg.eigvals(comp)  # (M, 3)
+    real = np.abs(beta.imag) <= 1e-6 * np.maximum(np.abs(beta), 1e-300)
+    br = np.where(real & (beta.real > 0), beta.real, 0.0).max(axis=1, initial=0.0)
+    top = float(br.max()) if len(br) else 0.0
+    return float("inf") if top <= 0 else 1.0 / top
+
+
+def _cofactor(A: np.ndarray) -> np.ndarray:
+    """cof A (M, 3, 3): rows A_1 × A_2, A_2 × A_0, A_0 × A_1."""
+    return np.stack([np.cross(A[:, 1], A[:, 2]), np.cross(A[:, 2], A[:, 0]), np.cross(A[:, 0], A[:, 1])], axis=1)

@@ -6,6 +6,11 @@ nodes) and the sparse pattern of the free–free stiffness. It is immutable;
 `with_material` gives a tissue that shares the mesh but not the material,
 which is how the simulated "true" tissue of a trial differs from the
 controller's model.
+
+The same class holds the 3-D slab of docs/model.md §13 (`layer3d`): then
+`mesh` is a tetrahedral mesh (nodes (N, 3), `triangles` its tetrahedra
+(M, 4)), `ops` are P1 tetrahedra and every (N, 2) below reads (N, 3), every
+2N reads 3N. `dim` says which.
 """
 
 from __future__ import annotations
@@ -55,15 +60,21 @@ class Tissue:
         return self.mesh.nodes
 
     @property
+    def dim(self) -> int:
+        """d: 2 for the layer, 3 for the slab."""
+        return self.ops.dim
+
+    @property
     def n_cups(self) -> int:
         return len(self.cup_nodes)
 
     def cup_displacement(self, c: int) -> np.ndarray:
         """Column c of B, as a full vector (2N,): unit stroke of cup c moves its nodes by its axis."""
-        b = np.zeros(2 * self.mesh.n_nodes)
+        d = self.dim
+        b = np.zeros(d * self.mesh.n_nodes)
         nodes = self.cup_nodes[c]
-        b[2 * nodes] = self.cup_axes[c, 0]
-        b[2 * nodes + 1] = self.cup_axes[c, 1]
+        for k in range(d):
+            b[d * nodes + k] = self.cup_axes[c, k]
         return b
 
     def boundary_positions(self, strokes: np.ndarray) -> np.ndarray:
@@ -77,7 +88,7 @@ class Tissue:
         """A copy of positions x (N, 2) with the Dirichlet nodes placed for the strokes."""
         flat = np.array(x, dtype=float).ravel()
         flat[self.dirichlet_dofs] = self.boundary_positions(np.asarray(strokes, float))
-        return flat.reshape(-1, 2)
+        return flat.reshape(-1, self.dim)
 
     def jacobians(self, x: np.ndarray) -> np.ndarray:
         """J = det F (M,) of every element at positions x (N, 2)."""
@@ -88,9 +99,12 @@ class Tissue:
 
         J_e(α) = det(F + α dF) = J + α tr(cof(F)ᵀ dF) + α² det dF is a quadratic
         per element, so the first root is found in closed form for all at once.
+        In 3-D it is a cubic: `fem.max_feasible_step_3d`.
         """
         F = fem.deformation_gradients(self.ops, x)
         dF = fem.deformation_gradients(self.ops, x + dx) - F
+        if self.dim == 3:
+            return fem.max_feasible_step_3d(F, dF)
         c = F[:, 0, 0] * F[:, 1, 1] - F[:, 0, 1] * F[:, 1, 0]
         b = F[:, 0, 0] * dF[:, 1, 1] + dF[:, 0, 0] * F[:, 1, 1] - F[:, 0, 1] * dF[:, 1, 0] - dF[:, 0, 1] * F[:, 1, 0]
         a = dF[:, 0, 0] * dF[:, 1, 1] - dF[:, 0, 1] * dF[:, 1, 0]
@@ -171,9 +185,14 @@ class Tissue:
 
     @cached_property
     def force_floor(self) -> float:
-        """1e-3·E_max·h·L in mN (L the layer's largest extent): the floor of `force_scale`."""
-        size = float(np.ptp(self.mesh.nodes, axis=0).max())
-        return 1e-3 * float(self.element_E_kPa.max()) * self.ops.thickness_mm * size
+        """1e-3·E_max·h·L in mN (L the layer's largest extent): the floor of `force_scale`.
+
+        In 3-D h is the slab's height.
+        """
+        extent = np.ptp(self.mesh.nodes, axis=0)
+        size = float(extent[:2].max())
+        h = self.ops.thickness_mm if self.dim == 2 else float(extent[2])
+        return 1e-3 * float(self.element_E_kPa.max()) * h * size
 
     def with_material(
         self,

@@ -14,7 +14,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from scissor_cli.output import figures
+from scissor_cli.output import figures, layer_check
 from scissor_cli.experiments import study as study_mod
 from scissor_cli.output.insertion_report import report_insertion
 from scissor_cli.output.results import read_study
@@ -153,15 +153,16 @@ def _check_status(run_dir: Path, partial: bool) -> Path:
 def make_report(run_dirs: list[Path], out_dir: Path, partial: bool = False) -> ReportOutput:
     """Trials (box plots, summary) and studies (speed vs error, cheapest settings) of the runs."""
     paths = [_check_status(d, partial) for d in run_dirs]
-    with_trials, with_study = [], []
+    with_trials, with_study, checks = [], [], []
     for d, p in zip(run_dirs, paths):
         with h5py.File(p, "r") as f:
+            checks += layer_check.layer_check_rows(_config_name(f.attrs.get("config_yaml", "")), f)
             if "trials" in f:
                 with_trials.append(d)
             if "study" in f:
                 with_study.append((d, study_mod.rows_from_columns(read_study(f)), _config_name(f.attrs.get("config_yaml", ""))))
-    if not with_trials and not with_study:
-        raise ReportError("none of the runs has trials or a study (run simulate with --trials N or --study)")
+    if not with_trials and not with_study and not checks:
+        raise ReportError("none of the runs has trials, a study or a layer check (run simulate with --trials N or --study)")
     out_dir.mkdir(parents=True, exist_ok=True)
     files, text = [], ""
     if with_trials:
@@ -172,6 +173,12 @@ def make_report(run_dirs: list[Path], out_dir: Path, partial: bool = False) -> R
         files_s, text_s = report_studies(with_study, out_dir)
         files += files_s
         text += ("\n" if text else "") + text_s
+    if checks:  # docs/model.md §13: how far the 2-D layer is from the 3-D slab
+        table = markdown_table(checks, layer_check.REPORT_COLUMNS)
+        (out_dir / "layer_check.md").write_text(table)
+        write_csv(out_dir / "layer_check.csv", checks, layer_check.REPORT_COLUMNS)
+        files += [out_dir / "layer_check.md", out_dir / "layer_check.csv"]
+        text += ("\n" if text else "") + "Layer check (3-D slab against the 2-D layer):\n" + table
     return ReportOutput(out_dir, files, text)
 
 

@@ -31,7 +31,7 @@ import numpy as np
 from scissor_cli.experiments.sink import ForwardCase, Manipulation, ResumeError
 from scissor_cli.experiments.study import rows_as_columns
 from scissor_cli.output.manipulation import manipulation_figure_inputs
-from scissor_cli.output import figures, journal, results
+from scissor_cli.output import figures, journal, layer_check, results
 from scissor_cli.output.results import ResultsFile, temporary
 from scissor_cli.output.insertion_results import write_insertion
 
@@ -82,6 +82,15 @@ class ResultsSink:
         results.write_forward(self.out, case.name, case.strokes, case.result, case.rest, case.targets)
         self.out.flush()
         return figures.save(figures.forward_case_figure(**case.figure), self.location / f"forward_{case.name}.png")
+
+    def layer_check_mesh(self, mesh) -> None:
+        layer_check.write_layer_check_mesh(self.out, mesh.nodes, mesh.tetrahedra, mesh.levels_mm, mesh.layer_level)
+        self.out.flush()
+
+    def layer_check(self, case, figure: dict) -> Path:
+        layer_check.write_layer_check_case(self.out, case)
+        self.out.flush()
+        return figures.save(layer_check.layer_check_figure(**figure), self.location / f"layer_check_{case.name}.png")
 
     def jacobian(self, target: str, J: np.ndarray, cup_names: list[str]) -> None:
         results.write_jacobian(self.out, target, J, cup_names)

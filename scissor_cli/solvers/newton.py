@@ -205,7 +205,7 @@ def tangent_predictor(
         raise SolverError("the tangent predictor found no positive definite stiffness (is a part of the layer unconstrained?)")
     flat = x_new.ravel().copy()
     flat[tissue.free_dofs] += dx
-    return flat.reshape(-1, 2)
+    return flat.reshape(x_new.shape)
 
 
 def _system(tissue, x, project, inertia, held, Ke=None) -> sp.csr_matrix:
@@ -297,7 +297,7 @@ def _chord_step(tissue, x, g, inertia, res, conditions, held, factors):
         return None
     step = np.zeros(x.size)
     step[tissue.free_dofs] = held.unrotate(d)
-    trial = x + step.reshape(-1, 2)
+    trial = x + step.reshape(x.shape)
     phi_t, grad_t = objective_gradient(tissue, trial, inertia, conditions.loads, require_positive_J=True)
     if grad_t is None:  # the step inverts an element
         return None
@@ -320,7 +320,7 @@ def _line_search(tissue, x, phi, grad, d_free, inertia, res, loads=None, held=No
     slope = float(np.dot(g, d_free if held is None else held.rotate(d_free)))
     step = np.zeros(x.size)
     step[free] = d_free
-    step = step.reshape(-1, 2)
+    step = step.reshape(x.shape)
     feasible = 0.95 * tissue.max_feasible_step(x, step)
     alpha = min(1.0, feasible)
     g_norm = np.linalg.norm(g)

@@ -42,7 +42,7 @@ class Equilibrium:
         self.strokes = np.zeros(tissue.n_cups)
         self.factors: dict = {}
         self._B = np.column_stack([tissue.cup_displacement(c) for c in range(tissue.n_cups)]
-                                  + [np.zeros((2 * tissue.mesh.n_nodes, 0))])  # (2N, C); C may be 0
+                                  + [np.zeros((tissue.rest.size, 0))])  # (dN, C); C may be 0
         self._cup_elems = np.flatnonzero(np.any(self._B[tissue.ops.elem_dofs] != 0, axis=(1, 2)))
         self.response: Optional[np.ndarray] = None
         self.tangent_x: Optional[np.ndarray] = None
@@ -116,7 +116,7 @@ class Equilibrium:
     def _corrected(self, strokes: np.ndarray, x0: np.ndarray, s0: np.ndarray) -> Optional[np.ndarray]:
         """Tangent predictor from (x0, s0), then Newton with chord steps; None if that fails."""
         t = self.tissue
-        start = t.apply_strokes(x0 + (self.response @ (strokes - s0)).reshape(-1, 2), strokes)
+        start = t.apply_strokes(x0 + (self.response @ (strokes - s0)).reshape(x0.shape), strokes)
         if not np.min(t.jacobians(start)) > 0:
             return None  # the predictor inverts an element
         try:

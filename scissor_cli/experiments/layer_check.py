@@ -1,0 +1,55 @@
+"""The layer-check stage of `scissor simulate` (docs/model.md §13).
+
+After the forward cases: the slab of `layer_check` is solved for every
+forward case and compared with the 2-D layer. The layer is solved again
+with Newton to its reference tolerance for the comparison, so the check
+compares models, not the configured solver's tolerance.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from scissor_cli.config import Config
+from scissor_cli.layer3d.check import build_layer_check, spec_from_config
+from scissor_cli.mechanics.tissue import Tissue
+from scissor_cli.solvers.equilibrium import EquilibriumSolver
+
+
+def run_layer_check(cfg: Config, tissue: Tissue, sink, reporter) -> list:
+    """Solve and hand to the sink the layer check of every forward case; returns the figures' paths."""
+    t0 = time.perf_counter()
+    check = build_layer_check(tissue, spec_from_config(cfg.layer_check))
+    sm = check.mesh
+    reporter.info(f"layer check: slab of {sm.n_elements} tetrahedra, {sm.n_nodes} nodes, "
+                  f"{len(sm.levels_mm) - 1} prism layers, built in {time.perf_counter() - t0:.1f} s")
+    sink.layer_check_mesh(sm)
+    scene, mesh = tissue.scene, tissue.mesh
+    layer = EquilibriumSolver(tissue, "newton")
+    paths = []
+    advance = reporter.progress("layer check", len(cfg.forward))
+    for case in cfg.forward:
+        strokes = scene.strokes_vector(case.strokes)
+        r2 = layer.solve(strokes)
+        result = check.run_case(case.name, strokes, r2)
+        rest = {t.name: t.rest for t in scene.targets}
+        figure = dict(
+            title=(f"{cfg.name} — layer check {case.name}: in-plane difference {result.in_plane_diff_mm:.3f} mm "
+                   f"({100 * result.in_plane_diff_fraction:.1f} %), out of plane {result.out_of_plane_mm:.3f} mm, "
+                   f"closer to {result.closer_to.replace('_', ' ')}"),
+            rest_2d=mesh.nodes, layer_2d=r2.x, layer_3d=result.layer_nodes, triangles=mesh.triangles,
+            targets_rest=rest, targets_2d=result.targets_2d, targets_3d=result.targets,
+            targets_stress=result.targets_stress, layer_z_mm=float(sm.levels_mm[sm.layer_level]),
+        )
+        path = sink.layer_check(result, figure)
+        reporter.info(
+            f"layer check {case.name}: 3-D Newton {result.iterations} iterations, {result.time_s:.1f} s; in-plane "
+            f"difference {result.in_plane_diff_mm:.3f} mm ({100 * result.in_plane_diff_fraction:.1f} %), "
+            f"out of plane {result.out_of_plane_mm:.3f} mm, closer to {result.closer_to}"
+        )
+        if path is not None:
+            paths.append(path)
+        advance(1)
+    return paths

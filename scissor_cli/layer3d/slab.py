@@ -1,0 +1,152 @@
+"""The 3-D slab as a `Tissue`: extruded mesh, the §3 energies with 3x3 F, its boundary (docs/model.md §13).
+
+The slab is the layer's outline extruded over the height H (z from 0, the
+chest wall, to H). It is a `mechanics.Tissue` of dimension 3, so the one
+Newton solver (`solvers.equilibrium`) solves it unchanged.
+
+Boundary:
+* the 2-D fixed sides become fixed faces (every level of their nodes);
+* `chest_wall_fixed`: the face z = 0 is held;
+* a cup grips the side-surface nodes within its radius of its contact point
+  at the layer's height (3-D distance) and moves them along its in-plane
+  axis; `cup_holds_z` also holds them vertically (else z is free there);
+* for the checks only: `grip_full_height` grips the cup's 2-D nodes at
+  every level, `hold_z` holds the out-of-plane displacement everywhere.
+
+Material: the scene's model and constants per element (obstacles' factors
+follow the triangle a tetrahedron came from); fibers (cos θ, sin θ, 0), in
+the layer's plane.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from scissor_cli.layer3d.extrude import SlabMesh, extrude, graded_levels
+from scissor_cli.mechanics import fem, materials
+from scissor_cli.mechanics.tissue import BoundaryError, Tissue
+from scissor_cli.mesh.mesh import Mesh
+from scissor_cli.mesh.probe import TargetProbe, probe_targets
+from scissor_cli.scene.scene import Scene
+
+
+@dataclass(frozen=True)
+class SlabSpec:
+    """What `layer_check` asks for (mm), plus the check-only options (docs/model.md §13)."""
+
+    height_mm: float
+    layer_z_mm: float
+    chest_wall_fixed: bool = True
+    cup_holds_z: bool = True
+    max_layer_mm: float = 5.0
+    #: the thinnest prism layer, at the simulated layer (default: the 2-D mesh's finest edge)
+    first_layer_mm: float | None = None
+    grip_full_height: bool = False
+    hold_z: bool = False
+    #: explicit z levels (L,) instead of the graded ones (tests, the one-layer plane-stress slab)
+    levels_mm: tuple | None = None
+
+
+def slab_mesh(mesh: Mesh, spec: SlabSpec) -> SlabMesh:
+    """The extruded mesh of a 2-D mesh for a slab spec."""
+    if spec.levels_mm is not None:
+        levels = np.asarray(spec.levels_mm, float)
+        layer = int(np.argmin(np.abs(levels - spec.layer_z_mm)))
+    else:
+        first = spec.first_layer_mm or float(np.min(mesh.edge_lengths()))
+        levels, layer = graded_levels(spec.height_mm, spec.layer_z_mm, first, spec.max_layer_mm)
+    return extrude(mesh.nodes, mesh.triangles, mesh.element_obstacle, levels, layer)
+
+
+def build_slab(scene: Scene, mesh: Mesh, spec: SlabSpec, model: str | None = None) -> Tissue:
+    """The slab tissue (dim 3) of a scene's 2-D mesh; BoundaryError if a cup grips nothing."""
+    sm = slab_mesh(mesh, spec)
+    m = scene.material
+    model = model or m.model
+    factors = np.array([o.stiffness_factor for o in scene.obstacles] + [1.0])
+    element_E = m.E_kPa * factors[sm.element_obstacle]
+    fiber = np.tile([np.cos(m.fiber_angle_rad), np.sin(m.fiber_angle_rad)], (sm.n_elements, 1))
+    params = materials.material_params(
+        model, element_E, m.nu, m.eta_kPa if model == "neo_hookean_fiber" else 0.0, fiber, m.tension_only
+    )
+    fixed2 = mesh.boundary_nodes_on_sides(scene.fixed_sides)
+    if len(fixed2) == 0:
+        raise BoundaryError(f"no mesh node lies on the fixed side(s) {list(scene.fixed_sides)}")
+    fixed = sm.column(fixed2)
+    if spec.chest_wall_fixed:
+        fixed = np.union1d(fixed, sm.node(0, np.arange(sm.n_nodes_2d)))
+    boundary2 = np.unique(mesh.boundary_edges)
+    surface = sm.column(boundary2)  # the side faces
+    z_layer = sm.levels_mm[sm.layer_level]
+    cup_nodes = []
+    for cup in scene.cups:
+        if spec.grip_full_height:
+            nodes = sm.column(mesh.boundary_nodes_near(cup.contact, cup.radius_mm))
+        else:
+            p = sm.nodes[surface]
+            dist = np.hypot(np.linalg.norm(p[:, :2] - cup.contact, axis=1), p[:, 2] - z_layer)
+            nodes = surface[dist <= cup.radius_mm * (1 + 1e-9)]
+        nodes = np.setdiff1d(nodes, fixed)
+        if len(nodes) == 0:
+            raise BoundaryError(f"cup {cup.name!r} grips no free surface node of the slab")
+        cup_nodes.append(np.sort(nodes))
+    grip = np.unique(np.concatenate(cup_nodes)) if cup_nodes else np.zeros(0, np.int64)
+    dirichlet = [3 * fixed, 3 * fixed + 1, 3 * fixed + 2, 3 * grip, 3 * grip + 1]
+    if spec.cup_holds_z:
+        dirichlet.append(3 * grip + 2)
+    if spec.hold_z:
+        dirichlet.append(3 * np.arange(sm.n_nodes) + 2)
+    dirichlet = np.unique(np.concatenate(dirichlet)).astype(np.int64)
+    free_mask = np.ones(3 * sm.n_nodes, bool)
+    free_mask[dirichlet] = False
+    free = np.flatnonzero(free_mask)
+    free_index = np.full(3 * sm.n_nodes, -1, np.int64)
+    free_index[free] = np.arange(len(free))
+    ops = fem.simplex_operators(sm.nodes, sm.triangles)
+    axes = np.zeros((len(scene.cups), 3))
+    if len(scene.cups):
+        axes[:, :2] = np.array([c.axis for c in scene.cups])
+    return Tissue(
+        scene=scene,
+        mesh=sm,
+        ops=ops,
+        params=params,
+        element_E_kPa=element_E,
+        fiber=fiber,
+        fixed_nodes=fixed,
+        cup_nodes=tuple(cup_nodes),
+        cup_axes=axes,
+        dirichlet_dofs=dirichlet,
+        free_dofs=free,
+        free_index=free_index,
+        pattern_free=fem.sparse_pattern(ops, free_index),
+        pattern_free_upper=fem.sparse_pattern(ops, free_index, upper=True),
+        mass=fem.lumped_mass(ops, m.density_kg_per_mm3),
+    )
+
+
+@dataclass(frozen=True)
+class SlabProbe:
+    """Points of the layer carried by the slab: the 2-D probe's weights on the layer level's nodes.
+
+    The layer's triangles at its level are faces of tetrahedra, so P1
+    interpolation there is exactly the 2-D weights. nodes (K, 3) 3-D node
+    indices, bary (K, 3).
+    """
+
+    nodes: np.ndarray
+    bary: np.ndarray
+
+    def positions(self, x: np.ndarray) -> np.ndarray:
+        """Deformed points (K, 3) mm for slab positions x (N3, 3)."""
+        return np.einsum("kj,kjd->kd", self.bary, np.asarray(x, float)[self.nodes])
+
+
+def slab_probe(slab: Tissue, mesh: Mesh, points: np.ndarray | None = None,
+               probe: TargetProbe | None = None) -> SlabProbe:
+    """The slab probe of rest points (K, 2) of the layer (or of a 2-D probe)."""
+    probe = probe if probe is not None else probe_targets(mesh, points)
+    sm: SlabMesh = slab.mesh
+    return SlabProbe(sm.node(sm.layer_level, probe.nodes), probe.bary)

@@ -1,0 +1,46 @@
+"""The slab as the closed loop's true tissue (`trials.truth: slab`, docs/model.md §13).
+
+The controller keeps its 2-D model; the plant (`control.Plant`) settles the
+3-D slab instead, through a `control.TruthView`: the target the camera sees
+is the in-plane part of the slab's target at the layer's height, and the
+layer's nodes (for the corridor check) are the slab's nodes at that level.
+A trial's perturbation reaches the slab as it would the layer: the E field
+(one value per 2-D triangle) is carried to the tetrahedra each triangle
+became; ν, η and the fiber angle as they are.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from scissor_cli.control.plant import TruthPerturbation, TruthView, true_tissue
+from scissor_cli.layer3d.slab import SlabSpec, build_slab, slab_probe
+from scissor_cli.mechanics.tissue import Tissue
+
+
+class SlabTruth:
+    """Builds the slab of a 2-D model once; called with a perturbation it gives (true slab, view) for a target."""
+
+    def __init__(self, model: Tissue, spec: SlabSpec):
+        self.model = model
+        self.slab = build_slab(model.scene, model.mesh, spec, model=model.params.model)
+        sm = self.slab.mesh
+        self._layer_nodes = sm.node(sm.layer_level, np.arange(sm.n_nodes_2d))
+        self._triangle = sm.element_triangle
+
+    def for_target(self, target_rest: np.ndarray):
+        """The truth factory (`control.TruthFactory`) of one target, rest (2,) mm."""
+        probe = slab_probe(self.slab, self.model.mesh, np.asarray(target_rest, float)[None])
+        view = TruthView(target=lambda x: probe.positions(x)[0, :2], layer=lambda x: x[self._layer_nodes, :2])
+
+        def factory(truth: TruthPerturbation) -> tuple[Tissue, TruthView]:
+            return self.perturbed(truth), view
+
+        return factory
+
+    def perturbed(self, truth: TruthPerturbation) -> Tissue:
+        """The slab with a trial's perturbation (the slab itself when nothing differs)."""
+        E = np.asarray(truth.E_scale, float)
+        E_scale = E[self._triangle] if E.ndim else float(E)
+        return true_tissue(self.slab, TruthPerturbation(E_scale, truth.fiber_offset_rad, truth.nu, truth.eta_kPa,
+                                                        truth.eta_scale))

@@ -1,0 +1,214 @@
+"""The 3-D slab of docs/model.md §13: extrusion, P1 tetrahedra, the trust checks.
+
+Mesh: positive volumes, conforming faces. Mechanics: gradients and Hessians
+against finite differences, the patch test, the plane-strain identity, the
+plane-stress limit of a thin slab, convergence under refinement in z.
+"""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg  # noqa: F401
+
+from scissor_cli.config import parse_config
+from scissor_cli.layer3d.extrude import extrude, graded_levels, volumes
+from scissor_cli.layer3d.slab import SlabSpec, build_slab, slab_probe
+from scissor_cli.mechanics import fem
+from scissor_cli.mechanics.tissue import build_model
+from scissor_cli.mesh.probe import probe_targets, target_positions
+from scissor_cli.solvers.equilibrium import solve_equilibrium
+
+from tests.helpers import example_dict
+import yaml
+
+
+def _model(scale=4.0, **material):
+    data = example_dict()
+    data["material"].update(material)
+    cfg = parse_config(yaml.safe_dump(data), "scene.yaml")
+    return build_model(cfg, mesh_scale=scale)
+
+
+@pytest.fixture(scope="module")
+def coarse():
+    return _model()
+
+
+def test_levels_graded_and_exact():
+    levels, k = graded_levels(40.0, 20.0, 1.0, 5.0)
+    assert levels[0] == 0.0 and levels[-1] == 40.0 and levels[k] == 20.0
+    dz = np.diff(levels)
+    assert dz.max() <= 5.0 * 1.5 and np.all(dz > 0)
+    assert dz[k] < 1.5 and dz[k - 1] < 1.5  # thin at the layer
+    levels, k = graded_levels(10.0, 0.0, 1.0, 5.0)
+    assert k == 0 and levels[0] == 0.0 and levels[-1] == 10.0
+
+
+def test_tetrahedra_positive_and_conforming(coarse):
+    scene, mesh, _ = coarse
+    levels, k = graded_levels(12.0, 5.0, 1.0, 4.0)
+    sm = extrude(mesh.nodes, mesh.triangles, mesh.element_obstacle, levels, k)
+    vol = volumes(sm)
+    assert np.all(vol > 0)
+    # the tetrahedra fill the prisms: total volume = area × height
+    e = mesh.nodes[mesh.triangles[:, 1:]] - mesh.nodes[mesh.triangles[:, :1]]
+    area = 0.5 * np.abs(e[:, 0, 0] * e[:, 1, 1] - e[:, 0, 1] * e[:, 1, 0])
+    np.testing.assert_allclose(vol.sum(), area.sum() * 12.0, rtol=1e-12)
+    # conforming: every interior face is shared by exactly two tetrahedra, and
+    # the boundary faces are exactly the two caps and the side quads (2 triangles each)
+    faces = np.sort(np.concatenate([sm.triangles[:, [1, 2, 3]], sm.triangles[:, [0, 2, 3]],
+                                    sm.triangles[:, [0, 1, 3]], sm.triangles[:, [0, 1, 2]]]), axis=1)
+    _, counts = np.unique(faces, axis=0, return_counts=True)
+    assert counts.max() == 2
+    n_boundary = int(np.sum(counts == 1))
+    L = len(levels) - 1
+    assert n_boundary == 2 * mesh.n_elements + 2 * len(mesh.boundary_edges) * L
+
+
+def _fd_check(tissue, x, rng):
+    U, g = tissue.energy_gradient(x)
+    dx = rng.normal(size=x.shape) * 1e-2
+    eps = 1e-6
+    fd = (tissue.energy(x + eps * dx) - tissue.energy(x - eps * dx)) / (2 * eps)
+    np.testing.assert_allclose(np.dot(g, dx.ravel()), fd, rtol=1e-6)
+    K = sp.csr_matrix(fem.sparse_pattern(tissue.ops).assemble(tissue.element_stiffness(x)))
+    g_p = tissue.energy_gradient(x + eps * dx)[1]
+    g_m = tissue.energy_gradient(x - eps * dx)[1]
+    np.testing.assert_allclose(K @ dx.ravel(), (g_p - g_m) / (2 * eps), rtol=1e-5, atol=1e-6 * np.abs(g_p).max())
+
+
+@pytest.mark.parametrize("model", ["linear", "neo_hookean", "neo_hookean_fiber"])
+def test_gradient_and_hessian_against_finite_differences(model):
+    scene, mesh, _ = _model(model=model)
+    slab = build_slab(scene, mesh, SlabSpec(6.0, 3.0, levels_mm=(0.0, 3.0, 6.0)))
+    rng = np.random.default_rng(1)
+    x = slab.rest + rng.normal(size=slab.rest.shape) * 0.05
+    _fd_check(slab, x, rng)
+
+
+def test_patch_uniform_stretch_exact():
+    scene, mesh, _ = _model(model="linear")
+    slab = build_slab(scene, mesh, SlabSpec(6.0, 3.0, levels_mm=(0.0, 2.0, 3.0, 6.0)))
+    A = np.array([[1.02, 0.01, -0.005], [0.0, 0.97, 0.01], [0.003, 0.0, 1.04]])
+    X = slab.rest
+    exact = X @ A.T + np.array([0.1, -0.2, 0.3])
+    # every surface node held at the affine map; the interior must follow it exactly
+    sm = slab.mesh
+    boundary2 = np.unique(mesh.boundary_edges)
+    surf = np.unique(np.concatenate([sm.column(boundary2), sm.node(0, np.arange(sm.n_nodes_2d)),
+                                     sm.node(len(sm.levels_mm) - 1, np.arange(sm.n_nodes_2d))]))
+    dirichlet = np.sort(np.concatenate([3 * surf, 3 * surf + 1, 3 * surf + 2]))
+    free = np.setdiff1d(np.arange(3 * sm.n_nodes), dirichlet)
+    free_index = np.full(3 * sm.n_nodes, -1)
+    free_index[free] = np.arange(len(free))
+    held = replace(slab, dirichlet_dofs=dirichlet, free_dofs=free, free_index=free_index,
+                   pattern_free=fem.sparse_pattern(slab.ops, free_index),
+                   pattern_free_upper=fem.sparse_pattern(slab.ops, free_index, upper=True), factor_cache={})
+    held = held.with_material(E_scale=10.0 / slab.element_E_kPa)  # homogeneous (the obstacles are stiffer)
+    assert len(free) > 0
+    # the affine field is an equilibrium: zero force on every interior dof
+    g = held.energy_gradient(exact)[1]
+    assert np.abs(g[free]).max() < 1e-12 * np.abs(g).max()
+    # and Newton from a perturbed interior finds it
+    from scissor_cli.solvers.newton import newton_iterations
+    start = exact.copy().ravel()
+    start[free] += np.random.default_rng(0).normal(size=len(free)) * 0.01
+    r = newton_iterations(held, start.reshape(-1, 3), tol=1e-12)
+    np.testing.assert_allclose(r.x, exact, atol=1e-10)
+
+
+def _tie(slab, n2):
+    """P (3·L·N2, 2·N2): plane-strain kinematics, x3 = (x2(X, Y), Z) at every level."""
+    L = len(slab.mesh.levels_mm)
+    rows = (3 * (np.arange(L)[:, None] * n2 + np.arange(n2)[None])).ravel()
+    cols = np.tile(2 * np.arange(n2), L)
+    return sp.csr_matrix((np.ones(2 * L * n2), (np.concatenate([rows, rows + 1]), np.concatenate([cols, cols + 1]))),
+                         shape=(3 * L * n2, 2 * n2))
+
+
+def test_slab_reproduces_plane_strain(coarse):
+    """The slab with plane-strain kinematics (u_z = 0, in-plane motion the same at every level) is the
+    2-D layer: the same solution to 1e-6 mm; its energy is H/h times the layer's (docs/model.md §13)."""
+    scene, mesh, tissue = coarse
+    strokes = np.array([6.0])
+    r2 = solve_equilibrium(tissue, strokes)
+    slab = build_slab(scene, mesh, SlabSpec(10.0, 5.0, chest_wall_fixed=False, grip_full_height=True, hold_z=True,
+                                             levels_mm=(0.0, 2.0, 5.0, 10.0)))
+    L = len(slab.mesh.levels_mm)
+    x3 = np.column_stack([np.tile(r2.x, (L, 1)), slab.rest[:, 2]])
+    np.testing.assert_allclose(slab.energy(x3), tissue.energy(r2.x) * 10.0 / scene.thickness_mm, rtol=1e-12)
+    # Tied to plane-strain kinematics the slab's gradient and Hessian are H/h times the layer's,
+    # at any state; so the layer's solution is the slab's: the Newton correction from it is < 1e-6 mm.
+    P = _tie(slab, mesh.n_nodes)
+    rng = np.random.default_rng(0)
+    for x2 in (r2.x, r2.x + rng.normal(size=r2.x.shape) * 0.02):
+        x3 = np.column_stack([np.tile(x2, (L, 1)), slab.rest[:, 2]])
+        g3 = P.T @ slab.energy_gradient(x3)[1]
+        g2 = tissue.energy_gradient(x2)[1] * 10.0 / scene.thickness_mm
+        np.testing.assert_allclose(g3, g2, atol=1e-10 * np.abs(g2).max())
+    K3 = P.T @ fem.sparse_pattern(slab.ops).assemble(slab.element_stiffness(x3)) @ P
+    K2 = fem.sparse_pattern(tissue.ops).assemble(tissue.element_stiffness(x2)) * 10.0 / scene.thickness_mm
+    assert abs(K3 - K2).max() < 1e-10 * abs(K2).max()
+    x3 = np.column_stack([np.tile(r2.x, (L, 1)), slab.rest[:, 2]])
+    g = (P.T @ slab.energy_gradient(x3)[1])[tissue.free_dofs]
+    K = (P.T @ fem.sparse_pattern(slab.ops).assemble(slab.element_stiffness(x3)) @ P).tocsc()
+    f = tissue.free_dofs
+    correction = sp.linalg.spsolve(K[f][:, f], g)
+    assert np.abs(correction).max() < 1e-6
+    # The free slab (u_z = 0 held, in-plane free at every level) differs only near its
+    # faces: the three-tetrahedra split shares a prism's forces unevenly between its
+    # top and bottom nodes. At the middle level it is close to the layer.
+    r3 = solve_equilibrium(slab, strokes)
+    mid = r3.x[slab.mesh.node(2, np.arange(mesh.n_nodes)), :2]
+    assert np.abs(mid - r2.x).max() < 0.05 * np.abs(r2.x - tissue.rest).max()
+
+
+def test_thin_slab_approaches_plane_stress():
+    """A thin slab with free faces is in plane stress: for the linear model that is the layer with
+    E* = E(1+2ν)/(1+ν)², ν* = ν/(1+ν). Tolerance 5 % of the displacement (documented in docs/model.md §13)."""
+    E, nu = 10.0, 0.45
+    scene, mesh, _ = _model(model="linear", E_kPa=E, nu=nu)
+    _, _, star = _model(model="linear", E_kPa=E * (1 + 2 * nu) / (1 + nu) ** 2, nu=nu / (1 + nu))
+    _, _, strain = _model(model="linear", E_kPa=E, nu=nu)
+    strokes = np.array([2.0])
+    slab = build_slab(scene, mesh, SlabSpec(0.5, 0.0, chest_wall_fixed=False, cup_holds_z=False,
+                                             grip_full_height=True, levels_mm=(0.0, 0.5)))
+    r3 = solve_equilibrium(slab, strokes)
+    pts = np.array([t.rest for t in scene.targets])
+    probe = probe_targets(mesh, pts)
+    u3 = slab_probe(slab, mesh, probe=probe).positions(r3.x)[:, :2] - pts
+    u_stress = target_positions(probe, solve_equilibrium(star, strokes).x) - pts
+    u_strain = target_positions(probe, solve_equilibrium(strain, strokes).x) - pts
+    err_stress = np.abs(u3 - u_stress).max()
+    err_strain = np.abs(u3 - u_strain).max()
+    print(f"thin slab: {err_stress:.4f} mm from plane stress, {err_strain:.4f} mm from plane strain")
+    assert err_stress < 0.05 * np.abs(u_stress).max()
+    assert err_stress < 0.5 * err_strain
+
+
+def test_convergence_in_z(coarse):
+    """The target's displacement converges as the prism layers are refined (the 2-D mesh fixed)."""
+    scene, mesh, _ = coarse
+    pts = np.array([t.rest for t in scene.targets])
+    probe = probe_targets(mesh, pts)
+    u = []
+    for first, largest in [(4.0, 8.0), (2.0, 4.0), (1.0, 2.0)]:
+        slab = build_slab(scene, mesh, SlabSpec(16.0, 8.0, first_layer_mm=first, max_layer_mm=largest))
+        r = solve_equilibrium(slab, np.array([4.0]))
+        u.append(slab_probe(slab, mesh, probe=probe).positions(r.x) - slab_probe(slab, mesh, probe=probe).positions(slab.rest))
+    d1, d2 = np.abs(u[1] - u[0]).max(), np.abs(u[2] - u[1]).max()
+    assert d2 < 0.7 * d1
+
+
+def test_max_feasible_step_3d():
+    rng = np.random.default_rng(3)
+    F = np.eye(3) + 0.2 * rng.normal(size=(200, 3, 3))
+    F = F[np.linalg.det(F) > 0.2]
+    dF = rng.normal(size=F.shape)
+    alpha = fem.max_feasible_step_3d(F, dF)
+    assert np.isfinite(alpha) and alpha > 0
+    assert np.all(np.linalg.det(F + 0.999 * alpha * dF) > 0)
+    assert np.min(np.linalg.det(F + 1.001 * alpha * dF)) < 0
+    assert fem.max_feasible_step_3d(F, np.zeros_like(F)) == np.inf
