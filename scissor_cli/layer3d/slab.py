@@ -25,8 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from scissor_cli.layer3d.extrude import SlabMesh, extrude, graded_levels
-from scissor_cli.mechanics import fem, materials
-from scissor_cli.mechanics.tissue import BoundaryError, Tissue
+from scissor_cli.mechanics import fem
+from scissor_cli.mechanics.tissue import BoundaryError, Tissue, scene_material
 from scissor_cli.mesh.mesh import Mesh
 from scissor_cli.mesh.probe import TargetProbe, probe_targets
 from scissor_cli.scene.scene import Scene
@@ -64,13 +64,7 @@ def build_slab(scene: Scene, mesh: Mesh, spec: SlabSpec, model: str | None = Non
     """The slab tissue (dim 3) of a scene's 2-D mesh; BoundaryError if a cup grips nothing."""
     sm = slab_mesh(mesh, spec)
     m = scene.material
-    model = model or m.model
-    factors = np.array([o.stiffness_factor for o in scene.obstacles] + [1.0])
-    element_E = m.E_kPa * factors[sm.element_obstacle]
-    fiber = np.tile([np.cos(m.fiber_angle_rad), np.sin(m.fiber_angle_rad)], (sm.n_elements, 1))
-    params = materials.material_params(
-        model, element_E, m.nu, m.eta_kPa if model == "neo_hookean_fiber" else 0.0, fiber, m.tension_only
-    )
+    element_E, fiber, params = scene_material(scene, sm.element_obstacle, model)
     fixed2 = mesh.boundary_nodes_on_sides(scene.fixed_sides)
     if len(fixed2) == 0:
         raise BoundaryError(f"no mesh node lies on the fixed side(s) {list(scene.fixed_sides)}")

@@ -225,16 +225,28 @@ class BoundaryError(ValueError):
     """The boundary conditions cannot be built on this mesh."""
 
 
-def build_tissue(scene: Scene, mesh: Mesh, model: str | None = None) -> Tissue:
-    """The discrete tissue of a scene on a mesh; `model` overrides the material model."""
+def scene_material(scene: Scene, element_obstacle: np.ndarray, model: str | None = None):
+    """Per-element E (M,) kPa, fibers (M, 2) and `MaterialParams` of a scene's material.
+
+    element_obstacle (M,): the obstacle index of each element, -1 for plain
+    tissue (obstacles may be stiffer); `model` overrides the material model.
+    Shared by the 2-D layer and the 3-D slab (fibers lie in the layer's plane).
+    """
     m = scene.material
     model = model or m.model
     factors = np.array([o.stiffness_factor for o in scene.obstacles] + [1.0])
-    element_E = m.E_kPa * factors[mesh.element_obstacle]  # index -1 picks the trailing 1.0
-    fiber = np.tile([np.cos(m.fiber_angle_rad), np.sin(m.fiber_angle_rad)], (mesh.n_elements, 1))
+    element_E = m.E_kPa * factors[element_obstacle]  # index -1 picks the trailing 1.0
+    fiber = np.tile([np.cos(m.fiber_angle_rad), np.sin(m.fiber_angle_rad)], (len(element_obstacle), 1))
     params = materials.material_params(
         model, element_E, m.nu, m.eta_kPa if model == "neo_hookean_fiber" else 0.0, fiber, m.tension_only
     )
+    return element_E, fiber, params
+
+
+def build_tissue(scene: Scene, mesh: Mesh, model: str | None = None) -> Tissue:
+    """The discrete tissue of a scene on a mesh; `model` overrides the material model."""
+    m = scene.material
+    element_E, fiber, params = scene_material(scene, mesh.element_obstacle, model)
     fixed = mesh.boundary_nodes_on_sides(scene.fixed_sides)
     if len(fixed) == 0:
         raise BoundaryError(f"no mesh node lies on the fixed side(s) {list(scene.fixed_sides)}")
