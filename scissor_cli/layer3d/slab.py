@@ -26,7 +26,7 @@ import numpy as np
 
 from scissor_cli.layer3d.extrude import SlabMesh, extrude, graded_levels
 from scissor_cli.mechanics import fem
-from scissor_cli.mechanics.tissue import BoundaryError, Tissue, scene_material
+from scissor_cli.mechanics.tissue import BoundaryError, Tissue, scene_material, tissue_from_boundary
 from scissor_cli.mesh.mesh import Mesh
 from scissor_cli.mesh.probe import TargetProbe, probe_targets
 from scissor_cli.scene.scene import Scene
@@ -63,7 +63,6 @@ def slab_mesh(mesh: Mesh, spec: SlabSpec) -> SlabMesh:
 def build_slab(scene: Scene, mesh: Mesh, spec: SlabSpec, model: str | None = None) -> Tissue:
     """The slab tissue (dim 3) of a scene's 2-D mesh; BoundaryError if a cup grips nothing."""
     sm = slab_mesh(mesh, spec)
-    m = scene.material
     element_E, fiber, params = scene_material(scene, sm.element_obstacle, model)
     fixed2 = mesh.boundary_nodes_on_sides(scene.fixed_sides)
     if len(fixed2) == 0:
@@ -93,32 +92,11 @@ def build_slab(scene: Scene, mesh: Mesh, spec: SlabSpec, model: str | None = Non
     if spec.hold_z:
         dirichlet.append(3 * np.arange(sm.n_nodes) + 2)
     dirichlet = np.unique(np.concatenate(dirichlet)).astype(np.int64)
-    free_mask = np.ones(3 * sm.n_nodes, bool)
-    free_mask[dirichlet] = False
-    free = np.flatnonzero(free_mask)
-    free_index = np.full(3 * sm.n_nodes, -1, np.int64)
-    free_index[free] = np.arange(len(free))
     ops = fem.simplex_operators(sm.nodes, sm.triangles)
     axes = np.zeros((len(scene.cups), 3))
     if len(scene.cups):
         axes[:, :2] = np.array([c.axis for c in scene.cups])
-    return Tissue(
-        scene=scene,
-        mesh=sm,
-        ops=ops,
-        params=params,
-        element_E_kPa=element_E,
-        fiber=fiber,
-        fixed_nodes=fixed,
-        cup_nodes=tuple(cup_nodes),
-        cup_axes=axes,
-        dirichlet_dofs=dirichlet,
-        free_dofs=free,
-        free_index=free_index,
-        pattern_free=fem.sparse_pattern(ops, free_index),
-        pattern_free_upper=fem.sparse_pattern(ops, free_index, upper=True),
-        mass=fem.lumped_mass(ops, m.density_kg_per_mm3),
-    )
+    return tissue_from_boundary(scene, sm, ops, (element_E, fiber, params), fixed, cup_nodes, axes, dirichlet)
 
 
 @dataclass(frozen=True)

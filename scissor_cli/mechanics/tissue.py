@@ -245,7 +245,6 @@ def scene_material(scene: Scene, element_obstacle: np.ndarray, model: str | None
 
 def build_tissue(scene: Scene, mesh: Mesh, model: str | None = None) -> Tissue:
     """The discrete tissue of a scene on a mesh; `model` overrides the material model."""
-    m = scene.material
     element_E, fiber, params = scene_material(scene, mesh.element_obstacle, model)
     fixed = mesh.boundary_nodes_on_sides(scene.fixed_sides)
     if len(fixed) == 0:
@@ -264,12 +263,25 @@ def build_tissue(scene: Scene, mesh: Mesh, model: str | None = None) -> Tissue:
         cup_nodes.append(nodes)
     held = np.unique(np.concatenate([fixed, *cup_nodes]))
     dirichlet = np.sort(np.concatenate([2 * held, 2 * held + 1]))
-    free_mask = np.ones(2 * mesh.n_nodes, bool)
+    ops = fem.build_operators(mesh, scene.thickness_mm)
+    cup_axes = np.array([c.axis for c in scene.cups]).reshape(-1, 2)
+    return tissue_from_boundary(scene, mesh, ops, (element_E, fiber, params), fixed, cup_nodes, cup_axes, dirichlet)
+
+
+def tissue_from_boundary(scene: Scene, mesh, ops, material, fixed, cup_nodes, cup_axes, dirichlet) -> Tissue:
+    """The `Tissue` once its Dirichlet dofs are known: the free-dof index, the K_ff patterns, the mass.
+
+    material: (element_E (M,) kPa, fiber (M, 2), MaterialParams) as from
+    `scene_material`; dirichlet (Nd,): every held dof, sorted. Shared by the
+    2-D layer and the 3-D slab (whose held dofs depend on its options).
+    """
+    element_E, fiber, params = material
+    n_dofs = mesh.nodes.size
+    free_mask = np.ones(n_dofs, bool)
     free_mask[dirichlet] = False
     free = np.flatnonzero(free_mask)
-    free_index = np.full(2 * mesh.n_nodes, -1, np.int64)
+    free_index = np.full(n_dofs, -1, np.int64)
     free_index[free] = np.arange(len(free))
-    ops = fem.build_operators(mesh, scene.thickness_mm)
     return Tissue(
         scene=scene,
         mesh=mesh,
@@ -279,13 +291,13 @@ def build_tissue(scene: Scene, mesh: Mesh, model: str | None = None) -> Tissue:
         fiber=fiber,
         fixed_nodes=fixed,
         cup_nodes=tuple(cup_nodes),
-        cup_axes=np.array([c.axis for c in scene.cups]).reshape(-1, 2),
+        cup_axes=cup_axes,
         dirichlet_dofs=dirichlet,
         free_dofs=free,
         free_index=free_index,
         pattern_free=fem.sparse_pattern(ops, free_index),
         pattern_free_upper=fem.sparse_pattern(ops, free_index, upper=True),
-        mass=fem.lumped_mass(ops, m.density_kg_per_mm3),
+        mass=fem.lumped_mass(ops, scene.material.density_kg_per_mm3),
     )
 
 
