@@ -118,7 +118,7 @@ def simulate(
     jobs: Optional[int] = typer.Option(None, "--jobs", min=1, help="Worker processes for trials (default: all cores)."),
     executor: str = typer.Option("local", "--executor", help="Where trials run: local | dask."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address (with --executor dask)."),
-    resume: Optional[Path] = typer.Option(None, "--resume", help="Finish the trials of an interrupted run directory."),
+    resume: Optional[Path] = typer.Option(None, "--resume", help="Finish an interrupted run directory: the stages it had not finished, then its trials."),
     study: bool = typer.Option(False, "--study", help="Also run the solver study (the config's `study` section or its defaults)."),
     force: bool = typer.Option(False, "--force", help="Write into a non-empty --out directory."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress or messages, only the output path."),
@@ -183,7 +183,7 @@ def simulate(
         err.print(f"results so far: {directory / 'results.h5'} (status = failed)", markup=False, soft_wrap=True)
         _fail(1, str(exc))
     except KeyboardInterrupt as exc:
-        _stopped(exc, directory, f"finish the trials with: scissor simulate --resume {directory}")
+        _stopped(exc, directory, f"finish the run with: scissor simulate --resume {directory}")
     out.print(str(summary.out_dir))
 
 

@@ -1,6 +1,7 @@
 """`scissor simulate` end to end: the HDF5 layout of docs/contract.md, figures, failures."""
 
 import os
+import shutil
 import subprocess
 import sys
 
@@ -148,6 +149,20 @@ def test_resume_refuses_what_it_cannot_resume(run, tmp_path):
     _, out = run
     proc = run_cli("simulate", "--resume", tmp_path)
     assert proc.returncode == 2 and "no results.h5" in proc.stderr and "Traceback" not in proc.stderr
-    proc = run_cli("simulate", "--resume", out)  # a --trials 0 run
-    assert proc.returncode == 2 and "stopped before its trials" in proc.stderr
-    assert not (out / "results.h5.tmp").exists()
+    proc = run_cli("simulate", "--resume", tmp_path / "nowhere")
+    assert proc.returncode == 2 and "no results.h5" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_resume_of_a_complete_run_without_trials_computes_nothing(run, tmp_path):
+    _, out = run
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    with h5py.File(copy / "results.h5") as f:
+        times = {k: f[f"forward/{k}"].attrs["time_s"] for k in f["forward"]}
+    proc = run_cli("simulate", "--resume", copy)  # a --trials 0 run
+    assert proc.returncode == 0, proc.stderr
+    assert "resumed: 0 trial(s) run" in proc.stdout + proc.stderr
+    with h5py.File(copy / "results.h5") as f:
+        assert f.attrs["status"] == "complete"
+        assert {k: f[f"forward/{k}"].attrs["time_s"] for k in f["forward"]} == times
+    assert not (copy / "results.h5.tmp").exists()

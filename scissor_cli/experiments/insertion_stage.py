@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from scissor_cli.config import Config
-from scissor_cli.experiments.sink import Insertion, RunSink
+from scissor_cli.experiments.sink import Insertion, RunSink, product_key
 from scissor_cli.insertion import NeedleParams, run_insertion
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.equilibrium import solve_equilibrium
@@ -34,15 +34,19 @@ def manipulation_ramp(tissue: Tissue, strokes: np.ndarray, frames: int = RAMP_FR
     return out
 
 
-def insertion_stage(cfg: Config, tissue: Tissue, plans: list, sink: RunSink, reporter) -> list[Path]:
-    """Insert into every planned target under every strategy; print each target's miss per strategy."""
+def insertion_stage(cfg: Config, tissue: Tissue, plans: list, sink: RunSink, reporter,
+                    done: frozenset[str] = frozenset()) -> list[Path]:
+    """Insert into every planned target not in `done` under every strategy; print each target's miss per strategy."""
     params = NeedleParams.from_config(cfg.insertion, cfg)
     paths: list[Path] = []
-    animate = True
+    first = next((t.name for t, p in zip(tissue.scene.targets, plans) if p.feasible), None)
     for target, plan in zip(tissue.scene.targets, plans):
+        if product_key("insertion", target.name) in done:
+            continue
         if not plan.feasible:
             reporter.info(f"insertion {target.name}: skipped, no plan ({plan.reason})")
             continue
+        animate = target.name == first
         frames = manipulation_ramp(tissue, plan.strokes, RAMP_FRAMES if animate else 1)
         results = [
             run_insertion(tissue, frames[-1], plan.strokes, plan.entry, plan.direction, plan.depth_mm, target.rest,
@@ -51,7 +55,7 @@ def insertion_stage(cfg: Config, tissue: Tissue, plans: list, sink: RunSink, rep
         ]
         paths += sink.insertion(Insertion(target.name, results, tissue, np.asarray(target.rest, float),
                                           np.asarray(plan.desired, float), frames, animate))
-        animate = False
+        sink.mark_finished(product_key("insertion", target.name))
         parts = ", ".join(f"{r.strategy} {r.miss_mm:.3f} mm (depth error {r.depth_error_mm:+.3f} mm)" for r in results)
         reporter.info(f"insertion {target.name}: miss {parts}")
         for r in results:

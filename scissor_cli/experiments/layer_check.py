@@ -13,13 +13,17 @@ import time
 import numpy as np
 
 from scissor_cli.config import Config
+from scissor_cli.experiments.sink import product_key
 from scissor_cli.layer3d.check import build_layer_check, spec_from_config
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.equilibrium import EquilibriumSolver
 
 
-def run_layer_check(cfg: Config, tissue: Tissue, sink, reporter) -> list:
-    """Solve and hand to the sink the layer check of every forward case; returns the figures' paths."""
+def run_layer_check(cfg: Config, tissue: Tissue, sink, reporter, done: frozenset[str] = frozenset()) -> list:
+    """Solve and hand to the sink the layer check of every forward case not in `done`; returns the figures' paths."""
+    cases = [case for case in cfg.forward if product_key("layer_check", case.name) not in done]
+    if not cases:
+        return []
     t0 = time.perf_counter()
     check = build_layer_check(tissue, spec_from_config(cfg.layer_check))
     sm = check.mesh
@@ -29,8 +33,8 @@ def run_layer_check(cfg: Config, tissue: Tissue, sink, reporter) -> list:
     scene, mesh = tissue.scene, tissue.mesh
     layer = EquilibriumSolver(tissue, "newton")
     paths = []
-    advance = reporter.progress("layer check", len(cfg.forward))
-    for case in cfg.forward:
+    advance = reporter.progress("layer check", len(cases))
+    for case in cases:
         strokes = scene.strokes_vector(case.strokes)
         r2 = layer.solve(strokes)
         result = check.run_case(case.name, strokes, r2)
@@ -44,6 +48,7 @@ def run_layer_check(cfg: Config, tissue: Tissue, sink, reporter) -> list:
             targets_stress=result.targets_stress, layer_z_mm=float(sm.levels_mm[sm.layer_level]),
         )
         path = sink.layer_check(result, figure)
+        sink.mark_finished(product_key("layer_check", case.name))
         reporter.info(
             f"layer check {case.name}: 3-D Newton {result.iterations} iterations, {result.time_s:.1f} s; in-plane "
             f"difference {result.in_plane_diff_mm:.3f} mm ({100 * result.in_plane_diff_fraction:.1f} %), "

@@ -28,7 +28,7 @@ from scissor_cli.planning.needle import NeedlePlan, plan_target
 from scissor_cli.planning.states import StateCache
 from scissor_cli.experiments.pool import deferred_signals
 from scissor_cli.experiments.profiles import INSERTION_SPREADS, error_model
-from scissor_cli.experiments.sink import ForwardCase, Manipulation, ResumableSink, RunSink, SinkFactory
+from scissor_cli.experiments.sink import ForwardCase, Manipulation, ResumableSink, RunSink, SinkFactory, product_key
 from scissor_cli.experiments.sink import NonFiniteError, ResumeError  # noqa: F401 - raised through this module's API
 from scissor_cli.robot.chain import RobotModel
 from scissor_cli.robot.registration import plan_to_joints
@@ -132,33 +132,49 @@ def grip_stage(cfg: Config, reporter: Reporter):
 
 
 def resume_simulation(sink: ResumableSink, reporter: Reporter | None = None, execution: Execution = Execution()) -> int:
-    """Finish the trials of an interrupted, killed or partly failed run in its sink; returns how many ran.
+    """Finish an interrupted, killed or partly failed run in its sink; returns how many trials ran.
 
-    The stored run's config and plans are reused and finished trials are
-    never recomputed (docs/contract.md#resume). When the sink lost the
-    stored file, the stages before the trials run again (they are
-    deterministic) and the trials the sink recovered are kept.
+    The stored run's config is reused; every stage product the sink marks
+    finished (`RunSink.finished`) is kept and not recomputed, the rest is
+    done as a new run would do it (docs/contract.md#resume). When the sink
+    lost the stored file, nothing is marked: the stages before the trials
+    run again (they are deterministic) and the trials the sink recovered are
+    kept.
     """
     reporter = reporter or SilentReporter()
     for note in sink.notes():
         reporter.info(note)
     with sink:
         cfg = parse_config(sink.config_yaml, str(sink.location / "results.h5"))
-        plans = sink.plans()
-        tissue = _build(cfg, reporter) if plans is None else build_model(cfg)[2]
-        if plans is None:
-            summary = RunSummary(sink.location, tissue.mesh.n_elements)
-            _stages(cfg, tissue, sink, summary, reporter, execution)
-            return summary.trials_run
-        tasks = []
-        for index, target in enumerate(tissue.scene.targets):
-            p = plans.get(target.name)
-            if p is not None and bool(p["feasible"]):
-                tasks.append(TargetTask(index, target.name, target.rest, np.asarray(p["desired"]),
-                                        np.asarray(p["strokes"]), str(p["side"]), np.asarray(p["direction"]),
-                                        np.asarray(p["entry"]) if "entry" in p else None,
-                                        float(p["depth_mm"]) if "depth_mm" in p else 0.0))
-        return _trial_stage(sink, cfg, tasks, reporter, execution)
+        done = sink.finished()
+        tissue = build_model(cfg)[2] if "trials" in done else _build(cfg, reporter)
+        summary = RunSummary(sink.location, tissue.mesh.n_elements)
+        if done:
+            reporter.info(f"resume: {len(done)} finished stage product(s) kept")
+        _stages(cfg, tissue, sink, summary, reporter, execution, done=done)
+        return summary.trials_run
+
+
+def stored_plans(tissue: Tissue, stored: dict[str, dict]) -> list[NeedlePlan]:
+    """The plans of a stored run (/plan/<target> attributes, docs/contract.md) in the scene's target order.
+
+    Values the file holds as fills are restored to what the planner gave:
+    no geometry without a plan, no joints the robot cannot reach, an infinite
+    clearance without obstacles.
+    """
+    plans = []
+    for target in tissue.scene.targets:
+        a = stored[target.name]
+        feasible, reachable = bool(a["feasible"]), bool(a["robot_reachable"])
+        geometry = (lambda v: np.asarray(v, float)) if str(a["side"]) else (lambda v: np.full(np.shape(v), np.nan))
+        clearance = float(a["clearance_mm"]) if tissue.scene.obstacles else float("inf")
+        joints = np.asarray(a["joints"], float)
+        plans.append(NeedlePlan(
+            target.name, feasible, str(a["reason"]), np.asarray(a["desired"], float), np.asarray(a["strokes"], float),
+            geometry(a["entry"]), geometry(a["direction"]), float(geometry(a["depth_mm"])), clearance, str(a["side"]),
+            joints if reachable else np.full(joints.shape, np.nan), reachable, str(a["joints_note"]),
+            float(a["desired_error_mm"])))
+    return plans
 
 
 def _build(cfg: Config, reporter: Reporter) -> Tissue:
@@ -173,32 +189,47 @@ def _build(cfg: Config, reporter: Reporter) -> Tissue:
 
 
 def _stages(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary, reporter: Reporter,
-            execution: Execution, selection=None) -> None:
-    """The stages after the model is built, in the order of docs/contract.md#simulate."""
+            execution: Execution, selection=None, done: frozenset[str] = frozenset()) -> None:
+    """The stages after the model is built, in the order of docs/contract.md#simulate.
+
+    Each product is marked finished in the sink once stored; one in `done`
+    (a resumed run's) is not computed again.
+    """
     scene, mesh = tissue.scene, tissue.mesh
-    sink.model(tissue)
-    if selection is not None:
-        sink.selection(selection)
-    _forward_stage(cfg, tissue, sink, summary, reporter)
+    if "model" not in done:
+        sink.model(tissue)
+        if selection is not None:
+            sink.selection(selection)
+        sink.mark_finished("model")
+    _forward_stage(cfg, tissue, sink, summary, reporter, done)
     if cfg.layer_check is not None and cfg.forward:
         from scissor_cli.experiments.layer_check import run_layer_check
 
-        summary.figures += run_layer_check(cfg, tissue, sink, reporter)
+        summary.figures += run_layer_check(cfg, tissue, sink, reporter, done)
     probe = probe_targets(mesh, np.array([t.rest for t in scene.targets]).reshape(-1, 2))
-    if len(scene.targets):
+    if len(scene.targets) and "jacobian" not in done:
         J = cup_target_jacobian(tissue, tissue.rest, probe)
         for k, target in enumerate(scene.targets):
             sink.jacobian(target.name, J[2 * k : 2 * k + 2], scene.cup_names)
-    if cfg.study is not None:
+        sink.mark_finished("jacobian")
+    if cfg.study is not None and "study" not in done:
         _study_stage(cfg, sink, reporter)
-    summary.plans = _plan_stage(cfg, tissue, sink, reporter)
+        sink.mark_finished("study")
+    stored = sink.plans() if "plan" in done else None
+    if stored is not None:
+        summary.plans = stored_plans(tissue, stored)
+    else:
+        summary.plans = _plan_stage(cfg, tissue, sink, reporter)
+        sink.mark_finished("plan")
     if cfg.trials.count > 0:
-        summary.figures += _manipulation_stage(cfg, tissue, summary.plans, sink, reporter)
+        summary.figures += _manipulation_stage(cfg, tissue, summary.plans, sink, reporter, done)
     if cfg.insertion is not None:
-        summary.figures += insertion_stage(cfg, tissue, summary.plans, sink, reporter)
+        summary.figures += insertion_stage(cfg, tissue, summary.plans, sink, reporter, done)
     if cfg.trials.count > 0:
         tasks = trial_tasks(tissue, summary.plans)
-        allocate_trial_arrays(sink, cfg, tasks, summary.plans)
+        if "trials" not in done:
+            allocate_trial_arrays(sink, cfg, tasks, summary.plans)
+            sink.mark_finished("trials")
         summary.trials_run = _trial_stage(sink, cfg, tasks, reporter, execution)
 
 
@@ -237,7 +268,7 @@ def allocate_trial_arrays(sink: RunSink, cfg: Config, tasks: list[TargetTask], p
 
 
 def _manipulation_stage(cfg: Config, tissue: Tissue, plans: list[NeedlePlan], sink: RunSink,
-                        reporter: Reporter) -> list[Path]:
+                        reporter: Reporter, done: frozenset[str] = frozenset()) -> list[Path]:
     """The nominal manipulation of each planned target (truth = model, exact camera): Fig. 11.
 
     The open-loop baseline (one Jacobian step from rest) is kept beside it.
@@ -245,13 +276,14 @@ def _manipulation_stage(cfg: Config, tissue: Tissue, plans: list[NeedlePlan], si
     radius = corridor_radius(cfg.needle)
     paths = []
     for target, plan in zip(tissue.scene.targets, plans):
-        if not plan.feasible:
+        if not plan.feasible or product_key("manipulation", target.name) in done:
             continue
         corridor = control.Corridor.from_plan(plan, radius)
         kw = dict(corridor=corridor, target=target.name)
         closed = control.run_target(tissue, target.rest, plan.desired, cfg.controller, **kw)
         opened = control.run_target(tissue, target.rest, plan.desired, cfg.controller, mode="open", **kw)
         path = sink.manipulation(Manipulation(target.name, closed, opened, tissue, target.rest, corridor))
+        sink.mark_finished(product_key("manipulation", target.name))
         if path is not None:
             paths.append(path)
         reporter.info(
@@ -293,12 +325,14 @@ def _trial_stage(sink: RunSink, cfg: Config, tasks: list[TargetTask], reporter: 
     return len(work)
 
 
-def _forward_stage(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary, reporter: Reporter) -> None:
+def _forward_stage(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary, reporter: Reporter,
+                   done: frozenset[str] = frozenset()) -> None:
     scene, mesh = tissue.scene, tissue.mesh
     probe = probe_targets(mesh, np.array([t.rest for t in scene.targets]).reshape(-1, 2))
     solver = EquilibriumSolver.from_config(tissue, cfg.solver)
-    advance = reporter.progress("forward cases", len(cfg.forward))
-    for case in cfg.forward:
+    cases = [case for case in cfg.forward if product_key("forward", case.name) not in done]
+    advance = reporter.progress("forward cases", len(cases))
+    for case in cases:
         strokes = scene.strokes_vector(case.strokes)
         try:
             result = solver.solve_case(strokes)
@@ -311,6 +345,7 @@ def _forward_stage(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSumma
         figure = _forward_figure_inputs(cfg.name, tissue, case.name, strokes, result, targets)
         path = sink.forward_case(ForwardCase(case.name, {c.name: float(s) for c, s in zip(scene.cups, strokes)},
                                              result, mesh.nodes, targets, figure))
+        sink.mark_finished(product_key("forward", case.name))
         note = "" if result.message.startswith("converged") else f" ({result.message})"
         reporter.info(
             f"forward {case.name}: {result.solver} {result.iterations} iterations, "

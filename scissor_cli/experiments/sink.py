@@ -19,6 +19,12 @@ A sink's promises:
 * **A stored trial survives any kill.** `trial` returns only once the
   trial is durable: a later SIGKILL, even in the middle of storing the next
   trial, cannot lose it (docs/contract.md#resume).
+* **What is finished is known.** After a stage has handed over one product
+  whole (a forward case with its figure, a target's insertions, the plans),
+  the pipeline marks its key (`product_key`) with `mark_finished`; the mark
+  is durable when the call returns. `--resume` asks `finished()` and redoes
+  only what is not marked, so a run killed in any stage loses nothing it
+  finished.
 """
 
 from __future__ import annotations
@@ -41,6 +47,16 @@ if TYPE_CHECKING:  # the types the stages produce; annotations only
     from scissor_cli.planning.needle import NeedlePlan
     from scissor_cli.scene.scene import Target
     from scissor_cli.solvers.common import SolveResult
+
+
+def product_key(stage: str, name: str = "") -> str:
+    """The key under which a stage's product is marked finished: `stage` or `stage/name`.
+
+    Stages: model, jacobian, study, plan (all targets' plans), trials (the
+    trial arrays allocated), and per forward case or target: forward/<case>,
+    layer_check/<case>, manipulation/<target>, insertion/<target>.
+    """
+    return f"{stage}/{name}" if name else stage
 
 
 class NonFiniteError(RuntimeError):
@@ -110,6 +126,12 @@ class RunSink(Protocol):
     def notes(self) -> list[str]:
         """What the sink wants the user told (e.g. what a resume recovered or lost)."""
 
+    def finished(self) -> frozenset[str]:
+        """The `product_key`s marked finished (a new run: none)."""
+
+    def mark_finished(self, key: str) -> None:
+        """Mark a product stored whole; durable when this returns."""
+
     def model(self, tissue: "Tissue") -> None:
         """The mesh, material and cups the run computes on."""
 
@@ -165,12 +187,13 @@ class SinkFactory(Protocol):
 
 
 class ResumableSink(RunSink, Protocol):
-    """A run directory opened by `--resume`: the stored run, ready to take the rest of its trials.
+    """A run directory opened by `--resume`: the stored run, ready to take the rest of it.
 
-    `plans()` is None when the stored file was lost (a run killed in the
-    middle of writing it): the pipeline then redoes the stages before the
-    trials into this sink, which already holds every trial that had
-    finished, so none is computed twice.
+    The pipeline redoes every product `finished()` does not name. When the
+    stored file was lost (a run killed in the middle of writing it), nothing
+    is marked and `plans()` is None: every stage before the trials runs
+    again into this sink, which already holds every trial that had finished
+    (from the journal), so none is computed twice.
     """
 
     def plans(self) -> Optional[dict[str, dict]]:

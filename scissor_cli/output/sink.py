@@ -12,6 +12,10 @@ How a run survives a kill (docs/contract.md#resume):
   commit order of `results.write_trial`;
 * each trial is first appended to `results.h5.journal` (`journal.py`),
   which a kill can only cut at its last record;
+* every other stage product (a forward case, a layer check, the plans, a
+  target's manipulation or insertions) is marked finished in the root
+  attribute `finished` once it and its figure are stored, so `--resume`
+  redoes only what is not marked;
 * `--resume` continues `results.h5.tmp` when a killed run left one and it
   reads back whole; otherwise it falls back to `results.h5` (the state
   before the last resume) and says what was lost; and if no HDF5 file can
@@ -28,11 +32,14 @@ from typing import Optional
 import h5py
 import numpy as np
 
-from scissor_cli.experiments.sink import ForwardCase, Manipulation, ResumeError
+from scissor_cli.experiments.sink import ForwardCase, Manipulation, ResumeError, product_key
 from scissor_cli.experiments.study import rows_as_columns
 from scissor_cli.output.manipulation import manipulation_figure_inputs
 from scissor_cli.output import figures, journal, layer_check, results
 from scissor_cli.output.results import ResultsFile, temporary
+
+#: root attribute: the `product_key`s of what the run stored whole (docs/contract.md#resume)
+FINISHED = "finished"
 from scissor_cli.output.insertion_results import write_insertion
 
 
@@ -65,9 +72,28 @@ class ResultsSink:
         return list(self._notes)
 
     def plans(self) -> Optional[dict[str, dict]]:
-        if self._rebuilt:
+        if self._rebuilt or "plan" not in self.out.h5:
             return None
         return {name: dict(g.attrs) for name, g in self.out.h5["plan"].items()}
+
+    def finished(self) -> frozenset[str]:
+        h5 = self.out.h5
+        if self._rebuilt:
+            return frozenset()
+        if FINISHED in h5.attrs:
+            return frozenset(h5.attrs[FINISHED].astype(str).tolist()) if len(h5.attrs[FINISHED]) else frozenset()
+        # A file from before the marks (scissor 0.2.0) was resumable only once its trials were allocated,
+        # and then every stage before them had finished.
+        if "trials" not in h5 or "plan" not in h5:
+            return frozenset()
+        keys = {"model", "jacobian", "study", "plan", "trials"}
+        for stage in ("forward", "layer_check", "manipulation", "insertion"):
+            keys |= {product_key(stage, name) for name in h5.get(stage, {}) if stage != "layer_check" or name != "mesh"}
+        return frozenset(keys)
+
+    def mark_finished(self, key: str) -> None:
+        self.out.h5.attrs[FINISHED] = np.array(sorted(self.finished() | {key}), dtype=h5py.string_dtype())
+        self.out.flush()
 
     # -- the stages --------------------------------------------------------
     def model(self, tissue) -> None:
@@ -184,7 +210,9 @@ class RunDirectory:
         self.location.mkdir(parents=True, exist_ok=True)
         path = self.location / "results.h5"
         journal.journal_path(path).unlink(missing_ok=True)  # an earlier run's (--force): not this run's trials
-        return ResultsSink(ResultsFile.create(path, config_yaml, seed))
+        out = ResultsFile.create(path, config_yaml, seed)
+        out.h5.attrs[FINISHED] = np.array([], dtype=h5py.string_dtype())
+        return ResultsSink(out)
 
 
 def _problem(path: Path) -> Optional[str]:
@@ -266,8 +294,6 @@ def open_for_resume(run_dir: Path | str) -> ResultsSink:
     if base is not None:
         with h5py.File(base, "r") as h5:
             config_yaml = str(h5.attrs["config_yaml"])
-            if "trials" not in h5 or "plan" not in h5:
-                raise ResumeError(f"{base}: nothing to resume: the run stopped before its trials; run simulate again")
         if header is not None and header["config_yaml"] != config_yaml:
             notes.append(f"{jpath.name} belongs to another run; ignored")
             header, recs, valid = None, [], 0
