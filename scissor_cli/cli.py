@@ -31,6 +31,8 @@ err = Console(stderr=True, highlight=False)
 out = Console(highlight=False)
 
 DEFAULT_SCENE = Path(__file__).parent / "scenes" / "example.yaml"
+#: --jobs: more worker processes than this only thrash; --samples: the sample array is held whole in memory
+MAX_JOBS, MAX_SAMPLES = 256, 20_000_000
 
 
 class ConsoleReporter:
@@ -115,7 +117,7 @@ def simulate(
     seed: Optional[int] = typer.Option(None, "--seed", min=0, max=2**63 - 1, help="Override the config's seed."),
     solver: Optional[str] = typer.Option(None, "--solver", help="Override the config's solver: admm | newton."),
     truth: Optional[str] = typer.Option(None, "--truth", help="Override trials.truth: layer | slab (the 3-D slab of layer_check)."),
-    jobs: Optional[int] = typer.Option(None, "--jobs", min=1, help="Worker processes for trials (default: all cores)."),
+    jobs: Optional[int] = typer.Option(None, "--jobs", min=1, max=MAX_JOBS, help="Worker processes for trials (default: all cores)."),
     executor: str = typer.Option("local", "--executor", help="Where trials run: local | dask."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address (with --executor dask)."),
     resume: Optional[Path] = typer.Option(None, "--resume", help="Finish an interrupted run directory: the stages it had not finished, then its trials."),
@@ -200,7 +202,7 @@ def _stopped(exc: KeyboardInterrupt, directory: Path, how: str) -> None:
 @app.command()
 def workspace(
     config: Optional[Path] = typer.Argument(None, help="Scene YAML file for its `robot` section (default: the paper's robot)."),
-    samples: int = typer.Option(1_000_000, "--samples", min=1, help="Joint-space samples."),
+    samples: int = typer.Option(1_000_000, "--samples", min=1, max=MAX_SAMPLES, help="Joint-space samples (about 0.5 s and 0.2 GB per million)."),
     out_dir: Optional[Path] = typer.Option(None, "--out", help="Output directory (default runs/workspace-<time>/)."),
     seed: Optional[int] = typer.Option(None, "--seed", min=0, max=2**63 - 1, help="Sampling seed (default: the config's seed, else 0)."),
     grid: bool = typer.Option(False, "--grid", help="Sample a tensor grid instead of uniformly at random."),

@@ -281,13 +281,21 @@ def test_validate_subprocess(tmp_path, content):
     assert proc.stderr.startswith(f"error: {path}") and proc.stderr.count("error:") == 1
 
 
-@pytest.mark.parametrize("args", [["--seed", str(2**70)], ["--trials", str(10**9)]], ids=["seed", "trials"])
+@pytest.mark.parametrize("args", [["--seed", str(2**70)], ["--trials", str(10**9)], ["--jobs", str(10**5)]],
+                         ids=["seed", "trials", "jobs"])
 def test_overrides_keep_to_the_config_ranges(tmp_path, args):
     """Command-line overrides bypass the config's validation, so they carry its ranges themselves."""
     path = tmp_path / "scene.yaml"
     path.write_text(_dump(COARSE))
     result = runner.invoke(app, ["simulate", str(path), "--out", str(tmp_path / "o"), "--quiet", *args])
     assert result.exit_code == 2 and args[0] in result.output and not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("samples", [0, 10**11])
+def test_workspace_samples_are_bounded(tmp_path, samples):
+    """A sample count the machine cannot hold is refused before anything is allocated."""
+    result = runner.invoke(app, ["workspace", "--samples", str(samples), "--out", str(tmp_path / "w"), "--quiet"])
+    assert result.exit_code == 2 and "--samples" in result.output and not (tmp_path / "w").exists()
 
 
 # --------------------------------------------------------------------------

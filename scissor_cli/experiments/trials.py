@@ -223,6 +223,7 @@ def execute(
         for task, k in work:
             yield run_trial(config_yaml, task, k)
         return
+    jobs = min(jobs, len(work))  # a worker without a trial would only cost its start-up
     # Batches amortise the per-task overhead while keeping both workers busy to the end.
     size = max(1, min(8, len(work) // (4 * jobs)))
     yield from run_pool(_run_batch, [(config_yaml, batch) for batch in _batches(work, size)], jobs)
