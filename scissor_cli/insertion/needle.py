@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from scissor_cli.insertion.chord import ChordFailed, ChordSolver, Hold
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.common import Conditions, SolverError
 from scissor_cli.solvers.equilibrium import solve_equilibrium
@@ -97,6 +98,8 @@ class NeedleState:
     sign: np.ndarray = field(default_factory=lambda: np.zeros(0))
     #: the last step's node increment per mm of advance (N, 2), the next step's predictor
     rate: np.ndarray | None = None
+    #: the kept factorisation of the needle's solves (`chord.ChordSolver`), shared across steps
+    solver: ChordSolver | None = field(default=None, repr=False)
 
     @property
     def across(self) -> np.ndarray:
@@ -124,6 +127,8 @@ class StepOutcome:
     settled: bool
     passes: int
     iterations: int
+    #: numeric factorisations the step made
+    factorizations: int = 0
 
 
 def free_nodes(tissue: Tissue) -> np.ndarray:
@@ -247,33 +252,37 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
     # it slips against that too, it is stuck again and stays stuck in this step.
     flipped = np.zeros(captured.size, bool)
     locked = np.zeros(captured.size, bool)
+    if state.solver is None:
+        state.solver = ChordSolver(tissue)
+    solver, n_factor = state.solver, state.solver.factorizations
     passes, iterations, settled, tol = 0, 0, False, PASS_TOL
     result_x, loads, axial = start, base, np.zeros(captured.size)
+    base_x = x[captured]
+    _, grad_u = tissue.energy_gradient(start)
     while passes < MAX_ACTIVE_SET:
         loads = base.copy()
         slip = ~stuck
         friction = fk * lengths[slip] * sign[slip]
         np.add.at(loads, 2 * captured[slip], friction * n[0])
         np.add.at(loads, 2 * captured[slip] + 1, friction * n[1])
-        held = np.concatenate([2 * captured[stuck], 2 * captured[stuck] + 1])
-        cond = Conditions(loads=loads, held=held, along_nodes=captured[slip], along=np.tile(t, (int(slip.sum()), 1)))
-        r = solve_equilibrium(tissue, strokes, start=start, start_strokes=strokes, conditions=cond, tol=tol)
+        hold = Hold(captured, base_x, stuck, ride, n, t)
+        r_x, g, its = _solve_pass(tissue, solver, strokes, start, grad_u - loads, hold, loads, tol)
+        grad_u = g + loads
         passes += 1
-        iterations += r.iterations
-        result_x = r.x
-        _, grad = tissue.energy_gradient(r.x)
-        c = grad.reshape(-1, 2)[captured] - loads.reshape(-1, 2)[captured]  # what the needle must supply
+        iterations += its
+        result_x = r_x
+        c = g.reshape(-1, 2)[captured]  # what the needle must supply
         axial = c @ n
-        limit = fs * lengths * (1.0 + 1e-9) + 1e-9 * tissue.force_scale(grad)
+        limit = fs * lengths * (1.0 + 1e-9) + 1e-9 * tissue.force_scale(grad_u)
         release = stuck & ~locked & (np.abs(axial) > limit)
         # Kinetic friction opposes the slip: a node pulled forward (+n) must lag the needle, and the reverse.
-        lag = (r.x[captured] - x[captured]) @ n - ride
+        lag = (r_x[captured] - x[captured]) @ n - ride
         against = ~stuck & (sign * lag > 1e-9 * step_mm)
         if not np.any(release) and not np.any(against):
             if tol <= STEP_TOL:
                 settled = True
                 break
-            tol, start = STEP_TOL, r.x
+            tol, start = STEP_TOL, r_x
             continue
         sign[release] = np.sign(axial[release])
         flip, restick = against & ~flipped, against & flipped
@@ -281,14 +290,33 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
         flipped |= flip
         stuck = (stuck & ~release) | restick
         locked |= restick
-        start = r.x.copy()
-        start[captured[restick]] = x[captured[restick]] + ride[restick, None] * n
-        _check_start(tissue, start, J_now)
+        start = r_x.copy()
+        if np.any(restick):
+            start[captured[restick]] = x[captured[restick]] + ride[restick, None] * n
+            _check_start(tissue, start, J_now)
+            _, grad_u = tissue.energy_gradient(start)
     force = float(axial[stuck].sum() + (fk * lengths[~stuck] * sign[~stuck]).sum() + params.tip_force_mN)
     state.captured, state.offset, state.stuck, state.lengths = captured, offset, stuck, lengths
     state.sign = np.where(stuck, 0.0, sign)
     state.rate = (result_x - x) / step_mm
-    return StepOutcome(result_x, force, int(stuck.sum()), int((~stuck).sum()), loads, settled, passes, iterations)
+    return StepOutcome(result_x, force, int(stuck.sum()), int((~stuck).sum()), loads, settled, passes, iterations,
+                       solver.factorizations - n_factor)
+
+
+def _solve_pass(tissue, solver, strokes, start, g, hold, loads, tol):
+    """One pass's equilibrium under the hold from start (N, 2), objective gradient g (2N,): (x, g, iterations).
+
+    The kept factorisation's chord steps (`chord.ChordSolver`); Newton with
+    the same hold as `Conditions` when they fail.
+    """
+    try:
+        x, g, its, _ = solver.converge(start, g, hold, tol, loads)
+        return x, g, its
+    except ChordFailed:
+        pass
+    r = solve_equilibrium(tissue, strokes, start=start, start_strokes=strokes, conditions=hold.conditions(loads), tol=tol)
+    _, grad = tissue.energy_gradient(r.x)
+    return r.x, grad - loads, r.iterations
 
 
 def needle_conditions(state: NeedleState, loads: np.ndarray | None = None) -> Conditions:
