@@ -136,21 +136,28 @@ class ChordSolver:
         check_finite(d, "the needle's chord step")
         return d.reshape(x.shape), mu
 
-    def converge(self, x: np.ndarray, g: np.ndarray, hold: "Hold", tol: float, loads: np.ndarray):
+    def converge(self, x: np.ndarray, g: np.ndarray, hold: "Hold", tol: float, loads: np.ndarray, decide=None):
         """Chord steps from x (N, 2) (gradient g) until the hold's relative residual is ≤ tol.
 
-        Returns (x, g, iterations, μ of the last step or None). Refactors when a
-        step does not contract; raises ChordFailed when a fresh factorisation
-        does not help either (an inverted trial, no contraction, or MAX_CHORD).
+        Returns (x, g, iterations, verdict). decide(x, d, μ, res), asked
+        before each step with that step and the residual at x, may end the
+        solve early: whatever it returns (not None) is the verdict, x is left
+        as it is. Refactors when a step does not contract; raises ChordFailed
+        when a fresh factorisation does not help either (an inverted trial,
+        no contraction, or MAX_CHORD steps).
         """
         res = hold.residual(self.tissue, g)
-        mu, its = None, 0
+        its = 0
         while res > tol or np.any(np.abs(hold.gap(x)) > 1e-12):
             if its >= MAX_CHORD:
                 raise ChordFailed(f"{MAX_CHORD} chord steps left the residual at {res:.3g}")
             if self._factor is None:
                 self.refactor(x)
-            d, mu_t = self.step(g, hold, x)
+            d, mu = self.step(g, hold, x)
+            if decide is not None:
+                verdict = decide(x, d, mu, res)
+                if verdict is not None:
+                    return x, g, its, verdict
             trial = x + d
             _, g_t = objective_gradient(self.tissue, trial, None, loads, require_positive_J=True)
             res_t = np.inf if g_t is None else hold.residual(self.tissue, g_t)
@@ -159,10 +166,10 @@ class ChordSolver:
                     raise ChordFailed(f"a chord step on a fresh factorisation went from {res:.3g} to {res_t:.3g}")
                 self.refactor(x)
                 continue
-            x, g, res, mu = trial, g_t, res_t, mu_t
+            x, g, res = trial, g_t, res_t
             self.fresh = False
             its += 1
-        return x, g, its, mu
+        return x, g, its, None
 
 
 class Hold:
@@ -202,3 +209,12 @@ class Hold:
         stuck, slip = self.captured[self.stuck], self.captured[~self.stuck]
         return Conditions(loads=loads, held=np.concatenate([2 * stuck, 2 * stuck + 1]),
                           along_nodes=slip, along=np.tile(self.t, (slip.size, 1)))
+
+    def place(self, x: np.ndarray) -> np.ndarray:
+        """x (N, 2) with the captured nodes moved onto the hold (stuck: ridden along; all: back across the axis)."""
+        x = x.copy()
+        rel = x[self.captured] - self.base
+        rel -= (rel @ self.t)[:, None] * self.t
+        along = np.where(self.stuck, self.ride, rel @ self.n)
+        x[self.captured] = self.base + along[:, None] * self.n + ((rel @ self.t)[:, None] * self.t)
+        return x
