@@ -39,8 +39,6 @@ from scissor_cli.solvers.linear import factorize_free
 CONTRACTION = 0.5
 #: a hold's constraint is met when it is this close (mm): round-off of positions ~100 mm
 GAP_TOL = 1e-10
-#: Anderson acceleration's memory (0: plain chord steps)
-ANDERSON_MEMORY = 5
 #: chord steps per solve before giving up (with the factorisation fresh)
 MAX_CHORD = 40
 
@@ -120,21 +118,24 @@ class ChordSolver:
         d meets the hold's constraints exactly; μ are the constraint forces
         (the needle supplies −Cᵀμ: −μ along each row's direction). With the
         node columns W (Nf, 2P) and each row's direction on its node's two
-        dofs D (2P, m): C = DᵀEᵀ, S = Dᵀ (EᵀW) D, only (2P × 2P) dense work.
+        dofs D (2P, m): C = DᵀEᵀ, S = Dᵀ (EᵀW) D, only (2P × 2P) dense work,
+        the same for every step of a pass on one factorisation.
         """
         t = self.tissue
         nodes = hold.captured
         W = self.columns(nodes)
-        fi = t.free_index
-        idx = np.stack([fi[2 * nodes], fi[2 * nodes + 1]], axis=1).ravel()
-        D = hold.directions()
         d0 = -self._factor.solve(g[t.free_dofs])
-        mu = np.zeros(D.shape[1])
-        d_free = d0
+        d_free, mu = d0, np.zeros(0)
         if nodes.size:
-            if hold.schur is None or hold.schur[0] is not self._factor or hold.schur[1] != self.factorizations:
-                hold.schur = (self._factor, self.factorizations, D.T @ W[idx] @ D)  # fixed within a pass
-            mu = np.linalg.solve(hold.schur[2], D.T @ d0[idx] - hold.gap(x))
+            key = (self._factor, self.factorizations)
+            if hold.schur is None or hold.schur[0] != key:
+                fi = t.free_index
+                idx = np.stack([fi[2 * nodes], fi[2 * nodes + 1]], axis=1).ravel()
+                D = hold.directions()
+                S_inv = np.linalg.inv(D.T @ W[idx] @ D)  # m ≤ 2P: small, symmetric positive definite
+                hold.schur = (key, idx, D, S_inv)
+            _, idx, D, S_inv = hold.schur
+            mu = S_inv @ (D.T @ d0[idx] - hold.gap(x))
             d_free = d0 - W @ (D @ mu)
         d = np.zeros(x.size)
         d[t.free_dofs] = d_free
@@ -153,7 +154,6 @@ class ChordSolver:
         """
         res = hold.residual(self.tissue, g)
         its = 0
-        accel = _Anderson(ANDERSON_MEMORY)
         while res > tol or np.any(np.abs(hold.gap(x)) > GAP_TOL):
             if its >= MAX_CHORD:
                 raise ChordFailed(f"{MAX_CHORD} chord steps left the residual at {res:.3g}")
@@ -164,57 +164,18 @@ class ChordSolver:
                 verdict = decide(x, d, mu, res)
                 if verdict is not None:
                     return x, g, its, verdict
-            accepted = None
-            for trial in (accel.next(x, d), x + d):
-                if trial is None:
-                    continue
-                _, g_t = objective_gradient(self.tissue, trial, None, loads, require_positive_J=True)
-                res_t = np.inf if g_t is None else hold.residual(self.tissue, g_t)
-                if res_t <= CONTRACTION * res or res_t <= tol:
-                    accepted = trial, g_t, res_t
-                    break
-                accel.reset()
-            if accepted is None:
+            trial = x + d
+            _, g_t = objective_gradient(self.tissue, trial, None, loads, require_positive_J=True)
+            res_t = np.inf if g_t is None else hold.residual(self.tissue, g_t)
+            if not (res_t <= CONTRACTION * res or res_t <= tol):
                 if self.fresh:
                     raise ChordFailed(f"a chord step on a fresh factorisation went from {res:.3g} to {res_t:.3g}")
                 self.refactor(x)
-                accel.reset()
                 continue
-            x, g, res = accepted
+            x, g, res = trial, g_t, res_t
             self.fresh = False
             its += 1
         return x, g, its, None
-
-
-class _Anderson:
-    """Anderson acceleration of the chord iteration x ↦ x + d(x) (memory m): a GMRES-like mix of the last steps.
-
-    Every iterate meets the hold's constraints and every step keeps them, so
-    an affine mix of iterates keeps them too.
-    """
-
-    def __init__(self, memory: int):
-        self.memory = memory
-        self.reset()
-
-    def reset(self) -> None:
-        self._x, self._f = [], []
-
-    def next(self, x: np.ndarray, d: np.ndarray) -> np.ndarray | None:
-        """The accelerated next iterate (N, 2), or None while there is no history."""
-        xs, fs = x.ravel(), d.ravel()
-        self._x.append(xs.copy())
-        self._f.append(fs.copy())
-        if len(self._x) > self.memory + 1:
-            self._x.pop(0)
-            self._f.pop(0)
-        if len(self._x) < 2 or self.memory == 0:
-            return None
-        dX = np.diff(np.array(self._x), axis=0).T
-        dF = np.diff(np.array(self._f), axis=0).T
-        gamma = np.linalg.lstsq(dF, fs, rcond=1e-10)[0]
-        out = xs + fs - (dX + dF) @ gamma
-        return out.reshape(x.shape) if np.all(np.isfinite(out)) else None
 
 
 class Hold:
@@ -223,7 +184,7 @@ class Hold:
     def __init__(self, captured, base, stuck, ride, n, t):
         self.captured, self.base, self.stuck, self.ride = captured, base, stuck, ride
         self.n, self.t = n, t
-        #: (factor, its count, S) of the last chord step: S is the same while both are
+        #: ((factor, its count), E's rows, D, S⁻¹) of the last chord step: the same while the factorisation is
         self.schur = None
 
     def directions(self) -> np.ndarray:
