@@ -159,6 +159,7 @@ class ChordSolver:
                 raise ChordFailed(f"{MAX_CHORD} chord steps left the residual at {res:.3g}")
             if self._factor is None:
                 self.refactor(x)
+            closing = bool(np.any(np.abs(hold.gap(x)) > GAP_TOL))  # a step that meets the rows: no residual to compare
             d, mu = self.step(g, hold, x)
             if decide is not None:
                 verdict = decide(x, d, mu, res)
@@ -167,7 +168,7 @@ class ChordSolver:
             trial = x + d
             _, g_t = objective_gradient(self.tissue, trial, None, loads, require_positive_J=True)
             res_t = np.inf if g_t is None else hold.residual(self.tissue, g_t)
-            if not (res_t <= CONTRACTION * res or res_t <= tol):
+            if not (res_t <= CONTRACTION * res or res_t <= tol or (closing and g_t is not None)):
                 if self.fresh:
                     raise ChordFailed(f"a chord step on a fresh factorisation went from {res:.3g} to {res_t:.3g}")
                 self.refactor(x)

@@ -266,7 +266,11 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
     passes, iterations, settled, tol = 0, 0, False, PASS_TOL
     result_x, loads, axial = start, base, np.zeros(captured.size)
     base_x = x[captured]
-    _, grad_u = tissue.energy_gradient(start)
+    # The chord solver starts the first pass from the last equilibrium itself: its
+    # first step is the tangent response to the needle's ride (2 steps to a
+    # decision instead of 4 from `start`); `start` is where Newton would start.
+    chord_x = x
+    _, grad_u = tissue.energy_gradient(chord_x)
     while passes < MAX_ACTIVE_SET:
         loads = base.copy()
         slip = ~stuck
@@ -287,8 +291,8 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
                 return None
             return release, against, axial_p
 
-        r_x, g, its, verdict = _solve_pass(tissue, solver, strokes, start, grad_u - loads, hold, loads, tol,
-                                           early if EARLY_DECISIONS else None)
+        r_x, g, its, verdict = _solve_pass(tissue, solver, strokes, chord_x, grad_u - loads, hold, loads, tol,
+                                           early if EARLY_DECISIONS else None, start)
         grad_u = g + loads
         passes += 1
         iterations += its
@@ -304,6 +308,7 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
                     settled = True
                     break
                 tol, start = STEP_TOL, r_x
+                chord_x = start
                 continue
         else:
             release, against, axial = verdict
@@ -318,6 +323,7 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
             start[captured[restick]] = x[captured[restick]] + ride[restick, None] * n
             _check_start(tissue, start, J_now)
             _, grad_u = tissue.energy_gradient(start)
+        chord_x = start
     force = float(axial[stuck].sum() + (fk * lengths[~stuck] * sign[~stuck]).sum() + params.tip_force_mN)
     state.captured, state.offset, state.stuck, state.lengths = captured, offset, stuck, lengths
     state.sign = np.where(stuck, 0.0, sign)
@@ -351,18 +357,18 @@ class _Rule:
         return release, against, unclear
 
 
-def _solve_pass(tissue, solver, strokes, start, g, hold, loads, tol, decide=None):
-    """One pass's equilibrium under the hold from start (N, 2), objective gradient g (2N,): (x, g, iterations, verdict).
+def _solve_pass(tissue, solver, strokes, x, g, hold, loads, tol, decide, start):
+    """One pass's equilibrium under the hold: (x, g, iterations, verdict).
 
-    The kept factorisation's chord steps (`chord.ChordSolver`), which
-    `decide` may end early with a verdict; Newton with the same hold as
-    `Conditions` when they fail.
+    The kept factorisation's chord steps (`chord.ChordSolver`) from x (N, 2)
+    with objective gradient g (2N,), which `decide` may end early with a
+    verdict; when they fail, Newton with the same hold as `Conditions` from
+    start (N, 2), the hold's placed start (checked not to flatten).
     """
     try:
-        return solver.converge(start, g, hold, tol, loads, decide)
+        return solver.converge(x, g, hold, tol, loads, decide)
     except ChordFailed:
         pass
-    start = hold.place(start)
     r = solve_equilibrium(tissue, strokes, start=start, start_strokes=strokes, conditions=hold.conditions(loads), tol=tol)
     _, grad = tissue.energy_gradient(r.x)
     return r.x, grad - loads, r.iterations, None
