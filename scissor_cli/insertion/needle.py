@@ -21,11 +21,19 @@ against its friction (ahead of the needle while pulled forward, or behind
 it while held back: possible once its neighbours slipped too) has its
 friction reversed; if it moves against that too, its true state is stuck
 (the reaction then lies within ±f_k l_i) and it stays stuck for the rest
-of the step. So the loop ends within 3P + 1 passes. Every solve goes through
-`solvers.equilibrium.solve_equilibrium` with `Conditions` (held dofs for
-stuck nodes, `along_nodes` across the axis for slipping ones, loads), warm
-started from the previous equilibrium, on the tissue's one factorisation
-pattern.
+of the step. So the loop ends within 3P + 1 passes (the last one allowed
+is always solved to the tolerance, so an unsettled step still returns an
+equilibrium).
+
+Every pass is solved on one kept factorisation (`chord.ChordSolver`: the
+hold as Schur-complement rows, chord steps to Newton's residual and
+tolerance), warm started from the previous equilibrium, with Newton through
+`solvers.equilibrium.solve_equilibrium` and `Conditions` (held dofs for
+stuck nodes, `along_nodes` across the axis for slipping ones, loads) as the
+fallback. A pass's decisions are taken from the chord step's prediction of
+its converged reactions and lags when none lies within the prediction's
+error of its threshold (EARLY_DECISIONS); otherwise, and for the settled
+set, from the solve converged to PASS_TOL and then STEP_TOL.
 """
 
 from __future__ import annotations
@@ -292,7 +300,7 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
             return release, against, axial_p
 
         r_x, g, its, verdict = _solve_pass(tissue, solver, strokes, chord_x, grad_u - loads, hold, loads, tol,
-                                           early if EARLY_DECISIONS else None, start)
+                                           early if EARLY_DECISIONS and passes < MAX_ACTIVE_SET - 1 else None, start)
         grad_u = g + loads
         passes += 1
         iterations += its
