@@ -237,3 +237,97 @@ def test_simulate_and_report_with_insertion(tmp_path):
     assert rep.exit_code == 0, rep.output
     assert (tmp_path / "rep" / "insertion_boxplots.png").exists()
     assert "miss (depth)" in (tmp_path / "rep" / "insertion_summary.md").read_text()
+
+
+# -- the kept factorisation of the needle's solves (insertion/chord.py) -------------------------------------------
+
+
+def _a_hold(tissue, cfg, depth=12.0):
+    """An insertion 12 mm deep, then a hold with some nodes stuck (ridden 0.3 mm further) and the others slipping."""
+    from scissor_cli.insertion.chord import Hold
+
+    state = NeedleState(ENTRY, AXIS)
+    x, params = tissue.rest.copy(), _params(cfg)
+    while state.depth_mm < depth - 1e-9:
+        x = advance(tissue, state, x, np.zeros(tissue.n_cups), 1.0, params, free_nodes(tissue)).x
+    p = state.captured.size
+    stuck = np.arange(p) % 2 == 0
+    hold = Hold(state.captured, x[state.captured], stuck, np.full(p, 0.3), state.direction, state.across)
+    loads = np.zeros(x.size)
+    loads[2 * state.captured[~stuck]] = 5.0  # a kinetic pull along +x on the slipping ones
+    return x, hold, loads
+
+
+def test_the_chord_holds_residual_is_newtons(model):
+    from scissor_cli.solvers.common import objective_gradient
+    from scissor_cli.solvers.newton import _Held
+
+    cfg, tissue = model
+    x, hold, loads = _a_hold(tissue, cfg)
+    x = hold.place(x) + 0.01 * np.sin(np.arange(x.size)).reshape(x.shape)  # off equilibrium
+    _, g = objective_gradient(tissue, x, None, loads)
+    assert hold.residual(tissue, g) == pytest.approx(_Held(tissue, hold.conditions(loads)).residual(tissue, g), rel=1e-12)
+
+
+def test_a_schur_chord_step_meets_the_hold_and_the_tangent_equations(model):
+    """d from the kept columns: C d = r exactly and K d + Cᵀμ = −g on the free dofs, K the factored tangent."""
+    from scissor_cli.insertion.chord import ChordSolver
+    from scissor_cli.solvers.common import objective_gradient
+
+    cfg, tissue = model
+    x, hold, loads = _a_hold(tissue, cfg)
+    solver = ChordSolver(tissue)
+    solver.refactor(x)
+    _, g = objective_gradient(tissue, x, None, loads)
+    d, mu = solver.step(g, hold, x)
+    np.testing.assert_allclose(hold.gap(x + d), 0.0, atol=1e-10)
+    force = np.zeros(x.size)  # Cᵀμ on the (x, y) dofs
+    D = hold.directions()
+    assert D.shape == (2 * hold.captured.size, hold.captured.size + hold.stuck.sum())
+    force[2 * hold.captured] += D[0::2] @ mu
+    force[2 * hold.captured + 1] += D[1::2] @ mu
+    K = tissue.stiffness_free(x)
+    f = tissue.free_dofs
+    lhs = K @ d.ravel()[f] + force[f]
+    np.testing.assert_allclose(lhs, -g[f], atol=1e-10 * np.abs(g[f]).max())
+
+
+def test_the_kept_factorisation_and_a_fresh_newton_reach_the_same_equilibrium(model):
+    """A chord solve on a factorisation from elsewhere (an older state) equals Newton's with the same hold to 1e-10."""
+    from scissor_cli.insertion.chord import ChordSolver
+    from scissor_cli.solvers.common import objective_gradient
+    from scissor_cli.solvers.equilibrium import solve_equilibrium
+
+    cfg, tissue = model
+    x, hold, loads = _a_hold(tissue, cfg)
+    start = hold.place(x)
+    solver = ChordSolver(tissue)
+    solver.refactor(tissue.rest)  # stale on purpose: the rest state's tangent
+    _, g = objective_gradient(tissue, start, None, loads)
+    chord_x, chord_g, its, verdict = solver.converge(start, g, hold, 1e-11, loads)
+    assert verdict is None and its > 0
+    newton = solve_equilibrium(tissue, np.zeros(tissue.n_cups), start=start, start_strokes=np.zeros(tissue.n_cups),
+                               conditions=hold.conditions(loads), tol=1e-11)
+    assert hold.residual(tissue, chord_g) <= 1e-11
+    np.testing.assert_allclose(chord_x, newton.x, atol=1e-10)
+    assert solver.factorizations >= 1
+
+
+def test_a_step_on_the_kept_factorisation_matches_newton_passes(model, monkeypatch):
+    """The same insertion with the chord solver and with every pass solved by Newton: same stick/slip, same positions."""
+    from scissor_cli.insertion import chord, needle
+    from scissor_cli.insertion.chord import ChordFailed
+
+    cfg, tissue = model
+    params = _params(cfg)
+    fast = _insert(tissue, params, depth=15.0)
+
+    def no_chord(self, *args, **kw):
+        raise ChordFailed("test: Newton for every pass")
+
+    monkeypatch.setattr(chord.ChordSolver, "converge", no_chord)
+    monkeypatch.setattr(needle, "EARLY_DECISIONS", False)
+    slow = _insert(tissue, params, depth=15.0)
+    np.testing.assert_array_equal(fast.stuck, slow.stuck)
+    np.testing.assert_allclose(fast.x, slow.x, atol=1e-6)
+    np.testing.assert_allclose(fast.needle_force_mN, slow.needle_force_mN, rtol=1e-6)
