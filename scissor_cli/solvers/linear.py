@@ -114,6 +114,13 @@ class Factorization:
         return self._pattern is not None and (A.nnz, A.shape[0]) == self._pattern
 
     @property
+    def nnz_factor(self) -> int:
+        """Nonzeros of the Cholesky factor L (0 without one): the fill the ordering left."""
+        if self._active != "cholesky":
+            return 0
+        return len(cholmod.getfactor(self._chol).V)  # a copy of L: for reports, not for hot paths
+
+    @property
     def method(self) -> str:
         """'cholesky' (CHOLMOD) or 'ldl' (qdldl) for the current factor."""
         return self._active
