@@ -20,6 +20,9 @@ from scissor_cli.solvers.common import SolverError
 #: conjugate-gradient iterations `solve_free` spends on an earlier factor before it refactors:
 #: a 3-D refactorisation costs about 25 of them at 65k unknowns (docs/performance.md)
 KRYLOV_MAX_ITER = 12
+#: a solve that needed more CG iterations than this marks its factor stale: the
+#: tangent has moved away from it, so the next solve factors instead of trying
+KRYLOV_STALE_ITER = 6
 
 
 class Factorization:
@@ -59,6 +62,8 @@ class Factorization:
         #: numeric factorisations tried (failed ones too), and conjugate-gradient
         #: iterations preconditioned by this factor (`preconditioned_cg`)
         self.factorizations = self.cg_iterations = 0
+        #: set by `solve_free` when preconditioning with this factor got slow
+        self.stale = False
         self._pattern: tuple | None = None
         self._chol = self._ldl = None
         self.refactor(A)
@@ -80,6 +85,7 @@ class Factorization:
         else:
             self._lower.V = cvxopt.matrix(A.data[self._upper])
         self.factorizations += 1
+        self.stale = False
         try:
             if self._chol is None:
                 if self.ordering == "nested_dissection":
@@ -203,15 +209,18 @@ def solve_free(tissue, K_upper: sp.csr_matrix, b: np.ndarray, factors: dict | No
 
     With `rtol`, the factorisation already in the slot (an earlier tangent's)
     first preconditions conjugate gradients to that relative residual
-    (`preconditioned_cg`); only when that fails is K_ff factored
-    (`factorize_free`, SolverError if it is not positive definite). Without
-    rtol K_ff is always factored: the direct solve.
+    (`preconditioned_cg`); only when that fails, or when the last such solve
+    needed more than KRYLOV_STALE_ITER iterations (the factor is stale), is
+    K_ff factored (`factorize_free`, SolverError if it is not positive
+    definite). Without rtol K_ff is always factored: the direct solve.
     """
     factors = tissue.factor_cache if factors is None else factors
     factor = factors.get("free")
-    if rtol is not None and factor is not None and factor.method == "cholesky" and factor.matches(K_upper):
-        x, _ = preconditioned_cg(K_upper, b, factor, rtol)
+    if (rtol is not None and factor is not None and factor.method == "cholesky" and not factor.stale
+            and factor.matches(K_upper)):
+        x, k = preconditioned_cg(K_upper, b, factor, rtol)
         if x is not None:
+            factor.stale = k > KRYLOV_STALE_ITER
             return x, False
     return factorize_free(tissue, K_upper, factors).solve(b), True
 
