@@ -218,9 +218,9 @@ def test_max_feasible_step_3d_bounds_skip_no_root():
     """The bounded search returns bit for bit what solving every element's cubic returns."""
     def every(F, dF):
         J = np.linalg.det(F)
-        b = np.einsum("eij,eij->e", fem._cofactor(F), dF) / J
-        c = np.einsum("eij,eij->e", F, fem._cofactor(dF)) / J
-        d = np.linalg.det(dF) / J
+        b, c, d = fem._feasibility_cubic(F, dF)
+        np.testing.assert_allclose(b * J, np.einsum("eij,eij->e", fem._cofactor(F), dF), rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(d * J, np.linalg.det(dF), rtol=1e-10, atol=1e-12)
         top = fem._largest_positive_root(b, c, d)
         return np.inf if top <= 0 else 1.0 / top
 

