@@ -130,7 +130,9 @@ class SkfemSlabPeer:
             while True:
                 trial = u + alpha * du
                 uv_t = self.basis.interpolate(trial)
-                if self.kin({"displacement": uv_t})[1].min() > 0:
+                with np.errstate(invalid="ignore"):  # J^(-2/3) of an inverted trial: rejected on J
+                    feasible = self.kin({"displacement": uv_t})[1].min() > 0
+                if feasible:
                     E_t = self.energy.assemble(self.basis, displacement=uv_t, **self.fields)
                     if left or E_t <= E0 + 1e-12 * max(abs(E0), 1.0):
                         break
