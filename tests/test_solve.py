@@ -109,3 +109,28 @@ def test_preconditioned_cg_solves_to_tolerance_and_refuses_indefinite():
     bad = (A - 2.0 * sp.eye(A.shape[0])).tocsr()  # indefinite: not returned
     assert preconditioned_cg(sp.triu(bad).tocsr(), b, f, 1e-12, max_iter=200)[0] is None
     assert preconditioned_cg(sp.triu(near).tocsr(), b, f, 1e-14, max_iter=2)[0] is None  # budget spent
+
+
+def test_solve_free_uses_cg_on_the_old_factor_refactors_when_stale_or_failing():
+    from types import SimpleNamespace
+
+    from scissor_cli.solvers import linear
+
+    A = sp.triu(_laplacian_3d(8, 0.5)).tocsr()
+    n = A.shape[0]
+    tissue = SimpleNamespace(factor_cache={}, dim=3, free_dofs=np.arange(n))
+    b = np.random.default_rng(5).random(n)
+    x, factored = linear.solve_free(tissue, A, b, rtol=1e-8)  # no factor yet: factors
+    assert factored and tissue.factor_cache["free"].ordering == "nested_dissection"
+    near = (A + sp.diags(0.05 * np.random.default_rng(6).random(n))).tocsr()
+    x, factored = linear.solve_free(tissue, near, b, rtol=1e-8)  # close: CG on the old factor
+    f = tissue.factor_cache["free"]
+    assert not factored and 0 < f.cg_iterations <= linear.KRYLOV_STALE_ITER and not f.stale
+    assert np.linalg.norm(near @ x + near.T @ x - near.diagonal() * x - b) <= 1e-8 * np.linalg.norm(b)
+    far = (A + sp.diags(3.0 * np.random.default_rng(7).random(n))).tocsr()
+    x, factored = linear.solve_free(tissue, far, b, rtol=1e-10)
+    if not factored:  # CG made it, slowly: the factor is stale and the next solve factors
+        assert f.stale
+        assert linear.solve_free(tissue, far, b, rtol=1e-10)[1]
+    assert not f.stale
+    assert linear.solve_free(tissue, far, b)[1]  # no rtol: always the direct solve
