@@ -212,3 +212,37 @@ def test_max_feasible_step_3d():
     assert np.all(np.linalg.det(F + 0.999 * alpha * dF) > 0)
     assert np.min(np.linalg.det(F + 1.001 * alpha * dF)) < 0
     assert fem.max_feasible_step_3d(F, np.zeros_like(F)) == np.inf
+
+
+def test_max_feasible_step_3d_bounds_skip_no_root():
+    """The bounded search returns bit for bit what solving every element's cubic returns."""
+    def every(F, dF):
+        J = np.linalg.det(F)
+        b, c, d = fem._feasibility_cubic(F, dF)
+        np.testing.assert_allclose(b * J, np.einsum("eij,eij->e", fem._cofactor(F), dF), rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(d * J, np.linalg.det(dF), rtol=1e-10, atol=1e-12)
+        top = fem._largest_positive_root(b, c, d)
+        return np.inf if top <= 0 else 1.0 / top
+
+    rng = np.random.default_rng(5)
+    for _ in range(40):
+        M = int(rng.integers(1, 3000))
+        F = np.eye(3) + 0.1 * rng.normal(size=(M, 3, 3))
+        F[np.linalg.det(F) <= 0] = np.eye(3)
+        dF = 10 ** rng.uniform(-4, 1) * rng.normal(size=(M, 3, 3)) * (rng.random((M, 1, 1)) < rng.random())
+        assert fem.max_feasible_step_3d(F, dF) == every(F, dF)
+
+
+def test_krylov_newton_equals_direct_newton(coarse):
+    """3-D Newton steps by CG on an earlier factor reach the direct solve's equilibrium with fewer factorisations."""
+    from scissor_cli.solvers.newton import solve_newton
+
+    scene, mesh, _ = coarse
+    spec = SlabSpec(20.0, 10.0, max_layer_mm=5.0)
+    a = solve_newton(build_slab(scene, mesh, spec), np.array([5.0]), tol=1e-10, krylov=True)
+    slab = build_slab(scene, mesh, spec)
+    b = solve_newton(slab, np.array([5.0]), tol=1e-10, krylov=False)
+    assert a.converged and b.converged and a.factorizations < b.factorizations
+    assert slab.factor_cache["free"].ordering == "nested_dissection"
+    u = np.abs(b.x - slab.rest).max()
+    assert np.abs(a.x - b.x).max() <= 1e-8 * u

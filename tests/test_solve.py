@@ -65,3 +65,72 @@ def test_refactor_with_a_new_pattern_and_unsorted_indices():
     U.has_sorted_indices = False
     b = np.arange(40.0)
     np.testing.assert_allclose(f.refactor(U).solve(b), spla.spsolve(C.tocsc(), b), rtol=1e-12)
+
+
+def _laplacian_3d(k=8, shift=0.0):
+    """The 7-point Laplacian of a k³ grid (+ shift I): a 3-D mesh's fill pattern."""
+    T = sp.diags([-np.ones(k - 1), 2 * np.ones(k), -np.ones(k - 1)], [-1, 0, 1])
+    I = sp.eye(k)
+    A = sp.kron(sp.kron(T, I), I) + sp.kron(sp.kron(I, T), I) + sp.kron(sp.kron(I, I), T)
+    return (A + shift * sp.eye(k**3)).tocsr()
+
+
+def test_nested_dissection_is_a_permutation_and_solves_like_amd():
+    from scissor_cli.solvers.linear import nested_dissection
+
+    A = _laplacian_3d(10, 0.1)
+    n = A.shape[0]
+    p = nested_dissection(A)
+    assert np.array_equal(np.sort(p), np.arange(n))
+    grouped = nested_dissection(sp.kron(A, np.ones((3, 3))).tocsr(), np.repeat(np.arange(n), 3))
+    assert np.array_equal(np.sort(grouped), np.arange(3 * n))
+    assert np.array_equal(grouped.reshape(-1, 3) // 3, np.repeat(grouped[::3, None] // 3, 3, axis=1))  # node blocks kept
+    b = np.random.default_rng(2).random(n)
+    x_nd = Factorization(sp.triu(A).tocsr(), definite=True, upper=True, ordering="nested_dissection").solve(b)
+    x_amd = Factorization(A, definite=True).solve(b)
+    assert np.linalg.norm(x_nd - x_amd) <= 1e-10 * np.linalg.norm(x_amd)
+    with pytest.raises(ValueError):
+        Factorization(A, ordering="metis")
+
+
+def test_preconditioned_cg_solves_to_tolerance_and_refuses_indefinite():
+    from scissor_cli.solvers.linear import preconditioned_cg
+
+    A = _laplacian_3d(8, 0.5)
+    near = (A + 0.2 * sp.diags(np.random.default_rng(3).random(A.shape[0]))).tocsr()
+    b = np.random.default_rng(4).random(A.shape[0])
+    f = Factorization(A, definite=True)
+    x, k = preconditioned_cg(sp.triu(near).tocsr(), b, f, 1e-12, max_iter=50)
+    assert x is not None and 1 < k < 50 and f.cg_iterations == k
+    direct = Factorization(near, definite=True).solve(b)
+    assert np.linalg.norm(x - direct) <= 1e-10 * np.linalg.norm(direct)
+    x1, k1 = preconditioned_cg(A, b, f, 1e-10, upper=False)  # its own factor: one iteration
+    assert k1 == 1 and np.linalg.norm(A @ x1 - b) <= 1e-10 * np.linalg.norm(b)
+    bad = (A - 2.0 * sp.eye(A.shape[0])).tocsr()  # indefinite: not returned
+    assert preconditioned_cg(sp.triu(bad).tocsr(), b, f, 1e-12, max_iter=200)[0] is None
+    assert preconditioned_cg(sp.triu(near).tocsr(), b, f, 1e-14, max_iter=2)[0] is None  # budget spent
+
+
+def test_solve_free_uses_cg_on_the_old_factor_refactors_when_stale_or_failing():
+    from types import SimpleNamespace
+
+    from scissor_cli.solvers import linear
+
+    A = sp.triu(_laplacian_3d(8, 0.5)).tocsr()
+    n = A.shape[0]
+    tissue = SimpleNamespace(factor_cache={}, dim=3, free_dofs=np.arange(n))
+    b = np.random.default_rng(5).random(n)
+    x, factored = linear.solve_free(tissue, A, b, rtol=1e-8)  # no factor yet: factors
+    assert factored and tissue.factor_cache["free"].ordering == "nested_dissection"
+    near = (A + sp.diags(0.05 * np.random.default_rng(6).random(n))).tocsr()
+    x, factored = linear.solve_free(tissue, near, b, rtol=1e-8)  # close: CG on the old factor
+    f = tissue.factor_cache["free"]
+    assert not factored and 0 < f.cg_iterations <= linear.KRYLOV_STALE_ITER and not f.stale
+    assert np.linalg.norm(near @ x + near.T @ x - near.diagonal() * x - b) <= 1e-8 * np.linalg.norm(b)
+    far = (A + sp.diags(3.0 * np.random.default_rng(7).random(n))).tocsr()
+    x, factored = linear.solve_free(tissue, far, b, rtol=1e-10)
+    if not factored:  # CG made it, slowly: the factor is stale and the next solve factors
+        assert f.stale
+        assert linear.solve_free(tissue, far, b, rtol=1e-10)[1]
+    assert not f.stale
+    assert linear.solve_free(tissue, far, b)[1]  # no rtol: always the direct solve

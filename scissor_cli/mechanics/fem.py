@@ -301,27 +301,73 @@ def max_feasible_step_3d(F: np.ndarray, dF: np.ndarray) -> float:
     det(F + α dF) = J (1 + b α + c α² + d α³) is a cubic per element
     (b = tr(F⁻¹dF) = Σ cof(F)∘dF / J, c = Σ F∘cof(dF) / J, d = det dF / J).
     With β = 1/α it becomes the monic β³ + b β² + c β + d, whose roots are
-    the eigenvalues of its companion matrix, computed for all elements in one
-    batched call: no division by a vanishing leading coefficient. The first
-    sign change is at 1/β for the largest positive real root β. Roots with an
-    imaginary part below 1e-6·|β| count as real (a double root, where J only
-    touches 0): that can only shorten the step, never let it invert. Needs
-    J > 0 at α = 0.
+    the eigenvalues of its companion matrix (batched): no division by a
+    vanishing leading coefficient. The first sign change is at 1/β for the
+    largest positive real root β. Roots with an imaginary part below
+    1e-6·|β| count as real (a double root, where J only touches 0): that can
+    only shorten the step, never let it invert. Needs J > 0 at α = 0.
+
+    Only the largest β over all elements matters, so the eigenvalues are
+    computed only where they can reach it: Fujiwara's bound
+    2 max(|b|, |c|^½, |d/2|^⅓) on every root (0 where no coefficient is
+    negative: Descartes, no positive root) is sorted, the elements with the
+    largest bounds are solved first, then only those whose bound exceeds the
+    β found. The same β as solving every element (each matrix's
+    eigenvalues do not depend on the batch), at a fraction of the cost.
     """
-    J = np.linalg.det(F)
-    cofF = _cofactor(F)
-    cofdF = _cofactor(dF)
-    b = np.einsum("eij,eij->e", cofF, dF) / J
-    c = np.einsum("eij,eij->e", F, cofdF) / J
-    d = np.linalg.det(dF) / J
-    comp = np.zeros((len(J), 3, 3))
+    b, c, d = _feasibility_cubic(F, dF)
+    with np.errstate(all="ignore"):
+        bound = 2.0 * np.maximum(np.maximum(np.abs(b), np.sqrt(np.abs(c))), np.cbrt(np.abs(0.5 * d)))
+        bound[(b >= 0) & (c >= 0) & (d >= 0)] = 0.0
+        bound[~np.isfinite(bound)] = np.inf  # non-finite coefficients: always solved
+    order = np.argsort(-bound, kind="stable")
+    first = order[:_FIRST_SOLVED][bound[order[:_FIRST_SOLVED]] > 0]
+    top = _largest_positive_root(b[first], c[first], d[first])
+    rest = order[_FIRST_SOLVED:]
+    rest = rest[bound[rest] * (1.0 + 1e-8) >= top]
+    rest = rest[bound[rest] > 0]
+    top = max(top, _largest_positive_root(b[rest], c[rest], d[rest]))
+    return float("inf") if top <= 0 else 1.0 / top
+
+
+#: elements whose cubic `max_feasible_step_3d` solves before it bounds the rest
+_FIRST_SOLVED = 512
+
+
+def _largest_positive_root(b: np.ndarray, c: np.ndarray, d: np.ndarray) -> float:
+    """The largest positive (numerically) real root of β³ + b β² + c β + d over all rows (0 if none)."""
+    if len(b) == 0:
+        return 0.0
+    comp = np.zeros((len(b), 3, 3))
     comp[:, 0, 0], comp[:, 0, 1], comp[:, 0, 2] = -b, -c, -d
     comp[:, 1, 0] = comp[:, 2, 1] = 1.0
-    beta = np.linalg.eigvals(comp)  # (M, 3)
+    beta = np.linalg.eigvals(comp)  # (K, 3)
     real = np.abs(beta.imag) <= 1e-6 * np.maximum(np.abs(beta), 1e-300)
-    br = np.where(real & (beta.real > 0), beta.real, 0.0).max(axis=1, initial=0.0)
-    top = float(br.max()) if len(br) else 0.0
-    return float("inf") if top <= 0 else 1.0 / top
+    br = np.where(real & (beta.real > 0), beta.real, 0.0)
+    return float(br.max())
+
+
+def _feasibility_cubic(F: np.ndarray, dF: np.ndarray) -> tuple:
+    """b, c, d (M,) of det(F + α dF) = J (1 + b α + c α² + d α³); F, dF (M, 3, 3).
+
+    Plain arithmetic on the nine components (J and det dF by their
+    cofactors' first rows): 3x faster than np.linalg.det and np.cross.
+    """
+    f = [[np.ascontiguousarray(F[:, i, j]) for j in range(3)] for i in range(3)]
+    g = [[np.ascontiguousarray(dF[:, i, j]) for j in range(3)] for i in range(3)]
+    cof_f, cof_g = _cofactor_rows(f), _cofactor_rows(g)
+    J = f[0][0] * cof_f[0][0] + f[0][1] * cof_f[0][1] + f[0][2] * cof_f[0][2]
+    det_g = g[0][0] * cof_g[0][0] + g[0][1] * cof_g[0][1] + g[0][2] * cof_g[0][2]
+    b = sum(cof_f[i][j] * g[i][j] for i in range(3) for j in range(3)) / J
+    c = sum(f[i][j] * cof_g[i][j] for i in range(3) for j in range(3)) / J
+    return b, c, det_g / J
+
+
+def _cofactor_rows(a: list) -> list:
+    """cof A as nested lists of component arrays, for A given as a[i][j] (M,) arrays."""
+    def cross(u, v):
+        return [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]]
+    return [cross(a[1], a[2]), cross(a[2], a[0]), cross(a[0], a[1])]
 
 
 def _cofactor(A: np.ndarray) -> np.ndarray:

@@ -11,10 +11,18 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 import cvxopt
+import pymetis
 import qdldl
 from cvxopt import cholmod
 
 from scissor_cli.solvers.common import SolverError
+
+#: conjugate-gradient iterations `solve_free` spends on an earlier factor before it refactors:
+#: a 3-D refactorisation costs about 25 of them at 65k unknowns (docs/performance.md)
+KRYLOV_MAX_ITER = 12
+#: a solve that needed more CG iterations than this marks its factor stale: the
+#: tangent has moved away from it, so the next solve factors instead of trying
+KRYLOV_STALE_ITER = 6
 
 
 class Factorization:
@@ -33,11 +41,29 @@ class Factorization:
     `refactor` reuses the symbolic analysis while the sparsity pattern is the
     same (a Newton iteration, the next control step). A singular matrix
     raises SolverError rather than returning inf.
+
+    `ordering` is the fill-reducing ordering of the Cholesky factor: "amd"
+    (CHOLMOD's own, cvxopt's CHOLMOD has no METIS) or "nested_dissection"
+    (METIS through pymetis, `nested_dissection`), computed once per pattern;
+    `groups` (n,) numbers each unknown's node so the ordering keeps a node's
+    unknowns together. On a 3-D tetrahedral tangent AMD fills in badly:
+    nested dissection halves the factor's nonzeros and its time at 65k
+    unknowns (docs/performance.md); in 2-D AMD is as good and costs nothing.
     """
 
-    def __init__(self, A: sp.spmatrix, definite: bool = False, upper: bool = False):
+    def __init__(self, A: sp.spmatrix, definite: bool = False, upper: bool = False,
+                 ordering: str = "amd", groups: np.ndarray | None = None):
+        if ordering not in ("amd", "nested_dissection"):
+            raise ValueError(f"unknown ordering {ordering!r}: 'amd' or 'nested_dissection'")
         self.definite = definite
         self.upper = upper
+        self.ordering = ordering
+        self.groups = groups
+        #: numeric factorisations tried (failed ones too), and conjugate-gradient
+        #: iterations preconditioned by this factor (`preconditioned_cg`)
+        self.factorizations = self.cg_iterations = 0
+        #: set by `solve_free` when preconditioning with this factor got slow
+        self.stale = False
         self._pattern: tuple | None = None
         self._chol = self._ldl = None
         self.refactor(A)
@@ -58,9 +84,15 @@ class Factorization:
             self._chol = self._ldl = None
         else:
             self._lower.V = cvxopt.matrix(A.data[self._upper])
+        self.factorizations += 1
+        self.stale = False
         try:
             if self._chol is None:
-                self._chol = cholmod.symbolic(self._lower)
+                if self.ordering == "nested_dissection":
+                    p = cvxopt.matrix(nested_dissection(A, self.groups).tolist(), tc="i")
+                    self._chol = cholmod.symbolic(self._lower, p=p)
+                else:
+                    self._chol = cholmod.symbolic(self._lower)
             cholmod.numeric(self._lower, self._chol)
             self._active = "cholesky"
             return self
@@ -82,6 +114,17 @@ class Factorization:
             raise SolverError(f"singular system matrix ({exc})") from None
         self._active = "ldl"
         return self
+
+    def matches(self, A: sp.spmatrix) -> bool:
+        """Whether A (as given to `refactor`) has the pattern's size and entry count, so the factor can precondition it."""
+        return self._pattern is not None and (A.nnz, A.shape[0]) == self._pattern
+
+    @property
+    def nnz_factor(self) -> int:
+        """Nonzeros of the Cholesky factor L (0 without one): the fill the ordering left."""
+        if self._active != "cholesky":
+            return 0
+        return len(cholmod.getfactor(self._chol).V)  # a copy of L: for reports, not for hot paths
 
     @property
     def method(self) -> str:
@@ -111,17 +154,119 @@ def _symmetric_csr(A: sp.spmatrix) -> sp.csr_matrix:
     return A
 
 
+def preconditioned_cg(A: sp.csr_matrix, b: np.ndarray, factor: Factorization, rtol: float,
+                      max_iter: int = KRYLOV_MAX_ITER, upper: bool = True) -> tuple[np.ndarray | None, int]:
+    """x with A x = b to ‖b − A x‖ ≤ rtol ‖b‖ by conjugate gradients preconditioned with `factor`.
+
+    A (n, n) symmetric, given by its upper triangle when `upper`; `factor` a
+    Cholesky factorisation of a nearby matrix (an earlier Newton tangent).
+    Returns (x, iterations), or (None, iterations) when the iteration meets
+    a direction of non-positive curvature (A not positive definite), turns
+    non-finite, or does not reach rtol within max_iter: the caller then
+    factors A itself. The true residual is checked before x is returned.
+    """
+    b = np.asarray(b, dtype=float)
+    if upper:
+        diag, AT = A.diagonal(), A.T
+
+        def times(v):
+            return A @ v + AT @ v - diag * v
+    else:
+        times = A.__matmul__
+    b_norm = float(np.linalg.norm(b))
+    x = np.zeros_like(b)
+    if b_norm == 0.0:
+        return x, 0
+    r = b.copy()
+    z = factor.solve(r)
+    p = z.copy()
+    rz = float(r @ z)
+    for k in range(1, max_iter + 1):
+        q = times(p)
+        curvature = float(p @ q)
+        if not curvature > 0.0 or not np.isfinite(rz):
+            break
+        a = rz / curvature
+        x += a * p
+        r -= a * q
+        if np.linalg.norm(r) <= rtol * b_norm:
+            true = float(np.linalg.norm(b - times(x)))
+            factor.cg_iterations += k
+            return (x, k) if true <= 2.0 * rtol * b_norm else (None, k)
+        z = factor.solve(r)
+        rz_next = float(r @ z)
+        p = z + (rz_next / rz) * p
+        rz = rz_next
+    else:
+        k = max_iter
+    factor.cg_iterations += k
+    return None, k
+
+
+def solve_free(tissue, K_upper: sp.csr_matrix, b: np.ndarray, factors: dict | None = None,
+               rtol: float | None = None) -> tuple[np.ndarray, bool]:
+    """x with K_ff x = b (K_ff from its upper triangle); returns (x, whether K_ff was factored).
+
+    With `rtol`, the factorisation already in the slot (an earlier tangent's)
+    first preconditions conjugate gradients to that relative residual
+    (`preconditioned_cg`); only when that fails, or when the last such solve
+    needed more than KRYLOV_STALE_ITER iterations (the factor is stale), is
+    K_ff factored (`factorize_free`, SolverError if it is not positive
+    definite). Without rtol K_ff is always factored: the direct solve.
+    """
+    factors = tissue.factor_cache if factors is None else factors
+    factor = factors.get("free")
+    if (rtol is not None and factor is not None and factor.method == "cholesky" and not factor.stale
+            and factor.matches(K_upper)):
+        x, k = preconditioned_cg(K_upper, b, factor, rtol)
+        if x is not None:
+            factor.stale = k > KRYLOV_STALE_ITER
+            return x, False
+    return factorize_free(tissue, K_upper, factors).solve(b), True
+
+
+def nested_dissection(A: sp.csr_matrix, groups: np.ndarray | None = None) -> np.ndarray:
+    """A fill-reducing permutation p (n,) of symmetric A (its pattern, or one triangle's) by METIS.
+
+    p[k] is the unknown eliminated k-th (CHOLMOD's `P A Pᵀ`). With `groups`
+    (n,), the node numbers of the unknowns, METIS orders the (3x smaller)
+    graph of the nodes and each node's unknowns follow in their own order:
+    the same fill as ordering the unknowns, for a third of the time, and
+    whole node blocks in the factor's supernodes.
+    """
+    A = sp.csr_matrix(A)
+    n = A.shape[0]
+    if groups is None:
+        groups = np.arange(n)
+    nodes, node_of = np.unique(np.asarray(groups), return_inverse=True)
+    rows = np.repeat(node_of, np.diff(A.indptr))
+    cols = node_of[A.indices]
+    off = rows != cols
+    G = sp.csr_matrix((np.ones(int(off.sum())), (rows[off], cols[off])), shape=(len(nodes), len(nodes)))
+    G = (G + G.T).tocsr()  # both triangles, the diagonal dropped: METIS's adjacency
+    G.sort_indices()
+    if G.nnz == 0:
+        return np.arange(n)
+    perm = np.asarray(pymetis.nested_dissection(pymetis.CSRAdjacency(G.indptr, G.indices))[0])
+    rank = np.empty(len(nodes), np.int64)
+    rank[perm] = np.arange(len(nodes))
+    return np.lexsort((np.arange(n), rank[node_of]))
+
+
 def factorize_free(tissue, K_upper: sp.csr_matrix, factors: dict | None = None) -> Factorization:
     """A positive definite factorisation of K_ff from its upper triangle (Nf, Nf).
 
     Refactors the symbolic analysis kept in `factors["free"]` (default: the
     tissue's own slot, one per mesh and boundary set, shared by every solve
     on it; the controller's trackers keep their own); raises SolverError if
-    K_ff is not positive definite (Newton then projects).
+    K_ff is not positive definite (Newton then projects). A 3-D tissue's
+    factor is ordered by nested dissection (`Factorization`), a 2-D one's by AMD.
     """
     factors = tissue.factor_cache if factors is None else factors
     factor = factors.get("free")
     if factor is None:
-        factor = factors["free"] = Factorization(K_upper, definite=True, upper=True)
+        ordering = "nested_dissection" if tissue.dim == 3 else "amd"
+        factor = factors["free"] = Factorization(K_upper, definite=True, upper=True, ordering=ordering,
+                                                 groups=tissue.free_dofs // tissue.dim)
         return factor
     return factor.refactor(K_upper)

@@ -26,7 +26,7 @@ import time
 import numpy as np
 import scipy.sparse as sp
 
-from scissor_cli.solvers.linear import factorize_free
+from scissor_cli.solvers.linear import solve_free
 from scissor_cli.solvers.common import (
     NO_CONDITIONS, Conditions, Inertia, SolveResult, SolverError, check_finite, objective_gradient, relative_residual,
 )
@@ -45,6 +45,16 @@ SUBSTEP_TOL = 1e-4
 CHORD_CONTRACTION = 0.3
 #: chord steps only far from the solution: the last steps are full Newton steps
 CHORD_ABOVE = 1e-3
+#: with `krylov` (3-D), a Newton step solves K d = −g only to ‖K d + g‖ ≤ η ‖g‖,
+#: η = min(KRYLOV_FORCING, relative residual): inexact Newton, still quadratic at the end
+KRYLOV_FORCING = 1e-2
+#: and the tangent predictor to this relative residual
+PREDICTOR_RTOL = 1e-4
+
+
+def _krylov(tissue: Tissue, krylov: bool | None) -> bool:
+    """Whether steps first try conjugate gradients on the last factor (default: in 3-D, where factoring dominates)."""
+    return tissue.dim == 3 if krylov is None else krylov
 
 
 class _Held:
@@ -173,13 +183,15 @@ def tangent_predictor(
     inertia: Inertia | None = None,
     conditions: Conditions = NO_CONDITIONS,
     factors: dict | None = None,
+    krylov: bool | None = None,
 ) -> np.ndarray:
     """First-order response of the free nodes when the Dirichlet nodes move to `strokes`.
 
     x (N, 2) is an equilibrium (or the rest state); returns positions (N, 2)
     with K_ff δx_f = −K_fd δx_d − ∇Φ_f(x) solved at x's tangent (held dofs
     stay). `factors` is the slot of the reusable factorisation (default: the
-    tissue's shared one).
+    tissue's shared one); with `krylov` (default in 3-D) the slot's earlier
+    factor preconditions conjugate gradients to PREDICTOR_RTOL first.
     """
     held = _Held(tissue, conditions)
     x_new = tissue.apply_strokes(x, strokes)
@@ -193,10 +205,11 @@ def tangent_predictor(
     # The exact tangent of a stable equilibrium is positive definite; the
     # per-element projection only where it is not (the factorisation says).
     dx = None
+    rtol = PREDICTOR_RTOL if _krylov(tissue, krylov) else None
     for project in (False, True):
         K = _system(tissue, x, project, inertia, held, None if project else Ke)
         try:
-            dx = held.unrotate(factorize_free(tissue, K, factors).solve(rhs))
+            dx = held.unrotate(solve_free(tissue, K, rhs, factors, rtol)[0])
         except SolverError:
             continue
         if np.all(np.isfinite(dx)):
@@ -206,6 +219,12 @@ def tangent_predictor(
     flat = x_new.ravel().copy()
     flat[tissue.free_dofs] += dx
     return flat.reshape(x_new.shape)
+
+
+def _factor_count(tissue: Tissue, factors: dict | None) -> int:
+    """Numeric factorisations so far of the slot's factor (0 before the first)."""
+    factor = (tissue.factor_cache if factors is None else factors).get("free")
+    return factor.factorizations if factor is not None else 0
 
 
 def _system(tissue, x, project, inertia, held, Ke=None) -> sp.csr_matrix:
@@ -231,6 +250,7 @@ def newton_iterations(
     chord_above: float = CHORD_ABOVE,
     conditions: Conditions = NO_CONDITIONS,
     factors: dict | None = None,
+    krylov: bool | None = None,
 ) -> SolveResult:
     """Newton from a feasible start x (N, 2) with the Dirichlet nodes already placed.
 
@@ -244,6 +264,11 @@ def newton_iterations(
     pull8 wandering); below it the exact one, falling back to the projected
     one when its step is not a descent direction. `conditions` adds loads and
     held dofs; `factors` is the factorisation slot (default: the tissue's).
+    With `krylov` (default: a 3-D tissue) a step is first solved by
+    conjugate gradients preconditioned with the slot's last factorisation,
+    to the forcing term min(KRYLOV_FORCING, residual), and K is factored only
+    when that fails (`linear.solve_free`): most 3-D steps need no
+    factorisation. `factorizations` counts the factorisations.
     """
     t0 = time.perf_counter()
     factors = tissue.factor_cache if factors is None else factors
@@ -253,6 +278,7 @@ def newton_iterations(
     history = []
     free = tissue.free_dofs
     n_factor = 0
+    krylov = _krylov(tissue, krylov)
     for it in range(max_iter + 1):
         check_finite(grad, "the Newton gradient")
         res = held.residual(tissue, grad)
@@ -270,11 +296,13 @@ def newton_iterations(
         step = None
         for project in ([False, True] if res < exact_below else [True]):
             K = _system(tissue, x, project, inertia, held)
-            n_factor += 1
             try:
-                d = -factorize_free(tissue, K, factors).solve(g)
+                d, factored = solve_free(tissue, K, g, factors, min(KRYLOV_FORCING, res) if krylov else None)
             except SolverError:  # singular exact Hessian: the projected one is next
+                n_factor += 1
                 continue
+            n_factor += factored
+            d = -d
             if np.all(np.isfinite(d)) and np.dot(g, d) < 0:
                 step = held.unrotate(d)
                 break
@@ -367,6 +395,7 @@ def solve_newton(
     max_substeps: int = 64,
     conditions: Conditions = NO_CONDITIONS,
     factors: dict | None = None,
+    krylov: bool | None = None,
 ) -> SolveResult:
     """Equilibrium (or one implicit-Euler step) for cup strokes (C,) in mm.
 
@@ -393,8 +422,9 @@ def solve_newton(
     # (it only has to be a good start for the next step).
     iterations, substeps, n_factor = 0, 0, 0
     while True:
-        pred = tangent_predictor(tissue, x, strokes, inertia, conditions, factors)
-        n_factor += 1
+        before = _factor_count(tissue, factors)
+        pred = tangent_predictor(tissue, x, strokes, inertia, conditions, factors, krylov)
+        n_factor += _factor_count(tissue, factors) - before
         alpha = tissue.max_feasible_step(x, pred - x)
         final = alpha > 1.0 / STEP_FRACTION
         fraction = 1.0 if final else STEP_FRACTION * alpha
@@ -406,7 +436,7 @@ def solve_newton(
         s_next = s_done + fraction * (strokes - s_done)
         start = x + fraction * (pred - x)
         result = newton_iterations(tissue, start, inertia, tol if final else max(tol, SUBSTEP_TOL), max_iter,
-                                   conditions=conditions, factors=factors)
+                                   conditions=conditions, factors=factors, krylov=krylov)
         iterations += result.iterations
         n_factor += result.factorizations
         result.factorizations = n_factor
