@@ -194,7 +194,9 @@ def test_sigkill_damaged_file_and_killed_resume_lose_no_trial(reference, tmp_pat
     assert tmp.exists() and not (out / "results.h5").exists()
     first = stored(tmp)
     in_journal = journal_trials(out)
-    assert sum(len(v) for v in first.values()) >= 8 and in_journal >= 8
+    # a trial is journalled before it is stored, and the run stores one at a time: the kill can
+    # catch the file one trial behind the journal, never more (the resume restores that one)
+    assert in_journal >= 8 and sum(len(v) for v in first.values()) >= in_journal - 1
 
     with open(tmp, "r+b") as fh:  # a torn metadata write: the superblock and root group overwritten
         fh.write(b"\0" * 4096)
