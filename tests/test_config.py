@@ -21,7 +21,7 @@ from scissor_cli.config import (
 )
 from scissor_cli.config import budget, checks, loading
 from scissor_cli.config.messages import _unwrap, field_type
-from helpers import EXAMPLE, example_dict, write_scene, deep_update
+from helpers import EXAMPLE, ROOT, example_dict, write_scene, deep_update
 
 
 def run_cli(*args, cwd=None):
@@ -466,3 +466,13 @@ def test_study_skips_levels_over_its_max_before_meshing(monkeypatch):
     assert "graded level 0.05: about" in notes[0]
     # its max_elements is at most half the budget: a mesh it builds stays within it
     assert field_type(("study", "max_elements"))[1][-1].le * 2 <= ELEMENT_BUDGET
+
+
+SHIPPED = sorted((ROOT / "configs").rglob("*.yaml")) + sorted((ROOT / "scissor_cli" / "scenes").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_shipped_scene_validates(path):
+    """What the README and docs tell a user to run must load (configs/, the package's default)."""
+    cfg = load_config(path)
+    assert cfg.name
