@@ -47,7 +47,7 @@ def grip_figure(plan, outline: np.ndarray, obstacles: list[tuple[str, np.ndarray
     """Left: the layer with the candidates coloured by the scene's score and the chosen grip(s);
     right: each target's score (mm of miss per mm of stroke) along the boundary (arc length)."""
     c = plan.candidates
-    fig = Figure(figsize=(12, 4.6))
+    fig = Figure(figsize=(12.5, 4.6), layout="constrained")  # keeps the colour bar's label off the right panel
     ax, bx = fig.subplots(1, 2)
     closed = np.vstack([outline, outline[:1]])
     ax.plot(closed[:, 0], closed[:, 1], "k-", lw=1)
@@ -78,7 +78,9 @@ def grip_figure(plan, outline: np.ndarray, obstacles: list[tuple[str, np.ndarray
         bx.plot(arc, tr.score, "-", label=tr.target)
     for k in plan.chosen:
         bx.axvline(arc[k], color="tab:orange", ls="--")
-    bx.set_xlabel("candidate, along the accessible boundary (mm)")
+    # the candidates run the boundary's way (counter-clockwise), so say where the distance starts
+    start = ", ".join(f"{v:.0f}" for v in c.points[0])
+    bx.set_xlabel(f"candidate: distance along the accessible boundary from ({start}) (mm)")
     bx.set_ylabel("miss motion per stroke (mm/mm)")
     bx.set_title("response across the needle, by adjoint solves")
     if plan.targets:
