@@ -113,6 +113,9 @@ class ModelState:
         if solver.factorizations == 0:  # nothing kept yet
             solver.refactor(x)
         hold = hold_at(state, x)
+        # the held components of a response, exactly zero (not round-off: a target whose nodes the needle all
+        # holds has J exactly 0 across the axis, and the loop must not divide by 1e-16)
+        held_zero = Hold(hold.captured, np.zeros_like(hold.base), hold.stuck, hold.ride, hold.n, hold.t)
         free = model.free_dofs
         Ke = model.element_stiffness(x)
         t = state.across
@@ -123,7 +126,7 @@ class ModelState:
             b = -model.stiffness_times(x, model.cup_displacement(c), Ke)
             d, k = _held_response(model, solver, hold, x, Ke, b, free)
             its += k
-            responses[c] = d.reshape(x.shape)
+            responses[c] = held_zero.place(d.reshape(x.shape))
             responses[c].ravel()[model.dirichlet_dofs] = model.cup_displacement(c)[model.dirichlet_dofs]
             J[0, c] = target_positions(probe, responses[c])[0] @ t
         self.last_iterations, self.last_factorizations = its, solver.factorizations - n_factor
