@@ -331,3 +331,150 @@ def test_a_step_on_the_kept_factorisation_matches_newton_passes(model, monkeypat
     np.testing.assert_array_equal(fast.stuck, slow.stuck)
     np.testing.assert_allclose(fast.x, slow.x, atol=1e-6)
     np.testing.assert_allclose(fast.needle_force_mN, slow.needle_force_mN, rtol=1e-6)
+
+
+# -- the loop strategy's controller model (insertion/model_state.py) --------------------------------------------
+
+
+def _truth(tissue, E_scale=1.3, fiber_offset_deg=10.0):
+    """A "true" tissue that differs from the model: stiffer, fibers turned."""
+    m = tissue.scene.material
+    return tissue.with_material(E_scale, None, None, m.fiber_angle_rad + np.deg2rad(fiber_offset_deg))
+
+
+def _old_loop(monkeypatch):
+    """The loop as it was before the model state: J from the plant's tangent predictor per cup (with its
+    residual), the plant's correction by Newton."""
+    from scissor_cli.insertion import model_state, run
+    from scissor_cli.insertion.needle import STEP_TOL, needle_conditions
+    from scissor_cli.mesh.probe import target_positions
+    from scissor_cli.solvers.equilibrium import solve_equilibrium
+    from scissor_cli.solvers.newton import tangent_predictor
+
+    def jacobian(self, state, probe, kept=None):
+        x, s = self.x, self.strokes
+        cond = needle_conditions(state, self.loads)
+        y = target_positions(probe, x)[0]
+        J = np.zeros((1, s.size))
+        for c in range(s.size):
+            moved = tangent_predictor(self.tissue, x, s + np.eye(s.size)[c], conditions=cond)
+            J[0, c] = (target_positions(probe, moved)[0] - y) @ state.across
+        return J, np.zeros((s.size,) + x.shape)
+
+    follow = model_state.ModelState.follow
+
+    def keep_loads(self, state, x, s, loads):
+        self.loads = loads
+        follow(self, state, x, s, loads)
+
+    def move(tissue, state, x, s, command, loads, responses):
+        return solve_equilibrium(tissue, command, start=x, start_strokes=s, conditions=needle_conditions(state, loads),
+                                 tol=STEP_TOL).x
+
+    monkeypatch.setattr(model_state.ModelState, "jacobian", jacobian)
+    monkeypatch.setattr(model_state.ModelState, "follow", keep_loads)
+    monkeypatch.setattr(run, "_move_plant", move)
+
+
+def test_loop_with_truth_equal_to_model_is_the_old_loop(model, monkeypatch):
+    """The nominal run: the same insertion as with the plant's own tangent, to solver tolerance."""
+    target = (30.0, 33.0)
+    cfg, tissue = model
+    params = _params(cfg)
+    new = _insert(tissue, params, "loop", target=target, depth=30.0, cfg=cfg)
+    with monkeypatch.context() as m:
+        _old_loop(m)
+        old = _insert(tissue, params, "loop", target=target, depth=30.0, cfg=cfg)
+    assert new.steps == old.steps and new.stop_reason == old.stop_reason
+    np.testing.assert_allclose(new.x, old.x, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(new.strokes, old.strokes, rtol=0, atol=1e-6)
+    assert new.miss_mm == pytest.approx(old.miss_mm, abs=1e-6)
+    assert np.any(np.abs(new.strokes) > 0.05)  # the loop did move the cup
+
+
+def _model_state_mid_insertion(tissue, cfg, truth, depth=12.0):
+    """The truth inserted `depth` mm at a 3 mm stroke, the controller's model following it every step."""
+    from scissor_cli.insertion.model_state import ModelState
+    from scissor_cli.solvers.equilibrium import solve_equilibrium
+
+    s = np.array([3.0])
+    x = solve_equilibrium(truth, s).x
+    ms = ModelState(tissue, truth, solve_equilibrium(tissue, s).x, x, s)
+    state, params = NeedleState(ENTRY, AXIS), _params(cfg)
+    while state.depth_mm < depth - 1e-9:
+        out = advance(truth, state, x, s, 1.0, params, free_nodes(truth))
+        x = out.x
+        ms.follow(state, x, s, out.loads)
+    return ms, state, out.loads, s
+
+
+def test_the_model_jacobian_is_the_model_held_response(model):
+    """J from the model state equals central differences of full held solves of the model, and is not the truth's."""
+    from scissor_cli.insertion.model_state import ModelState
+    from scissor_cli.insertion.needle import needle_conditions
+    from scissor_cli.mesh.probe import probe_targets, target_positions
+    from scissor_cli.solvers.equilibrium import solve_equilibrium
+
+    cfg, tissue = model
+    truth = _truth(tissue)
+    ms, state, loads, s = _model_state_mid_insertion(tissue, cfg, truth)
+    probe = probe_targets(tissue.mesh, np.array([[30.0, 33.0]]))
+    J, responses = ms.jacobian(state, probe)
+    cond = needle_conditions(state, loads)
+    # the model state is the model's equilibrium under the needle's hold (nothing moves when solved again)
+    again = solve_equilibrium(tissue, s, start=ms.x, start_strokes=s, conditions=cond, tol=1e-10).x
+    assert np.abs(again - ms.x).max() <= 1e-6
+    delta = 1e-3
+    ends = [target_positions(probe, solve_equilibrium(tissue, s + sign * delta, start=ms.x, start_strokes=s,
+                                                      conditions=cond, tol=1e-12).x)[0] @ state.across
+            for sign in (1.0, -1.0)]
+    fd = (ends[0] - ends[1]) / (2 * delta)
+    assert J[0, 0] == pytest.approx(fd, rel=1e-5)
+    assert responses.shape == (1,) + ms.x.shape and np.all(np.isfinite(responses))
+    # a target the needle holds has J exactly 0 across the axis (round-off would send the loop's step to the limit)
+    held = state.captured[0]
+    on_shaft = probe_targets(tissue.mesh, tissue.rest[held][None])
+    assert ms.jacobian(state, on_shaft)[0][0, 0] == 0.0
+    # the truth's own J at its state differs: the controller does not know it
+    plant = ModelState(truth, truth, ms._x_plant, ms._x_plant, s)
+    J_truth, _ = plant.jacobian(state, probe, state.solver)
+    assert abs(J_truth[0, 0] - J[0, 0]) > 1e-3 * abs(J[0, 0])
+
+
+def test_loop_on_a_mismatched_truth_still_corrects_the_miss(model):
+    """The model's J (E ×1.3 and fibers +10° in the truth): the closed loop still ends with a small miss."""
+    cfg, tissue = model
+    truth = _truth(tissue)
+    params = _params(cfg)
+    x0, s0 = truth.rest.copy(), np.zeros(truth.n_cups)
+    runs = {strategy: run_insertion(truth, x0, s0, ENTRY, AXIS, 30.0, np.array([30.0, 33.0]), params, strategy,
+                                    controller=cfg.controller, model=tissue)
+            for strategy in ("none", "loop")}
+    for r in runs.values():
+        _finite(r)
+        assert r.completed
+    # measured: none 1.021 mm, depth 0.978 mm, loop 0.0014 mm (0.0016 mm with the truth's own J, the old shortcut)
+    assert runs["loop"].miss_mm < 0.05 < runs["none"].miss_mm
+    assert runs["loop"].miss_mm < 0.1 * runs["none"].miss_mm
+
+
+def test_trials_insert_every_strategy_with_a_finite_miss(tmp_path):
+    """Trials (truth drawn ≠ model) insert under none, depth and loop: finite misses, nothing failed."""
+    import h5py
+
+    from scissor_cli import cli
+
+    data = example_dict()
+    data["tissue"]["mesh"].update(max_edge_mm=8.0, min_edge_mm=2.5)
+    data["insertion"] = dict(INSERTION, step_mm=2.0)
+    data["trials"] = {"count": 2, "profile": "ex_vivo"}
+    data.pop("forward", None)
+    out = tmp_path / "run"
+    result = CliRunner().invoke(cli.app, ["simulate", str(write_scene(tmp_path, data)), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    with h5py.File(out / "results.h5") as f:
+        for t in f["trials"]:
+            miss = f[f"trials/{t}/miss_mm"][...]
+            assert miss.shape == (2, 3) and np.all(np.isfinite(miss))
+            assert list(f[f"trials/{t}/miss_mm"].attrs["strategies"]) == ["none", "depth", "loop"]
+            assert not np.any(f[f"trials/{t}/failed"][...])

@@ -138,8 +138,10 @@ class TrialContext:
         The truth tissue carries the trial's drawn friction and tip force;
         the plan's entry and direction are the ones the robot was given; the
         camera measures the target during insertion as during the loop. The
-        `loop` strategy's Jacobian is the truth's tangent (a simplification:
-        the controller would use its model).
+        `loop` strategy's controller runs on its model (`self.tissue`): J at
+        the model's equilibrium under the needle, starting from the model's
+        equilibrium at the loop's final strokes (the truth's final state
+        when truth and model are one object).
         """
         ins = self.cfg.insertion
         if ins is None or loop.final_x is None or task.entry is None:
@@ -152,11 +154,16 @@ class TrialContext:
         tissue = control.true_tissue(self.tissue, truth)
         meas = self.measurement(draw)
         rng = np.random.default_rng([int(self.cfg.seed), task.index, trial, 13])
+        model_x0 = None
+        if tissue is not self.tissue and "loop" in ins.strategies:
+            model_x0 = solve_equilibrium(self.tissue, loop.final_strokes, start=loop.final_x,
+                                         start_strokes=loop.final_strokes).x
         miss, depth_error = [], []
         for strategy in ins.strategies:
             r = run_insertion(tissue, loop.final_x, loop.final_strokes, task.entry, task.direction, task.depth_mm,
                               task.rest, params, strategy, controller=self.cfg.controller,
-                              measure=lambda y: meas.measure(y, rng), keep_displacement=False)
+                              measure=lambda y: meas.measure(y, rng), keep_displacement=False,
+                              model=self.tissue, model_x0=model_x0)
             miss.append(r.miss_mm)
             depth_error.append(r.depth_error_mm)
         return np.array(miss), np.array(depth_error)

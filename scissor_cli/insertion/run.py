@@ -7,9 +7,11 @@ Strategies:
   the axis (measured after every step; the last step is shortened to it);
 * `loop`: `depth`, and after every step the cup loop of §6 acts on the
   miss across the needle: δs* from `control.law.split_error` on the 1×C
-  Jacobian of the transverse target coordinate (the tangent response with
-  the captured nodes held by the needle), the command from the §6 `PID`,
-  then the equilibrium at the new strokes with the needle's hold.
+  Jacobian of the transverse target coordinate, the command from the §6
+  `PID`, then the plant's equilibrium at the new strokes with the needle's
+  hold. The Jacobian is the controller's: its model tissue's linear
+  response with the captured nodes held, at the model's own equilibrium
+  under the needle (`model_state.ModelState`), not the plant's.
 """
 
 from __future__ import annotations
@@ -22,13 +24,14 @@ import numpy as np
 
 from scissor_cli.control.law import PID, split_error
 from scissor_cli.geometry import segment_polygon_distance
+from scissor_cli.insertion.chord import ChordFailed
+from scissor_cli.insertion.model_state import ModelState, hold_at
 from scissor_cli.insertion.needle import NeedleParams, NeedleState, advance, free_nodes, needle_conditions, STEP_TOL
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.outlines import deformed_outlines, embed_outlines
 from scissor_cli.mesh.probe import probe_targets, target_positions
-from scissor_cli.solvers.common import SolverError
+from scissor_cli.solvers.common import SolverError, objective_gradient
 from scissor_cli.solvers.equilibrium import solve_equilibrium
-from scissor_cli.solvers.newton import tangent_predictor
 
 STRATEGIES = ("none", "depth", "loop")
 #: an insertion never goes deeper than this multiple of the planned depth
@@ -101,14 +104,19 @@ def run_insertion(
     measure: Callable[[np.ndarray], np.ndarray] | None = None,
     keep_displacement: bool = True,
     target_name: str = "",
+    model: Tissue | None = None,
+    model_x0: np.ndarray | None = None,
 ) -> InsertionResult:
     """Insert from the equilibrium x0 (N, 2) at cup strokes (C,) mm along the plan; never raises on a solver failure.
 
     entry (2,), direction (2,) unit, planned_depth_mm: the plan; target_rest
     (2,): the target in the rest mesh; controller: the `controller` config
     section (gains, rate) for "loop"; measure: the camera, true (2,) →
-    measured (2,) (default exact). A failed step ends the insertion with the
-    reason in stop_reason; what was reached is kept.
+    measured (2,) (default exact). `tissue` is the plant; model: the
+    controller's tissue for "loop" (default: the plant itself), model_x0
+    (N, 2) its equilibrium at the strokes (solved from x0 when not given).
+    A failed step ends the insertion with the reason in stop_reason; what
+    was reached is kept.
     """
     if strategy not in STRATEGIES:
         raise ValueError(f"strategy must be one of {STRATEGIES}, got {strategy!r}")
@@ -124,9 +132,10 @@ def run_insertion(
     x, s = np.array(x0, float), np.array(strokes, float)
     lo = np.array([c.stroke_min_mm for c in tissue.scene.cups])
     hi = np.array([c.stroke_max_mm for c in tissue.scene.cups])
-    pid = None
+    pid = mind = None
     if strategy == "loop":
         pid = PID(controller.kp, controller.ki, controller.kd, 1.0 / controller.rate_hz)
+        mind = _model_state(tissue, model, x, model_x0, s)
     rows: list[tuple] = []
     frames: list[np.ndarray] = []
     unsettled, reason = 0, ""
@@ -148,7 +157,7 @@ def run_insertion(
             out = advance(tissue, state, x, s, min(params.step_mm, remaining), params, candidates)
             x = out.x
             if pid is not None:
-                x, s = _loop_correction(tissue, state, x, s, out.loads, probe, pid, lo, hi, p0, measure)
+                x, s = _loop_correction(tissue, mind, state, x, s, out.loads, probe, pid, lo, hi, p0, measure)
         except SolverError as exc:
             reason = f"solver failed at depth {state.depth_mm:.3g} mm: {exc}"
             break
@@ -162,24 +171,50 @@ def run_insertion(
                    reason, unsettled, time.perf_counter() - t0, probe, s)
 
 
-def _loop_correction(tissue, state, x, s, loads, probe, pid, lo, hi, p0, measure):
-    """One §6 loop iteration on the miss across the needle, the needle holding its captured nodes."""
-    cond = needle_conditions(state, loads)
-    t = state.across
+def _model_state(plant, model, x0, model_x0, strokes) -> ModelState:
+    """The controller's model at the start: the plant itself, or its own equilibrium at the strokes."""
+    if model is None or model is plant:
+        return ModelState(plant, plant, x0, x0, strokes)
+    if model_x0 is None:  # x0 only warms the solve: the model's equilibrium does not depend on it
+        model_x0 = solve_equilibrium(model, strokes, start=x0, start_strokes=strokes).x
+    return ModelState(model, plant, model_x0, x0, strokes)
+
+
+def _loop_correction(tissue, mind, state, x, s, loads, probe, pid, lo, hi, p0, measure):
+    """One §6 loop iteration on the miss across the needle, the needle holding its captured nodes.
+
+    J is the controller's (`ModelState`: its model, at its equilibrium under
+    the needle); the plant is then solved at the command with the same hold.
+    """
+    mind.follow(state, x, s, loads)
+    J, responses = mind.jacobian(state, probe, state.solver)
     y = target_positions(probe, x)[0]
-    J = np.zeros((1, s.size))
-    for c in range(s.size):
-        e_c = np.zeros(s.size)
-        e_c[c] = 1.0
-        moved = tangent_predictor(tissue, x, s + e_c, conditions=cond)
-        J[0, c] = (target_positions(probe, moved)[0] - y) @ t
-    e = np.array([-(measure(y) - p0) @ t])
+    e = np.array([-(measure(y) - p0) @ state.across])
     ds, _, _ = split_error(J, e)
     command, _ = pid.command(s, ds, lo, hi)
     if np.allclose(command, s, atol=1e-12, rtol=0):
         return x, s
-    r = solve_equilibrium(tissue, command, start=x, start_strokes=s, conditions=cond, tol=STEP_TOL)
-    return r.x, command
+    return _move_plant(tissue, state, x, s, command, loads, responses), command
+
+
+def _move_plant(tissue, state, x, s, command, loads, responses) -> np.ndarray:
+    """The plant's equilibrium (N, 2) at the command (C,) with the needle's hold and loads, from x at s.
+
+    Chord steps on the insertion's kept factorisation from the model's
+    linear response to the stroke change; Newton (as a step's fallback)
+    when they fail or that start inverts an element.
+    """
+    hold = hold_at(state, x)
+    start = hold.place(tissue.apply_strokes(x + np.tensordot(command - s, responses, axes=1), command))
+    _, g = objective_gradient(tissue, start, None, loads, require_positive_J=True)
+    if g is not None:
+        try:
+            return state.solver.converge(start, g, hold, STEP_TOL, loads)[0]
+        except ChordFailed:
+            pass
+    r = solve_equilibrium(tissue, command, start=x, start_strokes=s, conditions=needle_conditions(state, loads),
+                          tol=STEP_TOL)
+    return r.x
 
 
 def _clearance(embedding, x, p0, tip, radius_mm) -> float:

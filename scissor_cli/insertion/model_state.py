@@ -1,0 +1,184 @@
+"""The controller's model during an insertion, and the `loop` strategy's Jacobian on it (docs/model.md §12).
+
+§6 keeps the controller's own model apart from the "true" tissue: the
+controller solves its model at the strokes it commands and takes J there.
+During an insertion the needle is one more boundary condition, and the
+robot knows it: where the needle is, which nodes it holds (capture is
+geometric) and the forces it applies. What it does not know is the
+tissue's material. So `ModelState` is the model's equilibrium at the current
+strokes under the needle's hold and loads as they stand (the captured
+nodes at the same held coordinates, the same stuck/slipping set), tracked
+from step to step:
+
+* when model and plant are the same tissue (the nominal run) that
+  equilibrium *is* the plant's, which was just solved: it is taken over, as
+  the §6 controller takes over the plant's equilibrium (`Controller.update`);
+* otherwise the model is solved on its own kept factorisation
+  (`chord.ChordSolver`, the model's own slot), warm started from its last
+  state moved by the plant's increment, with Newton as the fallback.
+
+J (1×C) is the linear response of the target's across-needle coordinate to
+a unit stroke of each cup at that state, with the needle's held rows:
+K_ff d = −K_fd B e_c subject to the hold's rows C d = 0, d read through the
+probe. It is solved with preconditioned conjugate gradients on the hold's
+null space, the preconditioner a kept factorisation (the plant's chord
+solver in the nominal run, the model's otherwise) with the hold as Schur
+rows (`ChordSolver.step`), and K v products from the exact element
+Hessians at the state. A kept factorisation is close to the current
+tangent, so a few iterations reach PCG_TOL; no factorisation is made unless
+they do not (then the kept one is refreshed at the state, where one
+iteration suffices). No residual enters J: it is the pure linear response.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from scissor_cli.insertion.chord import ChordFailed, ChordSolver, Hold
+from scissor_cli.insertion.needle import STEP_TOL, NeedleState, needle_conditions
+from scissor_cli.mechanics.tissue import Tissue
+from scissor_cli.mesh.probe import TargetProbe, target_positions
+from scissor_cli.solvers.common import SolverError, objective_gradient
+from scissor_cli.solvers.equilibrium import solve_equilibrium
+
+#: J's conjugate gradients stop when the preconditioned residual is this small relative to the response
+PCG_TOL = 1e-8
+#: iterations before the kept factorisation is refreshed at the state (and then as many again)
+PCG_MAX = 40
+
+
+class ModelState:
+    """The controller's model tissue and its equilibrium x (N, 2) under the needle's hold during an insertion.
+
+    model: the controller's tissue; plant: the tissue that moves. x_model
+    (N, 2): the model's equilibrium at `strokes` (C,) with what holds it
+    then; x_plant (N, 2): the plant's at the same time (the model's warm
+    start follows the plant's increments). When model is plant, x_model
+    must be x_plant.
+    """
+
+    def __init__(self, model: Tissue, plant: Tissue, x_model: np.ndarray, x_plant: np.ndarray, strokes: np.ndarray):
+        self.tissue = model
+        self.shared = model is plant
+        self.x = np.array(x_model, float)
+        self.strokes = np.array(strokes, float)
+        self._x_plant = np.array(x_plant, float)
+        #: the model's kept factorisation (its own slot); None when it is the plant's
+        self.solver = None if self.shared else ChordSolver(model)
+        #: PCG iterations and factorisations of the last `jacobian` (the benchmark's evidence)
+        self.last_iterations = 0
+        self.last_factorizations = 0
+
+    def follow(self, state: NeedleState, x_plant: np.ndarray, strokes: np.ndarray, loads: np.ndarray) -> None:
+        """Move to the model's equilibrium at strokes (C,) under the needle's hold and loads (2N,) as they stand.
+
+        x_plant (N, 2): the plant's equilibrium now, whose captured nodes
+        give the hold's coordinates. Raises SolverError when no solve works.
+        """
+        x_plant = np.asarray(x_plant, float)
+        strokes = np.asarray(strokes, float)
+        if self.shared:
+            self.x, self._x_plant, self.strokes = x_plant.copy(), x_plant.copy(), strokes.copy()
+            return
+        model = self.tissue
+        hold = hold_at(state, x_plant)
+        start = hold.place(model.apply_strokes(self.x + (x_plant - self._x_plant), strokes))
+        _, g = objective_gradient(model, start, None, loads, require_positive_J=True)
+        x = None
+        if g is not None:
+            try:
+                x = self.solver.converge(start, g, hold, STEP_TOL, loads)[0]
+            except ChordFailed:
+                x = None
+        if x is None:  # Newton from the last state, the hold placed, continuing from its strokes
+            r = solve_equilibrium(model, strokes, start=hold.place(self.x), start_strokes=self.strokes,
+                                  conditions=needle_conditions(state, loads), tol=STEP_TOL)
+            x = r.x
+        self.x, self._x_plant, self.strokes = x, x_plant.copy(), strokes.copy()
+
+    def jacobian(self, state: NeedleState, probe: TargetProbe,
+                 kept: ChordSolver | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """J (1, C): the target's across-needle response to a unit stroke of each cup, the needle's hold kept.
+
+        Also the model's node responses (C, N, 2) per unit stroke (the
+        plant's solve starts from them). kept: the plant's chord solver,
+        whose factorisation preconditions the solve in the nominal run
+        (ignored when the model has its own).
+        """
+        model, x = self.tissue, self.x
+        solver = self.solver if self.solver is not None else kept
+        if solver is None:
+            solver = self.solver = ChordSolver(model)
+        n_factor = solver.factorizations
+        if solver.factorizations == 0:  # nothing kept yet
+            solver.refactor(x)
+        hold = hold_at(state, x)
+        # the held components of a response, exactly zero (not round-off: a target whose nodes the needle all
+        # holds has J exactly 0 across the axis, and the loop must not divide by 1e-16)
+        held_zero = Hold(hold.captured, np.zeros_like(hold.base), hold.stuck, hold.ride, hold.n, hold.t)
+        free = model.free_dofs
+        Ke = model.element_stiffness(x)
+        t = state.across
+        J = np.zeros((1, model.n_cups))
+        responses = np.zeros((model.n_cups,) + x.shape)
+        its = 0
+        for c in range(model.n_cups):
+            b = -model.stiffness_times(x, model.cup_displacement(c), Ke)
+            d, k = _held_response(model, solver, hold, x, Ke, b, free)
+            its += k
+            responses[c] = held_zero.place(d.reshape(x.shape))
+            responses[c].ravel()[model.dirichlet_dofs] = model.cup_displacement(c)[model.dirichlet_dofs]
+            J[0, c] = target_positions(probe, responses[c])[0] @ t
+        self.last_iterations, self.last_factorizations = its, solver.factorizations - n_factor
+        if not np.all(np.isfinite(J)):
+            raise SolverError("the loop's Jacobian is not finite")
+        return J, responses
+
+
+def hold_at(state: NeedleState, x: np.ndarray) -> Hold:
+    """The needle's hold with the captured nodes where x has them (stuck: both dofs; slipping: across the axis)."""
+    captured = state.captured
+    return Hold(captured, x[captured].copy(), state.stuck.copy(), np.zeros(captured.size), state.direction,
+                state.across)
+
+
+def _held_response(model, solver, hold, x, Ke, b, free):
+    """d (2N,) with K d = b on the hold's null space (C d = 0), K the exact tangent at x; and the PCG iterations.
+
+    b (2N,) is read on the free dofs. The preconditioner is the solver's
+    factorisation with the hold's Schur rows; if PCG_MAX iterations do not
+    reach PCG_TOL it is refreshed at x and the solve starts again.
+    """
+    its = 0
+    mask = np.zeros(x.size, bool)
+    mask[free] = True
+    for attempt in range(2):
+        def precondition(r):
+            g = np.zeros(x.size)
+            g[free] = -r[free]
+            return solver.step(g, hold, x)[0].ravel()
+
+        def K(v):
+            return np.where(mask, model.stiffness_times(x, v, Ke), 0.0)
+
+        d = precondition(b)
+        r = np.where(mask, b, 0.0) - K(d)
+        z = precondition(r)
+        p, rz = z, float(r @ z)
+        for _ in range(PCG_MAX):
+            if np.linalg.norm(z) <= PCG_TOL * max(np.linalg.norm(d), 1e-300):
+                return d, its
+            its += 1
+            Kp = K(p)
+            pKp = float(p @ Kp)
+            if not pKp > 0.0:
+                raise SolverError("the model's tangent with the needle's hold is not positive definite")
+            alpha = rz / pKp
+            d = d + alpha * p
+            r = r - alpha * Kp
+            z = precondition(r)
+            rz_new = float(r @ z)
+            p, rz = z + (rz_new / rz) * p, rz_new
+        if attempt == 0:
+            solver.refactor(x)
+    raise SolverError(f"the loop's Jacobian did not converge in {PCG_MAX} iterations on a fresh factorisation")
