@@ -18,11 +18,12 @@ def miss_boxplots(runs: list[tuple[str, dict[str, np.ndarray]]], tolerance_mm: f
     for ax, t in zip(axes, targets):
         data = [(label, d[t]) for label, d in runs if t in d and len(d[t])]
         if data:
-            ax.boxplot([v for _, v in data], tick_labels=[lab for lab, _ in data])
+            # a run's label is "name (profile), N cup(s)": one line each, so long names stay inside the panel
+            ax.boxplot([v for _, v in data], tick_labels=[lab.replace(" (", "\n(").replace(", ", "\n") for lab, _ in data])
         ax.axhline(tolerance_mm, color="tab:red", ls="--", lw=1, label=f"{tolerance_mm:g} mm")
         ax.set_title(f"{t}: miss across the needle")
         ax.set_ylabel("miss (mm)")
-        ax.tick_params(axis="x", labelrotation=15, labelsize=7)
+        ax.tick_params(axis="x", labelsize=7)
         ax.legend(fontsize=7)
     fig.tight_layout()
     return fig
