@@ -300,6 +300,28 @@ def test_equilibrium_tracks_reference_newton():
     np.testing.assert_allclose(target_positions(probe, eq.x), target_positions(probe, ref.x), atol=1e-7)
 
 
+def test_the_truth_predictor_is_secant_updated_by_its_moves():
+    """Without the tangent the tracker's ∂x/∂s is Broyden-updated: it reproduces the last move, keeps B on the
+    cup rows, and is nearer the exact tangent at the new state than the one it was factored with (at rest)."""
+    _, tissue, _ = setup("paper_push")
+    truth = tissue.with_material(1.3, fiber_angle_rad=0.3)
+    eq = Equilibrium(truth)
+    eq.move_to(np.array([-9.0]), tangent=False)
+    at_rest = eq.response
+    x0, s0 = eq.x, eq.strokes.copy()
+    eq.move_to(np.array([-9.4]), tangent=False)
+    assert not eq.jacobian_is_current
+    ds = eq.strokes - s0
+    np.testing.assert_allclose(eq.response @ ds, (eq.x - x0).ravel(), atol=1e-12)
+    B = np.column_stack([truth.cup_displacement(c) for c in range(truth.n_cups)])
+    cups = np.flatnonzero(np.any(B != 0, axis=1))
+    np.testing.assert_allclose(eq.response[cups], B[cups], atol=1e-12)
+    exact = Equilibrium(truth)
+    exact.x, exact.strokes = eq.x, eq.strokes
+    exact.refactor(eq.x)
+    assert np.linalg.norm(eq.response - exact.response) < 0.2 * np.linalg.norm(at_rest - exact.response)
+
+
 def test_a_guess_from_another_tissue_does_not_change_the_equilibrium():
     _, tissue, _ = setup("paper_pull")
     truth = tissue.with_material(0.8, fiber_angle_rad=0.8)
