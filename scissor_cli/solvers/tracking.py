@@ -6,7 +6,9 @@ tracker's last factorisation of K_ff (kept while they shrink the residual
 ≥ 3×, refactored otherwise: same sparsity pattern, numeric work only). When
 ∂x/∂s is wanted — the controller's Jacobian — the exact tangent is factored
 once at the converged state; that factorisation is also the next move's
-chord matrix. A tracker that does without the tangent (the truth) keeps
+chord matrix, and two consecutive exact tangents teach the tracker the
+curvature ∂²x/∂s² (a symmetric secant update), whose ½ H[Δs, Δs] makes the
+predictor second order. A tracker that does without the tangent (the truth) keeps
 its ∂x/∂s as a predictor by Broyden's secant update from each move
 instead. A move the fast path cannot finish (the predictor inverts an
 element, or Newton does not converge from it) is solved by
@@ -54,6 +56,7 @@ class Equilibrium:
         self.stats = {"moves": 0, "refactors": 0, "fallbacks": 0, "newton_iterations": 0}
         # Known (near-)equilibria (strokes (C,), x (N, 2)) to start a big move from, e.g. the planner's.
         self.guesses: list[tuple[np.ndarray, np.ndarray]] = []
+        self._H: Optional[np.ndarray] = None  # ≈ ∂²x/∂s² (2N, C, C), learnt from consecutive exact tangents
 
     def refactor(self, x: np.ndarray) -> None:
         """Factor the exact K_ff at x (N, 2) and compute ∂x/∂s there (docs/model.md §5)."""
@@ -93,8 +96,10 @@ class Equilibrium:
             self.refactor(self.x)
         if not np.array_equal(strokes, self.strokes):
             fallbacks = self.stats["fallbacks"]
+            own = self.x
             x0, s0 = self._start(strokes)
-            x = self._corrected(strokes, x0, s0)
+            exact_start = self.tangent_x is x0  # ∂x/∂s is the exact tangent at the start
+            x = self._corrected(strokes, x0, s0, self._curvature_term(strokes - s0) if exact_start else None)
             if x is None:
                 self.stats["fallbacks"] += 1
                 r = solve_newton(self.tissue, strokes, x0=self.x, strokes0=self.strokes, tol=self.tol, factors=self.factors)
@@ -104,8 +109,36 @@ class Equilibrium:
             if not tangent and self.stats["fallbacks"] == fallbacks:  # (a fallback left the exact tangent)
                 self._secant(x - x0, strokes - s0)
             self.x, self.strokes = x, strokes.copy()
+            if tangent and exact_start and x0 is own and self.stats["fallbacks"] == fallbacks:
+                # exact tangents at both ends of a move along this tissue's own equilibria
+                D0 = self.response
+                self.refactor(self.x)
+                self._learn_curvature(self.response - D0, strokes - s0)
         if tangent and not self.jacobian_is_current:
             self.refactor(self.x)
+
+    def _learn_curvature(self, T: np.ndarray, u: np.ndarray) -> None:
+        """Update H ≈ ∂²x/∂s² (2N, C, C) with a move u (C,) over which ∂x/∂s changed by T (2N, C).
+
+        The symmetric (Powell) secant update: the least change of each dof's
+        C×C block that makes H[u] = T, H[u] the contraction Σ_j H[:, :, j] u_j.
+        With one cup that is H = T/u; with more, each move teaches H along
+        its direction and the blocks stay symmetric.
+        """
+        uu = float(u @ u)
+        if not uu > 0:
+            return
+        if self._H is None:
+            self._H = np.zeros(T.shape + (T.shape[1],))
+        R = T - self._H @ u  # (2N, C): what H misses along u
+        self._H = (self._H + (R[:, :, None] * u + u[:, None] * R[:, None, :]) / uu
+                   - (R @ u)[:, None, None] * np.outer(u, u) / (uu * uu))
+
+    def _curvature_term(self, ds: np.ndarray) -> Optional[np.ndarray]:
+        """½ H[ds, ds] (2N,): the second-order term of a move ds (C,), None before H has been learnt."""
+        if self._H is None:
+            return None
+        return 0.5 * ((self._H @ ds) @ ds)
 
     def _secant(self, dx: np.ndarray, ds: np.ndarray) -> None:
         """Broyden's update of `response` with a solved move ds (C,) → dx (N, 2): no longer an exact tangent.
@@ -135,11 +168,20 @@ class Equilibrium:
                 return x_g, s_g
         return self.x, self.strokes
 
-    def _corrected(self, strokes: np.ndarray, x0: np.ndarray, s0: np.ndarray) -> Optional[np.ndarray]:
-        """Tangent predictor from (x0, s0), then Newton with chord steps; None if that fails."""
+    def _corrected(self, strokes: np.ndarray, x0: np.ndarray, s0: np.ndarray,
+                   curvature: Optional[np.ndarray] = None) -> Optional[np.ndarray]:
+        """Predictor from (x0, s0), then Newton with chord steps; None if that fails.
+
+        The predictor is x0 + (∂x/∂s) Δs, plus `curvature` (2N,), the
+        second-order term, when given and it inverts no element.
+        """
         t = self.tissue
-        start = t.apply_strokes(x0 + (self.response @ (strokes - s0)).reshape(x0.shape), strokes)
-        if not np.min(t.jacobians(start)) > 0:
+        linear = self.response @ (strokes - s0)
+        for dx in ([linear + curvature] if curvature is not None else []) + [linear]:
+            start = t.apply_strokes(x0 + dx.reshape(x0.shape), strokes)
+            if np.min(t.jacobians(start)) > 0:
+                break
+        else:
             return None  # the predictor inverts an element
         try:
             r = newton_iterations(t, start, tol=self.tol, max_iter=self.max_iter, chord=True, chord_above=0.0,
