@@ -6,11 +6,11 @@ tracker's last factorisation of K_ff (kept while they shrink the residual
 ≥ 3×, refactored otherwise: same sparsity pattern, numeric work only). When
 ∂x/∂s is wanted — the controller's Jacobian — the exact tangent is factored
 once at the converged state; that factorisation is also the next move's
-chord matrix, and two consecutive exact tangents teach the tracker the
-curvature ∂²x/∂s² (a symmetric secant update), whose ½ H[Δs, Δs] makes the
-predictor second order. A tracker that does without the tangent (the truth) keeps
+chord matrix. A tracker that does without the tangent (the truth) keeps
 its ∂x/∂s as a predictor by Broyden's secant update from each move
-instead. A move the fast path cannot finish (the predictor inverts an
+instead. Once a few equilibria are known, the predictor is second order: a
+quadratic in the strokes fitted to the last ones (through the exact tangent
+when there is one), 1.5 decades nearer than the tangent's on small moves. A move the fast path cannot finish (the predictor inverts an
 element, or Newton does not converge from it) is solved by
 `solvers.newton.solve_newton` with load continuation.
 """
@@ -26,6 +26,11 @@ from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.common import SolverError, check_finite
 from scissor_cli.solvers.linear import Factorization, factorize_free
 from scissor_cli.solvers.newton import newton_iterations, solve_newton
+
+#: How many of its last equilibria a tracker keeps for the quadratic predictor (`Equilibrium._fitted`).
+HISTORY = 8
+#: ... and uses it for moves up to this many times the distance (in strokes) of the farthest state it fits to.
+REACH = 3.0
 
 
 class Equilibrium:
@@ -56,7 +61,8 @@ class Equilibrium:
         self.stats = {"moves": 0, "refactors": 0, "fallbacks": 0, "newton_iterations": 0}
         # Known (near-)equilibria (strokes (C,), x (N, 2)) to start a big move from, e.g. the planner's.
         self.guesses: list[tuple[np.ndarray, np.ndarray]] = []
-        self._H: Optional[np.ndarray] = None  # ≈ ∂²x/∂s² (2N, C, C), learnt from consecutive exact tangents
+        # Its last equilibria (strokes (C,), x (N, 2)), oldest first: what the quadratic predictor is fitted to.
+        self.history: list[tuple[np.ndarray, np.ndarray]] = []
 
     def refactor(self, x: np.ndarray) -> None:
         """Factor the exact K_ff at x (N, 2) and compute ∂x/∂s there (docs/model.md §5)."""
@@ -96,10 +102,8 @@ class Equilibrium:
             self.refactor(self.x)
         if not np.array_equal(strokes, self.strokes):
             fallbacks = self.stats["fallbacks"]
-            own = self.x
             x0, s0 = self._start(strokes)
-            exact_start = self.tangent_x is x0  # ∂x/∂s is the exact tangent at the start
-            x = self._corrected(strokes, x0, s0, self._curvature_term(strokes - s0) if exact_start else None)
+            x = self._corrected(strokes, x0, s0, self._fitted(strokes - s0) if x0 is self.x else None)
             if x is None:
                 self.stats["fallbacks"] += 1
                 r = solve_newton(self.tissue, strokes, x0=self.x, strokes0=self.strokes, tol=self.tol, factors=self.factors)
@@ -108,37 +112,44 @@ class Equilibrium:
                 self.refactor(x)  # the old tangent just failed as a predictor
             if not tangent and self.stats["fallbacks"] == fallbacks:  # (a fallback left the exact tangent)
                 self._secant(x - x0, strokes - s0)
+            self.history = (self.history + [(self.strokes, self.x)])[-HISTORY:]
             self.x, self.strokes = x, strokes.copy()
-            if tangent and exact_start and x0 is own and self.stats["fallbacks"] == fallbacks:
-                # exact tangents at both ends of a move along this tissue's own equilibria
-                D0 = self.response
-                self.refactor(self.x)
-                self._learn_curvature(self.response - D0, strokes - s0)
         if tangent and not self.jacobian_is_current:
             self.refactor(self.x)
 
-    def _learn_curvature(self, T: np.ndarray, u: np.ndarray) -> None:
-        """Update H ≈ ∂²x/∂s² (2N, C, C) with a move u (C,) over which ∂x/∂s changed by T (2N, C).
+    def _fitted(self, ds: np.ndarray) -> Optional[np.ndarray]:
+        """The move's increment (2N,) from a quadratic in the strokes fitted to recent equilibria, or None.
 
-        The symmetric (Powell) secant update: the least change of each dof's
-        C×C block that makes H[u] = T, H[u] the contraction Σ_j H[:, :, j] u_j.
-        With one cup that is H = T/u; with more, each move teaches H along
-        its direction and the blocks stay symmetric.
+        x(s0 + d) ≈ x0 + G d + ½ H[d, d] with x0 the current equilibrium; G
+        (2N, C) is the exact tangent when `response` is one (the
+        controller's), else fitted too (the truth); H (2N, C, C) symmetric.
+        The k unknowns per dof are fitted by least squares to the last
+        max(k + 1, 2k − 2) equilibria (one cup and the exact tangent: the
+        curvature from the last 2; two cups and no tangent: 5 unknowns from
+        8, as a square fit extrapolates worse there). None (the linear predictor is used) without enough
+        history or for a move beyond the fitted states' reach.
         """
-        uu = float(u @ u)
-        if not uu > 0:
-            return
-        if self._H is None:
-            self._H = np.zeros(T.shape + (T.shape[1],))
-        R = T - self._H @ u  # (2N, C): what H misses along u
-        self._H = (self._H + (R[:, :, None] * u + u[:, None] * R[:, None, :]) / uu
-                   - (R @ u)[:, None, None] * np.outer(u, u) / (uu * uu))
-
-    def _curvature_term(self, ds: np.ndarray) -> Optional[np.ndarray]:
-        """½ H[ds, ds] (2N,): the second-order term of a move ds (C,), None before H has been learnt."""
-        if self._H is None:
+        C = ds.size
+        exact = self.tangent_x is self.x
+        quad = [(i, j) for i in range(C) for j in range(i, C)]
+        k = len(quad) + (0 if exact else C)
+        past = self.history[-max(k + 1, 2 * k - 2):]
+        if len(past) < k or C == 0:
             return None
-        return 0.5 * ((self._H @ ds) @ ds)
+        d = np.array([sj - self.strokes for sj, _ in past])  # (m, C)
+        if np.linalg.norm(ds) > REACH * np.max(np.linalg.norm(d, axis=1)):
+            return None  # a quadratic extrapolates badly: beyond the history the tangent is safer
+
+        def features(v):  # (m, C) -> (m, k): [d if no tangent], d_i d_j (½ on the diagonal)
+            q = np.stack([v[:, i] * v[:, j] * (0.5 if i == j else 1.0) for i, j in quad], axis=1)
+            return q if exact else np.hstack([v, q])
+
+        Y = np.stack([(xj - self.x).ravel() for _, xj in past])  # (m, 2N)
+        if exact:
+            Y = Y - d @ self.response.T
+        coef = np.linalg.lstsq(features(d), Y, rcond=1e-10)[0]  # (k, 2N)
+        step = features(ds[None])[0] @ coef
+        return step + self.response @ ds if exact else step
 
     def _secant(self, dx: np.ndarray, ds: np.ndarray) -> None:
         """Broyden's update of `response` with a solved move ds (C,) → dx (N, 2): no longer an exact tangent.
@@ -169,15 +180,14 @@ class Equilibrium:
         return self.x, self.strokes
 
     def _corrected(self, strokes: np.ndarray, x0: np.ndarray, s0: np.ndarray,
-                   curvature: Optional[np.ndarray] = None) -> Optional[np.ndarray]:
+                   fitted: Optional[np.ndarray] = None) -> Optional[np.ndarray]:
         """Predictor from (x0, s0), then Newton with chord steps; None if that fails.
 
-        The predictor is x0 + (∂x/∂s) Δs, plus `curvature` (2N,), the
-        second-order term, when given and it inverts no element.
+        The predictor is x0 + `fitted` (2N,) (`_fitted`) when given and it
+        inverts no element, else the tangent one x0 + (∂x/∂s) Δs.
         """
         t = self.tissue
-        linear = self.response @ (strokes - s0)
-        for dx in ([linear + curvature] if curvature is not None else []) + [linear]:
+        for dx in ([fitted] if fitted is not None else []) + [self.response @ (strokes - s0)]:
             start = t.apply_strokes(x0 + dx.reshape(x0.shape), strokes)
             if np.min(t.jacobians(start)) > 0:
                 break
