@@ -126,8 +126,9 @@ class Equilibrium:
         The k unknowns per dof are fitted by least squares to the last
         max(k + 1, 2k − 2) equilibria (one cup and the exact tangent: the
         curvature from the last 2; two cups and no tangent: 5 unknowns from
-        8, as a square fit extrapolates worse there). None (the linear predictor is used) without enough
-        history or for a move beyond the fitted states' reach.
+        8, as a square fit extrapolates worse there). None (the linear
+        predictor is used) without enough history or for a move beyond
+        REACH times the farthest fitted state.
         """
         C = ds.size
         exact = self.tangent_x is self.x
@@ -144,12 +145,10 @@ class Equilibrium:
             q = np.stack([v[:, i] * v[:, j] * (0.5 if i == j else 1.0) for i, j in quad], axis=1)
             return q if exact else np.hstack([v, q])
 
-        Y = np.stack([(xj - self.x).ravel() for _, xj in past])  # (m, 2N)
-        if exact:
-            Y = Y - d @ self.response.T
-        coef = np.linalg.lstsq(features(d), Y, rcond=1e-10)[0]  # (k, 2N)
-        step = features(ds[None])[0] @ coef
-        return step + self.response @ ds if exact else step
+        # The fit's prediction at ds is linear in the remembered states: w (m,) = f(ds) pinv(F(d)).
+        w = features(ds[None])[0] @ np.linalg.pinv(features(d), rcond=1e-10)
+        step = np.tensordot(w, np.stack([xj for _, xj in past]) - self.x, axes=1).ravel()
+        return step + self.response @ (ds - w @ d) if exact else step
 
     def _secant(self, dx: np.ndarray, ds: np.ndarray) -> None:
         """Broyden's update of `response` with a solved move ds (C,) → dx (N, 2): no longer an exact tangent.
