@@ -79,9 +79,10 @@ class Equilibrium:
         dofs = t.ops.elem_dofs[e]
         KB_e = np.einsum("eij,ejc->eic", fem.unpack(Ke[:, e]), self._B[dofs])
         D = self._B.copy()
-        for c in range(t.n_cups):  # a few cups, not elements
-            KB = np.bincount(dofs.ravel(), weights=KB_e[:, :, c].ravel(), minlength=self._B.shape[0])
-            D[t.free_dofs, c] = factor.solve(-KB[t.free_dofs])
+        if t.n_cups:
+            KB = np.stack([np.bincount(dofs.ravel(), weights=KB_e[:, :, c].ravel(), minlength=self._B.shape[0])
+                           for c in range(t.n_cups)], axis=1)  # (dN, C): a few cups, not elements
+            D[t.free_dofs] = factor.solve(-KB[t.free_dofs])  # every cup's column in one solve
         check_finite(D, "the cup response (K_ff singular?)")
         self.response, self.tangent_x = D, x
 
