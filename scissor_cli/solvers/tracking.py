@@ -10,8 +10,9 @@ chord matrix. A tracker that does without the tangent (the truth) keeps
 its ∂x/∂s as a predictor by Broyden's secant update from each move
 instead. Once a few equilibria are known, the predictor is second order: a
 quadratic in the strokes fitted to the last ones (through the exact tangent
-when there is one), 1.5 decades nearer than the tangent's on small moves. A move the fast path cannot finish (the predictor inverts an
-element, or Newton does not converge from it) is solved by
+when there is one), 1.5 decades nearer than the tangent's on small moves.
+A move the fast path cannot finish (the predictor inverts an element, or
+Newton does not converge from it) is solved by
 `solvers.newton.solve_newton` with load continuation.
 """
 
@@ -29,7 +30,7 @@ from scissor_cli.solvers.newton import newton_iterations, solve_newton
 
 #: How many of its last equilibria a tracker keeps for the quadratic predictor (`Equilibrium._fitted`).
 HISTORY = 8
-#: ... and uses it for moves up to this many times the distance (in strokes) of the farthest state it fits to.
+#: The quadratic predictor serves moves up to this many times the stroke distance of the farthest state it fits.
 REACH = 3.0
 
 
