@@ -8,16 +8,18 @@ tracker's last factorisation of K_ff (kept while they shrink the residual
 once at the converged state; that factorisation is also the next move's
 chord matrix. A tracker that does without the tangent (the truth) keeps
 its ∂x/∂s as a predictor by Broyden's secant update from each move
-instead. Once a few equilibria are known, the predictor is second order: a
-quadratic in the strokes fitted to the last ones (through the exact tangent
-when there is one), 1.5 decades nearer than the tangent's on small moves.
-A move the fast path cannot finish (the predictor inverts an element, or
-Newton does not converge from it) is solved by
-`solvers.newton.solve_newton` with load continuation.
+instead. Once a few equilibria are known, the predictor is a polynomial in
+the strokes fitted to the last ones (a quadratic; with the exact tangent, a
+cubic through the past tangents too): 1.5–3 decades nearer than the
+tangent's on small moves. A move the fast path cannot finish (the
+predictor inverts an element, or Newton does not converge from it) is
+solved by `solvers.newton.solve_newton` with load continuation.
 """
 
 from __future__ import annotations
 
+from itertools import combinations_with_replacement
+from math import factorial
 from typing import Optional
 
 import numpy as np
@@ -62,8 +64,9 @@ class Equilibrium:
         self.stats = {"moves": 0, "refactors": 0, "fallbacks": 0, "newton_iterations": 0}
         # Known (near-)equilibria (strokes (C,), x (N, 2)) to start a big move from, e.g. the planner's.
         self.guesses: list[tuple[np.ndarray, np.ndarray]] = []
-        # Its last equilibria (strokes (C,), x (N, 2)), oldest first: what the quadratic predictor is fitted to.
-        self.history: list[tuple[np.ndarray, np.ndarray]] = []
+        # Its last equilibria (strokes (C,), x (N, 2), the exact ∂x/∂s there or None), oldest first:
+        # what the polynomial predictor is fitted to.
+        self.history: list[tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]] = []
 
     def refactor(self, x: np.ndarray) -> None:
         """Factor the exact K_ff at x (N, 2) and compute ∂x/∂s there (docs/model.md §5)."""
@@ -114,43 +117,55 @@ class Equilibrium:
                 self.refactor(x)  # the old tangent just failed as a predictor
             if not tangent and self.stats["fallbacks"] == fallbacks:  # (a fallback left the exact tangent)
                 self._secant(x - x0, strokes - s0)
-            self.history = (self.history + [(self.strokes, self.x)])[-HISTORY:]
+            tangent_here = self.response if self.tangent_x is self.x else None
+            self.history = (self.history + [(self.strokes, self.x, tangent_here)])[-HISTORY:]
             self.x, self.strokes = x, strokes.copy()
         if tangent and not self.jacobian_is_current:
             self.refactor(self.x)
 
     def _fitted(self, ds: np.ndarray) -> Optional[np.ndarray]:
-        """The move's increment (2N,) from a quadratic in the strokes fitted to recent equilibria, or None.
+        """The move's increment (2N,) from a polynomial in the strokes fitted to recent equilibria, or None.
 
-        x(s0 + d) ≈ x0 + G d + ½ H[d, d] with x0 the current equilibrium; G
-        (2N, C) is the exact tangent when `response` is one (the
-        controller's), else fitted too (the truth); H (2N, C, C) symmetric.
-        The k unknowns per dof are fitted by least squares to the last
-        max(k + 1, 2k − 2) equilibria (one cup and the exact tangent: the
-        curvature from the last 2; two cups and no tangent: 5 unknowns from
-        8, as a square fit extrapolates worse there). None (the linear
-        predictor is used) without enough history or for a move beyond
-        REACH times the farthest fitted state.
+        With the exact tangent G = ∂x/∂s at the current equilibrium x0 (the
+        controller's model): x(s0 + d) ≈ x0 + G d + ½ H[d, d] + ⅙ T[d, d, d],
+        H and T fitted to the last equilibria that kept their exact tangent,
+        each giving its position and its tangent (Hermite: one cup, one
+        state; two cups, 7 unknowns from the 9 equations of 3 states).
+        Without it (the truth): x0 + G d + ½ H[d, d] with G fitted too, to
+        the last max(k, 2k − 2) equilibria for k unknowns per dof (one cup:
+        through the last 2; two cups: 5 unknowns from 8, as a square fit
+        extrapolates worse there). None (the tangent predictor is used)
+        without enough history or for a move beyond REACH times the
+        farthest fitted state.
         """
         C = ds.size
         exact = self.tangent_x is self.x
-        quad = [(i, j) for i in range(C) for j in range(i, C)]
-        k = len(quad) + (0 if exact else C)
-        past = self.history[-max(k + 1, 2 * k - 2):]
-        if len(past) < k or C == 0:
+        terms = _monomials(C, (2, 3) if exact else (1, 2))
+        k = len(terms)
+        if exact:
+            past = [h for h in self.history if h[2] is not None][-int(np.ceil(k / (1 + C))):]
+            equations = len(past) * (1 + C)
+        else:
+            past = self.history[-max(k, 2 * k - 2):]
+            equations = len(past)
+        if C == 0 or equations < k:
             return None
-        d = np.array([sj - self.strokes for sj, _ in past])  # (m, C)
+        d = np.array([h[0] - self.strokes for h in past])  # (m, C)
         if np.linalg.norm(ds) > REACH * np.max(np.linalg.norm(d, axis=1)):
-            return None  # a quadratic extrapolates badly: beyond the history the tangent is safer
-
-        def features(v):  # (m, C) -> (m, k): [d if no tangent], d_i d_j (½ on the diagonal)
-            q = np.stack([v[:, i] * v[:, j] * (0.5 if i == j else 1.0) for i, j in quad], axis=1)
-            return q if exact else np.hstack([v, q])
-
-        # The fit's prediction at ds is linear in the remembered states: w (m,) = f(ds) pinv(F(d)).
-        w = features(ds[None])[0] @ np.linalg.pinv(features(d), rcond=1e-10)
-        step = np.tensordot(w, np.stack([xj for _, xj in past]) - self.x, axes=1).ravel()
-        return step + self.response @ (ds - w @ d) if exact else step
+            return None  # a polynomial extrapolates badly: beyond the history the tangent is safer
+        # Each fitted quantity is linear in the remembered ones: w = f(ds) pinv(A), the increment w Y.
+        A = [_taylor(terms, d)]
+        Y = [np.stack([h[1] for h in past]) - self.x]  # (m, N, 2)
+        if not exact:
+            w = _taylor(terms, ds[None])[0] @ np.linalg.pinv(A[0], rcond=1e-10)
+            return np.tensordot(w, Y[0], axes=1).ravel()
+        G = self.response
+        Y = [Y[0].reshape(len(past), -1) - d @ G.T]  # positions less the tangent's part
+        for c in range(C):  # and each tangent column: the derivative of the same polynomial
+            A.append(_taylor(terms, d, along=c))
+            Y.append(np.stack([h[2][:, c] for h in past]) - G[:, c])
+        w = _taylor(terms, ds[None])[0] @ np.linalg.pinv(np.vstack(A), rcond=1e-10)
+        return G @ ds + w @ np.vstack(Y)
 
     def _secant(self, dx: np.ndarray, ds: np.ndarray) -> None:
         """Broyden's update of `response` with a solved move ds (C,) → dx (N, 2): no longer an exact tangent.
@@ -208,3 +223,32 @@ class Equilibrium:
         self.x, self.strokes = other.x, other.strokes.copy()
         self.response, self.tangent_x = other.response, other.tangent_x
         # Our own factorisation is now at some other state; the next move refreshes it when it matters.
+
+
+def _monomials(C: int, degrees: tuple[int, ...]) -> list[tuple[np.ndarray, float]]:
+    """The Taylor terms of the given degrees in C strokes: (exponents e (C,), 1/e!) each.
+
+    Σ_e d^e/e! ∂^e x over the e of degree n is the symmetric form
+    (1/n!) A[d, …, d]: the unknowns fitted are the partial derivatives ∂^e x.
+    """
+    terms = []
+    for n in degrees:
+        for combo in combinations_with_replacement(range(C), n):
+            e = np.bincount(combo, minlength=C)
+            terms.append((e, 1.0 / float(np.prod([factorial(int(k)) for k in e]))))
+    return terms
+
+
+def _taylor(terms: list[tuple[np.ndarray, float]], d: np.ndarray, along: Optional[int] = None) -> np.ndarray:
+    """(m, k): each term at the stroke increments d (m, C), or its derivative along stroke `along`."""
+    cols = []
+    for e, c in terms:
+        if along is None:
+            cols.append(c * np.prod(d ** e, axis=1))
+        elif e[along] == 0:
+            cols.append(np.zeros(len(d)))
+        else:
+            e1 = e.copy()
+            e1[along] -= 1
+            cols.append(c * e[along] * np.prod(d ** e1, axis=1))
+    return np.stack(cols, axis=1)
