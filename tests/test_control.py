@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scissor_cli.solvers.tracking import Equilibrium
+from scissor_cli.solvers.tracking import HISTORY, Equilibrium
 from scissor_cli import control as ct
 from scissor_cli.output.manipulation import manipulation_figure_inputs
 from scissor_cli.output import figures
@@ -324,9 +324,9 @@ def test_the_truth_predictor_is_secant_updated_by_its_moves():
 
 def test_the_second_order_predictor_fitted_to_recent_equilibria():
     """After a few moves the tracker predicts from a polynomial in the strokes fitted to its last equilibria
-    (a cubic through their positions and exact tangents when it has them, else a quadratic through the
-    positions): nearer the reference equilibrium than the tangent predictor, for the controller with one
-    cup, for the controller and for a truth with two; none beyond the history's reach."""
+    (through their positions and exact tangents when it has them, else through the positions): nearer
+    the reference equilibrium than the tangent predictor, for the controller with one cup, for the
+    controller and for a truth with two; none beyond the history's reach."""
     _, tissue, _ = setup("paper_push")
     eq = Equilibrium(tissue)
     for s in (9.0, 9.3, 9.6):
@@ -353,10 +353,10 @@ def test_the_second_order_predictor_fitted_to_recent_equilibria():
     eq = Equilibrium(truth)
     rng = np.random.default_rng(3)
     s = np.array([3.0, -2.0])
-    for _ in range(10):
+    for _ in range(HISTORY + 2):
         s = s + rng.uniform(-0.4, 0.4, 2)
         eq.move_to(s, tangent=False)
-    assert len(eq.history) == 8
+    assert len(eq.history) == HISTORY
     ds = np.array([0.25, -0.3])
     ref = solve_newton(truth, eq.strokes + ds, tol=1e-10).x
     secant = eq.x + (eq.response @ ds).reshape(eq.x.shape)

@@ -9,11 +9,12 @@ once at the converged state; that factorisation is also the next move's
 chord matrix. A tracker that does without the tangent (the truth) keeps
 its ∂x/∂s as a predictor by Broyden's secant update from each move
 instead. Once a few equilibria are known, the predictor is a polynomial in
-the strokes fitted to the last ones (a quadratic; with the exact tangent, a
-cubic through the past tangents too): 1.5–3 decades nearer than the
-tangent's on small moves. A move the fast path cannot finish (the
-predictor inverts an element, or Newton does not converge from it) is
-solved by `solvers.newton.solve_newton` with load continuation.
+the strokes (degree ≤ 5) fitted to the last ones, through their exact
+tangents too when the tracker has them: its start residuals are decades
+below the tangent predictor's on the small moves of a loop. A move the
+fast path cannot finish (the predictor inverts an element, or Newton does
+not converge from it) is solved by `solvers.newton.solve_newton` with load
+continuation.
 """
 
 from __future__ import annotations
@@ -30,9 +31,12 @@ from scissor_cli.solvers.common import SolverError, check_finite
 from scissor_cli.solvers.linear import Factorization, factorize_free
 from scissor_cli.solvers.newton import newton_iterations, solve_newton
 
-#: How many of its last equilibria a tracker keeps for the quadratic predictor (`Equilibrium._fitted`).
-HISTORY = 8
-#: The quadratic predictor serves moves up to this many times the stroke distance of the farthest state it fits.
+#: How many of its last equilibria a tracker keeps for the polynomial predictor (`Equilibrium._fitted`).
+HISTORY = 16
+#: The predictor's polynomial: degree at most MAX_DEGREE, at most MAX_UNKNOWNS fitted coefficients per dof.
+MAX_DEGREE = 5
+MAX_UNKNOWNS = 12
+#: The polynomial predictor serves moves up to this many times the stroke distance of the farthest state it fits.
 REACH = 3.0
 
 
@@ -126,29 +130,42 @@ class Equilibrium:
     def _fitted(self, ds: np.ndarray) -> Optional[np.ndarray]:
         """The move's increment (2N,) from a polynomial in the strokes fitted to recent equilibria, or None.
 
-        With the exact tangent G = ∂x/∂s at the current equilibrium x0 (the
-        controller's model): x(s0 + d) ≈ x0 + G d + ½ H[d, d] + ⅙ T[d, d, d],
-        H and T fitted to the last equilibria that kept their exact tangent,
-        each giving its position and its tangent (Hermite: one cup, one
-        state; two cups, 7 unknowns from the 9 equations of 3 states).
-        Without it (the truth): x0 + G d + ½ H[d, d] with G fitted too, to
-        the last max(k, 2k − 2) equilibria for k unknowns per dof (one cup:
-        through the last 2; two cups: 5 unknowns from 8, as a square fit
-        extrapolates worse there). None (the tangent predictor is used)
-        without enough history or for a move beyond REACH times the
-        farthest fitted state.
+        x(s0 + d) ≈ x0 + Σ_{n=1..p} (1/n!) A_n[d, …, d] around the current
+        equilibrium x0. With the exact tangent A_1 = ∂x/∂s at x0 (the
+        controller's model, which factors it for J at every move) the higher
+        terms are fitted to the last equilibria that kept their exact tangent,
+        each giving its position and its C tangent columns (Hermite); without
+        it (the truth) A_1 is fitted too, to positions only. The degree p is
+        the highest ≤ MAX_DEGREE with at most MAX_UNKNOWNS unknowns per dof
+        (one cup: 5 for both; two cups: 4 with the tangent, 3 without); the
+        equations are as many as the unknowns with one cup (interpolation),
+        a third more with several (a square fit extrapolates worse there).
+        The remembered equilibria are converged to the solver's tolerance, so
+        on the small moves of a loop each added degree still lowers the start
+        residual (one cup: tangent ~3e-3, quadratic ~3e-5, degree 5
+        1e-7–1e-10). None (the tangent predictor is used)
+        without enough history or for a move beyond REACH times the farthest
+        fitted state.
         """
         C = ds.size
+        if C == 0:
+            return None
         exact = self.tangent_x is self.x
-        terms = _monomials(C, (2, 3) if exact else (1, 2))
+        first = 2 if exact else 1
+        p = first
+        while p < MAX_DEGREE and len(_monomials(C, tuple(range(first, p + 2)))) <= MAX_UNKNOWNS:
+            p += 1
+        terms = _monomials(C, tuple(range(first, p + 1)))
         k = len(terms)
+        equations = k if C == 1 else -(-4 * k // 3)
         if exact:
-            past = [h for h in self.history if h[2] is not None][-int(np.ceil(k / (1 + C))):]
-            equations = len(past) * (1 + C)
+            states = -(-equations // (1 + C))  # each gives its position and C tangent columns
+            past = [h for h in self.history if h[2] is not None][-states:]
+            have = len(past) * (1 + C)
         else:
-            past = self.history[-max(k, 2 * k - 2):]
-            equations = len(past)
-        if C == 0 or equations < k:
+            past = self.history[-equations:]
+            have = len(past)
+        if have < k:
             return None
         d = np.array([h[0] - self.strokes for h in past])  # (m, C)
         if np.linalg.norm(ds) > REACH * np.max(np.linalg.norm(d, axis=1)):
