@@ -19,6 +19,7 @@ continuation.
 
 from __future__ import annotations
 
+from functools import lru_cache
 from itertools import combinations_with_replacement
 from math import factorial
 from typing import Optional
@@ -151,13 +152,8 @@ class Equilibrium:
         if C == 0:
             return None
         exact = self.tangent_x is self.x
-        first = 2 if exact else 1
-        p = first
-        while p < MAX_DEGREE and len(_monomials(C, tuple(range(first, p + 2)))) <= MAX_UNKNOWNS:
-            p += 1
-        terms = _monomials(C, tuple(range(first, p + 1)))
-        k = len(terms)
-        equations = k if C == 1 else -(-4 * k // 3)
+        E, coefficient, equations = _polynomial(C, exact)
+        k = len(E)
         if exact:
             states = -(-equations // (1 + C))  # each gives its position and C tangent columns
             past = [h for h in self.history if h[2] is not None][-states:]
@@ -171,17 +167,17 @@ class Equilibrium:
         if np.linalg.norm(ds) > REACH * np.max(np.linalg.norm(d, axis=1)):
             return None  # a polynomial extrapolates badly: beyond the history the tangent is safer
         # Each fitted quantity is linear in the remembered ones: w = f(ds) pinv(A), the increment w Y.
-        A = [_taylor(terms, d)]
+        A = [_taylor(E, coefficient, d)]
         Y = [np.stack([h[1] for h in past]) - self.x]  # (m, N, 2)
         if not exact:
-            w = _taylor(terms, ds[None])[0] @ np.linalg.pinv(A[0], rcond=1e-10)
+            w = _taylor(E, coefficient, ds[None])[0] @ np.linalg.pinv(A[0], rcond=1e-10)
             return np.tensordot(w, Y[0], axes=1).ravel()
         G = self.response
         Y = [Y[0].reshape(len(past), -1) - d @ G.T]  # positions less the tangent's part
         for c in range(C):  # and each tangent column: the derivative of the same polynomial
-            A.append(_taylor(terms, d, along=c))
+            A.append(_taylor(E, coefficient, d, along=c))
             Y.append(np.stack([h[2][:, c] for h in past]) - G[:, c])
-        w = _taylor(terms, ds[None])[0] @ np.linalg.pinv(np.vstack(A), rcond=1e-10)
+        w = _taylor(E, coefficient, ds[None])[0] @ np.linalg.pinv(np.vstack(A), rcond=1e-10)
         return G @ ds + w @ np.vstack(Y)
 
     def _secant(self, dx: np.ndarray, ds: np.ndarray) -> None:
@@ -242,30 +238,35 @@ class Equilibrium:
         # Our own factorisation is now at some other state; the next move refreshes it when it matters.
 
 
-def _monomials(C: int, degrees: tuple[int, ...]) -> list[tuple[np.ndarray, float]]:
-    """The Taylor terms of the given degrees in C strokes: (exponents e (C,), 1/e!) each.
+@lru_cache(maxsize=None)
+def _polynomial(C: int, exact: bool) -> tuple[np.ndarray, np.ndarray, int]:
+    """The predictor's polynomial for C strokes: (exponents (k, C), 1/e! (k,), equations wanted).
 
-    Σ_e d^e/e! ∂^e x over the e of degree n is the symmetric form
-    (1/n!) A[d, …, d]: the unknowns fitted are the partial derivatives ∂^e x.
+    Degrees from 2 (with the exact tangent) or 1 up to the highest p ≤
+    MAX_DEGREE with at most MAX_UNKNOWNS terms; Σ_e d^e/e! ∂^e x over the
+    exponents e of degree n is the symmetric form (1/n!) A_n[d, …, d], so the
+    unknowns fitted are the partial derivatives ∂^e x. Equations: as many as
+    unknowns with one stroke, a third more with several.
     """
-    terms = []
-    for n in degrees:
-        for combo in combinations_with_replacement(range(C), n):
-            e = np.bincount(combo, minlength=C)
-            terms.append((e, 1.0 / float(np.prod([factorial(int(k)) for k in e]))))
-    return terms
+    first = 2 if exact else 1
+
+    def exponents(p):
+        return [np.bincount(combo, minlength=C) for n in range(first, p + 1)
+                for combo in combinations_with_replacement(range(C), n)]
+
+    p = first
+    while p < MAX_DEGREE and len(exponents(p + 1)) <= MAX_UNKNOWNS:
+        p += 1
+    E = np.array(exponents(p)).reshape(-1, C)
+    coefficient = 1.0 / np.prod([[factorial(int(v)) for v in e] for e in E], axis=1)
+    k = len(E)
+    return E, coefficient, (k if C == 1 else -(-4 * k // 3))
 
 
-def _taylor(terms: list[tuple[np.ndarray, float]], d: np.ndarray, along: Optional[int] = None) -> np.ndarray:
-    """(m, k): each term at the stroke increments d (m, C), or its derivative along stroke `along`."""
-    cols = []
-    for e, c in terms:
-        if along is None:
-            cols.append(c * np.prod(d ** e, axis=1))
-        elif e[along] == 0:
-            cols.append(np.zeros(len(d)))
-        else:
-            e1 = e.copy()
-            e1[along] -= 1
-            cols.append(c * e[along] * np.prod(d ** e1, axis=1))
-    return np.stack(cols, axis=1)
+def _taylor(E: np.ndarray, coefficient: np.ndarray, d: np.ndarray, along: Optional[int] = None) -> np.ndarray:
+    """(m, k): the terms d^e/e! at the stroke increments d (m, C), or their derivatives along stroke `along`."""
+    if along is None:
+        return coefficient * np.prod(d[:, None, :] ** E, axis=2)
+    lowered = E.copy()
+    lowered[:, along] = np.maximum(lowered[:, along] - 1, 0)  # the terms without this stroke vanish (× e = 0)
+    return coefficient * E[:, along] * np.prod(d[:, None, :] ** lowered, axis=2)
