@@ -3,6 +3,8 @@ the uncorrectable part, spare cups and zero cups."""
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from scissor_cli.control.allocation import REGULARISATION, along_mm, miss_mm, projector, stroke_step
 
@@ -84,3 +86,54 @@ def test_zero_cup_loop_stops_at_once_and_says_so():
     r = ct.run_target(bare, target.rest, target.desired, cfg.controller, direction=X, target="T2")
     assert r.iterations == 0 and "no cups: nothing to correct" in r.message
     assert r.miss_mm == pytest.approx(abs(target.desired[1] - target.rest[1]))
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    C=st.integers(1, 4),
+    rows=st.integers(1, 4),
+    lam=st.sampled_from([REGULARISATION, 1e-3, 1.0]),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_bounded_step_matches_lsq_linear_and_its_optimality_conditions(C, rows, lam, seed):
+    """The closed-form / face-wise bounded solve against scipy's BVLS on random boxes around 0 (C ≤ 3 by faces,
+    C = 4 by BVLS itself), and the KKT conditions of the box problem checked directly."""
+    from scipy.optimize import lsq_linear
+
+    from scissor_cli.control.allocation import FACES_MAX_CUPS, _bounded
+
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(rows, C)) * rng.choice([0.05, 1.0, 3.0], size=C)
+    b = rng.normal(size=rows) * rng.choice([0.1, 1.0, 10.0])
+    lb = -rng.uniform(0.0, 1.0, C) * rng.choice([0.0, 1.0], C, p=[0.1, 0.9])
+    ub = rng.uniform(0.0, 1.0, C) * rng.choice([0.0, 1.0], C, p=[0.1, 0.9])
+    x, inside = _bounded(A, b, lb, ub, lam)
+    assert x.shape == (C,) and np.all(np.isfinite(x))
+    slack = 0.0 if C <= FACES_MAX_CUPS else 1e-12  # the faces land on the bounds exactly, BVLS within round-off
+    assert np.all(x >= lb - slack) and np.all(x <= ub + slack)
+    Aa, ba = np.vstack([A, np.sqrt(lam) * np.eye(C)]), np.concatenate([b, np.zeros(C)])
+
+    def f(y):
+        return float(np.sum((Aa @ y - ba) ** 2))
+
+    fixed = lb == ub
+    if np.all(fixed):
+        ref = lb.copy()
+    else:
+        ref = np.array(lb, float)
+        sub = lsq_linear(Aa[:, ~fixed], ba - Aa[:, fixed] @ lb[fixed], bounds=(lb[~fixed], ub[~fixed]),
+                         method="bvls", tol=1e-14)
+        ref[~fixed] = sub.x
+    scale = 1.0 + f(np.zeros(C))
+    assert f(x) <= f(ref) + 1e-12 * scale
+    # strictly convex (λ > 0): the minimiser is unique, and ‖x − x*‖² ≤ (f(x) − f*)/λ_min
+    np.testing.assert_allclose(x, ref, atol=1e-7 * np.sqrt(scale / lam))
+    # KKT: zero gradient on free strokes, pointing out of the box on strokes at a bound
+    g = 2 * Aa.T @ (Aa @ x - ba)
+    tol = 1e-9 * scale
+    at_lb, at_ub = (x <= lb + 1e-12) & ~fixed, (x >= ub - 1e-12) & ~fixed
+    interior = ~(at_lb | at_ub | fixed)
+    assert np.all(np.abs(g[interior]) <= tol)
+    assert np.all(g[at_lb] >= -tol) and np.all(g[at_ub] <= tol)
+    if inside:
+        assert np.all(np.abs(g) <= tol)

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scissor_cli.solvers.tracking import Equilibrium
+from scissor_cli.solvers.tracking import HISTORY, Equilibrium
 from scissor_cli import control as ct
 from scissor_cli.output.manipulation import manipulation_figure_inputs
 from scissor_cli.output import figures
@@ -298,6 +298,72 @@ def test_equilibrium_tracks_reference_newton():
     eq.move_to(np.array([-9.7]), tangent=False)
     ref = solve_newton(truth, np.array([-9.7]), tol=1e-10)
     np.testing.assert_allclose(target_positions(probe, eq.x), target_positions(probe, ref.x), atol=1e-7)
+
+
+def test_the_truth_predictor_is_secant_updated_by_its_moves():
+    """Without the tangent the tracker's ∂x/∂s is Broyden-updated: it reproduces the last move, keeps B on the
+    cup rows, and is nearer the exact tangent at the new state than the one it was factored with (at rest)."""
+    _, tissue, _ = setup("paper_push")
+    truth = tissue.with_material(1.3, fiber_angle_rad=0.3)
+    eq = Equilibrium(truth)
+    eq.move_to(np.array([-9.0]), tangent=False)
+    at_rest = eq.response
+    x0, s0 = eq.x, eq.strokes.copy()
+    eq.move_to(np.array([-9.4]), tangent=False)
+    assert not eq.jacobian_is_current
+    ds = eq.strokes - s0
+    np.testing.assert_allclose(eq.response @ ds, (eq.x - x0).ravel(), atol=1e-12)
+    B = np.column_stack([truth.cup_displacement(c) for c in range(truth.n_cups)])
+    cups = np.flatnonzero(np.any(B != 0, axis=1))
+    np.testing.assert_allclose(eq.response[cups], B[cups], atol=1e-12)
+    exact = Equilibrium(truth)
+    exact.x, exact.strokes = eq.x, eq.strokes
+    exact.refactor(eq.x)
+    assert np.linalg.norm(eq.response - exact.response) < 0.2 * np.linalg.norm(at_rest - exact.response)
+
+
+def test_the_second_order_predictor_fitted_to_recent_equilibria():
+    """After a few moves the tracker predicts from a polynomial in the strokes fitted to its last equilibria
+    (through their positions and exact tangents when it has them, else through the positions): nearer
+    the reference equilibrium than the tangent predictor, for the controller with one cup, for the
+    controller and for a truth with two; none beyond the history's reach."""
+    _, tissue, _ = setup("paper_push")
+    eq = Equilibrium(tissue)
+    for s in (9.0, 9.3, 9.6):
+        eq.move_to(np.array([s]), tangent=True)
+    ds = np.array([0.4])
+    ref = solve_newton(tissue, eq.strokes + ds, tol=1e-10).x
+    linear = eq.x + (eq.response @ ds).reshape(eq.x.shape)
+    fitted = eq.x + eq._fitted(ds).reshape(eq.x.shape)
+    assert np.linalg.norm(fitted - ref) < 0.01 * np.linalg.norm(linear - ref)  # cubic Hermite: two orders up
+    assert eq._fitted(np.array([5.0])) is None  # beyond 3x the farthest remembered state
+
+    cfg = load_config(ROOT / "configs" / "two_cups.yaml")
+    two = build_model(cfg, mesh_scale=2.0)[2]
+    eq = Equilibrium(two)
+    for s in ([3.0, -2.0], [3.3, -2.0], [3.3, -1.6], [3.0, -1.9]):
+        eq.move_to(np.array(s), tangent=True)
+    ds = np.array([0.2, 0.2])
+    ref = solve_newton(two, eq.strokes + ds, tol=1e-10).x
+    linear = eq.x + (eq.response @ ds).reshape(eq.x.shape)
+    fitted = eq.x + eq._fitted(ds).reshape(eq.x.shape)
+    assert np.linalg.norm(fitted - ref) < 0.1 * np.linalg.norm(linear - ref)
+
+    truth = two.with_material(1.3, fiber_angle_rad=0.3)
+    eq = Equilibrium(truth)
+    rng = np.random.default_rng(3)
+    s = np.array([3.0, -2.0])
+    for _ in range(HISTORY + 2):
+        s = s + rng.uniform(-0.4, 0.4, 2)
+        eq.move_to(s, tangent=False)
+    assert len(eq.history) == HISTORY
+    ds = np.array([0.25, -0.3])
+    ref = solve_newton(truth, eq.strokes + ds, tol=1e-10).x
+    secant = eq.x + (eq.response @ ds).reshape(eq.x.shape)
+    fitted = eq.x + eq._fitted(ds).reshape(eq.x.shape)
+    assert np.linalg.norm(fitted - ref) < 0.3 * np.linalg.norm(secant - ref)
+    eq.move_to(eq.strokes + ds, tangent=False)
+    np.testing.assert_allclose(eq.x, ref, atol=1e-7)
 
 
 def test_a_guess_from_another_tissue_does_not_change_the_equilibrium():

@@ -9,7 +9,10 @@ and the along-axis part n·e is left to the insertion depth. The step is
     δs* = argmin ‖A δs − b‖² + λ ‖δs‖²   subject to  lb ≤ δs ≤ ub,
 
 with A = P J, b = e⊥ (or A = J, b = e for `controller.error: position`),
-solved by scipy's `lsq_linear` on the stacked system [A; √λ I] δs ≈ [b; 0].
+solved on the stacked system [A; √λ I] δs ≈ [b; 0]: by least squares when
+the unbounded optimum is admissible, else exactly over the faces of the
+box for up to `FACES_MAX_CUPS` cups (`_on_faces`) and by scipy's
+`lsq_linear` (BVLS) beyond.
 λ = `REGULARISATION` (mm²/mm², dimensionless as J is): small enough that
 the bias it puts on a step (relative λ/σ², σ the smallest singular value
 that matters, ≥ 0.05 in the scenes shipped) is below 1e-3 and removed by
@@ -57,6 +60,10 @@ REGULARISATION = 1.0e-6
 #: μ: weight of the along-axis error when spare cups can also correct it (C ≥ 2); see the module docstring.
 ALONG_WEIGHT = 1.0e-2
 
+#: Up to this many cups a bounded step is solved exactly over the box's faces (`_on_faces`; one cup: a
+#: clip), beyond by scipy's BVLS, whose set-up costs more than the whole face search for 1–2 cups.
+FACES_MAX_CUPS = 3
+
 #: How the controller reads the error (config `controller.error`).
 ERROR_MODES = ("miss", "position")
 
@@ -77,11 +84,8 @@ class Step:
     along_correctable_mm: float = 0.0  # with spare cups: the along-axis part they can still remove
 
 
-def projector(direction: Optional[np.ndarray], mode: str = "miss") -> Optional[np.ndarray]:
-    """P = I − n nᵀ (2, 2) for the needle axis `direction` (2,), or None (use the full error).
-
-    None for `mode` "position" or when there is no finite axis.
-    """
+def _axis(direction: Optional[np.ndarray], mode: str = "miss") -> Optional[np.ndarray]:
+    """The unit needle axis n (2,) the miss is taken across, or None (use the full error)."""
     if mode not in ERROR_MODES:
         raise ValueError(f"error mode must be one of {ERROR_MODES}, got {mode!r}")
     if mode == "position" or direction is None:
@@ -89,8 +93,16 @@ def projector(direction: Optional[np.ndarray], mode: str = "miss") -> Optional[n
     n = np.asarray(direction, float)
     if n.shape != (2,) or not np.all(np.isfinite(n)) or np.linalg.norm(n) == 0:
         return None
-    n = n / np.linalg.norm(n)
-    return np.eye(2) - np.outer(n, n)
+    return n / np.linalg.norm(n)
+
+
+def projector(direction: Optional[np.ndarray], mode: str = "miss") -> Optional[np.ndarray]:
+    """P = I − n nᵀ (2, 2) for the needle axis `direction` (2,), or None (use the full error).
+
+    None for `mode` "position" or when there is no finite axis.
+    """
+    n = _axis(direction, mode)
+    return None if n is None else np.eye(2) - np.outer(n, n)
 
 
 def miss_mm(error: np.ndarray, direction: Optional[np.ndarray]) -> float:
@@ -108,28 +120,75 @@ def along_mm(error: np.ndarray, direction: Optional[np.ndarray]) -> float:
     return float(np.dot(n / np.linalg.norm(n), np.asarray(error, float)))
 
 
-def _bounded(A: np.ndarray, b: np.ndarray, lb: np.ndarray, ub: np.ndarray, lam: float) -> np.ndarray:
-    """argmin ‖A x − b‖² + λ‖x‖² over lb ≤ x ≤ ub (C,); `_bounded.inside` says whether the unbounded optimum was admissible."""
-    _bounded.inside = True
+def _regularised(A: np.ndarray, b: np.ndarray, lam: float) -> np.ndarray:
+    """argmin ‖A x − b‖² + λ‖x‖² (C,), unbounded: lstsq on [A; √λ I] x ≈ [b; 0] (closed form for one column)."""
     C = A.shape[1]
-    lb, ub = np.minimum(lb, 0.0), np.maximum(ub, 0.0)  # δs = 0 is always admissible
+    if C == 1:
+        a = A[:, 0]
+        return np.array([np.dot(a, b) / (np.dot(a, a) + lam)])
+    return np.linalg.lstsq(np.vstack([A, np.sqrt(lam) * np.eye(C)]), np.concatenate([b, np.zeros(C)]), rcond=None)[0]
+
+
+def _objective(A: np.ndarray, b: np.ndarray, x: np.ndarray, lam: float) -> float:
+    r = A @ x - b
+    return float(np.dot(r, r) + lam * np.dot(x, x))
+
+
+def _on_faces(A: np.ndarray, b: np.ndarray, lb: np.ndarray, ub: np.ndarray, lam: float) -> np.ndarray:
+    """The bounded optimum when the unbounded one is not admissible: the best optimum over the box's faces.
+
+    The objective is strictly convex (λ > 0), so its box minimum is unique
+    and, the unbounded optimum lying outside, sits on the boundary: on some
+    face x_i = lb_i or ub_i, where it is the minimum of the same kind of
+    problem in the other C − 1 strokes (solved the same way). The least
+    objective over the 2C faces is that minimum: exact, with no iteration
+    (2C small solves of C − 1 strokes each, one stroke in closed form; used
+    for 2 ≤ C ≤ FACES_MAX_CUPS).
+    """
+    C = A.shape[1]
+    best, best_f = None, np.inf
+    for i in range(C):  # a few cups, not elements
+        rest = [k for k in range(C) if k != i]
+        A_rest = A[:, rest]
+        for v in (lb[i], ub[i]):
+            x = np.empty(C)
+            x[i] = v
+            x[rest] = _in_box(A_rest, b - A[:, i] * v, lb[rest], ub[rest], lam)[0]
+            f = _objective(A, b, x, lam)
+            if f < best_f:
+                best, best_f = x, f
+    return best
+
+
+def _in_box(A: np.ndarray, b: np.ndarray, lb: np.ndarray, ub: np.ndarray, lam: float) -> tuple[np.ndarray, bool]:
+    """(argmin ‖A x − b‖² + λ‖x‖² over lb ≤ x ≤ ub (C,), whether the unbounded optimum was admissible)."""
+    x = _regularised(A, b, lam)
+    if (x >= lb).all() and (x <= ub).all():
+        return x, True  # the unconstrained optimum is admissible: no bounded solve
+    if A.shape[1] == 1:  # a convex parabola: its minimum over an interval is the clipped one
+        return np.clip(x, lb, ub), False
+    if A.shape[1] <= FACES_MAX_CUPS:
+        return _on_faces(A, b, lb, ub, lam), False
+    C = A.shape[1]
     Aa = np.vstack([A, np.sqrt(lam) * np.eye(C)])
-    ba = np.concatenate([b, np.zeros(C)])
-    if np.all(lb == ub):
-        _bounded.inside = False
-        return lb.copy()
+    return lsq_linear(Aa, np.concatenate([b, np.zeros(C)]), bounds=(lb, ub), method="bvls").x, False
+
+
+def _bounded(A: np.ndarray, b: np.ndarray, lb: np.ndarray, ub: np.ndarray, lam: float) -> tuple[np.ndarray, bool]:
+    """(argmin ‖A x − b‖² + λ‖x‖² over lb ≤ x ≤ ub (C,), whether the unbounded optimum was admissible).
+
+    The box is widened to hold δs = 0; a cup with no room stays put.
+    """
+    lb, ub = np.minimum(lb, 0.0), np.maximum(ub, 0.0)  # δs = 0 is always admissible
+    if (lb == ub).all():
+        return lb.copy(), False
     free = lb < ub
-    if not np.all(free):  # a cup with no room stays put
-        x = np.zeros(C)
+    if not free.all():  # a cup with no room stays put
+        x = np.zeros(A.shape[1])
         x[~free] = lb[~free]
-        x[free] = _bounded(A[:, free], b - A[:, ~free] @ x[~free], lb[free], ub[free], lam)
-        _bounded.inside = False
-        return x
-    x0 = np.linalg.lstsq(Aa, ba, rcond=None)[0]
-    if np.all(x0 >= lb) and np.all(x0 <= ub):
-        return x0  # the unconstrained optimum is admissible: no iterative solve
-    _bounded.inside = False
-    return lsq_linear(Aa, ba, bounds=(lb, ub), method="bvls").x
+        x[free] = _in_box(A[:, free], b - A[:, ~free] @ x[~free], lb[free], ub[free], lam)[0]
+        return x, False
+    return _in_box(A, b, lb, ub, lam)
 
 
 def stroke_step(
@@ -151,27 +210,27 @@ def stroke_step(
     """
     J = np.asarray(J, float).reshape(2, -1)
     e = np.asarray(error, float)
-    P = projector(direction, mode)
-    A, b = (J, e) if P is None else (P @ J, P @ e)
-    along = along_mm(e, direction) if P is not None else 0.0
+    n = _axis(direction, mode)
+    if n is None:
+        A, b, along = J, e, 0.0
+    else:
+        P = np.eye(2) - np.outer(n, n)
+        A, b, along = P @ J, P @ e, float(np.dot(n, e))
     C = J.shape[1]
     if C == 0:
         return Step(np.zeros(0), np.zeros(2), b.copy(), along, False)
     As, bs = A, b
-    if P is not None and C >= 2:  # spare cups: the along-axis error as a secondary objective
-        n = np.asarray(direction, float) / np.linalg.norm(direction)
+    if n is not None and C >= 2:  # spare cups: the along-axis error as a secondary objective
         w = np.sqrt(ALONG_WEIGHT)
         As, bs = np.vstack([A, w * (n @ J)[None]]), np.append(b, w * along)
     s = np.asarray(strokes, float)
     lb, ub = np.asarray(lo, float) - s, np.asarray(hi, float) - s
-    full = _bounded(As, bs, lb, ub, lam)
-    at_limit = not _bounded.inside
+    full, inside = _bounded(As, bs, lb, ub, lam)
     corr = A @ full
     along_corr = abs(float(n @ J @ full)) if As is not A else 0.0
     ds, limited = full, False
     if max_step is not None:
         m = np.asarray(max_step, float)
         if np.any(np.abs(full) > m):
-            ds, limited = _bounded(As, bs, np.maximum(lb, -m), np.minimum(ub, m), lam), True
-    return Step(ds, corr, b - corr, along, limited, at_limit, along_corr)
-
+            ds, limited = _bounded(As, bs, np.maximum(lb, -m), np.minimum(ub, m), lam)[0], True
+    return Step(ds, corr, b - corr, along, limited, not inside, along_corr)
