@@ -132,10 +132,10 @@ def run_insertion(
     x, s = np.array(x0, float), np.array(strokes, float)
     lo = np.array([c.stroke_min_mm for c in tissue.scene.cups])
     hi = np.array([c.stroke_max_mm for c in tissue.scene.cups])
-    pid = mind = None
+    pid = controller_model = None
     if strategy == "loop":
         pid = PID(controller.kp, controller.ki, controller.kd, 1.0 / controller.rate_hz)
-        mind = _model_state(tissue, model, x, model_x0, s)
+        controller_model = _model_state(tissue, model, x, model_x0, s)
     rows: list[tuple] = []
     frames: list[np.ndarray] = []
     unsettled, reason = 0, ""
@@ -157,7 +157,7 @@ def run_insertion(
             out = advance(tissue, state, x, s, min(params.step_mm, remaining), params, candidates)
             x = out.x
             if pid is not None:
-                x, s = _loop_correction(tissue, mind, state, x, s, out.loads, probe, pid, lo, hi, p0, measure)
+                x, s = _loop_correction(tissue, controller_model, state, x, s, out.loads, probe, pid, lo, hi, p0, measure)
         except SolverError as exc:
             reason = f"solver failed at depth {state.depth_mm:.3g} mm: {exc}"
             break
@@ -180,14 +180,14 @@ def _model_state(plant, model, x0, model_x0, strokes) -> ModelState:
     return ModelState(model, plant, model_x0, x0, strokes)
 
 
-def _loop_correction(tissue, mind, state, x, s, loads, probe, pid, lo, hi, p0, measure):
+def _loop_correction(tissue, controller_model, state, x, s, loads, probe, pid, lo, hi, p0, measure):
     """One §6 loop iteration on the miss across the needle, the needle holding its captured nodes.
 
     J is the controller's (`ModelState`: its model, at its equilibrium under
     the needle); the plant is then solved at the command with the same hold.
     """
-    mind.follow(state, x, s, loads)
-    J, responses = mind.jacobian(state, probe, state.solver)
+    controller_model.follow(state, x, s, loads)
+    J, responses = controller_model.jacobian(state, probe, state.solver)
     y = target_positions(probe, x)[0]
     e = np.array([-(measure(y) - p0) @ state.across])
     ds, _, _ = split_error(J, e)
