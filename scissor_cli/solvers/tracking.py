@@ -33,10 +33,10 @@ from scissor_cli.solvers.linear import Factorization, factorize_free
 from scissor_cli.solvers.newton import newton_iterations, solve_newton
 
 #: How many of its last equilibria a tracker keeps for the polynomial predictor (`Equilibrium._fitted`).
-HISTORY = 16
+HISTORY = 28
 #: The predictor's polynomial: degree at most MAX_DEGREE, at most MAX_UNKNOWNS fitted coefficients per dof.
 MAX_DEGREE = 5
-MAX_UNKNOWNS = 12
+MAX_UNKNOWNS = 20
 #: The polynomial predictor serves moves up to this many times the stroke distance of the farthest state it fits.
 REACH = 3.0
 
@@ -152,17 +152,13 @@ class Equilibrium:
         if C == 0:
             return None
         exact = self.tangent_x is self.x
-        E, coefficient, equations = _polynomial(C, exact)
-        k = len(E)
-        if exact:
-            states = -(-equations // (1 + C))  # each gives its position and C tangent columns
-            past = [h for h in self.history if h[2] is not None][-states:]
-            have = len(past) * (1 + C)
-        else:
-            past = self.history[-equations:]
-            have = len(past)
-        if have < k:
+        with_tangent = [h for h in self.history if h[2] is not None] if exact else self.history
+        per_state = 1 + C if exact else 1  # a state gives its position (and its C tangent columns)
+        fit = _degree(C, exact, len(with_tangent) * per_state)
+        if fit is None:
             return None
+        E, coefficient, equations = fit
+        past = with_tangent[-(-(-equations // per_state)):]  # the last ⌈equations / per_state⌉
         d = np.array([h[0] - self.strokes for h in past])  # (m, C)
         if np.linalg.norm(ds) > REACH * np.max(np.linalg.norm(d, axis=1)):
             return None  # a polynomial extrapolates badly: beyond the history the tangent is safer
@@ -238,26 +234,29 @@ class Equilibrium:
         # Our own factorisation is now at some other state; the next move refreshes it when it matters.
 
 
-@lru_cache(maxsize=None)
-def _polynomial(C: int, exact: bool) -> tuple[np.ndarray, np.ndarray, int]:
-    """The predictor's polynomial for C strokes: (exponents (k, C), 1/e! (k,), equations wanted).
+def _degree(C: int, exact: bool, have: int) -> Optional[tuple[np.ndarray, np.ndarray, int]]:
+    """The highest-degree polynomial (`_polynomial`) whose equations `have` data covers, or None."""
+    best = None
+    for p in range(2 if exact else 1, MAX_DEGREE + 1):
+        fit = _polynomial(C, exact, p)
+        if len(fit[0]) > MAX_UNKNOWNS or fit[2] > have:
+            break
+        best = fit
+    return best
 
-    Degrees from 2 (with the exact tangent) or 1 up to the highest p ≤
-    MAX_DEGREE with at most MAX_UNKNOWNS terms; Σ_e d^e/e! ∂^e x over the
-    exponents e of degree n is the symmetric form (1/n!) A_n[d, …, d], so the
-    unknowns fitted are the partial derivatives ∂^e x. Equations: as many as
-    unknowns with one stroke, a third more with several.
+
+@lru_cache(maxsize=None)
+def _polynomial(C: int, exact: bool, p: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """The predictor's polynomial of degree p in C strokes: (exponents (k, C), 1/e! (k,), equations wanted).
+
+    Degrees from 2 (with the exact tangent) or 1 up to p; Σ_e d^e/e! ∂^e x
+    over the exponents e of degree n is the symmetric form (1/n!) A_n[d, …, d],
+    so the unknowns fitted are the partial derivatives ∂^e x. Equations: as
+    many as unknowns with one stroke, a third more with several.
     """
     first = 2 if exact else 1
-
-    def exponents(p):
-        return [np.bincount(combo, minlength=C) for n in range(first, p + 1)
-                for combo in combinations_with_replacement(range(C), n)]
-
-    p = first
-    while p < MAX_DEGREE and len(exponents(p + 1)) <= MAX_UNKNOWNS:
-        p += 1
-    E = np.array(exponents(p)).reshape(-1, C)
+    E = np.array([np.bincount(combo, minlength=C) for n in range(first, p + 1)
+                  for combo in combinations_with_replacement(range(C), n)]).reshape(-1, C)
     coefficient = 1.0 / np.prod([[factorial(int(v)) for v in e] for e in E], axis=1)
     k = len(E)
     return E, coefficient, (k if C == 1 else -(-4 * k // 3))
