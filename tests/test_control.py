@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scissor_cli.solvers.tracking import HISTORY, Equilibrium
+from scissor_cli.solvers.tracking import HISTORY, REACH, Equilibrium
 from scissor_cli import control as ct
 from scissor_cli.output.manipulation import manipulation_figure_inputs
 from scissor_cli.output import figures
@@ -336,7 +336,9 @@ def test_the_second_order_predictor_fitted_to_recent_equilibria():
     linear = eq.x + (eq.response @ ds).reshape(eq.x.shape)
     fitted = eq.x + eq._fitted(ds).reshape(eq.x.shape)
     assert np.linalg.norm(fitted - ref) < 0.01 * np.linalg.norm(linear - ref)  # cubic Hermite: two orders up
-    assert eq._fitted(np.array([5.0])) is None  # beyond 3x the farthest remembered state
+    farthest = max(abs(h[0][0] - eq.strokes[0]) for h in eq.history)  # the rest state: all three are fitted
+    assert eq._fitted(np.array([1.01 * REACH * farthest])) is None  # beyond REACH x the farthest fitted state
+    assert eq._fitted(np.array([0.99 * REACH * farthest])) is not None
 
     cfg = load_config(ROOT / "configs" / "two_cups.yaml")
     two = build_model(cfg, mesh_scale=2.0)[2]
@@ -411,3 +413,29 @@ def test_manipulation_figure(tmp_path):
     path = figures.save(fig, tmp_path / "manipulation_T1.png")
     assert path.stat().st_size > 10_000
     assert "T1" in fig._suptitle.get_text() and "clearance" in fig._suptitle.get_text()
+
+
+def test_the_truths_position_fit_takes_the_degree_its_history_supports(monkeypatch):
+    """Two cups, a truth (positions only): with a full history the fit is of degree 5 (20 unknowns per dof,
+    27 states), and on a small move of a loop it starts far nearer the equilibrium than the cubic the
+    former 12-unknown cap allowed; with a short history it takes a lower degree instead of none."""
+    import scissor_cli.solvers.tracking as tracking
+
+    assert len(tracking._degree(2, False, HISTORY)[0]) == 20  # degree 5 without the tangent
+    assert len(tracking._degree(2, False, 5)[0]) == 2  # five states: the linear fit (three equations)
+    assert tracking._degree(2, False, 2) is None
+    cfg = load_config(ROOT / "configs" / "two_cups.yaml")
+    truth = build_model(cfg, mesh_scale=2.0)[2].with_material(1.3, fiber_angle_rad=0.3)
+    eq = Equilibrium(truth)
+    rng = np.random.default_rng(5)
+    s = np.array([3.0, -2.0])
+    for _ in range(HISTORY + 2):
+        s = s + rng.choice([-1, 1], 2) * rng.uniform(0.02, 0.5, 2)
+        eq.move_to(s, tangent=False)
+    ds = np.array([0.2, -0.15])
+    ref = solve_newton(truth, eq.strokes + ds, tol=1e-10).x.ravel()
+    quintic = eq._fitted(ds)
+    monkeypatch.setattr(tracking, "MAX_DEGREE", 3)
+    cubic = eq._fitted(ds)
+    quintic_error, cubic_error = (np.linalg.norm(eq.x.ravel() + p - ref) for p in (quintic, cubic))
+    assert quintic_error < 0.2 * cubic_error

@@ -9,7 +9,7 @@ once at the converged state; that factorisation is also the next move's
 chord matrix. A tracker that does without the tangent (the truth) keeps
 its ∂x/∂s as a predictor by Broyden's secant update from each move
 instead. Once a few equilibria are known, the predictor is a polynomial in
-the strokes (degree ≤ 5) fitted to the last ones, through their exact
+the strokes (degree ≤ 6, as high as the history supports) fitted to the last ones, through their exact
 tangents too when the tracker has them: its start residuals are decades
 below the tangent predictor's on the small moves of a loop. A move the
 fast path cannot finish (the predictor inverts an element, or Newton does
@@ -25,6 +25,7 @@ from math import factorial
 from typing import Optional
 
 import numpy as np
+import scipy.linalg
 
 from scissor_cli.mechanics import fem
 from scissor_cli.mechanics.tissue import Tissue
@@ -33,10 +34,11 @@ from scissor_cli.solvers.linear import Factorization, factorize_free
 from scissor_cli.solvers.newton import newton_iterations, solve_newton
 
 #: How many of its last equilibria a tracker keeps for the polynomial predictor (`Equilibrium._fitted`).
-HISTORY = 16
-#: The predictor's polynomial: degree at most MAX_DEGREE, at most MAX_UNKNOWNS fitted coefficients per dof.
-MAX_DEGREE = 5
-MAX_UNKNOWNS = 12
+HISTORY = 28
+#: The predictor's polynomial: degree at most MAX_DEGREE, at most MAX_UNKNOWNS fitted coefficients per dof
+#: (two cups: the truth's position fit of degree 5 needs 27 states, the model's Hermite fit of degree 6 twelve).
+MAX_DEGREE = 6
+MAX_UNKNOWNS = 25
 #: The polynomial predictor serves moves up to this many times the stroke distance of the farthest state it fits.
 REACH = 3.0
 
@@ -138,47 +140,47 @@ class Equilibrium:
         each giving its position and its C tangent columns (Hermite); without
         it (the truth) A_1 is fitted too, to positions only. The degree p is
         the highest ≤ MAX_DEGREE with at most MAX_UNKNOWNS unknowns per dof
-        (one cup: 5 for both; two cups: 4 with the tangent, 3 without); the
-        equations are as many as the unknowns with one cup (interpolation),
-        a third more with several (a square fit extrapolates worse there).
-        The remembered equilibria are converged to the solver's tolerance, so
-        on the small moves of a loop each added degree still lowers the start
-        residual (one cup: tangent ~3e-3, quadratic ~3e-5, degree 5
-        1e-7–1e-10). None (the tangent predictor is used)
-        without enough history or for a move beyond REACH times the farthest
-        fitted state.
+        whose equations the history at hand covers (`_degree`; with a full
+        history, one cup: 6 for both; two cups: 6 with the tangent, 5
+        without); the equations are as many as the unknowns with one cup
+        (interpolation), a third more with several (a square fit
+        extrapolates worse there). The remembered equilibria are converged to
+        the solver's tolerance, so on the small moves of a loop each added
+        degree still lowers the start residual (two cups, the truth: degree 3
+        ~2e-5, degree 5 ~8e-7; the model's Hermite fit ~1e-7). None (the
+        tangent predictor is used) without enough history or for a move
+        beyond REACH times the farthest fitted state.
         """
         C = ds.size
         if C == 0:
             return None
         exact = self.tangent_x is self.x
-        E, coefficient, equations = _polynomial(C, exact)
-        k = len(E)
-        if exact:
-            states = -(-equations // (1 + C))  # each gives its position and C tangent columns
-            past = [h for h in self.history if h[2] is not None][-states:]
-            have = len(past) * (1 + C)
-        else:
-            past = self.history[-equations:]
-            have = len(past)
-        if have < k:
+        with_tangent = [h for h in self.history if h[2] is not None] if exact else self.history
+        per_state = 1 + C if exact else 1  # a state gives its position (and its C tangent columns)
+        fit = _degree(C, exact, len(with_tangent) * per_state)
+        if fit is None:
             return None
+        E, coefficient, equations = fit
+        past = with_tangent[-(-(-equations // per_state)):]  # the last ⌈equations / per_state⌉
         d = np.array([h[0] - self.strokes for h in past])  # (m, C)
         if np.linalg.norm(ds) > REACH * np.max(np.linalg.norm(d, axis=1)):
             return None  # a polynomial extrapolates badly: beyond the history the tangent is safer
-        # Each fitted quantity is linear in the remembered ones: w = f(ds) pinv(A), the increment w Y.
-        A = [_taylor(E, coefficient, d)]
-        Y = [np.stack([h[1] for h in past]) - self.x]  # (m, N, 2)
+        # Each fitted quantity is linear in the remembered ones: the increment is w Y with the weights
+        # w (m',) = lstsq(Aᵀ, f(ds)), the rows of pinv(A) f(ds) (A (m', k): the fit's equations), and
+        # Y (m', 2N) the fitted data. w Y is formed from the few weights, not from a stacked Y.
+        X = np.stack([h[1] for h in past]).reshape(len(past), -1)  # (m, 2N)
+        f = _taylor(E, coefficient, ds[None])[0]
         if not exact:
-            w = _taylor(E, coefficient, ds[None])[0] @ np.linalg.pinv(A[0], rcond=1e-10)
-            return np.tensordot(w, Y[0], axes=1).ravel()
+            w = _weights(_taylor(E, coefficient, d), f)
+            return w @ X - w.sum() * self.x.ravel()
+        # Hermite: Y = [positions − x − d Gᵀ; each tangent column c − G_c].
         G = self.response
-        Y = [Y[0].reshape(len(past), -1) - d @ G.T]  # positions less the tangent's part
-        for c in range(C):  # and each tangent column: the derivative of the same polynomial
-            A.append(_taylor(E, coefficient, d, along=c))
-            Y.append(np.stack([h[2][:, c] for h in past]) - G[:, c])
-        w = _taylor(E, coefficient, ds[None])[0] @ np.linalg.pinv(np.vstack(A), rcond=1e-10)
-        return G @ ds + w @ np.vstack(Y)
+        A = np.vstack([_taylor(E, coefficient, d)] + [_taylor(E, coefficient, d, along=c) for c in range(C)])
+        w = _weights(A, f)
+        w0, wc = w[:len(past)], w[len(past):].reshape(C, len(past))
+        T = np.stack([h[2] for h in past])  # (m, 2N, C)
+        return (G @ (ds - w0 @ d - wc.sum(axis=1)) + w0 @ X - w0.sum() * self.x.ravel()
+                + np.matmul(T, wc.T[:, :, None]).sum(axis=0)[:, 0])  # Σ_m T_m wc[:, m], batched
 
     def _secant(self, dx: np.ndarray, ds: np.ndarray) -> None:
         """Broyden's update of `response` with a solved move ds (C,) → dx (N, 2): no longer an exact tangent.
@@ -238,29 +240,40 @@ class Equilibrium:
         # Our own factorisation is now at some other state; the next move refreshes it when it matters.
 
 
-@lru_cache(maxsize=None)
-def _polynomial(C: int, exact: bool) -> tuple[np.ndarray, np.ndarray, int]:
-    """The predictor's polynomial for C strokes: (exponents (k, C), 1/e! (k,), equations wanted).
+def _degree(C: int, exact: bool, have: int) -> Optional[tuple[np.ndarray, np.ndarray, int]]:
+    """The highest-degree polynomial (`_polynomial`) whose equations `have` data covers, or None."""
+    best = None
+    for p in range(2 if exact else 1, MAX_DEGREE + 1):
+        fit = _polynomial(C, exact, p)
+        if len(fit[0]) > MAX_UNKNOWNS or fit[2] > have:
+            break
+        best = fit
+    return best
 
-    Degrees from 2 (with the exact tangent) or 1 up to the highest p ≤
-    MAX_DEGREE with at most MAX_UNKNOWNS terms; Σ_e d^e/e! ∂^e x over the
-    exponents e of degree n is the symmetric form (1/n!) A_n[d, …, d], so the
-    unknowns fitted are the partial derivatives ∂^e x. Equations: as many as
-    unknowns with one stroke, a third more with several.
+
+@lru_cache(maxsize=None)
+def _polynomial(C: int, exact: bool, p: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """The predictor's polynomial of degree p in C strokes: (exponents (k, C), 1/e! (k,), equations wanted).
+
+    Degrees from 2 (with the exact tangent) or 1 up to p; Σ_e d^e/e! ∂^e x
+    over the exponents e of degree n is the symmetric form (1/n!) A_n[d, …, d],
+    so the unknowns fitted are the partial derivatives ∂^e x. Equations: as
+    many as unknowns with one stroke, a third more with several.
     """
     first = 2 if exact else 1
-
-    def exponents(p):
-        return [np.bincount(combo, minlength=C) for n in range(first, p + 1)
-                for combo in combinations_with_replacement(range(C), n)]
-
-    p = first
-    while p < MAX_DEGREE and len(exponents(p + 1)) <= MAX_UNKNOWNS:
-        p += 1
-    E = np.array(exponents(p)).reshape(-1, C)
+    E = np.array([np.bincount(combo, minlength=C) for n in range(first, p + 1)
+                  for combo in combinations_with_replacement(range(C), n)]).reshape(-1, C)
     coefficient = 1.0 / np.prod([[factorial(int(v)) for v in e] for e in E], axis=1)
     k = len(E)
     return E, coefficient, (k if C == 1 else -(-4 * k // 3))
+
+
+def _weights(A: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """w (m,) = f pinv(A) for the fit's equations A (m, k) and the terms f (k,) at the move: the min-norm lstsq of Aᵀ w = f.
+
+    LAPACK's gelsy (rank-revealing QR): half the time of the SVD's gelsd on these few-dozen-row systems.
+    """
+    return scipy.linalg.lstsq(A.T, f, cond=1e-10, lapack_driver="gelsy", check_finite=False)[0]
 
 
 def _taylor(E: np.ndarray, coefficient: np.ndarray, d: np.ndarray, along: Optional[int] = None) -> np.ndarray:
