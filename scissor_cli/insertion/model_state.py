@@ -40,6 +40,7 @@ from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import TargetProbe, target_positions
 from scissor_cli.solvers.common import SolverError, objective_gradient
 from scissor_cli.solvers.equilibrium import solve_equilibrium
+from scissor_cli.solvers.linear import conjugate_gradients
 
 #: J's conjugate gradients stop when the preconditioned residual is this small relative to the response
 PCG_TOL = 1e-8
@@ -145,40 +146,32 @@ def hold_at(state: NeedleState, x: np.ndarray) -> Hold:
 def _held_response(model, solver, hold, x, Ke, b, free):
     """d (2N,) with K d = b on the hold's null space (C d = 0), K the exact tangent at x; and the PCG iterations.
 
-    b (2N,) is read on the free dofs. The preconditioner is the solver's
+    b (2N,) is read on the free dofs. `linear.conjugate_gradients`, started
+    from the preconditioner's answer, the preconditioner the solver's
     factorisation with the hold's Schur rows; if PCG_MAX iterations do not
     reach PCG_TOL it is refreshed at x and the solve starts again.
     """
     its = 0
     mask = np.zeros(x.size, bool)
     mask[free] = True
+    rhs = np.where(mask, b, 0.0)
+
+    def K(v):
+        return np.where(mask, model.stiffness_times(x, v, Ke), 0.0)
+
     for attempt in range(2):
         def precondition(r):
             g = np.zeros(x.size)
             g[free] = -r[free]
             return solver.step(g, hold, x)[0].ravel()
 
-        def K(v):
-            return np.where(mask, model.stiffness_times(x, v, Ke), 0.0)
-
-        d = precondition(b)
-        r = np.where(mask, b, 0.0) - K(d)
-        z = precondition(r)
-        p, rz = z, float(r @ z)
-        for _ in range(PCG_MAX):
-            if np.linalg.norm(z) <= PCG_TOL * max(np.linalg.norm(d), 1e-300):
-                return d, its
-            its += 1
-            Kp = K(p)
-            pKp = float(p @ Kp)
-            if not pKp > 0.0:
-                raise SolverError("the model's tangent with the needle's hold is not positive definite")
-            alpha = rz / pKp
-            d = d + alpha * p
-            r = r - alpha * Kp
-            z = precondition(r)
-            rz_new = float(r @ z)
-            p, rz = z + (rz_new / rz) * p, rz_new
+        d, k, why = conjugate_gradients(K, precondition, rhs, PCG_TOL, PCG_MAX, x0=precondition(rhs),
+                                        relative_to="solution")
+        its += k
+        if d is not None:
+            return d, its
+        if why == "curvature":
+            raise SolverError("the model's tangent with the needle's hold is not positive definite")
         if attempt == 0:
             solver.refactor(x)
-    raise SolverError(f"the loop's Jacobian did not converge in {PCG_MAX} iterations on a fresh factorisation")
+    raise SolverError(f"the loop's Jacobian did not converge in {PCG_MAX} iterations on a fresh factorisation ({why})")

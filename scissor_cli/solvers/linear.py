@@ -8,6 +8,8 @@ symbolic analysis and refactors numerically.
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 import scipy.sparse as sp
 import cvxopt
@@ -154,9 +156,61 @@ def _symmetric_csr(A: sp.spmatrix) -> sp.csr_matrix:
     return A
 
 
+def conjugate_gradients(times: Callable[[np.ndarray], np.ndarray], precondition: Callable[[np.ndarray], np.ndarray],
+                        b: np.ndarray, rtol: float, max_iter: int, x0: np.ndarray | None = None,
+                        relative_to: str = "rhs") -> tuple[np.ndarray | None, int, str]:
+    """x with times(x) = b by preconditioned conjugate gradients; (x or None, iterations, why it stopped).
+
+    `times` is a symmetric positive definite operator, `precondition` an
+    approximation of its inverse (a nearby matrix's factorisation), x0 the
+    start (default 0). Converged when, with relative_to
+    * "rhs": ‖b − times(x)‖ ≤ rtol ‖b‖, the true residual checked at the end;
+    * "solution": the preconditioned residual ‖M⁻¹ r‖ ≤ rtol ‖x‖ — for a
+      solve on a constraint's null space (the preconditioner projects onto
+      it), whose residual keeps the constraint's reactions and never vanishes.
+    Returns (x, iterations, "converged"), or (None, iterations, why):
+    "curvature" (a direction of non-positive curvature: the operator is not
+    positive definite), "non-finite", "iterations" (not converged within
+    max_iter) or "residual" (the recursive residual drifted from the true one).
+    """
+    if relative_to not in ("rhs", "solution"):
+        raise ValueError(f"relative_to must be 'rhs' or 'solution', got {relative_to!r}")
+    b = np.asarray(b, dtype=float)
+    b_norm = float(np.linalg.norm(b))
+    x = np.zeros_like(b) if x0 is None else np.array(x0, dtype=float)
+    if b_norm == 0.0 and x0 is None:
+        return x, 0, "converged"
+    r = b - times(x) if x0 is not None else b.copy()
+    z = precondition(r)
+    p = z.copy()
+    rz = float(r @ z)
+    for k in range(max_iter + 1):
+        if relative_to == "solution" and np.linalg.norm(z) <= rtol * max(float(np.linalg.norm(x)), 1e-300):
+            return x, k, "converged"
+        if k == max_iter:
+            break
+        q = times(p)
+        curvature = float(p @ q)
+        if not np.isfinite(rz) or not np.isfinite(curvature):
+            return None, k + 1, "non-finite"
+        if not curvature > 0.0:
+            return None, k + 1, "curvature"
+        a = rz / curvature
+        x += a * p
+        r -= a * q
+        if relative_to == "rhs" and np.linalg.norm(r) <= rtol * b_norm:
+            true = float(np.linalg.norm(b - times(x)))
+            return (x, k + 1, "converged") if true <= 2.0 * rtol * b_norm else (None, k + 1, "residual")
+        z = precondition(r)
+        rz_next = float(r @ z)
+        p = z + (rz_next / rz) * p
+        rz = rz_next
+    return None, max_iter, "iterations"
+
+
 def preconditioned_cg(A: sp.csr_matrix, b: np.ndarray, factor: Factorization, rtol: float,
                       max_iter: int = KRYLOV_MAX_ITER, upper: bool = True) -> tuple[np.ndarray | None, int]:
-    """x with A x = b to ‖b − A x‖ ≤ rtol ‖b‖ by conjugate gradients preconditioned with `factor`.
+    """x with A x = b to ‖b − A x‖ ≤ rtol ‖b‖ by `conjugate_gradients` preconditioned with `factor`.
 
     A (n, n) symmetric, given by its upper triangle when `upper`; `factor` a
     Cholesky factorisation of a nearby matrix (an earlier Newton tangent).
@@ -165,7 +219,6 @@ def preconditioned_cg(A: sp.csr_matrix, b: np.ndarray, factor: Factorization, rt
     non-finite, or does not reach rtol within max_iter: the caller then
     factors A itself. The true residual is checked before x is returned.
     """
-    b = np.asarray(b, dtype=float)
     if upper:
         diag, AT = A.diagonal(), A.T
 
@@ -173,34 +226,9 @@ def preconditioned_cg(A: sp.csr_matrix, b: np.ndarray, factor: Factorization, rt
             return A @ v + AT @ v - diag * v
     else:
         times = A.__matmul__
-    b_norm = float(np.linalg.norm(b))
-    x = np.zeros_like(b)
-    if b_norm == 0.0:
-        return x, 0
-    r = b.copy()
-    z = factor.solve(r)
-    p = z.copy()
-    rz = float(r @ z)
-    for k in range(1, max_iter + 1):
-        q = times(p)
-        curvature = float(p @ q)
-        if not curvature > 0.0 or not np.isfinite(rz):
-            break
-        a = rz / curvature
-        x += a * p
-        r -= a * q
-        if np.linalg.norm(r) <= rtol * b_norm:
-            true = float(np.linalg.norm(b - times(x)))
-            factor.cg_iterations += k
-            return (x, k) if true <= 2.0 * rtol * b_norm else (None, k)
-        z = factor.solve(r)
-        rz_next = float(r @ z)
-        p = z + (rz_next / rz) * p
-        rz = rz_next
-    else:
-        k = max_iter
+    x, k, _ = conjugate_gradients(times, factor.solve, b, rtol, max_iter)
     factor.cg_iterations += k
-    return None, k
+    return x, k
 
 
 def solve_free(tissue, K_upper: sp.csr_matrix, b: np.ndarray, factors: dict | None = None,
