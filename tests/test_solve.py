@@ -134,3 +134,19 @@ def test_solve_free_uses_cg_on_the_old_factor_refactors_when_stale_or_failing():
         assert linear.solve_free(tissue, far, b, rtol=1e-10)[1]
     assert not f.stale
     assert linear.solve_free(tissue, far, b)[1]  # no rtol: always the direct solve
+
+
+def test_reading_the_factor_size_leaves_the_factor_usable():
+    """nnz_factor factors a copy: cvxopt's getfactor would turn the factor it reads into a symbolic one."""
+    import numpy as np
+    import scipy.sparse as sp
+
+    from scissor_cli.solvers.linear import Factorization
+
+    n = 40
+    A = sp.diags([np.full(n - 1, -1.0), np.full(n, 4.0), np.full(n - 1, -1.0)], [-1, 0, 1], format="csr")
+    f = Factorization(A, definite=True)
+    b = np.arange(1.0, n + 1)
+    x = f.solve(b)
+    assert f.nnz_factor >= n and f.nnz_factor == f.nnz_factor
+    assert np.allclose(f.solve(b), x) and np.allclose(A @ x, b)

@@ -90,11 +90,7 @@ class Factorization:
         self.stale = False
         try:
             if self._chol is None:
-                if self.ordering == "nested_dissection":
-                    p = cvxopt.matrix(nested_dissection(A, self.groups).tolist(), tc="i")
-                    self._chol = cholmod.symbolic(self._lower, p=p)
-                else:
-                    self._chol = cholmod.symbolic(self._lower)
+                self._chol = self._symbolic(A)
             cholmod.numeric(self._lower, self._chol)
             self._active = "cholesky"
             return self
@@ -123,10 +119,25 @@ class Factorization:
 
     @property
     def nnz_factor(self) -> int:
-        """Nonzeros of the Cholesky factor L (0 without one): the fill the ordering left."""
+        """Entries of the supernodal Cholesky factor L (0 without one): the fill the ordering left.
+
+        Factors a copy (one more factorisation: for reports, not hot paths):
+        cvxopt's `getfactor` turns the factor it reads into a symbolic,
+        simplicial one, which would break this object's next solve.
+        """
         if self._active != "cholesky":
             return 0
-        return len(cholmod.getfactor(self._chol).V)  # a copy of L: for reports, not for hot paths
+        copy = self._symbolic(self._pattern_csr)
+        cholmod.numeric(self._lower, copy)
+        return len(cholmod.getfactor(copy).V)
+
+    def _symbolic(self, A: sp.csr_matrix):
+        """CHOLMOD's symbolic analysis of the pattern, with this factor's ordering."""
+        self._pattern_csr = A
+        if self.ordering == "nested_dissection":
+            p = cvxopt.matrix(nested_dissection(A, self.groups).tolist(), tc="i")
+            return cholmod.symbolic(self._lower, p=p)
+        return cholmod.symbolic(self._lower)
 
     @property
     def method(self) -> str:
