@@ -219,7 +219,8 @@ def test_max_feasible_step_3d_bounds_skip_no_root():
     def every(F, dF):
         J = np.linalg.det(F)
         b, c, d = fem._feasibility_cubic(F, dF)
-        np.testing.assert_allclose(b * J, np.einsum("eij,eij->e", fem._cofactor(F), dF), rtol=1e-10, atol=1e-12)
+        cof_F = J[:, None, None] * np.linalg.inv(F).transpose(0, 2, 1)  # cof F = det(F) F⁻ᵀ, independently
+        np.testing.assert_allclose(b * J, np.einsum("eij,eij->e", cof_F, dF), rtol=1e-10, atol=1e-12)
         np.testing.assert_allclose(d * J, np.linalg.det(dF), rtol=1e-10, atol=1e-12)
         top = fem._largest_positive_root(b, c, d)
         return np.inf if top <= 0 else 1.0 / top

@@ -368,8 +368,3 @@ def _cofactor_rows(a: list) -> list:
     def cross(u, v):
         return [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]]
     return [cross(a[1], a[2]), cross(a[2], a[0]), cross(a[0], a[1])]
-
-
-def _cofactor(A: np.ndarray) -> np.ndarray:
-    """cof A (M, 3, 3): rows A_1 × A_2, A_2 × A_0, A_0 × A_1."""
-    return np.stack([np.cross(A[:, 1], A[:, 2]), np.cross(A[:, 2], A[:, 0]), np.cross(A[:, 0], A[:, 1])], axis=1)
