@@ -21,7 +21,7 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 
-from scissor_cli.mechanics import fem
+from scissor_cli.mechanics import compiled, fem
 from scissor_cli.mechanics import materials
 from scissor_cli.mesh.mesh import Mesh
 from scissor_cli.scene.scene import Scene
@@ -138,6 +138,10 @@ class Tissue:
         With require_positive_J, (inf, None) when an element has J ≤ 0 — one
         evaluation of F for the check and the energy (a solver's trial step).
         """
+        if self.compiled:  # the compiled loop, unless an element needs the numpy path's policy
+            fast = compiled.energy_gradient(self.ops, self.params, x)
+            if fast is not None:
+                return fast
         F = fem.deformation_gradients(self.ops, x)
         if require_positive_J and not np.min(materials.jacobian_det(F), initial=np.inf) > 0:
             return float("inf"), None
@@ -151,6 +155,10 @@ class Tissue:
         (`materials.evaluate_projected`): 12x cheaper than eigendecomposing
         the 4x4 tangents, and at 15.7k elements most of them need it.
         """
+        if self.compiled:
+            Ke = compiled.element_stiffness(self.ops, self.params, x, project)
+            if Ke is not None:
+                return Ke
         F = fem.deformation_gradients(self.ops, x)
         if project:
             C = materials.evaluate_projected(F, self.params)[2]
@@ -182,6 +190,11 @@ class Tissue:
         a tiny stroke does not ask for a residual below round-off.
         """
         return max(float(np.linalg.norm(grad[self.dirichlet_dofs])), self.force_floor)
+
+    @cached_property
+    def compiled(self) -> bool:
+        """Whether gradient and stiffness run in the compiled loops (`mechanics.compiled`): 2-D neo-Hookean."""
+        return compiled.supports(self.ops, self.params)
 
     @cached_property
     def force_floor(self) -> float:

@@ -1,0 +1,281 @@
+"""Compiled (numba) element loops of the 2-D layer: energy, gradient and stiffness in one pass (docs/model.md §2–3).
+
+The numpy kernels (`fem`, `materials`) are the reference and serve every
+case; these loops are the hot path of the 2-D plane-strain neo-Hookean
+models (with or without fibers), where a solver asks for the gradient or
+the stiffness of the same few thousand triangles thousands of times. numpy
+spends most of such a call in the overhead of about a hundred whole-array
+operations; one compiled loop over the elements reads each triangle once
+and keeps every intermediate in registers (docs/performance.md has the
+measurements).
+
+The closed forms are those of `materials.plane_strain` (Ψ, P, the tangent)
+and `materials.plane_strain_projection` (the per-term PSD projection),
+term for term in the same order, so results equal the numpy path to
+round-off (the tests compare them). Degrees of freedom, packed element
+matrices (21, M) and the scatter order are those of `fem`.
+
+Every loop reports the first element it cannot take — J ≤ J_FLOOR, or a
+non-finite result — and then the caller uses the numpy path, which owns
+the policy for inverted and absurd elements (`materials` docstring). So
+these loops never decide what an inverted element means.
+
+Compiled on first use and cached on disk next to this file (numba's
+`cache=True`), so only the first process after an install pays the
+compile time (a few seconds).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from scissor_cli.mechanics.materials.params import J_FLOOR
+
+_TINY = float(np.finfo(np.float64).tiny)
+_JIT = dict(cache=True, nogil=True, error_model="numpy")
+
+
+@njit(**_JIT)
+def _deformation(x, corners, grad_rows, e):
+    """F = [f0 f1; f2 f3] of element e from positions x (N, 2)."""
+    i0, i1, i2 = corners[0, e], corners[1, e], corners[2, e]
+    x0, x1, x2 = x[i0, 0], x[i1, 0], x[i2, 0]
+    y0, y1, y2 = x[i0, 1], x[i1, 1], x[i2, 1]
+    f0 = x0 * grad_rows[0, 0, e] + x1 * grad_rows[1, 0, e] + x2 * grad_rows[2, 0, e]
+    f1 = x0 * grad_rows[0, 1, e] + x1 * grad_rows[1, 1, e] + x2 * grad_rows[2, 1, e]
+    f2 = y0 * grad_rows[0, 0, e] + y1 * grad_rows[1, 0, e] + y2 * grad_rows[2, 0, e]
+    f3 = y0 * grad_rows[0, 1, e] + y1 * grad_rows[1, 1, e] + y2 * grad_rows[2, 1, e]
+    return f0, f1, f2, f3
+
+
+@njit(**_JIT)
+def _stress(f0, f1, f2, f3, mu, kappa, eta, a, b, tension_only):
+    """Ψ (kPa), P (4 components, row-major, kPa) and the shared terms (α, s, 1/J, v0, v1, I4−1, η_eff) of one element."""
+    J = f0 * f3 - f1 * f2
+    I1 = f0 * f0 + f1 * f1 + f2 * f2 + f3 * f3 + 1.0
+    iJ = 1.0 / max(J, J_FLOOR)
+    alpha = math.exp(math.log(max(J, J_FLOOR)) * (-2.0 / 3.0)) * mu  # μ J^(-2/3)
+    Jm1 = J - 1.0
+    psi = 0.5 * (alpha * I1 - mu * 3.0 + Jm1 * Jm1 * kappa)
+    s = Jm1 * kappa - alpha * I1 * iJ * (1.0 / 3.0)
+    p00 = alpha * f0 + s * f3
+    p01 = alpha * f1 - s * f2
+    p10 = alpha * f2 - s * f1
+    p11 = alpha * f3 + s * f0
+    v0 = f0 * a + f1 * b
+    v1 = f2 * a + f3 * b
+    I4m1 = v0 * v0 + v1 * v1 - 1.0
+    eta_eff = eta * (I4m1 > 0.0) if tension_only else eta
+    if eta_eff != 0.0:
+        psi += I4m1 * I4m1 * eta_eff * 0.5
+        t = eta_eff * I4m1 * 2.0
+        p00 += t * v0 * a
+        p01 += t * v0 * b
+        p10 += t * v1 * a
+        p11 += t * v1 * b
+    return psi, p00, p01, p10, p11, J, alpha, s, iJ, v0, v1, I4m1, eta_eff
+
+
+@njit(**_JIT)
+def energy_gradient_2d(x, corners, grad_rows, volume, mu, kappa, eta, fa, fb, tension_only, out):
+    """U (µJ) and ∇U written into out (2N,) mN; returns (U, -1), or (nan, e) for the first element e it cannot take."""
+    out[:] = 0.0
+    U = 0.0
+    for e in range(corners.shape[1]):
+        f0, f1, f2, f3 = _deformation(x, corners, grad_rows, e)
+        psi, p00, p01, p10, p11, J, _, _, _, _, _, _, _ = _stress(
+            f0, f1, f2, f3, mu[e], kappa[e], eta[e], fa[e], fb[e], tension_only)
+        if not (J > J_FLOOR and math.isfinite(psi + p00 + p01 + p10 + p11)):
+            return math.nan, e
+        V = volume[e]
+        U += psi * V
+        p00 *= V
+        p01 *= V
+        p10 *= V
+        p11 *= V
+        for c in range(3):
+            n = corners[c, e]
+            gx, gy = grad_rows[c, 0, e], grad_rows[c, 1, e]
+            out[2 * n] += p00 * gx + p01 * gy
+            out[2 * n + 1] += p10 * gx + p11 * gy
+    return U, -1
+
+
+@njit(**_JIT)
+def _fiber_block(H, c, d, v0, v1, aa, ab, bb, sign):
+    """H ±= (c v vᵀ + d I) ⊗ a aᵀ on the tangent's upper triangle H (4, 4)."""
+    k = (v0 * v0 * c + d) * sign
+    H[0, 0] += k * aa
+    H[0, 1] += k * ab
+    H[1, 1] += k * bb
+    k = (v1 * v1 * c + d) * sign
+    H[2, 2] += k * aa
+    H[2, 3] += k * ab
+    H[3, 3] += k * bb
+    k = v0 * v1 * c * sign
+    H[0, 2] += k * aa
+    H[0, 3] += k * ab
+    H[1, 2] += k * ab
+    H[1, 3] += k * bb
+
+
+@njit(**_JIT)
+def _tangent(H, f0, f1, f2, f3, kappa, alpha, s, iJ, v0, v1, I4m1, eta_eff, a, b, project):
+    """The tangent's upper triangle into H (4, 4), kPa, PSD-projected per energy term if asked."""
+    I1 = f0 * f0 + f1 * f1 + f2 * f2 + f3 * f3 + 1.0
+    p03, p12 = f0 * f3, f1 * f2
+    beta = alpha * iJ * (-2.0 / 3.0)
+    gamma = alpha * I1 * iJ * iJ * (5.0 / 9.0) + kappa
+    d = beta * p03 * 2.0 + alpha
+    H[0, 0] = gamma * (f3 * f3) + d
+    H[3, 3] = gamma * (f0 * f0) + d
+    d = beta * p12 * (-2.0) + alpha
+    H[1, 1] = gamma * (f2 * f2) + d
+    H[2, 2] = gamma * (f1 * f1) + d
+    u = (f1 * f3 - f0 * f2) * beta
+    H[0, 1] = u - f2 * f3 * gamma
+    H[2, 3] = -(f0 * f1 * gamma + u)
+    w = (f2 * f3 - f0 * f1) * beta
+    H[0, 2] = w - f1 * f3 * gamma
+    H[1, 3] = -(f0 * f2 * gamma + w)
+    H[0, 3] = gamma * p03 + ((f0 * f0 + f3 * f3) * beta + s)
+    H[1, 2] = gamma * p12 - ((f1 * f1 + f2 * f2) * beta + s)
+    t = eta_eff * I4m1 * 2.0
+    aa, ab, bb = a * a, a * b, b * b
+    if eta_eff != 0.0:
+        _fiber_block(H, eta_eff * 4.0, t, v0, v1, aa, ab, bb, 1.0)
+    if not project:
+        return
+    # Negative parts of the isotropic term's eigensystem (plane_strain_projection, same steps).
+    J = p03 - p12
+    iJp = 1.0 / max(J, J_FLOOR)
+    T2 = f0 * f0 + f1 * f1 + f2 * f2 + f3 * f3
+    E, Hr, Fh, G = (f0 + f3) * 0.5, (f2 - f1) * 0.5, (f0 - f3) * 0.5, (f2 + f1) * 0.5
+    Q2, R2 = E * E + Hr * Hr, Fh * Fh + G * G
+    lt, ll = min(alpha + s, 0.0), min(alpha - s, 0.0)
+    m = alpha * ((T2 + 1.0) * T2 * iJp * iJp * (5.0 / 18.0) - 1.0 / 3.0) + kappa * T2 * 0.5
+    h = (T2 * -4.0 + 2.0) * iJp * alpha * (1.0 / 9.0) + (J * 2.0 - 1.0) * kappa
+    rad = math.sqrt(Q2 * R2 * (gamma * gamma) * 4.0 + h * h)
+    l2 = m - rad
+    c0 = min(l2, 0.0)
+    k1 = (min(m + rad, 0.0) - c0) / max(rad * 2.0, _TINY)
+    c0 -= k1 * l2
+    d1 = ((m + h) * k1 + c0 - lt) * 0.5
+    d2 = ((m - h) * k1 + c0 - ll) * 0.5
+    lt *= 0.5
+    ll *= 0.5
+    iq = 1.0 / Q2
+    cc, cs = E * E * iq, E * Hr * iq
+    if R2 < _TINY:
+        CC, CS = 0.5, 0.0
+    else:
+        ir = 1.0 / max(R2, _TINY)
+        CC, CS = Fh * Fh * ir, Fh * G * ir
+    X = d1 * cc
+    Y = lt + d1 - X
+    X += lt
+    Z = cs * d1
+    Xp = d2 * CC
+    Yp = ll + d2 - Xp
+    Xp += ll
+    Zp = CS * d2
+    t1 = -(k1 * gamma)
+    eu, ev = E * Fh * t1 * 2.0, Hr * G * t1 * 2.0
+    ep, eq = (E * G - Hr * Fh) * t1, (E * G + Hr * Fh) * t1
+    H[0, 0] = H[0, 0] - (X + Xp) - eu
+    H[3, 3] = H[3, 3] - (X + Xp) + eu
+    H[1, 1] = H[1, 1] - (Y + Yp) + ev
+    H[2, 2] = H[2, 2] - (Y + Yp) - ev
+    H[0, 3] -= X - Xp
+    H[1, 2] -= Yp - Y
+    H[0, 1] = H[0, 1] - (Zp - Z) - ep
+    H[2, 3] = H[2, 3] + (Zp - Z) - ep
+    H[0, 2] = H[0, 2] - (Z + Zp) - eq
+    H[1, 3] = H[1, 3] + (Z + Zp) - eq
+    if t < 0.0:  # the fiber term is indefinite only in fiber compression
+        I4 = I4m1 + 1.0
+        nf1 = min(t, 0.0)
+        nf2 = min(eta_eff * 4.0 * I4 + t, 0.0)
+        _fiber_block(H, (nf2 - nf1) / max(I4, _TINY), nf1, v0, v1, aa, ab, bb, -1.0)
+
+
+@njit(**_JIT)
+def element_stiffness_2d(x, corners, grad_rows, volume, mu, kappa, eta, fa, fb, tension_only, project, Ke):
+    """Packed element Hessians into Ke (21, M), mN/mm (`fem.element_matrices` order); -1, or the first element it cannot take.
+
+    K_e[2a+i, 2b+k] = V Σ_jl ∂N_a/∂X_j C[2i+j, 2k+l] ∂N_b/∂X_l.
+    """
+    H = np.zeros((4, 4))
+    T = np.empty((4, 3, 2))
+    for e in range(corners.shape[1]):
+        f0, f1, f2, f3 = _deformation(x, corners, grad_rows, e)
+        psi, _, _, _, _, J, alpha, s, iJ, v0, v1, I4m1, eta_eff = _stress(
+            f0, f1, f2, f3, mu[e], kappa[e], eta[e], fa[e], fb[e], tension_only)
+        if not (J > J_FLOOR and math.isfinite(psi)):
+            return e
+        _tangent(H, f0, f1, f2, f3, kappa[e], alpha, s, iJ, v0, v1, I4m1, eta_eff, fa[e], fb[e], project)
+        for r in range(4):  # mirror the upper triangle
+            for c in range(r):
+                H[r, c] = H[c, r]
+        # T[r, b, k] = Σ_l C[r, 2k+l] ∂N_b/∂X_l
+        for r in range(4):
+            for bn in range(3):
+                g0, g1 = grad_rows[bn, 0, e], grad_rows[bn, 1, e]
+                T[r, bn, 0] = H[r, 0] * g0 + H[r, 1] * g1
+                T[r, bn, 1] = H[r, 2] * g0 + H[r, 3] * g1
+        V = volume[e]
+        n = 0
+        finite = 0.0
+        for p in range(6):
+            an, i = p // 2, p % 2
+            ga0, ga1 = grad_rows[an, 0, e] * V, grad_rows[an, 1, e] * V
+            for q in range(p, 6):
+                bn, k = q // 2, q % 2
+                val = ga0 * T[2 * i, bn, k] + ga1 * T[2 * i + 1, bn, k]
+                Ke[n, e] = val
+                finite += val
+                n += 1
+        if not math.isfinite(finite):
+            return e
+    return -1
+
+
+@njit(**_JIT)
+def scatter_packed(Ke, entries, slot, out):
+    """out[slot[k]] += Ke.flat[entries[k]] for every k (`fem.SparsePattern.assemble`), out zeroed first."""
+    out[:] = 0.0
+    flat = Ke.ravel()
+    for k in range(entries.shape[0]):
+        out[slot[k]] += flat[entries[k]]
+
+
+# -- the entry points: None where the numpy path must answer ---------------------------------------------------------
+
+
+def supports(ops, params) -> bool:
+    """Whether these loops serve this element set and material: 2-D, a neo-Hookean model, in-plane fibers."""
+    return ops.dim == 2 and params.model != "linear" and params._fib is not None
+
+
+def _material(params) -> tuple:
+    a, b = params._fib[:2]
+    return params.mu, params.kappa, params.eta, a, b, params.tension_only
+
+
+def energy_gradient(ops, params, x: np.ndarray) -> tuple[float, np.ndarray] | None:
+    """U (µJ) and ∇U (2N,) mN at positions x (N, 2); None if an element has J ≤ J_FLOOR or a non-finite term."""
+    grad = np.empty(2 * ops.n_nodes)
+    U, bad = energy_gradient_2d(np.ascontiguousarray(x, dtype=np.float64), ops.corners, ops.grad_rows, ops.volume,
+                                *_material(params), grad)
+    return None if bad >= 0 else (float(U), grad)
+
+
+def element_stiffness(ops, params, x: np.ndarray, project: bool) -> np.ndarray | None:
+    """Packed element Hessians (21, M) mN/mm at x (N, 2), per-term PSD-projected if asked; None as above."""
+    Ke = np.empty((21, ops.corners.shape[1]))
+    bad = element_stiffness_2d(np.ascontiguousarray(x, dtype=np.float64), ops.corners, ops.grad_rows, ops.volume,
+                               *_material(params), bool(project), Ke)
+    return None if bad >= 0 else Ke
