@@ -48,6 +48,19 @@ def test_definite_request_refuses_an_indefinite_matrix_and_forgets_the_old_facto
         f.solve(np.ones(A.shape[0]))
 
 
+def test_simplicial_factor_solves_the_same_and_still_refuses_an_indefinite_matrix():
+    """supernodal=False solves with CHOLMOD's simplicial LDLᵀ, which would take an indefinite matrix: the check must not."""
+    A = _spd()
+    b = np.random.default_rng(2).random((A.shape[0], 2))
+    f = Factorization(sp.triu(A).tocsr(), definite=True, upper=True, supernodal=False)
+    np.testing.assert_allclose(f.solve(b), Factorization(A).solve(b), rtol=1e-12, atol=1e-14)
+    assert f.nnz_factor > 0
+    with pytest.raises(SolverError, match="not positive definite"):
+        f.refactor(sp.triu(A - 12.0 * sp.eye(A.shape[0])).tocsr())
+    f.refactor(sp.triu(2.0 * A).tocsr())
+    np.testing.assert_allclose(2.0 * A @ f.solve(b), b, atol=1e-12)
+
+
 def test_singular_matrix_is_an_error_not_inf():
     S = sp.csr_matrix(np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 2.0]]))
     with pytest.raises(SolverError):

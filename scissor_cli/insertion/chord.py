@@ -64,6 +64,8 @@ class ChordSolver:
         self._slot = np.full(tissue.mesh.n_nodes, -1, np.int64)
         self._W = np.zeros((tissue.free_dofs.size, 0))
         self._used = 0
+        #: (factor key, g, K⁻¹g) of the last gradient solved on the kept factor (`_solve_gradient`)
+        self._last_solve = None
 
     # -- the factorisation and its columns ---------------------------------------------------------------
 
@@ -74,7 +76,8 @@ class ChordSolver:
             K = self.tissue.stiffness_free(x, project=project, upper=True)
             self.factorizations += 1
             try:
-                factor = factorize_free(self.tissue, K, self._factors)
+                # simplicial: a kept factor is solved with about 200 times per factorisation here
+                factor = factorize_free(self.tissue, K, self._factors, supernodal=False)
                 break
             except SolverError:
                 continue
@@ -124,16 +127,16 @@ class ChordSolver:
         t = self.tissue
         nodes = hold.captured
         W = self.columns(nodes)
-        d0 = -self._factor.solve(g[t.free_dofs])
+        key = (self._factor, self.factorizations)
+        if nodes.size and (hold.schur is None or hold.schur[0] != key):
+            fi = t.free_index
+            idx = np.stack([fi[2 * nodes], fi[2 * nodes + 1]], axis=1).ravel()
+            D = hold.directions()
+            S_inv = np.linalg.inv(D.T @ W[idx] @ D)  # m ≤ 2P: small, symmetric positive definite
+            hold.schur = (key, idx, D, S_inv)
+        d0 = -self._solve_gradient(g[t.free_dofs], key, W, hold.schur[1] if nodes.size else None)
         d_free, mu = d0, np.zeros(0)
         if nodes.size:
-            key = (self._factor, self.factorizations)
-            if hold.schur is None or hold.schur[0] != key:
-                fi = t.free_index
-                idx = np.stack([fi[2 * nodes], fi[2 * nodes + 1]], axis=1).ravel()
-                D = hold.directions()
-                S_inv = np.linalg.inv(D.T @ W[idx] @ D)  # m ≤ 2P: small, symmetric positive definite
-                hold.schur = (key, idx, D, S_inv)
             _, idx, D, S_inv = hold.schur
             mu = S_inv @ (D.T @ d0[idx] - hold.gap(x))
             d_free = d0 - W @ (D @ mu)
@@ -141,6 +144,27 @@ class ChordSolver:
         d[t.free_dofs] = d_free
         check_finite(d, "the needle's chord step")
         return d.reshape(x.shape), mu
+
+    def _solve_gradient(self, g_free: np.ndarray, key, W: np.ndarray, idx: np.ndarray | None) -> np.ndarray:
+        """K⁻¹ g (Nf,) on the kept factor.
+
+        A new active-set pass starts where the last one stopped, with only
+        the friction loads of the switched nodes changed: when g differs from
+        the last solved gradient only on the captured nodes' dofs idx, K⁻¹g
+        is that solve plus their kept columns (no triangular solve).
+        """
+        last = self._last_solve
+        if idx is not None and last is not None and last[0] == key and last[1].shape == g_free.shape:
+            delta = g_free - last[1]
+            on_nodes = delta[idx]
+            delta[idx] = 0.0
+            if not delta.any():
+                solved = last[2] + W @ on_nodes
+                self._last_solve = (key, g_free.copy(), solved)
+                return solved
+        solved = self._factor.solve(g_free)
+        self._last_solve = (key, g_free.copy(), solved)
+        return solved
 
     def converge(self, x: np.ndarray, g: np.ndarray, hold: "Hold", tol: float, loads: np.ndarray, decide=None):
         """Chord steps from x (N, 2) (gradient g) until the hold's relative residual is ≤ tol.

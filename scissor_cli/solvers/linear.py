@@ -37,6 +37,12 @@ class Factorization:
     global matrix, a stable equilibrium's tangent) get CHOLMOD's supernodal
     Cholesky (through cvxopt): 2.6x faster than a simplicial LDLᵀ at 16k
     unknowns and 4x at 63k, because its dense supernode blocks run in BLAS.
+    With `supernodal=False` the solves use CHOLMOD's simplicial LDLᵀ
+    instead: slower to factor but faster to solve with at a few thousand
+    unknowns (no padded supernodes), for a factor kept over many solves (the
+    needle's chord solver; docs/performance.md). LDLᵀ takes indefinite
+    matrices too, so with `definite` a supernodal LLᵀ is factored first to
+    check.
     A symmetric indefinite matrix falls back to qdldl's LDLᵀ (AMD ordering),
     unless `definite` is asked for: then "not positive definite" is a
     SolverError, which is what Newton wants to hear before it projects.
@@ -54,10 +60,11 @@ class Factorization:
     """
 
     def __init__(self, A: sp.spmatrix, definite: bool = False, upper: bool = False,
-                 ordering: str = "amd", groups: np.ndarray | None = None):
+                 ordering: str = "amd", groups: np.ndarray | None = None, supernodal: bool = True):
         if ordering not in ("amd", "nested_dissection"):
             raise ValueError(f"unknown ordering {ordering!r}: 'amd' or 'nested_dissection'")
         self.definite = definite
+        self.supernodal = supernodal
         self.upper = upper
         self.ordering = ordering
         self.groups = groups
@@ -90,7 +97,12 @@ class Factorization:
         self.stale = False
         try:
             if self._chol is None:
-                self._chol = self._symbolic(A)
+                self._chol = self._symbolic(A, self.supernodal)
+                self._check = None if self.supernodal else self._symbolic(A, True)
+            if self._check is not None:
+                # CHOLMOD's simplicial factor is LDLᵀ, which takes indefinite matrices
+                # too: the supernodal LLᵀ says whether A is positive definite.
+                cholmod.numeric(self._lower, self._check)
             cholmod.numeric(self._lower, self._chol)
             self._active = "cholesky"
             return self
@@ -119,7 +131,7 @@ class Factorization:
 
     @property
     def nnz_factor(self) -> int:
-        """Entries of the supernodal Cholesky factor L (0 without one): the fill the ordering left.
+        """Entries of the Cholesky factor L (0 without one): the fill the ordering left.
 
         Factors a copy (one more factorisation: for reports, not hot paths):
         cvxopt's `getfactor` turns the factor it reads into a symbolic,
@@ -127,17 +139,22 @@ class Factorization:
         """
         if self._active != "cholesky":
             return 0
-        copy = self._symbolic(self._pattern_csr)
+        copy = self._symbolic(self._pattern_csr, self.supernodal)
         cholmod.numeric(self._lower, copy)
         return len(cholmod.getfactor(copy).V)
 
-    def _symbolic(self, A: sp.csr_matrix):
-        """CHOLMOD's symbolic analysis of the pattern, with this factor's ordering."""
+    def _symbolic(self, A: sp.csr_matrix, supernodal: bool = True):
+        """CHOLMOD's symbolic analysis of the pattern, with this factor's ordering: a supernodal LLᵀ or a simplicial LDLᵀ."""
         self._pattern_csr = A
-        if self.ordering == "nested_dissection":
-            p = cvxopt.matrix(nested_dissection(A, self.groups).tolist(), tc="i")
-            return cholmod.symbolic(self._lower, p=p)
-        return cholmod.symbolic(self._lower)
+        saved = cholmod.options.get("supernodal", 2)
+        cholmod.options["supernodal"] = 2 if supernodal else 0  # read by the analysis only
+        try:
+            if self.ordering == "nested_dissection":
+                p = cvxopt.matrix(nested_dissection(A, self.groups).tolist(), tc="i")
+                return cholmod.symbolic(self._lower, p=p)
+            return cholmod.symbolic(self._lower)
+        finally:
+            cholmod.options["supernodal"] = saved
 
     @property
     def method(self) -> str:
@@ -292,7 +309,8 @@ def nested_dissection(A: sp.csr_matrix, groups: np.ndarray | None = None) -> np.
     return np.lexsort((np.arange(n), rank[node_of]))
 
 
-def factorize_free(tissue, K_upper: sp.csr_matrix, factors: dict | None = None) -> Factorization:
+def factorize_free(tissue, K_upper: sp.csr_matrix, factors: dict | None = None,
+                   supernodal: bool = True) -> Factorization:
     """A positive definite factorisation of K_ff from its upper triangle (Nf, Nf).
 
     Refactors the symbolic analysis kept in `factors["free"]` (default: the
@@ -300,12 +318,13 @@ def factorize_free(tissue, K_upper: sp.csr_matrix, factors: dict | None = None) 
     on it; the controller's trackers keep their own); raises SolverError if
     K_ff is not positive definite (Newton then projects). A 3-D tissue's
     factor is ordered by nested dissection (`Factorization`), a 2-D one's by AMD.
+    `supernodal` (the slot's first factorisation decides) as in `Factorization`.
     """
     factors = tissue.factor_cache if factors is None else factors
     factor = factors.get("free")
     if factor is None:
         ordering = "nested_dissection" if tissue.dim == 3 else "amd"
         factor = factors["free"] = Factorization(K_upper, definite=True, upper=True, ordering=ordering,
-                                                 groups=tissue.free_dofs // tissue.dim)
+                                                 groups=tissue.free_dofs // tissue.dim, supernodal=supernodal)
         return factor
     return factor.refactor(K_upper)
