@@ -66,6 +66,7 @@ class ChordSolver:
         self._used = 0
         #: (factor key, g, K⁻¹g) of the last gradient solved on the kept factor (`_solve_gradient`)
         self._last_solve = None
+        self._columns_memo = None
 
     # -- the factorisation and its columns ---------------------------------------------------------------
 
@@ -93,6 +94,9 @@ class ChordSolver:
         A view of the kept columns when the nodes are the ones kept, in their
         order (the captured nodes only grow at the end): no copy per step.
         """
+        memo = self._columns_memo
+        if memo is not None and memo[0] is nodes and memo[1] == (self._used, self.factorizations):
+            return memo[2]  # asked again in the same pass (prediction, completion): nothing has changed
         missing = nodes[self._slot[nodes] < 0]
         if missing.size:
             fi, nf = self.tissue.free_index, self.tissue.free_dofs.size
@@ -110,19 +114,25 @@ class ChordSolver:
             self._used = need
         s = self._slot[nodes]
         if s.size and s[0] == 0 and s.size * 2 == self._used and np.all(np.diff(s) == 1):
-            return self._W[:, :self._used]
-        return self._W[:, np.stack([2 * s, 2 * s + 1], axis=1).ravel()]
+            W = self._W[:, :self._used]
+        else:
+            W = self._W[:, np.stack([2 * s, 2 * s + 1], axis=1).ravel()]
+        self._columns_memo = (nodes, (self._used, self.factorizations), W)
+        return W
 
     # -- one chord step ----------------------------------------------------------------------------------
 
-    def step(self, g: np.ndarray, hold: "Hold", x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The step d (N, 2) from x (N, 2) with objective gradient g (2N,) under the hold, and μ (m,).
+    def predict(self, g: np.ndarray, hold: "Hold", gap: np.ndarray):
+        """The chord step from a state with objective gradient g (2N,) and the hold's gap (m,), at the captured nodes.
 
-        d meets the hold's constraints exactly; μ are the constraint forces
-        (the needle supplies −Cᵀμ: −μ along each row's direction). With the
-        node columns W (Nf, 2P) and each row's direction on its node's two
-        dofs D (2P, m): C = DᵀEᵀ, S = Dᵀ (EᵀW) D, only (2P × 2P) dense work,
-        the same for every step of a pass on one factorisation.
+        Returns (d0, μ, d_captured): d0 = −K⁻¹g (Nf,), the constraint forces
+        μ (m,) (the needle supplies −Cᵀμ: −μ along each row's direction) and
+        the step of the captured nodes (P, 2), which meets the hold's rows
+        exactly. That is all an active-set decision reads; `complete` gives
+        the whole step. With the node columns W (Nf, 2P) and each row's
+        direction on its node's two dofs D (2P, m): C = DᵀEᵀ, S = Dᵀ (EᵀW) D,
+        only (2P × 2P) dense work, the same for every step of a pass on one
+        factorisation.
         """
         t = self.tissue
         nodes = hold.captured
@@ -132,18 +142,28 @@ class ChordSolver:
             fi = t.free_index
             idx = np.stack([fi[2 * nodes], fi[2 * nodes + 1]], axis=1).ravel()
             D = hold.directions()
-            S_inv = np.linalg.inv(D.T @ W[idx] @ D)  # m ≤ 2P: small, symmetric positive definite
-            hold.schur = (key, idx, D, S_inv)
+            W_nodes = W[idx]
+            S_inv = np.linalg.inv(D.T @ W_nodes @ D)  # m ≤ 2P: small, symmetric positive definite
+            hold.schur = (key, idx, D, S_inv, W_nodes)
         d0 = -self._solve_gradient(g[t.free_dofs], key, W, hold.schur[1] if nodes.size else None)
-        d_free, mu = d0, np.zeros(0)
-        if nodes.size:
-            _, idx, D, S_inv = hold.schur
-            mu = S_inv @ (D.T @ d0[idx] - hold.gap(x))
-            d_free = d0 - W @ (D @ mu)
-        d = np.zeros(x.size)
-        d[t.free_dofs] = d_free
+        if not nodes.size:
+            return d0, np.zeros(0), np.zeros((0, 2))
+        _, idx, D, S_inv, W_nodes = hold.schur
+        mu = S_inv @ (D.T @ d0[idx] - gap)
+        return d0, mu, (d0[idx] - W_nodes @ (D @ mu)).reshape(-1, 2)
+
+    def complete(self, d0: np.ndarray, mu: np.ndarray, hold: "Hold", shape: tuple) -> np.ndarray:
+        """The whole chord step d (N, 2) of a prediction (`predict`): d0 − W D μ on the free dofs."""
+        t = self.tissue
+        d = np.zeros(t.mesh.nodes.size)
+        d[t.free_dofs] = d0 if mu.size == 0 else d0 - self.columns(hold.captured) @ (hold.schur[2] @ mu)
         check_finite(d, "the needle's chord step")
-        return d.reshape(x.shape), mu
+        return d.reshape(shape)
+
+    def step(self, g: np.ndarray, hold: "Hold", x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The whole chord step d (N, 2) from x (N, 2) with objective gradient g (2N,) under the hold, and μ (m,)."""
+        d0, mu, _ = self.predict(g, hold, hold.gap(x))
+        return self.complete(d0, mu, hold, x.shape), mu
 
     def _solve_gradient(self, g_free: np.ndarray, key, W: np.ndarray, idx: np.ndarray | None) -> np.ndarray:
         """K⁻¹ g (Nf,) on the kept factor.
@@ -169,27 +189,30 @@ class ChordSolver:
     def converge(self, x: np.ndarray, g: np.ndarray, hold: "Hold", tol: float, loads: np.ndarray, decide=None):
         """Chord steps from x (N, 2) (gradient g) until the hold's relative residual is ≤ tol.
 
-        Returns (x, g, iterations, verdict). decide(x, d, μ, res), asked
-        before each step with that step and the residual at x, may end the
-        solve early: whatever it returns (not None) is the verdict, x is left
-        as it is. Refactors when a step does not contract; raises ChordFailed
-        when a fresh factorisation does not help either (an inverted trial,
-        no contraction, or MAX_CHORD steps).
+        Returns (x, g, iterations, verdict). decide(x, d_captured, μ, res),
+        asked before each step with that step's prediction at the captured
+        nodes (`predict`) and the residual at x, may end the solve early:
+        whatever it returns (not None) is the verdict, x is left as it is.
+        Refactors when a step does not contract; raises ChordFailed when a
+        fresh factorisation does not help either (an inverted trial, no
+        contraction, or MAX_CHORD steps).
         """
         res = hold.residual(self.tissue, g)
+        gap = hold.gap(x)
         its = 0
-        while res > tol or np.any(np.abs(hold.gap(x)) > GAP_TOL):
+        while res > tol or np.any(np.abs(gap) > GAP_TOL):
             if its >= MAX_CHORD:
                 raise ChordFailed(f"{MAX_CHORD} chord steps left the residual at {res:.3g}")
             if self._factor is None:
                 self.refactor(x)
-            closing = bool(np.any(np.abs(hold.gap(x)) > GAP_TOL))  # a step that meets the rows: no residual to compare
-            d, mu = self.step(g, hold, x)
-            if decide is not None:
-                verdict = decide(x, d, mu, res)
+            closing = bool(np.any(np.abs(gap) > GAP_TOL))  # a step that meets the rows: no residual to compare
+            d0, mu, d_captured = self.predict(g, hold, gap)
+            # A closing step's prediction errs by what the rows move, not by the residual: no decision on it.
+            if decide is not None and not closing:
+                verdict = decide(x, d_captured, mu, res)
                 if verdict is not None:
                     return x, g, its, verdict
-            trial = x + d
+            trial = x + self.complete(d0, mu, hold, x.shape)
             _, g_t = objective_gradient(self.tissue, trial, None, loads, require_positive_J=True)
             res_t = np.inf if g_t is None else hold.residual(self.tissue, g_t)
             if not (res_t <= CONTRACTION * res or res_t <= tol or (closing and g_t is not None)):
@@ -198,6 +221,7 @@ class ChordSolver:
                 self.refactor(x)
                 continue
             x, g, res = trial, g_t, res_t
+            gap = hold.gap(x)
             self.fresh = False
             its += 1
         return x, g, its, None
@@ -209,7 +233,7 @@ class Hold:
     def __init__(self, captured, base, stuck, ride, n, t):
         self.captured, self.base, self.stuck, self.ride = captured, base, stuck, ride
         self.n, self.t = n, t
-        #: ((factor, its count), E's rows, D, S⁻¹) of the last chord step: the same while the factorisation is
+        #: ((factor, its count), E's rows, D, S⁻¹, W's rows there) of the last chord step: the same while the factorisation is
         self.schur = None
 
     def directions(self) -> np.ndarray:
