@@ -121,3 +121,35 @@ def test_any_deformation_agrees_with_numpy(entries, seed):
 
 
 _FIBER = _tissue("neo_hookean_fiber", True)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_feasible_step_is_where_the_first_element_turns_over(seed):
+    """The largest α keeping every J > 0 along x + α dx: some element's J vanishes there and none before."""
+    t = _FIBER
+    rng = np.random.default_rng(seed)
+    x = _state(t, np.eye(2), 0.05, seed)
+    dx = rng.standard_normal(x.shape)
+    alpha = t.max_feasible_step(x, dx)
+    assert 0 < alpha < np.inf
+    assert t.jacobians(x + (1 - 1e-9) * alpha * dx).min() > 0
+    J_at = t.jacobians(x + alpha * dx)
+    assert np.abs(J_at).min() <= 1e-8 * np.abs(t.jacobians(x)).max()
+    # each element's own quadratic, by numpy's polynomial roots: the same first root
+    F, dF = fem.deformation_gradients(t.ops, x), fem.deformation_gradients(t.ops, dx)
+    roots = []
+    for f, g in zip(F, dF):
+        c = [g[0, 0] * g[1, 1] - g[0, 1] * g[1, 0],
+             f[0, 0] * g[1, 1] + g[0, 0] * f[1, 1] - f[0, 1] * g[1, 0] - g[0, 1] * f[1, 0],
+             f[0, 0] * f[1, 1] - f[0, 1] * f[1, 0]]
+        r = np.roots(c)
+        r = r[(np.abs(r.imag) < 1e-12) & (r.real > 0)].real
+        roots.append(r.min() if r.size else np.inf)
+    assert alpha == pytest.approx(min(roots), rel=1e-9)
+
+
+def test_feasible_step_unbounded_for_rigid_translation_and_zero_motion():
+    t = _FIBER
+    x = _state(t, np.eye(2), 0.05, 0)
+    assert t.max_feasible_step(x, np.zeros_like(x)) == np.inf
+    assert t.max_feasible_step(x, np.tile([1.0, -2.0], (len(x), 1))) > 1e12  # dF is round-off only

@@ -245,11 +245,44 @@ def element_stiffness_2d(x, corners, grad_rows, volume, mu, kappa, eta, fa, fb, 
 
 @njit(**_JIT)
 def scatter_packed(Ke, entries, slot, out):
-    """out[slot[k]] += Ke.flat[entries[k]] for every k (`fem.SparsePattern.assemble`), out zeroed first."""
+    """out[slot[k]] += Ke.flat[entries[k]] for every k (`fem.SparsePattern.assemble`), out zeroed first.
+
+    The same sums in the same order as np.bincount(slot, Ke.flat[entries]),
+    without its gathered copy of the entries.
+    """
     out[:] = 0.0
     flat = Ke.ravel()
     for k in range(entries.shape[0]):
         out[slot[k]] += flat[entries[k]]
+
+
+@njit(**_JIT)
+def max_feasible_step_2d(x, dx, corners, grad_rows):
+    """The largest α ≥ 0 (inf if unbounded) keeping every det(F + α dF) > 0, x and dx (N, 2) (`Tissue.max_feasible_step`).
+
+    det(F + α dF) = J + α b + α² a per element, its first positive root in
+    the cancellation-free form.
+    """
+    best = math.inf
+    for e in range(corners.shape[1]):
+        f0, f1, f2, f3 = _deformation(x, corners, grad_rows, e)
+        g0, g1, g2, g3 = _deformation(dx, corners, grad_rows, e)
+        c = f0 * f3 - f1 * f2
+        b = f0 * g3 + g0 * f3 - f1 * g2 - g1 * f2
+        a = g0 * g3 - g1 * g2
+        if abs(a) <= 1e-14 * (abs(b) + abs(c)):
+            r = -c / b
+            if r > 0.0 and r < best:
+                best = r
+            continue
+        disc = b * b - 4.0 * a * c
+        if not disc >= 0.0:
+            continue
+        q = -0.5 * (b + math.copysign(math.sqrt(disc), b))
+        for r in (q / a, c / q):
+            if r > 0.0 and r < best:
+                best = r
+    return best
 
 
 # -- the entry points: None where the numpy path must answer ---------------------------------------------------------

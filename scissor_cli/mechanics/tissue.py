@@ -98,28 +98,16 @@ class Tissue:
         """The largest α ≥ 0 (inf if unbounded) keeping every J > 0 along x + α dx, both (N, 2).
 
         J_e(α) = det(F + α dF) = J + α tr(cof(F)ᵀ dF) + α² det dF is a quadratic
-        per element, so the first root is found in closed form for all at once.
-        In 3-D it is a cubic: `fem.max_feasible_step_3d`.
+        per element, so the first root is found in closed form, in one compiled
+        loop (`compiled.max_feasible_step_2d`). In 3-D it is a cubic:
+        `fem.max_feasible_step_3d`.
         """
-        F = fem.deformation_gradients(self.ops, x)
-        dF = fem.deformation_gradients(self.ops, x + dx) - F
         if self.dim == 3:
-            return fem.max_feasible_step_3d(F, dF)
-        c = F[:, 0, 0] * F[:, 1, 1] - F[:, 0, 1] * F[:, 1, 0]
-        b = F[:, 0, 0] * dF[:, 1, 1] + dF[:, 0, 0] * F[:, 1, 1] - F[:, 0, 1] * dF[:, 1, 0] - dF[:, 0, 1] * F[:, 1, 0]
-        a = dF[:, 0, 0] * dF[:, 1, 1] - dF[:, 0, 1] * dF[:, 1, 0]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            disc = b * b - 4 * a * c
-            sq = np.sqrt(np.maximum(disc, 0.0))
-            # roots of a α² + b α + c, in the cancellation-free form
-            q = -0.5 * (b + np.copysign(sq, b))
-            r1, r2 = q / a, c / q
-            linear = np.abs(a) <= 1e-14 * (np.abs(b) + np.abs(c))
-            r_lin = -c / b
-        roots = np.where(linear[:, None], np.stack([r_lin, r_lin], 1), np.stack([r1, r2], 1))
-        roots = np.where((disc[:, None] >= 0) | linear[:, None], roots, np.inf)
-        roots = np.where(np.isfinite(roots) & (roots > 0), roots, np.inf)
-        return float(roots.min()) if len(roots) else float("inf")
+            F = fem.deformation_gradients(self.ops, x)
+            return fem.max_feasible_step_3d(F, fem.deformation_gradients(self.ops, x + dx) - F)
+        return float(compiled.max_feasible_step_2d(np.ascontiguousarray(x, dtype=np.float64),
+                                                   np.ascontiguousarray(dx, dtype=np.float64),
+                                                   self.ops.corners, self.ops.grad_rows))
 
     def check_inversion(self, x: np.ndarray, where: str = "") -> None:
         J = self.jacobians(x)
