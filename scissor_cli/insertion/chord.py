@@ -166,7 +166,7 @@ class ChordSolver:
         return self.complete(d0, mu, hold, x.shape), mu
 
     def _solve_gradient(self, g_free: np.ndarray, key, W: np.ndarray, idx: np.ndarray | None) -> np.ndarray:
-        """K⁻¹ g (Nf,) on the kept factor.
+        """K⁻¹ g (Nf,) on the kept factor; g_free is kept (the caller's own copy, not changed afterwards).
 
         A new active-set pass starts where the last one stopped, with only
         the friction loads of the switched nodes changed: when g differs from
@@ -180,10 +180,10 @@ class ChordSolver:
             delta[idx] = 0.0
             if not delta.any():
                 solved = last[2] + W @ on_nodes
-                self._last_solve = (key, g_free.copy(), solved)
+                self._last_solve = (key, g_free, solved)
                 return solved
         solved = self._factor.solve(g_free)
-        self._last_solve = (key, g_free.copy(), solved)
+        self._last_solve = (key, g_free, solved)
         return solved
 
     def converge(self, x: np.ndarray, g: np.ndarray, hold: "Hold", tol: float, loads: np.ndarray, decide=None):

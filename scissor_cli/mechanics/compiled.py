@@ -33,8 +33,7 @@ import numpy as np
 from numba import njit
 
 from scissor_cli.mechanics.materials.params import J_FLOOR
-
-_TINY = float(np.finfo(np.float64).tiny)
+from scissor_cli.mechanics.materials.plane_strain_projection import _TINY
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 
