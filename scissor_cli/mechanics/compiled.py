@@ -150,13 +150,12 @@ def _tangent(H, f0, f1, f2, f3, kappa, alpha, s, iJ, v0, v1, I4m1, eta_eff, a, b
         return
     # Negative parts of the isotropic term's eigensystem (plane_strain_projection, same steps).
     J = p03 - p12
-    iJp = 1.0 / max(J, J_FLOOR)
     T2 = f0 * f0 + f1 * f1 + f2 * f2 + f3 * f3
     E, Hr, Fh, G = (f0 + f3) * 0.5, (f2 - f1) * 0.5, (f0 - f3) * 0.5, (f2 + f1) * 0.5
     Q2, R2 = E * E + Hr * Hr, Fh * Fh + G * G
     lt, ll = min(alpha + s, 0.0), min(alpha - s, 0.0)
-    m = alpha * ((T2 + 1.0) * T2 * iJp * iJp * (5.0 / 18.0) - 1.0 / 3.0) + kappa * T2 * 0.5
-    h = (T2 * -4.0 + 2.0) * iJp * alpha * (1.0 / 9.0) + (J * 2.0 - 1.0) * kappa
+    m = alpha * ((T2 + 1.0) * T2 * iJ * iJ * (5.0 / 18.0) - 1.0 / 3.0) + kappa * T2 * 0.5
+    h = (T2 * -4.0 + 2.0) * iJ * alpha * (1.0 / 9.0) + (J * 2.0 - 1.0) * kappa
     rad = math.sqrt(Q2 * R2 * (gamma * gamma) * 4.0 + h * h)
     l2 = m - rad
     c0 = min(l2, 0.0)
