@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from hypothesis import given, settings, strategies as st
 from typer.testing import CliRunner
 
 from scissor_cli.config import load_config
@@ -290,6 +291,58 @@ def test_a_schur_chord_step_meets_the_hold_and_the_tangent_equations(model):
     f = tissue.free_dofs
     lhs = K @ d.ravel()[f] + force[f]
     np.testing.assert_allclose(lhs, -g[f], atol=1e-10 * np.abs(g[f]).max())
+
+
+def test_the_compiled_hold_loops_equal_their_numpy_definitions(model):
+    """Residual, gap, frame compliance and the captured step (insertion/kernels.py) against plain numpy."""
+    from scissor_cli.insertion.chord import ChordSolver
+    from scissor_cli.solvers.common import objective_gradient
+
+    cfg, tissue = model
+    x, hold, loads = _a_hold(tissue, cfg)
+    solver = ChordSolver(tissue)
+    solver.refactor(x)
+    y = x + 0.01 * np.sin(np.arange(x.size)).reshape(x.shape)  # off equilibrium, the rows not met
+    _, g = objective_gradient(tissue, y, None, loads)
+    assert hold.held_residual(solver, g) == pytest.approx(hold.residual(tissue, g), rel=1e-12)
+    gap = np.empty(hold.rows.size)
+    largest = hold.gap_into(y, gap)
+    np.testing.assert_allclose(gap, hold.gap(y), rtol=0, atol=1e-14)
+    assert largest == np.abs(gap).max() > 0
+    # the compliance in the (t, n) frame: Qᵀ (K⁻¹)[idx, idx] Q, Q = I ⊗ [t n]
+    idx, A = solver.compliance(hold.captured, hold.frame)
+    f = tissue.free_dofs
+    K_inv = np.linalg.inv(tissue.stiffness_free(x).toarray())
+    Q = np.kron(np.eye(hold.captured.size), hold.frame)
+    np.testing.assert_allclose(A, Q.T @ K_inv[np.ix_(idx, idx)] @ Q, atol=1e-12 * np.abs(A).max())
+    # μ and the captured step from the Schur complement written with the rows' directions D
+    d0, mu, d_captured = solver.predict(g[f], hold, hold.gap(y))
+    D = hold.directions()
+    W = K_inv[np.ix_(idx, idx)]
+    mu_dense = np.linalg.solve(D.T @ W @ D, D.T @ d0[idx] - hold.gap(y))
+    np.testing.assert_allclose(mu, mu_dense, rtol=1e-9, atol=1e-12 * np.abs(mu_dense).max())
+    np.testing.assert_allclose(d_captured.ravel(), d0[idx] - W @ D @ mu_dense, atol=1e-10)
+    np.testing.assert_allclose(solver.complete(d0, mu, hold), d0 - K_inv[:, idx] @ D @ mu_dense, atol=1e-10)
+
+
+@given(st.integers(0, 2**32 - 1), st.floats(0.0, 2.0), st.floats(0.0, 0.5))
+@settings(max_examples=200, deadline=None)
+def test_the_compiled_friction_rule_is_the_rule(seed, force_error, position_error):
+    from scissor_cli.insertion import kernels
+
+    rng = np.random.default_rng(seed)
+    p = int(rng.integers(0, 12))
+    axial, lag = rng.normal(0, 5, p), rng.normal(0, 0.3, p)
+    limit, sign = rng.uniform(0, 6, p), rng.choice([-1.0, 1.0], p)
+    stuck, locked = rng.random(p) < 0.6, rng.random(p) < 0.2
+    free, slip = stuck & ~locked, ~stuck
+    release, against = np.empty(p, bool), np.empty(p, bool)
+    unclear = kernels.friction_rule(axial, lag, limit, free, slip, sign, 1e-6, force_error, position_error,
+                                    release, against)
+    np.testing.assert_array_equal(release, free & (np.abs(axial) > limit))
+    np.testing.assert_array_equal(against, slip & (sign * lag > 1e-6))
+    assert unclear == bool(np.any(free & (np.abs(np.abs(axial) - limit) <= force_error))
+                           or np.any(slip & (np.abs(sign * lag - 1e-6) <= position_error)))
 
 
 def test_the_kept_factorisation_and_a_fresh_newton_reach_the_same_equilibrium(model):

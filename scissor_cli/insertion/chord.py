@@ -29,10 +29,14 @@ the caller falls back to Newton.
 
 from __future__ import annotations
 
-import numpy as np
+from dataclasses import dataclass
 
+import numpy as np
+from scipy.linalg import lapack
+
+from scissor_cli.insertion import kernels
 from scissor_cli.mechanics.tissue import Tissue
-from scissor_cli.solvers.common import Conditions, SolverError, check_finite, objective_gradient
+from scissor_cli.solvers.common import Conditions, SolverError, check_finite
 from scissor_cli.solvers.linear import factorize_free
 
 #: a chord step is kept when it shrinks the relative residual at least this much
@@ -62,11 +66,14 @@ class ChordSolver:
         self.factorizations = 0
         self.fresh = False
         self._slot = np.full(tissue.mesh.n_nodes, -1, np.int64)
-        self._W = np.zeros((tissue.free_dofs.size, 0))
+        # K⁻¹e of the kept nodes' dofs as rows (K is symmetric): a row block is contiguous, so a
+        # combination of them (`responses(nodes).T @ c`) runs as one BLAS pass without a copy
+        self._responses = np.zeros((0, tissue.free_dofs.size))
         self._used = 0
         #: (factor key, g, K⁻¹g) of the last gradient solved on the kept factor (`_solve_gradient`)
         self._last_solve = None
-        self._columns_memo = None
+        self._responses_memo = None
+        self._compliance_memo = None
 
     # -- the factorisation and its columns ---------------------------------------------------------------
 
@@ -88,13 +95,18 @@ class ChordSolver:
         self._slot[:] = -1
         self._used = 0
 
-    def columns(self, nodes: np.ndarray) -> np.ndarray:
-        """[K⁻¹e_x K⁻¹e_y] of each node's two free dofs, (Nf, 2P) in the nodes' order; solved once per factorisation.
+    @property
+    def _key(self) -> tuple:
+        """What the kept factor's derived data (Schur complements, solves) is valid for."""
+        return self._factor, self.factorizations
 
-        A view of the kept columns when the nodes are the ones kept, in their
+    def responses(self, nodes: np.ndarray) -> np.ndarray:
+        """[K⁻¹e_x; K⁻¹e_y] of each node's two free dofs as rows, (2P, Nf) in the nodes' order; solved once per factorisation.
+
+        A view of the kept rows when the nodes are the ones kept, in their
         order (the captured nodes only grow at the end): no copy per step.
         """
-        memo = self._columns_memo
+        memo = self._responses_memo
         if memo is not None and memo[0] is nodes and memo[1] == (self._used, self.factorizations):
             return memo[2]  # asked again in the same pass (prediction, completion): nothing has changed
         missing = nodes[self._slot[nodes] < 0]
@@ -105,81 +117,96 @@ class ChordSolver:
             E[fi[2 * missing], 2 * k] = 1.0
             E[fi[2 * missing + 1], 2 * k + 1] = 1.0
             need = self._used + E.shape[1]
-            if need > self._W.shape[1]:  # grow the kept columns by doubling
-                grown = np.zeros((nf, max(2 * self._W.shape[1], need, 16)))
-                grown[:, :self._used] = self._W[:, :self._used]
-                self._W = grown
-            self._W[:, self._used:need] = self._factor.solve(E).reshape(nf, -1)
+            if need > self._responses.shape[0]:  # grow the kept rows by doubling
+                grown = np.zeros((max(2 * self._responses.shape[0], need, 16), nf))
+                grown[:self._used] = self._responses[:self._used]
+                self._responses = grown
+            self._responses[self._used:need] = self._factor.solve(E).reshape(nf, -1).T
             self._slot[missing] = self._used // 2 + k
             self._used = need
         s = self._slot[nodes]
         if s.size and s[0] == 0 and s.size * 2 == self._used and np.all(np.diff(s) == 1):
-            W = self._W[:, :self._used]
+            R = self._responses[:self._used]
         else:
-            W = self._W[:, np.stack([2 * s, 2 * s + 1], axis=1).ravel()]
-        self._columns_memo = (nodes, (self._used, self.factorizations), W)
-        return W
+            R = self._responses[np.stack([2 * s, 2 * s + 1], axis=1).ravel()]
+        self._responses_memo = (nodes, (self._used, self.factorizations), R)
+        return R
+
+    def compliance(self, nodes: np.ndarray, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(idx, A): the nodes' free dofs idx (2P,) as [x₀ y₀ x₁ y₁ …], and their compliance A (2P, 2P) in the frame.
+
+        frame (2, 2) has the unit vectors (t, n) as columns; A = Qᵀ (K⁻¹)[idx, idx] Q
+        with Q = I ⊗ frame, so A[2i, 2j+1] is node i's t-displacement under a
+        unit n-force on node j. Every constraint row of a hold is one such
+        coordinate, so each pass's Schur complement is a submatrix of A.
+        """
+        memo = self._compliance_memo
+        key = (nodes, self._key, self._used, frame.tobytes())
+        if memo is not None and memo[0][0] is nodes and memo[0][1:] == key[1:]:
+            return memo[1], memo[2]
+        fi = self.tissue.free_index
+        idx = np.stack([fi[2 * nodes], fi[2 * nodes + 1]], axis=1).ravel()
+        # (K⁻¹)[idx, idx], symmetric (rows or columns alike), turned into the frame; made exactly
+        # symmetric, so each Schur complement is
+        A = kernels.frame_compliance(self.responses(nodes)[:, idx], frame)
+        self._compliance_memo = (key, idx, A)
+        return idx, A
 
     # -- one chord step ----------------------------------------------------------------------------------
 
-    def predict(self, g: np.ndarray, hold: "Hold", gap: np.ndarray):
-        """The chord step from a state with objective gradient g (2N,) and the hold's gap (m,), at the captured nodes.
+    def predict(self, g_free: np.ndarray, hold: "Hold", gap: np.ndarray, shifted: bool = True):
+        """The chord step from a state with objective gradient g_free (Nf,) on the free dofs and the hold's gap (m,).
 
         Returns (d0, μ, d_captured): d0 = −K⁻¹g (Nf,), the constraint forces
         μ (m,) (the needle supplies −Cᵀμ: −μ along each row's direction) and
         the step of the captured nodes (P, 2), which meets the hold's rows
         exactly. That is all an active-set decision reads; `complete` gives
-        the whole step. With the node columns W (Nf, 2P) and each row's
-        direction on its node's two dofs D (2P, m): C = DᵀEᵀ, S = Dᵀ (EᵀW) D,
-        only (2P × 2P) dense work, the same for every step of a pass on one
-        factorisation.
+        the whole step. In the captured nodes' (t, n) frame every row is one
+        coordinate, so with the compliance A there (`compliance`) and the
+        rows' coordinates r: S = A[r, r], μ = S⁻¹ (d0[r] − gap) and the
+        captured step d0 − A[:, r] μ: only (2P × m) dense work, S factored
+        once per pass on one factorisation. `shifted`: g may differ from the
+        last solved gradient only on the captured dofs (a new pass), so that
+        solve may be reused (`_solve_gradient`).
         """
-        t = self.tissue
-        nodes = hold.captured
-        W = self.columns(nodes)
-        key = (self._factor, self.factorizations)
-        if nodes.size and (hold.schur is None or hold.schur[0] != key):
-            fi = t.free_index
-            idx = np.stack([fi[2 * nodes], fi[2 * nodes + 1]], axis=1).ravel()
-            D = hold.directions()
-            W_nodes = W[idx]
-            S_inv = np.linalg.inv(D.T @ W_nodes @ D)  # m ≤ 2P: small, symmetric positive definite
-            hold.schur = (key, idx, D, S_inv, W_nodes)
-        d0 = -self._solve_gradient(g[t.free_dofs], key, W, hold.schur[1] if nodes.size else None)
-        if not nodes.size:
-            return d0, np.zeros(0), np.zeros((0, 2))
-        _, idx, D, S_inv, W_nodes = hold.schur
-        mu = S_inv @ (D.T @ d0[idx] - gap)
-        return d0, mu, (d0[idx] - W_nodes @ (D @ mu)).reshape(-1, 2)
+        if not hold.captured.size:
+            return -self._solve_gradient(g_free, None, None), np.zeros(0), np.zeros((0, 2))
+        schur = hold.schur_on(self)
+        d0 = -self._solve_gradient(g_free, schur.idx if shifted else None, self.responses(hold.captured))
+        mu, d_captured = np.empty(schur.rows.size), np.empty((hold.captured.size, 2))
+        kernels.captured_step(d0, schur.idx, hold.frame, schur.rows, schur.S_upper, schur.A_rows, gap, mu, d_captured)
+        return d0, mu, d_captured
 
-    def complete(self, d0: np.ndarray, mu: np.ndarray, hold: "Hold", shape: tuple) -> np.ndarray:
-        """The whole chord step d (N, 2) of a prediction (`predict`): d0 − W D μ on the free dofs."""
-        t = self.tissue
-        d = np.zeros(t.mesh.nodes.size)
-        d[t.free_dofs] = d0 if mu.size == 0 else d0 - self.columns(hold.captured) @ (hold.schur[2] @ mu)
-        check_finite(d, "the needle's chord step")
-        return d.reshape(shape)
+    def complete(self, d0: np.ndarray, mu: np.ndarray, hold: "Hold") -> np.ndarray:
+        """The whole chord step on the free dofs (Nf,) of a prediction (`predict`): d0 − K⁻¹Cᵀμ."""
+        if mu.size == 0:
+            return d0
+        return kernels.chord_direction(d0, hold.rows, mu, hold.frame, self.responses(hold.captured))
 
     def step(self, g: np.ndarray, hold: "Hold", x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The whole chord step d (N, 2) from x (N, 2) with objective gradient g (2N,) under the hold, and μ (m,)."""
-        d0, mu, _ = self.predict(g, hold, hold.gap(x))
-        return self.complete(d0, mu, hold, x.shape), mu
+        free = self.tissue.free_dofs
+        d0, mu, _ = self.predict(g[free], hold, hold.gap(x))
+        d = np.zeros(x.size)
+        d[free] = self.complete(d0, mu, hold)
+        check_finite(d, "the needle's chord step")
+        return d.reshape(x.shape), mu
 
-    def _solve_gradient(self, g_free: np.ndarray, key, W: np.ndarray, idx: np.ndarray | None) -> np.ndarray:
+    def _solve_gradient(self, g_free: np.ndarray, idx: np.ndarray | None, responses: np.ndarray | None) -> np.ndarray:
         """K⁻¹ g (Nf,) on the kept factor; g_free is kept (the caller's own copy, not changed afterwards).
 
         A new active-set pass starts where the last one stopped, with only
         the friction loads of the switched nodes changed: when g differs from
-        the last solved gradient only on the captured nodes' dofs idx, K⁻¹g
-        is that solve plus their kept columns (no triangular solve).
+        the last solved gradient only on the captured nodes' dofs idx (2P,),
+        K⁻¹g is that solve plus their `responses` (2P, Nf), in idx's order.
         """
-        last = self._last_solve
+        last, key = self._last_solve, self._key
         if idx is not None and last is not None and last[0] == key and last[1].shape == g_free.shape:
             delta = g_free - last[1]
             on_nodes = delta[idx]
             delta[idx] = 0.0
             if not delta.any():
-                solved = last[2] + W @ on_nodes
+                solved = last[2] + on_nodes @ responses
                 self._last_solve = (key, g_free, solved)
                 return solved
         solved = self._factor.solve(g_free)
@@ -197,34 +224,62 @@ class ChordSolver:
         fresh factorisation does not help either (an inverted trial, no
         contraction, or MAX_CHORD steps).
         """
-        res = hold.residual(self.tissue, g)
-        gap = hold.gap(x)
+        t = self.tissue
+        free = t.free_dofs
+        if self._factor is None:
+            self.refactor(x)
+        g_free = g[free]
+        res = hold.held_residual(self, g)
+        gap = np.empty(hold.rows.size)
+        closing = hold.gap_into(x, gap) > GAP_TOL  # a step that meets the rows: no residual to compare
         its = 0
-        while res > tol or np.any(np.abs(gap) > GAP_TOL):
+        while res > tol or closing:
             if its >= MAX_CHORD:
                 raise ChordFailed(f"{MAX_CHORD} chord steps left the residual at {res:.3g}")
-            if self._factor is None:
-                self.refactor(x)
-            closing = bool(np.any(np.abs(gap) > GAP_TOL))  # a step that meets the rows: no residual to compare
-            d0, mu, d_captured = self.predict(g, hold, gap)
+            d0, mu, d_captured = self.predict(g_free, hold, gap, shifted=its == 0)
             # A closing step's prediction errs by what the rows move, not by the residual: no decision on it.
             if decide is not None and not closing:
                 verdict = decide(x, d_captured, mu, res)
                 if verdict is not None:
                     return x, g, its, verdict
-            trial = x + self.complete(d0, mu, hold, x.shape)
-            _, g_t = objective_gradient(self.tissue, trial, None, loads, require_positive_J=True)
-            res_t = np.inf if g_t is None else hold.residual(self.tissue, g_t)
+            d = self.complete(d0, mu, hold)
+            check_finite(d, "the needle's chord step")
+            trial = x.ravel().copy()
+            trial[free] += d
+            trial = trial.reshape(x.shape)
+            _, g_t = t.energy_gradient(trial, require_positive_J=True)
+            if g_t is None:
+                res_t = np.inf
+            else:
+                g_t -= loads
+                res_t = hold.held_residual(self, g_t)
             if not (res_t <= CONTRACTION * res or res_t <= tol or (closing and g_t is not None)):
                 if self.fresh:
                     raise ChordFailed(f"a chord step on a fresh factorisation went from {res:.3g} to {res_t:.3g}")
                 self.refactor(x)
                 continue
-            x, g, res = trial, g_t, res_t
-            gap = hold.gap(x)
+            x, g, g_free, res = trial, g_t, g_t[free], res_t
+            closing = hold.gap_into(x, gap) > GAP_TOL
             self.fresh = False
             its += 1
         return x, g, its, None
+
+
+@dataclass(frozen=True)
+class _Schur:
+    """A hold's constraints on one factorisation (`ChordSolver.compliance`).
+
+    The captured nodes' free dofs idx (2P,) and held (Nf,) marking them, the
+    rows' frame coordinates (m,), A[:, rows] (2P, m) and U (m, m) with
+    S = A[rows, rows] = UᵀU in its upper triangle.
+    """
+
+    key: tuple
+    idx: np.ndarray
+    held: np.ndarray
+    rows: np.ndarray
+    A_rows: np.ndarray
+    S_upper: np.ndarray
 
 
 class Hold:
@@ -233,8 +288,25 @@ class Hold:
     def __init__(self, captured, base, stuck, ride, n, t):
         self.captured, self.base, self.stuck, self.ride = captured, base, stuck, ride
         self.n, self.t = n, t
-        #: ((factor, its count), E's rows, D, S⁻¹, W's rows there) of the last chord step: the same while the factorisation is
-        self.schur = None
+        #: (2, 2) the unit vectors (t, n) as columns: a captured node's (x, y) → (across, along) is v @ frame
+        self.frame = np.column_stack([t, n])
+        #: each constraint row's coordinate in the captured nodes' frame [t₀ n₀ t₁ n₁ …]: every t, then the stuck n's
+        self.rows = np.concatenate([2 * np.arange(captured.size), 2 * np.flatnonzero(stuck) + 1])
+        #: the rows on the last factorisation a chord step used (`schur_on`)
+        self.schur: _Schur | None = None
+
+    def schur_on(self, solver: ChordSolver) -> "_Schur":
+        """The hold's Schur complement on the solver's kept factor: computed once per pass and factorisation."""
+        if self.schur is None or self.schur.key != solver._key:
+            idx, A = solver.compliance(self.captured, self.frame)
+            A_rows = A[:, self.rows]
+            S_upper, info = lapack.dpotrf(A_rows[self.rows])
+            if info != 0:
+                raise SolverError("the needle's hold has dependent constraints (its Schur complement is singular)")
+            held = np.zeros(solver.tissue.free_dofs.size, bool)
+            held[idx] = True
+            self.schur = _Schur(solver._key, idx, held, self.rows, A_rows, S_upper)
+        return self.schur
 
     def directions(self) -> np.ndarray:
         """D (2P, m): each constraint row's unit direction on its node's (x, y) dofs; t rows for every captured node, then n rows for the stuck."""
@@ -248,9 +320,17 @@ class Hold:
         return D
 
     def gap(self, x: np.ndarray) -> np.ndarray:
-        """r (m,): how far each constraint is from being met at x (its target minus its value)."""
-        rel = x[self.captured] - self.base
-        return np.concatenate([-(rel @ self.t), self.ride[self.stuck] - rel[self.stuck] @ self.n])
+        """r (m,): how far each constraint is from being met at x (its target minus its value), in `rows`' order.
+
+        Across the axis the target is the offset at capture, along it the ride.
+        """
+        target = np.zeros(2 * self.captured.size)
+        target[1::2] = self.ride
+        return (target - ((x[self.captured] - self.base) @ self.frame).ravel())[self.rows]
+
+    def gap_into(self, x: np.ndarray, out: np.ndarray) -> float:
+        """`gap` written into out (m,) by the compiled loop; returns its largest magnitude (mm)."""
+        return kernels.hold_gap(x, self.captured, self.base, self.frame, self.ride, self.rows, out)
 
     def residual(self, tissue: Tissue, g: np.ndarray) -> float:
         """Newton's relative residual under this hold (`newton._Held.residual`): held components left out."""
@@ -260,6 +340,15 @@ class Hold:
         gc[self.stuck] = 0.0
         G[self.captured] = gc
         return float(np.linalg.norm(G.ravel()[tissue.free_dofs])) / tissue.force_scale(g)
+
+    def held_residual(self, solver: ChordSolver, g: np.ndarray) -> float:
+        """`residual` by the compiled loop, with the captured dofs' index kept by the solver's Schur rows."""
+        t = solver.tissue
+        if not self.captured.size:
+            return float(np.linalg.norm(g[t.free_dofs])) / t.force_scale(g)
+        schur = self.schur_on(solver)
+        return kernels.held_residual(g, t.free_dofs, schur.held, schur.idx, self.n, self.stuck, t.dirichlet_dofs,
+                                     t.force_floor)
 
     def conditions(self, loads: np.ndarray) -> Conditions:
         """The same hold as Newton's `Conditions`: stuck nodes held, slipping ones held across the axis."""

@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from scissor_cli.insertion import kernels
 from scissor_cli.insertion.chord import ChordFailed, ChordSolver, Hold
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.common import Conditions, SolverError
@@ -179,7 +180,14 @@ def capture(tissue: Tissue, state: NeedleState, x: np.ndarray, candidates: np.nd
     h = rel @ state.across
     new = (s >= -1e-9) & (s <= state.depth_mm) & (np.abs(h) <= radius_mm)
     new_nodes = candidates[new]
-    return new_nodes[~np.isin(new_nodes, state.captured)]
+    return new_nodes[~_marks(x.shape[0], state.captured)[new_nodes]]
+
+
+def _marks(n_nodes: int, nodes: np.ndarray) -> np.ndarray:
+    """(n_nodes,) bool, True at nodes: membership by lookup (np.isin sorts both arrays)."""
+    marked = np.zeros(n_nodes, bool)
+    marked[nodes] = True
+    return marked
 
 
 def tip_weights(x: np.ndarray, tip: np.ndarray, candidates: np.ndarray, zone_mm: float) -> tuple[np.ndarray, np.ndarray]:
@@ -245,7 +253,7 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
     offset = np.concatenate([state.offset, (x[new] - state.entry) @ t])
     rel = x[captured] - state.entry
     lengths = shaft_lengths(rel @ n, state.depth_mm)
-    uncut = candidates[~np.isin(candidates, captured)]  # the shaft's nodes are not being cut
+    uncut = candidates[~_marks(x.shape[0], captured)[candidates]]  # the shaft's nodes are not being cut
     tip_nodes, w = tip_weights(x, state.tip, uncut if uncut.size else candidates, params.tip_zone_mm)
     base = np.zeros(x.size)
     base[2 * tip_nodes] += params.tip_force_mN * w * n[0]
@@ -276,6 +284,7 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
     passes, iterations, settled, tol = 0, 0, False, PASS_TOL
     result_x, loads, axial = start, base, np.zeros(captured.size)
     base_x = x[captured]
+    hold = None
     # The chord solver starts the first pass from the last equilibrium itself: its
     # first step is the tangent response to the needle's ride (2 steps to a
     # decision instead of 4 from `start`); `start` is where Newton would start.
@@ -285,9 +294,10 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
         loads = base.copy()
         slip = ~stuck
         friction = fk * lengths[slip] * sign[slip]
-        np.add.at(loads, 2 * captured[slip], friction * n[0])
-        np.add.at(loads, 2 * captured[slip] + 1, friction * n[1])
-        hold = Hold(captured, base_x, stuck, ride, n, t)
+        loads[2 * captured[slip]] += friction * n[0]  # captured nodes are distinct: no repeated index
+        loads[2 * captured[slip] + 1] += friction * n[1]
+        if hold is None or not np.array_equal(hold.stuck, stuck):  # the same hold (and its Schur rows) while the set is
+            hold = Hold(captured, base_x, stuck, ride, n, t)
         scale = tissue.force_scale(grad_u)
         rule = _Rule(fs * lengths * (1.0 + 1e-9) + 1e-9 * scale, stuck, locked, sign, 1e-9 * step_mm)
 
@@ -295,9 +305,9 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
             # the converged state's reactions and lags, predicted by this chord step (its Schur forces)
             axial_p = np.zeros(captured.size)
             axial_p[rule.stuck] = -mu[captured.size:]
-            lag_p = (xc[captured] + d_captured - x[captured]) @ n - ride
+            lag_p = (xc[captured] + d_captured - base_x) @ n - ride
             release, against, unclear = rule.apply(axial_p, lag_p, GUARD_FORCE * res * scale, GUARD_POSITION * res)
-            if unclear or not (np.any(release) or np.any(against)):
+            if unclear or not (release.any() or against.any()):
                 return None
             return release, against, axial_p
 
@@ -350,7 +360,9 @@ class _Rule:
     """
 
     def __init__(self, limit, stuck, locked, sign, lag_tol):
-        self.limit, self.stuck, self.locked, self.sign, self.lag_tol = limit, stuck, locked, sign, lag_tol
+        self.limit, self.stuck, self.sign, self.lag_tol = limit, stuck, sign, lag_tol
+        self.free = stuck & ~locked  # a locked node stays stuck for the rest of the step
+        self.slip = ~stuck
 
     def apply(self, axial, lag, force_error=0.0, position_error=0.0):
         """release, against (P,) bool from the axial reactions (P,) mN and lags (P,) mm; and whether a decision is unclear.
@@ -358,12 +370,9 @@ class _Rule:
         A decision is unclear when its quantity lies within the given error
         (mN, mm) of its threshold: then an estimate may not decide it.
         """
-        free = self.stuck & ~self.locked
-        slip = ~self.stuck
-        release = free & (np.abs(axial) > self.limit)
-        against = slip & (self.sign * lag > self.lag_tol)
-        unclear = bool(np.any(free & (np.abs(np.abs(axial) - self.limit) <= force_error))
-                       or np.any(slip & (np.abs(self.sign * lag - self.lag_tol) <= position_error)))
+        release, against = np.empty(axial.size, bool), np.empty(axial.size, bool)
+        unclear = kernels.friction_rule(axial, lag, self.limit, self.free, self.slip, self.sign, self.lag_tol,
+                                        force_error, position_error, release, against)
         return release, against, unclear
 
 

@@ -166,5 +166,5 @@ def relative_residual(tissue: Tissue, grad: np.ndarray, held_free: np.ndarray | 
 
 
 def check_finite(x: np.ndarray, what: str) -> None:
-    if not np.all(np.isfinite(x)):
+    if not np.isfinite(x).all():
         raise SolverError(f"{what} became non-finite (NaN or inf)")
