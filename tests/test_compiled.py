@@ -74,6 +74,15 @@ def test_same_energy_gradient_and_stiffness_as_numpy(tissue, A, seed):
         assert np.allclose(Ke, K0, rtol=1e-12, atol=1e-12 * np.abs(K0).max())
 
 
+@pytest.mark.parametrize("A", DEFORMATIONS)
+def test_the_jacobians_are_numpys_bit_for_bit(tissue, A):
+    x = _state(tissue, A, 0.15, 3)
+    J = tissue.jacobians(x)
+    np.testing.assert_array_equal(J, materials.jacobian_det(fem.deformation_gradients(tissue.ops, x)))
+    x[tissue.mesh.triangles[0, 0]] = x[tissue.mesh.triangles[0, 1]]  # a collapsed element: J = 0, not skipped
+    assert tissue.jacobians(x)[0] == pytest.approx(0.0, abs=1e-12)
+
+
 def test_projection_acts_and_is_psd(tissue):
     """Under compression the exact element Hessians are indefinite; the projected ones are PSD and differ."""
     x = _state(tissue, [[0.8, 0.1], [-0.05, 0.85]], 0.15, 3)

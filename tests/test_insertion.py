@@ -294,7 +294,8 @@ def test_a_schur_chord_step_meets_the_hold_and_the_tangent_equations(model):
 
 
 def test_the_compiled_hold_loops_equal_their_numpy_definitions(model):
-    """Residual, gap, frame compliance and the captured step (insertion/kernels.py) against plain numpy."""
+    """Residual, gap, frame compliance, the captured step, the predicted reactions and the trial against plain numpy."""
+    from scissor_cli.insertion import kernels
     from scissor_cli.insertion.chord import ChordSolver
     from scissor_cli.solvers.common import objective_gradient
 
@@ -323,6 +324,18 @@ def test_the_compiled_hold_loops_equal_their_numpy_definitions(model):
     np.testing.assert_allclose(mu, mu_dense, rtol=1e-9, atol=1e-12 * np.abs(mu_dense).max())
     np.testing.assert_allclose(d_captured.ravel(), d0[idx] - W @ D @ mu_dense, atol=1e-10)
     np.testing.assert_allclose(solver.complete(d0, mu, hold), d0 - K_inv[:, idx] @ D @ mu_dense, atol=1e-10)
+    # what an early decision reads: the stuck nodes' reactions (−μ of their along rows) and every node's lag
+    axial, lag = np.empty(hold.captured.size), np.empty(hold.captured.size)
+    kernels.predicted_reactions(mu, hold.stuck, d_captured, y, hold.captured, hold.base, hold.n, hold.ride, axial, lag)
+    expected = np.zeros(hold.captured.size)
+    expected[hold.stuck] = -mu[hold.captured.size:]
+    np.testing.assert_array_equal(axial, expected)
+    np.testing.assert_allclose(lag, (y[hold.captured] + d_captured - hold.base) @ hold.n - hold.ride, atol=1e-13)
+    trial, finite = kernels.moved(y, f, d0)
+    expect = y.ravel().copy()
+    expect[f] += d0
+    assert finite and np.array_equal(trial.ravel(), expect)
+    assert not kernels.moved(y, f, np.where(np.arange(f.size) == 3, np.nan, d0))[1]
 
 
 @given(st.integers(0, 2**32 - 1), st.floats(0.0, 2.0), st.floats(0.0, 0.5))

@@ -242,11 +242,9 @@ class ChordSolver:
                 verdict = decide(x, d_captured, mu, res)
                 if verdict is not None:
                     return x, g, its, verdict
-            d = self.complete(d0, mu, hold)
-            check_finite(d, "the needle's chord step")
-            trial = x.ravel().copy()
-            trial[free] += d
-            trial = trial.reshape(x.shape)
+            trial, finite = kernels.moved(x, free, self.complete(d0, mu, hold))
+            if not finite:
+                raise SolverError("the needle's chord step became non-finite (NaN or inf)")
             _, g_t = t.energy_gradient(trial, require_positive_J=True)
             if g_t is None:
                 res_t = np.inf

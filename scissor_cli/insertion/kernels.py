@@ -147,6 +147,41 @@ def chord_direction(d0, rows, mu, frame, responses):
 
 
 @njit(**_JIT)
+def moved(x, free, d):
+    """x + d on the free dofs: the trial (N, 2) for positions x (N, 2) and a step d (Nf,); and whether d is finite."""
+    trial = x.copy()
+    flat = trial.reshape(-1)
+    total = 0.0
+    for i in range(free.size):
+        flat[free[i]] += d[i]
+        total += d[i]
+    return trial, math.isfinite(total)
+
+
+@njit(**_JIT)
+def predicted_reactions(mu, stuck, d_captured, x, captured, base, n, ride, axial, lag):
+    """The converged state's axial reactions (P,) mN and lags (P,) mm as one chord step predicts them, into axial, lag.
+
+    μ (m,) the step's constraint forces in the hold's row order (every
+    captured node's across row, then the stuck ones' along rows): a stuck
+    node's reaction is −μ of its along row, a slipping one's 0. The lag is
+    how far a node's predicted position x + d_captured has moved along n
+    from base, less the ride.
+    """
+    p = captured.size
+    j = p
+    for k in range(p):
+        if stuck[k]:
+            axial[k] = -mu[j]
+            j += 1
+        else:
+            axial[k] = 0.0
+        node = captured[k]
+        lag[k] = ((x[node, 0] + d_captured[k, 0] - base[k, 0]) * n[0]
+                  + (x[node, 1] + d_captured[k, 1] - base[k, 1]) * n[1]) - ride[k]
+
+
+@njit(**_JIT)
 def friction_rule(axial, lag, limit, free, slip, sign, lag_tol, force_error, position_error, release, against):
     """The active-set rule (`needle._Rule.apply`) into release, against (P,) bool; whether a decision is unclear.
 

@@ -119,6 +119,8 @@ class NeedleState:
     rate: np.ndarray | None = None
     #: the kept factorisation of the needle's solves (`chord.ChordSolver`), shared across steps
     solver: ChordSolver | None = field(default=None, repr=False)
+    #: (x, ∇U at x) of the last step's equilibrium: the next step, if it starts there, need not evaluate it again
+    equilibrium: tuple | None = field(default=None, repr=False)
 
     @property
     def across(self) -> np.ndarray:
@@ -289,7 +291,10 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
     # first step is the tangent response to the needle's ride (2 steps to a
     # decision instead of 4 from `start`); `start` is where Newton would start.
     chord_x = x
-    _, grad_u = tissue.energy_gradient(chord_x)
+    if state.equilibrium is not None and np.array_equal(state.equilibrium[0], x):
+        grad_u = state.equilibrium[1]
+    else:
+        _, grad_u = tissue.energy_gradient(chord_x)
     while passes < MAX_ACTIVE_SET:
         loads = base.copy()
         slip = ~stuck
@@ -303,9 +308,8 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
 
         def early(xc, d_captured, mu, res, rule=rule, scale=scale):
             # the converged state's reactions and lags, predicted by this chord step (its Schur forces)
-            axial_p = np.zeros(captured.size)
-            axial_p[rule.stuck] = -mu[captured.size:]
-            lag_p = (xc[captured] + d_captured - base_x) @ n - ride
+            axial_p, lag_p = np.empty(captured.size), np.empty(captured.size)
+            kernels.predicted_reactions(mu, rule.stuck, d_captured, xc, captured, base_x, n, ride, axial_p, lag_p)
             release, against, unclear = rule.apply(axial_p, lag_p, GUARD_FORCE * res * scale, GUARD_POSITION * res)
             if unclear or not (release.any() or against.any()):
                 return None
@@ -316,7 +320,7 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
         grad_u = g + loads
         passes += 1
         iterations += its
-        result_x = r_x
+        result_x, result_grad = r_x, grad_u
         if verdict is None:  # converged to tol: the exact rule
             axial = g.reshape(-1, 2)[captured] @ n  # what the needle must supply
             # Kinetic friction opposes the slip: a node pulled forward (+n) must lag the needle, and the reverse.
@@ -348,6 +352,7 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
     state.captured, state.offset, state.stuck, state.lengths = captured, offset, stuck, lengths
     state.sign = np.where(stuck, 0.0, sign)
     state.rate = (result_x - x) / step_mm
+    state.equilibrium = (result_x.copy(), result_grad)
     return StepOutcome(result_x, force, int(stuck.sum()), int((~stuck).sum()), loads, settled, passes, iterations,
                        solver.factorizations - n_factor)
 

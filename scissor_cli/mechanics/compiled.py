@@ -255,6 +255,16 @@ def scatter_packed(Ke, entries, slot, out):
 
 
 @njit(**_JIT)
+def jacobians_2d(x, corners, grad_rows):
+    """J = det F (M,) of every element at positions x (N, 2) (`Tissue.jacobians`), bit for bit numpy's."""
+    J = np.empty(corners.shape[1])
+    for e in range(corners.shape[1]):
+        f0, f1, f2, f3 = _deformation(x, corners, grad_rows, e)
+        J[e] = f0 * f3 - f1 * f2
+    return J
+
+
+@njit(**_JIT)
 def max_feasible_step_2d(x, dx, corners, grad_rows):
     """The largest α ≥ 0 (inf if unbounded) keeping every det(F + α dF) > 0, x and dx (N, 2) (`Tissue.max_feasible_step`).
 

@@ -21,6 +21,7 @@ the hot path.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -48,9 +49,9 @@ class FEOperators:
         """d, the space dimension: 2 for triangles, 3 for tetrahedra."""
         return self.grad_n.shape[2]
 
-    @property
+    @cached_property
     def volume(self) -> np.ndarray:
-        """Element volumes (M,) in mm³ (h·A_e in 2-D): energy density × volume = µJ."""
+        """Element volumes (M,) in mm³ (h·A_e in 2-D): energy density × volume = µJ; made once (every gradient reads it)."""
         return self.thickness_mm * self.area
 
 
