@@ -15,10 +15,14 @@ with K d₀ = −g, W = K⁻¹Cᵀ and S = C W,
 
     μ = S⁻¹ (C d₀ − r),   d = d₀ − W μ,
 
-so C d = r exactly and K d + Cᵀμ = −g. The columns K⁻¹e of each captured
-node's two dofs are solved once per factorisation and kept (a newly
-captured node adds two), so switching a node between stuck and slipping
-costs no factorisation at all. The step is a chord (modified Newton) step:
+so C d = r exactly and K d + Cᵀμ = −g. The responses K⁻¹e of each
+captured node's two dofs are solved once per factorisation and kept (a
+newly captured node adds two), so switching a node between stuck and
+slipping costs no factorisation at all. In the captured nodes' (t, n)
+frame every row is one coordinate, so S is a submatrix of one kept
+compliance, Cholesky-factored once per pass. The arithmetic of a step
+around its triangular solve and its gradient runs in compiled loops
+(`insertion.kernels`). The step is a chord (modified Newton) step:
 converged means the same relative residual as Newton's, of the same
 gradient with the same held components removed (`residual`), so the
 solution is the same equilibrium to the solver tolerance. A chord step that
@@ -75,7 +79,7 @@ class ChordSolver:
         self._responses_memo = None
         self._compliance_memo = None
 
-    # -- the factorisation and its columns ---------------------------------------------------------------
+    # -- the factorisation and its responses -------------------------------------------------------------
 
     def refactor(self, x: np.ndarray) -> None:
         """Factor K_ff at x (the exact tangent; the per-element PSD projection if that is not positive definite)."""
