@@ -149,6 +149,22 @@ def test_solve_free_uses_cg_on_the_old_factor_refactors_when_stale_or_failing():
     assert linear.solve_free(tissue, far, b)[1]  # no rtol: always the direct solve
 
 
+def test_a_preconditioned_solve_records_its_rate_and_a_refactorisation_forgets_it():
+    from scissor_cli.solvers import linear
+
+    A = sp.triu(_laplacian_3d(6, 0.5)).tocsr()
+    n = A.shape[0]
+    f = linear.Factorization(A, definite=True, upper=True)
+    assert f.cg_rate is None and f.cg_iterations_for(1e-2) == 0.0  # unknown: worth a try
+    near = (A + sp.diags(0.2 * np.random.default_rng(3).random(n))).tocsr()
+    b = np.random.default_rng(4).random(n)
+    x, k = linear.preconditioned_cg(near, b, f, 1e-6)
+    assert x is not None and k > 1 and f.cg_rate == pytest.approx(1e-6 ** (1.0 / k))
+    assert f.cg_iterations_for(1e-6) == pytest.approx(k) and f.cg_iterations_for(1e-12) == pytest.approx(2 * k)
+    f.refactor(near)
+    assert f.cg_rate is None
+
+
 def test_reading_the_factor_size_leaves_the_factor_usable():
     """nnz_factor factors a copy: cvxopt's getfactor would turn the factor it reads into a symbolic one."""
     import numpy as np

@@ -8,6 +8,7 @@ symbolic analysis and refactors numerically.
 
 from __future__ import annotations
 
+import math
 from typing import Callable
 
 import numpy as np
@@ -73,6 +74,9 @@ class Factorization:
         self.factorizations = self.cg_iterations = 0
         #: set by `solve_free` when preconditioning with this factor got slow
         self.stale = False
+        #: per-iteration residual contraction of the last converged `preconditioned_cg` on this
+        #: factor (an upper bound, rtol^(1/iterations)); None since the last refactorisation
+        self.cg_rate: float | None = None
         self._pattern: tuple | None = None
         self._chol = self._ldl = None
         self.refactor(A)
@@ -95,6 +99,7 @@ class Factorization:
             self._lower.V = cvxopt.matrix(A.data[self._upper])
         self.factorizations += 1
         self.stale = False
+        self.cg_rate = None
         try:
             if self._chol is None:
                 self._chol = self._symbolic(A, self.supernodal)
@@ -124,6 +129,17 @@ class Factorization:
             raise SolverError(f"singular system matrix ({exc})") from None
         self._active = "ldl"
         return self
+
+    def cg_iterations_for(self, rtol: float) -> float:
+        """Conjugate-gradient iterations this factor is expected to need for rtol (0 when not yet known).
+
+        From `cg_rate`, the contraction per iteration its last preconditioned
+        solve reached: the tangent only drifts further from the factor, so
+        the rate is not expected to improve.
+        """
+        if self.cg_rate is None or not 0.0 < self.cg_rate < 1.0:
+            return 0.0
+        return math.log(rtol) / math.log(self.cg_rate)
 
     def matches(self, A: sp.spmatrix) -> bool:
         """Whether A (as given to `refactor`) has the pattern's size and entry count, so the factor can precondition it."""
@@ -256,17 +272,20 @@ def preconditioned_cg(A: sp.csr_matrix, b: np.ndarray, factor: Factorization, rt
         times = A.__matmul__
     x, k, _ = conjugate_gradients(times, factor.solve, b, rtol, max_iter)
     factor.cg_iterations += k
+    if x is not None and k > 0:
+        factor.cg_rate = rtol ** (1.0 / k)
     return x, k
 
 
 def solve_free(tissue, K_upper: sp.csr_matrix, b: np.ndarray, factors: dict | None = None,
-               rtol: float | None = None) -> tuple[np.ndarray, bool]:
+               rtol: float | None = None, max_iter: int = KRYLOV_MAX_ITER) -> tuple[np.ndarray, bool]:
     """x with K_ff x = b (K_ff from its upper triangle); returns (x, whether K_ff was factored).
 
     With `rtol`, the factorisation already in the slot (an earlier tangent's)
     first preconditions conjugate gradients to that relative residual
-    (`preconditioned_cg`); only when that fails, or when the last such solve
-    needed more than KRYLOV_STALE_ITER iterations (the factor is stale), is
+    (`preconditioned_cg`, at most max_iter iterations); only when that
+    fails, or when the last such solve needed more than KRYLOV_STALE_ITER
+    iterations (the factor is stale), is
     K_ff factored (`factorize_free`, SolverError if it is not positive
     definite). Without rtol K_ff is always factored: the direct solve.
     """
@@ -274,7 +293,7 @@ def solve_free(tissue, K_upper: sp.csr_matrix, b: np.ndarray, factors: dict | No
     factor = factors.get("free")
     if (rtol is not None and factor is not None and factor.method == "cholesky" and not factor.stale
             and factor.matches(K_upper)):
-        x, k = preconditioned_cg(K_upper, b, factor, rtol)
+        x, k = preconditioned_cg(K_upper, b, factor, rtol, max_iter)
         if x is not None:
             factor.stale = k > KRYLOV_STALE_ITER
             return x, False

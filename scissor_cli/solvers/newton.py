@@ -26,7 +26,7 @@ import time
 import numpy as np
 import scipy.sparse as sp
 
-from scissor_cli.solvers.linear import solve_free
+from scissor_cli.solvers.linear import KRYLOV_MAX_ITER, solve_free
 from scissor_cli.solvers.common import (
     NO_CONDITIONS, Conditions, Inertia, SolveResult, SolverError, check_finite, objective_gradient, relative_residual,
 )
@@ -50,6 +50,14 @@ CHORD_ABOVE = 1e-3
 KRYLOV_FORCING = 1e-2
 #: and the tangent predictor to this relative residual
 PREDICTOR_RTOL = 1e-4
+#: without `krylov` (2-D), a step still tries conjugate gradients on the previous step's
+#: factor when that full step shrank the residual at least this much: the residual left
+#: by a step on K_k is (K̄ − K_k) d, so a small one says K_k still models the tangent
+#: (16k mesh, 5 mm push: 1.5 → 0.30, then 4 iterations instead of a 13 ms factorisation)
+KRYLOV_CONTRACTION = 0.25
+#: those conjugate gradients give up after this many iterations (each costs a solve with
+#: the factor; a 2-D factorisation costs about 7 of them at 16k unknowns)
+KRYLOV_MAX_ITER_2D = 6
 
 
 def _krylov(tissue: Tissue, krylov: bool | None) -> bool:
@@ -221,6 +229,16 @@ def tangent_predictor(
     return flat.reshape(x_new.shape)
 
 
+def _cg_pays(factors: dict, res: float) -> bool:
+    """Whether the slot's factor is expected to precondition a step to its forcing term within KRYLOV_MAX_ITER_2D.
+
+    Unknown (no preconditioned solve on it yet) counts as yes: the caller
+    asks only after a step that contracted well on it.
+    """
+    factor = factors.get("free")
+    return factor is not None and factor.cg_iterations_for(min(KRYLOV_FORCING, res)) <= KRYLOV_MAX_ITER_2D
+
+
 def _factor_count(tissue: Tissue, factors: dict | None) -> int:
     """Numeric factorisations so far of the slot's factor (0 before the first)."""
     factor = (tissue.factor_cache if factors is None else factors).get("free")
@@ -268,7 +286,12 @@ def newton_iterations(
     conjugate gradients preconditioned with the slot's last factorisation,
     to the forcing term min(KRYLOV_FORCING, residual), and K is factored only
     when that fails (`linear.solve_free`): most 3-D steps need no
-    factorisation. `factorizations` counts the factorisations.
+    factorisation. Without `krylov`, a step does the same (at most
+    KRYLOV_MAX_ITER_2D iterations) only when the previous step of this call
+    was a full step that shrank the residual by KRYLOV_CONTRACTION, and the
+    factor's measured rate (`_cg_pays`) can still reach the forcing term: the
+    factor is then always one this call made. `factorizations` counts the
+    factorisations.
     """
     t0 = time.perf_counter()
     factors = tissue.factor_cache if factors is None else factors
@@ -279,9 +302,11 @@ def newton_iterations(
     free = tissue.free_dofs
     n_factor = 0
     krylov = _krylov(tissue, krylov)
+    full_step = False  # the last step of this call was a full Newton step (not a chord step, not shortened)
     for it in range(max_iter + 1):
         check_finite(grad, "the Newton gradient")
         res = held.residual(tissue, grad)
+        contracted = full_step and res <= KRYLOV_CONTRACTION * history[-1]
         history.append(res)
         if res <= tol:
             return SolveResult(x, True, it, res, time.perf_counter() - t0, "newton", "converged", history, n_factor)
@@ -292,12 +317,15 @@ def newton_iterations(
             kept = _chord_step(tissue, x, g, inertia, res, conditions, held, factors)
             if kept is not None:
                 x, phi, grad = kept
+                full_step = False
                 continue
         step = None
+        rtol = min(KRYLOV_FORCING, res) if krylov or (contracted and _cg_pays(factors, res)) else None
+        cg_iter = KRYLOV_MAX_ITER if krylov else KRYLOV_MAX_ITER_2D
         for project in ([False, True] if res < exact_below else [True]):
             K = _system(tissue, x, project, inertia, held)
             try:
-                d, factored = solve_free(tissue, K, g, factors, min(KRYLOV_FORCING, res) if krylov else None)
+                d, factored = solve_free(tissue, K, g, factors, rtol, cg_iter)
             except SolverError:  # singular exact Hessian: the projected one is next
                 n_factor += 1
                 continue
@@ -311,7 +339,8 @@ def newton_iterations(
                 f"Newton found no descent direction at iteration {it} (residual {res:.3g})",
                 SolveResult(x, False, it, res, time.perf_counter() - t0, "newton", "no descent direction", history, n_factor),
             )
-        x, phi, grad = _line_search(tissue, x, phi, grad, step, inertia, res, conditions.loads, held)
+        x, phi, grad, alpha = _line_search(tissue, x, phi, grad, step, inertia, res, conditions.loads, held)
+        full_step = alpha == 1.0
     return SolveResult(
         x, False, max_iter, history[-1], time.perf_counter() - t0, "newton",
         f"not converged in {max_iter} iterations (relative residual {history[-1]:.3g} > {tol:g})", history, n_factor,
@@ -336,6 +365,8 @@ def _chord_step(tissue, x, g, inertia, res, conditions, held, factors):
 
 def _line_search(tissue, x, phi, grad, d_free, inertia, res, loads=None, held=None):
     """Backtracking: keep every J > 0, then Armijo on Φ (or a smaller residual once Φ is flat).
+
+    Returns (x, Φ, ∇Φ, α) at the accepted point x + α d (α > 1 when extrapolated).
 
     A full step that lowers Φ by nearly its linear prediction met (almost) no
     curvature along d: the Hessian used overrates it (a PD-modified one, where
@@ -362,8 +393,8 @@ def _line_search(tissue, x, phi, grad, d_free, inertia, res, loads=None, held=No
                 abs(phi_t - phi) <= 1e-12 * max(abs(phi), 1.0) and np.linalg.norm(g_t) < g_norm
             ):
                 if alpha == 1.0 and phi_t - phi <= EXTRAPOLATE_RATIO * slope:
-                    return _extrapolate(tissue, x, step, phi_t, (trial, phi_t, grad_t), feasible, inertia, loads)
-                return trial, phi_t, grad_t
+                    return _extrapolate(tissue, x, step, phi_t, (trial, phi_t, grad_t, alpha), feasible, inertia, loads)
+                return trial, phi_t, grad_t, alpha
         alpha *= 0.5
     raise SolverError(
         f"Newton line search failed (residual {res:.3g}): no step keeps all elements uninverted and lowers the energy",
@@ -379,7 +410,7 @@ def _extrapolate(tissue, x, step, phi_best, best, feasible, inertia, loads=None)
         phi_t, grad_t = objective_gradient(tissue, trial, inertia, loads, require_positive_J=True)
         if grad_t is None or not phi_t < phi_best:
             break
-        phi_best, best = phi_t, (trial, phi_t, grad_t)
+        phi_best, best = phi_t, (trial, phi_t, grad_t, alpha)
         alpha *= 2.0
     return best
 
