@@ -74,6 +74,16 @@ def test_same_energy_gradient_and_stiffness_as_numpy(tissue, A, seed):
         assert np.allclose(Ke, K0, rtol=1e-12, atol=1e-12 * np.abs(K0).max())
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_stiffness_times_equals_the_numpy_product(tissue, seed):
+    """Tissue.stiffness_times runs `compiled.packed_times_2d` in 2-D: Σ_e K_e v_e as fem.packed_times has it."""
+    x = _state(tissue, DEFORMATIONS[2], 0.15, seed)
+    Ke = tissue.element_stiffness(x, project=bool(seed))
+    v = np.random.default_rng(seed).standard_normal(x.size)
+    ref = fem.packed_times(tissue.ops, Ke, v)
+    assert np.allclose(tissue.stiffness_times(x, v, Ke), ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+
+
 def test_projection_acts_and_is_psd(tissue):
     """Under compression the exact element Hessians are indefinite; the projected ones are PSD and differ."""
     x = _state(tissue, [[0.8, 0.1], [-0.05, 0.85]], 0.15, 3)

@@ -255,6 +255,30 @@ def scatter_packed(Ke, entries, slot, out):
 
 
 @njit(**_JIT)
+def packed_times_2d(Ke, corners, v, out):
+    """out = Σ_e K_e v_e (2N,) for packed element matrices Ke (21, M) and v (2N,) (`fem.packed_times`), out zeroed first.
+
+    One pass over the elements instead of numpy's 36 whole-array products
+    and a bincount (the tangent predictor's K_fd δ_d: 1.0–1.4 → 0.4 ms at 16k).
+    """
+    out[:] = 0.0
+    for e in range(corners.shape[1]):
+        n = 0
+        for p in range(6):
+            dp = 2 * corners[p // 2, e] + p % 2
+            vp = v[dp]
+            acc = 0.0
+            for q in range(p, 6):
+                dq = 2 * corners[q // 2, e] + q % 2
+                k = Ke[n, e]
+                acc += k * v[dq]
+                if q != p:
+                    out[dq] += k * vp
+                n += 1
+            out[dp] += acc
+
+
+@njit(**_JIT)
 def max_feasible_step_2d(x, dx, corners, grad_rows):
     """The largest α ≥ 0 (inf if unbounded) keeping every det(F + α dF) > 0, x and dx (N, 2) (`Tissue.max_feasible_step`).
 

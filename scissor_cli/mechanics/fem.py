@@ -264,7 +264,17 @@ class SparsePattern:
         """The CSR matrix of packed element matrices Ke (P, M)."""
         data = np.empty(len(self.indices))
         compiled.scatter_packed(np.ascontiguousarray(Ke, dtype=np.float64), self.entries, self.slot, data)
-        return sp.csr_matrix((data, self.indices, self.indptr), shape=self.shape)
+        return self.matrix(data)
+
+    def matrix(self, data: np.ndarray) -> sp.csr_matrix:
+        """The CSR matrix of this pattern with data (nnz,).
+
+        Its column indices are sorted by construction (`sparse_pattern` takes
+        them from np.unique), so the matrix says so: no O(nnz) check later.
+        """
+        K = sp.csr_matrix((data, self.indices, self.indptr), shape=self.shape)
+        K.has_sorted_indices = True
+        return K
 
 
 def sparse_pattern(ops: FEOperators, dof_index: np.ndarray | None = None, upper: bool = False) -> SparsePattern:

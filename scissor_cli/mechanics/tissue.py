@@ -169,7 +169,13 @@ class Tissue:
 
         Ke (21, M), the exact packed element Hessians at x, saves evaluating them again.
         """
-        return fem.packed_times(self.ops, self.element_stiffness(x) if Ke is None else Ke, v)
+        Ke = self.element_stiffness(x) if Ke is None else Ke
+        if self.dim == 2:  # one compiled pass (`compiled.packed_times_2d`)
+            out = np.empty(v.size)
+            compiled.packed_times_2d(np.ascontiguousarray(Ke, dtype=np.float64), self.ops.corners,
+                                     np.ascontiguousarray(v, dtype=np.float64), out)
+            return out
+        return fem.packed_times(self.ops, Ke, v)
 
     def force_scale(self, grad: np.ndarray) -> float:
         """A force (mN) to make residuals relative: the Dirichlet reactions.
