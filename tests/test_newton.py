@@ -152,6 +152,15 @@ def test_2d_steps_precondition_with_a_factor_that_modelled_the_last_step_well(ex
     assert np.abs(b.x - direct.x).max() < 1.5 * np.abs(a.x - direct.x).max()
 
 
+def test_2d_forcing_follows_the_contraction_squared():
+    """Eisenstat–Walker's choice 2: η = 0.9 θ², capped; a quadratically converging solve asks for ever tighter solves."""
+    from scissor_cli.solvers.newton import KRYLOV_FORCING_MAX_2D, _forcing_2d
+
+    assert _forcing_2d(0.3, 1.5) == pytest.approx(0.9 * 0.2**2)
+    assert _forcing_2d(0.5, 1.0) == KRYLOV_FORCING_MAX_2D  # θ = 0.5: 0.225, capped
+    assert _forcing_2d(1e-6, 1e-3) == pytest.approx(9e-7)
+
+
 def test_full_steps_are_extrapolated_where_the_hessian_overrates_the_curvature(example, monkeypatch):
     """10 mm push on the 15.7k mesh: an element folds at the cup's grip end, the exact
     Hessian is indefinite there and its PD stand-in makes unit steps crawl (Φ falls by
