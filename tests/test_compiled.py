@@ -74,6 +74,25 @@ def test_same_energy_gradient_and_stiffness_as_numpy(tissue, A, seed):
         assert np.allclose(Ke, K0, rtol=1e-12, atol=1e-12 * np.abs(K0).max())
 
 
+@pytest.mark.parametrize("A", DEFORMATIONS)
+def test_one_pass_gradient_and_stiffness_equal_the_separate_loops(tissue, A):
+    """compiled.energy_gradient_stiffness (the tangent predictor's) = energy_gradient + element_stiffness, bit for bit."""
+    x = _state(tissue, A, 0.15, 4)
+    U, g, Ke = compiled.energy_gradient_stiffness(tissue.ops, tissue.params, x, False)
+    U0, g0 = compiled.energy_gradient(tissue.ops, tissue.params, x)
+    assert U == U0 and np.array_equal(g, g0)
+    assert np.array_equal(Ke, compiled.element_stiffness(tissue.ops, tissue.params, x, False))
+    assert np.array_equal(tissue.energy_gradient_stiffness(x)[2], Ke)
+
+
+def test_one_pass_gradient_and_stiffness_leave_inverted_elements_to_numpy(tissue):
+    x = tissue.rest.copy()
+    e = 0
+    a, b, c = tissue.mesh.triangles[e]
+    x[a] = x[b] + 2.0 * (x[c] - x[b])  # fold element 0 over its edge
+    assert compiled.energy_gradient_stiffness(tissue.ops, tissue.params, x, False) is None
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_stiffness_times_equals_the_numpy_product(tissue, seed):
     """Tissue.stiffness_times runs `compiled.packed_times_2d` in 2-D: Σ_e K_e v_e as fem.packed_times has it."""

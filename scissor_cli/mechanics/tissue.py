@@ -136,6 +136,19 @@ class Tissue:
         psi, P, _ = materials.evaluate(F, self.params, order=1)
         return float(np.dot(psi, self.ops.volume)), fem.scatter_vector(self.ops, fem.element_forces(self.ops, P))
 
+    def energy_gradient_stiffness(self, x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        """U (µJ), ∇U (2N,) mN and the exact packed element Hessians (21, M) mN/mm at x (N, 2).
+
+        What `energy_gradient` and `element_stiffness` give, in one compiled
+        pass where the model has one (the tangent predictor needs all three).
+        """
+        if self.compiled:
+            fast = compiled.energy_gradient_stiffness(self.ops, self.params, x, False)
+            if fast is not None:
+                return fast
+        U, grad = self.energy_gradient(x)
+        return U, grad, self.element_stiffness(x)
+
     def element_stiffness(self, x: np.ndarray, project: bool = False) -> np.ndarray:
         """Element Hessians, packed (21, M) (`fem.element_matrices`), in mN/mm; PSD-projected if asked.
 

@@ -207,8 +207,8 @@ def tangent_predictor(
     held = _Held(tissue, conditions)
     x_new = tissue.apply_strokes(x, strokes)
     delta = (x_new - x).ravel()
-    _, grad = objective_gradient(tissue, x, inertia, conditions.loads)
-    Ke = tissue.element_stiffness(x)
+    U, grad_U, Ke = tissue.energy_gradient_stiffness(x)  # one pass over the elements for both
+    _, grad = objective_gradient(tissue, x, inertia, conditions.loads, strain=(U, grad_U))
     rhs = -tissue.stiffness_times(x, delta, Ke)[tissue.free_dofs] - grad[tissue.free_dofs]
     if inertia is not None:
         rhs -= inertia.weight[tissue.free_dofs] * delta[tissue.free_dofs]
