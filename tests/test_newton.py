@@ -153,12 +153,17 @@ def test_2d_steps_precondition_with_a_factor_that_modelled_the_last_step_well(ex
 
 
 def test_2d_forcing_follows_the_contraction_squared():
-    """Eisenstat–Walker's choice 2: η = 0.9 θ², capped; a quadratically converging solve asks for ever tighter solves."""
-    from scissor_cli.solvers.newton import KRYLOV_FORCING_MAX_2D, _forcing_2d
+    """Eisenstat–Walker's choice 2: η = 0.9 θ², capped; none when the factor's measured rate cannot reach it."""
+    from types import SimpleNamespace
 
-    assert _forcing_2d(0.3, 1.5) == pytest.approx(0.9 * 0.2**2)
-    assert _forcing_2d(0.5, 1.0) == KRYLOV_FORCING_MAX_2D  # θ = 0.5: 0.225, capped
-    assert _forcing_2d(1e-6, 1e-3) == pytest.approx(9e-7)
+    from scissor_cli.solvers.newton import KRYLOV_FORCING_MAX_2D, KRYLOV_MAX_ITER_2D, _reuse_forcing
+
+    fresh = {"free": SimpleNamespace(cg_iterations_for=lambda eta: 0.0)}  # no preconditioned solve yet
+    assert _reuse_forcing(fresh, 0.3, 1.5) == pytest.approx(0.9 * 0.2**2)
+    assert _reuse_forcing(fresh, 0.5, 1.0) == KRYLOV_FORCING_MAX_2D  # θ = 0.5: 0.225, capped
+    assert _reuse_forcing(fresh, 1e-6, 1e-3) == pytest.approx(9e-7)  # quadratic end: ever tighter
+    slow = {"free": SimpleNamespace(cg_iterations_for=lambda eta: KRYLOV_MAX_ITER_2D + 1.0)}
+    assert _reuse_forcing(slow, 0.3, 1.5) is None and _reuse_forcing({}, 0.3, 1.5) is None
 
 
 def test_full_steps_are_extrapolated_where_the_hessian_overrates_the_curvature(example, monkeypatch):

@@ -50,15 +50,13 @@ CHORD_ABOVE = 1e-3
 KRYLOV_FORCING = 1e-2
 #: and the tangent predictor to this relative residual
 PREDICTOR_RTOL = 1e-4
-#: without `krylov` (2-D), a step still tries conjugate gradients on the previous step's
-#: factor when that full step shrank the residual at least this much: the residual left
-#: by a step on K_k is (K̄ − K_k) d, so a small one says K_k still models the tangent
-#: (16k mesh, 5 mm push: 1.5 → 0.30, then 4 iterations instead of a 13 ms factorisation)
+#: without `krylov` (2-D), a step first runs conjugate gradients on the previous step's factor
+#: when that full step shrank the residual this much: the residual a step on K_k leaves is
+#: (K̄ − K_k) d, so a small one says K_k still models the tangent (`_reuse_forcing`)
 KRYLOV_CONTRACTION = 0.25
-#: those conjugate gradients give up after this many iterations (each costs a solve with
-#: the factor; a 2-D factorisation costs about 7 of them at 16k unknowns)
+#: at most this many iterations (a 2-D factorisation costs about 7 of them at 16k unknowns)
 KRYLOV_MAX_ITER_2D = 6
-#: their forcing term, Eisenstat–Walker's choice 2: η = EW_GAMMA θ², at most KRYLOV_FORCING_MAX_2D
+#: to Eisenstat–Walker's forcing term η = EW_GAMMA θ², at most KRYLOV_FORCING_MAX_2D
 EW_GAMMA = 0.9
 KRYLOV_FORCING_MAX_2D = 0.1
 
@@ -232,26 +230,19 @@ def tangent_predictor(
     return flat.reshape(x_new.shape)
 
 
-def _forcing_2d(res: float, previous: float) -> float:
-    """The forcing term η of a 2-D preconditioned step, from the last step's contraction θ = res / previous.
+def _reuse_forcing(factors: dict, res: float, previous: float) -> float | None:
+    """The forcing term of a 2-D step by CG on the slot's factor, or None when that is not expected to pay.
 
-    Eisenstat–Walker's choice 2, η = 0.9 θ² (at most KRYLOV_FORCING_MAX_2D):
-    a Newton step leaves about θ² of the residual it starts from, so solving
-    the linear system much further buys nothing (16k mesh, 5 mm push:
-    θ = 0.2, η = 0.037, 3 CG iterations instead of 4 for the same next
-    residual); η falls with θ², so convergence still ends quadratic.
+    Eisenstat–Walker's choice 2, η = 0.9 θ² (θ = res / previous, the last
+    step's contraction; at most KRYLOV_FORCING_MAX_2D): a Newton step leaves
+    about θ² of its residual, so solving further buys nothing (16k, 5 mm:
+    θ = 0.2, η = 0.037, 3 CG iterations instead of 4); η falls with θ², so
+    the end stays quadratic. None when the factor's measured rate cannot
+    reach η within KRYLOV_MAX_ITER_2D (before its first such solve it can).
     """
-    return min(KRYLOV_FORCING_MAX_2D, EW_GAMMA * (res / previous) ** 2)
-
-
-def _cg_pays(factors: dict, rtol: float) -> bool:
-    """Whether the slot's factor is expected to precondition a step to its forcing term within KRYLOV_MAX_ITER_2D.
-
-    Unknown (no preconditioned solve on it yet) counts as yes: the caller
-    asks only after a step that contracted well on it.
-    """
+    eta = min(KRYLOV_FORCING_MAX_2D, EW_GAMMA * (res / previous) ** 2)
     factor = factors.get("free")
-    return factor is not None and factor.cg_iterations_for(rtol) <= KRYLOV_MAX_ITER_2D
+    return eta if factor is not None and factor.cg_iterations_for(eta) <= KRYLOV_MAX_ITER_2D else None
 
 
 def _factor_count(tissue: Tissue, factors: dict | None) -> int:
@@ -302,11 +293,10 @@ def newton_iterations(
     to the forcing term min(KRYLOV_FORCING, residual), and K is factored only
     when that fails (`linear.solve_free`): most 3-D steps need no
     factorisation. Without `krylov`, a step does the same (at most
-    KRYLOV_MAX_ITER_2D iterations, to the forcing term `_forcing_2d`) only
-    when the previous step of this call was a full step that shrank the
-    residual by KRYLOV_CONTRACTION, and the factor's measured rate
-    (`_cg_pays`) can still reach the forcing term: the factor is then always
-    one this call made. `factorizations` counts the
+    KRYLOV_MAX_ITER_2D iterations, to the forcing term `_reuse_forcing`)
+    only when the previous step of this call was a full step that shrank the
+    residual by KRYLOV_CONTRACTION and the factor's measured rate can still
+    reach that term: the factor is then always one this call made. `factorizations` counts the
     factorisations.
     """
     t0 = time.perf_counter()
@@ -338,8 +328,7 @@ def newton_iterations(
         step = None
         rtol = min(KRYLOV_FORCING, res) if krylov else None
         if contracted and not krylov:
-            forcing = _forcing_2d(res, history[-2])
-            rtol = forcing if _cg_pays(factors, forcing) else None
+            rtol = _reuse_forcing(factors, res, history[-2])
         cg_iter = KRYLOV_MAX_ITER if krylov else KRYLOV_MAX_ITER_2D
         for project in ([False, True] if res < exact_below else [True]):
             K = _system(tissue, x, project, inertia, held)
