@@ -83,6 +83,35 @@ def test_the_jacobians_are_numpys_bit_for_bit(tissue, A):
     assert tissue.jacobians(x)[0] == pytest.approx(0.0, abs=1e-12)
 
 
+@pytest.mark.parametrize("A", DEFORMATIONS)
+def test_one_pass_gradient_and_stiffness_equal_the_separate_loops(tissue, A):
+    """compiled.energy_gradient_stiffness (the tangent predictor's) = energy_gradient + element_stiffness, bit for bit."""
+    x = _state(tissue, A, 0.15, 4)
+    U, g, Ke = compiled.energy_gradient_stiffness(tissue.ops, tissue.params, x, False)
+    U0, g0 = compiled.energy_gradient(tissue.ops, tissue.params, x)
+    assert U == U0 and np.array_equal(g, g0)
+    assert np.array_equal(Ke, compiled.element_stiffness(tissue.ops, tissue.params, x, False))
+    assert np.array_equal(tissue.energy_gradient_stiffness(x)[2], Ke)
+
+
+def test_one_pass_gradient_and_stiffness_leave_inverted_elements_to_numpy(tissue):
+    x = tissue.rest.copy()
+    e = 0
+    a, b, c = tissue.mesh.triangles[e]
+    x[a] = x[b] + 2.0 * (x[c] - x[b])  # fold element 0 over its edge
+    assert compiled.energy_gradient_stiffness(tissue.ops, tissue.params, x, False) is None
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_stiffness_times_equals_the_numpy_product(tissue, seed):
+    """Tissue.stiffness_times runs `compiled.packed_times_2d` in 2-D: Σ_e K_e v_e as fem.packed_times has it."""
+    x = _state(tissue, DEFORMATIONS[2], 0.15, seed)
+    Ke = tissue.element_stiffness(x, project=bool(seed))
+    v = np.random.default_rng(seed).standard_normal(x.size)
+    ref = fem.packed_times(tissue.ops, Ke, v)
+    assert np.allclose(tissue.stiffness_times(x, v, Ke), ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+
+
 def test_projection_acts_and_is_psd(tissue):
     """Under compression the exact element Hessians are indefinite; the projected ones are PSD and differ."""
     x = _state(tissue, [[0.8, 0.1], [-0.05, 0.85]], 0.15, 3)

@@ -122,6 +122,50 @@ def test_chord_option_reaches_the_same_solution_and_ends_quadratic(example):
     assert h[-1] < 1e-3 * h[-2]  # the last step is a full Newton step
 
 
+def test_2d_steps_precondition_with_a_factor_that_modelled_the_last_step_well(example, monkeypatch):
+    """After a full step that shrank the residual by KRYLOV_CONTRACTION, a 2-D step first tries
+    conjugate gradients on that step's factor: the same equilibrium, fewer factorisations,
+    and a direct solve again once the factor's measured rate cannot reach the forcing term."""
+    import scissor_cli.solvers.newton as newton
+
+    _, _, tissue = build_model(example, mesh_scale=0.75)
+    default = newton.KRYLOV_CONTRACTION
+    cg = solve_newton(tissue, np.array([5.0]))
+    factor = tissue.factor_cache["free"]
+    cg_iterations = factor.cg_iterations
+    monkeypatch.setattr(newton, "KRYLOV_CONTRACTION", 0.0)  # never: every step factors (the old path)
+    direct = solve_newton(tissue, np.array([5.0]))
+    assert cg.converged and direct.converged and cg.residual <= 1e-10
+    assert np.abs(cg.x - direct.x).max() < 1e-8
+    assert factor.cg_iterations == cg_iterations > 0  # the direct path ran no CG
+    assert cg.factorizations < direct.factorizations == direct.iterations + 1  # + the predictor's
+    h = cg.history
+    assert h[-2] < 1e-3 * h[-3]  # still superlinear at the end (the last step reaches round-off)
+    # the loose solve the solver benchmark times: one factorisation fewer, the same answer to its tolerance
+    loose = {}
+    for contraction in (0.0, default):
+        monkeypatch.setattr(newton, "KRYLOV_CONTRACTION", contraction)
+        loose[contraction] = solve_newton(tissue, np.array([5.0]), tol=0.1)
+    a, b = loose.values()
+    assert b.factorizations == a.factorizations - 1 and b.residual <= 0.1
+    # as far from the equilibrium as the direct path's iterate (2.7e-3 vs 2.5e-3 mm of a 5 mm push)
+    assert np.abs(b.x - direct.x).max() < 1.5 * np.abs(a.x - direct.x).max()
+
+
+def test_2d_forcing_follows_the_contraction_squared():
+    """Eisenstat–Walker's choice 2: η = 0.9 θ², capped; none when the factor's measured rate cannot reach it."""
+    from types import SimpleNamespace
+
+    from scissor_cli.solvers.newton import KRYLOV_FORCING_MAX_2D, KRYLOV_MAX_ITER_2D, _reuse_forcing
+
+    fresh = {"free": SimpleNamespace(cg_iterations_for=lambda eta: 0.0)}  # no preconditioned solve yet
+    assert _reuse_forcing(fresh, 0.3, 1.5) == pytest.approx(0.9 * 0.2**2)
+    assert _reuse_forcing(fresh, 0.5, 1.0) == KRYLOV_FORCING_MAX_2D  # θ = 0.5: 0.225, capped
+    assert _reuse_forcing(fresh, 1e-6, 1e-3) == pytest.approx(9e-7)  # quadratic end: ever tighter
+    slow = {"free": SimpleNamespace(cg_iterations_for=lambda eta: KRYLOV_MAX_ITER_2D + 1.0)}
+    assert _reuse_forcing(slow, 0.3, 1.5) is None and _reuse_forcing({}, 0.3, 1.5) is None
+
+
 def test_full_steps_are_extrapolated_where_the_hessian_overrates_the_curvature(example, monkeypatch):
     """10 mm push on the 15.7k mesh: an element folds at the cup's grip end, the exact
     Hessian is indefinite there and its PD stand-in makes unit steps crawl (Φ falls by

@@ -149,6 +149,50 @@ def test_solve_free_uses_cg_on_the_old_factor_refactors_when_stale_or_failing():
     assert linear.solve_free(tissue, far, b)[1]  # no rtol: always the direct solve
 
 
+def test_large_2d_factors_are_ordered_by_nested_dissection():
+    """In 2-D, METIS's ordering beyond ND_MIN_UNKNOWNS_2D unknowns: never more fill than AMD's (CHOLMOD keeps the sparser)."""
+    from types import SimpleNamespace
+
+    from scissor_cli.solvers import linear
+
+    A = _laplacian_2d_blocks(75)  # 2 x 75² = 11250 unknowns
+    assert A.shape[0] >= linear.ND_MIN_UNKNOWNS_2D
+    tissue = SimpleNamespace(factor_cache={}, dim=2, free_dofs=np.arange(A.shape[0]))
+    b = np.random.default_rng(2).random(A.shape[0])
+    x, _ = linear.solve_free(tissue, sp.triu(A).tocsr(), b)
+    f = tissue.factor_cache["free"]
+    assert f.ordering == "nested_dissection"
+    assert np.linalg.norm(A @ x - b) <= 1e-10 * np.linalg.norm(b)
+    amd = Factorization(sp.triu(A).tocsr(), definite=True, upper=True)
+    assert f.nnz_factor <= amd.nnz_factor
+    small = SimpleNamespace(factor_cache={}, dim=2, free_dofs=np.arange(2 * 30**2))
+    linear.solve_free(small, sp.triu(_laplacian_2d_blocks(30)).tocsr(), np.ones(2 * 30**2))
+    assert small.factor_cache["free"].ordering == "amd"
+
+
+def _laplacian_2d_blocks(m: int) -> sp.csr_matrix:
+    """A 2-D grid Laplacian (m², m²) + I, each node carrying 2 unknowns (I ⊗ 2x2 SPD block): a 2-D stiffness's pattern."""
+    T = sp.diags([-np.ones(m - 1), 4.2 * np.ones(m), -np.ones(m - 1)], [-1, 0, 1])
+    L = (sp.kron(sp.eye(m), T) + sp.kron(sp.diags([np.ones(m - 1), np.ones(m - 1)], [-1, 1]), -sp.eye(m)))
+    return sp.kron(L, np.array([[2.0, 0.5], [0.5, 1.0]])).tocsr()
+
+
+def test_a_preconditioned_solve_records_its_rate_and_a_refactorisation_forgets_it():
+    from scissor_cli.solvers import linear
+
+    A = sp.triu(_laplacian_3d(6, 0.5)).tocsr()
+    n = A.shape[0]
+    f = linear.Factorization(A, definite=True, upper=True)
+    assert f.cg_rate is None and f.cg_iterations_for(1e-2) == 0.0  # unknown: worth a try
+    near = (A + sp.diags(0.2 * np.random.default_rng(3).random(n))).tocsr()
+    b = np.random.default_rng(4).random(n)
+    x, k = linear.preconditioned_cg(near, b, f, 1e-6)
+    assert x is not None and k > 1 and f.cg_rate == pytest.approx(1e-6 ** (1.0 / k))
+    assert f.cg_iterations_for(1e-6) == pytest.approx(k) and f.cg_iterations_for(1e-12) == pytest.approx(2 * k)
+    f.refactor(near)
+    assert f.cg_rate is None
+
+
 def test_reading_the_factor_size_leaves_the_factor_usable():
     """nnz_factor factors a copy: cvxopt's getfactor would turn the factor it reads into a symbolic one."""
     import numpy as np

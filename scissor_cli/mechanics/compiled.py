@@ -201,19 +201,36 @@ def _tangent(H, f0, f1, f2, f3, kappa, alpha, s, iJ, v0, v1, I4m1, eta_eff, a, b
 
 
 @njit(**_JIT)
-def element_stiffness_2d(x, corners, grad_rows, volume, mu, kappa, eta, fa, fb, tension_only, project, Ke):
-    """Packed element Hessians into Ke (21, M), mN/mm (`fem.element_matrices` order); -1, or the first element it cannot take.
+def element_stiffness_2d(x, corners, grad_rows, volume, mu, kappa, eta, fa, fb, tension_only, project, Ke, grad):
+    """Packed element Hessians into Ke (21, M), mN/mm (`fem.element_matrices` order); (-1, U), or (the first element it cannot take, nan).
 
-    K_e[2a+i, 2b+k] = V Σ_jl ∂N_a/∂X_j C[2i+j, 2k+l] ∂N_b/∂X_l.
+    K_e[2a+i, 2b+k] = V Σ_jl ∂N_a/∂X_j C[2i+j, 2k+l] ∂N_b/∂X_l. With grad of
+    size 2N (not 0), ∇U goes into it and U is returned, as
+    `energy_gradient_2d` computes them (the same sums in the same order):
+    the tangent predictor needs both at one x, and the stress is at hand.
     """
+    with_grad = grad.size > 0
+    if with_grad:
+        grad[:] = 0.0
+    U = 0.0
     H = np.zeros((4, 4))
     T = np.empty((4, 3, 2))
     for e in range(corners.shape[1]):
         f0, f1, f2, f3 = _deformation(x, corners, grad_rows, e)
-        psi, _, _, _, _, J, alpha, s, iJ, v0, v1, I4m1, eta_eff = _stress(
+        psi, p00, p01, p10, p11, J, alpha, s, iJ, v0, v1, I4m1, eta_eff = _stress(
             f0, f1, f2, f3, mu[e], kappa[e], eta[e], fa[e], fb[e], tension_only)
         if not (J > J_FLOOR and math.isfinite(psi)):
-            return e
+            return e, math.nan
+        if with_grad:
+            if not math.isfinite(psi + p00 + p01 + p10 + p11):
+                return e, math.nan
+            V = volume[e]
+            U += psi * V
+            for c in range(3):
+                nc = corners[c, e]
+                gx, gy = grad_rows[c, 0, e], grad_rows[c, 1, e]
+                grad[2 * nc] += p00 * V * gx + p01 * V * gy
+                grad[2 * nc + 1] += p10 * V * gx + p11 * V * gy
         _tangent(H, f0, f1, f2, f3, kappa[e], alpha, s, iJ, v0, v1, I4m1, eta_eff, fa[e], fb[e], project)
         for r in range(4):  # mirror the upper triangle
             for c in range(r):
@@ -237,8 +254,8 @@ def element_stiffness_2d(x, corners, grad_rows, volume, mu, kappa, eta, fa, fb, 
                 finite += val
                 n += 1
         if not math.isfinite(finite):
-            return e
-    return -1
+            return e, math.nan
+    return -1, U
 
 
 @njit(**_JIT)
@@ -262,6 +279,30 @@ def jacobians_2d(x, corners, grad_rows):
         f0, f1, f2, f3 = _deformation(x, corners, grad_rows, e)
         J[e] = f0 * f3 - f1 * f2
     return J
+
+
+@njit(**_JIT)
+def packed_times_2d(Ke, corners, v, out):
+    """out = Σ_e K_e v_e (2N,) for packed element matrices Ke (21, M) and v (2N,) (`fem.packed_times`), out zeroed first.
+
+    One pass over the elements instead of numpy's 36 whole-array products
+    and a bincount (the tangent predictor's K_fd δ_d: 1.0–1.4 → 0.4 ms at 16k).
+    """
+    out[:] = 0.0
+    for e in range(corners.shape[1]):
+        n = 0
+        for p in range(6):
+            dp = 2 * corners[p // 2, e] + p % 2
+            vp = v[dp]
+            acc = 0.0
+            for q in range(p, 6):
+                dq = 2 * corners[q // 2, e] + q % 2
+                k = Ke[n, e]
+                acc += k * v[dq]
+                if q != p:
+                    out[dq] += k * vp
+                n += 1
+            out[dp] += acc
 
 
 @njit(**_JIT)
@@ -317,6 +358,19 @@ def energy_gradient(ops, params, x: np.ndarray) -> tuple[float, np.ndarray] | No
 def element_stiffness(ops, params, x: np.ndarray, project: bool) -> np.ndarray | None:
     """Packed element Hessians (21, M) mN/mm at x (N, 2), per-term PSD-projected if asked; None as above."""
     Ke = np.empty((21, ops.corners.shape[1]))
-    bad = element_stiffness_2d(np.ascontiguousarray(x, dtype=np.float64), ops.corners, ops.grad_rows, ops.volume,
-                               *_material(params), bool(project), Ke)
+    bad, _ = element_stiffness_2d(np.ascontiguousarray(x, dtype=np.float64), ops.corners, ops.grad_rows, ops.volume,
+                                  *_material(params), bool(project), Ke, np.empty(0))
     return None if bad >= 0 else Ke
+
+
+def energy_gradient_stiffness(ops, params, x: np.ndarray, project: bool) -> tuple[float, np.ndarray, np.ndarray] | None:
+    """U (µJ), ∇U (2N,) mN and the packed element Hessians (21, M) mN/mm at x (N, 2), in one pass; None as above.
+
+    The same numbers as `energy_gradient` and `element_stiffness`, for one
+    pass over the elements instead of two (0.75 ms saved at 16k).
+    """
+    Ke = np.empty((21, ops.corners.shape[1]))
+    grad = np.empty(2 * ops.n_nodes)
+    bad, U = element_stiffness_2d(np.ascontiguousarray(x, dtype=np.float64), ops.corners, ops.grad_rows, ops.volume,
+                                  *_material(params), bool(project), Ke, grad)
+    return None if bad >= 0 else (float(U), grad, Ke)

@@ -265,7 +265,17 @@ class SparsePattern:
         """The CSR matrix of packed element matrices Ke (P, M)."""
         data = np.empty(len(self.indices))
         compiled.scatter_packed(np.ascontiguousarray(Ke, dtype=np.float64), self.entries, self.slot, data)
-        return sp.csr_matrix((data, self.indices, self.indptr), shape=self.shape)
+        return self.matrix(data)
+
+    def matrix(self, data: np.ndarray) -> sp.csr_matrix:
+        """The CSR matrix of this pattern with data (nnz,).
+
+        Its column indices are sorted by construction (`sparse_pattern` takes
+        them from np.unique), so the matrix says so: no O(nnz) check later.
+        """
+        K = sp.csr_matrix((data, self.indices, self.indptr), shape=self.shape)
+        K.has_sorted_indices = True
+        return K
 
 
 def sparse_pattern(ops: FEOperators, dof_index: np.ndarray | None = None, upper: bool = False) -> SparsePattern:
@@ -296,7 +306,12 @@ def sparse_pattern(ops: FEOperators, dof_index: np.ndarray | None = None, upper:
     unique, slot = np.unique(key, return_inverse=True)
     r, c = np.divmod(unique, size)
     indptr = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=size))])
-    return SparsePattern(packed[keep], slot.ravel(), indptr, c.astype(np.int32), (size, size), upper)
+    entries, slot = packed[keep], slot.ravel()
+    # Scatter element by element: an element's entries land in the few rows of
+    # its nodes, close to the last element's, where pair-major order jumps
+    # across the whole matrix for every entry (0.53 → 0.41 ms at 16k).
+    order = np.argsort((entries % M) * len(pairs) + entries // M, kind="stable")
+    return SparsePattern(entries[order], slot[order], indptr, c.astype(np.int32), (size, size), upper)
 
 
 def max_feasible_step_3d(F: np.ndarray, dF: np.ndarray) -> float:

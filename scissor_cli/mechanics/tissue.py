@@ -138,6 +138,19 @@ class Tissue:
         psi, P, _ = materials.evaluate(F, self.params, order=1)
         return float(np.dot(psi, self.ops.volume)), fem.scatter_vector(self.ops, fem.element_forces(self.ops, P))
 
+    def energy_gradient_stiffness(self, x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        """U (µJ), ∇U (2N,) mN and the exact packed element Hessians (21, M) mN/mm at x (N, 2).
+
+        What `energy_gradient` and `element_stiffness` give, in one compiled
+        pass where the model has one (the tangent predictor needs all three).
+        """
+        if self.compiled:
+            fast = compiled.energy_gradient_stiffness(self.ops, self.params, x, False)
+            if fast is not None:
+                return fast
+        U, grad = self.energy_gradient(x)
+        return U, grad, self.element_stiffness(x)
+
     def element_stiffness(self, x: np.ndarray, project: bool = False) -> np.ndarray:
         """Element Hessians, packed (21, M) (`fem.element_matrices`), in mN/mm; PSD-projected if asked.
 
@@ -171,7 +184,13 @@ class Tissue:
 
         Ke (21, M), the exact packed element Hessians at x, saves evaluating them again.
         """
-        return fem.packed_times(self.ops, self.element_stiffness(x) if Ke is None else Ke, v)
+        Ke = self.element_stiffness(x) if Ke is None else Ke
+        if self.dim == 2:  # one compiled pass (`compiled.packed_times_2d`)
+            out = np.empty(v.size)
+            compiled.packed_times_2d(np.ascontiguousarray(Ke, dtype=np.float64), self.ops.corners,
+                                     np.ascontiguousarray(v, dtype=np.float64), out)
+            return out
+        return fem.packed_times(self.ops, Ke, v)
 
     def force_scale(self, grad: np.ndarray) -> float:
         """A force (mN) to make residuals relative: the Dirichlet reactions.

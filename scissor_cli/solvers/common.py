@@ -134,13 +134,14 @@ class SolverError(RuntimeError):
 
 def objective_gradient(
     tissue: Tissue, x: np.ndarray, inertia: Inertia | None, loads: np.ndarray | None = None,
-    require_positive_J: bool = False,
+    require_positive_J: bool = False, strain: tuple[float, np.ndarray] | None = None,
 ) -> tuple[float, np.ndarray | None]:
     """Φ (µJ) and ∇Φ (2N,) in mN at positions x (N, 2), with external loads (2N,) mN if given.
 
     With require_positive_J, (inf, None) when an element is inverted (a trial step to reject).
+    `strain`, U and ∇U at x if the caller has them already (`Tissue.energy_gradient_stiffness`).
     """
-    energy, grad = tissue.energy_gradient(x, require_positive_J)
+    energy, grad = tissue.energy_gradient(x, require_positive_J) if strain is None else strain
     if grad is None:
         return energy, None
     if loads is not None:

@@ -8,6 +8,7 @@ symbolic analysis and refactors numerically.
 
 from __future__ import annotations
 
+import math
 from typing import Callable
 
 import numpy as np
@@ -22,6 +23,10 @@ from scissor_cli.solvers.common import SolverError
 #: conjugate-gradient iterations `solve_free` spends on an earlier factor before it refactors:
 #: a 3-D refactorisation costs about 25 of them at 65k unknowns (docs/performance.md)
 KRYLOV_MAX_ITER = 12
+#: a 2-D K_ff with at least this many unknowns is ordered by nested dissection (`factorize_free`):
+#: at 8k unknowns CHOLMOD still keeps AMD's sparser factor, at 16k METIS's is 5% sparser,
+#: and METIS's one-time cost (33 ms at 16k) pays off within ~50 factorisations
+ND_MIN_UNKNOWNS_2D = 10_000
 #: a solve that needed more CG iterations than this marks its factor stale: the
 #: tangent has moved away from it, so the next solve factors instead of trying
 KRYLOV_STALE_ITER = 6
@@ -56,7 +61,10 @@ class Factorization:
     `groups` (n,) numbers each unknown's node so the ordering keeps a node's
     unknowns together. On a 3-D tetrahedral tangent AMD fills in badly:
     nested dissection halves the factor's nonzeros and its time at 65k
-    unknowns (docs/performance.md); in 2-D AMD is as good and costs nothing.
+    unknowns (docs/performance.md). In 2-D AMD is as good up to ~10k
+    unknowns; beyond, nested dissection wins too (16k unknowns: 5% fewer
+    nonzeros, numeric 13.1 → 12.5 ms; 63k: 10% fewer, 73 → 64 ms). With a
+    user ordering CHOLMOD still tries AMD and keeps the sparser factor.
     """
 
     def __init__(self, A: sp.spmatrix, definite: bool = False, upper: bool = False,
@@ -73,6 +81,9 @@ class Factorization:
         self.factorizations = self.cg_iterations = 0
         #: set by `solve_free` when preconditioning with this factor got slow
         self.stale = False
+        #: per-iteration residual contraction of the last converged `preconditioned_cg` on this
+        #: factor (an upper bound, rtol^(1/iterations)); None since the last refactorisation
+        self.cg_rate: float | None = None
         self._pattern: tuple | None = None
         self._chol = self._ldl = None
         self.refactor(A)
@@ -95,6 +106,7 @@ class Factorization:
             self._lower.V = cvxopt.matrix(A.data[self._upper])
         self.factorizations += 1
         self.stale = False
+        self.cg_rate = None
         try:
             if self._chol is None:
                 self._chol = self._symbolic(A, self.supernodal)
@@ -124,6 +136,17 @@ class Factorization:
             raise SolverError(f"singular system matrix ({exc})") from None
         self._active = "ldl"
         return self
+
+    def cg_iterations_for(self, rtol: float) -> float:
+        """Conjugate-gradient iterations this factor is expected to need for rtol (0 when not yet known).
+
+        From `cg_rate`, the contraction per iteration its last preconditioned
+        solve reached: the tangent only drifts further from the factor, so
+        the rate is not expected to improve.
+        """
+        if self.cg_rate is None or not 0.0 < self.cg_rate < 1.0:
+            return 0.0
+        return math.log(rtol) / math.log(self.cg_rate)
 
     def matches(self, A: sp.spmatrix) -> bool:
         """Whether A (as given to `refactor`) has the pattern's size and entry count, so the factor can precondition it."""
@@ -256,17 +279,20 @@ def preconditioned_cg(A: sp.csr_matrix, b: np.ndarray, factor: Factorization, rt
         times = A.__matmul__
     x, k, _ = conjugate_gradients(times, factor.solve, b, rtol, max_iter)
     factor.cg_iterations += k
+    if x is not None and k > 0:
+        factor.cg_rate = rtol ** (1.0 / k)
     return x, k
 
 
 def solve_free(tissue, K_upper: sp.csr_matrix, b: np.ndarray, factors: dict | None = None,
-               rtol: float | None = None) -> tuple[np.ndarray, bool]:
+               rtol: float | None = None, max_iter: int = KRYLOV_MAX_ITER) -> tuple[np.ndarray, bool]:
     """x with K_ff x = b (K_ff from its upper triangle); returns (x, whether K_ff was factored).
 
     With `rtol`, the factorisation already in the slot (an earlier tangent's)
     first preconditions conjugate gradients to that relative residual
-    (`preconditioned_cg`); only when that fails, or when the last such solve
-    needed more than KRYLOV_STALE_ITER iterations (the factor is stale), is
+    (`preconditioned_cg`, at most max_iter iterations); only when that
+    fails, or when the last such solve needed more than KRYLOV_STALE_ITER
+    iterations (the factor is stale), is
     K_ff factored (`factorize_free`, SolverError if it is not positive
     definite). Without rtol K_ff is always factored: the direct solve.
     """
@@ -274,7 +300,7 @@ def solve_free(tissue, K_upper: sp.csr_matrix, b: np.ndarray, factors: dict | No
     factor = factors.get("free")
     if (rtol is not None and factor is not None and factor.method == "cholesky" and not factor.stale
             and factor.matches(K_upper)):
-        x, k = preconditioned_cg(K_upper, b, factor, rtol)
+        x, k = preconditioned_cg(K_upper, b, factor, rtol, max_iter)
         if x is not None:
             factor.stale = k > KRYLOV_STALE_ITER
             return x, False
@@ -317,13 +343,15 @@ def factorize_free(tissue, K_upper: sp.csr_matrix, factors: dict | None = None,
     tissue's own slot, one per mesh and boundary set, shared by every solve
     on it; the controller's trackers keep their own); raises SolverError if
     K_ff is not positive definite (Newton then projects). A 3-D tissue's
-    factor is ordered by nested dissection (`Factorization`), a 2-D one's by AMD.
+    factor is ordered by nested dissection (`Factorization`), a 2-D one's by
+    AMD below ND_MIN_UNKNOWNS_2D unknowns and by nested dissection above.
     `supernodal` (the slot's first factorisation decides) as in `Factorization`.
     """
     factors = tissue.factor_cache if factors is None else factors
     factor = factors.get("free")
     if factor is None:
-        ordering = "nested_dissection" if tissue.dim == 3 else "amd"
+        large = tissue.dim == 3 or K_upper.shape[0] >= ND_MIN_UNKNOWNS_2D
+        ordering = "nested_dissection" if large else "amd"
         factor = factors["free"] = Factorization(K_upper, definite=True, upper=True, ordering=ordering,
                                                  groups=tissue.free_dofs // tissue.dim, supernodal=supernodal)
         return factor

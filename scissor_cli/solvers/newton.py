@@ -26,7 +26,7 @@ import time
 import numpy as np
 import scipy.sparse as sp
 
-from scissor_cli.solvers.linear import solve_free
+from scissor_cli.solvers.linear import KRYLOV_MAX_ITER, solve_free
 from scissor_cli.solvers.common import (
     NO_CONDITIONS, Conditions, Inertia, SolveResult, SolverError, check_finite, objective_gradient, relative_residual,
 )
@@ -50,6 +50,15 @@ CHORD_ABOVE = 1e-3
 KRYLOV_FORCING = 1e-2
 #: and the tangent predictor to this relative residual
 PREDICTOR_RTOL = 1e-4
+#: without `krylov` (2-D), a step first runs conjugate gradients on the previous step's factor
+#: when that full step shrank the residual this much: the residual a step on K_k leaves is
+#: (K̄ − K_k) d, so a small one says K_k still models the tangent (`_reuse_forcing`)
+KRYLOV_CONTRACTION = 0.25
+#: at most this many iterations (a 2-D factorisation costs about 7 of them at 16k unknowns)
+KRYLOV_MAX_ITER_2D = 6
+#: to Eisenstat–Walker's forcing term η = EW_GAMMA θ², at most KRYLOV_FORCING_MAX_2D
+EW_GAMMA = 0.9
+KRYLOV_FORCING_MAX_2D = 0.1
 
 
 def _krylov(tissue: Tissue, krylov: bool | None) -> bool:
@@ -196,8 +205,8 @@ def tangent_predictor(
     held = _Held(tissue, conditions)
     x_new = tissue.apply_strokes(x, strokes)
     delta = (x_new - x).ravel()
-    _, grad = objective_gradient(tissue, x, inertia, conditions.loads)
-    Ke = tissue.element_stiffness(x)
+    U, grad_U, Ke = tissue.energy_gradient_stiffness(x)  # one pass over the elements for both
+    _, grad = objective_gradient(tissue, x, inertia, conditions.loads, strain=(U, grad_U))
     rhs = -tissue.stiffness_times(x, delta, Ke)[tissue.free_dofs] - grad[tissue.free_dofs]
     if inertia is not None:
         rhs -= inertia.weight[tissue.free_dofs] * delta[tissue.free_dofs]
@@ -219,6 +228,21 @@ def tangent_predictor(
     flat = x_new.ravel().copy()
     flat[tissue.free_dofs] += dx
     return flat.reshape(x_new.shape)
+
+
+def _reuse_forcing(factors: dict, res: float, previous: float) -> float | None:
+    """The forcing term of a 2-D step by CG on the slot's factor, or None when that is not expected to pay.
+
+    Eisenstat–Walker's choice 2, η = 0.9 θ² (θ = res / previous, the last
+    step's contraction; at most KRYLOV_FORCING_MAX_2D): a Newton step leaves
+    about θ² of its residual, so solving further buys nothing (16k, 5 mm:
+    θ = 0.2, η = 0.037, 3 CG iterations instead of 4); η falls with θ², so
+    the end stays quadratic. None when the factor's measured rate cannot
+    reach η within KRYLOV_MAX_ITER_2D (before its first such solve it can).
+    """
+    eta = min(KRYLOV_FORCING_MAX_2D, EW_GAMMA * (res / previous) ** 2)
+    factor = factors.get("free")
+    return eta if factor is not None and factor.cg_iterations_for(eta) <= KRYLOV_MAX_ITER_2D else None
 
 
 def _factor_count(tissue: Tissue, factors: dict | None) -> int:
@@ -268,7 +292,12 @@ def newton_iterations(
     conjugate gradients preconditioned with the slot's last factorisation,
     to the forcing term min(KRYLOV_FORCING, residual), and K is factored only
     when that fails (`linear.solve_free`): most 3-D steps need no
-    factorisation. `factorizations` counts the factorisations.
+    factorisation. Without `krylov`, a step does the same (at most
+    KRYLOV_MAX_ITER_2D iterations, to the forcing term `_reuse_forcing`)
+    only when the previous step of this call was a full step that shrank the
+    residual by KRYLOV_CONTRACTION and the factor's measured rate can still
+    reach that term: the factor is then always one this call made. `factorizations` counts the
+    factorisations.
     """
     t0 = time.perf_counter()
     factors = tissue.factor_cache if factors is None else factors
@@ -279,9 +308,11 @@ def newton_iterations(
     free = tissue.free_dofs
     n_factor = 0
     krylov = _krylov(tissue, krylov)
+    full_step = False  # the last step of this call was a full Newton step (not a chord step, not shortened)
     for it in range(max_iter + 1):
         check_finite(grad, "the Newton gradient")
         res = held.residual(tissue, grad)
+        contracted = full_step and res <= KRYLOV_CONTRACTION * history[-1]
         history.append(res)
         if res <= tol:
             return SolveResult(x, True, it, res, time.perf_counter() - t0, "newton", "converged", history, n_factor)
@@ -292,12 +323,17 @@ def newton_iterations(
             kept = _chord_step(tissue, x, g, inertia, res, conditions, held, factors)
             if kept is not None:
                 x, phi, grad = kept
+                full_step = False
                 continue
         step = None
+        rtol = min(KRYLOV_FORCING, res) if krylov else None
+        if contracted and not krylov:
+            rtol = _reuse_forcing(factors, res, history[-2])
+        cg_iter = KRYLOV_MAX_ITER if krylov else KRYLOV_MAX_ITER_2D
         for project in ([False, True] if res < exact_below else [True]):
             K = _system(tissue, x, project, inertia, held)
             try:
-                d, factored = solve_free(tissue, K, g, factors, min(KRYLOV_FORCING, res) if krylov else None)
+                d, factored = solve_free(tissue, K, g, factors, rtol, cg_iter)
             except SolverError:  # singular exact Hessian: the projected one is next
                 n_factor += 1
                 continue
@@ -311,7 +347,8 @@ def newton_iterations(
                 f"Newton found no descent direction at iteration {it} (residual {res:.3g})",
                 SolveResult(x, False, it, res, time.perf_counter() - t0, "newton", "no descent direction", history, n_factor),
             )
-        x, phi, grad = _line_search(tissue, x, phi, grad, step, inertia, res, conditions.loads, held)
+        x, phi, grad, alpha = _line_search(tissue, x, phi, grad, step, inertia, res, conditions.loads, held)
+        full_step = alpha == 1.0
     return SolveResult(
         x, False, max_iter, history[-1], time.perf_counter() - t0, "newton",
         f"not converged in {max_iter} iterations (relative residual {history[-1]:.3g} > {tol:g})", history, n_factor,
@@ -336,6 +373,8 @@ def _chord_step(tissue, x, g, inertia, res, conditions, held, factors):
 
 def _line_search(tissue, x, phi, grad, d_free, inertia, res, loads=None, held=None):
     """Backtracking: keep every J > 0, then Armijo on Φ (or a smaller residual once Φ is flat).
+
+    Returns (x, Φ, ∇Φ, α) at the accepted point x + α d (α > 1 when extrapolated).
 
     A full step that lowers Φ by nearly its linear prediction met (almost) no
     curvature along d: the Hessian used overrates it (a PD-modified one, where
@@ -362,8 +401,8 @@ def _line_search(tissue, x, phi, grad, d_free, inertia, res, loads=None, held=No
                 abs(phi_t - phi) <= 1e-12 * max(abs(phi), 1.0) and np.linalg.norm(g_t) < g_norm
             ):
                 if alpha == 1.0 and phi_t - phi <= EXTRAPOLATE_RATIO * slope:
-                    return _extrapolate(tissue, x, step, phi_t, (trial, phi_t, grad_t), feasible, inertia, loads)
-                return trial, phi_t, grad_t
+                    return _extrapolate(tissue, x, step, phi_t, (trial, phi_t, grad_t, alpha), feasible, inertia, loads)
+                return trial, phi_t, grad_t, alpha
         alpha *= 0.5
     raise SolverError(
         f"Newton line search failed (residual {res:.3g}): no step keeps all elements uninverted and lowers the energy",
@@ -379,7 +418,7 @@ def _extrapolate(tissue, x, step, phi_best, best, feasible, inertia, loads=None)
         phi_t, grad_t = objective_gradient(tissue, trial, inertia, loads, require_positive_J=True)
         if grad_t is None or not phi_t < phi_best:
             break
-        phi_best, best = phi_t, (trial, phi_t, grad_t)
+        phi_best, best = phi_t, (trial, phi_t, grad_t, alpha)
         alpha *= 2.0
     return best
 
