@@ -291,7 +291,7 @@ class Hold:
         self.captured, self.base, self.stuck, self.ride = captured, base, stuck, ride
         self.n, self.t = n, t
         #: (2, 2) the unit vectors (t, n) as columns: a captured node's (x, y) → (across, along) is v @ frame
-        self.frame = np.column_stack([t, n])
+        self.frame = np.array([[t[0], n[0]], [t[1], n[1]]])
         #: each constraint row's coordinate in the captured nodes' frame [t₀ n₀ t₁ n₁ …]: every t, then the stuck n's
         self.rows = np.concatenate([2 * np.arange(captured.size), 2 * np.flatnonzero(stuck) + 1])
         #: the rows on the last factorisation a chord step used (`schur_on`)

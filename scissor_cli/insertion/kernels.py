@@ -190,15 +190,18 @@ def friction_rule(axial, lag, limit, free, slip, sign, lag_tol, force_error, pos
     be released, slip (P,) slipping ones; sign (P,) the kinetic friction's
     direction; lag_tol mm. A stuck node whose reaction exceeds its limit is
     released; a slipping node that moves against its friction (sign · lag >
-    lag_tol) is flagged. A decision is unclear when its quantity lies within
-    force_error mN or position_error mm of its threshold.
+    lag_tol) is flagged. Returns how many nodes are released or flagged, or
+    −1 when a decision is unclear: its quantity lies within force_error mN
+    or position_error mm of its threshold.
     """
     unclear = False
+    changed = 0
     for k in range(axial.size):
         over = abs(axial[k]) - limit[k]
         ahead = sign[k] * lag[k] - lag_tol
         release[k] = free[k] and over > 0.0
         against[k] = slip[k] and ahead > 0.0
+        changed += release[k] or against[k]
         if (free[k] and abs(over) <= force_error) or (slip[k] and abs(ahead) <= position_error):
             unclear = True
-    return unclear
+    return -1 if unclear else changed

@@ -276,6 +276,7 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
     stuck = np.ones(captured.size, bool)
     sign = np.ones(captured.size)
     fs, fk = params.friction_static_mN_per_mm, params.friction_kinetic_mN_per_mm
+    limit = fs * lengths * (1.0 + 1e-9)  # f_s l_i, with round-off: a rule adds 1e-9 of the force scale
     # A node slipping against its friction has its friction reversed once; if
     # it slips against that too, it is stuck again and stays stuck in this step.
     flipped = np.zeros(captured.size, bool)
@@ -301,19 +302,17 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
         friction = fk * lengths[slip] * sign[slip]
         loads[2 * captured[slip]] += friction * n[0]  # captured nodes are distinct: no repeated index
         loads[2 * captured[slip] + 1] += friction * n[1]
-        if hold is None or not np.array_equal(hold.stuck, stuck):  # the same hold (and its Schur rows) while the set is
+        if hold is None or (hold.stuck is not stuck and not np.array_equal(hold.stuck, stuck)):  # kept while the set is
             hold = Hold(captured, base_x, stuck, ride, n, t)
         scale = tissue.force_scale(grad_u)
-        rule = _Rule(fs * lengths * (1.0 + 1e-9) + 1e-9 * scale, stuck, locked, sign, 1e-9 * step_mm)
+        rule = _Rule(limit + 1e-9 * scale, stuck, locked, sign, 1e-9 * step_mm)
 
         def early(xc, d_captured, mu, res, rule=rule, scale=scale):
             # the converged state's reactions and lags, predicted by this chord step (its Schur forces)
             axial_p, lag_p = np.empty(captured.size), np.empty(captured.size)
             kernels.predicted_reactions(mu, rule.stuck, d_captured, xc, captured, base_x, n, ride, axial_p, lag_p)
-            release, against, unclear = rule.apply(axial_p, lag_p, GUARD_FORCE * res * scale, GUARD_POSITION * res)
-            if unclear or not (release.any() or against.any()):
-                return None
-            return release, against, axial_p
+            release, against, changed = rule.apply(axial_p, lag_p, GUARD_FORCE * res * scale, GUARD_POSITION * res)
+            return (release, against, axial_p) if changed > 0 else None  # nothing to do, or unclear (−1)
 
         r_x, g, its, verdict = _solve_pass(tissue, solver, strokes, chord_x, grad_u - loads, hold, loads, tol,
                                            early if EARLY_DECISIONS and passes < MAX_ACTIVE_SET - 1 else None, start)
@@ -325,9 +324,9 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
             axial = g.reshape(-1, 2)[captured] @ n  # what the needle must supply
             # Kinetic friction opposes the slip: a node pulled forward (+n) must lag the needle, and the reverse.
             lag = (r_x[captured] - x[captured]) @ n - ride
-            release, against, _ = _Rule(fs * lengths * (1.0 + 1e-9) + 1e-9 * tissue.force_scale(grad_u), stuck, locked,
-                                        sign, 1e-9 * step_mm).apply(axial, lag)
-            if not np.any(release) and not np.any(against):
+            release, against, _ = _Rule(limit + 1e-9 * tissue.force_scale(grad_u), stuck, locked, sign,
+                                        1e-9 * step_mm).apply(axial, lag)
+            if not (release.any() or against.any()):  # (the exact rule: no error, nothing unclear)
                 if tol <= STEP_TOL:
                     settled = True
                     break
@@ -342,8 +341,9 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
         flipped |= flip
         stuck = (stuck & ~release) | restick
         locked |= restick
-        start = r_x.copy()
-        if np.any(restick):
+        start = r_x
+        if restick.any():
+            start = r_x.copy()
             start[captured[restick]] = x[captured[restick]] + ride[restick, None] * n
             _check_start(tissue, start, J_now)
             _, grad_u = tissue.energy_gradient(start)
@@ -370,15 +370,16 @@ class _Rule:
         self.slip = ~stuck
 
     def apply(self, axial, lag, force_error=0.0, position_error=0.0):
-        """release, against (P,) bool from the axial reactions (P,) mN and lags (P,) mm; and whether a decision is unclear.
+        """release, against (P,) bool from the axial reactions (P,) mN and lags (P,) mm; and how many nodes change.
 
-        A decision is unclear when its quantity lies within the given error
-        (mN, mm) of its threshold: then an estimate may not decide it.
+        The count is −1 when a decision is unclear: its quantity lies within
+        the given error (mN, mm) of its threshold, so an estimate may not
+        decide it.
         """
         release, against = np.empty(axial.size, bool), np.empty(axial.size, bool)
-        unclear = kernels.friction_rule(axial, lag, self.limit, self.free, self.slip, self.sign, self.lag_tol,
+        changed = kernels.friction_rule(axial, lag, self.limit, self.free, self.slip, self.sign, self.lag_tol,
                                         force_error, position_error, release, against)
-        return release, against, unclear
+        return release, against, changed
 
 
 def _solve_pass(tissue, solver, strokes, x, g, hold, loads, tol, decide, start):
