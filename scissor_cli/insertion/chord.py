@@ -71,7 +71,7 @@ class ChordSolver:
         self.fresh = False
         self._slot = np.full(tissue.mesh.n_nodes, -1, np.int64)
         # K⁻¹e of the kept nodes' dofs as rows (K is symmetric): a row block is contiguous, so a
-        # combination of them (`responses(nodes).T @ c`) runs as one BLAS pass without a copy
+        # combination of them (a chord step's K⁻¹Cᵀμ, a new pass's K⁻¹g) reads it without a copy
         self._responses = np.zeros((0, tissue.free_dofs.size))
         self._used = 0
         #: (factor key, g, K⁻¹g) of the last gradient solved on the kept factor (`_solve_gradient`)
