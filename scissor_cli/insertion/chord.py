@@ -311,7 +311,11 @@ class Hold:
         return self.schur
 
     def directions(self) -> np.ndarray:
-        """D (2P, m): each constraint row's unit direction on its node's (x, y) dofs; t rows for every captured node, then n rows for the stuck."""
+        """D (2P, m): each constraint row's unit direction on its node's (x, y) dofs; t rows for every captured node, then n rows for the stuck.
+
+        The explicit C = DᵀEᵀ. The solver works with the rows' coordinates in
+        the (t, n) frame (`rows`) instead; the tests check the two agree.
+        """
         p = self.captured.size
         stuck = np.flatnonzero(self.stuck)
         D = np.zeros((2 * p, p + stuck.size))
@@ -335,7 +339,10 @@ class Hold:
         return kernels.hold_gap(x, self.captured, self.base, self.frame, self.ride, self.rows, out)
 
     def residual(self, tissue: Tissue, g: np.ndarray) -> float:
-        """Newton's relative residual under this hold (`newton._Held.residual`): held components left out."""
+        """Newton's relative residual under this hold (`newton._Held.residual`): held components left out.
+
+        The definition; the chord steps use the compiled `held_residual`, which the tests compare with it.
+        """
         G = g.reshape(-1, 2).copy()
         gc = G[self.captured]
         gc -= (gc @ self.t)[:, None] * self.t
