@@ -208,11 +208,12 @@ def test_nonsense_numbers_are_refused_everywhere(value):
     (b"name: 2001-02-30\n", ["(line 1)", "cannot read the value"]),
     (b'name: "\\UFFFFFFFF"\n', ["(line 1)", "not valid YAML"]),
     (b"a: &a [*a]\n", ["(line 1)", "recursive"]),
-    (b"seed: " + b"[" * 2000 + b"]" * 2000 + b"\n", ["nested"]),
+    (b"seed: " + b"[" * 2000 + b"]" * 2000 + b"\n", ["(line 1)", "nested more than 32 levels"]),
+    (b"a:\n" + b"".join(b" " * k + b"- \n" for k in range(1, 200)), ["nested more than 32 levels"]),
     (b"seed: " + b"[" * 40 + b"]" * 40 + b"\n", ["nested more than 32 levels"]),
     (b"? [a, b]\n: 1\n", ["not valid YAML"]),
 ], ids=["empty", "comment", "latin1", "utf16", "nul", "escape", "unclosed", "two-docs", "list", "scalar", "python-tag",
-        "huge-int", "bad-date", "bad-escape", "recursive", "deep", "deep-32", "complex-key"])
+        "huge-int", "bad-date", "bad-escape", "recursive", "deep", "deep-block", "deep-32", "complex-key"])
 def test_bad_bytes_and_yaml(tmp_path, content, words):
     path = tmp_path / "scene.yaml"
     path.write_bytes(content)

@@ -117,6 +117,32 @@ def _shape_problem(root: yaml.Node) -> Optional[tuple[yaml.Node, str]]:
     return None
 
 
+_OPENS = (yaml.FlowSequenceStartToken, yaml.FlowMappingStartToken, yaml.BlockSequenceStartToken,
+          yaml.BlockMappingStartToken)
+_CLOSES = (yaml.FlowSequenceEndToken, yaml.FlowMappingEndToken, yaml.BlockEndToken)
+
+
+def _nesting_line(text: str) -> Optional[int]:
+    """The line (1-based) where the text first nests deeper than MAX_DEPTH, else None.
+
+    Read from the pure-Python scanner's tokens, which need no recursion, so a
+    parser that gave up on the depth (libyaml has its own limit, worded its
+    own way) still gets our message. Stops at the first level too deep.
+    """
+    depth = 0
+    try:
+        for token in yaml.scan(text, Loader=yaml.SafeLoader):
+            if isinstance(token, _OPENS):
+                depth += 1
+                if depth > MAX_DEPTH:
+                    return token.start_mark.line + 1
+            elif isinstance(token, _CLOSES):
+                depth -= 1
+    except (yaml.YAMLError, ValueError, OverflowError):  # not valid YAML for another reason: the parser's message stands
+        return None
+    return None
+
+
 def _duplicate_key(root: yaml.Node) -> Optional[tuple[tuple, yaml.Node]]:
     """(path, key node) of the first key given twice in one mapping, if any."""
     seen_nodes: set[int] = set()
@@ -166,10 +192,14 @@ def _read_yaml(text: str, source: str) -> tuple[yaml.Node, dict]:
             node, why = shape
             raise ConfigError(f"{source} (line {node.start_mark.line + 1}): {why}")
         data = loader.construct_document(root)
-    except yaml.YAMLError as exc:
+    except (yaml.YAMLError, RecursionError) as exc:
+        deep = _nesting_line(text)
+        if deep is not None:  # the parser's own depth limit, in whichever words it has
+            raise ConfigError(f"{source} (line {deep}): nested more than {MAX_DEPTH} levels deep; "
+                              f"a scene nests at most 5") from None
+        if isinstance(exc, RecursionError):
+            raise ConfigError(f"{source}: not valid YAML: nested too deeply (a scene nests at most {MAX_DEPTH} levels)") from None
         raise ConfigError(_yaml_message(source, text, exc)) from None
-    except RecursionError:
-        raise ConfigError(f"{source}: not valid YAML: nested too deeply (a scene nests at most {MAX_DEPTH} levels)") from None
     except (ValueError, OverflowError) as exc:  # a lone surrogate in the text; PyYAML's scanner on "\UFFFFFFFF"
         raise ConfigError(f"{source}: not valid YAML: {exc}") from None
     finally:
