@@ -29,3 +29,14 @@ def deep_update(data: dict, dotted: str, value) -> dict:
         node = node[k]
     node[keys[-1]] = value
     return data
+
+
+#: relative residuals below this are treated as round-off when judging a solver's rate: at the
+#: example's sizes the floor is 1e-12..1e-9 and varies between CPUs (and a CG step may land on it
+#: anywhere), so a rate is only read from steps that start 100x above its top
+ROUNDOFF_FLOOR = 1e-7
+
+
+def rates_above_roundoff(history) -> list[float]:
+    """Residual ratios r[k+1]/r[k] of the steps that start above ROUNDOFF_FLOOR, in order."""
+    return [b / a for a, b in zip(history[:-1], history[1:]) if a >= ROUNDOFF_FLOOR]

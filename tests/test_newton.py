@@ -8,7 +8,7 @@ from scissor_cli.mesh.mesh import interpolate, locate
 from scissor_cli.solvers.newton import solve_newton
 from scissor_cli.experiments.simulate import build_model
 from scissor_cli.solvers.common import SolverError
-from helpers import EXAMPLE
+from helpers import EXAMPLE, rates_above_roundoff
 
 
 @pytest.fixture(scope="module")
@@ -21,10 +21,10 @@ def test_example_forward_cases_converge_quadratically(example, stroke):
     _, _, tissue = build_model(example)
     r = solve_newton(tissue, np.array([stroke]))
     assert r.converged and r.residual <= 1e-8
-    h = r.history
-    assert len(h) <= 10
-    # quadratic ending: the last step squares the residual (up to a constant)
-    assert h[-1] < 1e-3 * h[-2] and h[-2] < 1e-1 * h[-3]
+    assert len(r.history) <= 10
+    # quadratic ending, read above round-off: the last steps square the residual (up to a constant)
+    rates = rates_above_roundoff(r.history)
+    assert rates[-1] < 1e-3 and rates[-2] < 1e-1, r.history
     assert tissue.jacobians(r.x).min() > 0
 
 
@@ -43,22 +43,29 @@ def test_linear_model_is_one_linear_solve(example):
 
 
 def test_target_displacement_converges_under_refinement(example):
-    """Refining h by 2 shrinks the change in the targets' positions.
+    """Refining h shrinks the targets' error against a much finer reference solve.
 
-    Observed (README): successive changes 0.127, 0.093, 0.074 mm for scales
-    4 → 2 → 1 → 0.5, an order of about 0.3–0.45 in this pre-asymptotic range
-    (P1 triangles at ν = 0.45 and the singular stress at the cup's edges).
+    Why these levels: every scale builds a new unstructured mesh, so each
+    level's answer carries a mesh-to-mesh scatter of a few hundredths of a
+    mm (one refinement decision more or less moves a node near a target;
+    CPUs differ there). Successive differences between neighbouring levels
+    (0.16, 0.07, 0.07 mm) are as small as that scatter at the fine end, so
+    they cannot show an order. Errors against a reference 3x finer than the
+    finest level tested (scale 0.35, ~14k triangles) are well above it:
+    0.28, 0.12, 0.08 mm at scales 4, 2, 1, an order of about 0.9 over the
+    range (P1 triangles at ν = 0.45 with the singular stress at the cup's
+    edges: pre-asymptotic). The asserts leave room for the scatter.
     """
-    positions = []
-    for scale in (4.0, 2.0, 1.0, 0.5):
+    positions = {}
+    for scale in (4.0, 2.0, 1.0, 0.35):
         _, mesh, tissue = build_model(example, mesh_scale=scale)
         r = solve_newton(tissue, np.array([10.0]))
         tri, bary = locate(mesh, np.array([t.rest for t in tissue.scene.targets]))
-        positions.append(interpolate(r.x, mesh.triangles, tri, bary))
-    d = [np.linalg.norm(positions[k] - positions[k + 1]) for k in range(3)]
-    assert d[0] > d[1] > d[2]
-    order = np.log2(d[1] / d[2])
-    assert order > 0.25, (d, order)
+        positions[scale] = interpolate(r.x, mesh.triangles, tri, bary)
+    error = [np.linalg.norm(positions[s] - positions[0.35]) for s in (4.0, 2.0, 1.0)]
+    assert error[0] > 1.5 * error[1], error
+    order = np.log2(error[0] / error[2]) / 2
+    assert order > 0.4, (error, order)
 
 
 def scene_with(example, **material):
@@ -118,8 +125,7 @@ def test_chord_option_reaches_the_same_solution_and_ends_quadratic(example):
     start = tangent_predictor(tissue, tissue.rest, np.array([5.0]))
     r = newton_iterations(tissue, start, chord=True)
     assert r.converged and np.abs(r.x - ref.x).max() < 1e-8
-    h = r.history
-    assert h[-1] < 1e-3 * h[-2]  # the last step is a full Newton step
+    assert rates_above_roundoff(r.history)[-1] < 1e-3, r.history  # the last step is a full Newton step
 
 
 def test_2d_steps_precondition_with_a_factor_that_modelled_the_last_step_well(example, monkeypatch):
@@ -139,8 +145,8 @@ def test_2d_steps_precondition_with_a_factor_that_modelled_the_last_step_well(ex
     assert np.abs(cg.x - direct.x).max() < 1e-8
     assert factor.cg_iterations == cg_iterations > 0  # the direct path ran no CG
     assert cg.factorizations < direct.factorizations == direct.iterations + 1  # + the predictor's
-    h = cg.history
-    assert h[-2] < 1e-3 * h[-3]  # still superlinear at the end (the last step reaches round-off)
+    # still superlinear at the end, read above round-off (a CG step may land anywhere on the floor)
+    assert rates_above_roundoff(cg.history)[-1] < 1e-3, cg.history
     # the loose solve the solver benchmark times: one factorisation fewer, the same answer to its tolerance
     loose = {}
     for contraction in (0.0, default):
@@ -179,5 +185,4 @@ def test_full_steps_are_extrapolated_where_the_hessian_overrates_the_curvature(e
     assert fast.converged and slow.converged
     assert fast.iterations <= 25 < 30 <= slow.iterations
     assert np.abs(fast.x - slow.x).max() < 1e-6
-    h = fast.history
-    assert h[-1] < 1e-3 * h[-2]  # still Newton's quadratic ending
+    assert rates_above_roundoff(fast.history)[-1] < 1e-3, fast.history  # still Newton's quadratic ending
