@@ -20,6 +20,11 @@ SIDE_NORMALS = {
 }
 
 
+def cross2(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """z of the cross product of 2-D vectors (..., 2) × (..., 2) (numpy's np.cross dropped 2-D vectors)."""
+    return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+
+
 def signed_area(poly: np.ndarray) -> float:
     """Signed area (mm²) of a closed polygon (K, 2); positive when counter-clockwise."""
     x, y = poly[:, 0], poly[:, 1]

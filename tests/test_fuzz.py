@@ -231,13 +231,13 @@ COARSE = _coarse_example()
 COARSE_PATHS = _paths(COARSE)
 
 
-def _check_simulate(tmp_path: Path, data: dict) -> None:
+def _check_simulate(tmp_path: Path, data: dict, codes=(0, 1, 2)) -> None:
     path = tmp_path / "scene.yaml"
     path.write_text(_dump(data))
     t0 = time.perf_counter()
     result = runner.invoke(app, ["simulate", str(path), "--trials", "0", "--out", str(tmp_path / "out"), "--quiet"])
     seconds = time.perf_counter() - t0
-    _assert_clean(result, seconds, SIMULATE_SECONDS, path, codes=(0, 1, 2))
+    _assert_clean(result, seconds, SIMULATE_SECONDS, path, codes=codes)
     if result.exit_code == 1:  # a run-time failure: where the partial results are, then the reason
         reason = result.stderr.split("error: ", 1)
         assert len(reason) == 2 and reason[1].strip(), result.stderr
@@ -249,6 +249,56 @@ def _check_simulate(tmp_path: Path, data: dict) -> None:
                       edge_of_range(COARSE, COARSE_PATHS)))
 def test_simulate_mutated_values(tmp_path_factory, data):
     _check_simulate(tmp_path_factory.mktemp("s"), data)
+
+
+#: offsets (mm) that make two points coincide, nearly coincide, or sit just either side of the spacing allowed
+NEAR_OFFSETS = [0.0, 1e-12, 1e-9, 1e-6, 1e-3, 0.049, 0.05, 0.051, 0.3]
+
+
+@st.composite
+def coincident_points(draw, base=COARSE):
+    """The scene with two of its points made (nearly) coincident: targets, a target on an obstacle's
+    vertex or centre, a copied obstacle or cup shifted by a small offset."""
+    data = copy.deepcopy(base)
+    d = draw(st.sampled_from(NEAR_OFFSETS))
+    angle = draw(st.sampled_from([0.0, 0.5 * math.pi, 0.25 * math.pi, math.pi]))
+    dx, dy = d * math.cos(angle), d * math.sin(angle)
+    kind = draw(st.sampled_from(["targets", "target-on-obstacle", "obstacle", "cup"]))
+    if kind == "targets":
+        x, y = data["targets"][0]["position_mm"]
+        data["targets"][1]["position_mm"] = [x + dx, y + dy]
+        data["targets"][1].pop("desired_mm", None)
+    elif kind == "target-on-obstacle":
+        obstacle = draw(st.sampled_from(data["obstacles"]))
+        if "polygon_mm" in obstacle:
+            x, y = draw(st.sampled_from(obstacle["polygon_mm"]))
+        else:
+            (x, y), r = obstacle["circle"]["center_mm"], obstacle["circle"]["radius_mm"]
+            y += draw(st.sampled_from([0.0, r]))
+        data["targets"][0]["position_mm"] = [x + dx, y + dy]
+    elif kind == "obstacle":
+        copy_of = copy.deepcopy(draw(st.sampled_from(data["obstacles"])))
+        copy_of["name"] = "copy"
+        if "polygon_mm" in copy_of:
+            copy_of["polygon_mm"] = [[x + dx, y + dy] for x, y in copy_of["polygon_mm"]]
+        else:
+            x, y = copy_of["circle"]["center_mm"]
+            copy_of["circle"]["center_mm"] = [x + dx, y + dy]
+        data["obstacles"].append(copy_of)
+    else:
+        cup = copy.deepcopy(data["cups"][0])
+        cup["name"] = "copy"
+        x, y = cup["contact_mm"]
+        cup["contact_mm"] = [x + d, y]  # along the top side
+        data["cups"].append(cup)
+    return data
+
+
+@settings(max_examples=10, **QUICK)
+@given(data=coincident_points())
+def test_simulate_coincident_points(tmp_path_factory, data):
+    """Coincident or nearly coincident targets, obstacles and cups: the run works or is refused (exit 2)."""
+    _check_simulate(tmp_path_factory.mktemp("c"), data, codes=(0, 2))
 
 
 @settings(max_examples=150, **QUICK)
@@ -336,3 +386,10 @@ def test_fuzz_validate_edges_of_ranges(tmp_path_factory, data):
                       edge_of_range(COARSE, COARSE_PATHS)))
 def test_fuzz_simulate_mutated_values(tmp_path_factory, data):
     _check_simulate(tmp_path_factory.mktemp("s"), data)
+
+
+@pytest.mark.fuzz
+@settings(max_examples=150, **LONG)
+@given(data=coincident_points())
+def test_fuzz_simulate_coincident_points(tmp_path_factory, data):
+    _check_simulate(tmp_path_factory.mktemp("c"), data, codes=(0, 2))

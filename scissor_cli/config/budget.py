@@ -39,6 +39,7 @@ from scipy.spatial import cKDTree
 
 from scissor_cli import geometry
 from scissor_cli.config.checks import Problem, obstacle_outline, tissue_outline
+from scissor_cli.config.mesh_file import read_mesh_arrays
 from scissor_cli.config.sections import MAX_SCALE, MIN_EDGE_MM, Config
 
 #: the most triangles a mesh of any scissor run may have (estimated before meshing). At 236 000
@@ -146,6 +147,8 @@ def estimate_elements(cfg: Config, scale: float | None = None, graded: bool | No
     Past _STOP budgets the refinement stops: the answer is then a lower bound, already over budget.
     """
     m = cfg.tissue.mesh
+    if m.file is not None and scale is None and graded is None:  # a pinned mesh: count it (checks read it already)
+        return len(read_mesh_arrays(m.file)[1])
     s = m.scale if scale is None else scale
     graded = m.graded if graded is None else graded
     lo, hi = m.min_edge_mm * s, max(m.max_edge_mm, m.min_edge_mm) * s

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from scissor_cli import geometry
+from scissor_cli.config.mesh_file import MeshFileError, mesh_file_problem, read_mesh_arrays
 from scissor_cli.config.sections import MAX_TISSUE_MM, MIN_EDGE_MM, Config, ObstacleConfig, TissueConfig
 
 #: implicit-Euler steps (ramp + settling) one forward case may take with solver.dt_s
@@ -169,7 +170,21 @@ def _obstacle_problems(cfg: Config, outline: np.ndarray) -> list[Problem]:
                 problems.append(
                     (("obstacles", j), f"obstacle {cfg.obstacles[j].name!r} overlaps {cfg.obstacles[i].name!r}")
                 )
+                continue
+            # outlines are mesh segments: coincident or touching ones are not a mesh (Triangle fails on them)
+            gap = _outline_gap(outlines[i], outlines[j])
+            if gap < MIN_EDGE_MM:
+                problems.append((("obstacles", j), (
+                    f"obstacle {cfg.obstacles[j].name!r} is {gap:.3g} mm from {cfg.obstacles[i].name!r}; obstacles "
+                    f"must be at least {MIN_EDGE_MM:g} mm apart (the finest mesh edge) or merged into one")))
     return problems
+
+
+def _outline_gap(p: np.ndarray, q: np.ndarray) -> float:
+    """The smallest distance (mm) between two closed outlines' edges (0 where they touch or coincide)."""
+    pa, pb = geometry.edges(p)
+    qa, qb = geometry.edges(q)
+    return float(min(geometry.point_segment_distance(p, qa, qb).min(), geometry.point_segment_distance(q, pa, pb).min()))
 
 
 def _cup_and_target_problems(cfg: Config, outline: np.ndarray) -> list[Problem]:
@@ -331,7 +346,42 @@ def scene_problems(cfg: Config) -> list[Problem]:
     problems += _manipulation_point_problems(cfg)
     problems += _insertion_problems(cfg, outline)
     problems += _layer_check_problems(cfg)
+    problems += _point_spacing_problems(cfg)
+    if not problems:  # reading a mesh file is worth it only for an otherwise sound scene
+        problems += _mesh_file_problems(cfg, outline)
     return problems
+
+
+def _point_spacing_problems(cfg: Config) -> list[Problem]:
+    """Targets are mesh vertices: two closer than the finest edge a mesh may have cannot both be meshed."""
+    problems: list[Problem] = []
+    for j, b in enumerate(cfg.targets):
+        for a in cfg.targets[:j]:
+            d = float(np.hypot(*np.subtract(a.position_mm, b.position_mm)))
+            if d < MIN_EDGE_MM:
+                problems.append((("targets", j, "position_mm"), (
+                    f"target {b.name!r} is {d:.3g} mm from target {a.name!r}; targets must be at least "
+                    f"{MIN_EDGE_MM:g} mm apart (the finest mesh edge; each target is a mesh vertex)")))
+    return problems
+
+
+def _mesh_file_problems(cfg: Config, outline: np.ndarray) -> list[Problem]:
+    """A `tissue.mesh.file` must be a readable mesh of this scene's layer (config.mesh_file)."""
+    m = cfg.tissue.mesh
+    if m.file is None:
+        return []
+    where = ("tissue", "mesh", "file")
+    if cfg.solver.accuracy_mm is not None:
+        return [(where, "a mesh file pins the mesh, solver.accuracy_mm chooses one: give one of the two")]
+    if m.scale != 1.0:
+        return [(where, f"a mesh file is used as it is: tissue.mesh.scale must be 1 with it; got {m.scale:g}")]
+    try:
+        nodes, triangles = read_mesh_arrays(m.file)
+    except MeshFileError as exc:
+        return [(where, f"{m.file}: {exc}")]
+    points = np.array([t.position_mm for t in cfg.targets] + [c.contact_mm for c in cfg.cups], float).reshape(-1, 2)
+    why = mesh_file_problem(nodes, triangles, outline, points)
+    return [] if why is None else [(where, f"{m.file}: {why}")]
 
 
 def _insertion_problems(cfg: Config, outline: np.ndarray) -> list[Problem]:

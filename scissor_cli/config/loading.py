@@ -216,8 +216,13 @@ def _one_message(messages: list[str]) -> str:
     return messages[0] + extra
 
 
-def parse_config(text: str, source: str = "<config>") -> Config:
-    """Validate YAML text into a Config, or raise ConfigError with one clear message."""
+def parse_config(text: str, source: str = "<config>", base_dir: Path | None = None) -> Config:
+    """Validate YAML text into a Config, or raise ConfigError with one clear message.
+
+    Relative paths in it (`tissue.mesh.file`) are taken from `base_dir` (the
+    config file's folder; the working directory when None) and stored absolute,
+    so the resolved config a run keeps finds them from anywhere.
+    """
     if len(text.encode("utf-8", "surrogatepass")) > MAX_CONFIG_BYTES:
         raise ConfigError(f"{source}: larger than {MAX_CONFIG_BYTES // 1024} KiB, the most a scene file may be")
     root, data = _read_yaml(text, source)
@@ -230,11 +235,21 @@ def parse_config(text: str, source: str = "<config>") -> Config:
     except ValidationError as exc:
         errors = exc.errors(include_url=False)
         raise ConfigError(_one_message([located(source, root, *pydantic_problem(e)) for e in errors])) from None
+    cfg = _absolute_paths(cfg, base_dir)
     for check in (scene_problems, budget_problems):
         problems = check(cfg)
         if problems:
             raise ConfigError(_one_message([located(source, root, loc, what) for loc, what in problems]))
     return cfg
+
+
+def _absolute_paths(cfg: Config, base_dir: Path | None) -> Config:
+    mesh = cfg.tissue.mesh
+    if mesh.file is None or Path(mesh.file).is_absolute():
+        return cfg
+    where = Path(base_dir) if base_dir is not None else Path.cwd()
+    mesh = mesh.model_copy(update={"file": str((where / mesh.file).absolute())})
+    return cfg.model_copy(update={"tissue": cfg.tissue.model_copy(update={"mesh": mesh})})
 
 
 def read_config_text(path: Path) -> str:
@@ -258,7 +273,7 @@ def read_config_text(path: Path) -> str:
 def load_config(path: Path | str) -> Config:
     """Read and validate a YAML scene file (ConfigError on any problem)."""
     path = Path(path)
-    return parse_config(read_config_text(path), str(path))
+    return parse_config(read_config_text(path), str(path), base_dir=path.parent)
 
 
 def resolved_yaml(cfg: Config) -> str:

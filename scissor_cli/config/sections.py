@@ -77,6 +77,10 @@ class MeshConfig(_Section):
     graded: bool = True
     #: multiplies both edge lengths (the study's refinement levels)
     scale: Num(0.01, MAX_SCALE) = 1.0
+    #: a mesh to use as it is instead of meshing (config.mesh_file): an .npz with `nodes` (N, 2) mm and
+    #: `triangles` (M, 3), or a scissor results .h5 (its /mesh); relative to the config file's folder.
+    #: Pins the mesh so that another machine gives the same numbers (docs/contract.md, "Reproducibility")
+    file: Optional[Annotated[str, Field(min_length=1, max_length=4096)]] = None
 
 
 class TissueConfig(_Section):

@@ -14,6 +14,7 @@ import numpy as np
 import triangle
 
 from scissor_cli import geometry
+from scissor_cli.config.mesh_file import read_mesh_arrays
 from scissor_cli.scene.scene import Scene
 
 
@@ -195,7 +196,10 @@ def build_mesh(
         segments.append(np.column_stack([idx, np.roll(idx, -1)]))
         offset += n
     targets = np.array([t.rest for t in scene.targets]).reshape(-1, 2)
-    vertices.append(targets)
+    outline_points = np.vstack(vertices)
+    # a target on an outline's vertex is that vertex already: a second copy would be a node of no triangle
+    near = np.linalg.norm(targets[:, None] - outline_points[None], axis=-1).min(axis=1) <= 1e-9 if len(targets) else []
+    vertices.append(targets[~np.asarray(near, bool)])
     pslg = {"vertices": np.vstack(vertices), "segments": np.vstack(segments)}
     quality = f"q{min_angle_deg:g}"
     tri = triangle.triangulate(pslg, f"p{quality}Q")
@@ -203,7 +207,7 @@ def build_mesh(
         nodes, tris = tri["vertices"], tri["triangles"]
         centroid = nodes[tris].mean(axis=1)
         allowed = np.sqrt(3) / 4 * h(centroid) ** 2
-        area = 0.5 * np.abs(_cross(nodes[tris[:, 1]] - nodes[tris[:, 0]], nodes[tris[:, 2]] - nodes[tris[:, 0]]))
+        area = 0.5 * np.abs(geometry.cross2(nodes[tris[:, 1]] - nodes[tris[:, 0]], nodes[tris[:, 2]] - nodes[tris[:, 0]]))
         if np.all(area <= 1.5 * allowed):
             break
         tri = triangle.triangulate(
@@ -211,10 +215,15 @@ def build_mesh(
         )
     else:
         raise MeshError(f"size field not met after {max_refinements} refinements")
-    nodes = np.asarray(tri["vertices"], float)
-    tris = np.asarray(tri["triangles"], np.int64)
-    # Triangle returns counter-clockwise triangles; make sure rather than trust.
-    flip = _cross(nodes[tris[:, 1]] - nodes[tris[:, 0]], nodes[tris[:, 2]] - nodes[tris[:, 0]]) < 0
+    return mesh_from_arrays(scene, tri["vertices"], tri["triangles"])
+
+
+def mesh_from_arrays(scene: Scene, nodes: np.ndarray, triangles: np.ndarray) -> Mesh:
+    """The `Mesh` of nodes (N, 2) mm and triangles (M, 3): counter-clockwise, obstacles by centroid, boundary edges."""
+    nodes = np.asarray(nodes, float)
+    tris = np.array(triangles, np.int64)
+    # Triangle returns counter-clockwise triangles; make sure rather than trust (a mesh file may not).
+    flip = geometry.cross2(nodes[tris[:, 1]] - nodes[tris[:, 0]], nodes[tris[:, 2]] - nodes[tris[:, 0]]) < 0
     tris[flip] = tris[flip][:, [0, 2, 1]]
     centroid = nodes[tris].mean(axis=1)
     owner = np.full(len(tris), -1, np.int64)
@@ -224,8 +233,14 @@ def build_mesh(
 
 
 def mesh_for_config(scene: Scene, mesh_cfg, scale: float | None = None) -> Mesh:
-    """The mesh a config's `tissue.mesh` section asks for (scale overrides its `scale`)."""
+    """The mesh a config's `tissue.mesh` section asks for (scale overrides its `scale`).
+
+    With `file` the run's own mesh is read from it (config.mesh_file, checked
+    when the config was validated); other scales (the study's levels) are meshed.
+    """
     s = mesh_cfg.scale if scale is None else scale
+    if mesh_cfg.file is not None and s == mesh_cfg.scale:
+        return mesh_from_arrays(scene, *read_mesh_arrays(mesh_cfg.file))
     return build_mesh(
         scene,
         min_edge_mm=mesh_cfg.min_edge_mm * s,
@@ -234,10 +249,6 @@ def mesh_for_config(scene: Scene, mesh_cfg, scale: float | None = None) -> Mesh:
         grading=mesh_cfg.grading,
         graded=mesh_cfg.graded,
     )
-
-
-def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
 
 
 def _boundary_edges(tris: np.ndarray) -> np.ndarray:
@@ -256,13 +267,13 @@ def locate(mesh: Mesh, points: np.ndarray, tol: float = 1e-9) -> tuple[np.ndarra
     points = np.atleast_2d(np.asarray(points, float))
     p = mesh.nodes[mesh.triangles]  # (M, 3, 2)
     a, b, c = p[:, 0], p[:, 1], p[:, 2]
-    det = _cross(b - a, c - a)  # (M,)
+    det = geometry.cross2(b - a, c - a)  # (M,)
     tri_idx = np.empty(len(points), np.int64)
     bary = np.empty((len(points), 3))
     for lo in range(0, len(points), 256):  # chunks bound the (K, M) temporaries
         q = points[lo : lo + 256, None, :]
-        l1 = _cross(q - a, c - a) / det
-        l2 = _cross(b - a, q - a) / det
+        l1 = geometry.cross2(q - a, c - a) / det
+        l2 = geometry.cross2(b - a, q - a) / det
         l0 = 1 - l1 - l2
         worst = np.minimum(np.minimum(l0, l1), l2)  # (k, M): >= 0 inside
         best = np.argmax(worst, axis=1)

@@ -78,10 +78,6 @@ def candidate_directions(needle_cfg: NeedleConfig, scene: Scene) -> list[Candida
     return out
 
 
-def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
-
-
 def entry_points(target: np.ndarray, candidates: Sequence[Candidate], outline: np.ndarray) -> np.ndarray:
     """Entry points (K, 2) mm of the candidates for a target (2,), NaN where there is none.
 
@@ -98,10 +94,10 @@ def entry_points(target: np.ndarray, candidates: Sequence[Candidate], outline: n
     e = b - a  # (E, 2)
     u = -np.array([d for _, d in candidates])  # (K, 2): from the target back to the skin
     w = a - target  # (E, 2)
-    denom = _cross(u[:, None, :], e[None])  # (K, E)
+    denom = geometry.cross2(u[:, None, :], e[None])  # (K, E)
     with np.errstate(divide="ignore", invalid="ignore"):
-        t = _cross(w[None], e[None]) / denom
-        s = _cross(w[None], u[:, None, :]) / denom
+        t = geometry.cross2(w[None], e[None]) / denom
+        s = geometry.cross2(w[None], u[:, None, :]) / denom
     tol = 1e-9
     hit = (np.abs(denom) > 1e-12) & (t > tol) & (s >= -tol) & (s <= 1 + tol)
     t = np.where(hit, t, np.inf)
