@@ -30,7 +30,7 @@ FIBER_15 = np.deg2rad(15.0)
 
 
 @lru_cache(maxsize=None)
-def setup(name: str):
+def scene_setup(name: str):
     """(cfg, tissue on the coarse test mesh, plans of every target as `simulate` makes them)."""
     cfg = load_config(ROOT / "configs" / f"{name}.yaml")
     scene, _, tissue = build_model(cfg, mesh_scale=2.0)
@@ -38,7 +38,7 @@ def setup(name: str):
 
 
 def manipulate(name: str, k: int, mode: str = "closed", **kw) -> ct.LoopResult:
-    cfg, tissue, plans = setup(name)
+    cfg, tissue, plans = scene_setup(name)
     target, plan = tissue.scene.targets[k], plans[k]
     corridor = ct.Corridor.from_plan(plan, corridor_radius(cfg.needle))
     return ct.run_target(tissue, target.rest, plan.desired, cfg.controller, corridor=corridor, mode=mode,
@@ -46,7 +46,7 @@ def manipulate(name: str, k: int, mode: str = "closed", **kw) -> ct.LoopResult:
 
 
 def all_targets():
-    return [(name, k) for name in CONFIGS for k in range(len(setup(name)[1].scene.targets))]
+    return [(name, k) for name in CONFIGS for k in range(len(scene_setup(name)[1].scene.targets))]
 
 
 # --------------------------------------------------------------------------
@@ -55,7 +55,7 @@ def all_targets():
 
 @pytest.mark.parametrize("name", CONFIGS)
 def test_ideal_loop_reaches_every_target(name):
-    cfg, tissue, plans = setup(name)
+    cfg, tissue, plans = scene_setup(name)
     for k, (target, plan) in enumerate(zip(tissue.scene.targets, plans)):
         r = manipulate(name, k)
         assert r.stop_reason == "tolerance" and r.converged, (target.name, r.stop_reason)
@@ -77,7 +77,7 @@ def test_mismatched_stiffness_closed_loop_beats_open_loop(scale):
     """E ×1.3 / ×0.7 in the truth (η unchanged, so the fiber's share changes too)."""
     truth = ct.TruthPerturbation(E_scale=scale)
     for name, k in all_targets():
-        if setup(name)[1].scene.targets[k].desired is not None:
+        if scene_setup(name)[1].scene.targets[k].desired is not None:
             continue  # a configured y_d off the cup's path: see test_uncorrectable_part_is_reported
         closed = manipulate(name, k, truth=truth)
         opened = manipulate(name, k, "open", truth=truth)
@@ -96,7 +96,7 @@ def test_rotated_fibers_closed_loop_beats_open_loop():
     """
     truth = ct.TruthPerturbation(fiber_offset_rad=FIBER_15)
     for name, k in all_targets():
-        if setup(name)[1].scene.targets[k].desired is not None:
+        if scene_setup(name)[1].scene.targets[k].desired is not None:
             continue
         closed = manipulate(name, k, truth=truth)
         opened = manipulate(name, k, "open", truth=truth)
@@ -115,7 +115,7 @@ def test_rotated_fibers_closed_loop_beats_open_loop():
 def test_uncorrectable_part_is_reported():
     """example T2's configured y_d (58, 20.5) is off the one cup's path: with the full 2-D error
     (`controller.error: position`, the paper's) the loop stops with a reason."""
-    cfg, tissue, _ = setup("example")
+    cfg, tissue, _ = scene_setup("example")
     k = [t.name for t in tissue.scene.targets].index("T2")
     target = tissue.scene.targets[k]
     np.testing.assert_allclose(target.desired, [58.0, 20.5])
@@ -135,7 +135,7 @@ def test_uncorrectable_part_is_reported():
 def test_miss_of_an_off_path_desired_is_corrected():
     """The same T2 with the miss (the default): the one cup cancels the miss across the plan's axis;
     the along-axis rest is reported for the depth."""
-    cfg, tissue, plans = setup("example")
+    cfg, tissue, plans = scene_setup("example")
     k = [t.name for t in tissue.scene.targets].index("T2")
     target, plan = tissue.scene.targets[k], plans[k]
     assert cfg.controller.error == "miss"
@@ -149,7 +149,7 @@ def test_miss_of_an_off_path_desired_is_corrected():
 
 
 def test_unreachable_desired_stops_at_the_stroke_limit():
-    cfg, tissue, _ = setup("paper_push")
+    cfg, tissue, _ = scene_setup("paper_push")
     target = tissue.scene.targets[0]
     desired = target.rest + [0.0, -30.0]  # far beyond what a 15 mm push moves it
     r = ct.run_target(tissue, target.rest, desired, cfg.controller.model_copy(update={"error": "position"}))
@@ -160,7 +160,7 @@ def test_unreachable_desired_stops_at_the_stroke_limit():
 
 
 def test_history_and_table():
-    cfg, tissue, plans = setup("paper_push")
+    cfg, tissue, plans = scene_setup("paper_push")
     cam = Camera.from_config(cfg.camera)
     r = manipulate("paper_push", 0, measurement=ct.Measurement(cam, (0.1, -0.05)), backlash_mm=0.2,
                    rng=np.random.default_rng(3))
@@ -179,7 +179,7 @@ def test_history_and_table():
 
 
 def test_same_seed_same_history():
-    cfg, _, _ = setup("paper_pull")
+    cfg, _, _ = scene_setup("paper_pull")
     meas = ct.Measurement(Camera.from_config(cfg.camera), (0.2, 0.1))
     kw = dict(truth=ct.TruthPerturbation(E_scale=1.2, fiber_offset_rad=0.05), measurement=meas,
               backlash_mm=0.1, resolution_mm=0.01)
@@ -222,7 +222,7 @@ def test_actuator_backlash_loses_motion_on_reversal():
     assert down.apply([-2.0])[0] == pytest.approx(-2.0)
     assert down.apply([-1.0])[0] == pytest.approx(-1.3)
     # A loop that overshoots (high gain) reverses through the play and still gets there.
-    cfg, tissue, plans = setup("paper_pull")
+    cfg, tissue, plans = scene_setup("paper_pull")
     target = tissue.scene.targets[0]
     r = ct.run_target(tissue, target.rest, plans[0].desired, ControllerConfig(kp=1.9, tolerance_mm=0.02), backlash_mm=0.3)
     assert r.correctable_error_mm <= 0.1
@@ -262,7 +262,7 @@ def test_measurement():
     p = np.array([45.123456, 31.987654])
     np.testing.assert_array_equal(ct.Measurement().measure(p, rng), p)
     assert rng.standard_normal() == np.random.default_rng(0).standard_normal()  # ideal draws nothing
-    cfg, _, _ = setup("example")
+    cfg, _, _ = scene_setup("example")
     cam = Camera.from_config(cfg.camera)
     m = ct.Measurement(cam, noise_px=0.0)
     assert np.all(np.abs(m.measure(p, rng) - p) <= cam.mm_per_pixel / 2 + 1e-9)  # pixel rounding only
@@ -283,7 +283,7 @@ def test_split_error_one_cup():
 
 
 def test_equilibrium_tracks_reference_newton():
-    _, tissue, _ = setup("paper_push")
+    _, tissue, _ = scene_setup("paper_push")
     probe = probe_targets(tissue.mesh, np.array([t.rest for t in tissue.scene.targets]))
     eq = Equilibrium(tissue)
     for s in (9.0, 12.5, 12.4, 3.0, 3.05):
@@ -303,7 +303,7 @@ def test_equilibrium_tracks_reference_newton():
 def test_the_truth_predictor_is_secant_updated_by_its_moves():
     """Without the tangent the tracker's ∂x/∂s is Broyden-updated: it reproduces the last move, keeps B on the
     cup rows, and is nearer the exact tangent at the new state than the one it was factored with (at rest)."""
-    _, tissue, _ = setup("paper_push")
+    _, tissue, _ = scene_setup("paper_push")
     truth = tissue.with_material(1.3, fiber_angle_rad=0.3)
     eq = Equilibrium(truth)
     eq.move_to(np.array([-9.0]), tangent=False)
@@ -327,7 +327,7 @@ def test_the_second_order_predictor_fitted_to_recent_equilibria():
     (through their positions and exact tangents when it has them, else through the positions): nearer
     the reference equilibrium than the tangent predictor, for the controller with one cup, for the
     controller and for a truth with two; none beyond the history's reach."""
-    _, tissue, _ = setup("paper_push")
+    _, tissue, _ = scene_setup("paper_push")
     eq = Equilibrium(tissue)
     for s in (9.0, 9.3, 9.6):
         eq.move_to(np.array([s]), tangent=True)
@@ -369,7 +369,7 @@ def test_the_second_order_predictor_fitted_to_recent_equilibria():
 
 
 def test_a_guess_from_another_tissue_does_not_change_the_equilibrium():
-    _, tissue, _ = setup("paper_pull")
+    _, tissue, _ = scene_setup("paper_pull")
     truth = tissue.with_material(0.8, fiber_angle_rad=0.8)
     model_state = solve_newton(tissue, np.array([-13.0])).x
     plain, guided = Equilibrium(truth), Equilibrium(truth)
@@ -381,7 +381,7 @@ def test_a_guess_from_another_tissue_does_not_change_the_equilibrium():
 
 
 def test_truth_equal_to_model_is_solved_once():
-    cfg, tissue, plans = setup("paper_push")
+    cfg, tissue, plans = scene_setup("paper_push")
     assert ct.true_tissue(tissue, ct.TruthPerturbation()) is tissue
     assert ct.true_tissue(tissue, ct.TruthPerturbation(E_scale=1.3)) is not tissue
     same = ct.TruthPerturbation(E_scale=np.ones(tissue.mesh.n_elements), nu=tissue.scene.material.nu, eta_scale=1.0)
@@ -404,7 +404,7 @@ def test_truth_equal_to_model_is_solved_once():
 
 
 def test_manipulation_figure(tmp_path):
-    cfg, tissue, plans = setup("paper_pull")
+    cfg, tissue, plans = scene_setup("paper_pull")
     corridor = ct.Corridor.from_plan(plans[0], corridor_radius(cfg.needle))
     r = manipulate("paper_pull", 0)
     kw = manipulation_figure_inputs(tissue, r, tissue.scene.targets[0].rest, corridor)
