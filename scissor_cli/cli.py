@@ -17,7 +17,7 @@ from typing import Callable, Optional
 import typer
 from rich.console import Console
 from rich.markup import escape
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from scissor_cli import __version__, runtime
 from scissor_cli.config import Config, ConfigError, load_config, resolved_yaml
@@ -50,7 +50,7 @@ class ConsoleReporter:
         if not self.bars or total <= 1:
             return lambda advance=1: None
         bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                       console=err, transient=True)
+                       TextColumn("eta"), TimeRemainingColumn(), console=err, transient=True)
         task = bar.add_task(description, total=total)
         bar.start()
 

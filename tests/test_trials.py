@@ -268,3 +268,13 @@ def _die(k):
     import os
 
     os._exit(1)
+
+
+def test_expected_duration_counts_trials_per_worker():
+    from scissor_cli.experiments.simulate import Execution, expected_duration
+
+    assert "about 20 min with 2 worker(s)" in expected_duration(10.0, 240, Execution(jobs=2))  # 120 per worker
+    assert "about 1.7 h with 1 worker(s)" in expected_duration(50.0, 120, Execution(jobs=1))
+    assert "about 2.0 s with 2 worker(s)" in expected_duration(2.0, 2, Execution(jobs=8))  # no idle workers counted
+    line = expected_duration(2.0, 3, Execution(jobs=2))  # 2 workers, the busier one runs 2 trials
+    assert "the first took 2.0 s" in line and "about 4.0 s with 2 worker(s)" in line

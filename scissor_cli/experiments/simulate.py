@@ -310,12 +310,15 @@ def _trial_stage(sink: RunSink, cfg: Config, tasks: list[TargetTask], reporter: 
         reporter.info(f"trials: {len(work)} to run ({cfg.trials.profile} profile, {execution.jobs} job(s), "
                       f"{execution.executor} executor)")
     advance = reporter.progress("trials", len(work))
-    t0, failed = time.perf_counter(), 0
+    t0, failed, finished = time.perf_counter(), 0, 0
     with closing(execute(sink.config_yaml, work, execution.jobs, execution.executor, execution.scheduler)) as outcomes:
         for outcome in outcomes:
             with deferred_signals():
                 sink.trial(by_index[outcome.target_index].name, outcome)
             failed += not outcome.ok
+            finished += 1
+            if finished == 1 and len(work) > 1:
+                reporter.info(expected_duration(time.perf_counter() - t0, len(work), execution))
             advance(1)
     if work:
         reporter.info(f"trials done in {time.perf_counter() - t0:.1f} s")
@@ -323,6 +326,29 @@ def _trial_stage(sink: RunSink, cfg: Config, tasks: list[TargetTask], reporter: 
     if failed:
         raise TrialsFailed(f"{failed} trial(s) crashed (see /trials/<target>/message); re-run them with --resume")
     return len(work)
+
+
+def expected_duration(first_s: float, n_trials: int, execution: Execution) -> str:
+    """The line a run prints when its first trial is in: how long all of them should take.
+
+    The first trial's wall time (worker start-up and model build included, so
+    the estimate errs long) times the trials per worker; a Dask cluster's size
+    is not known here, so there it is per job asked for.
+    """
+    workers = max(1, min(execution.jobs, n_trials))
+    total = first_s * -(-n_trials // workers)
+    return (f"trials: the first took {_duration(first_s)}; all {n_trials} should take about {_duration(total)} "
+            f"with {workers} worker(s)")
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 10:
+        return f"{seconds:.1f} s"
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
 
 
 def _forward_stage(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary, reporter: Reporter,
