@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from scissor_cli.insertion import shaft_lengths
+from scissor_cli.insertion.run import miss_and_depth_error
 from scissor_cli.insertion.needle import NeedleState, capture, free_nodes, tip_weights, transverse_basis
 
 
@@ -85,3 +86,13 @@ def test_free_nodes_needs_every_dof_free():
     fi = np.array([0, 1, 2, -1, 3, 4, 5, 6, 7, 8, -1, 9]).astype(np.int64)
     assert free_nodes(SimpleNamespace(free_index=fi, dim=3)).tolist() == [0, 2]
     assert free_nodes(SimpleNamespace(free_index=fi, dim=2)).tolist() == [0, 2, 3, 4]
+
+
+def test_miss_in_3d_is_the_distance_to_the_needle_line():
+    entry, n = np.array([0.0, 0.0, 5.0]), np.array([0.6, 0.8, 0.0])
+    target = entry + 10.0 * n + np.array([0.8, -0.6, 0.0]) * 0.3 + np.array([0.0, 0.0, 0.4])
+    miss, depth_error = miss_and_depth_error(target, entry, n, 9.0)
+    assert miss == pytest.approx(0.5) and depth_error == pytest.approx(-1.0)
+    # in the layer's plane the 3-D miss is the 2-D one
+    m2, d2 = miss_and_depth_error(target[:2], entry[:2], n[:2], 9.0)
+    assert m2 == pytest.approx(0.3) and d2 == pytest.approx(-1.0)
