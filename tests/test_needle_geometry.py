@@ -96,3 +96,19 @@ def test_miss_in_3d_is_the_distance_to_the_needle_line():
     # in the layer's plane the 3-D miss is the 2-D one
     m2, d2 = miss_and_depth_error(target[:2], entry[:2], n[:2], 9.0)
     assert m2 == pytest.approx(0.3) and d2 == pytest.approx(-1.0)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_target_path_figure_takes_a_slab_insertion(d):
+    """The path figure draws the layer's plane; a slab insertion's targets (K, 3) show their in-plane part."""
+    from scissor_cli.output.insertion_figures import target_path_figure
+
+    k = 5
+    target = np.zeros((k, d))
+    target[:, 0] = np.linspace(10.0, 10.4, k)
+    target[:, 1] = 20.0
+    r = SimpleNamespace(steps=k, target=target, strategy="none", miss_mm=0.1, depth_error_mm=0.0,
+                        direction=np.eye(d)[0])
+    fig = target_path_figure("t", [r], target[0])
+    line = fig.axes[0].lines[1]
+    np.testing.assert_allclose(line.get_xydata(), target[:, :2])
