@@ -337,3 +337,38 @@ def test_vtk_reads_the_files(synthetic, tmp_path):
         assert grid.GetNumberOfCells() == n_triangles
         np.testing.assert_array_equal(vtk_to_numpy(grid.GetPointData().GetArray("displacement"))[:, :2], push)
         assert grid.GetCellData().GetArray("E_kPa") is not None
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_export_slab_insertion(synthetic, fmt, tmp_path):
+    """An insertion that ran in the slab (tip, target (K, 3), displacement (K, N3, 3)): a series on the slab's mesh."""
+    directory = tmp_path / "slab"
+    directory.mkdir()
+    shutil.copy(synthetic / "results.h5", directory / "results.h5")
+    rng = np.random.default_rng(5)
+    k = 4
+    with h5py.File(directory / "results.h5", "r+") as f:
+        del f["insertion"]
+        g = f.create_group("insertion/T1/loop")
+        g["depth_mm"] = np.linspace(0.0, 3.0, k)
+        g["tip"], g["target"] = rng.normal(size=(k, 3)), rng.normal(size=(k, 3))
+        g["needle_force_mN"] = rng.uniform(0, 500, k)
+        g["displacement"] = disp = rng.normal(size=(k, len(CUBE), 3))
+    out = tmp_path / "out"
+    export_run(directory, out, fmt)
+    points, cells, steps = read_series(out, "insertion_T1_loop", fmt)
+    np.testing.assert_array_equal(points, CUBE)
+    np.testing.assert_array_equal(cells[0].data, TETS)
+    assert [t for t, _ in steps] == list(range(k))
+    for (_, pd), u in zip(steps, disp):
+        np.testing.assert_array_equal(pd["displacement"], u)
+    with h5py.File(directory / "results.h5") as f:
+        rows = list(csv.DictReader(open(out / "insertion_T1_loop.csv")))
+        for name in ("tip", "target"):
+            got = [[float(r[f"{name}_{c}_mm"]) for c in "xyz"] for r in rows]
+            np.testing.assert_array_equal(got, f[f"insertion/T1/loop/{name}"][:])
+    # 3-D without the slab's mesh is refused with a message
+    with h5py.File(directory / "results.h5", "r+") as f:
+        del f["layer_check"]
+    with pytest.raises(ExportError, match="layer_check"):
+        export_run(directory, tmp_path / "out2", fmt)

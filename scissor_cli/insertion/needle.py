@@ -124,8 +124,13 @@ class NeedleState:
 
     @property
     def across(self) -> np.ndarray:
-        """t (2,): the unit normal of the axis, n rotated by +90°."""
+        """t (2,): the unit normal of the axis, n rotated by +90° (2-D; in 3-D see `transverse`)."""
         return np.array([-self.direction[1], self.direction[0]])
+
+    @property
+    def transverse(self) -> np.ndarray:
+        """(d − 1, d): unit vectors across the axis, orthogonal to it and to each other (`transverse_basis`)."""
+        return transverse_basis(self.direction)
 
     @property
     def tip(self) -> np.ndarray:
@@ -152,10 +157,32 @@ class StepOutcome:
     factorizations: int = 0
 
 
+def transverse_basis(direction: np.ndarray) -> np.ndarray:
+    """(d − 1, d) orthonormal unit vectors across the unit axis n (d,), d = 2 or 3 (docs/model.md §14).
+
+    2-D: [t], t = n rotated by +90° (`NeedleState.across`). 3-D: the two
+    components a captured node keeps across the axis; for an axis in the
+    layer (n_z = 0) they are (t, 0), t the in-plane normal as in 2-D, and
+    e_z, so a slab's transverse offset is the layer's plus the height.
+    Otherwise the in-plane normal is made orthogonal to n (Gram–Schmidt)
+    and the second is n × the first.
+    """
+    n = np.asarray(direction, float)
+    if n.shape == (2,):
+        return np.array([[-n[1], n[0]]])
+    if n.shape != (3,):
+        raise ValueError(f"the needle axis must be a 2- or 3-vector; got shape {n.shape}")
+    t = np.array([-n[1], n[0], 0.0])
+    if np.linalg.norm(t) < 1e-12:  # an axis along z: any horizontal pair will do
+        t = np.array([1.0, 0.0, 0.0])
+    t = t - (t @ n) * n
+    t /= np.linalg.norm(t)
+    return np.stack([t, np.cross(n, t)])
+
+
 def free_nodes(tissue: Tissue) -> np.ndarray:
-    """Nodes (F,) whose both dofs are free: the only ones a needle can capture or push."""
-    fi = tissue.free_index
-    return np.flatnonzero((fi[0::2] >= 0) & (fi[1::2] >= 0))
+    """Nodes (F,) whose every dof (2 or 3, `tissue.dim`) is free: the only ones a needle can capture or push."""
+    return np.flatnonzero(np.all(tissue.free_index.reshape(-1, tissue.dim) >= 0, axis=1))
 
 
 def shaft_lengths(axial: np.ndarray, depth_mm: float) -> np.ndarray:
@@ -179,8 +206,11 @@ def capture(tissue: Tissue, state: NeedleState, x: np.ndarray, candidates: np.nd
     """Newly captured nodes (Q,): not yet captured, projecting behind the tip and within radius_mm of the axis."""
     rel = x[candidates] - state.entry
     s = rel @ state.direction
-    h = rel @ state.across
-    new = (s >= -1e-9) & (s <= state.depth_mm) & (np.abs(h) <= radius_mm)
+    if rel.shape[1] == 2:
+        distance = np.abs(rel @ state.across)
+    else:  # the 3-D distance to the axis: both transverse components
+        distance = np.linalg.norm(rel @ state.transverse.T, axis=1)
+    new = (s >= -1e-9) & (s <= state.depth_mm) & (distance <= radius_mm)
     new_nodes = candidates[new]
     return new_nodes[~_marks(x.shape[0], state.captured)[new_nodes]]
 
@@ -193,7 +223,10 @@ def _marks(n_nodes: int, nodes: np.ndarray) -> np.ndarray:
 
 
 def tip_weights(x: np.ndarray, tip: np.ndarray, candidates: np.ndarray, zone_mm: float) -> tuple[np.ndarray, np.ndarray]:
-    """Nodes (Z,) and weights (Z,) summing to 1 of the tip zone; the nearest free node if the disc holds none."""
+    """Nodes (Z,) and weights (Z,) summing to 1 of the tip zone; the nearest free node if it holds none.
+
+    x (N, d), tip (d,): the zone is a disc in 2-D and a ball in 3-D.
+    """
     r = np.linalg.norm(x[candidates] - tip, axis=1)
     inside = r < zone_mm
     if not np.any(inside):

@@ -26,7 +26,8 @@ from scissor_cli.control.law import PID, split_error
 from scissor_cli.geometry import segment_polygon_distance
 from scissor_cli.insertion.chord import ChordFailed
 from scissor_cli.insertion.model_state import ModelState, hold_at
-from scissor_cli.insertion.needle import NeedleParams, NeedleState, advance, free_nodes, needle_conditions, STEP_TOL
+from scissor_cli.insertion.needle import (NeedleParams, NeedleState, STEP_TOL, advance, free_nodes, needle_conditions,
+                                         transverse_basis)
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.outlines import deformed_outlines, embed_outlines
 from scissor_cli.mesh.probe import probe_targets, target_positions
@@ -83,10 +84,13 @@ class InsertionResult:
 
 
 def miss_and_depth_error(target: np.ndarray, entry: np.ndarray, direction: np.ndarray, depth_mm: float) -> tuple[float, float]:
-    """Distance (mm) from the target (2,) to the needle line, and tip minus target along the axis (mm)."""
+    """Distance (mm) from the target (d,) to the needle line, and tip minus target along the axis (mm); d = 2 or 3."""
     rel = np.asarray(target, float) - entry
-    across = np.array([-direction[1], direction[0]])
-    return float(abs(rel @ across)), float(depth_mm - rel @ direction)
+    if rel.size == 2:
+        miss = abs(rel @ np.array([-direction[1], direction[0]]))
+    else:  # both components across the axis
+        miss = np.linalg.norm(transverse_basis(direction) @ rel)
+    return float(miss), float(depth_mm - rel @ direction)
 
 
 def run_insertion(

@@ -50,8 +50,9 @@ class Written:
 class Insertion:
     target: str
     strategy: str
-    displacement: np.ndarray  # (K, N, 2) mm
-    steps: dict[str, np.ndarray]  # name -> (K,) or (K, 2)
+    displacement: np.ndarray  # (K, N, 2) mm on the layer's mesh, or (K, N3, 3) on the slab's (slab truth)
+    steps: dict[str, np.ndarray]  # name -> (K,), (K, 2) or, in the slab, (K, 3)
+    slab: bool = False  # the insertion ran in the 3-D slab of /layer_check/mesh
 
 
 @dataclass
@@ -150,20 +151,31 @@ def _read(f: h5py.File, path: Path) -> RunData:
         data.forward[case] = _array(f, f"forward/{case}/displacement", (n, 2), path)
         if not f[f"forward/{case}"].attrs.get("converged", True):
             data.unconverged.add(case)
-    for target, g in f.get("insertion", {}).items():
-        for strategy in g:
-            base = f"insertion/{target}/{strategy}"
-            disp = _array(f, f"{base}/displacement", (None, n, 2), path)
-            k = len(disp)
-            steps = {}
-            for name in INSERTION_STEP_ARRAYS:
-                if f"{base}/{name}" in f:
-                    width = (2,) if np.ndim(f[f"{base}/{name}"]) == 2 else ()
-                    steps[name] = _array(f, f"{base}/{name}", (k, *width), path, dtype=None)
-            data.insertion.append(Insertion(target, strategy, disp, steps))
     if "layer_check" in f:
         data.layer_check = _read_layer_check(f, path)
+    for target, g in f.get("insertion", {}).items():
+        for strategy in g:
+            data.insertion.append(_read_insertion(f, path, target, strategy, n, data.layer_check))
     return data
+
+
+def _read_insertion(f: h5py.File, path: Path, target: str, strategy: str, n: int,
+                    layer_check: "LayerCheck | None") -> Insertion:
+    """One insertion: on the layer's mesh (K, N, 2), or on the slab's (K, N3, 3) when it ran in the slab."""
+    base = f"insertion/{target}/{strategy}"
+    slab = (f"{base}/displacement" in f and np.ndim(f[f"{base}/displacement"]) == 3
+            and f[f"{base}/displacement"].shape[2] == 3)
+    if slab and layer_check is None:
+        raise ExportError(f"{path}: /{base}/displacement is 3-D but there is no /layer_check/mesh to show it on")
+    d = 3 if slab else 2
+    disp = _array(f, f"{base}/displacement", (None, len(layer_check.nodes) if slab else n, d), path)
+    k = len(disp)
+    steps = {}
+    for name in INSERTION_STEP_ARRAYS:
+        if f"{base}/{name}" in f:
+            width = (d,) if np.ndim(f[f"{base}/{name}"]) == 2 else ()
+            steps[name] = _array(f, f"{base}/{name}", (k, *width), path, dtype=None)
+    return Insertion(target, strategy, disp, steps, slab)
 
 
 def _read_layer_check(f: h5py.File, path: Path) -> LayerCheck:
@@ -222,9 +234,16 @@ def _write(data: RunData, writer: "_Writer") -> None:
     for ins in data.insertion:
         name = f"insertion_{ins.target}_{ins.strategy}"
         k = len(ins.displacement)
-        stem = writer.series(name, points, cells, [{"displacement": _lift(u)} for u in ins.displacement],
-                             f"insertion {ins.target} / {ins.strategy}: {k} step(s), displacement per step "
-                             "(time = step)")
+        if ins.slab:  # _read checked the slab's mesh is there
+            lc = data.layer_check
+            stem = writer.series(name, lc.nodes, [("tetra", lc.tetrahedra)],
+                                 [{"displacement": u} for u in ins.displacement],
+                                 f"insertion {ins.target} / {ins.strategy} in the 3-D slab: {k} step(s), "
+                                 "displacement per step (time = step)")
+        else:
+            stem = writer.series(name, points, cells, [{"displacement": _lift(u)} for u in ins.displacement],
+                                 f"insertion {ins.target} / {ins.strategy}: {k} step(s), displacement per step "
+                                 "(time = step)")
         writer.table(f"{stem}.csv", *_step_table(ins), f"insertion {ins.target} / {ins.strategy}: per-step numbers")
     if data.layer_check is not None:
         lc = data.layer_check
@@ -248,8 +267,9 @@ def _step_table(ins: Insertion) -> tuple[list[str], list[list]]:
     header, columns = ["step"], [np.arange(len(ins.displacement))]
     for name, a in ins.steps.items():
         if a.ndim == 2:
-            header += [f"{name}_x_mm", f"{name}_y_mm"]
-            columns += [a[:, 0], a[:, 1]]
+            axes = "xyz"[:a.shape[1]]
+            header += [f"{name}_{c}_mm" for c in axes]
+            columns += [a[:, i] for i in range(len(axes))]
         else:
             header.append(name)
             columns.append(a)

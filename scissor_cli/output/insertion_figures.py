@@ -37,25 +37,30 @@ def needle_force_figure(title: str, results: list) -> Figure:
 
 
 def target_path_figure(title: str, results: list, desired: np.ndarray) -> Figure:
-    """The true target's path during the insertion per strategy, with the needle line and the planned position."""
+    """The true target's path during the insertion per strategy, with the needle line and the planned position.
+
+    Drawn in the layer's plane: an insertion in the slab (target (K, 3))
+    shows its in-plane part.
+    """
     fig = Figure(figsize=(7, 4.6))
     ax = fig.add_subplot(1, 1, 1)
-    desired = np.asarray(desired, float)
-    pts = [desired[None]] + [r.target for r in results if r.steps]
+    desired = np.asarray(desired, float)[:2]
+    paths = [np.asarray(r.target, float)[:, :2] for r in results]
+    pts = [desired[None]] + [p for r, p in zip(results, paths) if r.steps]
     allp = np.vstack(pts)
     span = max(float(np.ptp(allp, axis=0).max()), 0.5)
     lo, hi = allp.min(0) - 0.3 * span, allp.max(0) + 0.3 * span
     if results:
         r0 = results[0]
         t = np.linspace(-5 * span, 5 * span, 2)
-        line = desired[None] + t[:, None] * r0.direction[None]
+        line = desired[None] + t[:, None] * np.asarray(r0.direction, float)[None, :2]
         ax.plot(line[:, 0], line[:, 1], "-", color="0.6", lw=1, label="needle line")
-    for r in results:
+    for r, path in zip(results, paths):
         if not r.steps:
             continue
-        ax.plot(r.target[:, 0], r.target[:, 1], "-", color=COLORS.get(r.strategy), lw=1.3,
+        ax.plot(path[:, 0], path[:, 1], "-", color=COLORS.get(r.strategy), lw=1.3,
                 label=f"{r.strategy}: miss {r.miss_mm:.2f} mm, depth error {r.depth_error_mm:+.2f} mm")
-        ax.plot(*r.target[-1], "o", color=COLORS.get(r.strategy), ms=5)
+        ax.plot(*path[-1], "o", color=COLORS.get(r.strategy), ms=5)
     ax.plot(*desired, "k+", ms=10, label="planned (start of insertion)")
     ax.set_xlim(lo[0], hi[0])
     ax.set_ylim(lo[1], hi[1])

@@ -18,9 +18,10 @@ def insertion_path(target: str, strategy: str) -> str:
 def write_insertion(out: ResultsFile, r) -> None:
     """One `InsertionResult` (scissor_cli.insertion) at /insertion/<target>/<strategy>."""
     base = insertion_path(r.target_name, r.strategy)
+    d = np.asarray(r.entry).size  # 2 in the layer, 3 in the slab: tip, target (K, d), displacement (K, N, d)
     out.dataset(f"{base}/depth_mm", np.asarray(r.depth_mm, float), "mm", description="needle depth per step")
-    out.dataset(f"{base}/tip", np.asarray(r.tip, float).reshape(-1, 2), "mm", description="tip position per step")
-    out.dataset(f"{base}/target", np.asarray(r.target, float).reshape(-1, 2), "mm", description="true target per step")
+    out.dataset(f"{base}/tip", np.asarray(r.tip, float).reshape(-1, d), "mm", description="tip position per step")
+    out.dataset(f"{base}/target", np.asarray(r.target, float).reshape(-1, d), "mm", description="true target per step")
     out.dataset(f"{base}/needle_force_mN", np.asarray(r.needle_force_mN, float), "mN",
                 description="axial force on the needle per step: friction + stuck reactions + tip force")
     out.dataset(f"{base}/stuck", np.asarray(r.stuck, np.int64), description="captured nodes sticking")

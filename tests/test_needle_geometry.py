@@ -1,0 +1,114 @@
+"""The needle's geometry generic by dimension (docs/model.md §12, §14): transverse basis, capture by the
+distance to the axis (3-D: both transverse components), shares along the axis, the tip zone as a ball."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from scissor_cli.insertion import shaft_lengths
+from scissor_cli.insertion.run import miss_and_depth_error
+from scissor_cli.insertion.needle import NeedleState, capture, free_nodes, tip_weights, transverse_basis
+
+
+@pytest.mark.parametrize("n", [
+    [1.0, 0.0], [0.6, 0.8], [1.0, 0.0, 0.0], [0.6, -0.8, 0.0], [0.0, 0.0, 1.0], [2 / 3, 1 / 3, 2 / 3],
+])
+def test_transverse_basis_is_orthonormal_and_across_the_axis(n):
+    n = np.asarray(n)
+    T = transverse_basis(n)
+    assert T.shape == (n.size - 1, n.size)
+    np.testing.assert_allclose(T @ T.T, np.eye(n.size - 1), atol=1e-12)
+    np.testing.assert_allclose(T @ n, 0.0, atol=1e-12)
+
+
+def test_in_layer_axis_splits_into_the_layers_normal_and_the_height():
+    """A slab's offset is the layer's across-axis offset plus the height: what makes the blade test possible."""
+    n2 = np.array([0.6, 0.8])
+    T3 = transverse_basis(np.append(n2, 0.0))
+    np.testing.assert_allclose(T3[0], np.append(NeedleState(np.zeros(2), n2).across, 0.0), atol=1e-15)
+    np.testing.assert_allclose(np.abs(T3[1]), [0.0, 0.0, 1.0], atol=1e-15)
+    np.testing.assert_allclose(transverse_basis(n2)[0], NeedleState(np.zeros(2), n2).across)
+
+
+def test_capture_uses_the_3d_distance_to_the_axis():
+    state = NeedleState(np.array([0.0, 0.0, 5.0]), np.array([1.0, 0.0, 0.0]), depth_mm=10.0)
+    x = np.array([
+        [4.0, 1.5, 5.0],   # 1.5 mm across in the layer: captured
+        [4.0, 0.0, 6.5],   # 1.5 mm above the layer: captured
+        [4.0, 1.5, 6.5],   # each component within 2 mm, the distance 2.12 mm is not
+        [12.0, 0.0, 5.0],  # on the axis ahead of the tip: not yet
+        [-1.0, 0.0, 5.0],  # behind the entry
+        [9.9, -1.9, 5.0],  # just inside, near the tip
+    ])
+    got = capture(None, state, x, np.arange(len(x)), 2.0)
+    assert sorted(got.tolist()) == [0, 1, 5]
+    state.captured = np.array([1])
+    assert sorted(capture(None, state, x, np.arange(len(x)), 2.0).tolist()) == [0, 5]
+
+
+def test_2d_capture_unchanged():
+    state = NeedleState(np.zeros(2), np.array([0.0, 1.0]), depth_mm=5.0)
+    x = np.array([[1.9, 3.0], [-2.1, 3.0], [0.0, 5.5], [0.5, 0.0]])
+    assert sorted(capture(None, state, x, np.arange(4), 2.0).tolist()) == [0, 3]
+
+
+def test_tip_zone_is_a_ball_in_3d():
+    rng = np.random.default_rng(3)
+    x = rng.uniform(-3, 3, size=(400, 3))
+    tip = np.array([0.5, -0.2, 0.3])
+    nodes, w = tip_weights(x, tip, np.arange(400), 2.0)
+    r = np.linalg.norm(x[nodes] - tip, axis=1)
+    assert np.all(r < 2.0) and np.sum(np.linalg.norm(x - tip, axis=1) < 2.0) == nodes.size
+    assert w.sum() == pytest.approx(1.0) and np.all(w > 0)
+    # weights fall with the distance: (1 − (r/R)²)²
+    order = np.argsort(r)
+    assert np.all(np.diff(w[order]) <= 1e-15)
+    # an empty ball: the nearest node carries it all
+    far = np.array([10.0, 0.0, 0.0])
+    nodes, w = tip_weights(x, far, np.arange(400), 0.5)
+    assert nodes.size == 1 and w[0] == 1.0 and nodes[0] == np.argmin(np.linalg.norm(x - far, axis=1))
+
+
+def test_shares_along_the_axis_sum_to_the_depth_in_3d():
+    """Shares depend on positions along the axis only: nodes at several heights share like one sorted line."""
+    state = NeedleState(np.array([0.0, 0.0, 5.0]), np.array([0.0, 1.0, 0.0]), depth_mm=8.0)
+    x = np.array([[0.3, 1.0, 4.0], [-0.2, 1.0, 6.0], [0.0, 5.0, 5.0], [1.0, 7.5, 3.5]])
+    lengths = shaft_lengths((x - state.entry) @ state.direction, state.depth_mm)
+    assert lengths.sum() == pytest.approx(8.0, abs=1e-12)
+    # the axial positions 1, 1, 5, 7.5: half gaps, the entry's and the tip's gaps to the ends
+    np.testing.assert_allclose(lengths, [1.0, 2.0, 3.25, 1.75], atol=1e-12)
+
+
+def test_free_nodes_needs_every_dof_free():
+    fi = np.array([0, 1, 2, -1, 3, 4, 5, 6, 7, 8, -1, 9]).astype(np.int64)
+    assert free_nodes(SimpleNamespace(free_index=fi, dim=3)).tolist() == [0, 2]
+    assert free_nodes(SimpleNamespace(free_index=fi, dim=2)).tolist() == [0, 2, 3, 4]
+
+
+def test_miss_in_3d_is_the_distance_to_the_needle_line():
+    entry, n = np.array([0.0, 0.0, 5.0]), np.array([0.6, 0.8, 0.0])
+    target = entry + 10.0 * n + np.array([0.8, -0.6, 0.0]) * 0.3 + np.array([0.0, 0.0, 0.4])
+    miss, depth_error = miss_and_depth_error(target, entry, n, 9.0)
+    assert miss == pytest.approx(0.5) and depth_error == pytest.approx(-1.0)
+    # in the layer's plane the 3-D miss is the 2-D one
+    m2, d2 = miss_and_depth_error(target[:2], entry[:2], n[:2], 9.0)
+    assert m2 == pytest.approx(0.3) and d2 == pytest.approx(-1.0)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_target_path_figure_takes_a_slab_insertion(d):
+    """The path figure draws the layer's plane; a slab insertion's targets (K, 3) show their in-plane part."""
+    from scissor_cli.output.insertion_figures import target_path_figure
+
+    k = 5
+    target = np.zeros((k, d))
+    target[:, 0] = np.linspace(10.0, 10.4, k)
+    target[:, 1] = 20.0
+    r = SimpleNamespace(steps=k, target=target, strategy="none", miss_mm=0.1, depth_error_mm=0.0,
+                        direction=np.eye(d)[0])
+    fig = target_path_figure("t", [r], target[0])
+    line = fig.axes[0].lines[1]
+    np.testing.assert_allclose(line.get_xydata(), target[:, :2])
