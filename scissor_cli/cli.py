@@ -122,6 +122,7 @@ def simulate(
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address (with --executor dask)."),
     resume: Optional[Path] = typer.Option(None, "--resume", help="Finish an interrupted run directory: the stages it had not finished, then its trials."),
     study: bool = typer.Option(False, "--study", help="Also run the solver study (the config's `study` section or its defaults)."),
+    budget: bool = typer.Option(False, "--budget", help="Also run the error budget: the trials again with one error source at a time."),
     force: bool = typer.Option(False, "--force", help="Write into a non-empty --out directory."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress or messages, only the output path."),
 ) -> None:
@@ -176,6 +177,11 @@ def simulate(
         problem = slab_truth_insertion_problem(cfg)
         if problem is not None:
             _fail(2, f"{config or DEFAULT_SCENE}: trials.truth: {problem}")
+    if budget:
+        if cfg.trials.count == 0:
+            _fail(2, f"--budget: the error budget reruns the trials, and {config or DEFAULT_SCENE} runs none "
+                     f"(trials.count or --trials is 0); give --trials N with N >= 1")
+        cfg = cfg.model_copy(update={"trials": cfg.trials.model_copy(update={"budget": True})})
     if study and cfg.study is None:
         from scissor_cli.config import StudyConfig
 

@@ -350,6 +350,8 @@ def scene_problems(cfg: Config) -> list[Problem]:
     if slab_needle is not None:
         problems.append((("trials", "truth"), slab_needle))
     problems += _point_spacing_problems(cfg)
+    if cfg.trials.budget and cfg.trials.count == 0:
+        problems.append((("trials", "budget"), "the error budget reruns the trials: it needs trials.count >= 1"))
     if not problems:  # reading a mesh file is worth it only for an otherwise sound scene
         problems += _mesh_file_problems(cfg, outline)
     return problems

@@ -273,6 +273,8 @@ class TrialsConfig(_Section):
     #: with `insertion`: σ of log of the factor on the config's friction, and on its tip force
     friction_log_sd: Optional[Spread] = None
     tip_force_log_sd: Optional[Spread] = None
+    #: the error budget (docs/model.md §16): the trials again with one error source at a time
+    budget: bool = False
 
 
 class InsertionConfig(_Section):

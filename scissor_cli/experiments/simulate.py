@@ -33,6 +33,7 @@ from scissor_cli.experiments.sink import NonFiniteError, ResumeError  # noqa: F4
 from scissor_cli.robot.chain import RobotModel
 from scissor_cli.robot.registration import plan_to_joints
 from scissor_cli.experiments.insertion_stage import insertion_stage
+from scissor_cli.experiments.budget import run_budget
 from scissor_cli.experiments.selection import select
 from scissor_cli.experiments.study import run_study
 from scissor_cli.experiments.trials import TargetTask, execute
@@ -231,6 +232,8 @@ def _stages(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary, rep
             allocate_trial_arrays(sink, cfg, tasks, summary.plans)
             sink.mark_finished("trials")
         summary.trials_run = _trial_stage(sink, cfg, tasks, reporter, execution)
+        if cfg.trials.budget:
+            summary.figures += run_budget(cfg, tasks, sink, reporter, execution, done)
 
 
 def _study_stage(cfg: Config, sink: RunSink, reporter: Reporter) -> None:

@@ -177,6 +177,12 @@ class RunSink(Protocol):
     def trial_figures(self, title: str) -> list[Path]:
         """(Re)draw the figures of the finished trials."""
 
+    def budget_row(self, row: str, fields: dict, outcomes: dict[str, list]) -> None:
+        """Store one error-budget row whole: per target its trials' outcomes in trial order (docs/model.md §16)."""
+
+    def budget_figures(self, title: str, rows: list[str], profile: str) -> list[Path]:
+        """Note the budget's rows and (re)draw its figure from what is stored."""
+
 
 class SinkFactory(Protocol):
     """Opens the sink of a new run once the config it runs is final (after the selection)."""

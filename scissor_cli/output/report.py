@@ -7,15 +7,15 @@ and returns the table for printing.
 
 from __future__ import annotations
 
-import csv
 from dataclasses import dataclass
 from pathlib import Path
 
 import h5py
 import numpy as np
 
-from scissor_cli.output import figures, layer_check
+from scissor_cli.output import figures, layer_check, tables
 from scissor_cli.experiments import study as study_mod
+from scissor_cli.output.budget_report import report_budget
 from scissor_cli.output.insertion_report import report_insertion
 from scissor_cli.output.results import read_study
 
@@ -102,25 +102,12 @@ def summary_rows(runs: list[RunTrials]) -> list[dict]:
     return rows
 
 
-def _fmt(v) -> str:
-    if isinstance(v, (float, np.floating)):
-        return f"{v:.3f}"
-    return str(v)
-
-
 def markdown_table(rows: list[dict], columns: list[str] = COLUMNS) -> str:
-    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
-    for r in rows:
-        lines.append("| " + " | ".join(_fmt(r.get(c, "")) for c in columns) + " |")
-    return "\n".join(lines) + "\n"
+    return tables.markdown_table(rows, columns)
 
 
 def write_csv(path: Path, rows: list[dict], columns: list[str] = COLUMNS) -> None:
-    with open(path, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
-        w.writeheader()
-        for r in rows:
-            w.writerow({c: _fmt(r[c]) if c in r else "" for c in columns})
+    tables.write_csv(path, rows, columns)
 
 
 @dataclass
@@ -255,4 +242,7 @@ def report_trials(run_dirs: list[Path], out_dir: Path, partial: bool = False) ->
     if ins_files:
         files += ins_files
         table += "\n" + ins_table
+    budget_files, budget_table = report_budget([(r.label, _check_status(r.path, True)) for r in runs], out_dir)
+    files += budget_files
+    table += budget_table
     return ReportOutput(out_dir, files, table)

@@ -35,7 +35,8 @@ import numpy as np
 from scissor_cli.experiments.sink import ForwardCase, Manipulation, ResumeError, product_key
 from scissor_cli.experiments.study import rows_as_columns
 from scissor_cli.output.manipulation import manipulation_figure_inputs
-from scissor_cli.output import figures, journal, layer_check, results
+from scissor_cli.output import budget_results, figures, journal, layer_check, results
+from scissor_cli.output.budget_figures import budget_figure
 from scissor_cli.output.results import ResultsFile, temporary
 
 #: root attribute: the `product_key`s of what the run stored whole (docs/contract.md#resume)
@@ -183,6 +184,16 @@ class ResultsSink:
         rec = results.trial_record(target, outcome)  # checked finite before anything is written
         self._journal.append(rec)
         results.write_trial(self.out, rec)
+
+    def budget_row(self, row: str, fields: dict, outcomes: dict[str, list]) -> None:
+        budget_results.write_budget_row(self.out, row, fields, outcomes)
+
+    def budget_figures(self, title: str, rows: list[str], profile: str) -> list[Path]:
+        budget_results.write_budget_attrs(self.out, rows, profile)
+        table = budget_results.budget_rows(budget_results.read_budget(self.out.h5))
+        if not table:
+            return []
+        return [figures.save(budget_figure(title, table, profile), self.location / "budget.png")]
 
     def trial_figures(self, title: str) -> list[Path]:
         """Fig. 14 box plots of the x and y error per target, and the iterations histogram."""

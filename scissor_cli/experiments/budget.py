@@ -1,0 +1,122 @@
+"""The error budget: the trials again with one error source at a time (docs/model.md §16).
+
+A budget row is an ordinary trial run of a variant of the config: every
+`trials` setting of the other sources at 0 (and the truth the layer, unless
+the row is the 3-D truth's), its own sources as the run has them. Trials
+draw every random number whatever its σ (experiments/profiles.py), so a
+row's trials meet exactly the draws of the full run for their own source:
+a row equals the trials of that variant config run on its own, bit for
+bit, and the `all` row is the run's own trials (not run again).
+
+Rows, where the scene has them: camera pixel noise; localisation bias;
+material mismatch as four rows (E with its heterogeneity field; ν; η; the
+fiber angle); actuator (resolution and backlash); release slip (only when
+the run sets one); the 3-D truth (with a `layer_check`: the slab against the
+layer); the needle (with `insertion`: the drawn friction and tip force);
+`none` (every source off: what is left is the loop's own tolerance, pixel
+rounding and, with insertion, the nominal needle drag).
+"""
+
+from __future__ import annotations
+
+import time
+from contextlib import closing
+from dataclasses import dataclass, field
+
+from scissor_cli.config import Config, resolved_yaml
+from scissor_cli.experiments.sink import product_key
+from scissor_cli.experiments.trials import execute
+from scissor_cli.experiments.profiles import error_model
+
+#: every `trials` field that switches an error source (their values: the profile's, or the config's)
+SOURCE_FIELDS = ("pixel_noise_px", "localisation_error_mm", "E_log_sd", "heterogeneity_log_sd", "nu_sd",
+                 "eta_log_sd", "fiber_angle_sd_deg", "actuator_resolution_mm", "backlash_mm", "release_slip_mm",
+                 "friction_log_sd", "tip_force_log_sd")
+#: the rows of the budget and the fields each switches on, in the order they are reported
+ROWS: dict[str, tuple[str, ...]] = {
+    "camera": ("pixel_noise_px",),
+    "localisation": ("localisation_error_mm",),
+    "E": ("E_log_sd", "heterogeneity_log_sd"),
+    "nu": ("nu_sd",),
+    "eta": ("eta_log_sd",),
+    "fiber": ("fiber_angle_sd_deg",),
+    "actuator": ("actuator_resolution_mm", "backlash_mm"),
+    "release_slip": ("release_slip_mm",),
+    "slab": (),
+    "needle": ("friction_log_sd", "tip_force_log_sd"),
+    "none": (),
+}
+assert set(f for fs in ROWS.values() for f in fs) == set(SOURCE_FIELDS)
+
+
+@dataclass(frozen=True)
+class BudgetPlan:
+    """The rows a run's budget has, each with its variant config, and what the scene cannot have."""
+
+    rows: dict[str, Config] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+
+
+def budget_plan(cfg: Config) -> BudgetPlan:
+    """The budget's rows for a config: variant configs (trials.budget off) by row name, and the rows skipped."""
+    values = {k: getattr(error_model(cfg.trials), k) for k in SOURCE_FIELDS}
+    rows, notes = {}, []
+    for name, fields in ROWS.items():
+        if name == "slab" and cfg.layer_check is None:
+            notes.append("no 3-D truth row: the scene has no layer_check section")
+            continue
+        if name == "needle" and cfg.insertion is None:
+            notes.append("no needle row: the scene has no insertion section")
+            continue
+        if fields and not any(values[f] for f in fields):
+            notes.append(f"no {name} row: its spread is 0 in this run ({', '.join(fields)})")
+            continue
+        on = {f: (values[f] if f in fields else 0.0) for f in SOURCE_FIELDS}
+        truth = "slab" if name == "slab" else "layer"
+        rows[name] = cfg.model_copy(update={"trials": cfg.trials.model_copy(update={**on, "truth": truth, "budget": False})})
+    return BudgetPlan(rows, notes)
+
+
+def row_config_yaml(cfg: Config) -> str:
+    """A row's config as the trial workers read it (the resolved YAML, as for the run's own trials)."""
+    return resolved_yaml(cfg)
+
+
+def paper_maxima() -> dict[str, tuple[float, float]]:
+    """The paper's Fig. 14 maxima of |x| (across the push) and |y| (along it), mm, per profile."""
+    return {"prosthesis": (0.7, 1.7), "ex_vivo": (1.3, 2.5)}
+
+
+def run_budget(cfg: Config, tasks: list, sink, reporter, execution, done: frozenset[str] = frozenset()) -> list:
+    """Run every budget row not yet finished and store it whole (`budget/<row>`); returns figure paths."""
+
+    plan = budget_plan(cfg)
+    for note in plan.notes:
+        reporter.info(f"budget: {note}")
+    names = [t.name for t in tasks]
+    by_index = {t.index: t for t in tasks}
+    todo = [name for name in plan.rows if product_key("budget", name) not in done]
+    work = [(task, k) for task in tasks for k in range(cfg.trials.count)]
+    if todo:
+        reporter.info(f"budget: {len(todo)} row(s) of {len(work)} trials ({', '.join(todo)})")
+    advance = reporter.progress("budget", len(todo) * len(work))
+    for name in todo:
+        t0 = time.perf_counter()
+        outcomes = {n: [None] * cfg.trials.count for n in names}
+        with closing(execute(row_config_yaml(plan.rows[name]), work, execution.jobs, execution.executor,
+                             execution.scheduler)) as stream:
+            for outcome in stream:
+                outcomes[by_index[outcome.target_index].name][outcome.trial] = outcome
+                advance(1)
+        sink.budget_row(name, _fields_on(name, plan.rows[name]), outcomes)
+        sink.mark_finished(product_key("budget", name))
+        reporter.info(f"budget {name}: {len(work)} trials in {time.perf_counter() - t0:.1f} s")
+    return sink.budget_figures(cfg.name, list(plan.rows), cfg.trials.profile)
+
+
+def _fields_on(name: str, row: Config) -> dict[str, float | str]:
+    """What a row switches on, for the file: its fields' values and the truth."""
+    em = error_model(row.trials)
+    return {**{f: getattr(em, f) for f in ROWS[name]}, "truth": row.trials.truth}
+
+
