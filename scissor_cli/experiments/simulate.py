@@ -321,7 +321,7 @@ def _trial_stage(sink: RunSink, cfg: Config, tasks: list[TargetTask], reporter: 
             failed += not outcome.ok
             finished += 1
             if finished == 1 and len(work) > 1:
-                reporter.info(expected_duration(time.perf_counter() - t0, len(work), execution))
+                reporter.info(expected_duration(outcome.time_s, len(work), execution))
             advance(1)
     if work:
         reporter.info(f"trials done in {time.perf_counter() - t0:.1f} s")
@@ -334,14 +334,15 @@ def _trial_stage(sink: RunSink, cfg: Config, tasks: list[TargetTask], reporter: 
 def expected_duration(first_s: float, n_trials: int, execution: Execution) -> str:
     """The line a run prints when its first trial is in: how long all of them should take.
 
-    The first trial's wall time (worker start-up and model build included, so
-    the estimate errs long) times the trials per worker; a Dask cluster's size
-    is not known here, so there it is per job asked for.
+    The first trial's own loop time (`TrialOutcome.time_s`: outcomes arrive
+    in batches, so the wall time until the first arrives can hold several
+    trials) times the trials per worker; building each worker's model comes
+    on top. A Dask cluster's size is not known here: there it is per job asked for.
     """
     workers = max(1, min(execution.jobs, n_trials))
     total = first_s * -(-n_trials // workers)
     return (f"trials: the first took {_duration(first_s)}; all {n_trials} should take about {_duration(total)} "
-            f"with {workers} worker(s)")
+            f"with {workers} worker(s), plus building each worker's model")
 
 
 def _duration(seconds: float) -> str:
