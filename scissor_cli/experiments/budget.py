@@ -24,8 +24,9 @@ from contextlib import closing
 from dataclasses import dataclass, field
 
 from scissor_cli.config import Config, resolved_yaml
+from scissor_cli.experiments.pool import deferred_signals
 from scissor_cli.experiments.sink import product_key
-from scissor_cli.experiments.trials import execute
+from scissor_cli.experiments.trials import execute_rows
 from scissor_cli.experiments.profiles import error_model
 
 #: every `trials` field that switches an error source (their values: the profile's, or the config's)
@@ -82,14 +83,13 @@ def row_config_yaml(cfg: Config) -> str:
     return resolved_yaml(cfg)
 
 
-def paper_maxima() -> dict[str, tuple[float, float]]:
-    """The paper's Fig. 14 maxima of |x| (across the push) and |y| (along it), mm, per profile."""
-    return {"prosthesis": (0.7, 1.7), "ex_vivo": (1.3, 2.5)}
-
-
 def run_budget(cfg: Config, tasks: list, sink, reporter, execution, done: frozenset[str] = frozenset()) -> list:
-    """Run every budget row not yet finished and store it whole (`budget/<row>`); returns figure paths."""
+    """Run every budget row not yet finished and store it whole (`budget/<row>`); returns figure paths.
 
+    One set of workers runs every row's trials; a row is stored and marked
+    finished as soon as its last trial is in, so a killed run keeps its
+    finished rows and `--resume` runs the others.
+    """
     plan = budget_plan(cfg)
     for note in plan.notes:
         reporter.info(f"budget: {note}")
@@ -100,17 +100,20 @@ def run_budget(cfg: Config, tasks: list, sink, reporter, execution, done: frozen
     if todo:
         reporter.info(f"budget: {len(todo)} row(s) of {len(work)} trials ({', '.join(todo)})")
     advance = reporter.progress("budget", len(todo) * len(work))
-    for name in todo:
-        t0 = time.perf_counter()
-        outcomes = {n: [None] * cfg.trials.count for n in names}
-        with closing(execute(row_config_yaml(plan.rows[name]), work, execution.jobs, execution.executor,
-                             execution.scheduler)) as stream:
-            for outcome in stream:
-                outcomes[by_index[outcome.target_index].name][outcome.trial] = outcome
-                advance(1)
-        sink.budget_row(name, _fields_on(name, plan.rows[name]), outcomes)
-        sink.mark_finished(product_key("budget", name))
-        reporter.info(f"budget {name}: {len(work)} trials in {time.perf_counter() - t0:.1f} s")
+    outcomes = {name: {n: [None] * cfg.trials.count for n in names} for name in todo}
+    left = {name: len(work) for name in todo}
+    t0 = time.perf_counter()
+    rows_yaml = {name: row_config_yaml(plan.rows[name]) for name in todo}
+    with closing(execute_rows(rows_yaml, work, execution.jobs, execution.executor, execution.scheduler)) as stream:
+        for name, outcome in stream:
+            outcomes[name][by_index[outcome.target_index].name][outcome.trial] = outcome
+            left[name] -= 1
+            advance(1)
+            if left[name] == 0:  # a row is stored whole as soon as its last trial is in
+                with deferred_signals():
+                    sink.budget_row(name, _fields_on(name, plan.rows[name]), outcomes.pop(name))
+                    sink.mark_finished(product_key("budget", name))
+                reporter.info(f"budget {name}: done ({time.perf_counter() - t0:.1f} s into the budget)")
     return sink.budget_figures(cfg.name, list(plan.rows), cfg.trials.profile)
 
 

@@ -198,8 +198,8 @@ def run_trial(config_yaml: str, task: TargetTask, trial: int) -> TrialOutcome:
         )
 
 
-def _run_batch(config_yaml: str, work: list[tuple[TargetTask, int]]) -> list[TrialOutcome]:
-    return [run_trial(config_yaml, task, k) for task, k in work]
+def _run_batch(row: str, config_yaml: str, work: list[tuple[TargetTask, int]]) -> list[tuple[str, TrialOutcome]]:
+    return [(row, run_trial(config_yaml, task, k)) for task, k in work]
 
 
 def _batches(work: list[tuple[TargetTask, int]], size: int) -> list[list[tuple[TargetTask, int]]]:
@@ -221,22 +221,41 @@ def execute(
     scheduler at `scheduler`. Close the generator (or let an exception leave
     the loop over it) to stop the workers at once.
     """
-    if not work:
+    for _, outcome in execute_rows({"": config_yaml}, work, jobs, executor, scheduler):
+        yield outcome
+
+
+def execute_rows(
+    rows: dict[str, str],
+    work: list[tuple[TargetTask, int]],
+    jobs: int = 1,
+    executor: str = "local",
+    scheduler: Optional[str] = None,
+) -> Iterator[tuple[str, TrialOutcome]]:
+    """`execute` for the same trials under several configs {row: config YAML} on one set of workers.
+
+    Yields (row, outcome). Batches go row by row, so a worker rebuilds its
+    model (`_context`) only when it moves to the next row; one pool serves
+    every row instead of one pool started per row (the error budget).
+    """
+    if not work or not rows:
         return
     if executor == "dask":
-        yield from _execute_dask(config_yaml, work, scheduler, jobs)
+        yield from _execute_dask(rows, work, scheduler)
         return
     if jobs <= 1:
-        for task, k in work:
-            yield run_trial(config_yaml, task, k)
+        for row, config_yaml in rows.items():
+            for task, k in work:
+                yield row, run_trial(config_yaml, task, k)
         return
-    jobs = min(jobs, len(work))  # a worker without a trial would only cost its start-up
+    jobs = min(jobs, len(work) * len(rows))  # a worker without a trial would only cost its start-up
     # Batches amortise the per-task overhead while keeping both workers busy to the end.
     size = max(1, min(8, len(work) // (4 * jobs)))
-    yield from run_pool(_run_batch, [(config_yaml, batch) for batch in _batches(work, size)], jobs)
+    yield from run_pool(_run_batch, [(row, config_yaml, batch) for row, config_yaml in rows.items()
+                                     for batch in _batches(work, size)], jobs)
 
 
-def _execute_dask(config_yaml: str, work, scheduler: Optional[str], jobs: int) -> Iterator[TrialOutcome]:
+def _execute_dask(rows: dict[str, str], work, scheduler: Optional[str]) -> Iterator[tuple[str, TrialOutcome]]:
     try:
         from dask.distributed import Client, as_completed
     except ImportError:  # pragma: no cover - depends on the installation
@@ -246,7 +265,7 @@ def _execute_dask(config_yaml: str, work, scheduler: Optional[str], jobs: int) -
     with Client(scheduler, timeout="20s") as client:
         n_workers = max(1, len(client.scheduler_info().get("workers", {})))
         size = max(1, min(8, len(work) // (4 * n_workers)))
-        futures = [client.submit(_run_batch, config_yaml, batch, pure=False) for batch in _batches(work, size)]
+        futures = [client.submit(_run_batch, row, config_yaml, batch, pure=False)
+                   for row, config_yaml in rows.items() for batch in _batches(work, size)]
         for future in as_completed(futures):
             yield from future.result()
-
