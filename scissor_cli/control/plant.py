@@ -26,11 +26,15 @@ class TruthView:
 
     target(x) -> (2,) mm: the target as the camera sees it (in-plane) for the
     truth's node positions x; layer(x) -> (N2, 2) mm: the layer's nodes there
-    (for the corridor check on the controller's mesh).
+    (for the corridor check on the controller's mesh). tol: the truth's
+    relative residual (None: the loop's); guesses: known near-equilibria
+    (strokes (C,), x) its first big move may start from.
     """
 
     target: Callable[[np.ndarray], np.ndarray]
     layer: Callable[[np.ndarray], np.ndarray]
+    tol: Optional[float] = None
+    guesses: tuple = ()
 
 
 #: makes the true tissue and its view for a trial's perturbation (`trials.truth: slab`)
@@ -47,7 +51,9 @@ class Plant:
     def __init__(self, tissue: Tissue, actuator: Actuator, probe: TargetProbe, tol: float = 1e-10,
                  view: Optional[TruthView] = None):
         self.tissue, self.actuator, self.probe, self.view = tissue, actuator, probe, view
-        self.eq = Equilibrium(tissue, tol)
+        self.eq = Equilibrium(tissue, tol if view is None or view.tol is None else view.tol)
+        if view is not None:
+            self.eq.guesses.extend(view.guesses)
 
     @property
     def position(self) -> np.ndarray:

@@ -114,7 +114,7 @@ class TrialContext:
             truth=truth, measurement=self.measurement(draw),
             resolution_mm=self.errors.actuator_resolution_mm, backlash_mm=self.errors.backlash_mm,
             rng=draw.rng, corridor=corridor, target=task.name, guess=self.guess(task),
-            truth_factory=None if self.slab_truth is None else self.slab_truth.for_target(task.rest),
+            truth_factory=None if self.slab_truth is None else self.slab_truth.for_target(task.rest, task.plan_strokes),
         )
         # The optional release slip moves the target along the (first) cup's axis after the loop.
         slip = draw.release_slip_mm * self.scene.cups[0].axis if len(self.scene.cups) else np.zeros(2)

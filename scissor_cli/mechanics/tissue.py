@@ -23,7 +23,7 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 
-from scissor_cli.mechanics import compiled, fem
+from scissor_cli.mechanics import compiled, compiled3d, fem
 from scissor_cli.mechanics import materials
 from scissor_cli.mesh.mesh import Mesh
 from scissor_cli.scene.scene import Scene
@@ -131,7 +131,7 @@ class Tissue:
         evaluation of F for the check and the energy (a solver's trial step).
         """
         if self.compiled:  # the compiled loop, unless an element needs the numpy path's policy
-            fast = compiled.energy_gradient(self.ops, self.params, x)
+            fast = self._kernels.energy_gradient(self.ops, self.params, x)
             if fast is not None:
                 return fast
         F = fem.deformation_gradients(self.ops, x)
@@ -147,7 +147,7 @@ class Tissue:
         pass where the model has one (the tangent predictor needs all three).
         """
         if self.compiled:
-            fast = compiled.energy_gradient_stiffness(self.ops, self.params, x, False)
+            fast = self._kernels.energy_gradient_stiffness(self.ops, self.params, x, False)
             if fast is not None:
                 return fast
         U, grad = self.energy_gradient(x)
@@ -161,7 +161,7 @@ class Tissue:
         the 4x4 tangents, and at 15.7k elements most of them need it.
         """
         if self.compiled:
-            Ke = compiled.element_stiffness(self.ops, self.params, x, project)
+            Ke = self._kernels.element_stiffness(self.ops, self.params, x, project)
             if Ke is not None:
                 return Ke
         F = fem.deformation_gradients(self.ops, x)
@@ -205,8 +205,13 @@ class Tissue:
 
     @cached_property
     def compiled(self) -> bool:
-        """Whether gradient and stiffness run in the compiled loops (`mechanics.compiled`): 2-D neo-Hookean."""
-        return compiled.supports(self.ops, self.params)
+        """Whether gradient and stiffness run in compiled loops: `mechanics.compiled` (2-D) or `compiled3d`, neo-Hookean."""
+        return self._kernels is not None
+
+    @cached_property
+    def _kernels(self):
+        """The compiled loops' module for this dimension and material, or None (the numpy path serves)."""
+        return next((m for m in (compiled, compiled3d) if m.supports(self.ops, self.params)), None)
 
     @cached_property
     def force_floor(self) -> float:

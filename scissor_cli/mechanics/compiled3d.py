@@ -1,0 +1,250 @@
+"""Compiled (numba) element loops of the 3-D slab: energy, gradient and exact stiffness in one pass (docs/model.md §3, §13).
+
+The 3-D twin of `mechanics.compiled`: the same closed forms as
+`materials.solid3d` (Ψ, P, the exact tangent d²Ψ/dF²) evaluated per
+tetrahedron with every intermediate in registers, then the packed 12x12
+element matrix (78, M) in `fem.element_matrices`' order. numpy builds the
+same numbers from whole-array passes over (9, 9, M) stacks; on the default
+slab (128k tetrahedra) that is ~0.6 s per stiffness against ~0.1 s here
+(docs/performance.md, "Slab truth").
+
+The PSD-projected tangent stays on the numpy path (a batched eigh): the
+solvers ask for it only far from equilibrium. As in 2-D, a loop hands the
+first element it cannot take (J ≤ J_FLOOR, a non-finite term) back to the
+caller, which then uses the numpy path and its policy for such elements.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from scissor_cli.mechanics.materials.params import J_FLOOR
+
+_JIT = dict(cache=True, nogil=True, error_model="numpy")
+
+
+def _det_hessian_table() -> tuple[np.ndarray, np.ndarray]:
+    """d²J/dF_ij dF_kl = Σ_mn ε_ikm ε_jln F_mn: for each (3i+j, 3k+l) the one index 3m+n (or -1) and its sign."""
+    levi = np.zeros((3, 3, 3))
+    levi[0, 1, 2] = levi[1, 2, 0] = levi[2, 0, 1] = 1.0
+    levi[0, 2, 1] = levi[2, 1, 0] = levi[1, 0, 2] = -1.0
+    index = -np.ones((9, 9), np.int64)
+    sign = np.zeros((9, 9))
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                for l in range(3):
+                    for m in range(3):
+                        for n in range(3):
+                            v = levi[i, k, m] * levi[j, l, n]
+                            if v != 0.0:
+                                index[3 * i + j, 3 * k + l], sign[3 * i + j, 3 * k + l] = 3 * m + n, v
+    return index, sign
+
+
+_HD_INDEX, _HD_SIGN = _det_hessian_table()
+
+
+@njit(**_JIT)
+def _deformation(x, corners, grad_rows, e, f):
+    """vec F (9,) of tetrahedron e into f, row-major, from positions x (N, 3) (`fem.deformation_gradients`' sums)."""
+    for i in range(3):
+        x0, x1, x2, x3 = x[corners[0, e], i], x[corners[1, e], i], x[corners[2, e], i], x[corners[3, e], i]
+        for j in range(3):
+            f[3 * i + j] = x0 * grad_rows[0, j, e] + x1 * grad_rows[1, j, e] + x2 * grad_rows[2, j, e] \
+                + x3 * grad_rows[3, j, e]
+
+
+@njit(**_JIT)
+def _stress(f, c, a, mu, kappa, eta, tension_only, P):
+    """Ψ (kPa) and P (9,) into P; the cofactor vec (9,) into c; returns (Ψ, J, α, s, 1/J, I4−1, η_eff, v0, v1, v2)."""
+    c[0] = f[4] * f[8] - f[5] * f[7]
+    c[1] = f[5] * f[6] - f[3] * f[8]
+    c[2] = f[3] * f[7] - f[4] * f[6]
+    c[3] = f[7] * f[2] - f[8] * f[1]
+    c[4] = f[8] * f[0] - f[6] * f[2]
+    c[5] = f[6] * f[1] - f[7] * f[0]
+    c[6] = f[1] * f[5] - f[2] * f[4]
+    c[7] = f[2] * f[3] - f[0] * f[5]
+    c[8] = f[0] * f[4] - f[1] * f[3]
+    J = f[0] * c[0] + f[1] * c[1] + f[2] * c[2]
+    I1 = 0.0
+    for p in range(9):
+        I1 += f[p] * f[p]
+    Jc = max(J, J_FLOOR)
+    alpha = mu * math.exp(-2.0 / 3.0 * math.log(Jc))
+    iJ = 1.0 / Jc
+    psi = 0.5 * (alpha * I1 - 3.0 * mu + kappa * (J - 1.0) ** 2)
+    s = kappa * (J - 1.0) - alpha * I1 * iJ / 3.0
+    for p in range(9):
+        P[p] = alpha * f[p] + s * c[p]
+    v0 = f[0] * a[0] + f[1] * a[1] + f[2] * a[2]
+    v1 = f[3] * a[0] + f[4] * a[1] + f[5] * a[2]
+    v2 = f[6] * a[0] + f[7] * a[1] + f[8] * a[2]
+    I4m1 = v0 * v0 + v1 * v1 + v2 * v2 - 1.0
+    eta_eff = eta * (I4m1 > 0.0) if tension_only else eta
+    if eta_eff != 0.0:
+        psi += 0.5 * eta_eff * I4m1 * I4m1
+        t = 2.0 * eta_eff * I4m1
+        for j in range(3):
+            P[j] += t * v0 * a[j]
+            P[3 + j] += t * v1 * a[j]
+            P[6 + j] += t * v2 * a[j]
+    return psi, J, alpha, s, iJ, I4m1, eta_eff, v0, v1, v2
+
+
+@njit(**_JIT)
+def energy_gradient_3d(x, corners, grad_rows, volume, mu, kappa, eta, fiber, tension_only, out):
+    """U (µJ) and ∇U written into out (3N,) mN; returns (U, -1), or (nan, e) for the first element e it cannot take."""
+    out[:] = 0.0
+    U = 0.0
+    f, c, P, a = np.empty(9), np.empty(9), np.empty(9), np.empty(3)
+    for e in range(corners.shape[1]):
+        _deformation(x, corners, grad_rows, e, f)
+        a[0], a[1], a[2] = fiber[e, 0], fiber[e, 1], fiber[e, 2]
+        psi, J = _stress(f, c, a, mu[e], kappa[e], eta[e], tension_only, P)[:2]
+        finite = psi
+        for p in range(9):
+            finite += P[p]
+        if not (J > J_FLOOR and math.isfinite(finite)):
+            return math.nan, e
+        V = volume[e]
+        U += psi * V
+        for n in range(4):
+            node = corners[n, e]
+            g0, g1, g2 = grad_rows[n, 0, e], grad_rows[n, 1, e], grad_rows[n, 2, e]
+            for i in range(3):
+                out[3 * node + i] += V * (P[3 * i] * g0 + P[3 * i + 1] * g1 + P[3 * i + 2] * g2)
+    return U, -1
+
+
+@njit(**_JIT)
+def _tangent(C, f, c, a, J_terms, kappa, hd_index, hd_sign):
+    """The exact tangent d²Ψ/dvecF² (9, 9), kPa, into C (`materials.solid3d` closed form)."""
+    alpha, s, iJ, I1, I4m1, eta_eff, v0, v1, v2 = J_terms
+    beta = -2.0 / 3.0 * alpha * iJ
+    gamma = kappa + 5.0 / 9.0 * alpha * I1 * iJ * iJ
+    w = np.empty(9)
+    for j in range(3):
+        w[j], w[3 + j], w[6 + j] = v0 * a[j], v1 * a[j], v2 * a[j]
+    t = 2.0 * eta_eff * I4m1
+    for p in range(9):
+        for q in range(p, 9):
+            val = beta * (f[p] * c[q] + c[p] * f[q]) + gamma * c[p] * c[q]
+            m = hd_index[p, q]
+            if m >= 0:
+                val += s * hd_sign[p, q] * f[m]
+            if p == q:
+                val += alpha
+            if eta_eff != 0.0:
+                val += 4.0 * eta_eff * w[p] * w[q]
+                if p // 3 == q // 3:
+                    val += t * a[p % 3] * a[q % 3]
+            C[p, q] = val
+            C[q, p] = val
+
+
+@njit(**_JIT)
+def element_stiffness_3d(x, corners, grad_rows, volume, mu, kappa, eta, fiber, tension_only, hd_index, hd_sign,
+                         Ke, grad):
+    """Exact packed element Hessians into Ke (78, M), mN/mm; (-1, U), or (the first element it cannot take, nan).
+
+    K_e[3a+i, 3b+k] = V Σ_jl ∂N_a/∂X_j C[3i+j, 3k+l] ∂N_b/∂X_l. With grad of
+    size 3N (not 0), ∇U goes into it and U is returned (one pass for both).
+    """
+    with_grad = grad.size > 0
+    if with_grad:
+        grad[:] = 0.0
+    U = 0.0
+    f, c, P, a = np.empty(9), np.empty(9), np.empty(9), np.empty(3)
+    C = np.empty((9, 9))
+    T = np.empty((9, 4, 3))
+    for e in range(corners.shape[1]):
+        _deformation(x, corners, grad_rows, e, f)
+        a[0], a[1], a[2] = fiber[e, 0], fiber[e, 1], fiber[e, 2]
+        psi, J, alpha, s, iJ, I4m1, eta_eff, v0, v1, v2 = _stress(f, c, a, mu[e], kappa[e], eta[e], tension_only, P)
+        if not (J > J_FLOOR and math.isfinite(psi)):
+            return e, math.nan
+        V = volume[e]
+        if with_grad:
+            finite = psi
+            for p in range(9):
+                finite += P[p]
+            if not math.isfinite(finite):
+                return e, math.nan
+            U += psi * V
+            for n in range(4):
+                node = corners[n, e]
+                g0, g1, g2 = grad_rows[n, 0, e], grad_rows[n, 1, e], grad_rows[n, 2, e]
+                for i in range(3):
+                    grad[3 * node + i] += V * (P[3 * i] * g0 + P[3 * i + 1] * g1 + P[3 * i + 2] * g2)
+        I1 = 0.0
+        for p in range(9):
+            I1 += f[p] * f[p]
+        _tangent(C, f, c, a, (alpha, s, iJ, I1, I4m1, eta_eff, v0, v1, v2), kappa[e], hd_index, hd_sign)
+        # T[r, b, k] = Σ_l C[r, 3k+l] ∂N_b/∂X_l
+        for r in range(9):
+            for bn in range(4):
+                g0, g1, g2 = grad_rows[bn, 0, e], grad_rows[bn, 1, e], grad_rows[bn, 2, e]
+                for k in range(3):
+                    T[r, bn, k] = C[r, 3 * k] * g0 + C[r, 3 * k + 1] * g1 + C[r, 3 * k + 2] * g2
+        n = 0
+        finite = 0.0
+        for p in range(12):
+            an, i = p // 3, p % 3
+            ga0, ga1, ga2 = grad_rows[an, 0, e] * V, grad_rows[an, 1, e] * V, grad_rows[an, 2, e] * V
+            for q in range(p, 12):
+                bn, k = q // 3, q % 3
+                val = ga0 * T[3 * i, bn, k] + ga1 * T[3 * i + 1, bn, k] + ga2 * T[3 * i + 2, bn, k]
+                Ke[n, e] = val
+                finite += val
+                n += 1
+        if not math.isfinite(finite):
+            return e, math.nan
+    return -1, U
+
+
+# -- the entry points: None where the numpy path must answer ---------------------------------------------------------
+
+
+def supports(ops, params) -> bool:
+    """Whether these loops serve this element set and material: tetrahedra, a neo-Hookean model."""
+    return ops.dim == 3 and params.model != "linear"
+
+
+def _material(params) -> tuple:
+    fiber = np.zeros((params.n_elements, 3))
+    fiber[:, :params.fiber.shape[1]] = params.fiber  # an in-plane fiber (a, b) is (a, b, 0)
+    return params.mu, params.kappa, params.eta, fiber, params.tension_only
+
+
+def energy_gradient(ops, params, x: np.ndarray) -> tuple[float, np.ndarray] | None:
+    """U (µJ) and ∇U (3N,) mN at positions x (N, 3); None if an element has J ≤ J_FLOOR or a non-finite term."""
+    grad = np.empty(3 * ops.n_nodes)
+    U, bad = energy_gradient_3d(np.ascontiguousarray(x, dtype=np.float64), ops.corners, ops.grad_rows, ops.volume,
+                                *_material(params), grad)
+    return None if bad >= 0 else (float(U), grad)
+
+
+def element_stiffness(ops, params, x: np.ndarray, project: bool) -> np.ndarray | None:
+    """Exact packed element Hessians (78, M) mN/mm at x (N, 3); None when projected (numpy's eigh) or as above."""
+    if project:
+        return None
+    Ke = np.empty((78, ops.corners.shape[1]))
+    bad, _ = element_stiffness_3d(np.ascontiguousarray(x, dtype=np.float64), ops.corners, ops.grad_rows, ops.volume,
+                                  *_material(params), _HD_INDEX, _HD_SIGN, Ke, np.empty(0))
+    return None if bad >= 0 else Ke
+
+
+def energy_gradient_stiffness(ops, params, x: np.ndarray, project: bool) -> tuple[float, np.ndarray, np.ndarray] | None:
+    """U (µJ), ∇U (3N,) mN and the exact packed element Hessians (78, M) at x (N, 3), in one pass; None as above."""
+    if project:
+        return None
+    Ke = np.empty((78, ops.corners.shape[1]))
+    grad = np.empty(3 * ops.n_nodes)
+    bad, U = element_stiffness_3d(np.ascontiguousarray(x, dtype=np.float64), ops.corners, ops.grad_rows, ops.volume,
+                                  *_material(params), _HD_INDEX, _HD_SIGN, Ke, grad)
+    return None if bad >= 0 else (float(U), grad, Ke)
