@@ -161,6 +161,8 @@ class ControllerConfig(_Section):
     rate_hz: Num(0.01, 1000.0) = 10.0
     #: miss: drive the error across the needle axis (docs/model.md §6); position: the full 2-D error (the paper)
     error: Literal["miss", "position"] = "miss"
+    #: none: J is the model's; broyden: corrected online from each observed move (docs/model.md §15)
+    jacobian_update: Literal["none", "broyden"] = "none"
 
 
 class ManipulationPointsConfig(_Section):

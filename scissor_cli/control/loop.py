@@ -51,6 +51,7 @@ from scissor_cli.config import ControllerConfig
 from scissor_cli.control.actuator import Actuator, quantise
 from scissor_cli.control.corridor import Corridor, corridor_at
 from scissor_cli.control.allocation import stroke_step
+from scissor_cli.control.broyden import BroydenCorrection
 from scissor_cli.control.law import PID, stalled
 from scissor_cli.control.measurement import Measurement
 from scissor_cli.control.plant import Controller, Plant, TruthFactory, TruthPerturbation, true_tissue
@@ -80,7 +81,9 @@ def run_loop(
     "miss" the loop drives the miss P (y_d − y) across it (the along-axis
     part is reported, for the depth); "position" or no axis: the full error.
     Each step is the bounded least-squares step of `allocation.stroke_step`
-    (stroke limits, and the drives' speed over one control period). Stops when the correctable part of the measured error
+    (stroke limits, and the drives' speed over one control period), with
+    the model's J or, with cfg.jacobian_update "broyden", that J corrected
+    from the observed moves (`control.broyden`). Stops when the correctable part of the measured error
     is ≤ cfg.tolerance_mm ("tolerance"), after cfg.max_iterations moves
     ("max_iterations"), when the best correctable error has not improved by
     10 % over the last 5 measurements ("stalled"), when the command sits at
@@ -98,10 +101,14 @@ def run_loop(
     hist, corr_norms = History(), []
     command, sim_t, reason, message = controller.strokes.copy(), 0.0, "", ""
     max_step = plant.actuator.speed_mm_per_s * dt
+    correction = BroydenCorrection(measurement.noise_mm) if cfg.jacobian_update == "broyden" else None
     for k in range(cfg.max_iterations + 1):
         y = measurement.measure(plant.position, rng)
-        step = stroke_step(controller.jacobian, desired - y, command, controller.lo, controller.hi, max_step,
-                           direction, cfg.error)
+        J = controller.jacobian
+        if correction is not None:  # J learnt from the moves so far (control.broyden)
+            correction.observe(J, command, y)
+            J = correction.jacobian(J)
+        step = stroke_step(J, desired - y, command, controller.lo, controller.hi, max_step, direction, cfg.error)
         ds = step.ds
         corr_norms.append(float(np.hypot(np.linalg.norm(step.correctable), step.along_correctable_mm)))
         hist.add(sim_t, command, plant.strokes, y, plant.position, corr_norms[-1],

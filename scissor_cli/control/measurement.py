@@ -28,6 +28,14 @@ class Measurement:
     def ideal(self) -> bool:
         return self.camera is None and not np.any(self.bias_mm)
 
+    @property
+    def noise_mm(self) -> float:
+        """σ (mm) of one measurement's random part at the layer: pixel noise and rounding (σ² + 1/12 px²); 0 without a camera."""
+        if self.camera is None:
+            return 0.0
+        px = self.camera.pixel_noise_px if self.noise_px is None else self.noise_px
+        return float(np.sqrt(px * px + 1.0 / 12.0) * np.max(self.camera.mm_per_pixel))
+
     def measure(self, true_position: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """The measured target (2,) mm of the true target (2,) mm."""
         p = np.asarray(true_position, float)

@@ -1,0 +1,128 @@
+"""Slab truth speed (docs/performance.md, "Slab truth"): kernels, one truth settle, one slab-truth trial.
+
+Usage: python benchmarks/bench_slab_truth.py [CONFIG] [--moves N] [--trial]
+Default CONFIG: configs/paper_trials_prosthesis_slab.yaml (first target, first trial's perturbation).
+
+Prints, with the machine's load:
+* the slab's size; the compiled against the numpy gradient and stiffness (median of 5);
+  one CHOLMOD refactorisation and one solve with it;
+* the nominal slab's equilibrium at the plan's strokes (what each worker solves once per target);
+* a loop-like replay on the trial's perturbed slab: the plan's strokes, then N moves closing
+  geometrically on the stroke limit (as the loop does when the slab moves less than the model
+  expects): the first move and the median of the others;
+* with --trial: one whole slab-truth trial (the closed loop), its time and iterations.
+Goals (issue: slab truth at the speed of an experiment): settle <= 0.3 s median, trial <= 10 s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from scissor_cli import control, runtime  # noqa: E402
+from scissor_cli.config import load_config, resolved_yaml  # noqa: E402
+from scissor_cli.experiments.profiles import draw_trial  # noqa: E402
+from scissor_cli.experiments.simulate import trial_tasks  # noqa: E402
+from scissor_cli.experiments.trials import TrialContext  # noqa: E402
+from scissor_cli.mechanics import compiled3d, fem, materials  # noqa: E402
+from scissor_cli.planning.needle import plan_targets  # noqa: E402
+from scissor_cli.solvers.linear import factorize_free  # noqa: E402
+from scissor_cli.solvers.tracking import Equilibrium  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def median_s(f, repeats: int = 5) -> float:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        f()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def kernels(slab) -> None:
+    x = slab.rest * 1.01
+    compiled3d.element_stiffness(slab.ops, slab.params, x, False)  # compile (cached on disk after the first run)
+
+    def numpy_stiffness():
+        F = fem.deformation_gradients(slab.ops, x)
+        fem.element_matrices(slab.ops, materials.evaluate(F, slab.params, order=2)[2])
+
+    def numpy_gradient():
+        F = fem.deformation_gradients(slab.ops, x)
+        P = materials.evaluate(F, slab.params, order=1)[1]
+        fem.scatter_vector(slab.ops, fem.element_forces(slab.ops, P))
+
+    print(f"  gradient: numpy {median_s(numpy_gradient):.3f} s, compiled "
+          f"{median_s(lambda: compiled3d.energy_gradient(slab.ops, slab.params, x)):.3f} s")
+    print(f"  element stiffness: numpy {median_s(numpy_stiffness):.3f} s, compiled "
+          f"{median_s(lambda: compiled3d.element_stiffness(slab.ops, slab.params, x, False)):.3f} s; "
+          f"K_ff assembled {median_s(lambda: slab.stiffness_free(x, upper=True)):.3f} s")
+    K = slab.stiffness_free(slab.rest, upper=True)
+    slot: dict = {}
+    factor = factorize_free(slab, K, slot)
+    b = np.ones(K.shape[0])
+    print(f"  CHOLMOD refactorisation {median_s(lambda: factorize_free(slab, K, slot), 3):.2f} s, "
+          f"solve {median_s(lambda: factor.solve(b), 7) * 1e3:.0f} ms")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("config", nargs="?", default=str(ROOT / "configs" / "paper_trials_prosthesis_slab.yaml"))
+    ap.add_argument("--moves", type=int, default=12, help="moves of the replay after the first (default 12)")
+    ap.add_argument("--trial", action="store_true", help="also run one whole slab-truth trial")
+    args = ap.parse_args()
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+          f"load {os.getloadavg()[0]:.2f}; {args.config}")
+    cfg = load_config(args.config)
+    if cfg.trials.truth != "slab" or cfg.layer_check is None:
+        sys.exit(f"{args.config}: needs trials.truth: slab and a layer_check section")
+    t0 = time.perf_counter()
+    ctx = TrialContext(resolved_yaml(cfg))
+    slab = ctx.slab_truth.slab
+    print(f"slab: {slab.ops.corners.shape[1]} tetrahedra, {len(slab.free_dofs)} free dofs; "
+          f"worker context (layer model + slab) {time.perf_counter() - t0:.1f} s")
+    kernels(slab)
+    tasks = trial_tasks(ctx.tissue, plan_targets(ctx.tissue, ctx.scene, cfg.needle))
+    task = tasks[0]
+    t0 = time.perf_counter()
+    factory = ctx.slab_truth.for_target(task.rest, task.plan_strokes)
+    print(f"nominal slab at the plan of {task.name} (strokes {np.round(task.plan_strokes, 2)} mm): "
+          f"{time.perf_counter() - t0:.1f} s, once per worker and target")
+    draw = draw_trial(ctx.errors, ctx.scene.material.nu, ctx.centroids, cfg.seed, task.index, 0)
+    truth = control.TruthPerturbation(E_scale=draw.E_field, fiber_offset_rad=draw.fiber_offset_rad, nu=draw.nu,
+                                      eta_scale=draw.eta_scale)
+    tissue, view = factory(truth)
+    lo, hi = np.array([c.stroke_mm for c in ctx.scene.cups]).T
+    limit = np.where(task.plan_strokes >= 0, hi, lo)
+    k = np.arange(1, args.moves + 1)[:, None]
+    sequence = [task.plan_strokes] + list(task.plan_strokes + (limit - task.plan_strokes) * (1 - 0.7 ** k))
+    eq = Equilibrium(tissue, view.tol)
+    eq.guesses.extend(view.guesses)
+    times = []
+    for s in sequence:
+        t0 = time.perf_counter()
+        eq.move_to(np.asarray(s, float), tangent=False)
+        times.append(time.perf_counter() - t0)
+    print(f"replay of {len(sequence)} settles: first {times[0]:.2f} s, then median {np.median(times[1:]):.2f} s "
+          f"(min {min(times[1:]):.2f}, max {max(times[1:]):.2f}); {eq.stats['refactors']} factorisations, "
+          f"{eq.stats['newton_iterations']} Newton iterations")
+    if args.trial:
+        t0 = time.perf_counter()
+        outcome = ctx.run(task, 0)
+        print(f"trial 0 of {task.name}: {time.perf_counter() - t0:.1f} s, {outcome.iterations} iterations, "
+              f"stop {outcome.stop_reason}, final error {np.round(outcome.final_error, 3)} mm")
+
+
+if __name__ == "__main__":
+    runtime.configure()
+    main()
