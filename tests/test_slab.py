@@ -247,3 +247,25 @@ def test_krylov_newton_equals_direct_newton(coarse):
     assert slab.factor_cache["free"].ordering == "nested_dissection"
     u = np.abs(b.x - slab.rest).max()
     assert np.abs(a.x - b.x).max() <= 1e-8 * u
+
+
+def test_slab_truth_starts_from_the_nominal_slab_at_the_plan(coarse):
+    """A trial's first move starts from the nominal slab's equilibrium at the plan (no load continuation from
+    rest) and lands where a solve from rest does, within what the truth's tolerance allows."""
+    from scissor_cli.control import TruthPerturbation
+    from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL, SlabTruth
+    from scissor_cli.solvers.newton import solve_newton
+    from scissor_cli.solvers.tracking import Equilibrium
+
+    scene, mesh, model = coarse
+    truth = SlabTruth(model, SlabSpec(10.0, 5.0, max_layer_mm=5.0))
+    plan = np.array([6.0])
+    tissue, view = truth.for_target(scene.targets[0].rest, plan)(TruthPerturbation(E_scale=1.2, nu=0.43))
+    assert view.tol == SLAB_TRUTH_TOL and len(view.guesses) == 1
+    assert truth.start(plan) is view.guesses[0]  # solved once per process
+    eq = Equilibrium(tissue, view.tol)
+    eq.guesses.extend(view.guesses)
+    eq.move_to(plan, tangent=False)
+    assert eq.stats["fallbacks"] == 0
+    reference = solve_newton(tissue, plan, tol=1e-10).x
+    assert np.abs(view.target(eq.x) - view.target(reference)).max() < 1e-4
