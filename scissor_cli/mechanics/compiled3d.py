@@ -111,14 +111,19 @@ def energy_gradient_3d(x, corners, grad_rows, volume, mu, kappa, eta, fiber, ten
             finite += P[p]
         if not (J > J_FLOOR and math.isfinite(finite)):
             return math.nan, e
-        V = volume[e]
-        U += psi * V
-        for n in range(4):
-            node = corners[n, e]
-            g0, g1, g2 = grad_rows[n, 0, e], grad_rows[n, 1, e], grad_rows[n, 2, e]
-            for i in range(3):
-                out[3 * node + i] += V * (P[3 * i] * g0 + P[3 * i + 1] * g1 + P[3 * i + 2] * g2)
+        U += psi * volume[e]
+        _add_forces(out, P, volume[e], corners, grad_rows, e)
     return U, -1
+
+
+@njit(**_JIT)
+def _add_forces(out, P, V, corners, grad_rows, e):
+    """out[3n+i] += V Σ_j P_ij ∂N_n/∂X_j over the four nodes n of tetrahedron e (`fem.element_forces`)."""
+    for n in range(4):
+        node = corners[n, e]
+        g0, g1, g2 = grad_rows[n, 0, e], grad_rows[n, 1, e], grad_rows[n, 2, e]
+        for i in range(3):
+            out[3 * node + i] += V * (P[3 * i] * g0 + P[3 * i + 1] * g1 + P[3 * i + 2] * g2)
 
 
 @njit(**_JIT)
@@ -176,11 +181,7 @@ def element_stiffness_3d(x, corners, grad_rows, volume, mu, kappa, eta, fiber, t
             if not math.isfinite(finite):
                 return e, math.nan
             U += psi * V
-            for n in range(4):
-                node = corners[n, e]
-                g0, g1, g2 = grad_rows[n, 0, e], grad_rows[n, 1, e], grad_rows[n, 2, e]
-                for i in range(3):
-                    grad[3 * node + i] += V * (P[3 * i] * g0 + P[3 * i + 1] * g1 + P[3 * i + 2] * g2)
+            _add_forces(grad, P, V, corners, grad_rows, e)
         I1 = 0.0
         for p in range(9):
             I1 += f[p] * f[p]
