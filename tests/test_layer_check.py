@@ -134,3 +134,63 @@ def test_truth_option_with_insertion_exits_2(tmp_path):
     r = _cli("simulate", path, "--out", tmp_path / "x", "--trials", "2", "--truth", "slab")
     assert r.returncode == 2, r.stderr
     assert "trials.truth" in r.stderr and "insertion" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize("change, words", [
+    ({"first_layer_mm": 6.0, "max_layer_mm": 4.0}, ["layer_check.first_layer_mm", "thicker than the thickest"]),
+    ({"accuracy_mm": 0.05}, ["layer_check.accuracy_mm", "forward case"]),
+    ({"accuracy_mm": 0.0}, ["layer_check.accuracy_mm"]),
+])
+def test_bad_resolution_exits_2(tmp_path, change, words):
+    data = example_dict() | {"layer_check": dict(SPEC) | change}
+    if "accuracy_mm" in change and change["accuracy_mm"] > 0:
+        data["forward"] = []
+    r = _cli("validate", write_scene(tmp_path, data))
+    assert r.returncode == 2, r.stderr
+    for w in words:
+        assert w in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr
+
+
+def test_resolution_by_accuracy_picks_the_coarsest_within_it():
+    """choose_slab: the configured grading is the reference (error 0); a loose accuracy takes the coarsest rung,
+    a tight one the configured grading; every rung is coarser than the one before."""
+    from scissor_cli.layer3d.check import spec_from_config
+    from scissor_cli.layer3d.resolution import choose_slab
+    from scissor_cli.mechanics.tissue import build_model
+
+    data = example_dict()
+    data["layer_check"] = {"height_mm": 12.0, "layer_z_mm": 6.0, "max_layer_mm": 3.0}
+    cfg = parse_config(yaml.safe_dump(data), "scene.yaml")
+    _, _, model = build_model(cfg, mesh_scale=4.0)
+    cases = [np.array([4.0])]
+    loose = choose_slab(model, spec_from_config(cfg.layer_check), cases, 10.0)
+    rungs = loose.candidates
+    assert len(rungs) >= 3 and rungs[0].error_mm == 0.0
+    assert all(b.levels < a.levels and b.n_tetrahedra < a.n_tetrahedra for a, b in zip(rungs, rungs[1:]))
+    assert all(r.error_mm >= 0 and r.factor_s > 0 for r in rungs)
+    assert loose.pick == len(rungs) - 1 and loose.chosen.error_mm <= 10.0
+    tight = choose_slab(model, spec_from_config(cfg.layer_check), cases, 1e-4)
+    assert all(r.error_mm > 1e-4 for r in tight.candidates[1:]) == (tight.pick == 0)
+    assert tight.chosen.error_mm <= 1e-4
+
+
+def test_run_records_the_chosen_resolution(tmp_path):
+    path = small_scene(tmp_path)
+    data = yaml.safe_load(path.read_text())
+    data["layer_check"]["accuracy_mm"] = 10.0  # anything goes: the coarsest rung
+    path.write_text(yaml.safe_dump(data))
+    out = tmp_path / "run"
+    r = _cli("simulate", path, "--out", out, "--trials", "0")
+    assert r.returncode == 0, r.stderr
+    assert "slab resolution" in r.stderr + r.stdout
+    with h5py.File(out / "results.h5") as f:
+        a = dict(f["layer_check_resolution"].attrs)
+        ran = parse_config(str(f.attrs["config_yaml"]), "results.h5")
+        levels = f["layer_check_resolution/levels"][()]
+        assert a["pick"] == len(levels) - 1 and a["speed_up"] > 0
+        # the recorded config is the slab that ran: the chosen grading, no accuracy left to choose again
+        assert ran.layer_check.accuracy_mm is None
+        assert ran.layer_check.first_layer_mm == pytest.approx(a["first_layer_mm"])
+        assert ran.layer_check.max_layer_mm == pytest.approx(a["max_layer_mm"])
+        assert f["layer_check/mesh/nodes"].shape[0] > 0

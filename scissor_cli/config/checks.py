@@ -321,6 +321,13 @@ def _layer_check_problems(cfg: Config) -> list[Problem]:
         problems.append((("layer_check", "height_mm"), (
             f"the slab is too thin for one prism layer: height_mm {lc.height_mm:g} is below the layer's finest edge "
             f"(tissue.mesh.min_edge_mm × scale = {finest:g} mm)")))
+    if lc.first_layer_mm is not None and lc.first_layer_mm > lc.max_layer_mm:
+        problems.append((("layer_check", "first_layer_mm"), (
+            f"the thinnest prism layer cannot be thicker than the thickest: first_layer_mm {lc.first_layer_mm:g} "
+            f"> max_layer_mm {lc.max_layer_mm:g}")))
+    if lc.accuracy_mm is not None and not cfg.forward:
+        problems.append((("layer_check", "accuracy_mm"), (
+            "the slab's resolution is chosen on the forward cases: add a forward case, or leave out accuracy_mm")))
     return problems
 
 

@@ -340,6 +340,10 @@ class LayerCheckConfig(_Section):
     chest_wall_fixed: bool = True
     cup_holds_z: bool = True
     max_layer_mm: Num(0.01, MAX_TISSUE_MM) = 5.0
+    #: the thinnest prism layer, at the layer (null: the 2-D mesh's finest edge)
+    first_layer_mm: Optional[Num(0.01, MAX_TISSUE_MM)] = None
+    #: the coarsest z grading whose targets stay this close to the finest's over the forward cases (null: as set)
+    accuracy_mm: Optional[Num(1.0e-4, 100.0)] = None
 
 
 class Config(_Section):

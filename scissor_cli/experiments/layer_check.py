@@ -15,7 +15,8 @@ import numpy as np
 from scissor_cli.config import Config
 from scissor_cli.experiments.sink import product_key
 from scissor_cli.layer3d.check import build_layer_check, spec_from_config
-from scissor_cli.mechanics.tissue import Tissue
+from scissor_cli.layer3d.resolution import SlabChoice, choose_slab
+from scissor_cli.mechanics.tissue import Tissue, build_model
 from scissor_cli.solvers.equilibrium import EquilibriumSolver
 
 
@@ -58,3 +59,23 @@ def run_layer_check(cfg: Config, tissue: Tissue, sink, reporter, done: frozenset
             paths.append(path)
         advance(1)
     return paths
+
+
+def slab_resolution_stage(cfg: Config, reporter) -> tuple[Config, SlabChoice]:
+    """`layer_check.accuracy_mm`: choose the slab's z grading (docs/model.md §13); the run goes on with it.
+
+    The config the run records has the chosen `first_layer_mm` and
+    `max_layer_mm` and no `accuracy_mm`, so the layer check, the slab-truth
+    trials and `--resume` build exactly the slab that was chosen; the
+    candidates are stored in /layer_check_resolution.
+    """
+    _, _, tissue = build_model(cfg)
+    lc = cfg.layer_check
+    cases = [tissue.scene.strokes_vector(case.strokes) for case in cfg.forward]
+    t0 = time.perf_counter()
+    choice = choose_slab(tissue, spec_from_config(lc), cases, lc.accuracy_mm, reporter.info)
+    reporter.info(f"slab resolution: {choice.explain()} ({time.perf_counter() - t0:.1f} s)")
+    chosen = choice.chosen
+    section = lc.model_copy(update={"first_layer_mm": chosen.first_layer_mm, "max_layer_mm": chosen.max_layer_mm,
+                                    "accuracy_mm": None})
+    return cfg.model_copy(update={"layer_check": section}), choice

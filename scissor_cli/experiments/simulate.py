@@ -99,6 +99,11 @@ def run_simulation(cfg: Config, run: SinkFactory, reporter: Reporter | None = No
     grips = None
     if cfg.manipulation_points is not None:
         cfg, grips = grip_stage(cfg, reporter)
+    slab_choice = None
+    if cfg.layer_check is not None and cfg.layer_check.accuracy_mm is not None:
+        from scissor_cli.experiments.layer_check import slab_resolution_stage  # noqa: PLC0415
+
+        cfg, slab_choice = slab_resolution_stage(cfg, reporter)
     tissue = _build(cfg, reporter)
     summary = RunSummary(run.location, tissue.mesh.n_elements)
     with run.open(resolved_yaml(cfg), cfg.seed) as sink:
@@ -106,6 +111,8 @@ def run_simulation(cfg: Config, run: SinkFactory, reporter: Reporter | None = No
             path = sink.manipulation_points(grips, tissue.scene)
             if path is not None:
                 summary.figures.append(path)
+        if slab_choice is not None:
+            sink.slab_resolution(slab_choice)
         _stages(cfg, tissue, sink, summary, reporter, execution, selection)
     return summary
 

@@ -38,6 +38,7 @@ import numpy as np
 if TYPE_CHECKING:  # the types the stages produce; annotations only
     from scissor_cli.layer3d.check import LayerCheckCase
     from scissor_cli.layer3d.extrude import SlabMesh
+    from scissor_cli.layer3d.resolution import SlabChoice
     from scissor_cli.control.corridor import Corridor
     from scissor_cli.control.result import LoopResult
     from scissor_cli.experiments.selection import Selection
@@ -137,6 +138,9 @@ class RunSink(Protocol):
 
     def selection(self, selection: "Selection") -> None:
         """What `solver.accuracy_mm` picked (docs/model.md §9)."""
+
+    def slab_resolution(self, choice: "SlabChoice") -> None:
+        """What `layer_check.accuracy_mm` picked (docs/model.md §13)."""
 
     def forward_case(self, case: ForwardCase) -> Optional[Path]:
         """One forward case and its figure; returns the figure's path."""

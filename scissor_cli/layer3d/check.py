@@ -111,8 +111,9 @@ class LayerCheck:
 
 def spec_from_config(section) -> SlabSpec:
     """The slab spec of a validated `layer_check` config section."""
+    first = None if section.first_layer_mm is None else float(section.first_layer_mm)
     return SlabSpec(float(section.height_mm), float(section.layer_z_mm), bool(section.chest_wall_fixed),
-                    bool(section.cup_holds_z), float(section.max_layer_mm))
+                    bool(section.cup_holds_z), float(section.max_layer_mm), first)
 
 
 def stress_spec(tissue: Tissue) -> SlabSpec:

@@ -105,6 +105,10 @@ class ResultsSink:
         results.write_selection(self.out, selection)
         self.out.flush()
 
+    def slab_resolution(self, choice) -> None:
+        results.write_slab_resolution(self.out, choice)
+        self.out.flush()
+
     def forward_case(self, case: ForwardCase) -> Path:
         results.write_forward(self.out, case.name, case.strokes, case.result, case.rest, case.targets)
         self.out.flush()

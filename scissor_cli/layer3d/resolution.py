@@ -1,0 +1,125 @@
+"""The slab's resolution by accuracy: `layer_check.accuracy_mm` (docs/model.md §13, "Resolution by accuracy").
+
+The slab's cost is its z resolution: every prism layer copies the whole
+2-D mesh, and a sparse Cholesky factor of a 3-D mesh grows faster than its
+unknowns (the paper's prosthesis scene: 17 levels, 82k unknowns, 1.4 s per
+factorisation; 9 levels, 41k unknowns, 0.25 s). A run that only needs its
+targets to a tolerance can use a coarser slab, and the slab-truth trials
+factor it dozens of times per trial.
+
+Candidates are a ladder of z gradings from the configured one (the finest:
+thinnest prism layer `first_layer_mm` at the layer, default the 2-D mesh's
+finest edge; at most `max_layer_mm` away from it) doubling the thinnest
+layer and growing the thickest by 1.6 per rung. Each candidate solves the
+forward cases (Newton to 1e-8); its error is the largest 3-D distance of a
+target (without targets: of a layer node) from the finest slab's. The pick
+is the coarsest candidate within `accuracy_mm`, the finest when none
+coarser is. The error is not monotone in the rungs — which nodes a cup
+grips within its radius changes with the levels near the layer — so every
+rung is solved, not only until the first miss.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from scissor_cli.layer3d.slab import SlabSpec, build_slab, slab_mesh, slab_probe
+from scissor_cli.mechanics.tissue import Tissue
+from scissor_cli.solvers.linear import factorize_free
+from scissor_cli.solvers.newton import solve_newton
+
+#: rungs of the ladder, the configured grading included
+RUNGS = 5
+#: per rung: the thinnest layer doubles, the thickest grows by this factor
+MAX_LAYER_GROWTH = 1.6
+#: the candidates' forward solves: well below any accuracy a run asks for
+SOLVE_TOL = 1e-8
+
+
+@dataclass(frozen=True)
+class SlabCandidate:
+    """One z grading: its layers (mm), size, largest target error against the finest (mm), one refactorisation (s)."""
+
+    first_layer_mm: float
+    max_layer_mm: float
+    levels: int
+    n_tetrahedra: int
+    free_dofs: int
+    error_mm: float
+    factor_s: float
+    solve_s: float
+
+
+@dataclass(frozen=True)
+class SlabChoice:
+    """What `layer_check.accuracy_mm` picked; `candidates[0]` is the configured (finest) grading."""
+
+    accuracy_mm: float
+    pick: int
+    candidates: tuple
+
+    @property
+    def chosen(self) -> SlabCandidate:
+        return self.candidates[self.pick]
+
+    @property
+    def speed_up(self) -> float:
+        """The finest slab's refactorisation time over the chosen one's."""
+        return self.candidates[0].factor_s / self.chosen.factor_s
+
+    def explain(self) -> str:
+        c = self.chosen
+        return (f"z grading {c.first_layer_mm:.3g}–{c.max_layer_mm:.3g} mm ({c.levels} levels, {c.n_tetrahedra} "
+                f"tetrahedra): targets within {c.error_mm:.3f} mm of the finest slab's (accuracy {self.accuracy_mm:g} "
+                f"mm), factorisation {self.speed_up:.1f}x faster")
+
+
+def ladder(model: Tissue, spec: SlabSpec) -> list[tuple[float, float]]:
+    """(first_layer_mm, max_layer_mm) of every rung, the configured grading first; rungs that repeat one are dropped."""
+    first = spec.first_layer_mm or float(np.min(model.mesh.edge_lengths()))
+    cap = max(spec.height_mm, spec.max_layer_mm)
+    rungs: list[tuple[float, float]] = []
+    for k in range(RUNGS):
+        f = min(first * 2.0 ** k, cap)
+        m = min(max(spec.max_layer_mm * MAX_LAYER_GROWTH ** k, f), cap)
+        if not rungs or slab_mesh(model.mesh, replace(spec, first_layer_mm=f, max_layer_mm=m)).levels_mm.size \
+                != slab_mesh(model.mesh, replace(spec, first_layer_mm=rungs[-1][0], max_layer_mm=rungs[-1][1])).levels_mm.size:
+            rungs.append((f, m))
+    return rungs
+
+
+def choose_slab(model: Tissue, spec: SlabSpec, cases: list[np.ndarray], accuracy_mm: float,
+                info=lambda message: None) -> SlabChoice:
+    """Solve the forward cases' strokes (each (C,) mm) on every rung and pick the coarsest within accuracy_mm."""
+    scene, mesh = model.scene, model.mesh
+    points = np.array([t.rest for t in scene.targets]).reshape(-1, 2)
+    reference, candidates = None, []
+    for first, largest in ladder(model, spec):
+        candidate_spec = replace(spec, first_layer_mm=first, max_layer_mm=largest)
+        slab = build_slab(scene, mesh, candidate_spec, model=model.params.model)
+        probe = slab_probe(slab, mesh, points) if len(points) else None
+        t0 = time.perf_counter()
+        positions = []
+        for strokes in cases:
+            x = solve_newton(slab, np.asarray(strokes, float), tol=SOLVE_TOL).x
+            positions.append(probe.positions(x) if probe is not None
+                             else x[slab.mesh.node(slab.mesh.layer_level, np.arange(mesh.n_nodes))])
+        solve_s = time.perf_counter() - t0
+        positions = np.array(positions)
+        reference = positions if reference is None else reference
+        error = float(np.max(np.linalg.norm(positions - reference, axis=-1)))
+        K = slab.stiffness_free(slab.rest, upper=True)
+        slot: dict = {}
+        factorize_free(slab, K, slot)
+        t0 = time.perf_counter()
+        factorize_free(slab, K, slot)
+        factor_s = time.perf_counter() - t0
+        candidates.append(SlabCandidate(first, largest, int(slab.mesh.levels_mm.size), int(slab.ops.corners.shape[1]),
+                                        int(len(slab.free_dofs)), error, factor_s, solve_s))
+        info(f"slab resolution: z {first:.3g}–{largest:.3g} mm, {candidates[-1].levels} levels, "
+             f"{candidates[-1].n_tetrahedra} tetrahedra: target error {error:.4f} mm, factorisation {factor_s:.2f} s")
+    within = [k for k, c in enumerate(candidates) if c.error_mm <= accuracy_mm]
+    return SlabChoice(float(accuracy_mm), max(within), tuple(candidates))
