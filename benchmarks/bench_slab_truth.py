@@ -102,7 +102,8 @@ def main() -> None:
     truth = control.TruthPerturbation(E_scale=draw.E_field, fiber_offset_rad=draw.fiber_offset_rad, nu=draw.nu,
                                       eta_scale=draw.eta_scale)
     tissue, view = factory(truth)
-    lo, hi = np.array([c.stroke_mm for c in ctx.scene.cups]).T
+    lo = np.array([c.stroke_min_mm for c in ctx.scene.cups])
+    hi = np.array([c.stroke_max_mm for c in ctx.scene.cups])
     limit = np.where(task.plan_strokes >= 0, hi, lo)
     k = np.arange(1, args.moves + 1)[:, None]
     sequence = [task.plan_strokes] + list(task.plan_strokes + (limit - task.plan_strokes) * (1 - 0.7 ** k))
