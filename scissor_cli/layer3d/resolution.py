@@ -26,7 +26,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from scissor_cli.layer3d.slab import SlabSpec, build_slab, slab_mesh, slab_probe
+from scissor_cli.geometry import graded_levels
+from scissor_cli.layer3d.slab import SlabSpec, build_slab, slab_probe
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.linear import factorize_free
 from scissor_cli.solvers.newton import solve_newton
@@ -82,11 +83,13 @@ def ladder(model: Tissue, spec: SlabSpec) -> list[tuple[float, float]]:
     first = spec.first_layer_mm or float(np.min(model.mesh.edge_lengths()))
     cap = max(spec.height_mm, spec.max_layer_mm)
     rungs: list[tuple[float, float]] = []
+    seen: set[int] = set()
     for k in range(RUNGS):
         f = min(first * 2.0 ** k, cap)
         m = min(max(spec.max_layer_mm * MAX_LAYER_GROWTH ** k, f), cap)
-        if not rungs or slab_mesh(model.mesh, replace(spec, first_layer_mm=f, max_layer_mm=m)).levels_mm.size \
-                != slab_mesh(model.mesh, replace(spec, first_layer_mm=rungs[-1][0], max_layer_mm=rungs[-1][1])).levels_mm.size:
+        levels = graded_levels(spec.height_mm, spec.layer_z_mm, f, m)[0].size
+        if levels not in seen:
+            seen.add(levels)
             rungs.append((f, m))
     return rungs
 
