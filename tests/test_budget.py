@@ -99,3 +99,22 @@ def test_variance_shares_of_independent_sources_add_up():
     share = {r["source"]: r["variance_share"] for r in budget_rows(cells)}
     assert share["all"] == 1.0
     assert share["a"] == pytest.approx(0.36, abs=0.03) and share["b"] == pytest.approx(0.64, abs=0.03)
+
+
+def test_slab_truth_budget_runs_with_its_3d_row(tmp_path):
+    """--truth slab --budget: the all row against the slab, a slab row, the other rows on the layer; the report's
+    paper table names the truth."""
+    data = _small(1)
+    data["layer_check"] = {"height_mm": 8.0, "layer_z_mm": 4.0, "max_layer_mm": 4.0}
+    data["forward"] = [{"name": "push4", "strokes": {"cup": 4.0}}]
+    scene = write_scene(tmp_path, data)
+    h5 = _simulate(scene, tmp_path / "run", "--budget", "--truth", "slab")
+    with h5py.File(h5) as f:
+        rows = set(f["budget"].keys())
+        assert {"slab", "camera", "none"} <= rows and "trials" in f  # the all row is the run's own /trials
+    assert (tmp_path / "run" / "budget.png").exists()
+    rep = subprocess.run([sys.executable, "-m", "scissor_cli", "report", str(tmp_path / "run"), "--out",
+                          str(tmp_path / "rep")], capture_output=True, text=True, timeout=600)
+    assert rep.returncode == 0, rep.stderr
+    table = (tmp_path / "rep" / "paper_table.csv").read_text()
+    assert "slab" in table and "prone" in table
