@@ -220,3 +220,33 @@ def test_sigkill_damaged_file_and_killed_resume_lose_no_trial(reference, tmp_pat
     assert_kept(first, out)  # restored from the journal, as first stored
     assert_kept(kept, out)
     assert_same_as_reference(out, reference)
+
+
+def slab_scene(tmp_path: Path, trials: int = 8) -> Path:
+    """The small scene with slab truth (a thin slab: a slab-truth trial takes about a second)."""
+    path = scene(tmp_path)
+    import yaml
+    data = yaml.safe_load(path.read_text())
+    data["trials"]["count"] = trials
+    data["trials"]["truth"] = "slab"
+    data["layer_check"] = {"height_mm": 8.0, "layer_z_mm": 4.0, "max_layer_mm": 4.0}
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_slab_truth_run_sigkilled_then_resumed_equals_an_uninterrupted_one(tmp_path):
+    """The slab truth's per-worker state (slab, nominal starts) is rebuilt by the resume's workers: same numbers."""
+    ref_dir = tmp_path / "ref"
+    ref_dir.mkdir()
+    done = finish(slab_scene(ref_dir), "--jobs", "2", "--out", ref_dir / "run", "--quiet")
+    assert done.returncode == 0, done.stderr
+    reference = extract(ref_dir / "run" / "results.h5")
+    out = tmp_path / "run"
+    proc = start(slab_scene(tmp_path), "--jobs", "2", "--out", out, "--quiet")
+    wait_for_trials(proc, out, 4)
+    gone, _ = stop(proc, signal.SIGKILL)
+    assert gone < 5.0 and proc.returncode == -signal.SIGKILL
+    resumed = finish("--resume", out, "--jobs", "2")
+    assert resumed.returncode == 0, resumed.stderr
+    assert 0 < ran(resumed) < 16
+    assert_same_as_reference(out, reference)
