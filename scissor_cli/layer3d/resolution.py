@@ -48,7 +48,6 @@ class SlabCandidate:
     max_layer_mm: float
     levels: int
     n_tetrahedra: int
-    free_dofs: int
     error_mm: float
     factor_s: float
     solve_s: float
@@ -121,7 +120,7 @@ def choose_slab(model: Tissue, spec: SlabSpec, cases: list[np.ndarray], accuracy
         factorize_free(slab, K, slot)
         factor_s = time.perf_counter() - t0
         candidates.append(SlabCandidate(first, largest, int(slab.mesh.levels_mm.size), int(slab.ops.corners.shape[1]),
-                                        int(len(slab.free_dofs)), error, factor_s, solve_s))
+                                        error, factor_s, solve_s))
         info(f"slab resolution: z {first:.3g}–{largest:.3g} mm, {candidates[-1].levels} levels, "
              f"{candidates[-1].n_tetrahedra} tetrahedra: target error {error:.4f} mm, factorisation {factor_s:.2f} s")
     within = [k for k, c in enumerate(candidates) if c.error_mm <= accuracy_mm]
