@@ -19,7 +19,8 @@ import numpy as np
 
 from scissor_cli import geometry
 from scissor_cli.config.mesh_file import MeshFileError, mesh_file_problem, read_mesh_arrays
-from scissor_cli.config.sections import MAX_TISSUE_MM, MIN_EDGE_MM, Config, ObstacleConfig, TissueConfig
+from scissor_cli.config.sections import (MAX_TISSUE_MM, MIN_EDGE_MM, SURROGATE_SAMPLES_PER_CUP, Config, ObstacleConfig,
+                                         TissueConfig)
 
 #: implicit-Euler steps (ramp + settling) one forward case may take with solver.dt_s
 MAX_TIME_STEPS = 10_000
@@ -312,7 +313,16 @@ def _layer_check_problems(cfg: Config) -> list[Problem]:
     if lc is None:
         if cfg.trials.truth == "slab":
             problems.append((("trials", "truth"), "truth 'slab' is the 3-D slab of layer_check: add a layer_check section"))
+        if cfg.controller.model != "layer":
+            problems.append((("controller", "model"), (
+                f"model {cfg.controller.model!r} is made from the 3-D slab of layer_check: add a layer_check section, "
+                f"or use model 'layer'")))
         return problems
+    need = SURROGATE_SAMPLES_PER_CUP * len(cfg.cups)
+    if cfg.controller.model == "surrogate" and cfg.controller.surrogate.samples < need:
+        problems.append((("controller", "surrogate", "samples"), (
+            f"a surrogate of {len(cfg.cups)} cup(s) needs at least {need} samples ({SURROGATE_SAMPLES_PER_CUP} per cup); "
+            f"got {cfg.controller.surrogate.samples}")))
     if lc.layer_z_mm > lc.height_mm:
         problems.append((("layer_check", "layer_z_mm"),
                          f"the layer must lie inside the slab: 0 <= layer_z_mm <= height_mm {lc.height_mm:g}; got {lc.layer_z_mm:g}"))

@@ -151,6 +151,18 @@ class NeedleConfig(_Section):
     direction_step_deg: Num(0.5, 90.0) = 5.0
 
 
+class SurrogateConfig(_Section):
+    """The learned controller model's training design (docs/model.md §15)."""
+
+    #: nominal slab solves in the space-filling design (at least SURROGATE_SAMPLES_PER_CUP per cup: checks);
+    #: a quarter as many again (at least 4) are solved at other strokes to measure its error
+    samples: Int(2, 512) = 32
+
+
+#: the fewest training samples per cup a surrogate may have (its interpolant is linear plus a spline)
+SURROGATE_SAMPLES_PER_CUP = 8
+
+
 class ControllerConfig(_Section):
     kp: Num(0.0, 100.0) = 0.8
     ki: Num(0.0, 100.0) = 0.1
@@ -163,6 +175,11 @@ class ControllerConfig(_Section):
     error: Literal["miss", "position"] = "miss"
     #: none: J is the model's; broyden: corrected online from each observed move (docs/model.md §15)
     jacobian_update: Literal["none", "broyden"] = "none"
+    #: the controller's (and planner's) model of the tissue (docs/model.md §15): layer — the 2-D layer (the paper);
+    #: calibrated — the layer with one stroke transmission per cup fitted to the nominal slab; surrogate — learned
+    #: from nominal slab equilibria; slab — the nominal slab itself (reference, slow). All but layer need layer_check.
+    model: Literal["layer", "calibrated", "surrogate", "slab"] = "layer"
+    surrogate: SurrogateConfig = SurrogateConfig()
 
 
 class ManipulationPointsConfig(_Section):

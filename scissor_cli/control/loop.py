@@ -43,7 +43,7 @@ known nearby equilibrium (e.g. the planner's state at the plan's strokes).
 from __future__ import annotations
 
 import time
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -94,7 +94,7 @@ def run_loop(
     t0 = time.perf_counter()
     rng = rng if rng is not None else np.random.default_rng(0)
     desired = np.asarray(desired, float)
-    cup_names = cup_names or [f"cup{c}" for c in range(controller.tissue.n_cups)]
+    cup_names = cup_names or [f"cup{c}" for c in range(controller.n_cups)]
     dt = 1.0 / cfg.rate_hz
     pid = PID(cfg.kp, cfg.ki, cfg.kd, dt)
     tangent = controller.shares(plant)
@@ -113,7 +113,7 @@ def run_loop(
         corr_norms.append(float(np.hypot(np.linalg.norm(step.correctable), step.along_correctable_mm)))
         hist.add(sim_t, command, plant.strokes, y, plant.position, corr_norms[-1],
                  np.linalg.norm(step.uncorrectable), step.along_mm)
-        if controller.tissue.n_cups == 0:
+        if controller.n_cups == 0:
             reason = "tolerance" if corr_norms[-1] <= cfg.tolerance_mm else "stalled"
             message = "no cups: nothing to correct; the miss stays as it is"
             break
@@ -167,7 +167,7 @@ def open_loop(
     t0 = time.perf_counter()
     rng = rng if rng is not None else np.random.default_rng(0)
     desired = np.asarray(desired, float)
-    cup_names = cup_names or [f"cup{c}" for c in range(controller.tissue.n_cups)]
+    cup_names = cup_names or [f"cup{c}" for c in range(controller.n_cups)]
     hist = History()
     y = measurement.measure(plant.position, rng)
     s0 = controller.strokes.copy()
@@ -211,6 +211,7 @@ def run_target(
     guess: Optional[tuple[np.ndarray, np.ndarray]] = None,
     direction: Optional[np.ndarray] = None,
     truth_factory: Optional[TruthFactory] = None,
+    controller_factory: Optional[Callable] = None,
 ) -> LoopResult:
     """Manipulate one target from rest to `desired` (2,) mm; closed loop or the open-loop baseline.
 
@@ -224,7 +225,10 @@ def run_target(
     `direction`, else the corridor's (the plan's direction).
     `clearance_mm`, `corridor_entry`. A `truth_factory` makes the truth
     instead (another tissue, e.g. the 3-D slab, and its `TruthView`) from
-    the same perturbation; the controller still runs on `model`.
+    the same perturbation; the controller still runs on `model`, unless a
+    `controller_factory` (lo, hi, resolution_mm, tol) → controller makes
+    another (docs/model.md §15: calibrated, surrogate, slab); `model` then
+    still carries the scene and the corridor check.
     """
     if direction is None and corridor is not None:
         direction = corridor.direction
@@ -235,11 +239,16 @@ def run_target(
         plant = Plant(true_tissue(model, truth), actuator, probe, tol)
     else:
         plant = Plant(**_made(truth_factory, truth), actuator=actuator, probe=probe, tol=tol)
-    controller = Controller(model, probe, actuator.lo, actuator.hi, resolution_mm, tol)
+    if controller_factory is None:
+        controller = Controller(model, probe, actuator.lo, actuator.hi, resolution_mm, tol)
+    else:
+        controller = controller_factory(actuator.lo, actuator.hi, resolution_mm, tol)
     if controller.shares(plant):
         plant.eq.adopt(controller.eq)  # both at rest: one tangent serves both
-    if guess is not None:
-        for eq in (plant.eq, controller.eq) if truth_factory is None else (controller.eq,):
+    if guess is not None:  # the guess is the layer's: for the trackers on `model` only
+        trackers = [plant.eq] if truth_factory is None else []
+        trackers += [controller.eq] if getattr(controller, "tissue", None) is model else []
+        for eq in trackers:
             eq.guesses.append((np.asarray(guess[0], float), np.asarray(guess[1], float)))
     names = list(scene.cup_names)
     if mode == "closed":

@@ -93,6 +93,10 @@ class Controller:
         self.eq.move_to(self.eq.strokes, tangent=True)
 
     @property
+    def n_cups(self) -> int:
+        return self.tissue.n_cups
+
+    @property
     def jacobian(self) -> np.ndarray:
         """J (2, C) mm/mm of the target at the model equilibrium ((2, 0) without cups)."""
         if self.tissue.n_cups == 0:

@@ -34,6 +34,7 @@ from scissor_cli.robot.chain import RobotModel
 from scissor_cli.robot.registration import plan_to_joints
 from scissor_cli.experiments.insertion_stage import insertion_stage
 from scissor_cli.experiments.budget import run_budget
+from scissor_cli.experiments.controller_model import controller_model_stage, needs_slab
 from scissor_cli.experiments.selection import select
 from scissor_cli.experiments.study import run_study
 from scissor_cli.experiments.trials import TargetTask, execute
@@ -181,7 +182,9 @@ def stored_plans(tissue: Tissue, stored: dict[str, dict]) -> list[NeedlePlan]:
             target.name, feasible, str(a["reason"]), np.asarray(a["desired"], float), np.asarray(a["strokes"], float),
             geometry(a["entry"]), geometry(a["direction"]), float(geometry(a["depth_mm"])), clearance, str(a["side"]),
             joints if reachable else np.full(joints.shape, np.nan), reachable, str(a["joints_note"]),
-            float(a["desired_error_mm"])))
+            float(a["desired_error_mm"]),
+            model_strokes=np.asarray(a["model_strokes"], float) if "model_strokes" in a else None,
+            slab_strokes=np.asarray(a["slab_strokes"], float) if "slab_strokes" in a else None))
     return plans
 
 
@@ -226,15 +229,16 @@ def _stages(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary, rep
     stored = sink.plans() if "plan" in done else None
     if stored is not None:
         summary.plans = stored_plans(tissue, stored)
+        model_data = stored_model(cfg, tissue, sink)
     else:
-        summary.plans = _plan_stage(cfg, tissue, sink, reporter)
+        summary.plans, model_data = _plan_stage(cfg, tissue, sink, reporter, summary)
         sink.mark_finished("plan")
     if cfg.trials.count > 0:
         summary.figures += _manipulation_stage(cfg, tissue, summary.plans, sink, reporter, done)
     if cfg.insertion is not None:
         summary.figures += insertion_stage(cfg, tissue, summary.plans, sink, reporter, done)
     if cfg.trials.count > 0:
-        tasks = trial_tasks(tissue, summary.plans)
+        tasks = trial_tasks(tissue, summary.plans, model_data)
         if "trials" not in done:
             allocate_trial_arrays(sink, cfg, tasks, summary.plans)
             sink.mark_finished("trials")
@@ -253,14 +257,16 @@ def _study_stage(cfg: Config, sink: RunSink, reporter: Reporter) -> None:
     reporter.info(f"study: {len(study.rows)} combinations in {seconds:.1f} s (speed vs error: scissor report {sink.location})")
 
 
-def trial_tasks(tissue: Tissue, plans: list[NeedlePlan]) -> list[TargetTask]:
-    """Plain-data tasks of the targets that have a plan with a desired position."""
+def trial_tasks(tissue: Tissue, plans: list[NeedlePlan], model_data=None) -> list[TargetTask]:
+    """Plain-data tasks of the targets that have a plan with a desired position (and the controller's model
+    when it is not the layer)."""
     tasks = []
     for index, (target, plan) in enumerate(zip(tissue.scene.targets, plans)):
         if plan.feasible:
             tasks.append(TargetTask(index, target.name, target.rest, np.asarray(plan.desired, float),
                                     np.asarray(plan.strokes, float), plan.side, np.asarray(plan.direction, float),
-                                    np.asarray(plan.entry, float), float(plan.depth_mm)))
+                                    np.asarray(plan.entry, float), float(plan.depth_mm),
+                                    model_data if model_data is not None and model_data.kind != "layer" else None))
     return tasks
 
 
@@ -393,26 +399,44 @@ def _forward_stage(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSumma
         advance(1)
 
 
-def _plan_stage(cfg: Config, tissue: Tissue, sink: RunSink, reporter: Reporter) -> list[NeedlePlan]:
-    """Plan every target's insertion; the plan's desired position becomes the target's."""
+def _plan_stage(cfg: Config, tissue: Tissue, sink: RunSink, reporter: Reporter, summary: RunSummary):
+    """Plan every target's insertion (the plan's desired position becomes the target's), then with the
+    controller's model where it is not the layer (docs/model.md §15); (plans, the model's data or None)."""
     scene = tissue.scene
     robot_check = robot_joint_check(cfg)
     plans = []
     cache = StateCache(tissue)
     advance = reporter.progress("needle plans", len(scene.targets))
     for target in scene.targets:
-        plan = plan_target(tissue, scene, target, cfg.needle, robot_check=robot_check, cache=cache)
-        plans.append(plan)
+        plans.append(plan_target(tissue, scene, target, cfg.needle, robot_check=robot_check, cache=cache))
+        advance(1)
+    model_data, plans, paths = controller_model_stage(cfg, tissue, plans, sink.location, reporter)
+    if model_data is not None and hasattr(sink, "controller_model"):
+        figure = sink.controller_model(model_data, [t.name for t in scene.targets], paths,
+                                       cfg.controller.jacobian_update, cfg.name)
+        if figure is not None:
+            summary.figures.append(figure)
+    for target, plan in zip(scene.targets, plans):
         sink.plan(target, plan, "config" if target.desired is not None else "planner")
         how = (f"strokes {_fmt(plan.strokes)} mm" if plan.manipulated else "no manipulation needed")
+        if plan.slab_strokes is not None and plan.feasible:
+            how += f" (the nominal slab needs {_fmt(plan.slab_strokes)} mm)"
         if plan.feasible and not plan.robot_ok:
             how += f"; ROBOT: {plan.robot_note}"
         reporter.info(
             f"plan {target.name}: " + (f"{plan.side} entry, {_clearance_text(plan.clearance_mm)}, {how} ({plan.time_s:.1f} s)"
                                        if plan.feasible else f"infeasible: {plan.reason}")
         )
-        advance(1)
-    return plans
+    return plans, model_data
+
+
+def stored_model(cfg: Config, tissue: Tissue, sink: RunSink):
+    """A resumed run's controller model: what its file holds (the plans were made with it), else fitted again."""
+    if not needs_slab(cfg):
+        return None
+    names = [t.name for t in tissue.scene.targets]
+    data = sink.stored_controller_model(names) if hasattr(sink, "stored_controller_model") else None
+    return data if data is not None else controller_model_stage(cfg, tissue, [], sink.location, SilentReporter())[0]
 
 
 def robot_joint_check(cfg: Config):

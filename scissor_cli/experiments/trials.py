@@ -42,6 +42,8 @@ class TargetTask:
     direction: np.ndarray  # (2,) corridor direction, NaN when none
     entry: Optional[np.ndarray] = None  # (2,) the plan's needle entry (insertion)
     depth_mm: float = 0.0  # the plan's depth (insertion)
+    #: the controller's model when it is not the layer (`layer3d.controller_model.ModelData`, docs/model.md §15)
+    controller_model: Optional[object] = None
 
 
 @dataclass
@@ -80,6 +82,7 @@ class TrialContext:
         self.camera = Camera.from_config(self.cfg.camera)
         self.centroids = self.mesh.nodes[self.mesh.triangles].mean(axis=1)
         self._guesses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._controller_model = None  # built from the first task's ModelData (every task of a run has the same)
         self.slab_truth = None  # trials.truth: slab — the 3-D slab is the truth (docs/model.md §13)
         if self.cfg.trials.truth == "slab":
             from scissor_cli.layer3d.check import spec_from_config
@@ -95,6 +98,24 @@ class TrialContext:
             r = solve_equilibrium(self.tissue, task.plan_strokes)
             self._guesses[task.index] = (task.plan_strokes, r.x)
         return self._guesses[task.index]
+
+    def controller_factory(self, task: TargetTask):
+        """How the loop makes its controller: None for the layer (`run_target`'s own), else from the task's model."""
+        if task.controller_model is None:
+            return None
+        if self._controller_model is None:
+            from scissor_cli.layer3d.controller_model import ControllerModel  # noqa: PLC0415
+
+            slab = self.slab_truth.slab if self.slab_truth is not None else None
+            if slab is None and task.controller_model.kind == "slab":
+                from scissor_cli.layer3d.check import spec_from_config  # noqa: PLC0415
+                from scissor_cli.layer3d.slab import build_slab  # noqa: PLC0415
+
+                slab = build_slab(self.scene, self.mesh, spec_from_config(self.cfg.layer_check),
+                                  model=self.tissue.params.model)
+            self._controller_model = ControllerModel(task.controller_model, self.tissue, slab)
+        model = self._controller_model
+        return lambda lo, hi, resolution_mm, tol: model.controller(task.index, lo, hi, resolution_mm, tol)
 
     def measurement(self, draw) -> control.Measurement:
         if self.errors.exact_measurement:
@@ -115,6 +136,7 @@ class TrialContext:
             resolution_mm=self.errors.actuator_resolution_mm, backlash_mm=self.errors.backlash_mm,
             rng=draw.rng, corridor=corridor, target=task.name, guess=self.guess(task),
             truth_factory=None if self.slab_truth is None else self.slab_truth.for_target(task.rest, task.plan_strokes),
+            controller_factory=self.controller_factory(task),
         )
         # The optional release slip moves the target along the (first) cup's axis after the loop.
         slip = draw.release_slip_mm * self.scene.cups[0].axis if len(self.scene.cups) else np.zeros(2)

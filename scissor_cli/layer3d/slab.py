@@ -115,6 +115,11 @@ class SlabProbe:
         """Deformed points (K, 3) mm for slab positions x (N3, 3)."""
         return np.einsum("kj,kjd->kd", self.bary, np.asarray(x, float)[self.nodes])
 
+    def response(self, D: np.ndarray) -> np.ndarray:
+        """The points' response (K, 3, C) to nodal vectors D (3 N3, C) (e.g. the tangent response to the strokes)."""
+        D3 = np.asarray(D, float).reshape(-1, 3, D.shape[1])
+        return np.einsum("kj,kjdc->kdc", self.bary, D3[self.nodes])
+
 
 def slab_probe(slab: Tissue, mesh: Mesh, points: np.ndarray | None = None,
                probe: TargetProbe | None = None) -> SlabProbe:

@@ -235,6 +235,8 @@ def write_plan(out: ResultsFile, plan, joints_note: str, robot_reachable: bool) 
         "strokes": np.asarray(plan.strokes, float),
         "side": plan.side,
         "desired_error_mm": float(plan.desired_error_mm),
+        **{name: np.asarray(value, float) for name, value in (("model_strokes", plan.model_strokes),
+                                                              ("slab_strokes", plan.slab_strokes)) if value is not None},
     })
 
 

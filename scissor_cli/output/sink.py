@@ -135,6 +135,21 @@ class ResultsSink:
         results.write_plan(self.out, plan, plan.robot_note, plan.robot_ok)
         self.out.flush()
 
+    def controller_model(self, data, target_names: list[str], paths, jacobian_update: str, title: str
+                         ) -> Optional[Path]:
+        """The controller's model (docs/model.md §15): /controller_model and its path figure (when drawn)."""
+        from scissor_cli.output.controller_model import save_controller_model_figure, write_controller_model  # noqa: PLC0415
+
+        write_controller_model(self.out.h5, data, target_names, jacobian_update)
+        self.out.flush()
+        return None if paths is None else save_controller_model_figure(paths, title, self.location)
+
+    def stored_controller_model(self, target_names: list[str]):
+        """The controller model a resumed run stored, or None."""
+        from scissor_cli.output.controller_model import read_controller_model  # noqa: PLC0415
+
+        return None if self._rebuilt else read_controller_model(self.out.h5, target_names)
+
     def manipulation_points(self, plan, scene) -> Path:
         """The manipulation-point plan (docs/model.md §7): /manipulation_points and its figure."""
         from scissor_cli.output.grip_figures import save_grip_figure, write_manipulation_points  # noqa: PLC0415

@@ -50,6 +50,7 @@ class NeedlePlan:
     desired_error_mm: distance between `desired` and the target's deformed
         position at `strokes` (0 unless the config gave the desired position).
     reason: empty when feasible, else why no plan exists (with the best found).
+    model_strokes, slab_strokes (C,) mm: see the fields (docs/model.md §15).
     """
 
     target: str
@@ -68,6 +69,10 @@ class NeedlePlan:
     desired_error_mm: float = 0.0
     solves: int = 0
     time_s: float = 0.0
+    #: with a 3-D-aware controller model or slab truth (docs/model.md §15): the strokes (C,) mm the controller's
+    #: model needs for `desired` (then also `strokes`), and those the nominal slab needs; None when not asked
+    model_strokes: Optional[np.ndarray] = None
+    slab_strokes: Optional[np.ndarray] = None
 
     @property
     def manipulated(self) -> bool:

@@ -1,0 +1,248 @@
+"""The controller-model stage: fit the controller's model and plan with it (docs/model.md §15).
+
+After the layer's needle plans: with `controller.model` other than `layer`
+the model is fitted to the nominal slab (calibrated: a handful of slab
+solves; surrogate: its design), or read from the cache beside the run
+(`<run's parent>/.scissor-cache/`, keyed by everything the fit depends on,
+so a second run or a resume reuses it). Then each planned target's strokes
+are re-derived with that model (`control.models.strokes_for`: the strokes
+its model needs for the plan's desired point), and with a slab at hand
+(any non-layer model, or `trials.truth: slab`) also the nominal slab's. A
+3-D-aware model that cannot bring the target within the controller's
+tolerance inside the stroke limits makes the plan infeasible before any
+trial runs; with the `layer` model the slab's verdict is reported beside
+the plan (the paper's method is tested as it is).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import replace
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from scissor_cli import __version__
+from scissor_cli.config import Config
+from scissor_cli.control.models import strokes_for
+from scissor_cli.layer3d.calibration import Calibration
+from scissor_cli.layer3d.controller_model import (ControllerModel, ModelData, ModelPaths, SceneMap, build_model_data,
+                                                  model_solves, slab_map)
+from scissor_cli.layer3d.surrogate import SurrogateSamples
+from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
+from scissor_cli.mechanics.tissue import Tissue
+
+CACHE_DIR = ".scissor-cache"
+
+
+def needs_slab(cfg: Config) -> bool:
+    """Whether the stage runs at all: a non-layer controller model, or slab truth (the plans' slab strokes)."""
+    return cfg.layer_check is not None and (cfg.controller.model != "layer" or cfg.trials.truth == "slab")
+
+
+def cache_key(cfg: Config, plan_strokes: list[np.ndarray]) -> str:
+    """What the fitted model depends on, hashed: the scene, material, cups, targets, slab, design, the code's version."""
+    kind = cfg.controller.model
+    parts = {
+        "kind": kind, "version": __version__, "tol": SLAB_TRUTH_TOL,
+        "scene": cfg.model_dump(mode="json", include={"tissue", "material", "cups", "targets", "obstacles",
+                                                      "layer_check"}),
+        "surrogate": cfg.controller.surrogate.model_dump(mode="json") if kind == "surrogate" else None,
+        "plans": [np.round(np.asarray(s, float), 9).tolist() for s in plan_strokes] if kind == "calibrated" else None,
+    }
+    return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:20]
+
+
+def save_model_data(path: Path, data: ModelData) -> None:
+    """The fitted arrays as one .npz, written whole (a temporary file renamed), so a killed run leaves no half file."""
+    arrays = {"kind": np.array(data.kind), "build_time_s": np.array(data.build_time_s),
+              "validation_error_mm": np.array(np.nan if data.validation_error_mm is None else data.validation_error_mm)}
+    if data.calibration is not None:
+        c = data.calibration
+        arrays.update(transmission=c.transmission, fit_strokes=c.strokes, fit_targets=c.targets,
+                      fit_error_mm=np.array(c.error_mm))
+    if data.samples is not None:
+        s = data.samples
+        arrays.update(strokes=s.strokes, targets=s.targets, held_strokes=s.held_strokes, held_targets=s.held_targets,
+                      lo=s.lo, hi=s.hi)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_suffix(".partial.npz")
+    np.savez(partial, **arrays)
+    partial.replace(path)
+
+
+def load_model_data(path: Path) -> Optional[ModelData]:
+    """The cached model, or None when there is none (or it cannot be read: it is then fitted again)."""
+    try:
+        with np.load(path) as f:
+            a = {k: f[k] for k in f.files}
+    except (OSError, ValueError, KeyError):
+        return None
+    error = float(a["validation_error_mm"])
+    calibration = samples = None
+    if "transmission" in a:
+        calibration = Calibration(a["transmission"], a["fit_strokes"], a["fit_targets"], float(a["fit_error_mm"]))
+    if "strokes" in a:
+        samples = SurrogateSamples(a["strokes"], a["targets"], a["held_strokes"], a["held_targets"], a["lo"], a["hi"],
+                                   float(a["build_time_s"]))
+    return ModelData(str(a["kind"]), float(a["build_time_s"]), None if np.isnan(error) else error, calibration, samples)
+
+
+def fitted_model(cfg: Config, tissue: Tissue, slab: Optional[Tissue], plans: list, cache_dir: Optional[Path],
+                 reporter) -> tuple[ModelData, bool]:
+    """The controller's model data, from the cache when it holds this key; (data, came from the cache)."""
+    plan_strokes = [np.asarray(p.strokes, float) for p in plans if p.feasible]
+    kind = cfg.controller.model
+    path = None if cache_dir is None else cache_dir / f"controller-{kind}-{cache_key(cfg, plan_strokes)}.npz"
+    if path is not None and path.exists():
+        data = load_model_data(path)
+        if data is not None and data.kind == kind:
+            return data, True
+    total = model_solves(kind, tissue.n_cups, plan_strokes, cfg.controller.surrogate.samples)
+    advance = reporter.progress(f"controller model ({kind}): slab solves", total) if total else (lambda n: None)
+    data = build_model_data(kind, tissue, slab, plan_strokes, cfg.controller.surrogate.samples, advance)
+    if path is not None and kind in ("calibrated", "surrogate"):
+        save_model_data(path, data)
+    return data, False
+
+
+def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answer: Optional[SceneMap], reporter) -> list:
+    """The plans with `model_strokes` (and `strokes`, for a 3-D-aware model) and `slab_strokes` (docs/model.md §15)."""
+    lo = np.array([c.stroke_mm[0] for c in cfg.cups])
+    hi = np.array([c.stroke_mm[1] for c in cfg.cups])
+    tol = cfg.controller.tolerance_mm
+    model_answer = model.scene_map() if model.kind != "layer" else None
+    out = []
+    for t, plan in enumerate(plans):
+        if not plan.feasible:
+            out.append(plan)
+            continue
+        direction = plan.direction if cfg.controller.error == "miss" else None
+        mode = cfg.controller.error
+        model_s, left = np.asarray(plan.strokes, float), 0.0
+        if model_answer is not None:
+            start = plan.strokes if model.transmission is None else plan.strokes / model.transmission
+            model_s, left = strokes_for(_one(model_answer, t), plan.desired, lo, hi, direction, mode, start)
+        slab_s = None
+        if slab_answer is not None:
+            slab_s, slab_left = (model_s, left) if model.kind == "slab" else strokes_for(
+                _one(slab_answer, t), plan.desired, lo, hi, direction, mode, model_s)
+            if slab_left > tol and (model.kind == "layer" or left <= tol):  # (else the model's verdict says it)
+                reporter.info(f"plan {plan.target}: the nominal slab cannot bring the target within {tol:g} mm of its "
+                              f"desired position inside the stroke limits (left {slab_left:.2f} mm at strokes "
+                              f"{_fmt(slab_s)} mm; the {model.kind} model asks {_fmt(model_s)} mm)")
+        plan = replace(plan, model_strokes=model_s, slab_strokes=slab_s)
+        if model_answer is not None:
+            plan = replace(plan, strokes=model_s)
+            if left > tol:
+                plan = replace(plan, feasible=False, reason=(
+                    f"the {model.kind} controller model cannot bring the target within {tol:g} mm of its desired "
+                    f"position inside the stroke limits (left {left:.2f} mm at strokes {_fmt(model_s)} mm)"))
+        out.append(plan)
+    return out
+
+
+def controller_model_stage(cfg: Config, tissue: Tissue, plans: list, location: Optional[Path], reporter
+                           ) -> tuple[Optional[ModelData], list, Optional[ModelPaths]]:
+    """Fit (or read) the controller's model and plan with it: (model data, plans, the figure's paths).
+
+    (None, plans, None) when the scene has no slab to use; the paths are
+    drawn for a non-layer model only.
+    """
+    if not needs_slab(cfg):
+        return None, plans, None
+    from scissor_cli.layer3d.check import spec_from_config  # noqa: PLC0415
+    from scissor_cli.layer3d.slab import build_slab  # noqa: PLC0415
+
+    slab = build_slab(tissue.scene, tissue.mesh, spec_from_config(cfg.layer_check), model=tissue.params.model)
+    cache_dir = None if location is None else Path(location).parent / CACHE_DIR
+    data, cached = fitted_model(cfg, tissue, slab, plans, cache_dir, reporter)
+    model = ControllerModel(data, tissue, slab)
+    how = "from the cache" if cached else f"in {data.build_time_s:.1f} s"
+    error = "" if data.validation_error_mm is None else f", error against the slab {data.validation_error_mm:.3g} mm"
+    extra = "" if model.transmission is None else f", transmission {_fmt(model.transmission)}"
+    if data.kind != "layer":
+        reporter.info(f"controller model {data.kind}: {how}{error}{extra}")
+    rests = np.array([t.rest for t in tissue.scene.targets]).reshape(-1, 2)
+    slab_answer = slab_map(slab, tissue, rests) if model.kind != "slab" else model.scene_map()
+    plans = plan_with_model(cfg, plans, model, slab_answer, reporter)
+    paths = model_paths(cfg, tissue, model, slab_answer) if model.kind != "layer" else None
+    return data, plans, paths
+
+
+def _one(answer: SceneMap, target: int):
+    """One target's `control.models.TargetMap` from a scene map."""
+
+    def one(strokes):
+        y, J = answer(strokes)
+        return y[target], J[target]
+
+    return one
+
+
+def _fmt(values) -> str:
+    return "(" + ", ".join(f"{v:+.2f}" for v in np.atleast_1d(values)) + ")"
+
+
+#: stroke grid of the model's (and the layer's) path in the figure; the slab's is solved at SLAB_PATH_POINTS
+PATH_POINTS = 31
+SLAB_PATH_POINTS = 7
+
+
+def model_paths(cfg: Config, tissue: Tissue, model: ControllerModel, slab_answer: SceneMap) -> ModelPaths:
+    """The figure's paths: each cup alone over its stroke range (others at rest) — layer, model, nominal slab.
+
+    The slab's points are the model's own slab samples on that line when it
+    has at least SLAB_PATH_POINTS of them (a one-cup surrogate's design),
+    else SLAB_PATH_POINTS slab solves.
+    """
+    C = tissue.n_cups
+    rests = np.array([t.rest for t in tissue.scene.targets]).reshape(-1, 2)
+    layer_answer = ControllerModel(ModelData("layer"), tissue).scene_map()
+    model_answer = model.scene_map()
+    grids, modelled, layered, slab_s, slab_y = [], [], [], [], []
+    for c, cup in enumerate(cfg.cups):
+        grid = np.linspace(cup.stroke_mm[0], cup.stroke_mm[1], PATH_POINTS)
+        order = np.argsort(np.abs(grid), kind="stable")  # outwards from rest: tracked solves start close
+        on_line = np.zeros(C)
+        lines = []
+        for answer in (layer_answer, model_answer):
+            y = np.empty((grid.size, len(rests), 2))
+            for k in order:
+                on_line[:] = 0.0
+                on_line[c] = grid[k]
+                y[k] = answer(on_line)[0]
+            lines.append(y)
+        known_s, known_y = _samples_on_line(model.data, c)
+        if known_s.size < SLAB_PATH_POINTS:
+            known_s = np.linspace(cup.stroke_mm[0], cup.stroke_mm[1], SLAB_PATH_POINTS)
+            known_y = np.empty((known_s.size, len(rests), 2))
+            for k in np.argsort(np.abs(known_s), kind="stable"):
+                on_line[:] = 0.0
+                on_line[c] = known_s[k]
+                known_y[k] = slab_answer(on_line)[0]
+        grids.append(grid)
+        layered.append(lines[0])
+        modelled.append(lines[1])
+        slab_s.append(known_s)
+        slab_y.append(known_y)
+    return ModelPaths(model.kind, [c.name for c in cfg.cups], [t.name for t in cfg.targets], grids, modelled, layered,
+                      slab_s, slab_y)
+
+
+def _samples_on_line(data: ModelData, cup: int) -> tuple[np.ndarray, np.ndarray]:
+    """The model's slab samples with every other cup at rest: strokes (V,) of `cup`, in-plane targets (V, T, 2)."""
+    sets = []
+    if data.samples is not None:
+        sets += [(data.samples.strokes, data.samples.targets), (data.samples.held_strokes, data.samples.held_targets)]
+    if data.calibration is not None:
+        sets.append((data.calibration.strokes, data.calibration.targets))
+    strokes = [s[np.all(np.delete(s, cup, axis=1) == 0.0, axis=1)] for s, _ in sets]
+    targets = [y[np.all(np.delete(s, cup, axis=1) == 0.0, axis=1), :, :2] for s, y in sets]
+    if not sets or not sum(len(s) for s in strokes):
+        return np.zeros(0), np.zeros((0, 0, 2))
+    s, y = np.concatenate([s[:, cup] for s in strokes]), np.concatenate(targets)
+    order = np.argsort(s)
+    return s[order], y[order]

@@ -1,0 +1,148 @@
+"""The controller's surrogate: the targets' positions over the strokes, learned from nominal slab equilibria (docs/model.md §15).
+
+Training: the nominal slab (no trial perturbation) is solved at a
+space-filling design of strokes within the cups' limits — the 2^C corners
+of the stroke box (when there are at most half as many corners as samples)
+and scrambled Halton points for the rest — and at a quarter as many other
+Halton points (at least 4) kept out of the fit to measure its error. One
+tracked slab (`solvers.tracking.Equilibrium`) visits them in a
+nearest-neighbour chain from rest, so each solve starts from a close
+equilibrium. One slab solve answers for every target.
+
+The map: per target, the three coordinates as a thin-plate-spline radial
+basis interpolant with a linear polynomial (scipy's RBFInterpolator,
+strokes scaled to [−1, 1] per cup), exact at the training samples; J by
+central differences of the interpolant (its step, 1e-4 of each cup's
+range, is far below the samples' spacing, so the difference error is
+round-off). Its error: the largest in-plane distance between its
+prediction and the slab at the held-out strokes, over targets — the part
+the camera sees and the controller uses (the height is learned too and
+stored, but a thin slab's height can swing by millimetres over the strokes
+and is not what the loop steers).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+from scipy.interpolate import RBFInterpolator
+from scipy.stats import qmc
+
+from scissor_cli.layer3d.slab import SlabProbe
+from scissor_cli.mechanics.tissue import Tissue
+from scissor_cli.solvers.tracking import Equilibrium
+
+#: the Halton design's scrambling seed: the design is part of the model, not of a trial's draw
+DESIGN_SEED = 20240906
+#: J's central-difference step as a fraction of each cup's stroke range
+FD_STEP = 1e-4
+
+
+@dataclass(frozen=True)
+class SurrogateSamples:
+    """The nominal slab's answers: strokes (S, C) mm → targets (S, T, 3) mm; held-out (V, C) → (V, T, 3)."""
+
+    strokes: np.ndarray
+    targets: np.ndarray
+    held_strokes: np.ndarray
+    held_targets: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    build_time_s: float
+
+
+def design(lo: np.ndarray, hi: np.ndarray, samples: int) -> tuple[np.ndarray, np.ndarray]:
+    """Training strokes (samples, C) and held-out strokes (max(4, samples // 4), C) mm within [lo, hi]."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    C = lo.size
+    corners = np.zeros((0, C))
+    if 2 ** C <= samples // 2:
+        corners = np.array(np.meshgrid(*[[0.0, 1.0]] * C, indexing="ij")).reshape(C, -1).T
+    n_held = max(4, samples // 4)
+    unit = qmc.Halton(d=C, scramble=True, seed=DESIGN_SEED).random(samples - len(corners) + n_held)
+    train = np.vstack([corners, unit[:samples - len(corners)]])
+    return lo + train * (hi - lo), lo + unit[samples - len(corners):] * (hi - lo)
+
+
+def chain(points: np.ndarray) -> np.ndarray:
+    """A visiting order (P,) of stroke points (P, C): nearest-neighbour from rest, so each solve starts close."""
+    order, here = [], np.zeros(points.shape[1])
+    left = list(range(len(points)))
+    while left:
+        k = min(left, key=lambda i: float(np.linalg.norm(points[i] - here)))
+        order.append(k)
+        left.remove(k)
+        here = points[k]
+    return np.array(order, np.int64)
+
+
+def solve_samples(slab: Tissue, probe: SlabProbe, strokes: np.ndarray, tol: float,
+                  advance: Callable[[int], None] = lambda n: None) -> np.ndarray:
+    """The targets (P, T, 3) mm of the nominal slab at each stroke vector (P, C), solved along `chain`."""
+    eq = Equilibrium(slab, tol)
+    out = np.empty((len(strokes), len(probe.nodes), 3))
+    for k in chain(strokes):
+        eq.move_to(strokes[k], tangent=False)
+        out[k] = probe.positions(eq.x)
+        advance(1)
+    return out
+
+
+def train(slab: Tissue, probe: SlabProbe, lo, hi, samples: int, tol: float,
+          advance: Callable[[int], None] = lambda n: None) -> SurrogateSamples:
+    """Solve the design (`design`) on the nominal slab: the training set and the held-out set."""
+    t0 = time.perf_counter()
+    strokes, held = design(lo, hi, samples)
+    answers = solve_samples(slab, probe, np.vstack([strokes, held]), tol, advance)
+    return SurrogateSamples(strokes, answers[:samples], held, answers[samples:], np.asarray(lo, float),
+                            np.asarray(hi, float), time.perf_counter() - t0)
+
+
+class Surrogate:
+    """The interpolant of `SurrogateSamples`: predict(strokes (C,)) → targets (T, 3) mm, and J."""
+
+    def __init__(self, data: SurrogateSamples):
+        self.data = data
+        self._centre = 0.5 * (data.lo + data.hi)
+        self._half = np.maximum(0.5 * (data.hi - data.lo), 1e-12)
+        S, T, _ = data.targets.shape
+        self.n_targets = T
+        self._rbf = RBFInterpolator(self._scaled(data.strokes), data.targets.reshape(S, 3 * T),
+                                    kernel="thin_plate_spline", degree=1)
+
+    def _scaled(self, strokes: np.ndarray) -> np.ndarray:
+        return (np.atleast_2d(strokes) - self._centre) / self._half
+
+    def predict(self, strokes: np.ndarray) -> np.ndarray:
+        """Targets (P, T, 3) mm at strokes (P, C) mm."""
+        s = np.atleast_2d(np.asarray(strokes, float))
+        return self._rbf(self._scaled(s)).reshape(len(s), self.n_targets, 3)
+
+    def answer(self, strokes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Targets (T, 3) mm and J (T, 3, C) mm/mm at strokes (C,) mm: one batched evaluation of 2C + 1 points."""
+        s = np.asarray(strokes, float)
+        C = s.size
+        h = FD_STEP * 2.0 * self._half
+        points = np.vstack([s, s + np.diag(h), s - np.diag(h)])
+        values = self.predict(points)
+        J = (values[1:C + 1] - values[C + 1:]) / (2.0 * h)[:, None, None]  # (C, T, 3)
+        return values[0], np.moveaxis(J, 0, 2)
+
+    def validation_error_mm(self) -> float:
+        """The largest in-plane distance (mm) between the prediction and the slab at the held-out strokes."""
+        d = self.data
+        if not len(d.held_strokes):
+            return float("nan")
+        return float(np.max(np.linalg.norm((self.predict(d.held_strokes) - d.held_targets)[:, :, :2], axis=2)))
+
+    def target_map(self, target: int):
+        """The `control.models.TargetMap` of one target: strokes → (in-plane position (2,), J (2, C))."""
+
+        def answer(strokes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            y, J = self.answer(strokes)
+            return y[target, :2], J[target, :2]
+
+        return answer

@@ -1,0 +1,211 @@
+"""The controller's model of the tissue (docs/model.md §15): calibrated, surrogate, slab — against the slab."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from helpers import deep_update, example_dict, write_scene
+from scissor_cli.config import parse_config, resolved_yaml
+from scissor_cli.control.models import INVERSE_TOL_MM, MapController, strokes_for
+from scissor_cli.layer3d.calibration import calibration_strokes, fit_transmission
+from scissor_cli.layer3d.check import spec_from_config
+from scissor_cli.layer3d.controller_model import ControllerModel, ModelData, build_model_data, slab_map
+from scissor_cli.layer3d.slab import build_slab, slab_probe
+from scissor_cli.layer3d.surrogate import Surrogate, design, solve_samples
+from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
+from scissor_cli.mechanics.tissue import build_model
+from scissor_cli.mesh.probe import probe_targets
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def small(model: str = "layer", trials: int = 0) -> dict:
+    """The example scene, coarse, against a thin slab whose chest wall is free (so a cup moves it)."""
+    data = example_dict()
+    deep_update(data, "tissue.mesh.max_edge_mm", 8.0)
+    deep_update(data, "tissue.mesh.min_edge_mm", 2.0)
+    deep_update(data, "solver.kind", "newton")
+    data["forward"] = data["forward"][:1]
+    data["targets"][0]["desired_mm"] = [50.0, 26.0]
+    data["targets"][1]["desired_mm"] = [58.0, 21.0]
+    data["trials"]["count"] = trials
+    data["trials"]["truth"] = "slab"
+    data["layer_check"] = {"height_mm": 8.0, "layer_z_mm": 4.0, "max_layer_mm": 4.0, "chest_wall_fixed": False}
+    data["controller"]["model"] = model
+    data["controller"]["surrogate"] = {"samples": 8}
+    return data
+
+
+@pytest.fixture(scope="module")
+def scene():
+    cfg = parse_config(resolved_yaml(parse_config(__import__("yaml").safe_dump(small()))))
+    _, mesh, tissue = build_model(cfg)
+    slab = build_slab(tissue.scene, mesh, spec_from_config(cfg.layer_check), model=tissue.params.model)
+    rests = np.array([t.rest for t in tissue.scene.targets])
+    return cfg, tissue, slab, rests
+
+
+@pytest.fixture(scope="module")
+def surrogate_data(scene):
+    cfg, tissue, slab, _ = scene
+    return build_model_data("surrogate", tissue, slab, [], 8)
+
+
+def test_design_spans_the_stroke_box_with_its_corners_and_keeps_held_out_points_apart():
+    lo, hi = np.array([-15.0, -5.0]), np.array([15.0, 10.0])
+    train, held = design(lo, hi, 16)
+    assert train.shape == (16, 2) and held.shape == (4, 2)
+    assert np.all(train >= lo) and np.all(train <= hi) and np.all(held >= lo) and np.all(held <= hi)
+    for corner in ([-15, -5], [-15, 10], [15, -5], [15, 10]):
+        assert np.any(np.all(train == corner, axis=1))
+    assert np.min(np.linalg.norm(train[:, None] - held[None], axis=2)) > 1e-6
+
+
+def test_surrogate_is_exact_at_its_samples_and_within_0_05_mm_in_plane_of_held_out_slab_solves(scene, surrogate_data):
+    _, tissue, slab, rests = scene
+    s = Surrogate(surrogate_data.samples)
+    d = surrogate_data.samples
+    assert np.allclose(s.predict(d.strokes), d.targets, atol=1e-6)
+    assert surrogate_data.validation_error_mm == pytest.approx(s.validation_error_mm())
+    # a fresh slab solve at strokes in neither set
+    fresh = np.array([[-11.3], [2.7], [9.1]])
+    truth = solve_samples(slab, slab_probe(slab, tissue.mesh, rests), fresh, SLAB_TRUTH_TOL)
+    assert np.max(np.linalg.norm((s.predict(fresh) - truth)[:, :, :2], axis=2)) <= 0.05
+    assert surrogate_data.validation_error_mm <= 0.05
+
+
+def test_surrogate_jacobian_matches_the_slabs_tangent(scene, surrogate_data):
+    """J of the learned map against the nominal slab's exact tangent response at the same strokes."""
+    _, tissue, slab, rests = scene
+    model = ControllerModel(surrogate_data, tissue, slab)
+    slab_answer = slab_map(slab, tissue, rests)
+    for stroke in (-6.0, 4.0):
+        y_m, J_m = model.scene_map()(np.array([stroke]))
+        y_s, J_s = slab_answer(np.array([stroke]))
+        assert np.max(np.abs(y_m - y_s)) <= 0.05
+        assert np.max(np.abs(J_m - J_s)) <= 0.05 * np.max(np.abs(J_s))
+
+
+def test_every_model_answers_the_same_questions(scene, surrogate_data):
+    """positions and J of all four through one interface; the controller moves with its command."""
+    cfg, tissue, slab, rests = scene
+    datas = [ModelData("layer"), build_model_data("calibrated", tissue, slab, [np.array([4.0])], 8), surrogate_data,
+             ModelData("slab")]
+    for data in datas:
+        model = ControllerModel(data, tissue, slab)
+        y, J = model.scene_map()(np.array([3.0]))
+        assert y.shape == (2, 2) and J.shape == (2, 2, 1) and np.all(np.isfinite(J))
+        c = model.controller(1, [-15.0], [15.0])
+        J0 = c.jacobian.copy()
+        c.update(np.array([5.0]))
+        assert c.jacobian.shape == (2, 1) and np.array_equal(c.strokes, [5.0])
+        assert not np.array_equal(c.jacobian, J0)  # the tissue is nonlinear: J moves with the stroke
+
+
+def test_calibration_finds_the_slab_moves_less_than_the_layer_and_fits_it_better(scene):
+    cfg, tissue, slab, rests = scene
+    lo, hi = np.array([-15.0]), np.array([15.0])
+    values = calibration_strokes(lo, hi, [np.array([4.0])])
+    assert np.allclose(values[0], [2.0, 4.0, 15.0])
+    probe = probe_targets(tissue.mesh, rests)
+    cal = fit_transmission(tissue, probe, slab, slab_probe(slab, tissue.mesh, rests), values, SLAB_TRUTH_TOL)
+    assert 0.0 < cal.transmission[0] < 1.0  # the layer overstates the cup's effect
+    layer = ControllerModel(ModelData("layer"), tissue).scene_map()
+    calibrated = ControllerModel(ModelData("calibrated", calibration=cal), tissue).scene_map()
+    s = np.array([4.0])
+    slab_y = cal.targets[1, :, :2]  # the slab at the fitting stroke 4 mm
+    assert np.max(np.linalg.norm(calibrated(s)[0] - slab_y, axis=1)) <= cal.error_mm + 1e-9
+    # over every fitting stroke the calibrated layer's worst distance to the slab is below the plain layer's
+    layer_worst = max(np.max(np.linalg.norm(layer(np.array([v]))[0] - cal.targets[k, :, :2], axis=1))
+                      for k, v in enumerate(values[0]))
+    assert cal.error_mm < layer_worst
+
+
+def _linear_map(A: np.ndarray, y0: np.ndarray):
+    return lambda s: (y0 + A @ s, A)
+
+
+def test_inverse_reaches_a_reachable_point_and_says_how_far_an_unreachable_one_stays():
+    A = np.array([[0.1, 0.0], [-0.3, 0.2]])
+    y0 = np.array([50.0, 30.0])
+    want = y0 + A @ np.array([4.0, -2.0])
+    s, left = strokes_for(_linear_map(A, y0), want, [-10, -10], [10, 10], None, "position")
+    assert left <= INVERSE_TOL_MM and np.allclose(s, [4.0, -2.0], atol=0.05)
+    # miss mode, needle along x: only y is driven; one cup suffices
+    s, left = strokes_for(_linear_map(A[:, :1], y0), y0 + np.array([5.0, -0.9]), [-10], [10], np.array([1.0, 0.0]))
+    assert left <= INVERSE_TOL_MM and s[0] == pytest.approx(3.0, abs=0.01)
+    s, left = strokes_for(_linear_map(A[:, :1], y0), y0 + np.array([0.0, -6.0]), [-10], [10], np.array([1.0, 0.0]))
+    assert s[0] == pytest.approx(10.0) and left == pytest.approx(3.0, abs=1e-6)
+
+
+def test_map_controller_is_the_maps_answer_at_the_command():
+    A = np.array([[0.1], [-0.3]])
+    c = MapController(_linear_map(A, np.zeros(2)), 1, [-5], [5])
+    c.update(np.array([2.0]))
+    assert np.allclose(c.position, [0.2, -0.6]) and np.allclose(c.jacobian, A) and not c.shares(None)
+
+
+@pytest.mark.parametrize("model", ["calibrated", "surrogate", "slab"])
+def test_a_model_made_from_the_slab_needs_a_layer_check(tmp_path, model):
+    data = small(model)
+    del data["layer_check"]
+    data["trials"]["truth"] = "layer"
+    r = _cli("validate", write_scene(tmp_path, data))
+    assert r.returncode == 2 and "controller.model" in r.stderr and "layer_check" in r.stderr
+
+
+def test_a_surrogate_needs_enough_samples_for_its_cups(tmp_path):
+    data = small("surrogate")
+    data["controller"]["surrogate"] = {"samples": 5}
+    r = _cli("validate", write_scene(tmp_path, data))
+    assert r.returncode == 2 and "controller.surrogate.samples" in r.stderr and "at least 8" in r.stderr
+
+
+def _cli(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "scissor_cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=600, cwd=cwd)
+
+
+def test_surrogate_run_records_the_model_plans_with_it_and_reuses_its_cache(tmp_path):
+    """simulate: /controller_model with its samples, the plans' model and slab strokes, the path figure; a
+    second run takes the model from the cache beside the runs and gives the same trials."""
+    scene_path = write_scene(tmp_path, small("surrogate", trials=2))
+    first = _cli("simulate", scene_path, "--out", tmp_path / "runs" / "a", "--jobs", "1")
+    assert first.returncode == 0, first.stderr
+    out = " ".join(first.stdout.split() + first.stderr.split())
+    assert "controller model surrogate: in" in out
+    with h5py.File(tmp_path / "runs" / "a" / "results.h5") as f:
+        g = f["controller_model"]
+        assert g.attrs["kind"] == "surrogate" and g.attrs["validation_error_mm"] <= 0.05
+        assert g["samples/strokes"].shape == (8, 1) and g["samples/targets/T1"].shape == (8, 3)
+        assert g["held_out/strokes"].shape == (4, 1)
+        plan = f["plan/T2"].attrs
+        assert np.array_equal(plan["strokes"], plan["model_strokes"])
+        assert abs(plan["model_strokes"][0] - plan["slab_strokes"][0]) <= 0.25  # (the layer asks 1.3 mm less)
+        first_errors = f["trials/T2/final_error"][()]
+    assert (tmp_path / "runs" / "a" / "controller_model.png").exists()
+    second = _cli("simulate", scene_path, "--out", tmp_path / "runs" / "b", "--jobs", "1")
+    assert second.returncode == 0, second.stderr
+    assert "from the cache" in " ".join(second.stdout.split() + second.stderr.split())
+    with h5py.File(tmp_path / "runs" / "b" / "results.h5") as f:
+        assert np.array_equal(f["trials/T2/final_error"][()], first_errors)
+
+
+def test_a_target_the_slab_cannot_reach_is_reported_before_any_trial(tmp_path):
+    """With the chest wall held the thin slab barely moves: the calibrated plan is infeasible, said up front."""
+    data = small("calibrated", trials=2)
+    data["layer_check"]["chest_wall_fixed"] = True
+    data["targets"] = data["targets"][:1]
+    r = _cli("simulate", write_scene(tmp_path, data), "--out", tmp_path / "run", "--jobs", "1")
+    assert r.returncode == 0, r.stderr
+    said = " ".join(r.stdout.split() + r.stderr.split())
+    assert "plan T1: infeasible: the calibrated controller model cannot bring the target" in said
+    assert "trials done" not in said or "0 to run" in said
+    with h5py.File(tmp_path / "run" / "results.h5") as f:
+        assert not f["plan/T1"].attrs["feasible"] and "slab_strokes" in f["plan/T1"].attrs
