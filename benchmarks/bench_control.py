@@ -20,6 +20,10 @@ measurements, each the median over iterations (time.perf_counter):
 
     python benchmarks/bench_control.py [CONFIG.yaml] [--repeats N]
     python benchmarks/bench_control.py --table      # the goal table of docs/performance.md
+    python benchmarks/bench_control.py configs/example_full.yaml --models
+        # the controller's side of an iteration with each controller.model (docs/model.md §15):
+        # the model moved to the command, its J, the law's step; and each model's build time
+        # (the surrogate's from runs/.scissor-cache when it is there, else trained and cached)
 
 The machine has 2 cores and other work may share them: the numbers are
 wall-clock medians, not CPU time.
@@ -158,13 +162,58 @@ def ms(a: np.ndarray) -> str:
     return f"median {p50:6.1f} ms  (p10 {p10:.1f}, p90 {p90:.1f}, n={len(a)})"
 
 
+def model_iterations(path: Path, repeats: int) -> None:
+    """Median time of the controller's side of a control iteration with each model, and its build time."""
+    from scissor_cli.experiments.controller_model import CACHE_DIR, fitted_model  # noqa: PLC0415
+    from scissor_cli.experiments.simulate import SilentReporter  # noqa: PLC0415
+    from scissor_cli.layer3d.check import spec_from_config  # noqa: PLC0415
+    from scissor_cli.layer3d.controller_model import ControllerModel  # noqa: PLC0415
+    from scissor_cli.layer3d.slab import build_slab  # noqa: PLC0415
+
+    cfg = load_config(path).model_copy(update={"manipulation_points": None})
+    scene, mesh, layer = build_model(cfg)
+    slab = build_slab(scene, mesh, spec_from_config(cfg.layer_check), model=layer.params.model)
+    plans = plan_targets(layer, scene, cfg.needle)
+    print(f"{cfg.name}: layer {mesh.n_elements} triangles, slab {slab.mesh.n_elements} tetrahedra; "
+          f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}")
+    print("| model | build | controller side of one iteration (median) | goal |")
+    print("|---|---|---|---|")
+    act = ct.Actuator.from_scene(scene)
+    for kind in ("layer", "calibrated", "surrogate", "slab"):
+        kcfg = cfg.model_copy(update={"controller": cfg.controller.model_copy(update={"model": kind})})
+        data, cached = fitted_model(kcfg, layer, slab, plans, ROOT / "runs" / CACHE_DIR, SilentReporter(), jobs=2)
+        model = ControllerModel(data, layer, slab)
+        ctrl = model.controller(0, act.lo, act.hi)
+        s = np.full(layer.n_cups, 0.4 * scene.cups[0].stroke_max_mm)
+        ctrl.update(s)
+        rng = np.random.default_rng(0)
+        axis, desired = np.array([1.0, 0.0]), scene.targets[0].rest + [0.3, -1.0]
+        times = []
+        for _ in range(repeats if kind != "slab" else max(5, repeats // 10)):
+            t0 = time.perf_counter()
+            s = np.clip(s + rng.choice([-1, 1], layer.n_cups) * rng.uniform(0.02, 0.5, layer.n_cups), act.lo, act.hi)
+            ctrl.update(s)
+            stroke_step(ctrl.jacobian, desired - scene.targets[0].rest, s, act.lo, act.hi, act.speed_mm_per_s * 0.1,
+                        axis)
+            times.append(time.perf_counter() - t0)
+        build = "-" if kind in ("layer", "slab") else f"{data.build_time_s:.1f} s" + (" (cached)" if cached else "")
+        goal = "-" if kind == "slab" else "<= 10 ms"
+        error = "" if data.validation_error_mm is None else f"; error vs slab {data.validation_error_mm:.3g} mm"
+        print(f"| {kind} | {build}{error} | {np.median(times) * 1e3:.2f} ms | {goal} |")
+    print(f"load average now {os.getloadavg()[0]:.2f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("config", nargs="?", default=str(ROOT / "configs" / "example.yaml"))
     ap.add_argument("--repeats", type=int, default=60, help="corrective steps per measurement")
     ap.add_argument("--trials", type=int, default=3, help="noisy trials per target in the loop measurement")
     ap.add_argument("--table", action="store_true", help="only the goal table (one and two cups, grip search)")
+    ap.add_argument("--models", action="store_true", help="the controller's side of an iteration per controller.model")
     args = ap.parse_args()
+    if args.models:
+        model_iterations(Path(args.config), args.repeats)
+        return
     if args.table:
         print(f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}")
         table(args.repeats)

@@ -209,3 +209,16 @@ def test_a_target_the_slab_cannot_reach_is_reported_before_any_trial(tmp_path):
     assert "trials done" not in said or "0 to run" in said
     with h5py.File(tmp_path / "run" / "results.h5") as f:
         assert not f["plan/T1"].attrs["feasible"] and "slab_strokes" in f["plan/T1"].attrs
+
+
+def test_surrogate_trained_in_two_workers_equals_one_after_the_other(scene, surrogate_data):
+    """The design's two groups solved in worker processes: the same numbers, bit for bit."""
+    from scissor_cli.experiments.controller_model import fitted_model
+    from scissor_cli.experiments.simulate import SilentReporter
+
+    _, tissue, slab, _ = scene
+    cfg = parse_config(resolved_yaml(parse_config(__import__("yaml").safe_dump(small("surrogate")))))
+    data, cached = fitted_model(cfg, tissue, slab, [], None, SilentReporter(), jobs=2)
+    assert not cached
+    assert np.array_equal(data.samples.targets, surrogate_data.samples.targets)
+    assert np.array_equal(data.samples.held_targets, surrogate_data.samples.held_targets)

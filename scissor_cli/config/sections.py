@@ -156,7 +156,7 @@ class SurrogateConfig(_Section):
 
     #: nominal slab solves in the space-filling design (at least SURROGATE_SAMPLES_PER_CUP per cup: checks);
     #: a quarter as many again (at least 4) are solved at other strokes to measure its error
-    samples: Int(2, 512) = 32
+    samples: Int(2, 512) = 16
 
 
 #: the fewest training samples per cup a surrogate may have (its interpolant is linear plus a spline)

@@ -25,12 +25,13 @@ from typing import Optional
 import numpy as np
 
 from scissor_cli import __version__
-from scissor_cli.config import Config
+from scissor_cli.config import Config, resolved_yaml
+from scissor_cli.experiments.pool import run_pool
 from scissor_cli.control.models import strokes_for
 from scissor_cli.layer3d.calibration import Calibration
 from scissor_cli.layer3d.controller_model import (ControllerModel, ModelData, ModelPaths, SceneMap, build_model_data,
                                                   model_solves, slab_map)
-from scissor_cli.layer3d.surrogate import SurrogateSamples
+from scissor_cli.layer3d.surrogate import SurrogateSamples, solve_samples
 from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
 from scissor_cli.mechanics.tissue import Tissue
 
@@ -91,8 +92,12 @@ def load_model_data(path: Path) -> Optional[ModelData]:
 
 
 def fitted_model(cfg: Config, tissue: Tissue, slab: Optional[Tissue], plans: list, cache_dir: Optional[Path],
-                 reporter) -> tuple[ModelData, bool]:
-    """The controller's model data, from the cache when it holds this key; (data, came from the cache)."""
+                 reporter, jobs: int = 1) -> tuple[ModelData, bool]:
+    """The controller's model data, from the cache when it holds this key; (data, came from the cache).
+
+    With jobs ≥ 2 the surrogate's design groups are solved in worker
+    processes (`solve_groups_in_workers`): the same numbers, in about half the time.
+    """
     plan_strokes = [np.asarray(p.strokes, float) for p in plans if p.feasible]
     kind = cfg.controller.model
     path = None if cache_dir is None else cache_dir / f"controller-{kind}-{cache_key(cfg, plan_strokes)}.npz"
@@ -102,10 +107,44 @@ def fitted_model(cfg: Config, tissue: Tissue, slab: Optional[Tissue], plans: lis
             return data, True
     total = model_solves(kind, tissue.n_cups, plan_strokes, cfg.controller.surrogate.samples)
     advance = reporter.progress(f"controller model ({kind}): slab solves", total) if total else (lambda n: None)
-    data = build_model_data(kind, tissue, slab, plan_strokes, cfg.controller.surrogate.samples, advance)
+    parallel = solve_groups_in_workers(resolved_yaml(cfg), jobs, advance) if jobs > 1 else None
+    data = build_model_data(kind, tissue, slab, plan_strokes, cfg.controller.surrogate.samples, advance, parallel)
     if path is not None and kind in ("calibrated", "surrogate"):
         save_model_data(path, data)
     return data, False
+
+
+def solve_groups_in_workers(config_yaml: str, jobs: int, advance):
+    """A `layer3d.surrogate.GroupSolver` on `jobs` worker processes (each builds the scene's nominal slab)."""
+
+    def solve(chunks: list[np.ndarray]) -> list[np.ndarray]:
+        out: list = [None] * len(chunks)
+        batches = [(config_yaml, k, chunk) for k, chunk in enumerate(chunks)]
+        for k, answers in run_pool(_solve_group, batches, min(jobs, len(chunks))):
+            out[k] = answers
+            advance(len(answers))
+        return out
+
+    return solve
+
+
+_SLABS: dict[str, tuple] = {}
+
+
+def _solve_group(config_yaml: str, index: int, strokes: np.ndarray) -> list[tuple[int, np.ndarray]]:
+    """In a worker: the nominal slab's targets at one design group's strokes (`surrogate.solve_samples`)."""
+    if config_yaml not in _SLABS:
+        from scissor_cli.config import parse_config  # noqa: PLC0415
+        from scissor_cli.layer3d.check import spec_from_config  # noqa: PLC0415
+        from scissor_cli.layer3d.slab import build_slab, slab_probe  # noqa: PLC0415
+        from scissor_cli.mechanics.tissue import build_model  # noqa: PLC0415
+
+        cfg = parse_config(config_yaml, "<run config>")
+        scene, mesh, tissue = build_model(cfg)
+        slab = build_slab(scene, mesh, spec_from_config(cfg.layer_check), model=tissue.params.model)
+        _SLABS[config_yaml] = (slab, slab_probe(slab, mesh, np.array([t.rest for t in scene.targets]).reshape(-1, 2)))
+    slab, probe = _SLABS[config_yaml]
+    return [(index, solve_samples(slab, probe, strokes, SLAB_TRUTH_TOL))]
 
 
 def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answer: Optional[SceneMap], reporter) -> list:
@@ -144,7 +183,7 @@ def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answe
     return out
 
 
-def controller_model_stage(cfg: Config, tissue: Tissue, plans: list, location: Optional[Path], reporter
+def controller_model_stage(cfg: Config, tissue: Tissue, plans: list, location: Optional[Path], reporter, jobs: int = 1
                            ) -> tuple[Optional[ModelData], list, Optional[ModelPaths]]:
     """Fit (or read) the controller's model and plan with it: (model data, plans, the figure's paths).
 
@@ -158,7 +197,7 @@ def controller_model_stage(cfg: Config, tissue: Tissue, plans: list, location: O
 
     slab = build_slab(tissue.scene, tissue.mesh, spec_from_config(cfg.layer_check), model=tissue.params.model)
     cache_dir = None if location is None else Path(location).parent / CACHE_DIR
-    data, cached = fitted_model(cfg, tissue, slab, plans, cache_dir, reporter)
+    data, cached = fitted_model(cfg, tissue, slab, plans, cache_dir, reporter, jobs)
     model = ControllerModel(data, tissue, slab)
     how = "from the cache" if cached else f"in {data.build_time_s:.1f} s"
     error = "" if data.validation_error_mm is None else f", error against the slab {data.validation_error_mm:.3g} mm"

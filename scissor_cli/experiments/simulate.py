@@ -231,7 +231,7 @@ def _stages(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary, rep
         summary.plans = stored_plans(tissue, stored)
         model_data = stored_model(cfg, tissue, sink)
     else:
-        summary.plans, model_data = _plan_stage(cfg, tissue, sink, reporter, summary)
+        summary.plans, model_data = _plan_stage(cfg, tissue, sink, reporter, summary, execution.jobs)
         sink.mark_finished("plan")
     if cfg.trials.count > 0:
         summary.figures += _manipulation_stage(cfg, tissue, summary.plans, sink, reporter, done)
@@ -399,7 +399,7 @@ def _forward_stage(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSumma
         advance(1)
 
 
-def _plan_stage(cfg: Config, tissue: Tissue, sink: RunSink, reporter: Reporter, summary: RunSummary):
+def _plan_stage(cfg: Config, tissue: Tissue, sink: RunSink, reporter: Reporter, summary: RunSummary, jobs: int = 1):
     """Plan every target's insertion (the plan's desired position becomes the target's), then with the
     controller's model where it is not the layer (docs/model.md §15); (plans, the model's data or None)."""
     scene = tissue.scene
@@ -410,7 +410,7 @@ def _plan_stage(cfg: Config, tissue: Tissue, sink: RunSink, reporter: Reporter, 
     for target in scene.targets:
         plans.append(plan_target(tissue, scene, target, cfg.needle, robot_check=robot_check, cache=cache))
         advance(1)
-    model_data, plans, paths = controller_model_stage(cfg, tissue, plans, sink.location, reporter)
+    model_data, plans, paths = controller_model_stage(cfg, tissue, plans, sink.location, reporter, jobs)
     if model_data is not None and hasattr(sink, "controller_model"):
         figure = sink.controller_model(model_data, [t.name for t in scene.targets], paths,
                                        cfg.controller.jacobian_update, cfg.name)

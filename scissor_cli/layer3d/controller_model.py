@@ -27,7 +27,7 @@ from scissor_cli.control.models import CalibratedController, MapController, Slab
 from scissor_cli.control.plant import Controller
 from scissor_cli.layer3d.calibration import Calibration, calibration_strokes, fit_transmission
 from scissor_cli.layer3d.slab import slab_probe
-from scissor_cli.layer3d.surrogate import Surrogate, SurrogateSamples, train
+from scissor_cli.layer3d.surrogate import GroupSolver, Surrogate, SurrogateSamples, train
 from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import apply_probe, probe_targets, target_positions
@@ -55,11 +55,13 @@ class ModelData:
 
 
 def build_model_data(kind: str, layer: Tissue, slab: Optional[Tissue], plan_strokes: list[np.ndarray],
-                     samples: int, advance: Callable[[int], None] = lambda n: None) -> ModelData:
+                     samples: int, advance: Callable[[int], None] = lambda n: None,
+                     solve_groups: Optional[GroupSolver] = None) -> ModelData:
     """Fit the model of `kind` for the layer's scene: slab solves for calibrated and surrogate (none otherwise).
 
     plan_strokes: the layer plans' strokes (C,) of every planned target
-    (where the calibration is fitted); samples: the surrogate's design size.
+    (where the calibration is fitted); samples: the surrogate's design size;
+    solve_groups: how the surrogate's design groups are solved (`surrogate.train`).
     """
     if kind not in KINDS:
         raise ValueError(f"controller model must be one of {KINDS}, got {kind!r}")
@@ -74,7 +76,7 @@ def build_model_data(kind: str, layer: Tissue, slab: Optional[Tissue], plan_stro
         cal = fit_transmission(layer, probe, slab, targets, calibration_strokes(lo, hi, plan_strokes), SLAB_TRUTH_TOL,
                                advance)
         return ModelData(kind, time.perf_counter() - t0, cal.error_mm, calibration=cal)
-    data = train(slab, targets, lo, hi, samples, SLAB_TRUTH_TOL, advance)
+    data = train(slab, targets, lo, hi, samples, SLAB_TRUTH_TOL, advance, solve_groups)
     return ModelData(kind, data.build_time_s, Surrogate(data).validation_error_mm(), samples=data)
 
 

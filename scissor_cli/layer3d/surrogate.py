@@ -4,10 +4,13 @@ Training: the nominal slab (no trial perturbation) is solved at a
 space-filling design of strokes within the cups' limits — the 2^C corners
 of the stroke box (when there are at most half as many corners as samples)
 and scrambled Halton points for the rest — and at a quarter as many other
-Halton points (at least 4) kept out of the fit to measure its error. One
-tracked slab (`solvers.tracking.Equilibrium`) visits them in a
-nearest-neighbour chain from rest, so each solve starts from a close
-equilibrium. One slab solve answers for every target.
+Halton points (at least 4) kept out of the fit to measure its error. They
+are split into two groups by the sign of the first cup's stroke (`groups`);
+in each, one tracked slab (`solvers.tracking.Equilibrium`) visits them in
+a nearest-neighbour chain from rest, so each solve starts from a close
+equilibrium. The groups are independent: with `--jobs 2` they are solved
+in two worker processes, with the same numbers as one after the other. One
+slab solve answers for every target.
 
 The map: per target, the three coordinates as a thin-plate-spline radial
 basis interpolant with a linear polynomial (scipy's RBFInterpolator,
@@ -79,9 +82,17 @@ def chain(points: np.ndarray) -> np.ndarray:
     return np.array(order, np.int64)
 
 
+def groups(points: np.ndarray) -> list[np.ndarray]:
+    """The design's points (P, C) as two independent groups of indices: first cup's stroke < 0, and ≥ 0."""
+    if points.shape[1] == 0:
+        return [np.arange(len(points))]
+    negative = points[:, 0] < 0.0
+    return [g for g in (np.flatnonzero(negative), np.flatnonzero(~negative)) if g.size]
+
+
 def solve_samples(slab: Tissue, probe: SlabProbe, strokes: np.ndarray, tol: float,
                   advance: Callable[[int], None] = lambda n: None) -> np.ndarray:
-    """The targets (P, T, 3) mm of the nominal slab at each stroke vector (P, C), solved along `chain`."""
+    """The targets (P, T, 3) mm of the nominal slab at each stroke vector (P, C), solved along `chain` from rest."""
     eq = Equilibrium(slab, tol)
     out = np.empty((len(strokes), len(probe.nodes), 3))
     for k in chain(strokes):
@@ -91,12 +102,28 @@ def solve_samples(slab: Tissue, probe: SlabProbe, strokes: np.ndarray, tol: floa
     return out
 
 
+#: solves groups of stroke points [(P_g, C)] → their targets [(P_g, T, 3)], in order (`train`'s parallel hook)
+GroupSolver = Callable[[list[np.ndarray]], list[np.ndarray]]
+
+
 def train(slab: Tissue, probe: SlabProbe, lo, hi, samples: int, tol: float,
-          advance: Callable[[int], None] = lambda n: None) -> SurrogateSamples:
-    """Solve the design (`design`) on the nominal slab: the training set and the held-out set."""
+          advance: Callable[[int], None] = lambda n: None, solve_groups: GroupSolver | None = None
+          ) -> SurrogateSamples:
+    """Solve the design (`design`) on the nominal slab, in its `groups`: the training set and the held-out set.
+
+    solve_groups: how the groups are solved (default: one after the other
+    here, each by `solve_samples`); the numbers do not depend on it.
+    """
     t0 = time.perf_counter()
     strokes, held = design(lo, hi, samples)
-    answers = solve_samples(slab, probe, np.vstack([strokes, held]), tol, advance)
+    points = np.vstack([strokes, held])
+    parts = groups(points)
+    if solve_groups is None:
+        def solve_groups(chunks):
+            return [solve_samples(slab, probe, chunk, tol, advance) for chunk in chunks]
+    answers = np.empty((len(points), len(probe.nodes), 3))
+    for part, solved in zip(parts, solve_groups([points[g] for g in parts])):
+        answers[part] = solved
     return SurrogateSamples(strokes, answers[:samples], held, answers[samples:], np.asarray(lo, float),
                             np.asarray(hi, float), time.perf_counter() - t0)
 
