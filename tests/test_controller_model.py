@@ -195,6 +195,14 @@ def test_surrogate_run_records_the_model_plans_with_it_and_reuses_its_cache(tmp_
     assert "from the cache" in " ".join(second.stdout.split() + second.stderr.split())
     with h5py.File(tmp_path / "runs" / "b" / "results.h5") as f:
         assert np.array_equal(f["trials/T2/final_error"][()], first_errors)
+    # the report's table names the model beside the stops at the stroke limit and the time per iteration
+    report = _cli("report", tmp_path / "runs" / "a", "--out", tmp_path / "report")
+    assert report.returncode == 0, report.stderr
+    csv = (tmp_path / "report" / "summary.csv").read_text().splitlines()
+    header = csv[0].split(",")
+    row = dict(zip(header, csv[1].split(",")))
+    assert row["controller"] == "surrogate" and int(row["stroke_limit_stops"]) >= 0
+    assert float(row["model_error_mm"]) <= 0.05 and float(row["time_per_iteration_s"]) > 0
 
 
 def test_a_target_the_slab_cannot_reach_is_reported_before_any_trial(tmp_path):

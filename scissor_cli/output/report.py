@@ -32,6 +32,7 @@ class TargetTrials:
     corridor_clear: np.ndarray  # (T,) bool
     miss: np.ndarray = None  # (T,) mm across the needle (runs before it was stored: None)
     along: np.ndarray = None  # (T,) mm along the needle, for the depth
+    stroke_limit: int = 0  # trials that ended at a stroke limit
 
 
 @dataclass
@@ -41,6 +42,10 @@ class RunTrials:
     status: str
     targets: dict[str, TargetTrials]
     cups: int = 0
+    #: the controller's model (docs/model.md §15): kind + jacobian_update, its build time (s) and error (mm)
+    controller: str = "layer"
+    model_build_s: float = float("nan")
+    model_error_mm: float = float("nan")
 
 
 def load_run(run_dir: Path, partial: bool = False) -> RunTrials:
@@ -56,10 +61,23 @@ def load_run(run_dir: Path, partial: bool = False) -> RunTrials:
             ok = g["done"][:] & ~g["failed"][:] & np.isfinite(g["final_error"][:]).all(axis=1)
             miss = g["manipulation_miss_mm"][:][ok] if "manipulation_miss_mm" in g else None
             along = g["along_mm"][:][ok] if "along_mm" in g else None
+            stops = int(np.sum(g["stop_reason"][:][ok].astype(str) == "stroke_limit")) if "stop_reason" in g else 0
             targets[t] = TargetTrials(g["final_error"][:][ok], g["iterations"][:][ok], g["time_s"][:][ok],
-                                      g["corridor_clear"][:][ok], miss, along)
+                                      g["corridor_clear"][:][ok], miss, along, stops)
         cups = len(f["cups"]) if "cups" in f else 0
-    return RunTrials(f"{name} ({profile})", Path(run_dir), status, targets, cups)
+        controller, build, error = _controller(f)
+    return RunTrials(f"{name} ({profile})", Path(run_dir), status, targets, cups, controller, build, error)
+
+
+def _controller(f) -> tuple[str, float, float]:
+    """(kind[+broyden], build time s, error mm) of a run's controller model; a run without /controller_model: the layer."""
+    if "controller_model" in f:
+        a = f["controller_model"].attrs
+        update = str(a.get("jacobian_update", "none"))
+        kind = str(a["kind"]) + ("+broyden" if update == "broyden" else "")
+        return kind, float(a.get("build_time_s", np.nan)), float(a.get("validation_error_mm", np.nan))
+    text = str(f.attrs.get("config_yaml", ""))
+    return ("layer+broyden" if "jacobian_update: broyden" in text else "layer"), float("nan"), float("nan")
 
 
 def _config_name(text: str) -> str:
@@ -73,6 +91,7 @@ COLUMNS = [
     "run", "target", "trials", "mean_x", "median_x", "max_x", "p95_x", "mean_y", "median_y", "max_y", "p95_y",
     "iterations_mean", "iterations_max", "time_s_mean", "corridor_clear_pct",
     "cups", "miss_median", "miss_p95", "miss_max", "along_median_abs",
+    "controller", "stroke_limit_stops", "time_per_iteration_s", "model_build_s", "model_error_mm",
 ]
 
 
@@ -94,6 +113,11 @@ def summary_rows(runs: list[RunTrials]) -> list[dict]:
                 row["time_s_mean"] = d.time_s.mean()
                 row["corridor_clear_pct"] = 100.0 * d.corridor_clear.mean()
                 row["cups"] = run.cups
+                row["controller"], row["stroke_limit_stops"] = run.controller, d.stroke_limit
+                moved = d.iterations > 0
+                row["time_per_iteration_s"] = (float(np.median(d.time_s[moved] / d.iterations[moved])) if moved.any()
+                                               else float("nan"))
+                row["model_build_s"], row["model_error_mm"] = run.model_build_s, run.model_error_mm
                 if d.miss is not None:
                     row["miss_median"], row["miss_max"] = np.median(d.miss), d.miss.max()
                     row["miss_p95"] = np.percentile(d.miss, 95)
