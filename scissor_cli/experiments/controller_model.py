@@ -246,14 +246,6 @@ def model_paths(cfg: Config, tissue: Tissue, model: ControllerModel, slab_answer
         grid = np.linspace(cup.stroke_mm[0], cup.stroke_mm[1], PATH_POINTS)
         order = np.argsort(np.abs(grid), kind="stable")  # outwards from rest: tracked solves start close
         on_line = np.zeros(C)
-        lines = []
-        for answer in (layer_answer, model_answer):
-            y = np.empty((grid.size, len(rests), 2))
-            for k in order:
-                on_line[:] = 0.0
-                on_line[c] = grid[k]
-                y[k] = answer(on_line)[0]
-            lines.append(y)
         known_s, known_y = _samples_on_line(model.data, c)
         if known_s.size < SLAB_PATH_POINTS:
             known_s = np.linspace(cup.stroke_mm[0], cup.stroke_mm[1], SLAB_PATH_POINTS)
@@ -262,13 +254,25 @@ def model_paths(cfg: Config, tissue: Tissue, model: ControllerModel, slab_answer
                 on_line[:] = 0.0
                 on_line[c] = known_s[k]
                 known_y[k] = slab_answer(on_line)[0]
+        lines = []
+        for answer in (layer_answer, None if model.kind == "slab" else model_answer):
+            if answer is None:  # the slab model is the slab: its line joins the slab's points (no 31 more 3-D solves)
+                lines.append(np.stack([[np.interp(grid, known_s, known_y[:, t, a]) for a in range(2)]
+                                       for t in range(len(rests))]).transpose(2, 0, 1))
+                continue
+            y = np.empty((grid.size, len(rests), 2))
+            for k in order:
+                on_line[:] = 0.0
+                on_line[c] = grid[k]
+                y[k] = answer(on_line)[0]
+            lines.append(y)
         grids.append(grid)
         layered.append(lines[0])
         modelled.append(lines[1])
         slab_s.append(known_s)
         slab_y.append(known_y)
     return ModelPaths(model.kind, [c.name for c in cfg.cups], [t.name for t in cfg.targets], grids, modelled, layered,
-                      slab_s, slab_y)
+                      slab_s, slab_y, rests)
 
 
 def _samples_on_line(data: ModelData, cup: int) -> tuple[np.ndarray, np.ndarray]:

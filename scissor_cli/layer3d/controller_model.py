@@ -191,3 +191,5 @@ class ModelPaths:
     layer: list
     slab_strokes: list
     slab: list
+    #: the targets at rest (T, 2) mm: the figure draws the motion from there
+    rest: np.ndarray = None

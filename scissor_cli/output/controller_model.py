@@ -67,7 +67,7 @@ def read_controller_model(h5, target_names: list[str]) -> Optional[ModelData]:
 
 
 def controller_model_figure(paths: ModelPaths, title: str):
-    """One column per cup, rows x and y of each target against the stroke: layer, the model, the slab."""
+    """One column per cup, rows: each target's x and y motion from rest against the stroke — layer, model, slab."""
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
     C, T = len(paths.cup_names), len(paths.target_names)
@@ -78,12 +78,13 @@ def controller_model_figure(paths: ModelPaths, title: str):
             ax = axes[row, c]
             for t in range(T):
                 colour = colours[t % len(colours)]
-                ax.plot(paths.strokes[c], paths.layer[c][:, t, row], "--", color=colour, alpha=0.5, lw=1)
-                ax.plot(paths.strokes[c], paths.model[c][:, t, row], "-", color=colour, lw=1.5,
+                rest = 0.0 if paths.rest is None else paths.rest[t, row]
+                ax.plot(paths.strokes[c], paths.layer[c][:, t, row] - rest, "--", color=colour, alpha=0.5, lw=1)
+                ax.plot(paths.strokes[c], paths.model[c][:, t, row] - rest, "-", color=colour, lw=1.5,
                         label=f"{paths.target_names[t]}: {paths.kind}")
-                ax.plot(paths.slab_strokes[c], paths.slab[c][:, t, row], "o", color=colour, ms=4,
+                ax.plot(paths.slab_strokes[c], paths.slab[c][:, t, row] - rest, "o", color=colour, ms=4,
                         label=f"{paths.target_names[t]}: slab")
-            ax.set_ylabel(f"target {axis_name} (mm)")
+            ax.set_ylabel(f"target {axis_name} motion from rest (mm)")
             ax.grid(alpha=0.3)
         axes[1, c].set_xlabel(f"stroke of {paths.cup_names[c]} (mm), other cups at rest")
     axes[0, 0].plot([], [], "--", color="grey", label="layer (dashed)")
