@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -9,6 +10,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+import yaml
 
 from helpers import deep_update, example_dict, write_scene
 from scissor_cli.config import parse_config, resolved_yaml
@@ -44,7 +46,7 @@ def small(model: str = "layer", trials: int = 0) -> dict:
 
 @pytest.fixture(scope="module")
 def scene():
-    cfg = parse_config(resolved_yaml(parse_config(__import__("yaml").safe_dump(small()))))
+    cfg = parse_config(resolved_yaml(parse_config(yaml.safe_dump(small()))))
     _, mesh, tissue = build_model(cfg)
     slab = build_slab(tissue.scene, mesh, spec_from_config(cfg.layer_check), model=tissue.params.model)
     rests = np.array([t.rest for t in tissue.scene.targets])
@@ -225,8 +227,37 @@ def test_surrogate_trained_in_two_workers_equals_one_after_the_other(scene, surr
     from scissor_cli.experiments.simulate import SilentReporter
 
     _, tissue, slab, _ = scene
-    cfg = parse_config(resolved_yaml(parse_config(__import__("yaml").safe_dump(small("surrogate")))))
+    cfg = parse_config(resolved_yaml(parse_config(yaml.safe_dump(small("surrogate")))))
     data, cached = fitted_model(cfg, tissue, slab, [], None, SilentReporter(), jobs=2)
     assert not cached
     assert np.array_equal(data.samples.targets, surrogate_data.samples.targets)
     assert np.array_equal(data.samples.held_targets, surrogate_data.samples.held_targets)
+
+
+def test_a_resumed_run_steers_with_the_model_it_stored(tmp_path, monkeypatch):
+    """Stopped after its plans, cache deleted: --resume reads /controller_model (its plans were made with it)
+    and finishes with the numbers of an uninterrupted run."""
+    from scissor_cli.config import load_config
+    from scissor_cli.experiments.simulate import Execution, resume_simulation, run_simulation
+    from scissor_cli.output import sink as sink_module
+    from scissor_cli.output.sink import RunDirectory, open_for_resume
+
+    path = write_scene(tmp_path, small("calibrated", trials=1))
+    run_simulation(load_config(path), RunDirectory(tmp_path / "runs" / "reference"), execution=Execution(jobs=1))
+
+    def stopped(self, *args):
+        raise KeyboardInterrupt("SIGINT")
+
+    monkeypatch.setattr(sink_module.ResultsSink, "manipulation", stopped)
+    run = tmp_path / "runs" / "stopped"
+    with pytest.raises(KeyboardInterrupt):
+        run_simulation(load_config(path), RunDirectory(run), execution=Execution(jobs=1))
+    monkeypatch.undo()
+    shutil.rmtree(tmp_path / "runs" / ".scissor-cache")  # the model can only come from the file
+    assert resume_simulation(open_for_resume(run), execution=Execution(jobs=1)) == 2
+    with h5py.File(tmp_path / "runs" / "reference" / "results.h5") as a, h5py.File(run / "results.h5") as b:
+        assert b.attrs["status"] == "complete"
+        assert np.array_equal(a["controller_model"].attrs["transmission"], b["controller_model"].attrs["transmission"])
+        for t in ("T1", "T2"):
+            assert np.array_equal(a[f"plan/{t}"].attrs["model_strokes"], b[f"plan/{t}"].attrs["model_strokes"])
+            assert np.array_equal(a[f"trials/{t}/final_error"][()], b[f"trials/{t}/final_error"][()])
