@@ -46,7 +46,8 @@ from __future__ import annotations
 import numpy as np
 
 from scissor_cli.insertion.chord import ChordFailed, ChordSolver, Hold
-from scissor_cli.insertion.needle import STEP_TOL, NeedleParams, NeedleState, advance, free_nodes, needle_conditions
+from scissor_cli.insertion.needle import (STEP_TOL, STEP_TOL_3D, NeedleParams, NeedleState, advance, free_nodes,
+                                         needle_conditions)
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import TargetProbe, probe_targets, target_positions
 from scissor_cli.solvers.common import SolverError, objective_gradient
@@ -197,17 +198,18 @@ def move_held(tissue: Tissue, state: NeedleState, x: np.ndarray, s: np.ndarray, 
     None: the strokes placed only); Newton (as a step's fallback) when they
     fail or that start inverts an element.
     """
+    tol = STEP_TOL if tissue.dim == 2 else STEP_TOL_3D  # an insertion step's settled residual (`needle`)
     hold = hold_at(state, x)
     predicted = x if responses is None else x + np.tensordot(command - s, responses, axes=1)
     start = hold.place(tissue.apply_strokes(predicted, command))
     _, g = objective_gradient(tissue, start, None, loads, require_positive_J=True)
     if g is not None:
         try:
-            return state.solver.converge(start, g, hold, STEP_TOL, loads)[0]
+            return state.solver.converge(start, g, hold, tol, loads)[0]
         except ChordFailed:
             pass
     r = solve_equilibrium(tissue, command, start=x, start_strokes=s, conditions=needle_conditions(state, loads),
-                          tol=STEP_TOL)
+                          tol=tol)
     return r.x
 
 

@@ -58,6 +58,13 @@ STEP_TOL = 1e-8
 #: the active-set passes before the set settles are solved to this residual only;
 #: the settled set is then solved to STEP_TOL (and checked once more)
 PASS_TOL = 1e-5
+#: In the slab (3-D) a triangular solve on the kept factor costs ~70 ms and a
+#: factorisation ~1.1 s (example_full's slab, 65k unknowns), 50× the layer's: the
+#: settled set is solved to the slab truth's residual (`layer3d.truth.SLAB_TRUTH_TOL`,
+#: where the target is within 1e-6 mm of the 1e-10 solution), the passes before to
+#: PASS_TOL_3D. `NeedleParams.step_tol` overrides both dimensions' pair.
+STEP_TOL_3D = 1e-5
+PASS_TOL_3D = 1e-4
 #: decide a pass from its chord step's prediction of the converged reactions and
 #: lags once no decision lies within GUARD_FORCE·res·(force scale) mN or
 #: GUARD_POSITION·res mm of its threshold (res the relative residual there)
@@ -90,6 +97,15 @@ class NeedleParams:
     tip_zone_mm: float = 2.0
     capture_radius_mm: float = 2.0
     radius_mm: float = 0.6  # half the needle diameter: obstacle clearance
+    #: the settled set's relative residual; None: by dimension (STEP_TOL, STEP_TOL_3D). When given, the
+    #: passes before are solved to PASS_TOL (or to it, if tighter)
+    step_tol: float | None = None
+
+    def tolerances(self, d: int) -> tuple[float, float]:
+        """(pass, step) relative residuals of an insertion step in dimension d."""
+        if self.step_tol is not None:
+            return min(PASS_TOL, self.step_tol), self.step_tol
+        return (PASS_TOL, STEP_TOL) if d == 2 else (PASS_TOL_3D, STEP_TOL_3D)
 
     @classmethod
     def from_config(cls, ins, cfg) -> "NeedleParams":
@@ -324,7 +340,8 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
     if state.solver is None:
         state.solver = ChordSolver(tissue)
     solver, n_factor = state.solver, state.solver.factorizations
-    passes, iterations, settled, tol = 0, 0, False, PASS_TOL
+    pass_tol, step_tol = params.tolerances(d)
+    passes, iterations, settled, tol = 0, 0, False, pass_tol
     result_x, loads, axial = start, base, np.zeros(captured.size)
     base_x = x[captured]
     hold = None
@@ -366,10 +383,10 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
             release, against, _ = _Rule(limit + 1e-9 * tissue.force_scale(grad_u), stuck, locked, sign,
                                         1e-9 * step_mm).apply(axial, lag)
             if not (release.any() or against.any()):  # (the exact rule: no error, nothing unclear)
-                if tol <= STEP_TOL:
+                if tol <= step_tol:
                     settled = True
                     break
-                tol, start = STEP_TOL, r_x
+                tol, start = step_tol, r_x
                 chord_x = start
                 continue
         else:
