@@ -113,19 +113,33 @@ def test_truth_option_needs_layer_check(tmp_path):
     assert r.returncode == 2 and "layer_check" in r.stderr
 
 
-def test_slab_truth_trials_insert_in_the_slab(tmp_path):
-    """Trials against the slab truth insert with every strategy in the trial's slab (docs/model.md §14)."""
+def test_slab_truth_inserts_in_the_slab_nominally_and_in_trials(tmp_path):
+    """With the slab truth the nominal insertion and the trials' run in the slab, every strategy (docs/model.md
+    §14): 3-D shapes in results.h5 (docs/contract.md), and export and report read them."""
     data = yaml.safe_load(small_scene(tmp_path).read_text())
     data["insertion"] = {"strategies": ["none", "depth", "loop"], "step_mm": 1.0}
     out = tmp_path / "run"
     r = _cli("simulate", write_scene(tmp_path, data), "--out", out, "--trials", "1", "--jobs", "1", "--truth", "slab")
     assert r.returncode == 0, r.stderr
     with h5py.File(out / "results.h5") as f:
+        n3 = f["layer_check/mesh/nodes"].shape[0]
         for target in f["trials"]:
             g = f["trials"][target]
             assert not bool(g["failed"][0])
             miss = g["miss_mm"][()]
             assert miss.shape == (1, 3) and np.all(np.isfinite(miss)) and np.all(miss >= 0) and np.any(miss > 0)
+        for strategy in ("none", "depth", "loop"):
+            ins = f[f"insertion/T1/{strategy}"]
+            k = ins["depth_mm"].shape[0]
+            assert k > 0 and ins["tip"].shape == (k, 3) and ins["target"].shape == (k, 3)
+            assert ins["displacement"].shape == (k, n3, 3) and len(ins.attrs["entry"]) == 3
+            assert ins.attrs["completed"]
+    assert (out / "insertion_T1.gif").exists() and (out / "insertion_path_T1.png").exists()
+    exported = _cli("export", out, "--out", tmp_path / "export")
+    assert exported.returncode == 0, exported.stderr
+    assert any("insertion_T1_none" in p.name for p in (tmp_path / "export").iterdir())
+    rep = _cli("report", out, "--out", tmp_path / "report")
+    assert rep.returncode == 0, rep.stderr
 
 
 @pytest.mark.parametrize("change, words", [
