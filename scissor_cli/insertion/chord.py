@@ -46,14 +46,18 @@ from scissor_cli.solvers.linear import factorize_free
 
 #: a chord step is kept when it shrinks the relative residual at least this much
 CONTRACTION = 0.5
-#: in the slab a factorisation costs ~15 triangular solves (1.1 s against 70 ms on
-#: example_full's slab), so a slower chord step is still the cheaper one: 16 steps of a
-#: 0.5 mm insertion took 31 s with 5 factorisations at 0.8, 35 s with 11 at 0.5
-CONTRACTION_3D = 0.8
+#: in the slab a factorisation costs ~15 triangular solves (1.1 s against 70–90 ms on
+#: example_full's slab) and then 3 solves per captured node for the kept responses (cvxopt's
+#: CHOLMOD solves many right-hand sides no faster per column than one): at 100 captured
+#: nodes a refresh costs as much as ~300 chord steps. So in 3-D a step on the kept factor is
+#: kept while it contracts at all appreciably (Anderson-accelerated, `ANDERSON_3D`)
+CONTRACTION_3D = 0.9
 #: a hold's constraint is met when it is this close (mm): round-off of positions ~100 mm
 GAP_TOL = 1e-10
-#: chord steps per solve before giving up (with the factorisation fresh)
+#: chord steps per solve before giving up (with the factorisation fresh); in 3-D more, as steps
+#: contract more slowly there (`CONTRACTION_3D`)
 MAX_CHORD = 40
+MAX_CHORD_3D = 80
 #: In the slab the chord steps are Anderson-accelerated (type II, this many past steps): on a kept
 #: factor of an older state they contract slowly (≈ 0.6 a step on example_full's slab, 9 steps from
 #: 1e-2 to 1e-4), and each costs a 70 ms triangular solve. The acceleration reuses the steps already
@@ -256,8 +260,8 @@ class ChordSolver:
         its = 0
         accelerate = _Anderson(ANDERSON_3D if self.d == 3 else 0)
         while res > tol or closing:
-            if its >= MAX_CHORD:
-                raise ChordFailed(f"{MAX_CHORD} chord steps left the residual at {res:.3g}")
+            if its >= (MAX_CHORD if self.d == 2 else MAX_CHORD_3D):
+                raise ChordFailed(f"{its} chord steps left the residual at {res:.3g}")
             d0, mu, d_captured = self.predict(g_free, hold, gap, shifted=its == 0)
             # A closing step's prediction errs by what the rows move, not by the residual: no decision on it.
             if decide is not None and not closing:
