@@ -235,22 +235,16 @@ def _loop_correction(tissue, controller_model, state, x, s, loads, probe, pid, l
     command, _ = pid.command(s, ds, lo, hi)
     if np.allclose(command, s, atol=1e-12, rtol=0):
         return x, s
-    if responses.shape[1:] != x.shape:  # a 2-D model's responses start the slab's solve, lifted to every level
-        responses = _lift(responses, x.shape[0])
+    if responses.shape[1:] != x.shape:
+        # a 2-D model's responses are no start for the slab (its levels near the fixed chest wall do not move
+        # as the layer does): the strokes placed only
+        responses = None
     return _move_plant(tissue, state, x, s, command, loads, responses), command
 
 
 def _move_plant(tissue, state, x, s, command, loads, responses) -> np.ndarray:
     """The plant's equilibrium (N, d) at the command (C,) with the needle's hold and loads (`model_state.move_held`)."""
     return move_held(tissue, state, x, s, command, loads, responses)
-
-
-def _lift(responses: np.ndarray, n_nodes_3d: int) -> np.ndarray:
-    """Layer responses (C, N2, 2) as slab ones (C, N3, 3): every level's node takes its vertex's, z 0 (a start only)."""
-    c, n2, _ = responses.shape
-    out = np.zeros((c, n_nodes_3d, 3))
-    out[:, :, :2] = np.tile(responses, (1, n_nodes_3d // n2, 1))
-    return out
 
 
 def _clearance(embedding, x, p0, tip, radius_mm) -> float:
