@@ -171,12 +171,6 @@ def simulate(
         cfg = cfg.model_copy(update={"seed": seed})
     if trials is not None:
         cfg = cfg.model_copy(update={"trials": cfg.trials.model_copy(update={"count": trials})})
-    if truth is not None or trials is not None:  # the overrides bypass the file's checks
-        from scissor_cli.config.checks import slab_truth_insertion_problem
-
-        problem = slab_truth_insertion_problem(cfg)
-        if problem is not None:
-            _fail(2, f"{config or DEFAULT_SCENE}: trials.truth: {problem}")
     if budget:
         if cfg.trials.count == 0:
             _fail(2, f"--budget: the error budget reruns the trials, and {config or DEFAULT_SCENE} runs none "

@@ -250,3 +250,31 @@ def test_slab_truth_run_sigkilled_then_resumed_equals_an_uninterrupted_one(tmp_p
     assert resumed.returncode == 0, resumed.stderr
     assert 0 < ran(resumed) < 16
     assert_same_as_reference(out, reference)
+
+
+def test_slab_truth_insertion_run_sigkilled_then_resumed_equals_an_uninterrupted_one(tmp_path):
+    """Trials that insert in the slab (docs/model.md §14): a resume's workers rebuild the slab and rerun the
+    unfinished trials' insertions to the same numbers as an uninterrupted run."""
+    import yaml
+
+    def with_insertion(path: Path) -> Path:
+        data = yaml.safe_load(path.read_text())
+        data["insertion"] = {"step_mm": 2.0, "strategies": ["none"]}
+        path.write_text(yaml.safe_dump(data))
+        return path
+
+    ref_dir = tmp_path / "ref"
+    ref_dir.mkdir()
+    done = finish(with_insertion(slab_scene(ref_dir, trials=2)), "--jobs", "2", "--out", ref_dir / "run", "--quiet")
+    assert done.returncode == 0, done.stderr
+    reference = extract(ref_dir / "run" / "results.h5")
+    assert any(k.endswith("miss_mm") for k in reference)
+    out = tmp_path / "run"
+    proc = start(with_insertion(slab_scene(tmp_path, trials=2)), "--jobs", "2", "--out", out, "--quiet")
+    wait_for_trials(proc, out, 1)
+    gone, _ = stop(proc, signal.SIGKILL)
+    assert gone < 5.0 and proc.returncode == -signal.SIGKILL
+    resumed = finish("--resume", out, "--jobs", "2")
+    assert resumed.returncode == 0, resumed.stderr
+    assert 0 < ran(resumed) < 4
+    assert_same_as_reference(out, reference)

@@ -363,9 +363,6 @@ def scene_problems(cfg: Config) -> list[Problem]:
     problems += _manipulation_point_problems(cfg)
     problems += _insertion_problems(cfg, outline)
     problems += _layer_check_problems(cfg)
-    slab_needle = slab_truth_insertion_problem(cfg)
-    if slab_needle is not None:
-        problems.append((("trials", "truth"), slab_needle))
     problems += _point_spacing_problems(cfg)
     if cfg.trials.budget and cfg.trials.count == 0:
         problems.append((("trials", "budget"), "the error budget reruns the trials: it needs trials.count >= 1"))
@@ -404,19 +401,6 @@ def _mesh_file_problems(cfg: Config, outline: np.ndarray) -> list[Problem]:
     points = np.array([t.position_mm for t in cfg.targets] + [c.contact_mm for c in cfg.cups], float).reshape(-1, 2)
     why = mesh_file_problem(nodes, triangles, outline, points)
     return [] if why is None else [(where, f"{m.file}: {why}")]
-
-
-def slab_truth_insertion_problem(cfg: Config) -> str | None:
-    """Why trials with `insertion` cannot run against the slab truth yet, or None (docs/model.md §14).
-
-    The needle model is 2-D; a slab-truth trial's final state is the slab's,
-    so its insertion could only crash. Said before the run, not after every
-    trial has failed.
-    """
-    if cfg.trials.truth != "slab" or cfg.insertion is None or cfg.trials.count == 0:
-        return None
-    return ("the needle insertion does not run in the 3-D slab yet, so trials with truth 'slab' cannot insert; "
-            "use truth 'layer', remove the insertion section, or run with --trials 0")
 
 
 def _insertion_problems(cfg: Config, outline: np.ndarray) -> list[Problem]:

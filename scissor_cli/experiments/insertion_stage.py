@@ -1,9 +1,14 @@
-"""The insertion stage of `scissor simulate` (docs/model.md §12): every planned target, every strategy.
+"""The insertion stage of `scissor simulate` (docs/model.md §12, §14): every planned target, every strategy.
 
 Each target is inserted from the equilibrium at its plan's strokes (the
-nominal manipulation's end: model = truth, exact camera) along the plan's
-entry and direction, once per configured strategy. The results and figures
-go to the sink; the first target with a plan also gets the animation.
+nominal manipulation's end: exact camera, no perturbation) along the plan's
+entry and direction, once per configured strategy. The truth is the layer
+(model = truth), or with `trials.truth: slab` the nominal slab of
+`layer_check` (docs/model.md §14): entry and axis lifted to the layer's
+height, `loop`'s controller on its 2-D model, and the results with 3-D
+shapes (`tip`, `target` (K, 3), `displacement` (K, N3, 3)). The results and
+figures go to the sink; the first target with a plan also gets the
+animation (in the layer's plane).
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ from scissor_cli.experiments.sink import Insertion, RunSink, product_key
 from scissor_cli.insertion import NeedleParams, run_insertion
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.equilibrium import solve_equilibrium
+from scissor_cli.solvers.newton import solve_newton
 
 #: equilibria shown for the manipulation before the insertion in the animation
 RAMP_FRAMES = 6
@@ -34,10 +40,49 @@ def manipulation_ramp(tissue: Tissue, strokes: np.ndarray, frames: int = RAMP_FR
     return out
 
 
+def slab_ramp(slab: Tissue, strokes: np.ndarray, frames: int, tol: float) -> list[np.ndarray]:
+    """The slab's equilibria (N3, 3) at strokes × k/frames, k = 1..frames, each warm-started from the last."""
+    strokes = np.asarray(strokes, float)
+    x, s_prev, out = None, None, []
+    for k in range(1, frames + 1):
+        s = strokes * k / frames
+        x = solve_newton(slab, s, x0=x, strokes0=s_prev, tol=tol).x
+        s_prev = s
+        out.append(x)
+    return out
+
+
+def _in_slab(cfg: Config, tissue: Tissue, truth, target, plan, params, animate: bool):
+    """One target's insertions in the nominal slab (`layer3d.truth.SlabTruth`): results and the in-plane frames."""
+    from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
+
+    slab = truth.slab
+    sm = slab.mesh
+    ramp = slab_ramp(slab, plan.strokes, RAMP_FRAMES if animate else 1, SLAB_TRUTH_TOL)
+    layer_nodes = sm.node(sm.layer_level, np.arange(sm.n_nodes_2d))
+    frames = [tissue.rest.copy()] + [x[layer_nodes, :2] for x in ramp]
+    z = float(sm.levels_mm[sm.layer_level])
+    entry, direction = np.append(plan.entry, z), np.append(plan.direction, 0.0)
+    model_x0 = solve_equilibrium(tissue, plan.strokes).x if "loop" in cfg.insertion.strategies else None
+    results = [
+        run_insertion(slab, ramp[-1], plan.strokes, entry, direction, plan.depth_mm, target.rest, params, strategy,
+                      controller=cfg.controller, target_name=target.name, model=tissue, model_x0=model_x0,
+                      layer=tissue.mesh)
+        for strategy in cfg.insertion.strategies
+    ]
+    return results, frames, layer_nodes
+
+
 def insertion_stage(cfg: Config, tissue: Tissue, plans: list, sink: RunSink, reporter,
                     done: frozenset[str] = frozenset()) -> list[Path]:
     """Insert into every planned target not in `done` under every strategy; print each target's miss per strategy."""
     params = NeedleParams.from_config(cfg.insertion, cfg)
+    truth = None
+    if cfg.trials.truth == "slab" and cfg.layer_check is not None:
+        from scissor_cli.layer3d.check import spec_from_config
+        from scissor_cli.layer3d.truth import SlabTruth
+
+        truth = SlabTruth(tissue, spec_from_config(cfg.layer_check))
     paths: list[Path] = []
     first = next((t.name for t, p in zip(tissue.scene.targets, plans) if p.feasible), None)
     for target, plan in zip(tissue.scene.targets, plans):
@@ -47,14 +92,18 @@ def insertion_stage(cfg: Config, tissue: Tissue, plans: list, sink: RunSink, rep
             reporter.info(f"insertion {target.name}: skipped, no plan ({plan.reason})")
             continue
         animate = target.name == first
-        frames = manipulation_ramp(tissue, plan.strokes, RAMP_FRAMES if animate else 1)
-        results = [
-            run_insertion(tissue, frames[-1], plan.strokes, plan.entry, plan.direction, plan.depth_mm, target.rest,
-                          params, strategy, controller=cfg.controller, target_name=target.name)
-            for strategy in cfg.insertion.strategies
-        ]
+        layer_nodes = None
+        if truth is None:
+            frames = manipulation_ramp(tissue, plan.strokes, RAMP_FRAMES if animate else 1)
+            results = [
+                run_insertion(tissue, frames[-1], plan.strokes, plan.entry, plan.direction, plan.depth_mm,
+                              target.rest, params, strategy, controller=cfg.controller, target_name=target.name)
+                for strategy in cfg.insertion.strategies
+            ]
+        else:
+            results, frames, layer_nodes = _in_slab(cfg, tissue, truth, target, plan, params, animate)
         paths += sink.insertion(Insertion(target.name, results, tissue, np.asarray(target.rest, float),
-                                          np.asarray(plan.desired, float), frames, animate))
+                                          np.asarray(plan.desired, float), frames, animate, layer_nodes))
         sink.mark_finished(product_key("insertion", target.name))
         parts = ", ".join(f"{r.strategy} {r.miss_mm:.3f} mm (depth error {r.depth_error_mm:+.3f} mm)" for r in results)
         reporter.info(f"insertion {target.name}: miss {parts}")

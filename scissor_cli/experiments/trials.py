@@ -164,6 +164,14 @@ class TrialContext:
         the model's equilibrium under the needle, starting from the model's
         equilibrium at the loop's final strokes (the truth's final state
         when truth and model are one object).
+
+        With the slab truth (docs/model.md §14) the plant is the trial's
+        perturbed slab from the loop's final slab state; the needle's entry
+        and axis are the plan's lifted to the layer's height; the target is
+        the slab's, at the layer; the camera measures its in-plane part; and
+        `loop`'s 2-D model runs the insertion its own way
+        (`insertion.model_state.ModelInsertion`), from its own equilibrium
+        at the loop's final strokes.
         """
         ins = self.cfg.insertion
         if ins is None or loop.final_x is None or task.entry is None:
@@ -173,19 +181,28 @@ class TrialContext:
         params = replace(base, friction_static_mN_per_mm=base.friction_static_mN_per_mm * f_scale,
                          friction_kinetic_mN_per_mm=base.friction_kinetic_mN_per_mm * f_scale,
                          tip_force_mN=base.tip_force_mN * tip_scale)
-        tissue = control.true_tissue(self.tissue, truth)
         meas = self.measurement(draw)
         rng = np.random.default_rng([int(self.cfg.seed), task.index, trial, 13])
+        entry, direction, layer = task.entry, task.direction, None
+        if self.slab_truth is None:
+            tissue = control.true_tissue(self.tissue, truth)
+            model_start = (loop.final_strokes, loop.final_x)  # the model's warm start: the truth's, same mesh
+        else:
+            tissue = self.slab_truth.perturbed(truth)
+            sm = tissue.mesh
+            z = float(sm.levels_mm[sm.layer_level])
+            entry, direction, layer = np.append(entry, z), np.append(direction, 0.0), self.mesh
+            model_start = self.guess(task)  # the model's own equilibrium at the plan's strokes (or None: rest)
         model_x0 = None
         if tissue is not self.tissue and "loop" in ins.strategies:
-            model_x0 = solve_equilibrium(self.tissue, loop.final_strokes, start=loop.final_x,
-                                         start_strokes=loop.final_strokes).x
+            s0, x0 = model_start if model_start is not None else (None, None)
+            model_x0 = solve_equilibrium(self.tissue, loop.final_strokes, start=x0, start_strokes=s0).x
         miss, depth_error = [], []
         for strategy in ins.strategies:
-            r = run_insertion(tissue, loop.final_x, loop.final_strokes, task.entry, task.direction, task.depth_mm,
+            r = run_insertion(tissue, loop.final_x, loop.final_strokes, entry, direction, task.depth_mm,
                               task.rest, params, strategy, controller=self.cfg.controller,
-                              measure=lambda y: meas.measure(y, rng), keep_displacement=False,
-                              model=self.tissue, model_x0=model_x0)
+                              measure=lambda y: meas.measure(y[:2], rng), keep_displacement=False,
+                              model=self.tissue, model_x0=model_x0, layer=layer)
             miss.append(r.miss_mm)
             depth_error.append(r.depth_error_mm)
         return np.array(miss), np.array(depth_error)

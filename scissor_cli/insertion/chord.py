@@ -7,7 +7,7 @@ between stuck and slipping, and the next step barely moves the tissue. So
 across passes and steps; the hold enters as equality constraints on the
 captured nodes,
 
-    across the axis for every captured node:  t·(x_i − x̄_i) = 0,
+    across the axis for every captured node:  t_j·(x_i − x̄_i) = 0,  j = 1 … d − 1,
     along it for a stuck one:                 n·(x_i − x̄_i) = ride_i,
 
 (x̄ the last equilibrium), through a Schur complement on those few rows:
@@ -16,9 +16,10 @@ with K d₀ = −g, W = K⁻¹Cᵀ and S = C W,
     μ = S⁻¹ (C d₀ − r),   d = d₀ − W μ,
 
 so C d = r exactly and K d + Cᵀμ = −g. The responses K⁻¹e of each
-captured node's two dofs are solved once per factorisation and kept (a
-newly captured node adds two), so switching a node between stuck and
-slipping costs no factorisation at all. In the captured nodes' (t, n)
+captured node's d dofs (d = tissue.dim: 2 in the layer, 3 in the slab,
+docs/model.md §14) are solved once per factorisation and kept (a newly
+captured node adds d), so switching a node between stuck and slipping
+costs no factorisation at all. In the captured nodes' (t₁ … t_{d−1}, n)
 frame every row is one coordinate, so S is a submatrix of one kept
 compliance, Cholesky-factored once per pass. The arithmetic of a step
 around its triangular solve and its gradient runs in compiled loops
@@ -45,10 +46,24 @@ from scissor_cli.solvers.linear import factorize_free
 
 #: a chord step is kept when it shrinks the relative residual at least this much
 CONTRACTION = 0.5
+#: in the slab a factorisation costs ~15 triangular solves (1.1 s against 70–90 ms on
+#: example_full's slab) and then 3 solves per captured node for the kept responses (cvxopt's
+#: CHOLMOD solves many right-hand sides no faster per column than one): at 100 captured
+#: nodes a refresh costs as much as ~300 chord steps. So in 3-D a step on the kept factor is
+#: kept while it contracts at all appreciably (Anderson-accelerated, `ANDERSON_3D`)
+CONTRACTION_3D = 0.9
 #: a hold's constraint is met when it is this close (mm): round-off of positions ~100 mm
 GAP_TOL = 1e-10
-#: chord steps per solve before giving up (with the factorisation fresh)
+#: chord steps per solve before giving up (with the factorisation fresh); in 3-D more, as steps
+#: contract more slowly there (`CONTRACTION_3D`)
 MAX_CHORD = 40
+MAX_CHORD_3D = 80
+#: In the slab the chord steps are Anderson-accelerated (type II, this many past steps): on a kept
+#: factor of an older state they contract slowly (≈ 0.6 a step on example_full's slab, 9 steps from
+#: 1e-2 to 1e-4), and each costs a 70 ms triangular solve. The acceleration reuses the steps already
+#: taken (vector work only); the rows stay met (every past step meets them: Σγ-combinations do too).
+#: 0 turns it off. The layer keeps the plain steps (a solve there costs about a gradient).
+ANDERSON_3D = 5
 
 
 class ChordFailed(Exception):
@@ -69,6 +84,8 @@ class ChordSolver:
         self._factor = None
         self.factorizations = 0
         self.fresh = False
+        #: dofs per node
+        self.d = tissue.dim
         self._slot = np.full(tissue.mesh.n_nodes, -1, np.int64)
         # K⁻¹e of the kept nodes' dofs as rows (K is symmetric): a row block is contiguous, so a
         # combination of them (a chord step's K⁻¹Cᵀμ, a new pass's K⁻¹g) reads it without a copy
@@ -89,7 +106,8 @@ class ChordSolver:
             self.factorizations += 1
             try:
                 # simplicial: a kept factor is solved with about 200 times per factorisation here
-                factor = factorize_free(self.tissue, K, self._factors, supernodal=False)
+                # (in 3-D the factor's fill makes the supernodal one the faster to build and to solve with)
+                factor = factorize_free(self.tissue, K, self._factors, supernodal=self.d == 3)
                 break
             except SolverError:
                 continue
@@ -105,7 +123,7 @@ class ChordSolver:
         return self._factor, self.factorizations
 
     def responses(self, nodes: np.ndarray) -> np.ndarray:
-        """[K⁻¹e_x; K⁻¹e_y] of each node's two free dofs as rows, (2P, Nf) in the nodes' order; solved once per factorisation.
+        """K⁻¹e of each node's d free dofs as rows, (dP, Nf) in the nodes' order; solved once per factorisation.
 
         A view of the kept rows when the nodes are the ones kept, in their
         order (the captured nodes only grow at the end): no copy per step.
@@ -113,35 +131,36 @@ class ChordSolver:
         memo = self._responses_memo
         if memo is not None and memo[0] is nodes and memo[1] == (self._used, self.factorizations):
             return memo[2]  # asked again in the same pass (prediction, completion): nothing has changed
+        d = self.d
         missing = nodes[self._slot[nodes] < 0]
         if missing.size:
             fi, nf = self.tissue.free_index, self.tissue.free_dofs.size
-            E = np.zeros((nf, 2 * missing.size))
+            E = np.zeros((nf, d * missing.size))
             k = np.arange(missing.size)
-            E[fi[2 * missing], 2 * k] = 1.0
-            E[fi[2 * missing + 1], 2 * k + 1] = 1.0
+            for c in range(d):  # (d components, not a loop over nodes)
+                E[fi[d * missing + c], d * k + c] = 1.0
             need = self._used + E.shape[1]
             if need > self._responses.shape[0]:  # grow the kept rows by doubling
                 grown = np.zeros((max(2 * self._responses.shape[0], need, 16), nf))
                 grown[:self._used] = self._responses[:self._used]
                 self._responses = grown
             self._responses[self._used:need] = self._factor.solve(E).reshape(nf, -1).T
-            self._slot[missing] = self._used // 2 + k
+            self._slot[missing] = self._used // d + k
             self._used = need
         s = self._slot[nodes]
-        if s.size and s[0] == 0 and s.size * 2 == self._used and np.all(np.diff(s) == 1):
+        if s.size and s[0] == 0 and s.size * d == self._used and np.all(np.diff(s) == 1):
             R = self._responses[:self._used]
         else:
-            R = self._responses[np.stack([2 * s, 2 * s + 1], axis=1).ravel()]
+            R = self._responses[(d * s[:, None] + np.arange(d)).ravel()]
         self._responses_memo = (nodes, (self._used, self.factorizations), R)
         return R
 
     def compliance(self, nodes: np.ndarray, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(idx, A): the nodes' free dofs idx (2P,) as [x₀ y₀ x₁ y₁ …], and their compliance A (2P, 2P) in the frame.
+        """(idx, A): the nodes' free dofs idx (dP,) as [x₀ y₀ (z₀) x₁ …], and their compliance A (dP, dP) in the frame.
 
-        frame (2, 2) has the unit vectors (t, n) as columns; A = Qᵀ (K⁻¹)[idx, idx] Q
-        with Q = I ⊗ frame, so A[2i, 2j+1] is node i's t-displacement under a
-        unit n-force on node j. Every constraint row of a hold is one such
+        frame (d, d) has the unit vectors (t₁ … t_{d−1}, n) as columns;
+        A = Qᵀ (K⁻¹)[idx, idx] Q with Q = I ⊗ frame, so (2-D) A[2i, 2j+1] is
+        node i's t-displacement under a unit n-force on node j. Every constraint row of a hold is one such
         coordinate, so each pass's Schur complement is a submatrix of A.
         """
         memo = self._compliance_memo
@@ -149,7 +168,7 @@ class ChordSolver:
         if memo is not None and memo[0][0] is nodes and memo[0][1:] == key[1:]:
             return memo[1], memo[2]
         fi = self.tissue.free_index
-        idx = np.stack([fi[2 * nodes], fi[2 * nodes + 1]], axis=1).ravel()
+        idx = fi[self.d * nodes[:, None] + np.arange(self.d)].ravel()
         # (K⁻¹)[idx, idx], symmetric (rows or columns alike), turned into the frame; made exactly
         # symmetric, so each Schur complement is
         A = kernels.frame_compliance(self.responses(nodes)[:, idx], frame)
@@ -163,21 +182,21 @@ class ChordSolver:
 
         Returns (d0, μ, d_captured): d0 = −K⁻¹g (Nf,), the constraint forces
         μ (m,) (the needle supplies −Cᵀμ: −μ along each row's direction) and
-        the step of the captured nodes (P, 2), which meets the hold's rows
+        the step of the captured nodes (P, d), which meets the hold's rows
         exactly. That is all an active-set decision reads; `complete` gives
         the whole step. In the captured nodes' (t, n) frame every row is one
         coordinate, so with the compliance A there (`compliance`) and the
         rows' coordinates r: S = A[r, r], μ = S⁻¹ (d0[r] − gap) and the
-        captured step d0 − A[:, r] μ: only (2P × m) dense work, S factored
+        captured step d0 − A[:, r] μ: only (dP × m) dense work, S factored
         once per pass on one factorisation. `shifted`: g may differ from the
         last solved gradient only on the captured dofs (a new pass), so that
         solve may be reused (`_solve_gradient`).
         """
         if not hold.captured.size:
-            return -self._solve_gradient(g_free, None, None), np.zeros(0), np.zeros((0, 2))
+            return -self._solve_gradient(g_free, None, None), np.zeros(0), np.zeros((0, self.d))
         schur = hold.schur_on(self)
         d0 = -self._solve_gradient(g_free, schur.idx if shifted else None, self.responses(hold.captured))
-        mu, d_captured = np.empty(schur.rows.size), np.empty((hold.captured.size, 2))
+        mu, d_captured = np.empty(schur.rows.size), np.empty((hold.captured.size, self.d))
         kernels.captured_step(d0, schur.idx, hold.frame, schur.rows, schur.S_upper, schur.A_rows, gap, mu, d_captured)
         return d0, mu, d_captured
 
@@ -188,7 +207,7 @@ class ChordSolver:
         return kernels.chord_direction(d0, hold.rows, mu, hold.frame, self.responses(hold.captured))
 
     def step(self, g: np.ndarray, hold: "Hold", x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The whole chord step d (N, 2) from x (N, 2) with objective gradient g (2N,) under the hold, and μ (m,)."""
+        """The whole chord step d (N, d) from x (N, d) with objective gradient g (dN,) under the hold, and μ (m,)."""
         free = self.tissue.free_dofs
         gap = np.empty(hold.rows.size)
         hold.gap_into(x, gap)
@@ -203,8 +222,8 @@ class ChordSolver:
 
         A new active-set pass starts where the last one stopped, with only
         the friction loads of the switched nodes changed: when g differs from
-        the last solved gradient only on the captured nodes' dofs idx (2P,),
-        K⁻¹g is that solve plus their `responses` (2P, Nf), in idx's order.
+        the last solved gradient only on the captured nodes' dofs idx (dP,),
+        K⁻¹g is that solve plus their `responses` (dP, Nf), in idx's order.
         """
         last, key = self._last_solve, self._key
         if idx is not None and last is not None and last[0] == key and last[1].shape == g_free.shape:
@@ -220,7 +239,7 @@ class ChordSolver:
         return solved
 
     def converge(self, x: np.ndarray, g: np.ndarray, hold: "Hold", tol: float, loads: np.ndarray, decide=None):
-        """Chord steps from x (N, 2) (gradient g) until the hold's relative residual is ≤ tol.
+        """Chord steps from x (N, d) (gradient g) until the hold's relative residual is ≤ tol.
 
         Returns (x, g, iterations, verdict). decide(x, d_captured, μ, res),
         asked before each step with that step's prediction at the captured
@@ -239,28 +258,32 @@ class ChordSolver:
         gap = np.empty(hold.rows.size)
         closing = hold.gap_into(x, gap) > GAP_TOL  # a step that meets the rows: no residual to compare
         its = 0
+        accelerate = _Anderson(ANDERSON_3D if self.d == 3 else 0)
         while res > tol or closing:
-            if its >= MAX_CHORD:
-                raise ChordFailed(f"{MAX_CHORD} chord steps left the residual at {res:.3g}")
+            if its >= (MAX_CHORD if self.d == 2 else MAX_CHORD_3D):
+                raise ChordFailed(f"{its} chord steps left the residual at {res:.3g}")
             d0, mu, d_captured = self.predict(g_free, hold, gap, shifted=its == 0)
             # A closing step's prediction errs by what the rows move, not by the residual: no decision on it.
             if decide is not None and not closing:
                 verdict = decide(x, d_captured, mu, res)
                 if verdict is not None:
                     return x, g, its, verdict
-            trial, finite = kernels.moved(x, free, self.complete(d0, mu, hold))
-            if not finite:
-                raise SolverError("the needle's chord step became non-finite (NaN or inf)")
-            _, g_t = t.energy_gradient(trial, require_positive_J=True)
-            if g_t is None:
-                res_t = np.inf
-            else:
-                g_t -= loads
-                res_t = hold.held_residual(self, g_t)
-            if not (res_t <= CONTRACTION * res or res_t <= tol or (closing and g_t is not None)):
+            step = self.complete(d0, mu, hold)
+            contraction = CONTRACTION if self.d == 2 else CONTRACTION_3D
+            trial, g_t, res_t = None, None, np.inf
+            if not closing:
+                accelerated = accelerate.step(x.reshape(-1)[free], step)
+                if accelerated is not None:  # kept if it contracts as a chord step must; else the plain step
+                    trial, g_t, res_t = self._trial(x, accelerated, hold, loads)
+                    if not (res_t <= contraction * res or res_t <= tol):
+                        trial = None
+            if trial is None:
+                trial, g_t, res_t = self._trial(x, step, hold, loads)
+            if not (res_t <= contraction * res or res_t <= tol or (closing and g_t is not None)):
                 if self.fresh:
                     raise ChordFailed(f"a chord step on a fresh factorisation went from {res:.3g} to {res_t:.3g}")
                 self.refactor(x)
+                accelerate.reset()  # its steps were on the old factor
                 continue
             x, g, g_free, res = trial, g_t, g_t[free], res_t
             closing = hold.gap_into(x, gap) > GAP_TOL
@@ -268,13 +291,59 @@ class ChordSolver:
             its += 1
         return x, g, its, None
 
+    def _trial(self, x: np.ndarray, step: np.ndarray, hold: "Hold", loads: np.ndarray):
+        """x moved by step (Nf,) on the free dofs, its objective gradient (dN,) and held residual (inf, None if inverted)."""
+        trial, finite = kernels.moved(x, self.tissue.free_dofs, step)
+        if not finite:
+            raise SolverError("the needle's chord step became non-finite (NaN or inf)")
+        _, g_t = self.tissue.energy_gradient(trial, require_positive_J=True)
+        if g_t is None:
+            return trial, None, np.inf
+        g_t -= loads
+        return trial, g_t, hold.held_residual(self, g_t)
+
+
+class _Anderson:
+    """Type-II Anderson acceleration of the chord iteration x ← x + d(x) (d the chord step, `ChordSolver.complete`).
+
+    With the last m iterates' differences ΔX and steps' differences ΔD (free
+    dofs), γ = argmin ‖d − ΔD γ‖ and the accelerated step is d − (ΔX + ΔD) γ
+    (Walker & Ni 2011). memory 0: never.
+    """
+
+    def __init__(self, memory: int):
+        self.memory = memory
+        self.reset()
+
+    def reset(self) -> None:
+        self._last: tuple | None = None
+        self._dx: list[np.ndarray] = []
+        self._dd: list[np.ndarray] = []
+
+    def step(self, x_free: np.ndarray, d: np.ndarray) -> np.ndarray | None:
+        """The accelerated step (Nf,) from the iterate x_free (Nf,) with chord step d (Nf,), or None (no history yet)."""
+        if self.memory == 0:
+            return None
+        if self._last is not None:
+            self._dx.append(x_free - self._last[0])
+            self._dd.append(d - self._last[1])
+            if len(self._dx) > self.memory:
+                self._dx.pop(0)
+                self._dd.pop(0)
+        self._last = (x_free.copy(), d.copy())
+        if not self._dx:
+            return None
+        DD = np.column_stack(self._dd)
+        gamma = np.linalg.lstsq(DD, d, rcond=1e-12)[0]
+        return d - (np.column_stack(self._dx) + DD) @ gamma
+
 
 @dataclass(frozen=True)
 class _Schur:
     """A hold's constraints on one factorisation (`ChordSolver.compliance`).
 
-    The captured nodes' free dofs idx (2P,) and held (Nf,) marking them, the
-    rows' frame coordinates (m,), A[:, rows] (2P, m) and U (m, m) with
+    The captured nodes' free dofs idx (dP,) and held (Nf,) marking them, the
+    rows' frame coordinates (m,), A[:, rows] (dP, m) and U (m, m) with
     S = A[rows, rows] = UᵀU in its upper triangle.
     """
 
@@ -287,15 +356,25 @@ class _Schur:
 
 
 class Hold:
-    """The needle's hold in one pass: captured nodes (P,) at x̄ (P, 2), stuck (P,), ride (P,) mm, axis n, t."""
+    """The needle's hold in one pass: captured nodes (P,) at x̄ (P, d), stuck (P,), ride (P,) mm, axis n (d,).
+
+    t: the unit vectors across the axis, (d − 1, d) (`needle.transverse_basis`);
+    in 2-D the one vector t (2,) may be given as it is.
+    """
 
     def __init__(self, captured, base, stuck, ride, n, t):
         self.captured, self.base, self.stuck, self.ride = captured, base, stuck, ride
-        self.n, self.t = n, t
-        #: (2, 2) the unit vectors (t, n) as columns: a captured node's (x, y) → (across, along) is v @ frame
-        self.frame = np.array([[t[0], n[0]], [t[1], n[1]]])
-        #: each constraint row's coordinate in the captured nodes' frame [t₀ n₀ t₁ n₁ …]: every t, then the stuck n's
-        self.rows = np.concatenate([2 * np.arange(captured.size), 2 * np.flatnonzero(stuck) + 1])
+        self.n = np.asarray(n, float)
+        #: (d − 1, d) the unit vectors across the axis
+        self.t = np.atleast_2d(np.asarray(t, float))
+        d = self.n.size
+        self.d = d
+        #: (d, d) the unit vectors (t₁ … t_{d−1}, n) as columns: a captured node's position → (across…, along) is v @ frame
+        self.frame = np.ascontiguousarray(np.vstack([self.t, self.n]).T)
+        #: each constraint row's coordinate in the captured nodes' frame [t₀ … n₀ t₁ … n₁ …]: every node's
+        #: d − 1 across ones, then the stuck nodes' n's
+        across = (d * np.arange(captured.size)[:, None] + np.arange(d - 1)).ravel()
+        self.rows = np.concatenate([across, d * np.flatnonzero(stuck) + d - 1])
         #: the rows on the last factorisation a chord step used (`schur_on`)
         self.schur: _Schur | None = None
 
@@ -313,18 +392,16 @@ class Hold:
         return self.schur
 
     def directions(self) -> np.ndarray:
-        """D (2P, m): each constraint row's unit direction on its node's (x, y) dofs; t rows for every captured node, then n rows for the stuck.
+        """D (dP, m): each constraint row's unit direction on its node's dofs; the across rows for every captured node, then n rows for the stuck.
 
         The explicit C = DᵀEᵀ. The solver works with the rows' coordinates in
-        the (t, n) frame (`rows`) instead; the tests check the two agree.
+        the (t₁ … n) frame (`rows`) instead; the tests check the two agree.
         """
-        p = self.captured.size
-        stuck = np.flatnonzero(self.stuck)
-        D = np.zeros((2 * p, p + stuck.size))
-        k = np.arange(p)
-        D[2 * k, k], D[2 * k + 1, k] = self.t
-        j = p + np.arange(stuck.size)
-        D[2 * stuck, j], D[2 * stuck + 1, j] = self.n
+        d, p = self.d, self.captured.size
+        D = np.zeros((d * p, self.rows.size))
+        for j, row in enumerate(self.rows):  # (a definition for the tests; m rows, not a hot path)
+            k, c = divmod(int(row), d)
+            D[d * k:d * k + d, j] = self.frame[:, c]
         return D
 
     def gap(self, x: np.ndarray) -> np.ndarray:
@@ -333,22 +410,22 @@ class Hold:
         Across the axis the target is the offset at capture, along it the ride.
         The definition; the solver uses the compiled `gap_into`, which the tests compare with it.
         """
-        target = np.zeros(2 * self.captured.size)
-        target[1::2] = self.ride
-        return (target - ((x[self.captured] - self.base) @ self.frame).ravel())[self.rows]
+        target = np.zeros((self.captured.size, self.d))
+        target[:, -1] = self.ride
+        return (target - (x[self.captured] - self.base) @ self.frame).ravel()[self.rows]
 
     def gap_into(self, x: np.ndarray, out: np.ndarray) -> float:
         """`gap` written into out (m,) by the compiled loop; returns its largest magnitude (mm)."""
         return kernels.hold_gap(x, self.captured, self.base, self.frame, self.ride, self.rows, out)
 
     def residual(self, tissue: Tissue, g: np.ndarray) -> float:
-        """Newton's relative residual under this hold (`newton._Held.residual`): held components left out.
+        """Newton's relative residual under this hold (`solvers.held.Held.residual`): held components left out.
 
         The definition; the chord steps use the compiled `held_residual`, which the tests compare with it.
         """
-        G = g.reshape(-1, 2).copy()
+        G = g.reshape(-1, self.d).copy()
         gc = G[self.captured]
-        gc -= (gc @ self.t)[:, None] * self.t
+        gc -= (gc @ self.t.T) @ self.t
         gc[self.stuck] = 0.0
         G[self.captured] = gc
         return float(np.linalg.norm(G.ravel()[tissue.free_dofs])) / tissue.force_scale(g)
@@ -364,13 +441,22 @@ class Hold:
 
     def conditions(self, loads: np.ndarray) -> Conditions:
         """The same hold as Newton's `Conditions`: stuck nodes held, slipping ones held across the axis."""
-        stuck, slip = self.captured[self.stuck], self.captured[~self.stuck]
-        return Conditions(loads=loads, held=np.concatenate([2 * stuck, 2 * stuck + 1]),
-                          along_nodes=slip, along=np.tile(self.t, (slip.size, 1)))
+        return hold_conditions(self.captured, self.stuck, self.t, loads)
 
     def place(self, x: np.ndarray) -> np.ndarray:
-        """x (N, 2) with the captured nodes moved onto the hold (stuck: ridden along; all: back across the axis)."""
+        """x (N, d) with the captured nodes moved onto the hold (stuck: ridden along; all: back across the axis)."""
         x = x.copy()
         along = np.where(self.stuck, self.ride, (x[self.captured] - self.base) @ self.n)
         x[self.captured] = self.base + along[:, None] * self.n
         return x
+
+
+def hold_conditions(captured: np.ndarray, stuck: np.ndarray, t: np.ndarray, loads: np.ndarray | None) -> Conditions:
+    """Newton's `Conditions` of a needle's hold: every dof of the stuck nodes (P,) held, the slipping ones
+    held across the axis (t (d − 1, d) the unit vectors across it), the loads (dN,) mN."""
+    t = np.atleast_2d(t)
+    d = t.shape[1]
+    stuck_nodes, slip = captured[stuck], captured[~stuck]
+    along = np.tile(t[0], (slip.size, 1)) if d == 2 else np.tile(t, (slip.size, 1, 1))
+    return Conditions(loads=loads, held=(d * stuck_nodes[:, None] + np.arange(d)).ravel(),
+                      along_nodes=slip, along=along)

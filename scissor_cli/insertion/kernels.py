@@ -26,37 +26,41 @@ _JIT = dict(cache=True, nogil=True, error_model="numpy")
 def hold_gap(x, captured, base, frame, ride, rows, out):
     """The hold's gap into out (m,) (`Hold.gap`), and its largest magnitude.
 
-    x (N, 2) positions, captured (P,) nodes, base (P, 2) their positions at
-    the last equilibrium, frame (2, 2) the unit vectors (t, n) as columns,
-    ride (P,) mm, rows (m,) each constraint's coordinate in [t₀ n₀ t₁ n₁ …].
+    x (N, d) positions, captured (P,) nodes, base (P, d) their positions at
+    the last equilibrium, frame (d, d) the unit vectors (t₁ … t_{d−1}, n) as
+    columns, ride (P,) mm, rows (m,) each constraint's coordinate in
+    [t₀ … n₀ t₁ … n₁ …] (d per node, n last).
     """
+    d = frame.shape[0]
     largest = 0.0
     for j in range(rows.size):
-        k, c = rows[j] // 2, rows[j] % 2
+        k, c = rows[j] // d, rows[j] % d
         node = captured[k]
-        value = (x[node, 0] - base[k, 0]) * frame[0, c] + (x[node, 1] - base[k, 1]) * frame[1, c]
-        out[j] = (ride[k] if c == 1 else 0.0) - value
+        value = 0.0
+        for a in range(d):
+            value += (x[node, a] - base[k, a]) * frame[a, c]
+        out[j] = (ride[k] if c == d - 1 else 0.0) - value
         largest = max(largest, abs(out[j]))
     return largest
 
 
 @njit(**_JIT)
 def frame_compliance(block, frame):
-    """Qᵀ block Q (2P, 2P), Q = I ⊗ frame, made exactly symmetric (`ChordSolver.compliance`).
+    """Qᵀ block Q (dP, dP), Q = I ⊗ frame, made exactly symmetric (`ChordSolver.compliance`).
 
-    block (2P, 2P) a symmetric matrix on the captured nodes' (x, y) dofs
-    [x₀ y₀ x₁ y₁ …], frame (2, 2) the unit vectors (t, n) as columns.
+    block (dP, dP) a symmetric matrix on the captured nodes' dofs
+    [x₀ y₀ (z₀) x₁ …], frame (d, d) the unit vectors (t₁ … t_{d−1}, n) as columns.
     """
-    m = block.shape[0]
+    m, d = block.shape[0], frame.shape[0]
     out = np.empty((m, m))
-    for i in range(0, m, 2):
-        for j in range(0, i + 2, 2):
-            for a in range(2):
-                for b in range(2):
+    for i in range(0, m, d):
+        for j in range(0, i + d, d):
+            for a in range(d):
+                for b in range(d):
                     v = 0.0
-                    for c in range(2):
-                        for d in range(2):
-                            v += frame[c, a] * frame[d, b] * 0.5 * (block[i + c, j + d] + block[j + d, i + c])
+                    for c in range(d):
+                        for e in range(d):
+                            v += frame[c, a] * frame[e, b] * 0.5 * (block[i + c, j + e] + block[j + e, i + c])
                     out[i + a, j + b] = v
                     out[j + b, i + a] = v
     return out
@@ -66,21 +70,24 @@ def frame_compliance(block, frame):
 def held_residual(g, free, held, idx, n, stuck, dirichlet, force_floor):
     """`Hold.residual`: ‖g_f‖ with the hold's held components left out, over the force scale.
 
-    g (2N,) mN; free (Nf,) the free dofs, held (Nf,) bool marking the
-    captured nodes' ones, idx (2P,) those as [x₀ y₀ x₁ y₁ …] (into free);
-    n (2,) the axis; stuck (P,) bool. Across the axis a captured node is
-    always held, along it while stuck: so of its two components only a
+    g (dN,) mN; free (Nf,) the free dofs, held (Nf,) bool marking the
+    captured nodes' ones, idx (dP,) those as [x₀ y₀ (z₀) x₁ …] (into free);
+    n (d,) the axis; stuck (P,) bool. Across the axis a captured node is
+    always held, along it while stuck: so of its d components only a
     slipping node's along one counts. The force scale is ‖g at the
     Dirichlet dofs‖ (the reactions), floored at force_floor mN
     (`Tissue.force_scale`).
     """
+    d = n.size
     s = 0.0
     for i in range(free.size):
         if not held[i]:
             s += g[free[i]] * g[free[i]]
     for k in range(stuck.size):
         if not stuck[k]:
-            along = g[free[idx[2 * k]]] * n[0] + g[free[idx[2 * k + 1]]] * n[1]
+            along = 0.0
+            for c in range(d):
+                along += g[free[idx[d * k + c]]] * n[c]
             s += along * along
     r = 0.0
     for i in range(dirichlet.size):
@@ -90,19 +97,21 @@ def held_residual(g, free, held, idx, n, stuck, dirichlet, force_floor):
 
 @njit(**_JIT)
 def captured_step(d0, idx, frame, rows, S_upper, A_rows, gap, mu, d_captured):
-    """μ (m,) and the captured nodes' step (P, 2) of a chord step (`ChordSolver.predict`), written into mu, d_captured.
+    """μ (m,) and the captured nodes' step (P, d) of a chord step (`ChordSolver.predict`), written into mu, d_captured.
 
     d0 (Nf,) = −K⁻¹g; in the captured nodes' frame (`ChordSolver.compliance`)
     with S = A[rows, rows] = UᵀU (S_upper: U in its upper triangle, LAPACK's
     dpotrf): μ = S⁻¹ (d0[rows] − gap), and the captured step d0 − A[:, rows] μ
-    back in (x, y).
+    back in (x, y(, z)).
     """
-    p2, m = idx.size, rows.size
-    d0_frame = np.empty(p2)
-    for k in range(p2 // 2):
-        dx, dy = d0[idx[2 * k]], d0[idx[2 * k + 1]]
-        d0_frame[2 * k] = dx * frame[0, 0] + dy * frame[1, 0]
-        d0_frame[2 * k + 1] = dx * frame[0, 1] + dy * frame[1, 1]
+    pd, m, d = idx.size, rows.size, frame.shape[0]
+    d0_frame = np.empty(pd)
+    for k in range(pd // d):
+        for a in range(d):
+            v = 0.0
+            for c in range(d):
+                v += d0[idx[d * k + c]] * frame[c, a]
+            d0_frame[d * k + a] = v
     # Uᵀ y = b, then U μ = y
     for i in range(m):
         v = d0_frame[rows[i]] - gap[i]
@@ -114,14 +123,18 @@ def captured_step(d0, idx, frame, rows, S_upper, A_rows, gap, mu, d_captured):
         for k in range(i + 1, m):
             v -= S_upper[i, k] * mu[k]
         mu[i] = v / S_upper[i, i]
-    for k in range(p2 // 2):
-        ft = d0_frame[2 * k]
-        fn = d0_frame[2 * k + 1]
-        for j in range(m):
-            ft -= A_rows[2 * k, j] * mu[j]
-            fn -= A_rows[2 * k + 1, j] * mu[j]
-        d_captured[k, 0] = frame[0, 0] * ft + frame[0, 1] * fn
-        d_captured[k, 1] = frame[1, 0] * ft + frame[1, 1] * fn
+    f = np.empty(d)
+    for k in range(pd // d):
+        for a in range(d):
+            v = d0_frame[d * k + a]
+            for j in range(m):
+                v -= A_rows[d * k + a, j] * mu[j]
+            f[a] = v
+        for c in range(d):
+            v = 0.0
+            for a in range(d):
+                v += frame[c, a] * f[a]
+            d_captured[k, c] = v
 
 
 @njit(**_JIT)
@@ -129,26 +142,39 @@ def chord_direction(d0, rows, mu, frame, responses):
     """The chord step on the free dofs (Nf,): d0 − K⁻¹Cᵀμ (`ChordSolver.complete`).
 
     With the hold's forces μ (m,) on their rows' coordinates in the captured
-    nodes' frame, turned to each node's (x, y), and the nodes' kept
-    responses K⁻¹e (2P, Nf) (`ChordSolver.responses`).
+    nodes' frame (d, d), turned to each node's (x, y(, z)), and the nodes'
+    kept responses K⁻¹e (dP, Nf) (`ChordSolver.responses`). The loop over
+    the free dofs is written out per dimension: a loop over d inside it
+    would keep numba from vectorising the pass that dominates the kernel.
     """
-    p2 = responses.shape[0]
-    force = np.zeros(p2)
+    pd, d = responses.shape[0], frame.shape[0]
+    force = np.zeros(pd)
     for j in range(rows.size):
         force[rows[j]] = mu[j]
-    d = d0.copy()
-    for k in range(p2 // 2):
-        fx = frame[0, 0] * force[2 * k] + frame[0, 1] * force[2 * k + 1]
-        fy = frame[1, 0] * force[2 * k] + frame[1, 1] * force[2 * k + 1]
-        rx, ry = responses[2 * k], responses[2 * k + 1]
-        for i in range(d.size):
-            d[i] -= fx * rx[i] + fy * ry[i]
-    return d
+    out = d0.copy()
+    f = np.empty(d)
+    for k in range(pd // d):
+        for c in range(d):
+            v = 0.0
+            for a in range(d):
+                v += frame[c, a] * force[d * k + a]
+            f[c] = v
+        if d == 2:
+            fx, fy = f[0], f[1]
+            rx, ry = responses[2 * k], responses[2 * k + 1]
+            for i in range(out.size):
+                out[i] -= fx * rx[i] + fy * ry[i]
+        else:
+            fx, fy, fz = f[0], f[1], f[2]
+            rx, ry, rz = responses[3 * k], responses[3 * k + 1], responses[3 * k + 2]
+            for i in range(out.size):
+                out[i] -= fx * rx[i] + fy * ry[i] + fz * rz[i]
+    return out
 
 
 @njit(**_JIT)
 def moved(x, free, d):
-    """x + d on the free dofs: the trial (N, 2) for positions x (N, 2) and a step d (Nf,); and whether d is finite."""
+    """x + d on the free dofs: the trial (N, d) for positions x (N, d) and a step d (Nf,); and whether d is finite."""
     trial = x.copy()
     flat = trial.reshape(-1)
     total = 0.0
@@ -163,13 +189,13 @@ def predicted_reactions(mu, stuck, d_captured, x, captured, base, n, ride, axial
     """The converged state's axial reactions (P,) mN and lags (P,) mm as one chord step predicts them, into axial, lag.
 
     μ (m,) the step's constraint forces in the hold's row order (every
-    captured node's across row, then the stuck ones' along rows): a stuck
-    node's reaction is −μ of its along row, a slipping one's 0. The lag is
-    how far a node's predicted position x + d_captured has moved along n
-    from base, less the ride.
+    captured node's d − 1 across rows, then the stuck ones' along rows): a
+    stuck node's reaction is −μ of its along row, a slipping one's 0. The
+    lag is how far a node's predicted position x + d_captured has moved
+    along n (d,) from base, less the ride.
     """
-    p = captured.size
-    j = p
+    p, d = captured.size, n.size
+    j = (d - 1) * p
     for k in range(p):
         if stuck[k]:
             axial[k] = -mu[j]
@@ -177,8 +203,10 @@ def predicted_reactions(mu, stuck, d_captured, x, captured, base, n, ride, axial
         else:
             axial[k] = 0.0
         node = captured[k]
-        lag[k] = ((x[node, 0] + d_captured[k, 0] - base[k, 0]) * n[0]
-                  + (x[node, 1] + d_captured[k, 1] - base[k, 1]) * n[1]) - ride[k]
+        v = 0.0
+        for c in range(d):
+            v += (x[node, c] + d_captured[k, c] - base[k, c]) * n[c]
+        lag[k] = v - ride[k]
 
 
 @njit(**_JIT)

@@ -28,6 +28,17 @@ Hessians at the state. A kept factorisation is close to the current
 tangent, so a few iterations reach PCG_TOL; no factorisation is made unless
 they do not (then the kept one is refreshed at the state, where one
 iteration suffices). No residual enters J: it is the pure linear response.
+
+When the plant is the 3-D slab and the model the 2-D layer (`trials.truth:
+slab`, docs/model.md §14), the plant's hold cannot be carried over node by
+node: its captured nodes span several levels, its loads sit on slab nodes.
+So `ModelInsertion` runs the needle in the model its own way: the same
+needle (entry and axis in the layer, the same parameters) advanced in the
+model to the plant's depth step by step, with its own capture and
+stick–slip, at the strokes the controller commands; J is then the
+nominal-run J of that 2-D insertion (`ModelState` with model = plant).
+The controller thus uses nothing of the true slab but the camera's
+measurement and the needle's depth.
 """
 
 from __future__ import annotations
@@ -35,9 +46,10 @@ from __future__ import annotations
 import numpy as np
 
 from scissor_cli.insertion.chord import ChordFailed, ChordSolver, Hold
-from scissor_cli.insertion.needle import STEP_TOL, NeedleState, needle_conditions
+from scissor_cli.insertion.needle import (STEP_TOL, STEP_TOL_3D, NeedleParams, NeedleState, advance, free_nodes,
+                                         needle_conditions)
 from scissor_cli.mechanics.tissue import Tissue
-from scissor_cli.mesh.probe import TargetProbe, target_positions
+from scissor_cli.mesh.probe import TargetProbe, probe_targets, target_positions
 from scissor_cli.solvers.common import SolverError, objective_gradient
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 from scissor_cli.solvers.linear import conjugate_gradients
@@ -119,7 +131,7 @@ class ModelState:
         held_zero = Hold(hold.captured, np.zeros_like(hold.base), hold.stuck, hold.ride, hold.n, hold.t)
         free = model.free_dofs
         Ke = model.element_stiffness(x)
-        t = state.across
+        t = state.transverse[0]  # in 3-D the in-plane normal (t, 0): the cups move the target in the layer
         J = np.zeros((1, model.n_cups))
         responses = np.zeros((model.n_cups,) + x.shape)
         its = 0
@@ -136,11 +148,76 @@ class ModelState:
         return J, responses
 
 
+class ModelInsertion:
+    """The controller's 2-D model running the plant's insertion its own way (plant in the slab; see the module doc).
+
+    model: the controller's 2-D tissue; x_model (N, 2): its equilibrium at
+    strokes (C,) mm; entry (2,), direction (2,) unit: the needle in the
+    layer; target_rest (2,) mm; params: the needle's parameters. Answers as
+    `ModelState` does (`follow`, `jacobian`), with the plant's needle state
+    read for its depth only.
+    """
+
+    def __init__(self, model: Tissue, x_model: np.ndarray, strokes: np.ndarray, entry: np.ndarray,
+                 direction: np.ndarray, target_rest: np.ndarray, params: NeedleParams):
+        self.tissue, self.params = model, params
+        self.x = np.array(x_model, float)
+        self.strokes = np.array(strokes, float)
+        self.state = NeedleState(np.asarray(entry, float), np.asarray(direction, float))
+        self.probe = probe_targets(model.mesh, np.asarray(target_rest, float)[None])
+        self._candidates = free_nodes(model)
+        self._loads = np.zeros(self.x.size)
+        self._responses = None
+        #: the nominal-run J of the model's own insertion
+        self._shared = ModelState(model, model, self.x, self.x, self.strokes)
+
+    def follow(self, state: NeedleState, x_plant: np.ndarray, strokes: np.ndarray, loads: np.ndarray) -> None:
+        """Move the model to the commanded strokes (C,) under its own needle, then advance that needle to the plant's depth."""
+        strokes = np.asarray(strokes, float)
+        if self.state.solver is not None and not np.array_equal(strokes, self.strokes):
+            self.x = move_held(self.tissue, self.state, self.x, self.strokes, strokes, self._loads, self._responses)
+        self.strokes = strokes.copy()
+        step = state.depth_mm - self.state.depth_mm
+        if step > 1e-12:
+            out = advance(self.tissue, self.state, self.x, self.strokes, step, self.params, self._candidates)
+            self.x, self._loads = out.x, out.loads
+        self._shared.follow(self.state, self.x, self.strokes, self._loads)
+
+    def jacobian(self, state: NeedleState, probe=None, kept: ChordSolver | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """J (1, C) of the model's own insertion (its target, its needle), and its node responses (C, N, 2)."""
+        J, self._responses = self._shared.jacobian(self.state, self.probe, self.state.solver)
+        return J, self._responses
+
+
+def move_held(tissue: Tissue, state: NeedleState, x: np.ndarray, s: np.ndarray, command: np.ndarray,
+              loads: np.ndarray, responses: np.ndarray | None) -> np.ndarray:
+    """The tissue's equilibrium (N, d) at the command (C,) mm with the needle's hold and loads (dN,), from x at s.
+
+    Chord steps on the insertion's kept factorisation from the linear
+    response to the stroke change (responses (C, N, d) per unit stroke, or
+    None: the strokes placed only); Newton (as a step's fallback) when they
+    fail or that start inverts an element.
+    """
+    tol = STEP_TOL if tissue.dim == 2 else STEP_TOL_3D  # an insertion step's settled residual (`needle`)
+    hold = hold_at(state, x)
+    predicted = x if responses is None else x + np.tensordot(command - s, responses, axes=1)
+    start = hold.place(tissue.apply_strokes(predicted, command))
+    _, g = objective_gradient(tissue, start, None, loads, require_positive_J=True)
+    if g is not None:
+        try:
+            return state.solver.converge(start, g, hold, tol, loads)[0]
+        except ChordFailed:
+            pass
+    r = solve_equilibrium(tissue, command, start=x, start_strokes=s, conditions=needle_conditions(state, loads),
+                          tol=tol)
+    return r.x
+
+
 def hold_at(state: NeedleState, x: np.ndarray) -> Hold:
     """The needle's hold with the captured nodes where x has them (stuck: both dofs; slipping: across the axis)."""
     captured = state.captured
     return Hold(captured, x[captured].copy(), state.stuck.copy(), np.zeros(captured.size), state.direction,
-                state.across)
+                state.transverse)
 
 
 def _held_response(model, solver, hold, x, Ke, b, free):

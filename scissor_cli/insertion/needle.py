@@ -1,4 +1,4 @@
-"""One quasi-static step of a rigid straight needle in the layer (docs/model.md §12).
+"""One quasi-static step of a rigid straight needle in the layer or the slab (docs/model.md §12, §14).
 
 The needle enters at `entry` p0 along the unit axis n; at depth d its tip is
 p0 + d n. A step advances it by Δd and finds the tissue's equilibrium with
@@ -11,6 +11,10 @@ p0 + d n. A step advances it by Δd and finds the tissue's equilibrium with
 * the tip force F_tip along n spread over the uncaptured nodes within
   `tip_zone_mm` of the tip with the weights (1 − (r/R)²)², normalised to
   sum to F_tip (the nearest uncaptured node when the disc holds none).
+
+The same code serves the layer (d = 2 dofs per node) and the slab (d = 3,
+`tissue.dim`): across the axis means the d − 1 unit vectors of
+`transverse_basis`, the tip zone is a disc or a ball.
 
 Stick or slip is an active set: every captured node starts stuck (riding
 Δd with the needle; a node captured in this step from where the tip passed
@@ -44,7 +48,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from scissor_cli.insertion import kernels
-from scissor_cli.insertion.chord import ChordFailed, ChordSolver, Hold
+from scissor_cli.insertion.chord import ChordFailed, ChordSolver, Hold, hold_conditions
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.common import Conditions, SolverError
 from scissor_cli.solvers.equilibrium import solve_equilibrium
@@ -54,6 +58,16 @@ STEP_TOL = 1e-8
 #: the active-set passes before the set settles are solved to this residual only;
 #: the settled set is then solved to STEP_TOL (and checked once more)
 PASS_TOL = 1e-5
+#: In the slab (3-D) a triangular solve on the kept factor costs 70–90 ms and a
+#: factorisation ~1.1 s plus 3 solves per captured node (example_full's slab, 65k
+#: unknowns), 50× the layer's. There a step is solved to 1e-4: over a 30 mm insertion
+#: of the test slab (tests/test_insertion3d.py, 0.5 mm steps) the target stays within
+#: 6e-6 mm of the 1e-8 solution, the stick–slip counts are the same at every step and
+#: the needle force within 3e-8; on the stale factor the chord steps stall between 1e-4
+#: and 1e-5 (contraction > 0.9), so 1e-5 cost a refactorisation nearly every step
+#: (10 steps of example_full: 17 s against 50 s). `NeedleParams.step_tol` overrides.
+STEP_TOL_3D = 1e-4
+PASS_TOL_3D = 1e-4
 #: decide a pass from its chord step's prediction of the converged reactions and
 #: lags once no decision lies within GUARD_FORCE·res·(force scale) mN or
 #: GUARD_POSITION·res mm of its threshold (res the relative residual there)
@@ -64,6 +78,11 @@ EARLY_DECISIONS = True
 #: errs by what the rows move, far beyond res; no decision is taken on it.
 GUARD_FORCE = 1.0
 GUARD_POSITION = 3.0
+#: in the slab, measured the same way (example_full's slab, the first 5 mm, res from 1e-5 to 1): at most
+#: 0.15·res·scale and 0.50·res mm (its residual norm spreads over 25× the layer's dofs, the error at a
+#: captured node does not); the guards keep the layer's margin (≈ 3×)
+GUARD_FORCE_3D = 0.4
+GUARD_POSITION_3D = 1.5
 #: active-set passes per step before the step is reported as unsettled
 MAX_ACTIVE_SET = 50
 #: halvings of a step whose start would invert an element (a 0.5 mm step
@@ -86,6 +105,15 @@ class NeedleParams:
     tip_zone_mm: float = 2.0
     capture_radius_mm: float = 2.0
     radius_mm: float = 0.6  # half the needle diameter: obstacle clearance
+    #: the settled set's relative residual; None: by dimension (STEP_TOL, STEP_TOL_3D). When given, the
+    #: passes before are solved to PASS_TOL (or to it, if tighter)
+    step_tol: float | None = None
+
+    def tolerances(self, d: int) -> tuple[float, float]:
+        """(pass, step) relative residuals of an insertion step in dimension d."""
+        if self.step_tol is not None:
+            return min(PASS_TOL, self.step_tol), self.step_tol
+        return (PASS_TOL, STEP_TOL) if d == 2 else (PASS_TOL_3D, STEP_TOL_3D)
 
     @classmethod
     def from_config(cls, ins, cfg) -> "NeedleParams":
@@ -99,10 +127,11 @@ class NeedleParams:
 
 @dataclass
 class NeedleState:
-    """The needle and what it holds: entry p0 (2,), axis n (2,), depth d (mm), captured nodes.
+    """The needle and what it holds: entry p0 (d,), axis n (d,), depth d (mm), captured nodes.
 
-    captured (P,) node indices, offset (P,) mm their transverse offset at
-    capture, stuck (P,) bool after the last step, lengths (P,) mm their
+    captured (P,) node indices, offset mm their transverse offset at
+    capture ((P,) in 2-D, (P, d − 1) in 3-D: the components along
+    `transverse`), stuck (P,) bool after the last step, lengths (P,) mm their
     shares of the shaft.
     """
 
@@ -115,7 +144,7 @@ class NeedleState:
     lengths: np.ndarray = field(default_factory=lambda: np.zeros(0))
     #: direction of the kinetic friction on each slipping node (+1 along n, −1 against; 0 stuck)
     sign: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    #: the last step's node increment per mm of advance (N, 2), the next step's predictor
+    #: the last step's node increment per mm of advance (N, d), the next step's predictor
     rate: np.ndarray | None = None
     #: the kept factorisation of the needle's solves (`chord.ChordSolver`), shared across steps
     solver: ChordSolver | None = field(default=None, repr=False)
@@ -139,7 +168,7 @@ class NeedleState:
 
 @dataclass
 class StepOutcome:
-    """One step: positions x (N, 2) mm, axial needle force (mN), stuck/slipping counts, loads (2N,) mN.
+    """One step: positions x (N, d) mm, axial needle force (mN), stuck/slipping counts, loads (dN,) mN.
 
     settled is False when the active set still changed after MAX_ACTIVE_SET
     passes; passes counts the solves.
@@ -240,7 +269,7 @@ def advance(
     tissue: Tissue, state: NeedleState, x: np.ndarray, strokes: np.ndarray, step_mm: float, params: NeedleParams,
     candidates: np.ndarray,
 ) -> StepOutcome:
-    """Advance the needle by step_mm from the equilibrium x (N, 2) at cup strokes (C,) mm; updates `state`.
+    """Advance the needle by step_mm from the equilibrium x (N, d) at cup strokes (C,) mm; updates `state`.
 
     A step whose start (stuck nodes moved with the needle) would invert an
     element is split into 2, 4, … equal parts (at most 2^MAX_SPLITS), the
@@ -280,19 +309,21 @@ def _check_start(tissue: Tissue, start: np.ndarray, J_now: np.ndarray) -> None:
 
 
 def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> StepOutcome:
-    n, t = state.direction, state.across
+    n, t = state.direction, state.transverse  # t (d − 1, d)
+    d = x.shape[1]
     old = state.captured.copy()
     state.depth_mm += step_mm
     new = capture(tissue, state, x, candidates, params.capture_radius_mm)
     captured = np.concatenate([old, new]).astype(np.int64)
-    offset = np.concatenate([state.offset, (x[new] - state.entry) @ t])
+    offset_new = (x[new] - state.entry) @ t.T
+    offset = (np.concatenate([state.offset, offset_new[:, 0]]) if d == 2
+              else np.concatenate([state.offset.reshape(-1, d - 1), offset_new]))
     rel = x[captured] - state.entry
     lengths = shaft_lengths(rel @ n, state.depth_mm)
     uncut = candidates[~_marks(x.shape[0], captured)[candidates]]  # the shaft's nodes are not being cut
     tip_nodes, w = tip_weights(x, state.tip, uncut if uncut.size else candidates, params.tip_zone_mm)
     base = np.zeros(x.size)
-    base[2 * tip_nodes] += params.tip_force_mN * w * n[0]
-    base[2 * tip_nodes + 1] += params.tip_force_mN * w * n[1]
+    base.reshape(-1, d)[tip_nodes] += (params.tip_force_mN * w)[:, None] * n  # the zone's nodes are distinct
     # The start: stuck nodes (all, at first) ride along; a node captured in this
     # step rides along from where the tip passed it (d − s_i of the step).
     start = x.copy()
@@ -317,7 +348,9 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
     if state.solver is None:
         state.solver = ChordSolver(tissue)
     solver, n_factor = state.solver, state.solver.factorizations
-    passes, iterations, settled, tol = 0, 0, False, PASS_TOL
+    pass_tol, step_tol = params.tolerances(d)
+    guard_force, guard_position = (GUARD_FORCE, GUARD_POSITION) if d == 2 else (GUARD_FORCE_3D, GUARD_POSITION_3D)
+    passes, iterations, settled, tol = 0, 0, False, pass_tol
     result_x, loads, axial = start, base, np.zeros(captured.size)
     base_x = x[captured]
     hold = None
@@ -333,8 +366,7 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
         loads = base.copy()
         slip = ~stuck
         friction = fk * lengths[slip] * sign[slip]
-        loads[2 * captured[slip]] += friction * n[0]  # captured nodes are distinct: no repeated index
-        loads[2 * captured[slip] + 1] += friction * n[1]
+        loads.reshape(-1, d)[captured[slip]] += friction[:, None] * n  # captured nodes are distinct: no repeated index
         if hold is None or (hold.stuck is not stuck and not np.array_equal(hold.stuck, stuck)):  # kept while the set is
             hold = Hold(captured, base_x, stuck, ride, n, t)
         scale = tissue.force_scale(grad_u)
@@ -344,7 +376,7 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
             # the converged state's reactions and lags, predicted by this chord step (its Schur forces)
             axial_p, lag_p = np.empty(captured.size), np.empty(captured.size)
             kernels.predicted_reactions(mu, rule.stuck, d_captured, xc, captured, base_x, n, ride, axial_p, lag_p)
-            release, against, changed = rule.apply(axial_p, lag_p, GUARD_FORCE * res * scale, GUARD_POSITION * res)
+            release, against, changed = rule.apply(axial_p, lag_p, guard_force * res * scale, guard_position * res)
             return (release, against, axial_p) if changed > 0 else None  # nothing to do, or unclear (−1)
 
         r_x, g, its, verdict = _solve_pass(tissue, solver, strokes, chord_x, grad_u - loads, hold, loads, tol,
@@ -354,16 +386,16 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
         iterations += its
         result_x, result_grad = r_x, grad_u
         if verdict is None:  # converged to tol: the exact rule
-            axial = g.reshape(-1, 2)[captured] @ n  # what the needle must supply
+            axial = g.reshape(-1, d)[captured] @ n  # what the needle must supply
             # Kinetic friction opposes the slip: a node pulled forward (+n) must lag the needle, and the reverse.
             lag = (r_x[captured] - x[captured]) @ n - ride
             release, against, _ = _Rule(limit + 1e-9 * tissue.force_scale(grad_u), stuck, locked, sign,
                                         1e-9 * step_mm).apply(axial, lag)
             if not (release.any() or against.any()):  # (the exact rule: no error, nothing unclear)
-                if tol <= STEP_TOL:
+                if tol <= step_tol:
                     settled = True
                     break
-                tol, start = STEP_TOL, r_x
+                tol, start = step_tol, r_x
                 chord_x = start
                 continue
         else:
@@ -418,10 +450,10 @@ class _Rule:
 def _solve_pass(tissue, solver, strokes, x, g, hold, loads, tol, decide, start):
     """One pass's equilibrium under the hold: (x, g, iterations, verdict).
 
-    The kept factorisation's chord steps (`chord.ChordSolver`) from x (N, 2)
-    with objective gradient g (2N,), which `decide` may end early with a
+    The kept factorisation's chord steps (`chord.ChordSolver`) from x (N, d)
+    with objective gradient g (dN,), which `decide` may end early with a
     verdict; when they fail, Newton with the same hold as `Conditions` from
-    start (N, 2), the hold's placed start (checked not to flatten).
+    start (N, d), the hold's placed start (checked not to flatten).
     """
     try:
         return solver.converge(x, g, hold, tol, loads, decide)
@@ -433,7 +465,5 @@ def _solve_pass(tissue, solver, strokes, x, g, hold, loads, tol, decide, start):
 
 
 def needle_conditions(state: NeedleState, loads: np.ndarray | None = None) -> Conditions:
-    """The needle's hold on the tissue as it stands (stuck: both dofs; slipping: across the axis)."""
-    stuck, slip = state.captured[state.stuck], state.captured[~state.stuck]
-    return Conditions(loads=loads, held=np.concatenate([2 * stuck, 2 * stuck + 1]),
-                      along_nodes=slip, along=np.tile(state.across, (slip.size, 1)))
+    """The needle's hold on the tissue as it stands (stuck: every dof; slipping: across the axis)."""
+    return hold_conditions(state.captured, state.stuck, state.transverse, loads)

@@ -12,10 +12,19 @@ Strategies:
   hold. The Jacobian is the controller's: its model tissue's linear
   response with the captured nodes held, at the model's own equilibrium
   under the needle (`model_state.ModelState`), not the plant's.
+
+The plant may be the layer or the slab (`tissue.dim` 3, docs/model.md §14):
+in the slab the needle's axis lies in the layer (z = the layer's height),
+the target and the obstacles are the layer's points carried by the slab's
+nodes at the layer's level (their 2-D probe on the `layer` mesh), the
+camera sees the target's in-plane part and the clearance is measured in
+the layer's plane. With a 2-D controller model against the slab, `loop`
+runs the model's own insertion (`model_state.ModelInsertion`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from typing import Callable, Optional
@@ -24,14 +33,13 @@ import numpy as np
 
 from scissor_cli.control.law import PID, split_error
 from scissor_cli.geometry import segment_polygon_distance
-from scissor_cli.insertion.chord import ChordFailed
-from scissor_cli.insertion.model_state import ModelState, hold_at
-from scissor_cli.insertion.needle import (NeedleParams, NeedleState, STEP_TOL, advance, free_nodes, needle_conditions,
-                                         transverse_basis)
+from scissor_cli.insertion.model_state import ModelInsertion, ModelState, move_held
+from scissor_cli.insertion.needle import NeedleParams, NeedleState, advance, free_nodes, transverse_basis
 from scissor_cli.mechanics.tissue import Tissue
+from scissor_cli.mesh.mesh import Mesh
 from scissor_cli.mesh.outlines import deformed_outlines, embed_outlines
-from scissor_cli.mesh.probe import probe_targets, target_positions
-from scissor_cli.solvers.common import SolverError, objective_gradient
+from scissor_cli.mesh.probe import TargetProbe, probe_targets, target_positions
+from scissor_cli.solvers.common import SolverError
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 
 STRATEGIES = ("none", "depth", "loop")
@@ -43,13 +51,14 @@ MAX_DEPTH_FACTOR = 2.0
 class InsertionResult:
     """One insertion, K steps (docs/contract.md `/insertion/<target>/<strategy>`).
 
-    depth_mm (K,), tip (K, 2), target (K, 2), needle_force_mN (K,), stuck,
+    depth_mm (K,), tip (K, d), target (K, d) (d = 2 in the layer, 3 in the
+    slab), needle_force_mN (K,), stuck,
     slipping (K,) int, min_clearance_mm (K,) (0.0 without obstacles: see
-    has_obstacles), strokes (K, C) mm, displacement (K, N, 2) mm (None when
+    has_obstacles), strokes (K, C) mm, displacement (K, N, d) mm (None when
     not kept); outcome: miss_mm (target to the needle line), depth_error_mm
     (tip minus target along n), obstacle_touched, stop_reason ("depth
     reached", "target reached", or why it stopped early), unsettled (steps
-    whose active set did not settle), x (N, 2) the final positions.
+    whose active set did not settle), x (N, d) the final positions.
     """
 
     target_name: str
@@ -110,28 +119,33 @@ def run_insertion(
     target_name: str = "",
     model: Tissue | None = None,
     model_x0: np.ndarray | None = None,
+    layer: Mesh | None = None,
 ) -> InsertionResult:
-    """Insert from the equilibrium x0 (N, 2) at cup strokes (C,) mm along the plan; never raises on a solver failure.
+    """Insert from the equilibrium x0 (N, d) at cup strokes (C,) mm along the plan; never raises on a solver failure.
 
-    entry (2,), direction (2,) unit, planned_depth_mm: the plan; target_rest
-    (2,): the target in the rest mesh; controller: the `controller` config
-    section (gains, rate) for "loop"; measure: the camera, true (2,) →
-    measured (2,) (default exact). `tissue` is the plant; model: the
-    controller's tissue for "loop" (default: the plant itself), model_x0
-    (N, 2) its equilibrium at the strokes (solved from x0 when not given).
+    entry (d,), direction (d,) unit, planned_depth_mm: the plan (in the
+    slab: the layer's plan lifted to z = the layer's height, n_z = 0);
+    target_rest (2,): the target in the layer's rest mesh; controller: the
+    `controller` config section (gains, rate) for "loop"; measure: the
+    camera, true (d,) → measured in-plane (2,) (default exact). `tissue` is
+    the plant; model: the controller's tissue for "loop" (default: the
+    plant itself), model_x0 (N, 2) its equilibrium at the strokes (solved
+    from x0 when not given, which needs model and plant of one dimension);
+    layer: in the slab, the layer's 2-D mesh the slab was extruded from.
     A failed step ends the insertion with the reason in stop_reason; what
     was reached is kept.
     """
     if strategy not in STRATEGIES:
         raise ValueError(f"strategy must be one of {STRATEGIES}, got {strategy!r}")
     t0 = time.perf_counter()
-    measure = measure or (lambda y: y)
     n = np.asarray(direction, float) / np.linalg.norm(direction)
     p0 = np.asarray(entry, float)
+    probe, embedding = _layer_points(tissue, layer, np.asarray(target_rest, float),
+                                     [o.outline for o in tissue.scene.obstacles])
+    if n.size == 3 and abs(n[2]) > 1e-12:
+        raise ValueError("in the slab the needle's axis lies in the layer (direction z = 0)")
+    measure = measure or (lambda y: y[:2])
     state = NeedleState(p0, n)
-    probe = probe_targets(tissue.mesh, np.asarray(target_rest, float)[None])
-    obstacles = [o.outline for o in tissue.scene.obstacles]
-    embedding = embed_outlines(tissue.mesh, obstacles)
     candidates = free_nodes(tissue)
     x, s = np.array(x0, float), np.array(strokes, float)
     lo = np.array([c.stroke_min_mm for c in tissue.scene.cups])
@@ -139,7 +153,7 @@ def run_insertion(
     pid = controller_model = None
     if strategy == "loop":
         pid = PID(controller.kp, controller.ki, controller.kd, 1.0 / controller.rate_hz)
-        controller_model = _model_state(tissue, model, x, model_x0, s)
+        controller_model = _model_state(tissue, model, x, model_x0, s, p0, n, target_rest, params)
     rows: list[tuple] = []
     frames: list[np.ndarray] = []
     unsettled, reason = 0, ""
@@ -147,7 +161,7 @@ def run_insertion(
     last = False
     while True:
         y = target_positions(probe, x)[0]
-        goal = planned_depth_mm if strategy == "none" else float((measure(y) - p0) @ n)
+        goal = planned_depth_mm if strategy == "none" else float((measure(y) - p0[:2]) @ n[:2])
         remaining = goal - state.depth_mm
         if remaining <= 1e-9 or last:
             # the last step is shortened to the goal measured before it; the drag during it is not chased
@@ -168,17 +182,40 @@ def run_insertion(
         unsettled += not out.settled
         y = target_positions(probe, x)[0]
         rows.append((state.depth_mm, state.tip, y, out.force_mN, out.stuck, out.slipping,
-                     _clearance(embedding, x, p0, state.tip, params.radius_mm), s.copy()))
+                     _clearance(embedding, x, p0[:2], state.tip[:2], params.radius_mm), s.copy()))
         if keep_displacement:
             frames.append(x - tissue.rest)
-    return _result(tissue, target_name, strategy, p0, n, rows, frames, keep_displacement, x, state, bool(obstacles),
-                   reason, unsettled, time.perf_counter() - t0, probe, s)
+    return _result(tissue, target_name, strategy, p0, n, rows, frames, keep_displacement, x, state,
+                   bool(embedding.splits), reason, unsettled, time.perf_counter() - t0, probe, s)
 
 
-def _model_state(plant, model, x0, model_x0, strokes) -> ModelState:
-    """The controller's model at the start: the plant itself, or its own equilibrium at the strokes."""
+def _layer_points(tissue: Tissue, layer: Mesh | None, target_rest: np.ndarray, obstacles: list):
+    """The target's probe and the obstacles' embedding on the plant's nodes.
+
+    In the layer, on its own mesh; in the slab, the 2-D ones on the layer
+    mesh carried to the slab's nodes at the layer's level (its triangles are
+    faces of the slab's tetrahedra there, so the weights are exact).
+    """
+    if tissue.dim == 2:
+        return probe_targets(tissue.mesh, target_rest[None]), embed_outlines(tissue.mesh, obstacles)
+    if layer is None:
+        raise ValueError("an insertion in the slab needs the layer's 2-D mesh (`layer`)")
+    offset = tissue.mesh.node(tissue.mesh.layer_level, 0)
+    p = probe_targets(layer, target_rest[None])
+    e = embed_outlines(layer, obstacles)
+    return (TargetProbe(p.tri_idx, p.nodes + offset, p.bary),
+            dataclasses.replace(e, triangles=e.triangles + offset))
+
+
+def _model_state(plant, model, x0, model_x0, strokes, p0, n, target_rest, params):
+    """The controller's model at the start: the plant itself, its own equilibrium at the strokes, or (a 2-D
+    model of the slab) its own insertion (`ModelInsertion`)."""
     if model is None or model is plant:
         return ModelState(plant, plant, x0, x0, strokes)
+    if model.dim != plant.dim:
+        if model_x0 is None:
+            raise ValueError("a 2-D controller model of the slab needs its equilibrium at the strokes (model_x0)")
+        return ModelInsertion(model, model_x0, strokes, p0[:2], n[:2], target_rest, params)
     if model_x0 is None:  # x0 only warms the solve: the model's equilibrium does not depend on it
         model_x0 = solve_equilibrium(model, strokes, start=x0, start_strokes=strokes).x
     return ModelState(model, plant, model_x0, x0, strokes)
@@ -193,40 +230,29 @@ def _loop_correction(tissue, controller_model, state, x, s, loads, probe, pid, l
     controller_model.follow(state, x, s, loads)
     J, responses = controller_model.jacobian(state, probe, state.solver)
     y = target_positions(probe, x)[0]
-    e = np.array([-(measure(y) - p0) @ state.across])
+    e = np.array([-(measure(y) - p0[:2]) @ state.transverse[0][:2]])
     ds, _, _ = split_error(J, e)
     command, _ = pid.command(s, ds, lo, hi)
     if np.allclose(command, s, atol=1e-12, rtol=0):
         return x, s
+    if responses.shape[1:] != x.shape:
+        # a 2-D model's responses are no start for the slab (its levels near the fixed chest wall do not move
+        # as the layer does): the strokes placed only
+        responses = None
     return _move_plant(tissue, state, x, s, command, loads, responses), command
 
 
 def _move_plant(tissue, state, x, s, command, loads, responses) -> np.ndarray:
-    """The plant's equilibrium (N, 2) at the command (C,) with the needle's hold and loads, from x at s.
-
-    Chord steps on the insertion's kept factorisation from the model's
-    linear response to the stroke change; Newton (as a step's fallback)
-    when they fail or that start inverts an element.
-    """
-    hold = hold_at(state, x)
-    start = hold.place(tissue.apply_strokes(x + np.tensordot(command - s, responses, axes=1), command))
-    _, g = objective_gradient(tissue, start, None, loads, require_positive_J=True)
-    if g is not None:
-        try:
-            return state.solver.converge(start, g, hold, STEP_TOL, loads)[0]
-        except ChordFailed:
-            pass
-    r = solve_equilibrium(tissue, command, start=x, start_strokes=s, conditions=needle_conditions(state, loads),
-                          tol=STEP_TOL)
-    return r.x
+    """The plant's equilibrium (N, d) at the command (C,) with the needle's hold and loads (`model_state.move_held`)."""
+    return move_held(tissue, state, x, s, command, loads, responses)
 
 
 def _clearance(embedding, x, p0, tip, radius_mm) -> float:
-    """Shaft (p0 → tip, radius) to the nearest deformed obstacle (mm); +inf without obstacles."""
+    """Shaft (p0 → tip (2,), radius) to the nearest deformed obstacle in the layer's plane (mm); +inf without obstacles."""
     outlines = deformed_outlines(embedding, x)
     if not outlines:
         return float("inf")
-    return min(segment_polygon_distance(p0, tip, poly) for poly in outlines) - radius_mm
+    return min(segment_polygon_distance(p0, tip, poly[:, :2]) for poly in outlines) - radius_mm
 
 
 def _result(tissue, name, strategy, p0, n, rows, frames, keep, x, state, has_obstacles, reason, unsettled, wall,
@@ -238,7 +264,7 @@ def _result(tissue, name, strategy, p0, n, rows, frames, keep, x, state, has_obs
     miss, depth_error = miss_and_depth_error(y, p0, n, state.depth_mm)
     touched = bool(has_obstacles and k and np.min(clearance) <= 0.0)
     return InsertionResult(
-        name, strategy, p0, n, col(0), col(1, (2,)), col(2, (2,)), col(3), col(4).astype(np.int64),
+        name, strategy, p0, n, col(0), col(1, (p0.size,)), col(2, (p0.size,)), col(3), col(4).astype(np.int64),
         col(5).astype(np.int64), np.where(np.isfinite(clearance), clearance, 0.0),
         np.array([r[7] for r in rows], float).reshape(k, tissue.n_cups),
         np.array(frames) if keep else None, miss, depth_error, touched, has_obstacles,

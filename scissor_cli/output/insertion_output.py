@@ -29,7 +29,7 @@ def insertion_outputs(ins, out_dir: Path) -> list[Path]:
 
 
 def _animation(ins, r, path: Path) -> Path:
-    """Manipulation (the cups ramping to the plan) then insertion under strategy r.strategy."""
+    """Manipulation (the cups ramping to the plan) then insertion under strategy r.strategy, in the layer's plane."""
     tissue = ins.tissue
     mesh = tissue.mesh
     probe = probe_targets(mesh, np.asarray(ins.target_rest, float)[None])
@@ -41,10 +41,13 @@ def _animation(ins, r, path: Path) -> Path:
         needles.append(None)
         labels.append(f"manipulation {k + 1}/{len(ins.manipulation_frames)}")
     for k in pick_frames(r.steps):
-        x = mesh.nodes + r.displacement[k]
+        if ins.layer_nodes is None:
+            x = mesh.nodes + r.displacement[k]
+        else:  # in the slab: the layer's level, in its plane
+            x = mesh.nodes + r.displacement[k][ins.layer_nodes, :2]
         frames.append(x)
-        targets.append(r.target[k])
-        needles.append(np.array([r.entry, r.tip[k]]))
+        targets.append(r.target[k][:2])
+        needles.append(np.array([r.entry[:2], r.tip[k][:2]]))
         labels.append(f"insertion ({r.strategy}): depth {r.depth_mm[k]:.1f} mm, force {r.needle_force_mN[k]:.0f} mN")
     obstacles = [deformed_outlines(emb, x) for x in frames]
     return insertion_animation(path, f"{tissue.scene.name} — {ins.target}", mesh.triangles, frames, targets,

@@ -39,7 +39,7 @@ class Conditions:
     """What one equilibrium holds and pushes beyond the tissue's own boundary (fixed sides, cups).
 
     loads (2N,) mN: external nodal forces (a needle's friction and tip
-    force); held (H,): indices of free dofs (of the 2N) that stay where the
+    force); held (H,): indices of free dofs (of the dN, d = tissue.dim) that stay where the
     start puts them (nodes a needle holds). Inputs to every solve, not
     subclasses of the tissue: the sparsity pattern of K_ff stays the same,
     so a factorisation's symbolic analysis is reused when they change.
@@ -47,10 +47,13 @@ class Conditions:
 
     loads: np.ndarray | None = None
     held: np.ndarray | None = None
-    #: nodes (A,) whose displacement component along `along` (A, 2) unit
-    #: vectors stays where the start puts it, the other component free (a
-    #: needle holding a node across its axis, any axis direction). Solved by
-    #: rotating each such node's 2×2 block, so K_ff keeps its pattern.
+    #: nodes (A,) held across a direction, free along it (a needle holding a
+    #: node across its axis, any axis direction): `along` gives each node's
+    #: held unit vectors, (A, d) in 2-D (one each) or (A, d − 1, d)
+    #: orthonormal (3-D: both directions across the axis); the node's
+    #: displacement components along them stay where the start puts them,
+    #: the remaining one is free. Solved by rotating each such node's d×d
+    #: block (`solvers.held.Held`), so K_ff keeps its pattern.
     along_nodes: np.ndarray | None = None
     along: np.ndarray | None = None
 
@@ -66,28 +69,39 @@ class Conditions:
             raise ValueError(f"held dofs {held[pos < 0][:5].tolist()} are already Dirichlet dofs (fixed or gripped)")
         return pos
 
-    def along_free(self, tissue: Tissue) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Free positions of the x and y dofs of the `along_nodes` (A,), (A,) and the unit vectors (A, 2).
+    def along_free(self, tissue: Tissue) -> tuple[np.ndarray, np.ndarray]:
+        """Free positions (A, d) of the `along_nodes`' dofs and their frames (A, d, d).
 
-        ValueError if a node is not fully free or is also in `held`.
+        A frame's columns are the held unit vectors, then the free one that
+        completes them to a right-handed orthonormal basis (2-D: u⊥, u turned
+        by +90°; 3-D: t₁ × t₂). ValueError if a node is not fully free, is
+        also in `held`, or its vectors are not orthonormal.
         """
+        d = tissue.dim
         if self.along_nodes is None or len(self.along_nodes) == 0:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2))
+            return np.zeros((0, d), np.int64), np.zeros((0, d, d))
         nodes = np.asarray(self.along_nodes, np.int64)
-        u = np.asarray(self.along, float).reshape(-1, 2)
-        if u.shape[0] != nodes.size or np.unique(nodes).size != nodes.size:
-            raise ValueError("along_nodes must be distinct, one unit vector (2,) per node")
-        norm = np.linalg.norm(u, axis=1)
-        if np.any(np.abs(norm - 1.0) > 1e-9):
-            raise ValueError("the `along` vectors must be unit vectors")
-        if nodes.min() < 0 or 2 * nodes.max() + 1 >= tissue.free_index.size:
+        u = np.asarray(self.along, float)
+        if u.size != nodes.size * (d - 1) * d or np.unique(nodes).size != nodes.size:
+            raise ValueError(f"along_nodes must be distinct, {d - 1} unit vector(s) ({d},) per node")
+        u = u.reshape(nodes.size, d - 1, d)
+        gram = np.einsum("aid,ajd->aij", u, u)
+        if np.any(np.abs(gram - np.eye(d - 1)) > 1e-9):
+            raise ValueError("the `along` vectors must be orthonormal unit vectors")
+        if nodes.min() < 0 or d * nodes.max() + d - 1 >= tissue.free_index.size:
             raise ValueError("along_nodes out of range")
-        px, py = tissue.free_index[2 * nodes], tissue.free_index[2 * nodes + 1]
-        if np.any(px < 0) or np.any(py < 0):
-            raise ValueError(f"along_nodes {nodes[(px < 0) | (py < 0)][:5].tolist()} have Dirichlet dofs (fixed or gripped)")
-        if self.held is not None and np.isin(np.concatenate([2 * nodes, 2 * nodes + 1]), self.held).any():
+        dofs = tissue.free_index[d * nodes[:, None] + np.arange(d)]
+        if np.any(dofs < 0):
+            bad = nodes[np.any(dofs < 0, axis=1)]
+            raise ValueError(f"along_nodes {bad[:5].tolist()} have Dirichlet dofs (fixed or gripped)")
+        if self.held is not None and np.isin((d * nodes[:, None] + np.arange(d)).ravel(), self.held).any():
             raise ValueError("a node is both in along_nodes and in held")
-        return px, py, u
+        if d == 2:
+            free = np.stack([-u[:, 0, 1], u[:, 0, 0]], axis=1)
+        else:
+            free = np.cross(u[:, 0], u[:, 1])
+        frame = np.concatenate([u, free[:, None, :]], axis=1).transpose(0, 2, 1)  # columns: held…, free
+        return dofs, frame
 
     @property
     def trivial(self) -> bool:

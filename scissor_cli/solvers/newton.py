@@ -28,8 +28,9 @@ import scipy.sparse as sp
 
 from scissor_cli.solvers.linear import KRYLOV_MAX_ITER, solve_free
 from scissor_cli.solvers.common import (
-    NO_CONDITIONS, Conditions, Inertia, SolveResult, SolverError, check_finite, objective_gradient, relative_residual,
+    NO_CONDITIONS, Conditions, Inertia, SolveResult, SolverError, check_finite, objective_gradient,
 )
+from scissor_cli.solvers.held import Held as _Held
 from scissor_cli.mechanics.tissue import Tissue
 
 ARMIJO = 1e-4
@@ -64,125 +65,6 @@ KRYLOV_FORCING_MAX_2D = 0.1
 def _krylov(tissue: Tissue, krylov: bool | None) -> bool:
     """Whether steps first try conjugate gradients on the last factor (default: in 3-D, where factoring dominates)."""
     return tissue.dim == 3 if krylov is None else krylov
-
-
-class _Held:
-    """Held free dofs (H,) in a solve: zero in every step, identity rows in every K_ff.
-
-    Keeping them in the system as identity rows (instead of dropping them)
-    leaves the sparsity pattern, and so the symbolic factorisation, unchanged.
-
-    Nodes held along a direction (`Conditions.along_nodes`) are solved in
-    rotated coordinates: each such node's dofs (x, y) become (along u,
-    along u⊥) by the orthogonal 2×2 block [u u⊥], K_ff becomes RᵀK_ffR (the
-    same node blocks, so the same pattern) and the `along u` dof is held like
-    any other. `vector` and `matrix` map to these coordinates, `unrotate`
-    maps a step back; with no such nodes all three are the identity.
-    """
-
-    def __init__(self, tissue: Tissue, conditions: Conditions):
-        plain = conditions.held_free(tissue)
-        self.px, self.py, self.u = conditions.along_free(tissue)
-        self.pos = np.concatenate([plain, self.px]) if len(self.px) else plain
-        self.n_free = tissue.free_dofs.size
-        self._mask: tuple | None = None
-
-    def __bool__(self) -> bool:
-        return bool(len(self.pos))
-
-    def rotate(self, v: np.ndarray) -> np.ndarray:
-        """v (Nf,) in the rotated coordinates (v itself when nothing is rotated)."""
-        if not len(self.px):
-            return v
-        v = v.copy()
-        vx, vy = v[self.px], v[self.py]
-        ux, uy = self.u[:, 0], self.u[:, 1]
-        v[self.px] = ux * vx + uy * vy
-        v[self.py] = -uy * vx + ux * vy
-        return v
-
-    def unrotate(self, q: np.ndarray) -> np.ndarray:
-        """q (Nf,) in rotated coordinates back to x/y dofs."""
-        if not len(self.px):
-            return q
-        q = q.copy()
-        qa, qb = q[self.px], q[self.py]
-        ux, uy = self.u[:, 0], self.u[:, 1]
-        q[self.px] = ux * qa - uy * qb
-        q[self.py] = uy * qa + ux * qb
-        return q
-
-    def vector(self, g: np.ndarray) -> np.ndarray:
-        """g (Nf,) rotated, with the held entries zeroed (a copy when there are any)."""
-        if not len(self.pos):
-            return g
-        g = self.rotate(g.copy())
-        g[self.pos] = 0.0
-        return g
-
-    def matrix(self, K: sp.csr_matrix) -> sp.csr_matrix:
-        """K (Nf, Nf), upper triangle, rotated, with held rows and columns replaced by the identity."""
-        if not len(self.pos):
-            return K
-        if self._mask is None or self._mask[0] != K.nnz:
-            rows = np.repeat(np.arange(K.shape[0]), np.diff(K.indptr))
-            is_held = np.zeros(K.shape[0], bool)
-            is_held[self.pos] = True
-            touched = is_held[rows] | is_held[K.indices]
-            diag = touched & (rows == K.indices)
-            self._mask = (K.nnz, touched, diag, self._rotation_plan(K, rows, touched))
-        _, touched, diag, plan = self._mask
-        K = K.copy()
-        if plan is not None:
-            rotated, idx, cr, cc = plan
-            K.data[rotated] = np.einsum("ei,eij,ej->e", cr, K.data[idx], cc)
-        K.data[touched] = 0.0
-        K.data[diag] = 1.0
-        return K
-
-    def _rotation_plan(self, K: sp.csr_matrix, rows: np.ndarray, touched: np.ndarray):
-        """For each stored entry (r, c) of RᵀKR that rotation changes: its 2×2 source entries and weights.
-
-        (RᵀKR)[r, c] = Σ_ij R[a_i, r] K[a_i, b_j] R[b_j, c] over the (at most)
-        two dofs a_i of r's node and b_j of c's; the node blocks of P1
-        elements are full, so every K[a_i, b_j] is a stored entry.
-        """
-        if not len(self.px):
-            return None
-        n = K.shape[0]
-        cols = K.indices
-        is_rot = np.zeros(n, bool)
-        is_rot[self.px] = is_rot[self.py] = True
-        rotated = np.flatnonzero((is_rot[rows] | is_rot[cols]) & ~touched)
-        # per dof: the two source dofs and their weights (R's column)
-        src = np.stack([np.arange(n), np.arange(n)], axis=1)
-        w = np.zeros((n, 2))
-        w[:, 0] = 1.0
-        ux, uy = self.u[:, 0], self.u[:, 1]
-        src[self.px] = src[self.py] = np.stack([self.px, self.py], axis=1)
-        w[self.px] = np.stack([ux, uy], axis=1)
-        w[self.py] = np.stack([-uy, ux], axis=1)
-        r, c = rows[rotated], cols[rotated]
-        a, b = src[r][:, :, None], src[c][:, None, :]
-        keys = np.minimum(a, b) * n + np.maximum(a, b)  # (E, 2, 2), symmetric lookup in the upper triangle
-        stored = rows.astype(np.int64) * n + cols
-        order = np.argsort(stored, kind="stable")
-        pos = np.searchsorted(stored[order], keys)
-        pos = np.minimum(pos, stored.size - 1)
-        idx = order[pos]
-        ok = stored[idx] == keys
-        cr, cc = w[r], w[c]
-        weight = cr[:, :, None] * cc[:, None, :]
-        if not np.all(ok | (weight == 0.0)):
-            raise ValueError("a rotated node's 2×2 block is not stored in K_ff's pattern")
-        return rotated, np.where(ok, idx, 0), cr, cc
-
-    def residual(self, tissue: Tissue, grad: np.ndarray) -> float:
-        """The relative residual (`relative_residual`) without the held (rotated) components."""
-        if not len(self.px):
-            return relative_residual(tissue, grad, self.pos)
-        g = self.vector(grad[tissue.free_dofs])
-        return float(np.linalg.norm(g)) / tissue.force_scale(grad)
 
 
 def tangent_predictor(

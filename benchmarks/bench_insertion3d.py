@@ -1,0 +1,111 @@
+"""Speed of the needle insertion in the 3-D slab (docs/model.md §14, "Needle insertion in the slab"); not a timed test.
+
+The scene's `layer_check` slab (default: configs/example_full.yaml's,
+≈ 129k tetrahedra). For the first target with a plan, from the nominal
+slab's equilibrium at the plan's strokes, along the plan's entry and
+direction lifted to the layer's height (strategy `none`):
+
+* the whole insertion (default 50 mm in 0.5 mm steps; target ≤ 30 s), the
+  median of the repeats, and one step's median;
+* the factorisations, active-set passes and chord steps per step, the
+  captured nodes at the end and the final miss (the evidence that holds
+  when the machine is busy).
+
+    PYTHONPATH=. python benchmarks/bench_insertion3d.py [CONFIG.yaml] [--depth MM] [--repeats K]
+
+The machine has 2 cores and other work may share them: the numbers are
+wall-clock medians, printed with the load average and the CPU time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from scissor_cli import runtime
+from scissor_cli.config import load_config
+from scissor_cli.insertion import NeedleParams, miss_and_depth_error
+from scissor_cli.insertion.needle import NeedleState, advance, free_nodes
+from scissor_cli.layer3d.check import spec_from_config
+from scissor_cli.layer3d.slab import build_slab, slab_probe
+from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
+from scissor_cli.mechanics.tissue import build_model
+from scissor_cli.planning.needle import plan_target
+from scissor_cli.solvers.newton import solve_newton
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("config", nargs="?", default=str(ROOT / "configs" / "example_full.yaml"))
+    ap.add_argument("--depth", type=float, default=50.0, help="insertion depth (mm)")
+    ap.add_argument("--step", type=float, default=0.5, help="step (mm)")
+    ap.add_argument("--repeats", type=int, default=3, help="repeats of the insertion")
+    args = ap.parse_args()
+    runtime.configure()
+    cfg = load_config(args.config)
+    if cfg.insertion is None or cfg.layer_check is None:
+        raise SystemExit(f"{args.config}: needs an insertion and a layer_check section")
+    scene, mesh, tissue = build_model(cfg)
+    t0 = time.perf_counter()
+    slab = build_slab(scene, mesh, spec_from_config(cfg.layer_check), model=tissue.params.model)
+    build_s = time.perf_counter() - t0
+    params = NeedleParams.from_config(cfg.insertion, cfg)
+    for target in scene.targets:
+        plan = plan_target(tissue, scene, target, cfg.needle)
+        if plan.feasible:
+            break
+    else:
+        raise SystemExit("no target has a plan")
+    t0 = time.perf_counter()
+    x0 = solve_newton(slab, plan.strokes, tol=SLAB_TRUTH_TOL).x
+    settle_s = time.perf_counter() - t0
+    z = slab.mesh.levels_mm[slab.mesh.layer_level]
+    entry, axis = np.append(plan.entry, z), np.append(plan.direction, 0.0)
+    probe = slab_probe(slab, mesh, target.rest[None])
+    print(f"{cfg.name}: slab {slab.mesh.n_nodes} nodes, {slab.mesh.n_elements} tetrahedra, "
+          f"{slab.free_dofs.size} free dofs (built in {build_s:.1f} s, nominal equilibrium {settle_s:.1f} s); "
+          f"target {target.name}, {plan.side} entry; f_s {params.friction_static_mN_per_mm:g}, "
+          f"f_k {params.friction_kinetic_mN_per_mm:g} mN/mm, F_tip {params.tip_force_mN:g} mN, "
+          f"capture radius {params.capture_radius_mm:g} mm")
+    print(f"load average {_load()}")
+    totals, times, cpu, counts = [], [], [], []
+    for _ in range(args.repeats):
+        state, x = NeedleState(entry, axis), x0.copy()
+        cand = free_nodes(slab)
+        step_times = []
+        c0 = time.process_time()
+        while state.depth_mm < args.depth - 1e-9:
+            t0 = time.perf_counter()
+            out = advance(slab, state, x, plan.strokes, min(args.step, args.depth - state.depth_mm), params, cand)
+            step_times.append(time.perf_counter() - t0)
+            counts.append((out.factorizations, out.passes, out.iterations))
+            x = out.x
+        cpu.append(time.process_time() - c0)
+        times += step_times
+        totals.append(sum(step_times))
+        print(f"  one run: {totals[-1]:.1f} s, {len(step_times)} steps, load {_load()}", flush=True)
+    t = np.array(times) * 1e3
+    f, p, k = np.array(counts).T
+    miss, depth_error = miss_and_depth_error(probe.positions(x)[0], entry, axis, state.depth_mm)
+    print(f"one step ({args.step:g} mm): median {np.median(t):.0f} ms (min {t.min():.0f}, max {t.max():.0f})")
+    print(f"{args.depth:g} mm in {args.step:g} mm steps: {np.median(totals):.1f} s, median of {args.repeats} "
+          f"(min {min(totals):.1f}; target ≤ 30 s); CPU time {np.median(cpu):.1f} s")
+    print(f"per step: {f.mean():.2f} factorisations ({f.sum() // args.repeats} per run), {p.mean():.1f} active-set "
+          f"passes, {k.mean():.1f} chord steps; at the end {state.captured.size} captured "
+          f"({int(state.stuck.sum())} stuck), needle force {out.force_mN:.1f} mN, miss {miss:.3f} mm, "
+          f"depth error {depth_error:+.3f} mm")
+    print(f"load average {_load()}")
+
+
+def _load() -> str:
+    return "{:.2f} {:.2f} {:.2f} (1, 5, 15 min; 2 cores)".format(*os.getloadavg())
+
+
+if __name__ == "__main__":
+    main()
