@@ -234,6 +234,7 @@ def slab_scene(tmp_path: Path, trials: int = 8) -> Path:
     return path
 
 
+@pytest.mark.slow  # the slab-truth run with insertion below covers it (the same kill and resume, and the needle)
 def test_slab_truth_run_sigkilled_then_resumed_equals_an_uninterrupted_one(tmp_path):
     """The slab truth's per-worker state (slab, nominal starts) is rebuilt by the resume's workers: same numbers."""
     ref_dir = tmp_path / "ref"
