@@ -20,12 +20,12 @@ wall-clock medians, printed with the load average and the CPU time.
 from __future__ import annotations
 
 import argparse
-import os
 import time
 from pathlib import Path
 
 import numpy as np
 
+from bench_insertion import _load  # the same load line as the layer's benchmark (this directory is on sys.path)
 from scissor_cli import runtime
 from scissor_cli.config import load_config
 from scissor_cli.insertion import NeedleParams, miss_and_depth_error
@@ -101,10 +101,6 @@ def main() -> None:
           f"({int(state.stuck.sum())} stuck), needle force {out.force_mN:.1f} mN, miss {miss:.3f} mm, "
           f"depth error {depth_error:+.3f} mm")
     print(f"load average {_load()}")
-
-
-def _load() -> str:
-    return "{:.2f} {:.2f} {:.2f} (1, 5, 15 min; 2 cores)".format(*os.getloadavg())
 
 
 if __name__ == "__main__":

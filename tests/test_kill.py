@@ -237,20 +237,27 @@ def slab_scene(tmp_path: Path, trials: int = 8) -> Path:
 @pytest.mark.slow  # the slab-truth run with insertion below covers it (the same kill and resume, and the needle)
 def test_slab_truth_run_sigkilled_then_resumed_equals_an_uninterrupted_one(tmp_path):
     """The slab truth's per-worker state (slab, nominal starts) is rebuilt by the resume's workers: same numbers."""
+    killed_and_resumed_equals_reference(tmp_path, slab_scene, 4, 16)
+
+
+def killed_and_resumed_equals_reference(tmp_path: Path, make_scene, kill_after: int, trials: int) -> dict:
+    """An uninterrupted run of make_scene(dir) and one SIGKILLed after kill_after trials then resumed: the
+    same numbers, and the resume ran some but not all of the trials. Returns the reference's numbers."""
     ref_dir = tmp_path / "ref"
     ref_dir.mkdir()
-    done = finish(slab_scene(ref_dir), "--jobs", "2", "--out", ref_dir / "run", "--quiet")
+    done = finish(make_scene(ref_dir), "--jobs", "2", "--out", ref_dir / "run", "--quiet")
     assert done.returncode == 0, done.stderr
     reference = extract(ref_dir / "run" / "results.h5")
     out = tmp_path / "run"
-    proc = start(slab_scene(tmp_path), "--jobs", "2", "--out", out, "--quiet")
-    wait_for_trials(proc, out, 4)
+    proc = start(make_scene(tmp_path), "--jobs", "2", "--out", out, "--quiet")
+    wait_for_trials(proc, out, kill_after)
     gone, _ = stop(proc, signal.SIGKILL)
     assert gone < 5.0 and proc.returncode == -signal.SIGKILL
     resumed = finish("--resume", out, "--jobs", "2")
     assert resumed.returncode == 0, resumed.stderr
-    assert 0 < ran(resumed) < 16
+    assert 0 < ran(resumed) < trials
     assert_same_as_reference(out, reference)
+    return reference
 
 
 def test_slab_truth_insertion_run_sigkilled_then_resumed_equals_an_uninterrupted_one(tmp_path):
@@ -264,18 +271,6 @@ def test_slab_truth_insertion_run_sigkilled_then_resumed_equals_an_uninterrupted
         path.write_text(yaml.safe_dump(data))
         return path
 
-    ref_dir = tmp_path / "ref"
-    ref_dir.mkdir()
-    done = finish(with_insertion(slab_scene(ref_dir, trials=2)), "--jobs", "2", "--out", ref_dir / "run", "--quiet")
-    assert done.returncode == 0, done.stderr
-    reference = extract(ref_dir / "run" / "results.h5")
+    reference = killed_and_resumed_equals_reference(
+        tmp_path, lambda directory: with_insertion(slab_scene(directory, trials=2)), 1, 4)
     assert any(k.endswith("miss_mm") for k in reference)
-    out = tmp_path / "run"
-    proc = start(with_insertion(slab_scene(tmp_path, trials=2)), "--jobs", "2", "--out", out, "--quiet")
-    wait_for_trials(proc, out, 1)
-    gone, _ = stop(proc, signal.SIGKILL)
-    assert gone < 5.0 and proc.returncode == -signal.SIGKILL
-    resumed = finish("--resume", out, "--jobs", "2")
-    assert resumed.returncode == 0, resumed.stderr
-    assert 0 < ran(resumed) < 4
-    assert_same_as_reference(out, reference)
