@@ -105,7 +105,7 @@ def fitted_model(cfg: Config, tissue: Tissue, slab: Optional[Tissue], plans: lis
         data = load_model_data(path)
         if data is not None and data.kind == kind:
             return data, True
-    total = model_solves(kind, tissue.n_cups, plan_strokes, cfg.controller.surrogate.samples)
+    total = model_solves(kind, tissue, plan_strokes, cfg.controller.surrogate.samples)
     advance = reporter.progress(f"controller model ({kind}): slab solves", total) if total else (lambda n: None)
     parallel = solve_groups_in_workers(resolved_yaml(cfg), jobs, advance) if jobs > 1 else None
     data = build_model_data(kind, tissue, slab, plan_strokes, cfg.controller.surrogate.samples, advance, parallel)
@@ -192,12 +192,8 @@ def controller_model_stage(cfg: Config, tissue: Tissue, plans: list, location: O
     """
     if not needs_slab(cfg):
         return None, plans, None
-    from scissor_cli.layer3d.check import spec_from_config  # noqa: PLC0415
-    from scissor_cli.layer3d.slab import build_slab  # noqa: PLC0415
-
-    slab = build_slab(tissue.scene, tissue.mesh, spec_from_config(cfg.layer_check), model=tissue.params.model)
-    cache_dir = None if location is None else Path(location).parent / CACHE_DIR
-    data, cached = fitted_model(cfg, tissue, slab, plans, cache_dir, reporter, jobs)
+    slab = _nominal_slab(cfg, tissue)
+    data, cached = fitted_model(cfg, tissue, slab, plans, _cache_dir(location), reporter, jobs)
     model = ControllerModel(data, tissue, slab)
     how = "from the cache" if cached else f"in {data.build_time_s:.1f} s"
     error = "" if data.validation_error_mm is None else f", error against the slab {data.validation_error_mm:.3g} mm"
@@ -209,6 +205,24 @@ def controller_model_stage(cfg: Config, tissue: Tissue, plans: list, location: O
     plans = plan_with_model(cfg, plans, model, slab_answer, reporter)
     paths = model_paths(cfg, tissue, model, slab_answer) if model.kind != "layer" else None
     return data, plans, paths
+
+
+def refitted_model(cfg: Config, tissue: Tissue, location: Optional[Path], reporter) -> Optional[ModelData]:
+    """The model data alone, from the cache or fitted again: a resumed run whose file lost /controller_model."""
+    if not needs_slab(cfg):
+        return None
+    return fitted_model(cfg, tissue, _nominal_slab(cfg, tissue), [], _cache_dir(location), reporter)[0]
+
+
+def _nominal_slab(cfg: Config, tissue: Tissue) -> Tissue:
+    from scissor_cli.layer3d.check import spec_from_config  # noqa: PLC0415
+    from scissor_cli.layer3d.slab import build_slab  # noqa: PLC0415
+
+    return build_slab(tissue.scene, tissue.mesh, spec_from_config(cfg.layer_check), model=tissue.params.model)
+
+
+def _cache_dir(location: Optional[Path]) -> Optional[Path]:
+    return None if location is None else Path(location).parent / CACHE_DIR
 
 
 def _one(answer: SceneMap, target: int):

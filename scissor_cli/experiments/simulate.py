@@ -34,7 +34,7 @@ from scissor_cli.robot.chain import RobotModel
 from scissor_cli.robot.registration import plan_to_joints
 from scissor_cli.experiments.insertion_stage import insertion_stage
 from scissor_cli.experiments.budget import run_budget
-from scissor_cli.experiments.controller_model import controller_model_stage, needs_slab
+from scissor_cli.experiments.controller_model import controller_model_stage, needs_slab, refitted_model
 from scissor_cli.experiments.selection import select
 from scissor_cli.experiments.study import run_study
 from scissor_cli.experiments.trials import TargetTask, execute
@@ -436,7 +436,7 @@ def stored_model(cfg: Config, tissue: Tissue, sink: RunSink):
         return None
     names = [t.name for t in tissue.scene.targets]
     data = sink.stored_controller_model(names) if hasattr(sink, "stored_controller_model") else None
-    return data if data is not None else controller_model_stage(cfg, tissue, [], sink.location, SilentReporter())[0]
+    return data if data is not None else refitted_model(cfg, tissue, sink.location, SilentReporter())
 
 
 def robot_joint_check(cfg: Config):

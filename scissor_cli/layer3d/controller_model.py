@@ -80,13 +80,12 @@ def build_model_data(kind: str, layer: Tissue, slab: Optional[Tissue], plan_stro
     return ModelData(kind, data.build_time_s, Surrogate(data).validation_error_mm(), samples=data)
 
 
-def model_solves(kind: str, n_cups: int, plan_strokes: list[np.ndarray], samples: int) -> int:
+def model_solves(kind: str, layer: Tissue, plan_strokes: list[np.ndarray], samples: int) -> int:
     """How many slab solves `build_model_data` makes (for its progress bar)."""
     if kind == "surrogate":
         return samples + max(4, samples // 4)
     if kind == "calibrated":
-        lo = np.full(n_cups, -1.0)
-        return sum(v.size for v in calibration_strokes(lo, -lo, plan_strokes))
+        return sum(v.size for v in calibration_strokes(*_limits(layer), plan_strokes))
     return 0
 
 
