@@ -1,0 +1,67 @@
+"""The controller models against the slab truth (docs/performance.md, "Controller models"): runs and report.
+
+Writes one variant of a scene per (controller.model, jacobian_update) — the
+scene with `trials.truth: slab` and without its insertion section — runs
+`scissor simulate VARIANT --trials N --jobs J` for each and `scissor report`
+over them (the summary table has the controller, stroke-limit stops, time
+per iteration, the model's build time and error). `--reachable` makes the
+variant of docs/performance.md: T2 alone, desired y 21.0 mm.
+
+    python benchmarks/compare_controller_models.py [CONFIG] [--trials 6] [--jobs 2] [--reachable] [--out DIR]
+
+Default CONFIG: configs/example_full.yaml. Each slab-truth trial takes about
+a minute on 2 cores (loaded: two); a surrogate is trained once and cached in
+DIR/.scissor-cache.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+MODELS = [("layer", "none"), ("calibrated", "none"), ("surrogate", "none"), ("surrogate", "broyden")]
+
+
+def variant(scene: dict, model: str, update: str, reachable: bool) -> dict:
+    data = dict(scene)
+    data.pop("insertion", None)
+    data["trials"] = {**data.get("trials", {}), "truth": "slab"}
+    data["controller"] = {**data.get("controller", {}), "model": model, "jacobian_update": update}
+    if reachable:
+        data["targets"] = [dict(t, desired_mm=[58.0, 21.0]) for t in data["targets"] if t["name"] == "T2"]
+    return data
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("config", nargs="?", default=str(ROOT / "configs" / "example_full.yaml"))
+    ap.add_argument("--trials", type=int, default=6)
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--reachable", action="store_true", help="T2 alone with a desired point the slab can reach")
+    ap.add_argument("--out", default=str(ROOT / "runs" / "controller-models"))
+    args = ap.parse_args()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    scene = yaml.safe_load(Path(args.config).read_text())
+    runs = []
+    for model, update in MODELS:
+        name = f"{model}-{update}"
+        path = out / f"{name}.yaml"
+        path.write_text(yaml.safe_dump(variant(scene, model, update, args.reachable), sort_keys=False))
+        t0 = time.perf_counter()
+        r = subprocess.run([sys.executable, "-m", "scissor_cli", "simulate", str(path), "--trials", str(args.trials),
+                            "--jobs", str(args.jobs), "--out", str(out / name), "--force", "--quiet"])
+        print(f"{name}: exit {r.returncode} in {time.perf_counter() - t0:.0f} s", flush=True)
+        if r.returncode == 0:
+            runs.append(str(out / name))
+    subprocess.run([sys.executable, "-m", "scissor_cli", "report", *runs, "--out", str(out / "report")], check=False)
+
+
+if __name__ == "__main__":
+    main()
