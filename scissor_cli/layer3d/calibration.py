@@ -70,29 +70,23 @@ def fit_transmission(layer: Tissue, probe: TargetProbe, slab: Tissue, slab_targe
         want = answers[row:row + v.size, :, :2]  # (V, T, 2): what the camera sees
         row += v.size
         eq = Equilibrium(layer)
+        largest: dict[float, float] = {}  # per τ tried: the largest in-plane distance (mm), for the error
 
-        def misfit(t, v=v, want=want, c=c, eq=eq):
-            total = 0.0
+        def misfit(t, v=v, want=want, c=c, eq=eq, largest=largest):
+            total, worst = 0.0, 0.0
             for k in np.argsort(np.abs(v)):  # outwards from rest: each layer solve starts close
                 s = np.zeros(C)
                 s[c] = t * v[k]
                 eq.move_to(s, tangent=False)
-                total += float(np.sum((target_positions(probe, eq.x) - want[k]) ** 2))
+                d = np.linalg.norm(target_positions(probe, eq.x) - want[k], axis=1)
+                total += float(np.sum(d ** 2))
+                worst = max(worst, float(np.max(d)))
+            largest[float(t)] = worst
             return total
 
         best = minimize_scalar(misfit, bounds=TRANSMISSION_RANGE, method="bounded", options={"xatol": 1e-4})
         tau[c] = float(best.x)
-        errors.append(_largest_distance(layer, probe, tau[c], c, v, want, C))
+        if tau[c] not in largest:  # (the bounded search returns a point it evaluated; kept safe anyway)
+            misfit(tau[c])
+        errors.append(largest[tau[c]])
     return Calibration(tau, strokes, answers, float(max(errors, default=0.0)))
-
-
-def _largest_distance(layer, probe, tau, c, v, want, C) -> float:
-    """The largest in-plane distance (mm) between the layer at τ v and the slab at v, over values and targets."""
-    eq = Equilibrium(layer)
-    worst = 0.0
-    for k in np.argsort(np.abs(v)):
-        s = np.zeros(C)
-        s[c] = tau * v[k]
-        eq.move_to(s, tangent=False)
-        worst = max(worst, float(np.max(np.linalg.norm(target_positions(probe, eq.x) - want[k], axis=1))))
-    return worst

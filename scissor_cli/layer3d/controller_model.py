@@ -49,10 +49,6 @@ class ModelData:
     calibration: Optional[Calibration] = None
     samples: Optional[SurrogateSamples] = None
 
-    @property
-    def needs_slab(self) -> bool:
-        return self.kind != "layer"
-
 
 def build_model_data(kind: str, layer: Tissue, slab: Optional[Tissue], plan_strokes: list[np.ndarray],
                      samples: int, advance: Callable[[int], None] = lambda n: None,
