@@ -22,7 +22,7 @@ from scissor_cli.layer3d.slab import build_slab, slab_probe
 from scissor_cli.layer3d.surrogate import Surrogate, design, solve_samples
 from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
 from scissor_cli.mechanics.tissue import build_model
-from scissor_cli.mesh.probe import probe_targets
+from scissor_cli.mesh.probe import probe_targets, target_positions
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -261,3 +261,65 @@ def test_a_resumed_run_steers_with_the_model_it_stored(tmp_path, monkeypatch):
         for t in ("T1", "T2"):
             assert np.array_equal(a[f"plan/{t}"].attrs["model_strokes"], b[f"plan/{t}"].attrs["model_strokes"])
             assert np.array_equal(a[f"trials/{t}/final_error"][()], b[f"trials/{t}/final_error"][()])
+
+
+class _Said:
+    def __init__(self):
+        self.lines = []
+
+    def info(self, line):
+        self.lines.append(line)
+
+
+def test_a_model_that_cannot_reach_the_layers_point_gets_its_own_plan():
+    """A 3-D-aware model whose target moves half as far as the layer's: the layer's desired point is out of its
+    reach, so the planner chose again on the model's positions (the model reaches the new point at the plan's
+    strokes); a desired point from the config is never moved: that plan is refused, saying why."""
+    from types import SimpleNamespace
+
+    from scissor_cli.config import load_config
+    from scissor_cli.experiments.controller_model import plan_with_model
+    from scissor_cli.planning.needle import plan_target
+    from scissor_cli.planning.states import StateCache
+
+    cfg = load_config(ROOT / "configs" / "paper_push.yaml")
+    _, mesh, tissue = build_model(cfg, mesh_scale=2.0)
+    scene = tissue.scene
+    probe = probe_targets(mesh, np.array([t.rest for t in scene.targets]))
+    cache = StateCache(tissue)
+    rests = np.array([t.rest for t in scene.targets])
+
+    def half_as_far(strokes):
+        return rests + 0.5 * (target_positions(probe, cache.state(np.asarray(strokes, float))) - rests)
+
+    def answer(strokes, h=0.25):
+        J = (half_as_far(strokes + h) - half_as_far(strokes - h)) / (2 * h)
+        return half_as_far(strokes), J[:, :, None]
+
+    model = SimpleNamespace(kind="surrogate", transmission=None, scene_map=lambda: answer)
+    plans = [plan_target(tissue, scene, t, cfg.needle, cache=cache) for t in scene.targets]
+
+    def replan(t, target_at):
+        return plan_target(tissue, scene, scene.targets[t], cfg.needle, cache=cache, target_at=target_at)
+
+    said = _Said()
+    again = plan_with_model(cfg, plans, model, None, said, replan)
+    tol = cfg.controller.tolerance_mm
+    for t, (plan, layer_plan) in enumerate(zip(again, plans)):
+        assert np.linalg.norm(half_as_far(layer_plan.strokes)[t] - layer_plan.desired) > tol  # out of reach
+        if plan.feasible:
+            assert plan.planned_with == "surrogate"
+            np.testing.assert_array_equal(plan.strokes, plan.model_strokes)
+            assert np.linalg.norm(half_as_far(plan.strokes)[t] - plan.desired) <= tol
+        else:  # (T2: no corridor clears the nerve at the positions this model reaches) both verdicts said
+            assert "cannot bring the target" in plan.reason
+            assert "planned again on the model's target positions: no entry side" in plan.reason
+    replanned = [p.target for p in again if p.planned_with == "surrogate"]
+    assert replanned == ["T1"]
+    assert sum("planned again on the model's target positions" in line for line in said.lines) == 1
+    # the same point from the config: refused, not moved
+    fixed = cfg.model_copy(update={"targets": [t.model_copy(update={"desired_mm": list(p.desired)})
+                                               for t, p in zip(cfg.targets, plans)]})
+    refused = plan_with_model(fixed, plans, model, None, _Said(), replan)
+    assert not any(p.feasible for p in refused)
+    assert all("cannot bring the target" in p.reason and p.planned_with == "layer" for p in refused)

@@ -176,6 +176,35 @@ def test_paper_scenes_blocked_at_rest_clear_after_manipulation(path, sign):
         assert np.all(np.isnan(plan.joints)) and plan.robot_note == "robot kinematics not applied"
 
 
+def test_a_plan_on_another_models_target_positions():
+    """`target_at` (a 3-D-aware controller model's target, docs/model.md §15) replaces the tissue's target in the
+    search, the obstacles staying the tissue's: given the tissue's own positions it is the plain plan; given a
+    target that moves half as far, the plan's desired point is that model's target at the plan's strokes and
+    its corridor clears the tissue's obstacles deformed there."""
+    cfg, scene, tissue = _setup("configs/paper_push.yaml")
+    target = scene.targets[0]
+    mesh = tissue.mesh
+    tri, bary = locate(mesh, target.rest[None])
+    cache = states.StateCache(tissue)
+
+    def layer_target(strokes):
+        return interpolate(cache.state(strokes), mesh.triangles, tri, bary)[0]
+
+    def half_as_far(strokes):
+        return target.rest + 0.5 * (layer_target(strokes) - target.rest)
+
+    plain = needle.plan_target(tissue, scene, target, cfg.needle, cache=cache)
+    same = needle.plan_target(tissue, scene, target, cfg.needle, cache=cache, target_at=layer_target)
+    np.testing.assert_allclose(same.strokes, plain.strokes)
+    np.testing.assert_allclose(same.desired, plain.desired, atol=1e-9)
+    half = needle.plan_target(tissue, scene, target, cfg.needle, cache=cache, target_at=half_as_far)
+    assert half.feasible and half.manipulated
+    np.testing.assert_allclose(half.desired, half_as_far(half.strokes), atol=1e-9)
+    assert not np.allclose(half.desired, layer_target(half.strokes), atol=0.1)
+    _, clearance = _independent_check(scene, tissue, half)
+    assert clearance == pytest.approx(half.clearance_mm, abs=1e-6) and clearance > 0
+
+
 def test_free_path_at_rest_needs_no_manipulation():
     cfg, scene, tissue = _setup("configs/example.yaml")
     target = replace(scene.targets[1], desired=None)  # T2 without its configured desired position

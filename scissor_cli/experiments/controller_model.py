@@ -20,7 +20,7 @@ import hashlib
 import json
 from dataclasses import replace
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -36,6 +36,8 @@ from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
 from scissor_cli.mechanics.tissue import Tissue
 
 CACHE_DIR = ".scissor-cache"
+#: (target index, its position (2,) at strokes (C,) → mm) → a `planning.needle.NeedlePlan`
+Replan = Callable[[int, Callable[[np.ndarray], np.ndarray]], object]
 
 
 def needs_slab(cfg: Config) -> bool:
@@ -147,23 +149,46 @@ def _solve_group(config_yaml: str, index: int, strokes: np.ndarray) -> list[tupl
     return [(index, solve_samples(slab, probe, strokes, SLAB_TRUTH_TOL))]
 
 
-def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answer: Optional[SceneMap], reporter) -> list:
-    """The plans with `model_strokes` (and `strokes`, for a 3-D-aware model) and `slab_strokes` (docs/model.md §15)."""
+def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answer: Optional[SceneMap], reporter,
+                    replan: Optional[Replan] = None) -> list:
+    """The plans with `model_strokes` (and `strokes`, for a 3-D-aware model) and `slab_strokes` (docs/model.md §15).
+
+    replan(t, target_at): target t planned again with the target's position
+    at strokes given by target_at (`planning.needle.TargetAt`). A
+    3-D-aware model that cannot reach a desired point the planner chose
+    (not the config) gets its own plan that way before the plan is given up.
+    """
     lo = np.array([c.stroke_mm[0] for c in cfg.cups])
     hi = np.array([c.stroke_mm[1] for c in cfg.cups])
     tol = cfg.controller.tolerance_mm
+    mode = cfg.controller.error
     model_answer = model.scene_map() if model.kind != "layer" else None
+
+    def model_strokes(t, plan):
+        if model_answer is None:
+            return np.asarray(plan.strokes, float), 0.0
+        direction = plan.direction if mode == "miss" else None
+        start = plan.strokes if model.transmission is None else plan.strokes / model.transmission
+        return strokes_for(_one(model_answer, t), plan.desired, lo, hi, direction, mode, start)
+
     out = []
     for t, plan in enumerate(plans):
         if not plan.feasible:
             out.append(plan)
             continue
-        direction = plan.direction if cfg.controller.error == "miss" else None
-        mode = cfg.controller.error
-        model_s, left = np.asarray(plan.strokes, float), 0.0
-        if model_answer is not None:
-            start = plan.strokes if model.transmission is None else plan.strokes / model.transmission
-            model_s, left = strokes_for(_one(model_answer, t), plan.desired, lo, hi, direction, mode, start)
+        model_s, left = model_strokes(t, plan)
+        again_reason = ""
+        if left > tol and replan is not None and cfg.targets[t].desired_mm is None:
+            again = replan(t, lambda s, t=t: _one(model_answer, t)(s)[0])
+            if again.feasible:
+                reporter.info(f"plan {plan.target}: the layer's desired point is beyond the {model.kind} model's "
+                              f"reach (left {left:.2f} mm at strokes {_fmt(model_s)} mm): planned again on the "
+                              f"model's target positions")
+                plan = replace(again, planned_with=model.kind)
+                model_s, left = model_strokes(t, plan)
+            else:
+                again_reason = f"; planned again on the model's target positions: {again.reason}"
+        direction = plan.direction if mode == "miss" else None
         slab_s = None
         if slab_answer is not None:
             slab_s, slab_left = (model_s, left) if model.kind == "slab" else strokes_for(
@@ -178,14 +203,17 @@ def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answe
             if left > tol:
                 plan = replace(plan, feasible=False, reason=(
                     f"the {model.kind} controller model cannot bring the target within {tol:g} mm of its desired "
-                    f"position inside the stroke limits (left {left:.2f} mm at strokes {_fmt(model_s)} mm)"))
+                    f"position inside the stroke limits (left {left:.2f} mm at strokes {_fmt(model_s)} mm)"
+                    + again_reason))
         out.append(plan)
     return out
 
 
-def controller_model_stage(cfg: Config, tissue: Tissue, plans: list, location: Optional[Path], reporter, jobs: int = 1
-                           ) -> tuple[Optional[ModelData], list, Optional[ModelPaths]]:
+def controller_model_stage(cfg: Config, tissue: Tissue, plans: list, location: Optional[Path], reporter, jobs: int = 1,
+                           replan: Optional[Replan] = None) -> tuple[Optional[ModelData], list, Optional[ModelPaths]]:
     """Fit (or read) the controller's model and plan with it: (model data, plans, the figure's paths).
+
+    replan: see `plan_with_model`.
 
     (None, plans, None) when the scene has no slab to use; the paths are
     drawn for a non-layer model only.
@@ -202,7 +230,7 @@ def controller_model_stage(cfg: Config, tissue: Tissue, plans: list, location: O
         reporter.info(f"controller model {data.kind}: {how}{error}{extra}")
     rests = np.array([t.rest for t in tissue.scene.targets]).reshape(-1, 2)
     slab_answer = slab_map(slab, tissue, rests) if model.kind != "slab" else model.scene_map()
-    plans = plan_with_model(cfg, plans, model, slab_answer, reporter)
+    plans = plan_with_model(cfg, plans, model, slab_answer, reporter, replan)
     paths = model_paths(cfg, tissue, model, slab_answer) if model.kind != "layer" else None
     return data, plans, paths
 

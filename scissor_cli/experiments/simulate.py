@@ -410,14 +410,20 @@ def _plan_stage(cfg: Config, tissue: Tissue, sink: RunSink, reporter: Reporter, 
     for target in scene.targets:
         plans.append(plan_target(tissue, scene, target, cfg.needle, robot_check=robot_check, cache=cache))
         advance(1)
-    model_data, plans, paths = controller_model_stage(cfg, tissue, plans, sink.location, reporter, jobs)
+
+    def replan(t: int, target_at) -> NeedlePlan:
+        return plan_target(tissue, scene, scene.targets[t], cfg.needle, robot_check=robot_check, cache=cache,
+                           target_at=target_at)
+
+    model_data, plans, paths = controller_model_stage(cfg, tissue, plans, sink.location, reporter, jobs, replan)
     if model_data is not None and hasattr(sink, "controller_model"):
         figure = sink.controller_model(model_data, [t.name for t in scene.targets], paths,
                                        cfg.controller.jacobian_update, cfg.name)
         if figure is not None:
             summary.figures.append(figure)
     for target, plan in zip(scene.targets, plans):
-        sink.plan(target, plan, "config" if target.desired is not None else "planner")
+        sink.plan(target, plan, "config" if target.desired is not None else
+                  "planner" if plan.planned_with == "layer" else "model")
         how = (f"strokes {_fmt(plan.strokes)} mm" if plan.manipulated else "no manipulation needed")
         if plan.slab_strokes is not None and plan.feasible:
             how += f" (the nominal slab needs {_fmt(plan.slab_strokes)} mm)"

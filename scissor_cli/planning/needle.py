@@ -35,6 +35,10 @@ from scissor_cli.scene.scene import Scene, Target
 #: (joints (5,) as (d1, d2, d3, θ4, d5) in mm/rad, ok, note).
 RobotCheck = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, bool, str]]
 
+#: The target's position (2,) mm at cup strokes (C,) mm by another model than the planner's tissue
+#: (a 3-D-aware controller model, docs/model.md §15); the obstacles stay the tissue's.
+TargetAt = Callable[[np.ndarray], np.ndarray]
+
 N_JOINTS = 5
 
 
@@ -73,6 +77,9 @@ class NeedlePlan:
     #: model needs for `desired` (then also `strokes`), and those the nominal slab needs; None when not asked
     model_strokes: Optional[np.ndarray] = None
     slab_strokes: Optional[np.ndarray] = None
+    #: the model whose target positions chose `desired` and `strokes`: "layer" (the planner's tissue), or the
+    #: controller model's kind when the plan was made again with it (`target_at`, docs/model.md §15)
+    planned_with: str = "layer"
 
     @property
     def manipulated(self) -> bool:
@@ -97,8 +104,9 @@ class _Evaluator:
     """Evaluates the target's best insertion on the deformed scene at given strokes."""
 
     def __init__(self, tissue: Tissue, scene: Scene, target: Target, needle_cfg: NeedleConfig, cache: StateCache,
-                 robot_check: Optional[RobotCheck] = None):
+                 robot_check: Optional[RobotCheck] = None, target_at: Optional[TargetAt] = None):
         self.scene, self.needle_cfg, self.cache, self.robot_check = scene, needle_cfg, cache, robot_check
+        self.target_at = target_at
         mesh = tissue.mesh
         self.obstacles = embed_outlines(mesh, [o.outline for o in scene.obstacles])
         self.target = embed_outlines(mesh, [target.rest])
@@ -122,6 +130,8 @@ class _Evaluator:
         if x is None:
             return None
         y, obstacles, outline = self.scene_at(x)
+        if self.target_at is not None:
+            y = np.asarray(self.target_at(np.array(key)), float)
         if self.robot_check is None:
             best = best_insertion(y, obstacles, outline, self.candidates, self.needle_cfg)
             c = -np.inf if best is None else best.clearance_mm
@@ -250,6 +260,7 @@ def plan_target(
     tie_mm: float = 0.25,
     refine_levels: int = 3,
     cache: Optional[StateCache] = None,
+    target_at: Optional[TargetAt] = None,
 ) -> NeedlePlan:
     """Plan a straight, obstacle-free insertion to one target (docs/model.md §7).
 
@@ -268,11 +279,14 @@ def plan_target(
     why. `robot_check` (see `RobotCheck`) gives the joints; when it rejects
     the best insertion, the next clear one at the same state is tried.
     `cache` shares solved states between the targets of a scene.
+    `target_at` (see `TargetAt`) gives the target's position at the strokes
+    in place of the tissue's (the obstacles and the skin stay the tissue's):
+    the plan of a 3-D-aware controller model (docs/model.md §15).
     """
     t0 = time.perf_counter()
     cache = cache or StateCache(tissue)
     solves0 = cache.solves
-    ev = _Evaluator(tissue, scene, target, needle_cfg, cache, robot_check)
+    ev = _Evaluator(tissue, scene, target, needle_cfg, cache, robot_check, target_at)
     zero = np.zeros(len(scene.cups))
     rest = ev.sample(zero)
 
