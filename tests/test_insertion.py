@@ -545,3 +545,48 @@ def test_trials_insert_every_strategy_with_a_finite_miss(tmp_path):
             assert miss.shape == (2, 3) and np.all(np.isfinite(miss))
             assert list(f[f"trials/{t}/miss_mm"].attrs["strategies"]) == ["none", "depth", "loop"]
             assert not np.any(f[f"trials/{t}/failed"][...])
+
+
+class _Bars:
+    """A reporter that records each progress bar: its total and what it was advanced by."""
+
+    def __init__(self):
+        self.bars = []
+
+    def info(self, message):
+        pass
+
+    def progress(self, description, total):
+        bar = [description, total, 0]
+        self.bars.append(bar)
+
+        def advance(n=1):
+            bar[2] += n
+
+        return advance
+
+
+def test_an_insertion_shows_its_progress_and_ends_its_bar(model):
+    """The insertion stage's bar advances after every step and ends at its total whether the insertion took
+    fewer steps than planned (`depth` stops at the target) or more (a bar must end before the next starts)."""
+    from types import SimpleNamespace
+
+    from scissor_cli.experiments.insertion_stage import _insert as insert_with_bar
+
+    cfg, tissue = model
+    params = _params(cfg)
+    target = SimpleNamespace(name="T1", rest=np.array([45.0, 32.0]))
+    steps = {}
+    # the target lies 45 mm in: `depth` planned 25 mm takes more steps than planned, planned 50 mm fewer
+    for strategy, depth in (("none", DEPTH), ("depth", DEPTH), ("depth", 2 * DEPTH)):
+        plan = SimpleNamespace(depth_mm=depth)
+        bars = _Bars()
+        r = insert_with_bar(bars, target, plan, params, strategy, tissue, tissue.rest.copy(), np.zeros(tissue.n_cups),
+                            ENTRY, AXIS, depth, target.rest, controller=cfg.controller)
+        [(label, total, advanced)] = bars.bars
+        assert label == f"insertion T1 ({strategy})" and total == int(np.ceil(depth / params.step_mm))
+        assert advanced == total
+        steps[strategy, depth] = (r.steps, total)
+    assert steps["none", DEPTH][0] == steps["none", DEPTH][1]
+    assert steps["depth", DEPTH][0] > steps["depth", DEPTH][1]
+    assert steps["depth", 2 * DEPTH][0] < steps["depth", 2 * DEPTH][1]

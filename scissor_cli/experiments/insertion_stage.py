@@ -52,7 +52,37 @@ def slab_ramp(slab: Tissue, strokes: np.ndarray, frames: int, tol: float) -> lis
     return out
 
 
-def _in_slab(cfg: Config, tissue: Tissue, truth, target, plan, params, animate: bool):
+class _StepBar:
+    """The progress of one insertion: a bar over the plan's steps, advanced after each step (`on_step`).
+
+    It holds at its last step until `close` (an insertion may take more
+    steps than planned, or fewer): a live bar must end before the next one starts.
+    """
+
+    def __init__(self, reporter, target, plan, params, strategy):
+        self.left = max(1, int(np.ceil(plan.depth_mm / params.step_mm)))
+        self.advance = reporter.progress(f"insertion {target.name} ({strategy})", self.left)
+
+    def __call__(self, depth_mm: float) -> None:
+        if self.left > 1:
+            self.advance(1)
+            self.left -= 1
+
+    def close(self) -> None:
+        self.advance(self.left)
+        self.left = 0
+
+
+def _insert(reporter, target, plan, params, strategy, *args, **kwargs):
+    """`run_insertion` (its arguments after the strategy) with a progress bar over its steps."""
+    bar = _StepBar(reporter, target, plan, params, strategy)
+    try:
+        return run_insertion(*args, params, strategy, on_step=bar, target_name=target.name, **kwargs)
+    finally:
+        bar.close()
+
+
+def _in_slab(cfg: Config, tissue: Tissue, truth, target, plan, params, animate: bool, reporter):
     """One target's insertions in the nominal slab (`layer3d.truth.SlabTruth`): results and the in-plane frames."""
     from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
 
@@ -65,9 +95,9 @@ def _in_slab(cfg: Config, tissue: Tissue, truth, target, plan, params, animate: 
     entry, direction = np.append(plan.entry, z), np.append(plan.direction, 0.0)
     model_x0 = solve_equilibrium(tissue, plan.strokes).x if "loop" in cfg.insertion.strategies else None
     results = [
-        run_insertion(slab, ramp[-1], plan.strokes, entry, direction, plan.depth_mm, target.rest, params, strategy,
-                      controller=cfg.controller, target_name=target.name, model=tissue, model_x0=model_x0,
-                      layer=tissue.mesh)
+        _insert(reporter, target, plan, params, strategy, slab, ramp[-1], plan.strokes, entry, direction,
+                plan.depth_mm, target.rest, controller=cfg.controller, model=tissue, model_x0=model_x0,
+                layer=tissue.mesh)
         for strategy in cfg.insertion.strategies
     ]
     return results, frames, layer_nodes
@@ -96,12 +126,12 @@ def insertion_stage(cfg: Config, tissue: Tissue, plans: list, sink: RunSink, rep
         if truth is None:
             frames = manipulation_ramp(tissue, plan.strokes, RAMP_FRAMES if animate else 1)
             results = [
-                run_insertion(tissue, frames[-1], plan.strokes, plan.entry, plan.direction, plan.depth_mm,
-                              target.rest, params, strategy, controller=cfg.controller, target_name=target.name)
+                _insert(reporter, target, plan, params, strategy, tissue, frames[-1], plan.strokes, plan.entry,
+                        plan.direction, plan.depth_mm, target.rest, controller=cfg.controller)
                 for strategy in cfg.insertion.strategies
             ]
         else:
-            results, frames, layer_nodes = _in_slab(cfg, tissue, truth, target, plan, params, animate)
+            results, frames, layer_nodes = _in_slab(cfg, tissue, truth, target, plan, params, animate, reporter)
         paths += sink.insertion(Insertion(target.name, results, tissue, np.asarray(target.rest, float),
                                           np.asarray(plan.desired, float), frames, animate, layer_nodes))
         sink.mark_finished(product_key("insertion", target.name))

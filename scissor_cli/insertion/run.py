@@ -120,6 +120,7 @@ def run_insertion(
     model: Tissue | None = None,
     model_x0: np.ndarray | None = None,
     layer: Mesh | None = None,
+    on_step: Callable[[float], None] | None = None,
 ) -> InsertionResult:
     """Insert from the equilibrium x0 (N, d) at cup strokes (C,) mm along the plan; never raises on a solver failure.
 
@@ -132,6 +133,7 @@ def run_insertion(
     plant itself), model_x0 (N, 2) its equilibrium at the strokes (solved
     from x0 when not given, which needs model and plant of one dimension);
     layer: in the slab, the layer's 2-D mesh the slab was extruded from.
+    on_step(depth_mm), if given, is called after every step (progress).
     A failed step ends the insertion with the reason in stop_reason; what
     was reached is kept.
     """
@@ -185,6 +187,8 @@ def run_insertion(
                      _clearance(embedding, x, p0[:2], state.tip[:2], params.radius_mm), s.copy()))
         if keep_displacement:
             frames.append(x - tissue.rest)
+        if on_step is not None:
+            on_step(state.depth_mm)
     return _result(tissue, target_name, strategy, p0, n, rows, frames, keep_displacement, x, state,
                    bool(embedding.splits), reason, unsettled, time.perf_counter() - t0, probe, s)
 
