@@ -83,3 +83,26 @@ def test_study_report(tmp_path):
     assert one_mm["solver"] != "none reaches it" and float(one_mm["error_reference_mm"]) <= 1.0
     assert any(p.name.startswith("speed_vs_error") for p in rep.files)
     assert "graded mesh needs" in rep.table_markdown
+
+
+def test_a_target_without_a_plan_counts_no_trials(two_runs, tmp_path):
+    """Its trials are stored done with stop_reason no_plan and zero errors: the summary, the paper table and the
+    budget's `all` row must not count them (they would read as perfect trials)."""
+    import shutil
+
+    from scissor_cli.output.budget_report import paper_row
+    from scissor_cli.output.results import finished_trials
+
+    run = tmp_path / "unplanned"
+    shutil.copytree(two_runs[0], run)
+    with h5py.File(run / "results.h5", "r+") as f:
+        g = f["trials/T2"]
+        g["stop_reason"][...] = np.array(["no_plan"] * g["stop_reason"].shape[0], dtype=object)
+        g["final_error"][...] = 0.0
+        assert not finished_trials(g).any() and finished_trials(f["trials/T1"]).all()
+        n_t1 = int(f["trials/T1/done"][:].sum())
+        assert paper_row("run", f)["trials"] == n_t1
+    report_trials([run], tmp_path / "rep")
+    rows = {r["target"]: r for r in csv.DictReader(open(tmp_path / "rep" / "summary.csv"))}
+    assert rows["T2"]["trials"] == "0" and rows["T2"]["max_x"] == ""
+    assert int(rows["T1"]["trials"]) == n_t1

@@ -19,6 +19,7 @@ import yaml
 
 from scissor_cli.output import tables
 from scissor_cli.output.budget_results import PAPER_MAX_MM, PAPER_PROFILES, budget_rows, read_budget
+from scissor_cli.output.results import finished_trials
 
 BUDGET_COLUMNS = ["run", "source", "target", "trials", "x_median_mm", "x_p95_mm", "x_max_mm", "y_median_mm",
                   "y_p95_mm", "y_max_mm", "miss_median_mm", "miss_p95_mm", "miss_max_mm", "variance_share"]
@@ -40,7 +41,7 @@ def paper_row(label: str, h5: h5py.File) -> dict | None:
                                           else "vertical motion free")
     errors, stops = [], 0
     for g in h5["trials"].values():
-        keep = g["done"][:] & ~g["failed"][:]
+        keep = finished_trials(g)
         errors.append(np.abs(g["final_error"][:][keep]))
         reasons = g["stop_reason"][:][keep]
         stops += int(sum((r.decode() if isinstance(r, bytes) else str(r)) == "stroke_limit" for r in reasons))

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import h5py
 import numpy as np
 
-from scissor_cli.output.results import ResultsFile, check_finite
+from scissor_cli.output.results import ResultsFile, check_finite, finished_trials
 
 #: the paper's Fig. 14 maxima, mm: rows prosthesis, ex vivo; columns |x| (across the push), |y| (along it)
 PAPER_MAX_MM = np.array([[0.7, 1.7], [1.3, 2.5]])
@@ -60,7 +60,7 @@ def read_budget(h5: h5py.File) -> dict[str, dict[str, BudgetCell]]:
         return {}
     out: dict[str, dict[str, BudgetCell]] = {"all": {}}
     for target, g in h5["trials"].items():
-        keep = g["done"][:] & ~g["failed"][:]
+        keep = finished_trials(g)
         miss = g["miss_mm"][:] if "miss_mm" in g else g["manipulation_miss_mm"][:]
         out["all"][target] = BudgetCell(g["final_error"][:][keep], miss[keep])
     for row in h5["budget"].attrs.get("sources", [])[1:]:

@@ -15,6 +15,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from scissor_cli.output.figures import save
+from scissor_cli.output.results import finished_trials
 
 
 def load_insertion_trials(path: Path) -> dict[str, dict]:
@@ -26,7 +27,7 @@ def load_insertion_trials(path: Path) -> dict[str, dict]:
         for t, g in f["trials"].items():
             if "miss_mm" not in g:
                 continue
-            ok = g["done"][:] & ~g["failed"][:]
+            ok = finished_trials(g)
             strategies = [s.decode() if isinstance(s, bytes) else str(s) for s in g["miss_mm"].attrs["strategies"]]
             miss, derr = g["miss_mm"][:][ok], g["depth_error_mm"][:][ok]
             out[t] = {

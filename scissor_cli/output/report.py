@@ -17,7 +17,7 @@ from scissor_cli.output import figures, layer_check, tables
 from scissor_cli.experiments import study as study_mod
 from scissor_cli.output.budget_report import report_budget
 from scissor_cli.output.insertion_report import report_insertion
-from scissor_cli.output.results import read_study
+from scissor_cli.output.results import finished_trials, read_study
 
 
 class ReportError(ValueError):
@@ -58,7 +58,7 @@ def load_run(run_dir: Path, partial: bool = False) -> RunTrials:
         name = _config_name(f.attrs.get("config_yaml", ""))
         targets = {}
         for t, g in f["trials"].items():
-            ok = g["done"][:] & ~g["failed"][:] & np.isfinite(g["final_error"][:]).all(axis=1)
+            ok = finished_trials(g) & np.isfinite(g["final_error"][:]).all(axis=1)
             miss = g["manipulation_miss_mm"][:][ok] if "manipulation_miss_mm" in g else None
             along = g["along_mm"][:][ok] if "along_mm" in g else None
             stops = int(np.sum(g["stop_reason"][:][ok].astype(str) == "stroke_limit")) if "stop_reason" in g else 0

@@ -351,6 +351,15 @@ def write_trial(out: ResultsFile, rec: dict) -> None:
     out.flush()
 
 
+def finished_trials(g: h5py.Group) -> np.ndarray:
+    """(T,) bool: the trials of one `/trials/<target>` group that ran to the end (not failed; a target
+    without a plan runs none: its trials are marked done with stop_reason `no_plan` and zeros)."""
+    ok = g["done"][:] & ~g["failed"][:]
+    if "stop_reason" in g:
+        ok &= g["stop_reason"].asstr()[:] != "no_plan"
+    return ok
+
+
 def pending_trials(h5: h5py.File) -> dict[str, np.ndarray]:
     """Trials per target still to run: not done, or done but failed."""
     if "trials" not in h5:

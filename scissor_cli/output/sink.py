@@ -217,7 +217,7 @@ class ResultsSink:
     def trial_figures(self, title: str) -> list[Path]:
         """Fig. 14 box plots of the x and y error per target, and the iterations histogram."""
         h5 = self.out.h5
-        errors = {t: g["final_error"][:][g["done"][:] & ~g["failed"][:]] for t, g in h5["trials"].items()}
+        errors = {t: g["final_error"][:][results.finished_trials(g)] for t, g in h5["trials"].items()}
         errors = {t: e for t, e in errors.items() if len(e)}
         if not errors:
             return []
@@ -277,8 +277,7 @@ def _repair(out: ResultsFile) -> int:
     """Un-mark trials marked done whose history is missing (a write cut short); returns how many."""
     n = 0
     for name, g in out.h5.get("trials", {}).items():
-        planned = np.array(g["stop_reason"].asstr()[:], dtype=str) != "no_plan"
-        ok = np.flatnonzero(g["done"][:] & ~g["failed"][:] & planned)
+        ok = np.flatnonzero(results.finished_trials(g))
         for k in ok:
             if str(k) not in g["history"]:
                 out.put(f"trials/{name}/done", int(k), False)
