@@ -52,6 +52,19 @@ def test_guard_waits_for_motion_above_noise_and_bounds_the_correction():
     assert np.linalg.norm(c.D) <= MAX_CHANGE * np.linalg.norm(J_model) * (1 + 1e-12)
 
 
+def test_a_secant_cannot_cancel_the_models_response_or_turn_it_far():
+    """A secant that says the target moves sideways (noise, a glitch): the corrected J keeps at least half the
+    model's component along its own direction and turns by at most 30 degrees."""
+    J_model = np.array([[0.1], [0.5]])
+    c = BroydenCorrection(noise_mm=0.1)
+    c.observe(J_model, [0.0], [0.0, 0.0])
+    c.observe(J_model, [2.0], [1.0, 0.0])  # moved 1 mm in x and nothing in y
+    J = c.jacobian(J_model)[:, 0]
+    u = J_model[:, 0] / np.linalg.norm(J_model)
+    assert J @ u >= (1 - MAX_CHANGE) * np.linalg.norm(J_model) - 1e-12
+    assert np.degrees(np.arccos(J @ u / np.linalg.norm(J))) <= 30.0 + 1e-9
+
+
 GAIN = 0.5
 
 
