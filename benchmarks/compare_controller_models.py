@@ -7,9 +7,13 @@ over them (the summary table has the controller, stroke-limit stops, time
 per iteration, the model's build time and error). `--reachable` makes the
 variant of docs/performance.md: T2 alone, desired y 21.0 mm.
 
-    python benchmarks/compare_controller_models.py [CONFIG] [--trials 6] [--jobs 2] [--reachable] [--out DIR]
+    python benchmarks/compare_controller_models.py [CONFIG] [--trials 6] [--jobs 2] [--reachable]
+        [--only layer-none surrogate-none ...] [--localisation MM] [--out DIR]
 
-Default CONFIG: configs/example_full.yaml. Each slab-truth trial takes about
+Default CONFIG: configs/example_full.yaml; the paper's scene is
+configs/paper_trials_prosthesis_slab.yaml (its slab grading is chosen by
+accuracy in each variant's run, about 4 min each). `--localisation 0` takes
+the profile's localisation error out (what is left is the loop's own). Each slab-truth trial takes about
 a minute on 2 cores (loaded: two); a surrogate is trained once and cached in
 DIR/.scissor-cache.
 """
@@ -25,13 +29,16 @@ from pathlib import Path
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
-MODELS = [("layer", "none"), ("calibrated", "none"), ("surrogate", "none"), ("surrogate", "broyden")]
+MODELS = [("layer", "none"), ("layer", "broyden"), ("calibrated", "none"), ("surrogate", "none"),
+          ("surrogate", "broyden")]
 
 
-def variant(scene: dict, model: str, update: str, reachable: bool) -> dict:
+def variant(scene: dict, model: str, update: str, reachable: bool, localisation_mm: float | None = None) -> dict:
     data = dict(scene)
     data.pop("insertion", None)
     data["trials"] = {**data.get("trials", {}), "truth": "slab"}
+    if localisation_mm is not None:
+        data["trials"]["localisation_error_mm"] = localisation_mm
     data["controller"] = {**data.get("controller", {}), "model": model, "jacobian_update": update}
     if reachable:
         data["targets"] = [dict(t, desired_mm=[58.0, 21.0]) for t in data["targets"] if t["name"] == "T2"]
@@ -44,6 +51,8 @@ def main() -> None:
     ap.add_argument("--trials", type=int, default=6)
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--reachable", action="store_true", help="T2 alone with a desired point the slab can reach")
+    ap.add_argument("--only", nargs="+", metavar="MODEL-UPDATE", help="a subset of the variants, e.g. surrogate-none")
+    ap.add_argument("--localisation", type=float, default=None, help="override trials.localisation_error_mm (mm)")
     ap.add_argument("--out", default=str(ROOT / "runs" / "controller-models"))
     args = ap.parse_args()
     out = Path(args.out)
@@ -52,8 +61,11 @@ def main() -> None:
     runs = []
     for model, update in MODELS:
         name = f"{model}-{update}"
+        if args.only and name not in args.only:
+            continue
         path = out / f"{name}.yaml"
-        path.write_text(yaml.safe_dump(variant(scene, model, update, args.reachable), sort_keys=False))
+        path.write_text(yaml.safe_dump(variant(scene, model, update, args.reachable, args.localisation),
+                                       sort_keys=False))
         t0 = time.perf_counter()
         r = subprocess.run([sys.executable, "-m", "scissor_cli", "simulate", str(path), "--trials", str(args.trials),
                             "--jobs", str(args.jobs), "--out", str(out / name), "--force", "--quiet"])
