@@ -43,8 +43,7 @@ def paper_row(label: str, h5: h5py.File) -> dict | None:
     for g in h5["trials"].values():
         keep = finished_trials(g)
         errors.append(np.abs(g["final_error"][:][keep]))
-        reasons = g["stop_reason"][:][keep]
-        stops += int(sum((r.decode() if isinstance(r, bytes) else str(r)) == "stroke_limit" for r in reasons))
+        stops += int(np.sum(g["stop_reason"].asstr()[:][keep] == "stroke_limit"))
     e = np.concatenate(errors) if errors else np.zeros((0, 2))
     if not len(e):
         return None
