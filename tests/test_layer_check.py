@@ -99,12 +99,22 @@ def test_slab_truth_trials(tmp_path):
         out = tmp_path / f"run_{truth}"
         r = _cli("simulate", path, "--out", out, "--trials", "1", "--jobs", "1", "--truth", truth)
         assert r.returncode == 0, r.stderr
+        assert ("solved once for every trial" in r.stdout + r.stderr) == (truth == "slab")
         with h5py.File(out / "results.h5") as f:
             g = f["trials/T2"]
             assert bool(g["done"][0]) and not bool(g["failed"][0])
             finals[truth] = (g["final_error"][0], int(g["iterations"][0]))
     # the slab is another tissue: the loop sees other errors and iterates differently
     assert not np.allclose(finals["layer"][0], finals["slab"][0])
+    # the nominal slab at the plan was solved once and cached beside the run; two workers read it, same numbers
+    assert len(list((tmp_path / ".scissor-cache").glob("slab-start-*.npy"))) >= 1
+    out = tmp_path / "run_slab_again"
+    r = _cli("simulate", path, "--out", out, "--trials", "1", "--jobs", "2", "--truth", "slab")
+    assert r.returncode == 0, r.stderr
+    assert "solved once for every trial" not in r.stdout + r.stderr
+    with h5py.File(out / "results.h5") as f:
+        g = f["trials/T2"]
+        assert np.array_equal(g["final_error"][0], finals["slab"][0]) and int(g["iterations"][0]) == finals["slab"][1]
 
 
 def test_truth_option_needs_layer_check(tmp_path):

@@ -221,7 +221,7 @@ def controller_model_stage(cfg: Config, tissue: Tissue, plans: list, location: O
     if not needs_slab(cfg):
         return None, plans, None
     slab = _nominal_slab(cfg, tissue)
-    data, cached = fitted_model(cfg, tissue, slab, plans, _cache_dir(location), reporter, jobs)
+    data, cached = fitted_model(cfg, tissue, slab, plans, cache_dir(location), reporter, jobs)
     model = ControllerModel(data, tissue, slab)
     how = "from the cache" if cached else f"in {data.build_time_s:.1f} s"
     error = "" if data.validation_error_mm is None else f", error against the slab {data.validation_error_mm:.3g} mm"
@@ -239,7 +239,7 @@ def refitted_model(cfg: Config, tissue: Tissue, location: Optional[Path], report
     """The model data alone, from the cache or fitted again: a resumed run whose file lost /controller_model."""
     if not needs_slab(cfg):
         return None
-    return fitted_model(cfg, tissue, _nominal_slab(cfg, tissue), [], _cache_dir(location), reporter)[0]
+    return fitted_model(cfg, tissue, _nominal_slab(cfg, tissue), [], cache_dir(location), reporter)[0]
 
 
 def _nominal_slab(cfg: Config, tissue: Tissue) -> Tissue:
@@ -249,7 +249,8 @@ def _nominal_slab(cfg: Config, tissue: Tissue) -> Tissue:
     return build_slab(tissue.scene, tissue.mesh, spec_from_config(cfg.layer_check), model=tissue.params.model)
 
 
-def _cache_dir(location: Optional[Path]) -> Optional[Path]:
+def cache_dir(location: Optional[Path]) -> Optional[Path]:
+    """The cache of fitted models and solved states beside a run directory (None: no run directory)."""
     return None if location is None else Path(location).parent / CACHE_DIR
 
 

@@ -34,8 +34,9 @@ from scissor_cli.robot.chain import RobotModel
 from scissor_cli.robot.registration import plan_to_joints
 from scissor_cli.experiments.insertion_stage import insertion_stage
 from scissor_cli.experiments.budget import run_budget
-from scissor_cli.experiments.controller_model import controller_model_stage, needs_slab, refitted_model
+from scissor_cli.experiments.controller_model import cache_dir, controller_model_stage, needs_slab, refitted_model
 from scissor_cli.experiments.selection import select
+from scissor_cli.experiments.slab_starts import with_slab_starts
 from scissor_cli.experiments.study import run_study
 from scissor_cli.experiments.trials import TargetTask, execute
 from scissor_cli.solvers.common import SolveResult, SolverError
@@ -242,6 +243,8 @@ def _stages(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary, rep
         if "trials" not in done:
             allocate_trial_arrays(sink, cfg, tasks, summary.plans)
             sink.mark_finished("trials")
+        if cfg.trials.truth == "slab" and (cfg.trials.budget or any(len(ks) for ks in sink.pending_trials().values())):
+            tasks = with_slab_starts(cfg, sink.config_yaml, tasks, cache_dir(sink.location), reporter, execution.jobs)
         summary.trials_run = _trial_stage(sink, cfg, tasks, reporter, execution)
         if cfg.trials.budget:
             summary.figures += run_budget(cfg, tasks, sink, reporter, execution, done)

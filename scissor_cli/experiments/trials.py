@@ -44,6 +44,9 @@ class TargetTask:
     depth_mm: float = 0.0  # the plan's depth (insertion)
     #: the controller's model when it is not the layer (`layer3d.controller_model.ModelData`, docs/model.md §15)
     controller_model: Optional[object] = None
+    #: slab truth: the nominal slab's (strokes (C,), x (N3, 3)) mm at the plan, solved once per run
+    #: (`experiments.slab_starts`); None: the worker solves it
+    slab_start: Optional[tuple] = None
 
 
 @dataclass
@@ -123,6 +126,8 @@ class TrialContext:
         return control.Measurement(self.camera, tuple(draw.localisation_offset_mm), noise_px=self.errors.pixel_noise_px)
 
     def run(self, task: TargetTask, trial: int) -> TrialOutcome:
+        if self.slab_truth is not None and task.slab_start is not None:
+            self.slab_truth.remember(*task.slab_start)
         draw = draw_trial(self.errors, self.scene.material.nu, self.centroids, self.cfg.seed, task.index, trial)
         truth = control.TruthPerturbation(
             E_scale=draw.E_field, fiber_offset_rad=draw.fiber_offset_rad, nu=draw.nu, eta_scale=draw.eta_scale
@@ -211,7 +216,8 @@ class TrialContext:
 _CONTEXTS: dict[str, TrialContext] = {}
 
 
-def _context(config_yaml: str) -> TrialContext:
+def trial_context(config_yaml: str) -> TrialContext:
+    """This process's context of the run with this config (built on first use; one run at a time)."""
     key = hashlib.sha256(config_yaml.encode()).hexdigest()
     if key not in _CONTEXTS:
         _CONTEXTS.clear()  # one run at a time per process
@@ -227,7 +233,7 @@ def run_trial(config_yaml: str, task: TargetTask, trial: int) -> TrialOutcome:
     """
     t0 = time.perf_counter()
     try:
-        return _context(config_yaml).run(task, trial)
+        return trial_context(config_yaml).run(task, trial)
     except Exception as exc:  # noqa: BLE001 - a crashed trial is recorded and the run goes on
         return TrialOutcome(
             target_index=task.index, trial=trial, ok=False, message=f"{type(exc).__name__}: {exc}",

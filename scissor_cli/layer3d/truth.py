@@ -50,6 +50,12 @@ class SlabTruth:
             self._starts[key] = (strokes, solve_newton(self.slab, strokes, tol=SLAB_TRUTH_TOL).x)
         return self._starts[key]
 
+    def remember(self, strokes: np.ndarray, x: np.ndarray) -> None:
+        """Take `start`'s answer at these strokes (C,) mm from elsewhere: x (N3, 3) mm, solved by `start`
+        in another process (`experiments.slab_starts`)."""
+        strokes = np.asarray(strokes, float)
+        self._starts.setdefault(tuple(strokes), (strokes, np.asarray(x, float)))
+
     def for_target(self, target_rest: np.ndarray, plan_strokes: np.ndarray | None = None):
         """The truth factory (`control.TruthFactory`) of one target, rest (2,) mm; its first move starts
         from the nominal slab at the plan's strokes (C,) mm when given (and not all zero)."""
