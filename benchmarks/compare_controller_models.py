@@ -68,7 +68,7 @@ def main() -> None:
                                        sort_keys=False))
         t0 = time.perf_counter()
         r = subprocess.run([sys.executable, "-m", "scissor_cli", "simulate", str(path), "--trials", str(args.trials),
-                            "--jobs", str(args.jobs), "--out", str(out / name), "--force", "--quiet"])
+                            "--jobs", str(args.jobs), "--out", str(out / name), "--force"])
         print(f"{name}: exit {r.returncode} in {time.perf_counter() - t0:.0f} s", flush=True)
         if r.returncode == 0:
             runs.append(str(out / name))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import shutil
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import h5py
@@ -278,11 +279,13 @@ def test_a_model_that_cannot_reach_the_layers_point_gets_its_own_plan():
     from types import SimpleNamespace
 
     from scissor_cli.config import load_config
-    from scissor_cli.experiments.controller_model import plan_with_model
+    from scissor_cli.experiments.controller_model import plan_with_model, reserved_scene
     from scissor_cli.planning.needle import plan_target
     from scissor_cli.planning.states import StateCache
 
     cfg = load_config(ROOT / "configs" / "paper_push.yaml")
+    # (a target half as far finds a clear corridor for T1 inside ±14.25 mm, none inside the default ±13.5)
+    cfg = cfg.model_copy(update={"controller": cfg.controller.model_copy(update={"stroke_reserve": 0.05})})
     _, mesh, tissue = build_model(cfg, mesh_scale=2.0)
     scene = tissue.scene
     probe = probe_targets(mesh, np.array([t.rest for t in scene.targets]))
@@ -299,8 +302,9 @@ def test_a_model_that_cannot_reach_the_layers_point_gets_its_own_plan():
     model = SimpleNamespace(kind="surrogate", transmission=None, scene_map=lambda: answer)
     plans = [plan_target(tissue, scene, t, cfg.needle, cache=cache) for t in scene.targets]
 
-    def replan(t, target_at):
-        return plan_target(tissue, scene, scene.targets[t], cfg.needle, cache=cache, target_at=target_at)
+    def replan(t, target_at):  # as simulate plans again: inside the stroke reserve
+        return plan_target(tissue, reserved_scene(scene, cfg.controller.stroke_reserve), scene.targets[t],
+                           cfg.needle, cache=cache, target_at=target_at)
 
     said = _Said()
     again = plan_with_model(cfg, plans, model, None, said, replan)
@@ -323,3 +327,110 @@ def test_a_model_that_cannot_reach_the_layers_point_gets_its_own_plan():
     refused = plan_with_model(fixed, plans, model, None, _Said(), replan)
     assert not any(p.feasible for p in refused)
     assert all("cannot bring the target" in p.reason and p.planned_with == "layer" for p in refused)
+
+
+def test_reserved_limits_move_each_limit_towards_rest_and_never_past_it():
+    from scissor_cli.experiments.controller_model import reserved_limits
+
+    lo, hi = reserved_limits(np.array([-15.0, 0.0, 2.0]), np.array([15.0, 10.0, 8.0]), 0.1)
+    np.testing.assert_allclose(lo, [-13.5, 0.0, 2.0])
+    np.testing.assert_allclose(hi, [13.5, 9.0, 7.2])
+    lo, hi = reserved_limits(np.array([-15.0]), np.array([15.0]), 0.0)
+    np.testing.assert_array_equal([lo[0], hi[0]], [-15.0, 15.0])
+
+
+def test_a_plan_in_the_stroke_reserve_is_refused_before_any_trial():
+    """A 3-D-aware model whose desired point needs 14.5 of the cup's 15 mm: accepted without a reserve (the plan
+    asks 14.5 mm), refused with the default 10 % (13.5 mm may be used), saying so; a layer plan is never refused
+    for it (the paper's method uses the whole range)."""
+    from types import SimpleNamespace
+
+    from scissor_cli.config import load_config
+    from scissor_cli.experiments.controller_model import plan_with_model
+    from scissor_cli.planning.needle import plan_target
+    from scissor_cli.planning.states import StateCache
+
+    cfg = load_config(ROOT / "configs" / "paper_push.yaml")
+    assert cfg.cups[0].stroke_mm[1] == 15.0 and cfg.controller.stroke_reserve == 0.1
+    _, mesh, tissue = build_model(cfg, mesh_scale=2.0)
+    scene = tissue.scene
+    rests = np.array([t.rest for t in scene.targets])
+    rate = np.array([0.0, -0.5])  # mm of target per mm of stroke: the target moves along y only
+
+    def answer(strokes):
+        s = float(np.asarray(strokes, float)[0])
+        return rests + rate * s, np.repeat(rate[None, :, None], len(rests), axis=0)
+
+    model = SimpleNamespace(kind="surrogate", transmission=None, scene_map=lambda: answer)
+    cache = StateCache(tissue)
+    plans = [plan_target(tissue, scene, t, cfg.needle, cache=cache) for t in scene.targets[:1]]
+    assert plans[0].feasible
+    far = [replace(plans[0], desired=rests[0] + rate * 14.5)]
+    with_cfg = cfg.model_copy(update={"targets": cfg.targets[:1]})
+    none = with_cfg.model_copy(update={"controller": cfg.controller.model_copy(update={"stroke_reserve": 0.0})})
+    accepted = plan_with_model(none, far, model, None, _Said())[0]
+    assert accepted.feasible
+    np.testing.assert_allclose(accepted.strokes, [14.5], atol=0.05)
+    refused = plan_with_model(with_cfg, far, model, None, _Said())[0]
+    assert not refused.feasible
+    assert "stroke reserve of 0.1" in refused.reason
+    assert refused.strokes[0] <= 13.5 + 1e-9
+    layer = SimpleNamespace(kind="layer", transmission=None, scene_map=lambda: answer)
+    assert plan_with_model(with_cfg, far, layer, None, _Said())[0].feasible
+
+
+def test_slab_corridor_at_rest_is_the_layers_and_moves_with_the_slab(scene):
+    """At rest the slab's layer is the 2-D mesh: the same clearance as the layer's; pushed, the slab's own."""
+    from scissor_cli.control import Corridor, corridor_at
+
+    cfg, tissue, slab, rests = scene
+    answer = slab_map(slab, tissue, rests)
+    corridor = Corridor("left", np.array([1.0, 0.0]), 1.6)
+    point = rests[0]
+    layer_clearance = corridor_at(tissue, tissue.rest, point, corridor)[1]
+    assert answer.clearance(np.zeros(1), point, corridor) == pytest.approx(layer_clearance, abs=1e-6)
+    moved = answer.clearance(np.array([6.0]), point, corridor)
+    assert np.isfinite(moved) and moved != pytest.approx(layer_clearance, abs=1e-3)
+
+
+def test_a_plan_whose_corridor_the_slab_blocks_is_refused_for_a_3d_model_and_reported_for_the_layer():
+    from types import SimpleNamespace
+
+    from scissor_cli.config import load_config
+    from scissor_cli.experiments.controller_model import plan_with_model
+    from scissor_cli.planning.needle import plan_target
+    from scissor_cli.planning.states import StateCache
+
+    cfg = load_config(ROOT / "configs" / "paper_push.yaml")
+    cfg = cfg.model_copy(update={"targets": cfg.targets[:1]})
+    _, mesh, tissue = build_model(cfg, mesh_scale=2.0)
+    plan = plan_target(tissue, tissue.scene, tissue.scene.targets[0], cfg.needle, cache=StateCache(tissue))
+    assert plan.feasible and plan.side
+
+    class Blocking:
+        """A slab answer that reaches every point where the plan does, with the corridor blocked there."""
+
+        def __init__(self, clearance):
+            self.clearance_mm, self.asked = clearance, []
+
+        def __call__(self, strokes):
+            return np.array([plan.desired]), np.ones((1, 2, 1))
+
+        def clearance(self, strokes, point, corridor):
+            self.asked.append((np.asarray(strokes, float), np.asarray(point, float), corridor.side))
+            return self.clearance_mm
+
+    def answer(strokes):
+        return np.array([plan.desired]), np.ones((1, 2, 1))
+
+    surrogate = SimpleNamespace(kind="surrogate", transmission=None, scene_map=lambda: answer)
+    layer = SimpleNamespace(kind="layer", transmission=None, scene_map=lambda: answer)
+    blocked = Blocking(-0.4)
+    refused = plan_with_model(cfg, [plan], surrogate, blocked, _Said())[0]
+    assert not refused.feasible and "blocked (clearance -0.40 mm)" in refused.reason
+    assert blocked.asked and blocked.asked[0][2] == plan.side
+    np.testing.assert_array_equal(blocked.asked[0][1], plan.desired)
+    said = _Said()
+    kept = plan_with_model(cfg, [plan], layer, Blocking(-0.4), said)[0]
+    assert kept.feasible and any("blocked" in line for line in said.lines)
+    assert plan_with_model(cfg, [plan], surrogate, Blocking(0.8), _Said())[0].feasible

@@ -180,6 +180,10 @@ class ControllerConfig(_Section):
     #: from nominal slab equilibria; slab — the nominal slab itself (reference, slow). All but layer need layer_check.
     model: Literal["layer", "calibrated", "surrogate", "slab"] = "layer"
     surrogate: SurrogateConfig = SurrogateConfig()
+    #: a 3-D-aware model's plan leaves this fraction of each cup's stroke limit unused (on the side it moves),
+    #: room for the loop to correct the true tissue's difference from the model (docs/model.md §15); the layer's
+    #: plans (the paper's method) use the whole range
+    stroke_reserve: Num(0.0, 0.9) = 0.1
 
 
 class ManipulationPointsConfig(_Section):

@@ -11,7 +11,10 @@ its model needs for the plan's desired point), and with a slab at hand
 3-D-aware model that cannot bring the target within the controller's
 tolerance inside the stroke limits makes the plan infeasible before any
 trial runs; with the `layer` model the slab's verdict is reported beside
-the plan (the paper's method is tested as it is).
+the plan (the paper's method is tested as it is). The same holds for the
+plan's needle corridor, judged again on the nominal slab at the strokes it
+needs (`SlabMap.clearance`: its obstacles are where the slab moves them,
+not where the layer does).
 """
 
 from __future__ import annotations
@@ -27,13 +30,15 @@ import numpy as np
 from scissor_cli import __version__
 from scissor_cli.config import Config, resolved_yaml
 from scissor_cli.experiments.pool import run_pool
+from scissor_cli.control.corridor import Corridor
 from scissor_cli.control.models import strokes_for
 from scissor_cli.layer3d.calibration import Calibration
 from scissor_cli.layer3d.controller_model import (ControllerModel, ModelData, ModelPaths, SceneMap, build_model_data,
-                                                  model_solves, slab_map)
+                                                  model_solves, SlabMap, slab_map)
 from scissor_cli.layer3d.surrogate import SurrogateSamples, solve_samples
 from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
 from scissor_cli.mechanics.tissue import Tissue
+from scissor_cli.planning.corridor import corridor_radius
 
 CACHE_DIR = ".scissor-cache"
 #: (target index, its position (2,) at strokes (C,) → mm) → a `planning.needle.NeedlePlan`
@@ -149,7 +154,7 @@ def _solve_group(config_yaml: str, index: int, strokes: np.ndarray) -> list[tupl
     return [(index, solve_samples(slab, probe, strokes, SLAB_TRUTH_TOL))]
 
 
-def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answer: Optional[SceneMap], reporter,
+def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answer: Optional[SlabMap], reporter,
                     replan: Optional[Replan] = None) -> list:
     """The plans with `model_strokes` (and `strokes`, for a 3-D-aware model) and `slab_strokes` (docs/model.md §15).
 
@@ -160,6 +165,8 @@ def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answe
     """
     lo = np.array([c.stroke_mm[0] for c in cfg.cups])
     hi = np.array([c.stroke_mm[1] for c in cfg.cups])
+    reserve = cfg.controller.stroke_reserve
+    lo_kept, hi_kept = reserved_limits(lo, hi, reserve)
     tol = cfg.controller.tolerance_mm
     mode = cfg.controller.error
     model_answer = model.scene_map() if model.kind != "layer" else None
@@ -169,7 +176,7 @@ def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answe
             return np.asarray(plan.strokes, float), 0.0
         direction = plan.direction if mode == "miss" else None
         start = plan.strokes if model.transmission is None else plan.strokes / model.transmission
-        return strokes_for(_one(model_answer, t), plan.desired, lo, hi, direction, mode, start)
+        return strokes_for(_one(model_answer, t), plan.desired, lo_kept, hi_kept, direction, mode, start)
 
     out = []
     for t, plan in enumerate(plans):
@@ -201,10 +208,23 @@ def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answe
         if model_answer is not None:
             plan = replace(plan, strokes=model_s)
             if left > tol:
+                kept = "" if reserve == 0 else (f" less the stroke reserve of {reserve:g} (strokes in "
+                                                f"{_fmt_ranges(lo_kept, hi_kept)} mm)")
                 plan = replace(plan, feasible=False, reason=(
                     f"the {model.kind} controller model cannot bring the target within {tol:g} mm of its desired "
-                    f"position inside the stroke limits (left {left:.2f} mm at strokes {_fmt(model_s)} mm)"
+                    f"position inside the stroke limits{kept} (left {left:.2f} mm at strokes {_fmt(model_s)} mm)"
                     + again_reason))
+        corridor = Corridor.from_plan(plan, corridor_radius(cfg.needle))
+        if slab_answer is not None and plan.feasible and corridor is not None:
+            clearance = slab_answer.clearance(slab_s, plan.desired, corridor)
+            if not clearance > 0:  # (NaN: the ray does not leave the slab's skin through the plan's side)
+                blocked = (f"in the nominal slab at strokes {_fmt(slab_s)} mm the needle's corridor to the desired "
+                           f"position is blocked (clearance {clearance:.2f} mm): the slab does not move the obstacles "
+                           f"where the layer does")
+                if model_answer is None:
+                    reporter.info(f"plan {plan.target}: {blocked}")
+                else:
+                    plan = replace(plan, feasible=False, reason=blocked)
         out.append(plan)
     return out
 
@@ -229,7 +249,7 @@ def controller_model_stage(cfg: Config, tissue: Tissue, plans: list, location: O
     if data.kind != "layer":
         reporter.info(f"controller model {data.kind}: {how}{error}{extra}")
     rests = np.array([t.rest for t in tissue.scene.targets]).reshape(-1, 2)
-    slab_answer = slab_map(slab, tissue, rests) if model.kind != "slab" else model.scene_map()
+    slab_answer = slab_map(slab, tissue, rests)
     plans = plan_with_model(cfg, plans, model, slab_answer, reporter, replan)
     paths = model_paths(cfg, tissue, model, slab_answer) if model.kind != "layer" else None
     return data, plans, paths
@@ -252,6 +272,25 @@ def _nominal_slab(cfg: Config, tissue: Tissue) -> Tissue:
 def cache_dir(location: Optional[Path]) -> Optional[Path]:
     """The cache of fitted models and solved states beside a run directory (None: no run directory)."""
     return None if location is None else Path(location).parent / CACHE_DIR
+
+
+def reserved_limits(lo: np.ndarray, hi: np.ndarray, reserve: float) -> tuple[np.ndarray, np.ndarray]:
+    """The stroke limits (C,) mm a 3-D-aware model's plan may use: each limit moved towards rest by the
+    fraction `reserve` of itself (a limit on rest's side of zero, e.g. a push-only cup's 0, stays)."""
+    return lo - reserve * np.minimum(lo, 0.0), hi - reserve * np.maximum(hi, 0.0)
+
+
+def reserved_scene(scene, reserve: float):
+    """The scene with each cup's stroke range cut to `reserved_limits`: where a 3-D-aware model plans again
+    (the planner's pick is then one the model's check keeps, not the same plan inside the reserve)."""
+    lo, hi = reserved_limits(np.array([c.stroke_min_mm for c in scene.cups]),
+                             np.array([c.stroke_max_mm for c in scene.cups]), reserve)
+    return replace(scene, cups=[replace(c, stroke_min_mm=float(a), stroke_max_mm=float(b))
+                                for c, a, b in zip(scene.cups, lo, hi)])
+
+
+def _fmt_ranges(lo: np.ndarray, hi: np.ndarray) -> str:
+    return ", ".join(f"[{a:+.2f}, {b:+.2f}]" for a, b in zip(lo, hi))
 
 
 def _one(answer: SceneMap, target: int):

@@ -34,7 +34,8 @@ from scissor_cli.robot.chain import RobotModel
 from scissor_cli.robot.registration import plan_to_joints
 from scissor_cli.experiments.insertion_stage import insertion_stage
 from scissor_cli.experiments.budget import run_budget
-from scissor_cli.experiments.controller_model import cache_dir, controller_model_stage, needs_slab, refitted_model
+from scissor_cli.experiments.controller_model import (cache_dir, controller_model_stage, needs_slab, refitted_model,
+                                                     reserved_scene)
 from scissor_cli.experiments.selection import select
 from scissor_cli.experiments.slab_starts import with_slab_starts
 from scissor_cli.experiments.study import run_study
@@ -414,8 +415,10 @@ def _plan_stage(cfg: Config, tissue: Tissue, sink: RunSink, reporter: Reporter, 
         plans.append(plan_target(tissue, scene, target, cfg.needle, robot_check=robot_check, cache=cache))
         advance(1)
 
+    reserved = reserved_scene(scene, cfg.controller.stroke_reserve)  # a 3-D-aware model plans again inside it
+
     def replan(t: int, target_at) -> NeedlePlan:
-        return plan_target(tissue, scene, scene.targets[t], cfg.needle, robot_check=robot_check, cache=cache,
+        return plan_target(tissue, reserved, scene.targets[t], cfg.needle, robot_check=robot_check, cache=cache,
                            target_at=target_at)
 
     model_data, plans, paths = controller_model_stage(cfg, tissue, plans, sink.location, reporter, jobs, replan)

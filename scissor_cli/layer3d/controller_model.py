@@ -23,6 +23,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from scissor_cli.control.corridor import Corridor, corridor_at
 from scissor_cli.control.models import CalibratedController, MapController, SlabController
 from scissor_cli.control.plant import Controller
 from scissor_cli.layer3d.calibration import Calibration, calibration_strokes, fit_transmission
@@ -158,16 +159,32 @@ def layer_map(layer: Tissue, rests: np.ndarray) -> SceneMap:
     return answer
 
 
-def slab_map(slab: Tissue, layer: Tissue, rests: np.ndarray) -> SceneMap:
-    """The nominal slab's `SceneMap`: one tracked equilibrium (SLAB_TRUTH_TOL), in-plane parts of the targets and J."""
-    probe = slab_probe(slab, layer.mesh, rests)
-    eq = Equilibrium(slab, SLAB_TRUTH_TOL)
+class SlabMap:
+    """The nominal slab's `SceneMap` (one tracked equilibrium, SLAB_TRUTH_TOL): in-plane targets and J; also the
+    corridor to a point at given strokes, judged on the slab's layer (its obstacles and skin where the slab has
+    them), for the plan's check."""
 
-    def answer(strokes):
-        eq.move_to(np.asarray(strokes, float), tangent=True)
-        return probe.positions(eq.x)[:, :2], probe.response(eq.response)[:, :2]
+    def __init__(self, slab: Tissue, layer: Tissue, rests: np.ndarray):
+        self.layer = layer
+        self.probe = slab_probe(slab, layer.mesh, rests)
+        self.eq = Equilibrium(slab, SLAB_TRUTH_TOL)
+        sm = slab.mesh
+        self._layer_nodes = sm.node(sm.layer_level, np.arange(sm.n_nodes_2d))
 
-    return answer
+    def __call__(self, strokes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        self.eq.move_to(np.asarray(strokes, float), tangent=True)
+        return self.probe.positions(self.eq.x)[:, :2], self.probe.response(self.eq.response)[:, :2]
+
+    def clearance(self, strokes: np.ndarray, point: np.ndarray, corridor: Corridor) -> float:
+        """The corridor's clearance (mm, > 0 clear; NaN: it does not reach the skin) to `point` (2,) mm with
+        the nominal slab at `strokes` (C,) mm: what a slab-truth trial checks at its end (`control.corridor_at`)."""
+        self.eq.move_to(np.asarray(strokes, float), tangent=False)
+        return corridor_at(self.layer, self.eq.x[self._layer_nodes, :2], np.asarray(point, float), corridor)[1]
+
+
+def slab_map(slab: Tissue, layer: Tissue, rests: np.ndarray) -> SlabMap:
+    """The nominal slab's `SceneMap` (`SlabMap`)."""
+    return SlabMap(slab, layer, rests)
 
 
 @dataclass(frozen=True)
