@@ -210,3 +210,11 @@ def test_run_records_the_chosen_resolution(tmp_path):
         assert ran.layer_check.first_layer_mm == pytest.approx(a["first_layer_mm"])
         assert ran.layer_check.max_layer_mm == pytest.approx(a["max_layer_mm"])
         assert f["layer_check/mesh/nodes"].shape[0] > 0
+        first = f["layer_check_resolution/levels"][()], str(f.attrs["config_yaml"])
+    # a second run of the scene reads the choice from the cache beside the runs: the same slab and record
+    r = _cli("simulate", path, "--out", tmp_path / "again", "--trials", "0")
+    assert r.returncode == 0, r.stderr
+    assert "(from the cache)" in r.stderr + r.stdout
+    with h5py.File(tmp_path / "again" / "results.h5") as f:
+        assert np.array_equal(f["layer_check_resolution/levels"][()], first[0])
+        assert str(f.attrs["config_yaml"]) == first[1]

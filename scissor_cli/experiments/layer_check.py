@@ -8,14 +8,20 @@ compares models, not the configured solver's tolerance.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
+from scissor_cli import __version__
 from scissor_cli.config import Config
 from scissor_cli.experiments.sink import product_key
 from scissor_cli.layer3d.check import build_layer_check, spec_from_config
-from scissor_cli.layer3d.resolution import SlabChoice, choose_slab
+from scissor_cli.layer3d.resolution import SlabCandidate, SlabChoice, choose_slab
 from scissor_cli.mechanics.tissue import Tissue, build_model
 from scissor_cli.solvers.equilibrium import EquilibriumSolver
 
@@ -61,21 +67,59 @@ def run_layer_check(cfg: Config, tissue: Tissue, sink, reporter, done: frozenset
     return paths
 
 
-def slab_resolution_stage(cfg: Config, reporter) -> tuple[Config, SlabChoice]:
+def slab_resolution_stage(cfg: Config, reporter, cache: Optional[Path] = None) -> tuple[Config, SlabChoice]:
     """`layer_check.accuracy_mm`: choose the slab's z grading (docs/model.md §13); the run goes on with it.
 
     The config the run records has the chosen `first_layer_mm` and
     `max_layer_mm` and no `accuracy_mm`, so the layer check, the slab-truth
     trials and `--resume` build exactly the slab that was chosen; the
-    candidates are stored in /layer_check_resolution.
+    candidates are stored in /layer_check_resolution. The choice is kept in
+    `cache` (the `.scissor-cache/` beside the run), keyed by what it depends
+    on: the ladder solves every rung's forward cases (minutes on the
+    paper's slab), so a second run of the scene reads it.
     """
-    _, _, tissue = build_model(cfg)
     lc = cfg.layer_check
-    cases = [tissue.scene.strokes_vector(case.strokes) for case in cfg.forward]
-    t0 = time.perf_counter()
-    choice = choose_slab(tissue, spec_from_config(lc), cases, lc.accuracy_mm, reporter.info)
-    reporter.info(f"slab resolution: {choice.explain()} ({time.perf_counter() - t0:.1f} s)")
+    path = None if cache is None else cache / f"slab-resolution-{_resolution_key(cfg)}.json"
+    choice = _read_choice(path)
+    if choice is not None:
+        reporter.info(f"slab resolution: {choice.explain()} (from the cache)")
+    else:
+        _, _, tissue = build_model(cfg)
+        cases = [tissue.scene.strokes_vector(case.strokes) for case in cfg.forward]
+        t0 = time.perf_counter()
+        choice = choose_slab(tissue, spec_from_config(lc), cases, lc.accuracy_mm, reporter.info)
+        reporter.info(f"slab resolution: {choice.explain()} ({time.perf_counter() - t0:.1f} s)")
+        _write_choice(path, choice)
     chosen = choice.chosen
     section = lc.model_copy(update={"first_layer_mm": chosen.first_layer_mm, "max_layer_mm": chosen.max_layer_mm,
                                     "accuracy_mm": None})
     return cfg.model_copy(update={"layer_check": section}), choice
+
+
+def _resolution_key(cfg: Config) -> str:
+    """What the ladder's choice depends on, hashed: the scene, its forward cases, the slab, the code's version."""
+    parts = {"version": __version__, "scene": cfg.model_dump(mode="json", include={
+        "tissue", "material", "cups", "targets", "obstacles", "forward", "layer_check"})}
+    return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:20]
+
+
+def _read_choice(path: Optional[Path]) -> Optional[SlabChoice]:
+    if path is None or not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text())
+        return SlabChoice(float(data["accuracy_mm"]), int(data["pick"]),
+                          tuple(SlabCandidate(**c) for c in data["candidates"]))
+    except (OSError, ValueError, KeyError, TypeError):  # unreadable: the ladder runs again
+        return None
+
+
+def _write_choice(path: Optional[Path], choice: SlabChoice) -> None:
+    if path is None:
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_suffix(".partial")
+    partial.write_text(json.dumps({"accuracy_mm": choice.accuracy_mm, "pick": choice.pick,
+                                   "candidates": [{k: getattr(v, "item", lambda v=v: v)() for k, v in asdict(c).items()}
+                                                  for c in choice.candidates]}))
+    partial.replace(path)

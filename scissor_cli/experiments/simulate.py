@@ -106,7 +106,7 @@ def run_simulation(cfg: Config, run: SinkFactory, reporter: Reporter | None = No
     if cfg.layer_check is not None and cfg.layer_check.accuracy_mm is not None:
         from scissor_cli.experiments.layer_check import slab_resolution_stage  # noqa: PLC0415
 
-        cfg, slab_choice = slab_resolution_stage(cfg, reporter)
+        cfg, slab_choice = slab_resolution_stage(cfg, reporter, cache_dir(run.location))
     tissue = _build(cfg, reporter)
     summary = RunSummary(run.location, tissue.mesh.n_elements)
     with run.open(resolved_yaml(cfg), cfg.seed) as sink:
