@@ -164,7 +164,8 @@ def ms(a: np.ndarray) -> str:
 
 def model_iterations(path: Path, repeats: int) -> None:
     """Median time of the controller's side of a control iteration with each model, and its build time."""
-    from scissor_cli.experiments.controller_model import CACHE_DIR, fitted_model  # noqa: PLC0415
+    from scissor_cli.experiments.controller_model import fitted_model  # noqa: PLC0415
+    from scissor_cli.experiments.run_cache import CACHE_DIR  # noqa: PLC0415
     from scissor_cli.experiments.simulate import SilentReporter  # noqa: PLC0415
     from scissor_cli.layer3d.check import spec_from_config  # noqa: PLC0415
     from scissor_cli.layer3d.controller_model import ControllerModel  # noqa: PLC0415

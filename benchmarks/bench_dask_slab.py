@@ -29,7 +29,7 @@ import yaml
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from scissor_cli.config import load_config, resolved_yaml  # noqa: E402
-from scissor_cli.experiments.controller_model import CACHE_DIR  # noqa: E402
+from scissor_cli.experiments.run_cache import CACHE_DIR  # noqa: E402
 from scissor_cli.experiments.layer_check import slab_resolution_stage  # noqa: E402
 from scissor_cli.experiments.simulate import SilentReporter  # noqa: E402
 

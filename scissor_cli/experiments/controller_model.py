@@ -19,16 +19,14 @@ not where the layer does).
 
 from __future__ import annotations
 
-import hashlib
-import json
 from dataclasses import replace
 from pathlib import Path
 from typing import Callable, Optional
 
 import numpy as np
 
-from scissor_cli import __version__
 from scissor_cli.config import Config, resolved_yaml
+from scissor_cli.experiments import run_cache
 from scissor_cli.experiments.pool import run_pool
 from scissor_cli.control.corridor import Corridor
 from scissor_cli.control.models import strokes_for
@@ -40,7 +38,6 @@ from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.planning.corridor import corridor_radius
 
-CACHE_DIR = ".scissor-cache"
 #: (target index, its position (2,) at strokes (C,) → mm) → a `planning.needle.NeedlePlan`
 Replan = Callable[[int, Callable[[np.ndarray], np.ndarray]], object]
 
@@ -54,13 +51,13 @@ def cache_key(cfg: Config, plan_strokes: list[np.ndarray]) -> str:
     """What the fitted model depends on, hashed: the scene, material, cups, targets, slab, design, the code's version."""
     kind = cfg.controller.model
     parts = {
-        "kind": kind, "version": __version__, "tol": SLAB_TRUTH_TOL,
+        "kind": kind, "tol": SLAB_TRUTH_TOL,
         "scene": cfg.model_dump(mode="json", include={"tissue", "material", "cups", "targets", "obstacles",
                                                       "layer_check"}),
         "surrogate": cfg.controller.surrogate.model_dump(mode="json") if kind == "surrogate" else None,
         "plans": [np.round(np.asarray(s, float), 9).tolist() for s in plan_strokes] if kind == "calibrated" else None,
     }
-    return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:20]
+    return run_cache.key(parts)
 
 
 def save_model_data(path: Path, data: ModelData) -> None:
@@ -75,10 +72,7 @@ def save_model_data(path: Path, data: ModelData) -> None:
         s = data.samples
         arrays.update(strokes=s.strokes, targets=s.targets, held_strokes=s.held_strokes, held_targets=s.held_targets,
                       lo=s.lo, hi=s.hi)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_suffix(".partial.npz")
-    np.savez(partial, **arrays)
-    partial.replace(path)
+    run_cache.write_whole(path, lambda partial: np.savez(partial, **arrays))
 
 
 def load_model_data(path: Path) -> Optional[ModelData]:
@@ -241,7 +235,7 @@ def controller_model_stage(cfg: Config, tissue: Tissue, plans: list, location: O
     if not needs_slab(cfg):
         return None, plans, None
     slab = _nominal_slab(cfg, tissue)
-    data, cached = fitted_model(cfg, tissue, slab, plans, cache_dir(location), reporter, jobs)
+    data, cached = fitted_model(cfg, tissue, slab, plans, run_cache.cache_dir(location), reporter, jobs)
     model = ControllerModel(data, tissue, slab)
     how = "from the cache" if cached else f"in {data.build_time_s:.1f} s"
     error = "" if data.validation_error_mm is None else f", error against the slab {data.validation_error_mm:.3g} mm"
@@ -259,7 +253,7 @@ def refitted_model(cfg: Config, tissue: Tissue, location: Optional[Path], report
     """The model data alone, from the cache or fitted again: a resumed run whose file lost /controller_model."""
     if not needs_slab(cfg):
         return None
-    return fitted_model(cfg, tissue, _nominal_slab(cfg, tissue), [], cache_dir(location), reporter)[0]
+    return fitted_model(cfg, tissue, _nominal_slab(cfg, tissue), [], run_cache.cache_dir(location), reporter)[0]
 
 
 def _nominal_slab(cfg: Config, tissue: Tissue) -> Tissue:
@@ -267,11 +261,6 @@ def _nominal_slab(cfg: Config, tissue: Tissue) -> Tissue:
     from scissor_cli.layer3d.slab import build_slab  # noqa: PLC0415
 
     return build_slab(tissue.scene, tissue.mesh, spec_from_config(cfg.layer_check), model=tissue.params.model)
-
-
-def cache_dir(location: Optional[Path]) -> Optional[Path]:
-    """The cache of fitted models and solved states beside a run directory (None: no run directory)."""
-    return None if location is None else Path(location).parent / CACHE_DIR
 
 
 def reserved_limits(lo: np.ndarray, hi: np.ndarray, reserve: float) -> tuple[np.ndarray, np.ndarray]:

@@ -8,7 +8,6 @@ compares models, not the configured solver's tolerance.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import time
 from dataclasses import asdict
@@ -17,8 +16,8 @@ from typing import Optional
 
 import numpy as np
 
-from scissor_cli import __version__
 from scissor_cli.config import Config
+from scissor_cli.experiments import run_cache
 from scissor_cli.experiments.sink import product_key
 from scissor_cli.layer3d.check import build_layer_check, spec_from_config
 from scissor_cli.layer3d.resolution import SlabCandidate, SlabChoice, choose_slab
@@ -98,9 +97,8 @@ def slab_resolution_stage(cfg: Config, reporter, cache: Optional[Path] = None) -
 
 def _resolution_key(cfg: Config) -> str:
     """What the ladder's choice depends on, hashed: the scene, its forward cases, the slab, the code's version."""
-    parts = {"version": __version__, "scene": cfg.model_dump(mode="json", include={
-        "tissue", "material", "cups", "targets", "obstacles", "forward", "layer_check"})}
-    return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:20]
+    return run_cache.key({"scene": cfg.model_dump(mode="json", include={
+        "tissue", "material", "cups", "targets", "obstacles", "forward", "layer_check"})})
 
 
 def _read_choice(path: Optional[Path]) -> Optional[SlabChoice]:
@@ -117,9 +115,7 @@ def _read_choice(path: Optional[Path]) -> Optional[SlabChoice]:
 def _write_choice(path: Optional[Path], choice: SlabChoice) -> None:
     if path is None:
         return
-    path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_suffix(".partial")
-    partial.write_text(json.dumps({"accuracy_mm": choice.accuracy_mm, "pick": choice.pick,
-                                   "candidates": [{k: getattr(v, "item", lambda v=v: v)() for k, v in asdict(c).items()}
-                                                  for c in choice.candidates]}))
-    partial.replace(path)
+    text = json.dumps({"accuracy_mm": choice.accuracy_mm, "pick": choice.pick,
+                       "candidates": [{k: getattr(v, "item", lambda v=v: v)() for k, v in asdict(c).items()}
+                                      for c in choice.candidates]})
+    run_cache.write_whole(path, lambda partial: partial.write_text(text))

@@ -14,16 +14,14 @@ a worker made, so the trials' numbers do not change.
 
 from __future__ import annotations
 
-import hashlib
-import json
 from dataclasses import replace
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
-from scissor_cli import __version__
 from scissor_cli.config import Config
+from scissor_cli.experiments import run_cache
 from scissor_cli.experiments.pool import run_pool
 from scissor_cli.experiments.trials import TargetTask, trial_context
 from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
@@ -31,12 +29,11 @@ from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
 
 def start_key(cfg: Config, strokes: np.ndarray) -> str:
     """What the nominal slab's equilibrium at `strokes` (C,) mm depends on, hashed."""
-    parts = {
-        "version": __version__, "tol": SLAB_TRUTH_TOL,
+    return run_cache.key({
+        "tol": SLAB_TRUTH_TOL,
         "scene": cfg.model_dump(mode="json", include={"tissue", "material", "cups", "obstacles", "layer_check"}),
         "strokes": np.round(np.asarray(strokes, float), 12).tolist(),
-    }
-    return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:20]
+    })
 
 
 def with_slab_starts(cfg: Config, config_yaml: str, tasks: list[TargetTask], cache_dir: Optional[Path], reporter,
@@ -97,7 +94,4 @@ def _read(cache_dir: Optional[Path], key: str) -> Optional[np.ndarray]:
 def _write(cache_dir: Optional[Path], key: str, state: np.ndarray) -> None:
     if cache_dir is None:
         return
-    cache_dir.mkdir(parents=True, exist_ok=True)
-    partial = cache_dir / f"slab-start-{key}.partial.npy"
-    np.save(partial, state)
-    partial.replace(_path(cache_dir, key))
+    run_cache.write_whole(_path(cache_dir, key), lambda partial: np.save(partial, state))
