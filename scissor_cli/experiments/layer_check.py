@@ -116,6 +116,6 @@ def _write_choice(path: Optional[Path], choice: SlabChoice) -> None:
     if path is None:
         return
     text = json.dumps({"accuracy_mm": choice.accuracy_mm, "pick": choice.pick,
-                       "candidates": [{k: getattr(v, "item", lambda v=v: v)() for k, v in asdict(c).items()}
-                                      for c in choice.candidates]})
+                       "candidates": [asdict(c) for c in choice.candidates]},
+                      default=lambda value: value.item())  # numpy scalars as Python numbers
     run_cache.write_whole(path, lambda partial: partial.write_text(text))
