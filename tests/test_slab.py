@@ -269,3 +269,56 @@ def test_slab_truth_starts_from_the_nominal_slab_at_the_plan(coarse):
     assert eq.stats["fallbacks"] == 0
     reference = solve_newton(tissue, plan, tol=1e-10).x
     assert np.abs(view.target(eq.x) - view.target(reference)).max() < 1e-4
+
+
+def test_shifted_hessian_factors_with_the_smallest_shift_and_starts_near_the_last():
+    """An indefinite 3-D Hessian is shifted by the first μ k̄ that factors; the next search starts one below it."""
+    from scissor_cli.solvers.newton import SHIFTS, _shifted_solve
+
+    rng = np.random.default_rng(3)
+    n = 40
+    Q = np.linalg.qr(rng.normal(size=(n, n)))[0]
+    lam = np.linspace(1.0, 2.0, n)
+    lam[0] = -0.004  # k̄ ≈ 1.5: μ = 1e-3 is not enough, 1e-2 is
+    K = sp.csr_matrix(np.triu((Q * lam) @ Q.T))
+    g = rng.normal(size=n)
+    tissue = type("T", (), {"dim": 3, "free_dofs": np.arange(n)})()
+    factors: dict = {}
+    d, tries = _shifted_solve(tissue, K, g, factors)
+    assert factors["shift"] == 1e-2 and tries == SHIFTS.index(1e-2) + 1
+    full = (Q * lam) @ Q.T
+    kbar = np.mean(np.diag(full))
+    np.testing.assert_allclose((full + 1e-2 * kbar * np.eye(n)) @ d, g, rtol=1e-8, atol=1e-10)
+    d, tries = _shifted_solve(tissue, K, g, factors)  # 1e-3 fails once, then 1e-2
+    assert tries == 2 and factors["shift"] == 1e-2
+
+
+def test_indefinite_hessian_near_the_solution_is_shifted_not_projected(coarse, monkeypatch):
+    """Near the solution (residual < SHIFT_BELOW) a 3-D step whose exact Hessian will not factor takes the
+    shifted one, not the eigen-projected one (whose steps crawled through a cup rim's indefinite states:
+    52 s for one settle, docs/performance.md), and Newton still converges to the same equilibrium."""
+    from scissor_cli.solvers import newton
+    from scissor_cli.solvers.common import SolverError
+
+    scene, mesh, _ = coarse
+    spec = SlabSpec(20.0, 10.0, max_layer_mm=5.0)
+    reference = newton.solve_newton(build_slab(scene, mesh, spec), np.array([5.0]), tol=1e-10)
+    slab = build_slab(scene, mesh, spec)
+    start = newton.solve_newton(slab, np.array([5.0]), tol=3e-3)
+    exact_refused, projected = [], []
+    solve_free = newton.solve_free
+
+    def refusing(tissue, K, b, factors=None, rtol=None, max_iter=12):
+        if not exact_refused:  # the first exact Hessian "is not positive definite"
+            exact_refused.append(True)
+            raise SolverError("system matrix is not positive definite")
+        return solve_free(tissue, K, b, factors, rtol, max_iter)
+
+    system = newton._system
+    monkeypatch.setattr(newton, "solve_free", refusing)
+    monkeypatch.setattr(newton, "_system", lambda t, x, project, *a, **k: (projected.append(project), system(t, x, project, *a, **k))[1])
+    r = newton.newton_iterations(slab, start.x, tol=1e-10, krylov=True)
+    assert r.converged and exact_refused and not any(projected)
+    assert slab.factor_cache["shift"] in newton.SHIFTS
+    u = np.abs(reference.x - slab.rest).max()
+    assert np.abs(r.x - reference.x).max() <= 1e-7 * u

@@ -26,7 +26,7 @@ import time
 import numpy as np
 import scipy.sparse as sp
 
-from scissor_cli.solvers.linear import KRYLOV_MAX_ITER, solve_free
+from scissor_cli.solvers.linear import KRYLOV_MAX_ITER, factorize_free, solve_free
 from scissor_cli.solvers.common import (
     NO_CONDITIONS, Conditions, Inertia, SolveResult, SolverError, check_finite, objective_gradient,
 )
@@ -60,6 +60,14 @@ KRYLOV_MAX_ITER_2D = 6
 #: to Eisenstat–Walker's forcing term η = EW_GAMMA θ², at most KRYLOV_FORCING_MAX_2D
 EW_GAMMA = 0.9
 KRYLOV_FORCING_MAX_2D = 0.1
+#: with `krylov` (3-D), an exact Hessian that is not positive definite near the solution (relative residual
+#: below SHIFT_BELOW) is first shifted, K + μ k̄ I (k̄ its mean diagonal), μ the first of SHIFTS that
+#: factors: projecting every tetrahedron's Hessian on its eigenvalues costs ~2 factorisations, and its
+#: steps crawled through the indefinite states at a cup's rim (one settle of the paper's slab: 28 Newton
+#: iterations, 52 s; shifted 13, 10 s; docs/performance.md, "Slab truth"). Farther out the projected
+#: Hessian stays first: there the shifted one's steps stalled (the same slab, 5 → 10 s on another settle).
+SHIFTS = (1e-4, 1e-3, 1e-2, 1e-1)
+SHIFT_BELOW = 1e-2
 
 
 def _krylov(tissue: Tissue, krylov: bool | None) -> bool:
@@ -168,7 +176,8 @@ def newton_iterations(
     still ends quadratic. Above a relative residual of `exact_below` the Hessian is
     PSD-projected per element (far from equilibrium the exact one sends
     pull8 wandering); below it the exact one, falling back to the projected
-    one when its step is not a descent direction. `conditions` adds loads and
+    one when its step is not a descent direction — in 3-D near the solution
+    first to the shifted one (SHIFTS, `_shifted_solve`). `conditions` adds loads and
     held dofs; `factors` is the factorisation slot (default: the tissue's).
     With `krylov` (default: a 3-D tissue) a step is first solved by
     conjugate gradients preconditioned with the slot's last factorisation,
@@ -216,9 +225,13 @@ def newton_iterations(
             K = _system(tissue, x, project, inertia, held)
             try:
                 d, factored = solve_free(tissue, K, g, factors, rtol, cg_iter)
-            except SolverError:  # singular exact Hessian: the projected one is next
+            except SolverError:  # singular exact Hessian: shifted (3-D), then the projected one
                 n_factor += 1
-                continue
+                shifted = _shifted_solve(tissue, K, g, factors) if krylov and not project and res < SHIFT_BELOW else None
+                if shifted is None:
+                    continue
+                d, tries = shifted
+                factored = tries
             n_factor += factored
             d = -d
             if np.all(np.isfinite(d)) and np.dot(g, d) < 0:
@@ -235,6 +248,24 @@ def newton_iterations(
         x, False, max_iter, history[-1], time.perf_counter() - t0, "newton",
         f"not converged in {max_iter} iterations (relative residual {history[-1]:.3g} > {tol:g})", history, n_factor,
     )
+
+
+def _shifted_solve(tissue, K, g, factors) -> tuple[np.ndarray, int] | None:
+    """(d, factorisations) with (K + μ k̄ I) d = g for the first μ in SHIFTS whose matrix factors, or None.
+
+    The search starts one below the μ that factored last in this slot (`factors["shift"]`): along a
+    move the states stay about as indefinite, and each μ that fails costs a factorisation.
+    """
+    kbar = float(np.mean(K.diagonal()))
+    first = max(0, SHIFTS.index(factors["shift"]) - 1) if factors.get("shift") in SHIFTS else 0
+    for tries, mu in enumerate(SHIFTS[first:], start=1):
+        try:
+            d = factorize_free(tissue, K + (mu * kbar) * sp.identity(K.shape[0], format="csr"), factors).solve(g)
+        except SolverError:
+            continue
+        factors["shift"] = mu
+        return d, tries
+    return None
 
 
 def _chord_step(tissue, x, g, inertia, res, conditions, held, factors):
