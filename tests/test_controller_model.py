@@ -78,9 +78,14 @@ def test_surrogate_is_exact_at_its_samples_and_within_0_05_mm_in_plane_of_held_o
     assert surrogate_data.validation_error_mm == pytest.approx(s.validation_error_mm())
     # a fresh slab solve at strokes in neither set
     fresh = np.array([[-11.3], [2.7], [9.1]])
-    truth = solve_samples(slab, slab_probe(slab, tissue.mesh, rests), fresh, SLAB_TRUTH_TOL)
+    truth, truth_layer = solve_samples(slab, slab_probe(slab, tissue.mesh, rests), fresh, SLAB_TRUTH_TOL)
     assert np.max(np.linalg.norm((s.predict(fresh) - truth)[:, :, :2], axis=2)) <= 0.05
     assert surrogate_data.validation_error_mm <= 0.05
+    # the layer too (what a plan made again with the model judges its obstacles on): exact at the samples,
+    # and close to fresh solves; at rest it is the 2-D mesh
+    assert s.knows_layer and np.allclose(s.layer_at(d.strokes[0]), d.layer[0], atol=1e-6)
+    layer_miss = max(np.max(np.linalg.norm(s.layer_at(f) - truth_layer[k], axis=1)) for k, f in enumerate(fresh))
+    assert layer_miss <= 0.2 and s.layer_error_mm() <= 0.2  # (8 samples: 0.07 / 0.10 mm, worst at the cup)
 
 
 def test_surrogate_jacobian_matches_the_slabs_tangent(scene, surrogate_data):
@@ -299,10 +304,10 @@ def test_a_model_that_cannot_reach_the_layers_point_gets_its_own_plan():
         J = (half_as_far(strokes + h) - half_as_far(strokes - h)) / (2 * h)
         return half_as_far(strokes), J[:, :, None]
 
-    model = SimpleNamespace(kind="surrogate", transmission=None, scene_map=lambda: answer)
+    model = SimpleNamespace(kind="surrogate", transmission=None, scene_map=lambda: answer, layer_map=lambda: None)
     plans = [plan_target(tissue, scene, t, cfg.needle, cache=cache) for t in scene.targets]
 
-    def replan(t, target_at):  # as simulate plans again: inside the stroke reserve
+    def replan(t, target_at, layer_at=None):  # as simulate plans again: inside the stroke reserve
         return plan_target(tissue, reserved_scene(scene, cfg.controller.stroke_reserve), scene.targets[t],
                            cfg.needle, cache=cache, target_at=target_at)
 
@@ -327,6 +332,88 @@ def test_a_model_that_cannot_reach_the_layers_point_gets_its_own_plan():
     refused = plan_with_model(fixed, plans, model, None, _Said(), replan)
     assert not any(p.feasible for p in refused)
     assert all("cannot bring the target" in p.reason and p.planned_with == "layer" for p in refused)
+
+
+def test_a_3d_model_whose_plan_the_slab_blocks_plans_again_on_its_own_obstacles():
+    """The layer's plan is reachable for the model but the nominal slab blocks its corridor: the target is
+    planned again with the model's target positions and its layer (obstacles, skin), and that plan is judged
+    on the slab again; if the new plan fails too, the refusal gives both reasons."""
+    from types import SimpleNamespace
+
+    from scissor_cli.config import load_config
+    from scissor_cli.experiments.controller_model import plan_with_model
+    from scissor_cli.planning.needle import plan_target
+    from scissor_cli.planning.states import StateCache
+
+    cfg = load_config(ROOT / "configs" / "paper_push.yaml")
+    cfg = cfg.model_copy(update={"targets": cfg.targets[:1]})
+    _, mesh, tissue = build_model(cfg, mesh_scale=2.0)
+    cache = StateCache(tissue)
+    plan = plan_target(tissue, tissue.scene, tissue.scene.targets[0], cfg.needle, cache=cache)
+    assert plan.feasible
+
+    def answer(strokes):
+        return np.array([plan.desired]), np.ones((1, 2, 1))
+
+    def model_layer(strokes):
+        return cache.state(np.asarray(strokes, float))
+
+    class SlabSays:
+        """Blocked where the layer's plan goes, clear once the plan was made again."""
+
+        def __call__(self, strokes):
+            return np.array([plan.desired]), np.ones((1, 2, 1))
+
+        def clearance(self, strokes, point, corridor):
+            return -0.4 if not asked else 0.8
+
+    asked = []
+
+    def replan(t, target_at, layer_at=None):
+        asked.append(layer_at)
+        return plan_target(tissue, tissue.scene, tissue.scene.targets[t], cfg.needle, cache=cache,
+                           target_at=target_at, layer_at=layer_at)
+
+    surrogate = SimpleNamespace(kind="surrogate", transmission=None, scene_map=lambda: answer,
+                                layer_map=lambda: model_layer)
+    said = _Said()
+    again = plan_with_model(cfg, [plan], surrogate, SlabSays(), said, replan)[0]
+    assert asked == [model_layer]
+    assert again.feasible and again.planned_with == "surrogate"
+    assert any("planned again on the surrogate model's target positions and obstacles" in line for line in said.lines)
+
+    def no_plan(t, target_at, layer_at=None):
+        asked.append(layer_at)
+        return replace(plan, feasible=False, reason="no entry side/direction clears the obstacles")
+
+    asked.clear()
+    refused = plan_with_model(cfg, [plan], surrogate, SlabSays(), _Said(), no_plan)[0]
+    assert not refused.feasible and asked == [model_layer]
+    assert "blocked (clearance -0.40 mm)" in refused.reason and "no entry side" in refused.reason
+
+
+def test_planner_on_a_given_layer_is_the_planner_on_the_tissue_when_they_agree():
+    """`layer_at` carries the obstacles and the skin: handed the tissue's own states, the plan is the same."""
+    from scissor_cli.config import load_config
+    from scissor_cli.planning.needle import plan_target
+    from scissor_cli.planning.states import StateCache
+
+    cfg = load_config(ROOT / "configs" / "paper_push.yaml")
+    _, mesh, tissue = build_model(cfg, mesh_scale=2.0)
+    cache = StateCache(tissue)
+    seen = []
+
+    def layer_at(strokes):
+        seen.append(np.asarray(strokes, float))
+        return cache.state(strokes)
+
+    for target in tissue.scene.targets:
+        own = plan_target(tissue, tissue.scene, target, cfg.needle, cache=cache)
+        given = plan_target(tissue, tissue.scene, target, cfg.needle, cache=cache, layer_at=layer_at)
+        assert (own.feasible, own.side) == (given.feasible, given.side)
+        np.testing.assert_array_equal(own.strokes, given.strokes)
+        np.testing.assert_array_equal(own.desired, given.desired)
+    assert seen
 
 
 def test_reserved_limits_move_each_limit_towards_rest_and_never_past_it():
@@ -361,7 +448,7 @@ def test_a_plan_in_the_stroke_reserve_is_refused_before_any_trial():
         s = float(np.asarray(strokes, float)[0])
         return rests + rate * s, np.repeat(rate[None, :, None], len(rests), axis=0)
 
-    model = SimpleNamespace(kind="surrogate", transmission=None, scene_map=lambda: answer)
+    model = SimpleNamespace(kind="surrogate", transmission=None, scene_map=lambda: answer, layer_map=lambda: None)
     cache = StateCache(tissue)
     plans = [plan_target(tissue, scene, t, cfg.needle, cache=cache) for t in scene.targets[:1]]
     assert plans[0].feasible
@@ -375,7 +462,7 @@ def test_a_plan_in_the_stroke_reserve_is_refused_before_any_trial():
     assert not refused.feasible
     assert "stroke reserve of 0.1" in refused.reason
     assert refused.strokes[0] <= 13.5 + 1e-9
-    layer = SimpleNamespace(kind="layer", transmission=None, scene_map=lambda: answer)
+    layer = SimpleNamespace(kind="layer", transmission=None, scene_map=lambda: answer, layer_map=lambda: None)
     assert plan_with_model(with_cfg, far, layer, None, _Said())[0].feasible
 
 
@@ -423,8 +510,8 @@ def test_a_plan_whose_corridor_the_slab_blocks_is_refused_for_a_3d_model_and_rep
     def answer(strokes):
         return np.array([plan.desired]), np.ones((1, 2, 1))
 
-    surrogate = SimpleNamespace(kind="surrogate", transmission=None, scene_map=lambda: answer)
-    layer = SimpleNamespace(kind="layer", transmission=None, scene_map=lambda: answer)
+    surrogate = SimpleNamespace(kind="surrogate", transmission=None, scene_map=lambda: answer, layer_map=lambda: None)
+    layer = SimpleNamespace(kind="layer", transmission=None, scene_map=lambda: answer, layer_map=lambda: None)
     blocked = Blocking(-0.4)
     refused = plan_with_model(cfg, [plan], surrogate, blocked, _Said())[0]
     assert not refused.feasible and "blocked (clearance -0.40 mm)" in refused.reason

@@ -38,8 +38,9 @@ from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.planning.corridor import corridor_radius
 
-#: (target index, its position (2,) at strokes (C,) → mm) → a `planning.needle.NeedlePlan`
-Replan = Callable[[int, Callable[[np.ndarray], np.ndarray]], object]
+#: (target index, its position (2,) at strokes (C,) → mm, the layer's nodes (N2, 2) at strokes → mm or None)
+#: → a `planning.needle.NeedlePlan`
+Replan = Callable[[int, Callable[[np.ndarray], np.ndarray], Optional[Callable[[np.ndarray], np.ndarray]]], object]
 
 
 def needs_slab(cfg: Config) -> bool:
@@ -56,6 +57,7 @@ def cache_key(cfg: Config, plan_strokes: list[np.ndarray]) -> str:
                                                       "layer_check"}),
         "surrogate": cfg.controller.surrogate.model_dump(mode="json") if kind == "surrogate" else None,
         "plans": [np.round(np.asarray(s, float), 9).tolist() for s in plan_strokes] if kind == "calibrated" else None,
+        "learns_layer": kind == "surrogate",  # a surrogate cached before it learned the layer is fitted again
     }
     return run_cache.key(parts)
 
@@ -72,6 +74,8 @@ def save_model_data(path: Path, data: ModelData) -> None:
         s = data.samples
         arrays.update(strokes=s.strokes, targets=s.targets, held_strokes=s.held_strokes, held_targets=s.held_targets,
                       lo=s.lo, hi=s.hi)
+        if s.layer is not None:
+            arrays.update(layer=s.layer, held_layer=s.held_layer)
     run_cache.write_whole(path, lambda partial: np.savez(partial, **arrays))
 
 
@@ -88,7 +92,7 @@ def load_model_data(path: Path) -> Optional[ModelData]:
         calibration = Calibration(a["transmission"], a["fit_strokes"], a["fit_targets"], float(a["fit_error_mm"]))
     if "strokes" in a:
         samples = SurrogateSamples(a["strokes"], a["targets"], a["held_strokes"], a["held_targets"], a["lo"], a["hi"],
-                                   float(a["build_time_s"]))
+                                   float(a["build_time_s"]), a.get("layer"), a.get("held_layer"))
     return ModelData(str(a["kind"]), float(a["build_time_s"]), None if np.isnan(error) else error, calibration, samples)
 
 
@@ -123,7 +127,7 @@ def solve_groups_in_workers(config_yaml: str, jobs: int, advance):
         batches = [(config_yaml, k, chunk) for k, chunk in enumerate(chunks)]
         for k, answers in run_pool(_solve_group, batches, min(jobs, len(chunks))):
             out[k] = answers
-            advance(len(answers))
+            advance(len(answers[0]))
         return out
 
     return solve
@@ -132,8 +136,8 @@ def solve_groups_in_workers(config_yaml: str, jobs: int, advance):
 _SLABS: dict[str, tuple] = {}
 
 
-def _solve_group(config_yaml: str, index: int, strokes: np.ndarray) -> list[tuple[int, np.ndarray]]:
-    """In a worker: the nominal slab's targets at one design group's strokes (`surrogate.solve_samples`)."""
+def _solve_group(config_yaml: str, index: int, strokes: np.ndarray) -> list[tuple[int, tuple[np.ndarray, np.ndarray]]]:
+    """In a worker: the nominal slab's targets and layer at one design group's strokes (`surrogate.solve_samples`)."""
     if config_yaml not in _SLABS:
         from scissor_cli.config import parse_config  # noqa: PLC0415
         from scissor_cli.layer3d.check import spec_from_config  # noqa: PLC0415
@@ -152,10 +156,13 @@ def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answe
                     replan: Optional[Replan] = None) -> list:
     """The plans with `model_strokes` (and `strokes`, for a 3-D-aware model) and `slab_strokes` (docs/model.md §15).
 
-    replan(t, target_at): target t planned again with the target's position
-    at strokes given by target_at (`planning.needle.TargetAt`). A
-    3-D-aware model that cannot reach a desired point the planner chose
-    (not the config) gets its own plan that way before the plan is given up.
+    replan(t, target_at, layer_at): target t planned again with the
+    target's position at strokes given by target_at
+    (`planning.needle.TargetAt`) and the layer's nodes — the obstacles and
+    the skin — by layer_at (`ControllerModel.layer_map`; None: the 2-D
+    layer's). A 3-D-aware model that cannot reach a desired point the
+    planner chose (not the config), or whose plan's corridor the nominal
+    slab blocks, gets its own plan that way before the plan is given up.
     """
     lo = np.array([c.stroke_mm[0] for c in cfg.cups])
     hi = np.array([c.stroke_mm[1] for c in cfg.cups])
@@ -164,6 +171,7 @@ def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answe
     tol = cfg.controller.tolerance_mm
     mode = cfg.controller.error
     model_answer = model.scene_map() if model.kind != "layer" else None
+    model_layer = model.layer_map()
 
     def model_strokes(t, plan):
         if model_answer is None:
@@ -172,23 +180,20 @@ def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answe
         start = plan.strokes if model.transmission is None else plan.strokes / model.transmission
         return strokes_for(_one(model_answer, t), plan.desired, lo_kept, hi_kept, direction, mode, start)
 
-    out = []
-    for t, plan in enumerate(plans):
-        if not plan.feasible:
-            out.append(plan)
-            continue
+    def judged(t, plan, may_replan: bool):
+        """(the plan with the model's and the slab's strokes and their verdicts, whether the slab blocks its corridor)."""
         model_s, left = model_strokes(t, plan)
         again_reason = ""
-        if left > tol and replan is not None and cfg.targets[t].desired_mm is None:
-            again = replan(t, lambda s, t=t: _one(model_answer, t)(s)[0])
+        if left > tol and may_replan:
+            again = replan(t, lambda s, t=t: _one(model_answer, t)(s)[0], model_layer)
             if again.feasible:
                 reporter.info(f"plan {plan.target}: the layer's desired point is beyond the {model.kind} model's "
                               f"reach (left {left:.2f} mm at strokes {_fmt(model_s)} mm): planned again on the "
-                              f"model's target positions")
+                              f"model's {seen}")
                 plan = replace(again, planned_with=model.kind)
                 model_s, left = model_strokes(t, plan)
             else:
-                again_reason = f"; planned again on the model's target positions: {again.reason}"
+                again_reason = f"; planned again on the model's {seen}: {again.reason}"
         direction = plan.direction if mode == "miss" else None
         slab_s = None
         if slab_answer is not None:
@@ -218,8 +223,27 @@ def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answe
                 if model_answer is None:
                     reporter.info(f"plan {plan.target}: {blocked}")
                 else:
-                    plan = replace(plan, feasible=False, reason=blocked)
-        out.append(plan)
+                    return replace(plan, feasible=False, reason=blocked), True
+        return plan, False
+
+    seen = "target positions and obstacles" if model_layer is not None else "target positions"
+    out = []
+    for t, plan in enumerate(plans):
+        if not plan.feasible:
+            out.append(plan)
+            continue
+        may_replan = replan is not None and model_answer is not None and cfg.targets[t].desired_mm is None
+        first, blocked = judged(t, plan, may_replan)
+        if blocked and may_replan and model_layer is not None and first.planned_with == "layer":
+            # The layer's plan, reachable for the model, crosses obstacles where the slab has them: plan again
+            # where the model puts them.
+            again = replan(t, lambda s, t=t: _one(model_answer, t)(s)[0], model_layer)
+            if again.feasible:
+                reporter.info(f"plan {plan.target}: {first.reason}; planned again on the {model.kind} model's {seen}")
+                first = judged(t, replace(again, planned_with=model.kind), False)[0]
+            else:
+                first = replace(first, reason=f"{first.reason}; planned again on the model's {seen}: {again.reason}")
+        out.append(first)
     return out
 
 
@@ -240,6 +264,8 @@ def controller_model_stage(cfg: Config, tissue: Tissue, plans: list, location: O
     how = "from the cache" if cached else f"in {data.build_time_s:.1f} s"
     error = "" if data.validation_error_mm is None else f", error against the slab {data.validation_error_mm:.3g} mm"
     extra = "" if model.transmission is None else f", transmission {_fmt(model.transmission)}"
+    if model.surrogate is not None and model.surrogate.knows_layer:
+        extra += f"; its layer (obstacles, skin) within {model.surrogate.layer_error_mm():.3g} mm"
     if data.kind != "layer":
         reporter.info(f"controller model {data.kind}: {how}{error}{extra}")
     rests = np.array([t.rest for t in tissue.scene.targets]).reshape(-1, 2)

@@ -417,9 +417,9 @@ def _plan_stage(cfg: Config, tissue: Tissue, sink: RunSink, reporter: Reporter, 
 
     reserved = reserved_scene(scene, cfg.controller.stroke_reserve)  # a 3-D-aware model plans again inside it
 
-    def replan(t: int, target_at) -> NeedlePlan:
+    def replan(t: int, target_at, layer_at=None) -> NeedlePlan:
         return plan_target(tissue, reserved, scene.targets[t], cfg.needle, robot_check=robot_check, cache=cache,
-                           target_at=target_at)
+                           target_at=target_at, layer_at=layer_at)
 
     model_data, plans, paths = controller_model_stage(cfg, tissue, plans, sink.location, reporter, jobs, replan)
     if model_data is not None and hasattr(sink, "controller_model"):

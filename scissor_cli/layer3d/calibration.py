@@ -64,7 +64,7 @@ def fit_transmission(layer: Tissue, probe: TargetProbe, slab: Tissue, slab_targe
     """τ (C,) fitted per cup on its stroke values (`calibration_strokes`) against the nominal slab."""
     C = len(values)
     strokes = np.vstack([np.outer(v, np.eye(C)[c]) for c, v in enumerate(values)]) if C else np.zeros((0, 0))
-    answers = solve_samples(slab, slab_targets, strokes, tol, advance)
+    answers = solve_samples(slab, slab_targets, strokes, tol, advance)[0]
     tau, errors, row = np.ones(C), [], 0
     for c, v in enumerate(values):
         want = answers[row:row + v.size, :, :2]  # (V, T, 2): what the camera sees

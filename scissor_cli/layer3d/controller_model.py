@@ -9,7 +9,9 @@ what the loop and the planner use, the same for all four:
 * `controller(target, lo, hi, resolution_mm)` — the per-target controller
   of `control.run_loop` (`plant.Controller` or one of `control.models`);
 * `scene_map()` — strokes (C,) → the targets' in-plane positions (T, 2) and
-  J (T, 2, C): what the planner inverts and the figure draws.
+  J (T, 2, C): what the planner inverts and the figure draws;
+* `layer_map()` — strokes (C,) → the layer's nodes in-plane (N2, 2): where
+  a plan made again with the model finds the obstacles and the skin.
 
 The slab itself (for `slab`, and for the plan's `slab_strokes`) is the
 nominal slab of `layer3d.truth.SlabTruth`, built once per process.
@@ -37,6 +39,8 @@ from scissor_cli.solvers.tracking import Equilibrium
 KINDS = ("layer", "calibrated", "surrogate", "slab")
 #: strokes (C,) mm → targets' in-plane positions (T, 2) mm and J (T, 2, C) mm/mm
 SceneMap = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+#: strokes (C,) mm → the layer's nodes in-plane (N2, 2) mm, one per 2-D node
+LayerMap = Callable[[np.ndarray], np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -124,6 +128,23 @@ class ControllerModel:
         return SlabController(self.slab, slab_probe(self.slab, self.layer.mesh, probe=probe), lo, hi, resolution_mm,
                               SLAB_TRUTH_TOL)
 
+    def layer_map(self) -> Optional[LayerMap]:
+        """strokes → the layer's nodes in-plane (N2, 2) mm as this model predicts them; None for `layer` (the
+        planner's own states) and for a surrogate fitted without them."""
+        if self.kind == "surrogate":
+            return self.surrogate.layer_at if self.surrogate.knows_layer else None
+        if self.kind == "slab":
+            return SlabMap(self.slab, self.layer, self._rests).layer_at
+        if self.kind == "calibrated":
+            eq, tau = Equilibrium(self.layer), self.transmission
+
+            def calibrated_layer(strokes):
+                eq.move_to(tau * np.asarray(strokes, float), tangent=False)
+                return eq.x
+
+            return calibrated_layer
+        return None
+
     def scene_map(self) -> SceneMap:
         """strokes → (targets (T, 2), J (T, 2, C)) of this model; a tracked solve for layer, calibrated, slab."""
         if self.kind == "surrogate":
@@ -175,11 +196,15 @@ class SlabMap:
         self.eq.move_to(np.asarray(strokes, float), tangent=True)
         return self.probe.positions(self.eq.x)[:, :2], self.probe.response(self.eq.response)[:, :2]
 
+    def layer_at(self, strokes: np.ndarray) -> np.ndarray:
+        """The nominal slab's layer in-plane (N2, 2) mm at `strokes` (C,) mm (a `LayerMap`)."""
+        self.eq.move_to(np.asarray(strokes, float), tangent=False)
+        return self.eq.x[self._layer_nodes, :2]
+
     def clearance(self, strokes: np.ndarray, point: np.ndarray, corridor: Corridor) -> float:
         """The corridor's clearance (mm, > 0 clear; NaN: it does not reach the skin) to `point` (2,) mm with
         the nominal slab at `strokes` (C,) mm: what a slab-truth trial checks at its end (`control.corridor_at`)."""
-        self.eq.move_to(np.asarray(strokes, float), tangent=False)
-        return corridor_at(self.layer, self.eq.x[self._layer_nodes, :2], np.asarray(point, float), corridor)[1]
+        return corridor_at(self.layer, self.layer_at(strokes), np.asarray(point, float), corridor)[1]
 
 
 def slab_map(slab: Tissue, layer: Tissue, rests: np.ndarray) -> SlabMap:

@@ -22,13 +22,18 @@ prediction and the slab at the held-out strokes, over targets — the part
 the camera sees and the controller uses (the height is learned too and
 stored, but a thin slab's height can swing by millimetres over the strokes
 and is not what the loop steers).
+
+The same solves also give the layer: the slab's nodes at the layer's
+height, in-plane (one per 2-D node), learned the same way (`layer_at`), so
+a plan made again with the model judges the obstacles and the skin where
+the slab moves them, not where the 2-D layer does (docs/model.md §15).
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Optional
 
 import numpy as np
 from scipy.interpolate import RBFInterpolator
@@ -55,6 +60,9 @@ class SurrogateSamples:
     lo: np.ndarray
     hi: np.ndarray
     build_time_s: float
+    #: the slab's layer in-plane at the training (S, N2, 2) and held-out (V, N2, 2) strokes, mm; None: not learned
+    layer: Optional[np.ndarray] = None
+    held_layer: Optional[np.ndarray] = None
 
 
 def design(lo: np.ndarray, hi: np.ndarray, samples: int) -> tuple[np.ndarray, np.ndarray]:
@@ -91,19 +99,25 @@ def groups(points: np.ndarray) -> list[np.ndarray]:
 
 
 def solve_samples(slab: Tissue, probe: SlabProbe, strokes: np.ndarray, tol: float,
-                  advance: Callable[[int], None] = lambda n: None) -> np.ndarray:
-    """The targets (P, T, 3) mm of the nominal slab at each stroke vector (P, C), solved along `chain` from rest."""
+                  advance: Callable[[int], None] = lambda n: None) -> tuple[np.ndarray, np.ndarray]:
+    """The targets (P, T, 3) mm and the layer in-plane (P, N2, 2) mm of the nominal slab at each stroke vector
+    (P, C), solved along `chain` from rest."""
     eq = Equilibrium(slab, tol)
-    out = np.empty((len(strokes), len(probe.nodes), 3))
+    sm = slab.mesh
+    layer_nodes = sm.node(sm.layer_level, np.arange(sm.n_nodes_2d))
+    targets = np.empty((len(strokes), len(probe.nodes), 3))
+    layer = np.empty((len(strokes), len(layer_nodes), 2))
     for k in chain(strokes):
         eq.move_to(strokes[k], tangent=False)
-        out[k] = probe.positions(eq.x)
+        targets[k] = probe.positions(eq.x)
+        layer[k] = eq.x[layer_nodes, :2]
         advance(1)
-    return out
+    return targets, layer
 
 
-#: solves groups of stroke points [(P_g, C)] → their targets [(P_g, T, 3)], in order (`train`'s parallel hook)
-GroupSolver = Callable[[list[np.ndarray]], list[np.ndarray]]
+#: solves groups of stroke points [(P_g, C)] → their (targets (P_g, T, 3), layer (P_g, N2, 2)), in order
+#: (`train`'s parallel hook)
+GroupSolver = Callable[[list[np.ndarray]], list[tuple[np.ndarray, np.ndarray]]]
 
 
 def train(slab: Tissue, probe: SlabProbe, lo, hi, samples: int, tol: float,
@@ -122,10 +136,11 @@ def train(slab: Tissue, probe: SlabProbe, lo, hi, samples: int, tol: float,
         def solve_groups(chunks):
             return [solve_samples(slab, probe, chunk, tol, advance) for chunk in chunks]
     answers = np.empty((len(points), len(probe.nodes), 3))
-    for part, solved in zip(parts, solve_groups([points[g] for g in parts])):
-        answers[part] = solved
+    layer = np.empty((len(points), slab.mesh.n_nodes_2d, 2))
+    for part, (solved, solved_layer) in zip(parts, solve_groups([points[g] for g in parts])):
+        answers[part], layer[part] = solved, solved_layer
     return SurrogateSamples(strokes, answers[:samples], held, answers[samples:], np.asarray(lo, float),
-                            np.asarray(hi, float), time.perf_counter() - t0)
+                            np.asarray(hi, float), time.perf_counter() - t0, layer[:samples], layer[samples:])
 
 
 class Surrogate:
@@ -139,6 +154,8 @@ class Surrogate:
         self.n_targets = T
         self._rbf = RBFInterpolator(self._scaled(data.strokes), data.targets.reshape(S, 3 * T),
                                     kernel="thin_plate_spline", degree=1)
+        self._layer_rbf = None if data.layer is None else RBFInterpolator(
+            self._scaled(data.strokes), data.layer.reshape(S, -1), kernel="thin_plate_spline", degree=1)
 
     def _scaled(self, strokes: np.ndarray) -> np.ndarray:
         return (np.atleast_2d(strokes) - self._centre) / self._half
@@ -164,6 +181,22 @@ class Surrogate:
         if not len(d.held_strokes):
             return float("nan")
         return float(np.max(np.linalg.norm((self.predict(d.held_strokes) - d.held_targets)[:, :, :2], axis=2)))
+
+    @property
+    def knows_layer(self) -> bool:
+        return self._layer_rbf is not None
+
+    def layer_at(self, strokes: np.ndarray) -> np.ndarray:
+        """The slab's layer in-plane (N2, 2) mm at strokes (C,) mm (one row per 2-D node)."""
+        return self._layer_rbf(self._scaled(np.asarray(strokes, float))).reshape(-1, 2)
+
+    def layer_error_mm(self) -> float:
+        """The largest distance (mm) of a layer node between the prediction and the slab at the held-out strokes."""
+        d = self.data
+        if d.held_layer is None or not len(d.held_strokes):
+            return float("nan")
+        predicted = self._layer_rbf(self._scaled(d.held_strokes)).reshape(d.held_layer.shape)
+        return float(np.max(np.linalg.norm(predicted - d.held_layer, axis=2)))
 
     def target_map(self, target: int):
         """The `control.models.TargetMap` of one target: strokes → (in-plane position (2,), J (2, C))."""

@@ -38,6 +38,8 @@ RobotCheck = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, bo
 #: The target's position (2,) mm at cup strokes (C,) mm by another model than the planner's tissue
 #: (a 3-D-aware controller model, docs/model.md §15); the obstacles stay the tissue's.
 TargetAt = Callable[[np.ndarray], np.ndarray]
+#: strokes (C,) mm → the layer's node positions (N, 2) mm as a controller model predicts them (docs/model.md §15)
+LayerAt = Callable[[np.ndarray], np.ndarray]
 
 N_JOINTS = 5
 
@@ -104,9 +106,10 @@ class _Evaluator:
     """Evaluates the target's best insertion on the deformed scene at given strokes."""
 
     def __init__(self, tissue: Tissue, scene: Scene, target: Target, needle_cfg: NeedleConfig, cache: StateCache,
-                 robot_check: Optional[RobotCheck] = None, target_at: Optional[TargetAt] = None):
+                 robot_check: Optional[RobotCheck] = None, target_at: Optional[TargetAt] = None,
+                 layer_at: Optional[LayerAt] = None):
         self.scene, self.needle_cfg, self.cache, self.robot_check = scene, needle_cfg, cache, robot_check
-        self.target_at = target_at
+        self.target_at, self.layer_at = target_at, layer_at
         mesh = tissue.mesh
         self.obstacles = embed_outlines(mesh, [o.outline for o in scene.obstacles])
         self.target = embed_outlines(mesh, [target.rest])
@@ -118,6 +121,13 @@ class _Evaluator:
         """Deformed target (2,), obstacle outlines and skin outline at node positions x (N, 2)."""
         return deformed_outlines(self.target, x)[0][0], deformed_outlines(self.obstacles, x), x[self.loop]
 
+    def state(self, strokes) -> Optional[np.ndarray]:
+        """The layer's node positions (N, 2) at the strokes: `layer_at`'s when given, else the tissue's solve
+        (None if it failed)."""
+        if self.layer_at is not None:
+            return np.asarray(self.layer_at(np.array(StateCache.key(strokes))), float)
+        return self.cache.state(strokes)
+
     def insertions_at(self, point: np.ndarray, x: np.ndarray) -> list[Insertion]:
         _, obstacles, outline = self.scene_at(x)
         return ranked_insertions(point, obstacles, outline, self.candidates, self.needle_cfg)
@@ -126,7 +136,7 @@ class _Evaluator:
         key = StateCache.key(strokes)
         if key in self.samples:
             return self.samples[key]
-        x = self.cache.state(strokes)
+        x = self.state(strokes)
         if x is None:
             return None
         y, obstacles, outline = self.scene_at(x)
@@ -261,6 +271,7 @@ def plan_target(
     refine_levels: int = 3,
     cache: Optional[StateCache] = None,
     target_at: Optional[TargetAt] = None,
+    layer_at: Optional[LayerAt] = None,
 ) -> NeedlePlan:
     """Plan a straight, obstacle-free insertion to one target (docs/model.md §7).
 
@@ -280,13 +291,14 @@ def plan_target(
     the best insertion, the next clear one at the same state is tried.
     `cache` shares solved states between the targets of a scene.
     `target_at` (see `TargetAt`) gives the target's position at the strokes
-    in place of the tissue's (the obstacles and the skin stay the tissue's):
-    the plan of a 3-D-aware controller model (docs/model.md §15).
+    in place of the tissue's, and `layer_at` (see `LayerAt`) the layer's
+    nodes, which carry the obstacles and the skin (without it they stay
+    the tissue's): the plan of a 3-D-aware controller model (docs/model.md §15).
     """
     t0 = time.perf_counter()
     cache = cache or StateCache(tissue)
     solves0 = cache.solves
-    ev = _Evaluator(tissue, scene, target, needle_cfg, cache, robot_check, target_at)
+    ev = _Evaluator(tissue, scene, target, needle_cfg, cache, robot_check, target_at, layer_at)
     zero = np.zeros(len(scene.cups))
     rest = ev.sample(zero)
 
@@ -324,7 +336,7 @@ def _plan_for_desired(ev: _Evaluator, target: Target, yd: np.ndarray, step: np.n
         return min(samples, key=lambda s: (np.linalg.norm(s.target - yd), s.size))
 
     chosen = _refine(ev, closest(list(ev.samples.values())), step, levels, closest)
-    ranked = ev.insertions_at(yd, ev.cache.state(chosen.strokes))
+    ranked = ev.insertions_at(yd, ev.state(chosen.strokes))
     ins = ranked[0] if ranked else None
     err = float(np.linalg.norm(chosen.target - yd))
     where = (
@@ -351,7 +363,7 @@ def _plan_by_search(ev: _Evaluator, target: Target, step: np.ndarray, levels: in
         return _choose_clearance(ev.robot_pool(samples), tie_mm)
 
     chosen = _refine(ev, choose(list(ev.samples.values())), step, levels, choose)
-    ranked = ev.insertions_at(chosen.target, ev.cache.state(chosen.strokes))
+    ranked = ev.insertions_at(chosen.target, ev.state(chosen.strokes))
     reason = ""
     if chosen.insertion is None:
         reason = f"{_no_entry_reason(ev.needle_cfg)} at {_fmt_ranges(ev.scene)}"
