@@ -439,3 +439,37 @@ def test_the_truths_position_fit_takes_the_degree_its_history_supports(monkeypat
     cubic = eq._fitted(ds)
     quintic_error, cubic_error = (np.linalg.norm(eq.x.ravel() + p - ref) for p in (quintic, cubic))
     assert quintic_error < 0.2 * cubic_error
+
+
+def test_a_loop_chattering_on_a_camera_pixel_at_the_speed_limit_stalls():
+    """The camera's pixel (0.24 mm at the layer) is coarser than the tolerance (0.1 mm), and one pixel of error
+    asks for more stroke than one control period's travel: every step is cut by the speed limit, back and forth
+    about the desired point. Moving one way at top speed is not stalling, chattering is: the loop says "stalled"
+    soon after it arrives instead of chattering to max_iterations, and the true error is about a pixel."""
+    from scissor_cli.control.actuator import Actuator
+    from scissor_cli.control.law import STALL_PATIENCE, traveling
+    from scissor_cli.control.loop import run_loop
+
+    assert traveling([np.array([s]) for s in (0.0, 0.5, 1.0, 1.5, 2.0, 2.5)])
+    assert not traveling([np.array([s]) for s in (2.0, 2.5, 2.0, 2.5, 2.0, 2.5)])
+    assert traveling([np.array([0.0])] * STALL_PATIENCE)  # (too few moves to judge)
+
+    cfg, tissue, plans = scene_setup("example")
+    target, plan = tissue.scene.targets[1], plans[1]
+    base = Actuator.from_scene(tissue.scene)
+    fields = {f: getattr(base, f) for f in base.__dataclass_fields__}
+    fields["speed_mm_per_s"] = np.full_like(base.speed_mm_per_s, 2.0)  # 0.2 mm per period at 10 Hz
+    probe = probe_targets(tissue.mesh, target.rest[None])
+    plant = ct.Plant(tissue, Actuator(**fields), probe)
+    controller = ct.Controller(tissue, probe, base.lo, base.hi)
+    camera = Camera.from_config(cfg.camera)
+    assert np.max(camera.mm_per_pixel) > 2 * cfg.controller.tolerance_mm
+    loop_cfg = cfg.controller.model_copy(update={"max_iterations": 200})
+    pixel = camera.mm_per_pixel
+    # the desired point half a pixel off the pixel centres in both axes: no reading is within the tolerance
+    desired = camera.measure(np.asarray(plan.desired, float)[None], np.random.default_rng(0), 0.0)[0] + 0.5 * pixel
+    r = run_loop(plant, controller, desired, loop_cfg, ct.Measurement(camera, noise_px=0.0),
+                 target=target.name, direction=plan.direction)
+    travel = int(np.ceil(np.max(np.abs(plan.strokes)) / 0.2))
+    assert r.stop_reason == "stalled" and r.iterations <= travel + 30
+    assert r.miss_mm <= 1.5 * np.max(pixel)

@@ -64,6 +64,21 @@ class PID:
         return quantise(raw, lo, hi, resolution_mm), (raw > hi) | (raw < lo)
 
 
+def traveling(commands: list[np.ndarray]) -> bool:
+    """Whether the command went one way over the last STALL_PATIENCE moves (its net move at least half its
+    path, commands (C,) mm each): a loop cut by the drives' speed is then still carried towards the target.
+
+    A loop that chatters — a camera pixel (0.24 mm at the paper's camera) asks for more stroke than one
+    period's travel when J is right, so every step is cut by the speed limit, back and forth — is not
+    traveling, and may stall (docs/model.md §6).
+    """
+    if len(commands) <= STALL_PATIENCE:
+        return True
+    c = np.asarray(commands[-STALL_PATIENCE - 1:], float)
+    path = float(np.sum(np.linalg.norm(np.diff(c, axis=0), axis=1)))
+    return float(np.linalg.norm(c[-1] - c[0])) >= 0.5 * path
+
+
 def stalled(corr_history: list[float]) -> bool:
     """No 10 % better correctable error in the last STALL_PATIENCE measurements than before them."""
     if len(corr_history) <= STALL_PATIENCE:

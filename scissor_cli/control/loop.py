@@ -52,7 +52,7 @@ from scissor_cli.control.actuator import Actuator, quantise
 from scissor_cli.control.corridor import Corridor, corridor_at
 from scissor_cli.control.allocation import stroke_step
 from scissor_cli.control.broyden import BroydenCorrection
-from scissor_cli.control.law import PID, stalled
+from scissor_cli.control.law import PID, stalled, traveling
 from scissor_cli.control.measurement import Measurement
 from scissor_cli.control.plant import Controller, Plant, TruthFactory, TruthPerturbation, true_tissue
 from scissor_cli.control.result import History, LoopResult
@@ -86,7 +86,8 @@ def run_loop(
     from the observed moves (`control.broyden`). Stops when the correctable part of the measured error
     is ≤ cfg.tolerance_mm ("tolerance"), after cfg.max_iterations moves
     ("max_iterations"), when the best correctable error has not improved by
-    10 % over the last 5 measurements ("stalled"), when the command sits at
+    10 % over the last 5 measurements ("stalled"; not while the speed limit
+    cuts a step and the command still goes one way, `law.traveling`), when the command sits at
     a stroke limit and asks to go further ("stroke_limit"), or when a solve
     fails ("solver_failed", the reason in `message`; the failed move is not
     in the history).
@@ -98,7 +99,7 @@ def run_loop(
     dt = 1.0 / cfg.rate_hz
     pid = PID(cfg.kp, cfg.ki, cfg.kd, dt)
     tangent = controller.shares(plant)
-    hist, corr_norms = History(), []
+    hist, corr_norms, commands = History(), [], []
     command, sim_t, reason, message = controller.strokes.copy(), 0.0, "", ""
     max_step = plant.actuator.speed_mm_per_s * dt
     correction = BroydenCorrection(measurement.noise_mm) if cfg.jacobian_update == "broyden" else None
@@ -111,6 +112,7 @@ def run_loop(
         step = stroke_step(J, desired - y, command, controller.lo, controller.hi, max_step, direction, cfg.error)
         ds = step.ds
         corr_norms.append(float(np.hypot(np.linalg.norm(step.correctable), step.along_correctable_mm)))
+        commands.append(command)
         hist.add(sim_t, command, plant.strokes, y, plant.position, corr_norms[-1],
                  np.linalg.norm(step.uncorrectable), step.along_mm)
         if controller.n_cups == 0:
@@ -124,8 +126,8 @@ def run_loop(
             reason = "tolerance"
         elif k == cfg.max_iterations:
             reason = "max_iterations"
-        elif not step.limited and stalled(corr_norms):  # moving at the drives' top speed is not stalling
-            reason = "stalled"
+        elif stalled(corr_norms) and not (step.limited and traveling(commands)):
+            reason = "stalled"  # (moving one way at the drives' top speed is not stalling; chattering is)
         if reason:
             break
         new, saturated = pid.command(command, ds, controller.lo, controller.hi, controller.resolution_mm)
