@@ -322,3 +322,26 @@ def test_indefinite_hessian_near_the_solution_is_shifted_not_projected(coarse, m
     assert slab.factor_cache["shift"] in newton.SHIFTS
     u = np.abs(reference.x - slab.rest).max()
     assert np.abs(r.x - reference.x).max() <= 1e-7 * u
+
+
+def test_a_loop_passing_the_plan_keeps_its_own_fit_not_the_nominal_start(coarse):
+    """The nominal slab at the plan's strokes starts a trial's first, big move; a loop that later passes those
+    strokes in small moves predicts from its own equilibria (the perturbed tissue's), not from the nominal
+    slab: no guess is asked for, and no factorisation is paid for one."""
+    from scissor_cli.control import TruthPerturbation
+    from scissor_cli.layer3d.truth import SlabTruth
+    from scissor_cli.solvers.tracking import Equilibrium
+
+    scene, mesh, model = coarse
+    truth = SlabTruth(model, SlabSpec(10.0, 5.0, max_layer_mm=5.0))
+    plan = np.array([4.0])
+    tissue, view = truth.for_target(scene.targets[0].rest, plan)(TruthPerturbation(E_scale=1.2, nu=0.43))
+    eq = Equilibrium(tissue, view.tol)
+    eq.guesses.extend(view.guesses)
+    asked = []
+    start = eq._start
+    eq._start = lambda strokes: (asked.append(float(strokes[0])), start(strokes))[1]
+    for s in (0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 3.9):
+        eq.move_to(np.array([s]), tangent=False)
+    assert asked[0] == 0.5 and 3.9 not in asked  # the first move has no history; at 3.9 (0.1 from the plan) its fit
+    assert eq.stats["fallbacks"] == 0

@@ -114,8 +114,9 @@ class Equilibrium:
             self.refactor(self.x)
         if not np.array_equal(strokes, self.strokes):
             fallbacks = self.stats["fallbacks"]
-            x0, s0 = self._start(strokes)
-            x = self._corrected(strokes, x0, s0, self._fitted(strokes - s0) if x0 is self.x else None)
+            fitted = self._fitted(strokes - self.strokes)
+            x0, s0 = (self.x, self.strokes) if fitted is not None else self._start(strokes)
+            x = self._corrected(strokes, x0, s0, fitted)
             if x is None:
                 self.stats["fallbacks"] += 1
                 r = solve_newton(self.tissue, strokes, x0=self.x, strokes0=self.strokes, tol=self.tol, factors=self.factors)
@@ -201,7 +202,12 @@ class Equilibrium:
 
         A guess gets this tissue's own tangent (one factorisation), so it
         may come from another tissue on the same mesh (the model's state for
-        the truth): it is only a starting point.
+        the truth): it is only a starting point. `move_to` asks only when the
+        tracker has no polynomial fit of its own for the move: its own
+        equilibria predict a loop's small move far better than another
+        tissue's state (a slab-truth loop passing the plan's strokes started
+        from the nominal slab there at a residual of 1e-1, against 1e-3 from
+        its fit, and paid a factorisation for it).
         """
         if self.guesses:
             s_g, x_g = min(self.guesses, key=lambda g: np.linalg.norm(g[0] - strokes))
