@@ -36,7 +36,7 @@ from scissor_cli.scene.scene import Scene, Target
 RobotCheck = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, bool, str]]
 
 #: The target's position (2,) mm at cup strokes (C,) mm by another model than the planner's tissue
-#: (a 3-D-aware controller model, docs/model.md §15); the obstacles stay the tissue's.
+#: (a 3-D-aware controller model, docs/model.md §15); the obstacles and the skin come with `LayerAt`.
 TargetAt = Callable[[np.ndarray], np.ndarray]
 #: strokes (C,) mm → the layer's node positions (N, 2) mm as a controller model predicts them (docs/model.md §15)
 LayerAt = Callable[[np.ndarray], np.ndarray]
