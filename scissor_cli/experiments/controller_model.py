@@ -180,12 +180,16 @@ def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answe
         start = plan.strokes if model.transmission is None else plan.strokes / model.transmission
         return strokes_for(_one(model_answer, t), plan.desired, lo_kept, hi_kept, direction, mode, start)
 
+    def target_at(t):
+        """Target t's position (2,) at strokes by the model (`planning.needle.TargetAt`)."""
+        return lambda s: _one(model_answer, t)(s)[0]
+
     def judged(t, plan, may_replan: bool):
         """(the plan with the model's and the slab's strokes and their verdicts, whether the slab blocks its corridor)."""
         model_s, left = model_strokes(t, plan)
         again_reason = ""
         if left > tol and may_replan:
-            again = replan(t, lambda s, t=t: _one(model_answer, t)(s)[0], model_layer)
+            again = replan(t, target_at(t), model_layer)
             if again.feasible:
                 reporter.info(f"plan {plan.target}: the layer's desired point is beyond the {model.kind} model's "
                               f"reach (left {left:.2f} mm at strokes {_fmt(model_s)} mm): planned again on the "
@@ -237,7 +241,7 @@ def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answe
         if blocked and may_replan and model_layer is not None and first.planned_with == "layer":
             # The layer's plan, reachable for the model, crosses obstacles where the slab has them: plan again
             # where the model puts them.
-            again = replan(t, lambda s, t=t: _one(model_answer, t)(s)[0], model_layer)
+            again = replan(t, target_at(t), model_layer)
             if again.feasible:
                 reporter.info(f"plan {plan.target}: {first.reason}; planned again on the {model.kind} model's {seen}")
                 first = judged(t, replace(again, planned_with=model.kind), False)[0]
