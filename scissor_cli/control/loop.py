@@ -99,7 +99,7 @@ def run_loop(
     dt = 1.0 / cfg.rate_hz
     pid = PID(cfg.kp, cfg.ki, cfg.kd, dt)
     tangent = controller.shares(plant)
-    hist, corr_norms, commands = History(), [], []
+    hist, corr_norms = History(), []
     command, sim_t, reason, message = controller.strokes.copy(), 0.0, "", ""
     max_step = plant.actuator.speed_mm_per_s * dt
     correction = BroydenCorrection(measurement.noise_mm) if cfg.jacobian_update == "broyden" else None
@@ -112,7 +112,6 @@ def run_loop(
         step = stroke_step(J, desired - y, command, controller.lo, controller.hi, max_step, direction, cfg.error)
         ds = step.ds
         corr_norms.append(float(np.hypot(np.linalg.norm(step.correctable), step.along_correctable_mm)))
-        commands.append(command)
         hist.add(sim_t, command, plant.strokes, y, plant.position, corr_norms[-1],
                  np.linalg.norm(step.uncorrectable), step.along_mm)
         if controller.n_cups == 0:
@@ -126,7 +125,7 @@ def run_loop(
             reason = "tolerance"
         elif k == cfg.max_iterations:
             reason = "max_iterations"
-        elif stalled(corr_norms) and not (step.limited and traveling(commands)):
+        elif stalled(corr_norms) and not (step.limited and traveling(hist.rows["cmd"])):
             reason = "stalled"  # (moving one way at the drives' top speed is not stalling; chattering is)
         if reason:
             break

@@ -89,7 +89,7 @@ def _in_slab(cfg: Config, tissue: Tissue, truth, target, plan, params, animate: 
     slab = truth.slab
     sm = slab.mesh
     ramp = slab_ramp(slab, plan.strokes, RAMP_FRAMES if animate else 1, SLAB_TRUTH_TOL)
-    layer_nodes = sm.node(sm.layer_level, np.arange(sm.n_nodes_2d))
+    layer_nodes = sm.layer_nodes
     frames = [tissue.rest.copy()] + [x[layer_nodes, :2] for x in ramp]
     z = float(sm.levels_mm[sm.layer_level])
     entry, direction = np.append(plan.entry, z), np.append(plan.direction, 0.0)

@@ -90,7 +90,7 @@ class LayerCheck:
         in_plane = float(diff.max(initial=0.0))
         stress_diff = float(diff_stress.max(initial=0.0))
         sm = self.slab.mesh
-        layer_nodes = r3.x[sm.node(sm.layer_level, np.arange(sm.n_nodes_2d))]
+        layer_nodes = r3.x[sm.layer_nodes]
         names = self.names
         return LayerCheckCase(
             name=name,

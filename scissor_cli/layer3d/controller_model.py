@@ -189,8 +189,7 @@ class SlabMap:
         self.layer = layer
         self.probe = slab_probe(slab, layer.mesh, rests)
         self.eq = Equilibrium(slab, SLAB_TRUTH_TOL)
-        sm = slab.mesh
-        self._layer_nodes = sm.node(sm.layer_level, np.arange(sm.n_nodes_2d))
+        self._layer_nodes = slab.mesh.layer_nodes
 
     def __call__(self, strokes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         self.eq.move_to(np.asarray(strokes, float), tangent=True)

@@ -54,6 +54,11 @@ class SlabMesh:
     def tetrahedra(self) -> np.ndarray:
         return self.triangles
 
+    @property
+    def layer_nodes(self) -> np.ndarray:
+        """The 3-D nodes (N2,) of the simulated layer, one per 2-D vertex, in the 2-D mesh's order."""
+        return self.node(self.layer_level, np.arange(self.n_nodes_2d))
+
     def node(self, level: int, vertex: np.ndarray) -> np.ndarray:
         """3-D node indices of 2-D vertices (any shape) at a level."""
         return level * self.n_nodes_2d + np.asarray(vertex)

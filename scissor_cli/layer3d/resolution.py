@@ -108,7 +108,7 @@ def choose_slab(model: Tissue, spec: SlabSpec, cases: list[np.ndarray], accuracy
         for strokes in cases:
             x = solve_newton(slab, np.asarray(strokes, float), tol=SOLVE_TOL).x
             positions.append(probe.positions(x) if probe is not None
-                             else x[slab.mesh.node(slab.mesh.layer_level, np.arange(mesh.n_nodes))])
+                             else x[slab.mesh.layer_nodes])
         solve_s = time.perf_counter() - t0
         positions = np.array(positions)
         reference = positions if reference is None else reference

@@ -103,8 +103,7 @@ def solve_samples(slab: Tissue, probe: SlabProbe, strokes: np.ndarray, tol: floa
     """The targets (P, T, 3) mm and the layer in-plane (P, N2, 2) mm of the nominal slab at each stroke vector
     (P, C), solved along `chain` from rest."""
     eq = Equilibrium(slab, tol)
-    sm = slab.mesh
-    layer_nodes = sm.node(sm.layer_level, np.arange(sm.n_nodes_2d))
+    layer_nodes = slab.mesh.layer_nodes
     targets = np.empty((len(strokes), len(probe.nodes), 3))
     layer = np.empty((len(strokes), len(layer_nodes), 2))
     for k in chain(strokes):

@@ -38,7 +38,7 @@ class SlabTruth:
         self.model = model
         self.slab = build_slab(model.scene, model.mesh, spec, model=model.params.model)
         sm = self.slab.mesh
-        self._layer_nodes = sm.node(sm.layer_level, np.arange(sm.n_nodes_2d))
+        self._layer_nodes = sm.layer_nodes
         self._triangle = sm.element_triangle
         self._starts: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
 

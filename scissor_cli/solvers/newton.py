@@ -230,8 +230,7 @@ def newton_iterations(
                 shifted = _shifted_solve(tissue, K, g, factors) if krylov and not project and res < SHIFT_BELOW else None
                 if shifted is None:
                     continue
-                d, tries = shifted
-                factored = tries
+                d, factored = shifted  # (factored: the factorisations the shifts took)
             n_factor += factored
             d = -d
             if np.all(np.isfinite(d)) and np.dot(g, d) < 0:
