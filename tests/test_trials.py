@@ -278,3 +278,24 @@ def test_expected_duration_counts_trials_per_worker():
     assert "about 2.0 s with 2 worker(s)" in expected_duration(2.0, 2, Execution(jobs=8))  # no idle workers counted
     line = expected_duration(2.0, 3, Execution(jobs=2))  # 2 workers, the busier one runs 2 trials
     assert "the first took 2.0 s" in line and "about 4.0 s with 2 worker(s)" in line
+    line = expected_duration(600.0, 4, Execution(jobs=2), loop_s=60.0)  # a slab insertion: 9 parts in 10
+    assert "the first took 10 min (the loop 60 s, the needle's insertion 9 min)" in line and "about 20 min" in line
+    assert "insertion" not in expected_duration(10.0, 4, Execution(jobs=2), loop_s=9.5)  # the loop is the trial
+
+
+def test_a_trials_time_holds_its_insertion_not_only_its_loop(monkeypatch):
+    """The estimate a run prints is built on the whole trial: with slab insertion the loop was a tenth of it."""
+    import time
+
+    from scissor_cli.config import resolved_yaml
+    from scissor_cli.experiments.simulate import trial_tasks
+    from scissor_cli.experiments.trials import TrialContext
+    from scissor_cli.planning.needle import plan_targets
+
+    cfg = load_config(ROOT / "configs" / "example.yaml")
+    cfg = cfg.model_copy(update={"trials": cfg.trials.model_copy(update={"profile": "ideal", "count": 1})})
+    ctx = TrialContext(resolved_yaml(cfg))
+    task = trial_tasks(ctx.tissue, plan_targets(ctx.tissue, ctx.scene, cfg.needle))[0]
+    monkeypatch.setattr(TrialContext, "insert", lambda *a: (time.sleep(0.3), (np.zeros(0), np.zeros(0)))[1])
+    o = ctx.run(task, 0)
+    assert o.ok and o.trial_time_s >= o.time_s + 0.3

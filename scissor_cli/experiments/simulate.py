@@ -338,7 +338,7 @@ def _trial_stage(sink: RunSink, cfg: Config, tasks: list[TargetTask], reporter: 
             failed += not outcome.ok
             finished += 1
             if finished == 1 and len(work) > 1:
-                reporter.info(expected_duration(outcome.time_s, len(work), execution))
+                reporter.info(expected_duration(outcome.trial_time_s, len(work), execution, loop_s=outcome.time_s))
             advance(1)
     if work:
         reporter.info(f"trials done in {time.perf_counter() - t0:.1f} s")
@@ -348,18 +348,24 @@ def _trial_stage(sink: RunSink, cfg: Config, tasks: list[TargetTask], reporter: 
     return len(work)
 
 
-def expected_duration(first_s: float, n_trials: int, execution: Execution) -> str:
+def expected_duration(first_s: float, n_trials: int, execution: Execution, loop_s: float | None = None) -> str:
     """The line a run prints when its first trial is in: how long all of them should take.
 
-    The first trial's own loop time (`TrialOutcome.time_s`: outcomes arrive
-    in batches, so the wall time until the first arrives can hold several
-    trials) times the trials per worker; building each worker's model comes
-    on top. A Dask cluster's size is not known here: there it is per job asked for.
+    first_s: the first trial's own time, its loop and, with insertion, every
+    strategy's insertion (`TrialOutcome.trial_time_s`; outcomes arrive in
+    batches, so the wall time until the first arrives can hold several
+    trials), times the trials per worker; building each worker's model
+    comes on top. loop_s: the loop's part of it, named when the rest (the
+    insertion) is a noticeable share. A Dask cluster's size is not known
+    here: there it is per job asked for.
     """
     workers = max(1, min(execution.jobs, n_trials))
     total = first_s * -(-n_trials // workers)
-    return (f"trials: the first took {_duration(first_s)}; all {n_trials} should take about {_duration(total)} "
-            f"with {workers} worker(s), plus building each worker's model")
+    split = ""
+    if loop_s is not None and first_s - loop_s > 0.1 * first_s:
+        split = f" (the loop {_duration(loop_s)}, the needle's insertion {_duration(first_s - loop_s)})"
+    return (f"trials: the first took {_duration(first_s)}{split}; all {n_trials} should take about "
+            f"{_duration(total)} with {workers} worker(s), plus building each worker's model")
 
 
 def _duration(seconds: float) -> str:

@@ -73,6 +73,8 @@ class TrialOutcome:
     #: with insertion: the final miss and depth error (mm) per strategy (S,), in the config's order
     insertion_miss_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
     insertion_depth_error_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: wall clock of the whole trial: the loop and, with insertion, every strategy's insertion (s)
+    trial_time_s: float = 0.0
 
 
 class TrialContext:
@@ -126,6 +128,7 @@ class TrialContext:
         return control.Measurement(self.camera, tuple(draw.localisation_offset_mm), noise_px=self.errors.pixel_noise_px)
 
     def run(self, task: TargetTask, trial: int) -> TrialOutcome:
+        t0 = time.perf_counter()
         if self.slab_truth is not None and task.slab_start is not None:
             self.slab_truth.remember(*task.slab_start)
         draw = draw_trial(self.errors, self.scene.material.nu, self.centroids, self.cfg.seed, task.index, trial)
@@ -156,7 +159,7 @@ class TrialContext:
             correctable_mm=float(r.correctable_error_mm), uncorrectable_mm=float(r.uncorrectable_error_mm),
             history_columns=list(columns), history=table,
             miss_mm=miss_mm(final, task.direction), along_mm=along_mm(-final, task.direction),
-            insertion_miss_mm=miss, insertion_depth_error_mm=depth_error,
+            insertion_miss_mm=miss, insertion_depth_error_mm=depth_error, trial_time_s=time.perf_counter() - t0,
         )
 
     def insert(self, task: TargetTask, trial: int, truth, draw, loop) -> tuple[np.ndarray, np.ndarray]:
@@ -235,9 +238,10 @@ def run_trial(config_yaml: str, task: TargetTask, trial: int) -> TrialOutcome:
     try:
         return trial_context(config_yaml).run(task, trial)
     except Exception as exc:  # noqa: BLE001 - a crashed trial is recorded and the run goes on
+        elapsed = time.perf_counter() - t0
         return TrialOutcome(
             target_index=task.index, trial=trial, ok=False, message=f"{type(exc).__name__}: {exc}",
-            final_error=np.zeros(2), iterations=-1, time_s=time.perf_counter() - t0,
+            final_error=np.zeros(2), iterations=-1, time_s=elapsed, trial_time_s=elapsed,
             corridor_clear=False, clearance_mm=0.0, stop_reason="solver_failed",
             correctable_mm=0.0, uncorrectable_mm=0.0, history_columns=[], history=np.zeros((0, 0)),
         )
