@@ -168,6 +168,9 @@ class ControllerConfig(_Section):
     ki: Num(0.0, 100.0) = 0.1
     kd: Num(0.0, 100.0) = 0.0
     tolerance_mm: Num(1.0e-6, 1000.0) = 0.1
+    #: camera frames whose mean decides a stop at tolerance (docs/model.md §6): 1 is the paper's single frame,
+    #: which stops on a frame whose noise happens to fall within tolerance; more average the pixel noise out
+    stop_frames: Int(1, 100) = 1
     #: each iteration is one solve of the tissue: 10 000 is hours on a fine mesh
     max_iterations: Int(1, 10_000) = 50
     rate_hz: Num(0.01, 1000.0) = 10.0

@@ -106,12 +106,18 @@ def run_loop(
     for k in range(cfg.max_iterations + 1):
         y = measurement.measure(plant.position, rng)
         J = controller.jacobian
+        if cfg.stop_frames > 1 and controller.n_cups:
+            y, waited_s = _confirmed(y, measurement, plant, rng, cfg, dt,
+                                     lambda y: stroke_step(J if correction is None else correction.jacobian(J),
+                                                           desired - y, command, controller.lo, controller.hi,
+                                                           max_step, direction, cfg.error))
+            sim_t += waited_s
         if correction is not None:  # J learnt from the moves so far (control.broyden)
             correction.observe(J, command, y)
             J = correction.jacobian(J)
         step = stroke_step(J, desired - y, command, controller.lo, controller.hi, max_step, direction, cfg.error)
         ds = step.ds
-        corr_norms.append(float(np.hypot(np.linalg.norm(step.correctable), step.along_correctable_mm)))
+        corr_norms.append(_correctable_norm(step))
         hist.add(sim_t, command, plant.strokes, y, plant.position, corr_norms[-1],
                  np.linalg.norm(step.uncorrectable), step.along_mm)
         if controller.n_cups == 0:
@@ -146,6 +152,25 @@ def run_loop(
         command = new
     return hist.result(plant, controller, desired, target, "closed", reason, message, time.perf_counter() - t0, cup_names,
                        direction, cfg.error)
+
+
+def _correctable_norm(step) -> float:
+    """The size (mm) of the part of the driven error the step's strokes can remove (what tolerance is held to)."""
+    return float(np.hypot(np.linalg.norm(step.correctable), step.along_correctable_mm))
+
+
+def _confirmed(y, measurement, plant, rng, cfg, dt, step_at) -> tuple[np.ndarray, float]:
+    """The measurement (2,) a stop may be decided on, and the robot time (s) spent taking it.
+
+    A frame within tolerance is not trusted alone: stop_frames − 1 more
+    frames at the same strokes (one camera period each) and their mean with
+    it replace it, whatever that mean then says. A frame outside tolerance
+    is used as it is.
+    """
+    if _correctable_norm(step_at(y)) > cfg.tolerance_mm:
+        return y, 0.0
+    frames = [y] + [measurement.measure(plant.position, rng) for _ in range(cfg.stop_frames - 1)]
+    return np.mean(frames, axis=0), (cfg.stop_frames - 1) * dt
 
 
 def open_loop(
