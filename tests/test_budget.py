@@ -101,6 +101,20 @@ def test_variance_shares_of_independent_sources_add_up():
     assert share["a"] == pytest.approx(0.36, abs=0.03) and share["b"] == pytest.approx(0.64, abs=0.03)
 
 
+def test_a_bias_has_no_variance_but_its_mean_square_share_says_it_dominates():
+    """The slab truth moves every trial the same way (it ends short at the stroke limit): variance 0, yet it is
+    most of the error; the mean-square share counts it, and equals the variance share for zero-mean sources."""
+    rng = np.random.default_rng(5)
+    noise, bias = rng.normal(0, 0.2, (4000, 2)), np.tile([0.0, 2.0], (4000, 1))
+    cells = {"all": {"T": BudgetCell(noise + bias, np.zeros(4000))}, "slab": {"T": BudgetCell(bias, np.zeros(4000))},
+             "camera": {"T": BudgetCell(noise, np.zeros(4000))}}
+    rows = {r["source"]: r for r in budget_rows(cells)}
+    assert rows["slab"]["variance_share"] == 0.0
+    assert rows["slab"]["mean_square_share"] == pytest.approx(4.0 / 4.08, abs=0.01)
+    assert rows["camera"]["mean_square_share"] == pytest.approx(0.08 / 4.08, abs=0.005)
+    assert rows["all"]["mean_square_share"] == 1.0
+
+
 def test_slab_truth_budget_runs_with_its_3d_row(tmp_path):
     """--truth slab --budget: the all row against the slab, a slab row, the other rows on the layer; the report's
     paper table names the truth."""

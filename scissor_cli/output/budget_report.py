@@ -1,7 +1,8 @@
 """`scissor report` for error budgets and the paper's table (docs/model.md §16).
 
 * Every run with a `/budget`: one row per error source and target (|x|, |y|
-  and miss: median, p95, max; the share of the total variance), as
+  and miss: median, p95, max; the shares of the total variance and mean
+  square), as
   `budget.md` / `budget.csv`.
 * Every run with trials of a profile the paper measured: the simulated
   maxima of |x| (across the push) and |y| (along it) over all targets
@@ -22,7 +23,8 @@ from scissor_cli.output.budget_results import PAPER_MAX_MM, PAPER_PROFILES, budg
 from scissor_cli.output.results import finished_trials
 
 BUDGET_COLUMNS = ["run", "source", "target", "trials", "x_median_mm", "x_p95_mm", "x_max_mm", "y_median_mm",
-                  "y_p95_mm", "y_max_mm", "miss_median_mm", "miss_p95_mm", "miss_max_mm", "variance_share"]
+                  "y_p95_mm", "y_max_mm", "miss_median_mm", "miss_p95_mm", "miss_max_mm", "variance_share",
+                  "mean_square_share"]
 PAPER_COLUMNS = ["run", "profile", "truth", "set_up", "trials", "max_x_mm", "paper_max_x_mm", "max_y_mm",
                  "paper_max_y_mm", "stroke_limit_stops"]
 

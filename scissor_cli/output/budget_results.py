@@ -72,12 +72,17 @@ def read_budget(h5: h5py.File) -> dict[str, dict[str, BudgetCell]]:
 
 
 def budget_rows(budget: dict[str, dict[str, BudgetCell]], strategy: int = -1) -> list[dict]:
-    """Per row and target: |x|, |y| and miss (median, p95, max, mm) and the share of the total variance.
+    """Per row and target: |x|, |y| and miss (median, p95, max, mm) and the shares of the total variance and
+    of the total mean square.
 
-    The share is the row's variance of the final error (x and y summed) over
-    the `all` row's: for independent sources the shares add up to about 1
-    (what they leave is the sources' interaction). With insertion the miss is
-    that of one strategy (`strategy`, default the last in the config's order).
+    variance_share: the row's variance of the final error (x and y summed)
+    over the `all` row's: for independent sources the shares add up to about
+    1 (what they leave is the sources' interaction). mean_square_share: the
+    row's mean of |final error|² over the `all` row's, which also counts a
+    bias: a source that moves every trial the same way (the slab truth's
+    shortfall at the stroke limit) has no variance but may be most of the
+    error. With insertion the miss is that of one strategy (`strategy`,
+    default the last in the config's order).
     """
     rows = []
     for row, cells in budget.items():
@@ -87,11 +92,18 @@ def budget_rows(budget: dict[str, dict[str, BudgetCell]], strategy: int = -1) ->
             miss = cell.miss_mm if cell.miss_mm.ndim == 1 else cell.miss_mm[:, strategy]
             var_all = float(np.var(total.final_error, axis=0).sum()) if total is not None and len(total.final_error) else 0.0
             var = float(np.var(cell.final_error, axis=0).sum()) if len(e) else 0.0
+            ms_all = _mean_square(total.final_error) if total is not None else 0.0
             rec = {"source": row, "target": target, "trials": len(e)}
             for name, values in (("x", e[:, 0] if len(e) else e), ("y", e[:, 1] if len(e) else e), ("miss", miss)):
                 stats = (np.median(values), np.percentile(values, 95), np.max(values)) if len(values) else (0.0,) * 3
                 rec.update({f"{name}_median_mm": float(stats[0]), f"{name}_p95_mm": float(stats[1]),
                             f"{name}_max_mm": float(stats[2])})
             rec["variance_share"] = var / var_all if var_all > 0 else 0.0
+            rec["mean_square_share"] = _mean_square(cell.final_error) / ms_all if ms_all > 0 else 0.0
             rows.append(rec)
     return rows
+
+
+def _mean_square(final_error: np.ndarray) -> float:
+    """The mean over trials of |e|² (mm²) of final errors (K, 2); 0 without trials."""
+    return float(np.mean(np.sum(final_error ** 2, axis=1))) if len(final_error) else 0.0
