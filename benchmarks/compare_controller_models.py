@@ -29,8 +29,8 @@ from pathlib import Path
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
-MODELS = [("layer", "none"), ("layer", "broyden"), ("calibrated", "none"), ("surrogate", "none"),
-          ("surrogate", "broyden")]
+MODELS = [("layer", "none"), ("layer", "broyden"), ("calibrated", "none"), ("calibrated", "broyden"),
+          ("surrogate", "none"), ("surrogate", "broyden")]
 
 
 def variant(scene: dict, model: str, update: str, reachable: bool, localisation_mm: float | None = None) -> dict:
