@@ -274,3 +274,59 @@ def test_slab_truth_insertion_run_sigkilled_then_resumed_equals_an_uninterrupted
     reference = killed_and_resumed_equals_reference(
         tmp_path, lambda directory: with_insertion(slab_scene(directory, trials=2)), 1, 4)
     assert any(k.endswith("miss_mm") for k in reference)
+
+
+def budget_rows_of(results_h5: Path) -> dict[str, np.ndarray]:
+    """Every number of /budget: each row's and target's final errors, misses and failed masks."""
+    out = {}
+    with h5py.File(results_h5, "r") as f:
+        f["budget"].visititems(lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
+    return out
+
+
+def test_a_budget_run_sigkilled_between_rows_keeps_them_and_resumes_to_the_same_numbers(tmp_path):
+    """A budget row is stored and marked finished as a whole: a SIGKILL after some rows keeps those, and
+    `--resume` runs only the others, ending with the uninterrupted run's numbers (trials and every row)."""
+    def budget_scene(directory: Path) -> Path:
+        data = example_dict()
+        deep_update(data, "tissue.mesh.max_edge_mm", 8.0)
+        deep_update(data, "tissue.mesh.min_edge_mm", 2.0)
+        deep_update(data, "solver.kind", "newton")
+        deep_update(data, "trials.count", 3)
+        data["forward"] = data["forward"][:1]
+        return write_scene(directory, data)
+
+    ref_dir = tmp_path / "ref"
+    ref_dir.mkdir()
+    done = finish(budget_scene(ref_dir), "--budget", "--jobs", "2", "--out", ref_dir / "run", "--quiet")
+    assert done.returncode == 0, done.stderr
+    with h5py.File(ref_dir / "run" / "results.h5", "r") as f:
+        rows = len(f["budget"].attrs["sources"]) - 1  # the `all` row is the run's own trials
+    out, log = tmp_path / "run", tmp_path / "stderr.txt"
+    with open(log, "w") as err:
+        proc = subprocess.Popen([sys.executable, "-m", "scissor_cli", "simulate", str(budget_scene(tmp_path)),
+                                 "--budget", "--jobs", "2", "--out", str(out)], env=env(), stdout=subprocess.DEVNULL,
+                                stderr=err, text=True, start_new_session=True)
+        t0 = time.monotonic()
+        while "budget localisation: done" not in log.read_text():
+            assert proc.poll() is None, f"the run ended before it was killed: {log.read_text()}"
+            assert time.monotonic() - t0 < 120, "no budget row finished within 120 s"
+            time.sleep(0.02)
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=10)
+        t0 = time.monotonic()
+        while group_members(proc.pid) and time.monotonic() - t0 < 30:
+            time.sleep(0.02)
+        left = group_members(proc.pid)
+        for pid in left:
+            os.kill(pid, signal.SIGKILL)
+        assert not left, f"workers outlived the SIGKILLed run: {left}"
+    resumed = finish("--resume", out, "--jobs", "2")
+    assert resumed.returncode == 0, resumed.stderr
+    said = " ".join(resumed.stderr.split())
+    redone = re.search(r"budget: (\d+) row\(s\)", said)
+    assert redone is not None and 0 < int(redone.group(1)) <= rows - 2, said  # camera and localisation kept
+    assert_same_as_reference(out, extract(ref_dir / "run" / "results.h5"))
+    reference, now = budget_rows_of(ref_dir / "run" / "results.h5"), budget_rows_of(out / "results.h5")
+    assert sorted(now) == sorted(reference)
+    assert not [k for k in reference if not np.array_equal(now[k], reference[k])]

@@ -54,8 +54,9 @@ def product_key(stage: str, name: str = "") -> str:
     """The key under which a stage's product is marked finished: `stage` or `stage/name`.
 
     Stages: model, jacobian, study, plan (all targets' plans), trials (the
-    trial arrays allocated), and per forward case or target: forward/<case>,
-    layer_check/<case>, manipulation/<target>, insertion/<target>.
+    trial arrays allocated), per forward case or target: forward/<case>,
+    layer_check/<case>, manipulation/<target>, insertion/<target>; and per
+    error-budget row: budget/<source>.
     """
     return f"{stage}/{name}" if name else stage
 
