@@ -165,7 +165,8 @@ def simulate(
         if truth not in ("layer", "slab"):
             _fail(2, f"--truth: must be 'layer' or 'slab'; got {truth!r}")
         if truth == "slab" and cfg.layer_check is None:
-            _fail(2, f"--truth slab: {config or DEFAULT_SCENE} has no layer_check section (the slab to use as the truth)")
+            _fail(2, f"--truth slab: {config or DEFAULT_SCENE} has no layer_check section (the slab to use as the "
+                     "truth); add one, e.g. `layer_check: {}` for every default (docs/contract.md, layer_check)")
         cfg = cfg.model_copy(update={"trials": cfg.trials.model_copy(update={"truth": truth})})
     if seed is not None:
         cfg = cfg.model_copy(update={"seed": seed})
