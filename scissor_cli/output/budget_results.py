@@ -90,18 +90,22 @@ def budget_rows(budget: dict[str, dict[str, BudgetCell]], strategy: int = -1) ->
             total = budget["all"].get(target)
             e = np.abs(cell.final_error)
             miss = cell.miss_mm if cell.miss_mm.ndim == 1 else cell.miss_mm[:, strategy]
-            var_all = float(np.var(total.final_error, axis=0).sum()) if total is not None and len(total.final_error) else 0.0
-            var = float(np.var(cell.final_error, axis=0).sum()) if len(e) else 0.0
-            ms_all = _mean_square(total.final_error) if total is not None else 0.0
+            var_all, ms_all = (_variance(total.final_error), _mean_square(total.final_error)) if total is not None \
+                else (0.0, 0.0)
             rec = {"source": row, "target": target, "trials": len(e)}
             for name, values in (("x", e[:, 0] if len(e) else e), ("y", e[:, 1] if len(e) else e), ("miss", miss)):
                 stats = (np.median(values), np.percentile(values, 95), np.max(values)) if len(values) else (0.0,) * 3
                 rec.update({f"{name}_median_mm": float(stats[0]), f"{name}_p95_mm": float(stats[1]),
                             f"{name}_max_mm": float(stats[2])})
-            rec["variance_share"] = var / var_all if var_all > 0 else 0.0
+            rec["variance_share"] = _variance(cell.final_error) / var_all if var_all > 0 else 0.0
             rec["mean_square_share"] = _mean_square(cell.final_error) / ms_all if ms_all > 0 else 0.0
             rows.append(rec)
     return rows
+
+
+def _variance(final_error: np.ndarray) -> float:
+    """The variance over trials of final errors (K, 2), x and y summed (mm²); 0 without trials."""
+    return float(np.var(final_error, axis=0).sum()) if len(final_error) else 0.0
 
 
 def _mean_square(final_error: np.ndarray) -> float:
