@@ -173,7 +173,7 @@ def model_iterations(path: Path, repeats: int) -> None:
 
     cfg = load_config(path).model_copy(update={"manipulation_points": None})
     scene, mesh, layer = build_model(cfg)
-    slab = build_slab(scene, mesh, spec_from_config(cfg.layer_check), model=layer.params.model)
+    slab = build_slab(scene, mesh, spec_from_config(cfg), model=layer.params.model)
     plans = plan_targets(layer, scene, cfg.needle)
     print(f"{cfg.name}: layer {mesh.n_elements} triangles, slab {slab.mesh.n_elements} tetrahedra; "
           f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}")

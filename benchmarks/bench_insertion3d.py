@@ -53,7 +53,7 @@ def main() -> None:
         raise SystemExit(f"{args.config}: needs an insertion and a layer_check section")
     scene, mesh, tissue = build_model(cfg)
     t0 = time.perf_counter()
-    slab = build_slab(scene, mesh, spec_from_config(cfg.layer_check), model=tissue.params.model)
+    slab = build_slab(scene, mesh, spec_from_config(cfg), model=tissue.params.model)
     build_s = time.perf_counter() - t0
     params = NeedleParams.from_config(cfg.insertion, cfg)
     for target in scene.targets:
@@ -67,7 +67,7 @@ def main() -> None:
     settle_s = time.perf_counter() - t0
     z = slab.mesh.levels_mm[slab.mesh.layer_level]
     entry, axis = np.append(plan.entry, z), np.append(plan.direction, 0.0)
-    probe = slab_probe(slab, mesh, target.rest[None])
+    probe = slab_probe(slab, target.rest[None])
     print(f"{cfg.name}: slab {slab.mesh.n_nodes} nodes, {slab.mesh.n_elements} tetrahedra, "
           f"{slab.free_dofs.size} free dofs (built in {build_s:.1f} s, nominal equilibrium {settle_s:.1f} s); "
           f"target {target.name}, {plan.side} entry; f_s {params.friction_static_mN_per_mm:g}, "

@@ -34,7 +34,6 @@ from scissor_cli import runtime  # noqa: E402
 from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.layer3d.slab import SlabSpec, build_slab, slab_probe  # noqa: E402
 from scissor_cli.mechanics.tissue import Tissue, build_model  # noqa: E402
-from scissor_cli.mesh.probe import probe_targets  # noqa: E402
 from scissor_cli.solvers.equilibrium import solve_equilibrium  # noqa: E402
 
 CONFIG = os.path.join(ROOT, "scissor_cli", "scenes", "example.yaml")
@@ -160,7 +159,7 @@ def main() -> None:
         t0 = time.perf_counter()
         slab = build_slab(scene, mesh, SlabSpec(SPEC.height_mm, SPEC.layer_z_mm, True, True, max_layer))
         build_s = time.perf_counter() - t0
-        probe = slab_probe(slab, mesh, probe=probe_targets(mesh, np.array([t.rest for t in scene.targets])))
+        probe = slab_probe(slab, np.array([t.rest for t in scene.targets]))
         r = solve_equilibrium(slab, STROKE, tol=TOL)
         factor = slab.factor_cache["free"]
         row = {"tets": slab.mesh.n_elements, "dofs": len(slab.free_dofs), "build_s": build_s, "scissor_s": r.time_s,

@@ -19,7 +19,7 @@ from scissor_cli.control.models import INVERSE_TOL_MM, MapController, strokes_fo
 from scissor_cli.layer3d.calibration import calibration_strokes, fit_transmission
 from scissor_cli.layer3d.check import spec_from_config
 from scissor_cli.layer3d.controller_model import ControllerModel, ModelData, build_model_data, slab_map
-from scissor_cli.layer3d.slab import build_slab, slab_probe
+from scissor_cli.layer3d.slab import build_slab, layer_probe, slab_probe
 from scissor_cli.layer3d.surrogate import Surrogate, design, solve_samples
 from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
 from scissor_cli.mechanics.tissue import build_model
@@ -49,7 +49,7 @@ def small(model: str = "layer", trials: int = 0) -> dict:
 def scene():
     cfg = parse_config(resolved_yaml(parse_config(yaml.safe_dump(small()))))
     _, mesh, tissue = build_model(cfg)
-    slab = build_slab(tissue.scene, mesh, spec_from_config(cfg.layer_check), model=tissue.params.model)
+    slab = build_slab(tissue.scene, mesh, spec_from_config(cfg), model=tissue.params.model)
     rests = np.array([t.rest for t in tissue.scene.targets])
     return cfg, tissue, slab, rests
 
@@ -78,7 +78,8 @@ def test_surrogate_is_exact_at_its_samples_and_within_0_05_mm_in_plane_of_held_o
     assert surrogate_data.validation_error_mm == pytest.approx(s.validation_error_mm())
     # a fresh slab solve at strokes in neither set
     fresh = np.array([[-11.3], [2.7], [9.1]])
-    truth, truth_layer = solve_samples(slab, slab_probe(slab, tissue.mesh, rests), fresh, SLAB_TRUTH_TOL)
+    truth, truth_layer = solve_samples(slab, slab_probe(slab, rests), fresh, SLAB_TRUTH_TOL,
+                                       layer=layer_probe(slab, tissue.mesh))
     assert np.max(np.linalg.norm((s.predict(fresh) - truth)[:, :, :2], axis=2)) <= 0.05
     assert surrogate_data.validation_error_mm <= 0.05
     # the layer too (what a plan made again with the model judges its obstacles on): exact at the samples,
@@ -122,7 +123,7 @@ def test_calibration_finds_the_slab_moves_less_than_the_layer_and_fits_it_better
     values = calibration_strokes(lo, hi, [np.array([4.0])])
     assert np.allclose(values[0], [2.0, 4.0, 15.0])
     probe = probe_targets(tissue.mesh, rests)
-    cal = fit_transmission(tissue, probe, slab, slab_probe(slab, tissue.mesh, rests), values, SLAB_TRUTH_TOL)
+    cal = fit_transmission(tissue, probe, slab, slab_probe(slab, rests), values, SLAB_TRUTH_TOL)
     assert 0.0 < cal.transmission[0] < 1.0  # the layer overstates the cup's effect
     layer = ControllerModel(ModelData("layer"), tissue).scene_map()
     calibrated = ControllerModel(ModelData("calibrated", calibration=cal), tissue).scene_map()

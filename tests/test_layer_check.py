@@ -180,13 +180,13 @@ def test_resolution_by_accuracy_picks_the_coarsest_within_it():
     cfg = parse_config(yaml.safe_dump(data), "scene.yaml")
     _, _, model = build_model(cfg, mesh_scale=4.0)
     cases = [np.array([4.0])]
-    loose = choose_slab(model, spec_from_config(cfg.layer_check), cases, 10.0)
+    loose = choose_slab(model, spec_from_config(cfg), cases, 10.0)
     rungs = loose.candidates
     assert len(rungs) >= 3 and rungs[0].error_mm == 0.0
     assert all(b.levels < a.levels and b.n_tetrahedra < a.n_tetrahedra for a, b in zip(rungs, rungs[1:]))
     assert all(r.error_mm >= 0 and r.factor_s > 0 for r in rungs)
     assert loose.pick == len(rungs) - 1 and loose.chosen.error_mm <= 10.0
-    tight = choose_slab(model, spec_from_config(cfg.layer_check), cases, 1e-4)
+    tight = choose_slab(model, spec_from_config(cfg), cases, 1e-4)
     assert all(r.error_mm > 1e-4 for r in tight.candidates[1:]) == (tight.pick == 0)
     assert tight.chosen.error_mm <= 1e-4
 

@@ -178,7 +178,7 @@ def test_thin_slab_approaches_plane_stress():
     r3 = solve_equilibrium(slab, strokes)
     pts = np.array([t.rest for t in scene.targets])
     probe = probe_targets(mesh, pts)
-    u3 = slab_probe(slab, mesh, probe=probe).positions(r3.x)[:, :2] - pts
+    u3 = slab_probe(slab, pts).positions(r3.x)[:, :2] - pts
     u_stress = target_positions(probe, solve_equilibrium(star, strokes).x) - pts
     u_strain = target_positions(probe, solve_equilibrium(strain, strokes).x) - pts
     err_stress = np.abs(u3 - u_stress).max()
@@ -192,12 +192,11 @@ def test_convergence_in_z(coarse):
     """The target's displacement converges as the prism layers are refined (the 2-D mesh fixed)."""
     scene, mesh, _ = coarse
     pts = np.array([t.rest for t in scene.targets])
-    probe = probe_targets(mesh, pts)
     u = []
     for first, largest in [(4.0, 8.0), (2.0, 4.0), (1.0, 2.0)]:
         slab = build_slab(scene, mesh, SlabSpec(16.0, 8.0, first_layer_mm=first, max_layer_mm=largest))
         r = solve_equilibrium(slab, np.array([4.0]))
-        u.append(slab_probe(slab, mesh, probe=probe).positions(r.x) - slab_probe(slab, mesh, probe=probe).positions(slab.rest))
+        u.append(slab_probe(slab, pts).positions(r.x) - slab_probe(slab, pts).positions(slab.rest))
     d1, d2 = np.abs(u[1] - u[0]).max(), np.abs(u[2] - u[1]).max()
     assert d2 < 0.7 * d1
 

@@ -189,12 +189,17 @@ def budget_problems(cfg: Config) -> list[Problem]:
     lc = cfg.layer_check
     if lc is not None and n <= ELEMENT_BUDGET and 0 <= lc.layer_z_mm <= lc.height_mm:
         m = cfg.tissue.mesh
-        layers = len(geometry.graded_levels(lc.height_mm, lc.layer_z_mm, m.min_edge_mm * m.scale, lc.max_layer_mm)[0]) - 1
-        tets = 3 * n * layers
+        scale = m.scale * lc.in_plane_scale  # the slab's own 2-D mesh
+        n_plane = n if lc.in_plane_scale == 1 else estimate_elements(cfg, scale=scale)
+        first = lc.first_layer_mm or m.min_edge_mm * scale
+        layers = len(geometry.graded_levels(lc.height_mm, lc.layer_z_mm, min(first, lc.max_layer_mm),
+                                            lc.max_layer_mm)[0]) - 1
+        tets = 3 * n_plane * layers
         if tets > TETRAHEDRA_BUDGET:
             problems.append((("layer_check",), (
-                f"the slab would have about {tets} tetrahedra ({n} triangles × 3 × {layers} prism layers); the budget "
-                f"is {TETRAHEDRA_BUDGET} — use a larger max_layer_mm, a thinner slab or a coarser tissue.mesh")))
+                f"the slab would have about {tets} tetrahedra ({n_plane} triangles × 3 × {layers} prism layers); the "
+                f"budget is {TETRAHEDRA_BUDGET} — use a larger max_layer_mm or in_plane_scale, a thinner slab or a "
+                f"coarser tissue.mesh")))
     if n > ELEMENT_BUDGET:
         m = cfg.tissue.mesh
         problems.append((("tissue", "mesh"), (

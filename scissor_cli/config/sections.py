@@ -366,7 +366,10 @@ class LayerCheckConfig(_Section):
     max_layer_mm: Num(0.01, MAX_TISSUE_MM) = 5.0
     #: the thinnest prism layer, at the layer (null: the 2-D mesh's finest edge)
     first_layer_mm: Optional[Num(0.01, MAX_TISSUE_MM)] = None
-    #: the coarsest z grading whose targets stay this close to the finest's over the forward cases (null: as set)
+    #: the slab's 2-D mesh: tissue.mesh's edge lengths times this (1: the layer's own mesh; docs/model.md §13)
+    in_plane_scale: Num(1.0, 10.0) = 1.0
+    #: the coarsest slab (z grading and in-plane scale) whose targets stay this close to the finest's over the
+    #: forward cases (null: as set)
     accuracy_mm: Optional[Num(1.0e-4, 100.0)] = None
 
 

@@ -141,15 +141,16 @@ def _solve_group(config_yaml: str, index: int, strokes: np.ndarray) -> list[tupl
     if config_yaml not in _SLABS:
         from scissor_cli.config import parse_config  # noqa: PLC0415
         from scissor_cli.layer3d.check import spec_from_config  # noqa: PLC0415
-        from scissor_cli.layer3d.slab import build_slab, slab_probe  # noqa: PLC0415
+        from scissor_cli.layer3d.slab import build_slab, layer_probe, slab_probe  # noqa: PLC0415
         from scissor_cli.mechanics.tissue import build_model  # noqa: PLC0415
 
         cfg = parse_config(config_yaml, "<run config>")
         scene, mesh, tissue = build_model(cfg)
-        slab = build_slab(scene, mesh, spec_from_config(cfg.layer_check), model=tissue.params.model)
-        _SLABS[config_yaml] = (slab, slab_probe(slab, mesh, np.array([t.rest for t in scene.targets]).reshape(-1, 2)))
-    slab, probe = _SLABS[config_yaml]
-    return [(index, solve_samples(slab, probe, strokes, SLAB_TRUTH_TOL))]
+        slab = build_slab(scene, mesh, spec_from_config(cfg), model=tissue.params.model)
+        _SLABS[config_yaml] = (slab, slab_probe(slab, np.array([t.rest for t in scene.targets]).reshape(-1, 2)),
+                               layer_probe(slab, mesh))
+    slab, probe, layer = _SLABS[config_yaml]
+    return [(index, solve_samples(slab, probe, strokes, SLAB_TRUTH_TOL, layer=layer))]
 
 
 def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answer: Optional[SlabMap], reporter,
@@ -290,7 +291,7 @@ def _nominal_slab(cfg: Config, tissue: Tissue) -> Tissue:
     from scissor_cli.layer3d.check import spec_from_config  # noqa: PLC0415
     from scissor_cli.layer3d.slab import build_slab  # noqa: PLC0415
 
-    return build_slab(tissue.scene, tissue.mesh, spec_from_config(cfg.layer_check), model=tissue.params.model)
+    return build_slab(tissue.scene, tissue.mesh, spec_from_config(cfg), model=tissue.params.model)
 
 
 def reserved_limits(lo: np.ndarray, hi: np.ndarray, reserve: float) -> tuple[np.ndarray, np.ndarray]:

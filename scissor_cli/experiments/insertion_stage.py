@@ -84,13 +84,14 @@ def _insert(reporter, target, plan, params, strategy, *args, **kwargs):
 
 def _in_slab(cfg: Config, tissue: Tissue, truth, target, plan, params, animate: bool, reporter):
     """One target's insertions in the nominal slab (`layer3d.truth.SlabTruth`): results and the in-plane frames."""
+    from scissor_cli.layer3d.slab import layer_probe
     from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
 
     slab = truth.slab
     sm = slab.mesh
     ramp = slab_ramp(slab, plan.strokes, RAMP_FRAMES if animate else 1, SLAB_TRUTH_TOL)
-    layer_nodes = sm.layer_nodes
-    frames = [tissue.rest.copy()] + [x[layer_nodes, :2] for x in ramp]
+    layer = layer_probe(slab, tissue.mesh)
+    frames = [tissue.rest.copy()] + [layer.positions(x)[:, :2] for x in ramp]
     z = float(sm.levels_mm[sm.layer_level])
     entry, direction = np.append(plan.entry, z), np.append(plan.direction, 0.0)
     model_x0 = solve_equilibrium(tissue, plan.strokes).x if "loop" in cfg.insertion.strategies else None
@@ -100,7 +101,7 @@ def _in_slab(cfg: Config, tissue: Tissue, truth, target, plan, params, animate: 
                 layer=tissue.mesh)
         for strategy in cfg.insertion.strategies
     ]
-    return results, frames, layer_nodes
+    return results, frames, layer
 
 
 def insertion_stage(cfg: Config, tissue: Tissue, plans: list, sink: RunSink, reporter,
@@ -112,7 +113,7 @@ def insertion_stage(cfg: Config, tissue: Tissue, plans: list, sink: RunSink, rep
         from scissor_cli.layer3d.check import spec_from_config
         from scissor_cli.layer3d.truth import SlabTruth
 
-        truth = SlabTruth(tissue, spec_from_config(cfg.layer_check))
+        truth = SlabTruth(tissue, spec_from_config(cfg))
     paths: list[Path] = []
     first = next((t.name for t, p in zip(tissue.scene.targets, plans) if p.feasible), None)
     for target, plan in zip(tissue.scene.targets, plans):
@@ -122,7 +123,7 @@ def insertion_stage(cfg: Config, tissue: Tissue, plans: list, sink: RunSink, rep
             reporter.info(f"insertion {target.name}: skipped, no plan ({plan.reason})")
             continue
         animate = target.name == first
-        layer_nodes = None
+        layer = None
         if truth is None:
             frames = manipulation_ramp(tissue, plan.strokes, RAMP_FRAMES if animate else 1)
             results = [
@@ -131,9 +132,9 @@ def insertion_stage(cfg: Config, tissue: Tissue, plans: list, sink: RunSink, rep
                 for strategy in cfg.insertion.strategies
             ]
         else:
-            results, frames, layer_nodes = _in_slab(cfg, tissue, truth, target, plan, params, animate, reporter)
+            results, frames, layer = _in_slab(cfg, tissue, truth, target, plan, params, animate, reporter)
         paths += sink.insertion(Insertion(target.name, results, tissue, np.asarray(target.rest, float),
-                                          np.asarray(plan.desired, float), frames, animate, layer_nodes))
+                                          np.asarray(plan.desired, float), frames, animate, layer))
         sink.mark_finished(product_key("insertion", target.name))
         parts = ", ".join(f"{r.strategy} {r.miss_mm:.3f} mm (depth error {r.depth_error_mm:+.3f} mm)" for r in results)
         reporter.info(f"insertion {target.name}: miss {parts}")

@@ -19,7 +19,7 @@ import numpy as np
 from scissor_cli.config import Config
 from scissor_cli.experiments import run_cache
 from scissor_cli.experiments.sink import product_key
-from scissor_cli.layer3d.check import build_layer_check, spec_from_config
+from scissor_cli.layer3d.check import build_layer_check, plane_ladder, spec_from_config
 from scissor_cli.layer3d.resolution import SlabCandidate, SlabChoice, choose_slab
 from scissor_cli.mechanics.tissue import Tissue, build_model
 from scissor_cli.solvers.equilibrium import EquilibriumSolver
@@ -31,7 +31,7 @@ def run_layer_check(cfg: Config, tissue: Tissue, sink, reporter, done: frozenset
     if not cases:
         return []
     t0 = time.perf_counter()
-    check = build_layer_check(tissue, spec_from_config(cfg.layer_check))
+    check = build_layer_check(tissue, spec_from_config(cfg))
     sm = check.mesh
     reporter.info(f"layer check: slab of {sm.n_elements} tetrahedra, {sm.n_nodes} nodes, "
                   f"{len(sm.levels_mm) - 1} prism layers, built in {time.perf_counter() - t0:.1f} s")
@@ -67,10 +67,11 @@ def run_layer_check(cfg: Config, tissue: Tissue, sink, reporter, done: frozenset
 
 
 def slab_resolution_stage(cfg: Config, reporter, cache: Optional[Path] = None) -> tuple[Config, SlabChoice]:
-    """`layer_check.accuracy_mm`: choose the slab's z grading (docs/model.md §13); the run goes on with it.
+    """`layer_check.accuracy_mm`: choose the slab's z grading and in-plane mesh (docs/model.md §13); the run goes
+    on with it.
 
-    The config the run records has the chosen `first_layer_mm` and
-    `max_layer_mm` and no `accuracy_mm`, so the layer check, the slab-truth
+    The config the run records has the chosen `first_layer_mm`,
+    `max_layer_mm` and `in_plane_scale` and no `accuracy_mm`, so the layer check, the slab-truth
     trials and `--resume` build exactly the slab that was chosen; the
     candidates are stored in /layer_check_resolution. The choice is kept in
     `cache` (the `.scissor-cache/` beside the run), keyed by what it depends
@@ -86,12 +87,12 @@ def slab_resolution_stage(cfg: Config, reporter, cache: Optional[Path] = None) -
         _, _, tissue = build_model(cfg)
         cases = [tissue.scene.strokes_vector(case.strokes) for case in cfg.forward]
         t0 = time.perf_counter()
-        choice = choose_slab(tissue, spec_from_config(lc), cases, lc.accuracy_mm, reporter.info)
+        choice = choose_slab(tissue, spec_from_config(cfg), cases, lc.accuracy_mm, reporter.info, plane_ladder(cfg))
         reporter.info(f"slab resolution: {choice.explain()} ({time.perf_counter() - t0:.1f} s)")
         _write_choice(path, choice)
     chosen = choice.chosen
     section = lc.model_copy(update={"first_layer_mm": chosen.first_layer_mm, "max_layer_mm": chosen.max_layer_mm,
-                                    "accuracy_mm": None})
+                                    "in_plane_scale": chosen.in_plane_scale, "accuracy_mm": None})
     return cfg.model_copy(update={"layer_check": section}), choice
 
 

@@ -100,9 +100,9 @@ class Insertion:
     results: `insertion.InsertionResult` per strategy; manipulation_frames:
     node positions (N, 2) mm from rest to the insertion's start (the cups
     ramping to the plan's strokes), for the animation; animate: draw the GIF.
-    tissue is the layer; layer_nodes (N,): the slab's nodes at the layer's
-    level when the insertions ran in the slab (docs/model.md §14), None in
-    the layer.
+    tissue is the layer; layer: the layer's nodes as points of the slab
+    (`layer3d.slab.layer_probe`) when the insertions ran in the slab
+    (docs/model.md §14), None in the layer.
     """
 
     target: str
@@ -112,7 +112,7 @@ class Insertion:
     desired: np.ndarray  # (2,) mm, the planned position
     manipulation_frames: list
     animate: bool = False
-    layer_nodes: Optional[np.ndarray] = None
+    layer: Optional[object] = None
 
 
 class RunSink(Protocol):

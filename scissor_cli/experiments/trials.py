@@ -93,7 +93,7 @@ class TrialContext:
             from scissor_cli.layer3d.check import spec_from_config
             from scissor_cli.layer3d.truth import SlabTruth
 
-            self.slab_truth = SlabTruth(self.tissue, spec_from_config(self.cfg.layer_check))
+            self.slab_truth = SlabTruth(self.tissue, spec_from_config(self.cfg))
 
     def guess(self, task: TargetTask) -> Optional[tuple[np.ndarray, np.ndarray]]:
         """The model's equilibrium at the plan's strokes: a warm start for the loop's first big move."""
@@ -116,7 +116,7 @@ class TrialContext:
                 from scissor_cli.layer3d.check import spec_from_config  # noqa: PLC0415
                 from scissor_cli.layer3d.slab import build_slab  # noqa: PLC0415
 
-                slab = build_slab(self.scene, self.mesh, spec_from_config(self.cfg.layer_check),
+                slab = build_slab(self.scene, self.mesh, spec_from_config(self.cfg),
                                   model=self.tissue.params.model)
             self._controller_model = ControllerModel(task.controller_model, self.tissue, slab)
         model = self._controller_model

@@ -26,7 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scissor_cli.layer3d.slab import SlabProbe, SlabSpec, build_slab, slab_probe
+from scissor_cli.layer3d.resolution import IN_PLANE_SCALES
+from scissor_cli.layer3d.slab import SlabProbe, SlabSpec, build_slab, layer_probe, slab_probe
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import TargetProbe, probe_targets, target_positions
 from scissor_cli.solvers.common import SolveResult
@@ -51,7 +52,7 @@ class LayerCheckCase:
     closer_to: str
     time_s: float
     iterations: int
-    layer_nodes: np.ndarray  # (N2, 3) mm, the slab's deformed nodes at the layer's level (figure)
+    layer_nodes: np.ndarray  # (N2, 3) mm, the slab at the layer's nodes (figure): `slab.layer_probe`
 
 
 @dataclass
@@ -65,6 +66,7 @@ class LayerCheck:
     probe_stress: SlabProbe
     probe_2d: TargetProbe
     names: list
+    layer: SlabProbe  # the layer's nodes in the slab
 
     @property
     def mesh(self):
@@ -89,8 +91,7 @@ class LayerCheck:
         scale = float(np.linalg.norm(u2, axis=1).max(initial=0.0))
         in_plane = float(diff.max(initial=0.0))
         stress_diff = float(diff_stress.max(initial=0.0))
-        sm = self.slab.mesh
-        layer_nodes = r3.x[sm.layer_nodes]
+        layer_nodes = self.layer.positions(r3.x)
         names = self.names
         return LayerCheckCase(
             name=name,
@@ -109,11 +110,32 @@ class LayerCheck:
         )
 
 
-def spec_from_config(section) -> SlabSpec:
-    """The slab spec of a validated `layer_check` config section."""
+def plane_spec(cfg, in_plane_scale: float) -> tuple | None:
+    """`SlabSpec.plane` of a validated config at an in-plane scale: `tissue.mesh`'s edge lengths times it (None at
+    1: the layer's own mesh)."""
+    if in_plane_scale == 1.0:
+        return None
+    m = cfg.tissue.mesh
+    s = float(m.scale) * float(in_plane_scale)
+    return (float(m.min_edge_mm) * s, float(m.max_edge_mm) * s, float(m.min_angle_deg), float(m.grading),
+            bool(m.graded))
+
+
+def plane_ladder(cfg) -> list[tuple[float, tuple | None]]:
+    """The in-plane candidates of `layer_check.accuracy_mm`: (in_plane_scale, `SlabSpec.plane`), the configured
+    scale first (`resolution.IN_PLANE_SCALES` times it, at most the config's bound of 10)."""
+    base = float(cfg.layer_check.in_plane_scale)
+    scales = dict.fromkeys(min(base * f, 10.0) for f in IN_PLANE_SCALES)
+    return [(s, plane_spec(cfg, s)) for s in scales]
+
+
+def spec_from_config(cfg) -> SlabSpec:
+    """The slab spec of a validated config's `layer_check` section (its plane from `tissue.mesh`)."""
+    section = cfg.layer_check
     first = None if section.first_layer_mm is None else float(section.first_layer_mm)
     return SlabSpec(float(section.height_mm), float(section.layer_z_mm), bool(section.chest_wall_fixed),
-                    bool(section.cup_holds_z), float(section.max_layer_mm), first)
+                    bool(section.cup_holds_z), float(section.max_layer_mm), first,
+                    plane=plane_spec(cfg, float(section.in_plane_scale)))
 
 
 def stress_spec(tissue: Tissue) -> SlabSpec:
@@ -131,11 +153,13 @@ def build_layer_check(tissue: Tissue, spec: SlabSpec) -> LayerCheck:
     stress = build_slab(scene, mesh, stress_spec(tissue), model=model)
     if len(scene.targets):
         names = [t.name for t in scene.targets]
-        probe_2d = probe_targets(mesh, np.array([t.rest for t in scene.targets]))
+        points = np.array([t.rest for t in scene.targets])
+        probe_2d = probe_targets(mesh, points)
+        probe, probe_stress = slab_probe(slab, points), slab_probe(stress, points)
     else:  # every node of the layer: vertex v as the point, weight 1
         names = []
         n = mesh.n_nodes
         tri = np.zeros(n, np.int64)
         probe_2d = TargetProbe(tri, np.column_stack([np.arange(n)] * 3), np.column_stack([np.ones(n), np.zeros(n), np.zeros(n)]))
-    return LayerCheck(tissue, slab, stress, slab_probe(slab, mesh, probe=probe_2d),
-                      slab_probe(stress, mesh, probe=probe_2d), probe_2d, names)
+        probe, probe_stress = layer_probe(slab, mesh), layer_probe(stress, mesh)
+    return LayerCheck(tissue, slab, stress, probe, probe_stress, probe_2d, names, layer_probe(slab, mesh))

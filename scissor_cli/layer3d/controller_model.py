@@ -29,7 +29,7 @@ from scissor_cli.control.corridor import Corridor, corridor_at
 from scissor_cli.control.models import CalibratedController, MapController, SlabController
 from scissor_cli.control.plant import Controller
 from scissor_cli.layer3d.calibration import Calibration, calibration_strokes, fit_transmission
-from scissor_cli.layer3d.slab import slab_probe
+from scissor_cli.layer3d.slab import layer_probe, slab_probe
 from scissor_cli.layer3d.surrogate import GroupSolver, Surrogate, SurrogateSamples, train
 from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
 from scissor_cli.mechanics.tissue import Tissue
@@ -69,7 +69,7 @@ def build_model_data(kind: str, layer: Tissue, slab: Optional[Tissue], plan_stro
     if kind in ("layer", "slab"):
         return ModelData(kind)
     rests = np.array([t.rest for t in layer.scene.targets]).reshape(-1, 2)
-    targets = slab_probe(slab, layer.mesh, rests)
+    targets = slab_probe(slab, rests)
     lo, hi = _limits(layer)
     if kind == "calibrated":
         t0 = time.perf_counter()
@@ -77,7 +77,7 @@ def build_model_data(kind: str, layer: Tissue, slab: Optional[Tissue], plan_stro
         cal = fit_transmission(layer, probe, slab, targets, calibration_strokes(lo, hi, plan_strokes), SLAB_TRUTH_TOL,
                                advance)
         return ModelData(kind, time.perf_counter() - t0, cal.error_mm, calibration=cal)
-    data = train(slab, targets, lo, hi, samples, SLAB_TRUTH_TOL, advance, solve_groups)
+    data = train(slab, targets, layer_probe(slab, layer.mesh), lo, hi, samples, SLAB_TRUTH_TOL, advance, solve_groups)
     return ModelData(kind, data.build_time_s, Surrogate(data).validation_error_mm(), samples=data)
 
 
@@ -125,7 +125,7 @@ class ControllerModel:
             return CalibratedController(self.layer, probe, lo, hi, self.transmission, resolution_mm, tol)
         if self.kind == "surrogate":
             return MapController(self.surrogate.target_map(target), self.layer.n_cups, lo, hi, resolution_mm)
-        return SlabController(self.slab, slab_probe(self.slab, self.layer.mesh, probe=probe), lo, hi, resolution_mm,
+        return SlabController(self.slab, slab_probe(self.slab, self._rests[target][None]), lo, hi, resolution_mm,
                               SLAB_TRUTH_TOL)
 
     def layer_map(self) -> Optional[LayerMap]:
@@ -187,9 +187,9 @@ class SlabMap:
 
     def __init__(self, slab: Tissue, layer: Tissue, rests: np.ndarray):
         self.layer = layer
-        self.probe = slab_probe(slab, layer.mesh, rests)
+        self.probe = slab_probe(slab, rests)
         self.eq = Equilibrium(slab, SLAB_TRUTH_TOL)
-        self._layer_nodes = slab.mesh.layer_nodes
+        self._layer = layer_probe(slab, layer.mesh)
 
     def __call__(self, strokes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         self.eq.move_to(np.asarray(strokes, float), tangent=True)
@@ -198,7 +198,7 @@ class SlabMap:
     def layer_at(self, strokes: np.ndarray) -> np.ndarray:
         """The nominal slab's layer in-plane (N2, 2) mm at `strokes` (C,) mm (a `LayerMap`)."""
         self.eq.move_to(np.asarray(strokes, float), tangent=False)
-        return self.eq.x[self._layer_nodes, :2]
+        return self._layer.positions(self.eq.x)[:, :2]
 
     def clearance(self, strokes: np.ndarray, point: np.ndarray, corridor: Corridor) -> float:
         """The corridor's clearance (mm, > 0 clear; NaN: it does not reach the skin) to `point` (2,) mm with

@@ -41,6 +41,8 @@ class SlabMesh:
     n_nodes_2d: int  # N2
     element_obstacle: np.ndarray  # (M3,) int64: the obstacle index of the triangle it came from, -1 none
     element_triangle: np.ndarray  # (M3,) int64: the 2-D triangle it came from
+    #: the 2-D mesh that was extruded (`mesh.Mesh`): the layer's own, or a coarser one (`SlabSpec.plane`)
+    plane: object = None
 
     @property
     def n_nodes(self) -> int:
@@ -56,7 +58,7 @@ class SlabMesh:
 
     @property
     def layer_nodes(self) -> np.ndarray:
-        """The 3-D nodes (N2,) of the simulated layer, one per 2-D vertex, in the 2-D mesh's order."""
+        """The 3-D nodes (N2,) of the simulated layer, one per vertex of `plane`, in its order."""
         return self.node(self.layer_level, np.arange(self.n_nodes_2d))
 
     def node(self, level: int, vertex: np.ndarray) -> np.ndarray:

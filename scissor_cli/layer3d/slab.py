@@ -16,19 +16,26 @@ Boundary:
 Material: the scene's model and constants per element (obstacles' factors
 follow the triangle a tetrahedron came from); fibers (cos θ, sin θ, 0), in
 the layer's plane.
+
+In-plane resolution (`SlabSpec.plane`): the slab extrudes the layer's own
+2-D mesh, or a coarser mesh of the same scene (`layer_check.in_plane_scale`:
+every edge length of `tissue.mesh` times the scale, still fine at targets,
+obstacles and cups). The layer's nodes are then points of the slab like
+the targets: `layer_probe` carries them (exactly the slab's layer nodes
+when the slab extrudes the layer's mesh).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from scissor_cli.layer3d.extrude import SlabMesh, extrude, graded_levels
 from scissor_cli.mechanics import fem
 from scissor_cli.mechanics.tissue import BoundaryError, Tissue, scene_material, tissue_from_boundary
-from scissor_cli.mesh.mesh import Mesh
-from scissor_cli.mesh.probe import TargetProbe, probe_targets
+from scissor_cli.mesh.mesh import Mesh, build_mesh
+from scissor_cli.mesh.probe import probe_targets
 from scissor_cli.scene.scene import Scene
 
 
@@ -47,21 +54,33 @@ class SlabSpec:
     hold_z: bool = False
     #: explicit z levels (L,) instead of the graded ones (tests, the one-layer plane-stress slab)
     levels_mm: tuple | None = None
+    #: the slab's own 2-D mesh, `mesh.build_mesh`'s (min_edge_mm, max_edge_mm, min_angle_deg, grading, graded);
+    #: None: the layer's mesh
+    plane: tuple | None = None
+
+
+def plane_mesh(scene: Scene, mesh: Mesh, spec: SlabSpec) -> Mesh:
+    """The 2-D mesh the slab extrudes: the layer's `mesh`, or the scene meshed as `spec.plane` says."""
+    if spec.plane is None:
+        return mesh
+    min_edge, max_edge, min_angle, grading, graded = spec.plane
+    return build_mesh(scene, min_edge, max_edge, min_angle, grading, graded)
 
 
 def slab_mesh(mesh: Mesh, spec: SlabSpec) -> SlabMesh:
-    """The extruded mesh of a 2-D mesh for a slab spec."""
+    """The extruded mesh of a 2-D mesh (the slab's plane: `plane_mesh`) for a slab spec."""
     if spec.levels_mm is not None:
         levels = np.asarray(spec.levels_mm, float)
         layer = int(np.argmin(np.abs(levels - spec.layer_z_mm)))
     else:
         first = spec.first_layer_mm or float(np.min(mesh.edge_lengths()))
         levels, layer = graded_levels(spec.height_mm, spec.layer_z_mm, first, spec.max_layer_mm)
-    return extrude(mesh.nodes, mesh.triangles, mesh.element_obstacle, levels, layer)
+    return replace(extrude(mesh.nodes, mesh.triangles, mesh.element_obstacle, levels, layer), plane=mesh)
 
 
 def build_slab(scene: Scene, mesh: Mesh, spec: SlabSpec, model: str | None = None) -> Tissue:
-    """The slab tissue (dim 3) of a scene's 2-D mesh; BoundaryError if a cup grips nothing."""
+    """The slab tissue (dim 3) of a scene and its layer's 2-D mesh; BoundaryError if a cup grips nothing."""
+    mesh = plane_mesh(scene, mesh, spec)
     sm = slab_mesh(mesh, spec)
     element_E, fiber, params = scene_material(scene, sm.element_obstacle, model)
     fixed2 = mesh.boundary_nodes_on_sides(scene.fixed_sides)
@@ -121,9 +140,18 @@ class SlabProbe:
         return np.einsum("kj,kjdc->kdc", self.bary, D3[self.nodes])
 
 
-def slab_probe(slab: Tissue, mesh: Mesh, points: np.ndarray | None = None,
-               probe: TargetProbe | None = None) -> SlabProbe:
-    """The slab probe of rest points (K, 2) of the layer (or of a 2-D probe)."""
-    probe = probe if probe is not None else probe_targets(mesh, points)
+def slab_probe(slab: Tissue, points: np.ndarray) -> SlabProbe:
+    """The slab probe of rest points (K, 2) mm of the layer (ValueError if one lies outside it)."""
+    probe = probe_targets(slab.mesh.plane, points)
+    return SlabProbe(slab.mesh.node(slab.mesh.layer_level, probe.nodes), probe.bary)
+
+
+def layer_probe(slab: Tissue, mesh: Mesh) -> SlabProbe:
+    """The nodes (N2,) of the layer's 2-D `mesh` as points of the slab: exactly the slab's layer nodes (weights
+    1, 0, 0) when the slab extrudes that mesh, else each node by its triangle of the slab's plane."""
     sm: SlabMesh = slab.mesh
-    return SlabProbe(sm.node(sm.layer_level, probe.nodes), probe.bary)
+    if sm.plane is mesh:
+        n = mesh.n_nodes
+        nodes = np.repeat(sm.layer_nodes[:, None], 3, axis=1)
+        return SlabProbe(nodes, np.column_stack([np.ones(n), np.zeros(n), np.zeros(n)]))
+    return slab_probe(slab, mesh.nodes)

@@ -99,19 +99,21 @@ def groups(points: np.ndarray) -> list[np.ndarray]:
 
 
 def solve_samples(slab: Tissue, probe: SlabProbe, strokes: np.ndarray, tol: float,
-                  advance: Callable[[int], None] = lambda n: None) -> tuple[np.ndarray, np.ndarray]:
-    """The targets (P, T, 3) mm and the layer in-plane (P, N2, 2) mm of the nominal slab at each stroke vector
-    (P, C), solved along `chain` from rest."""
+                  advance: Callable[[int], None] = lambda n: None, layer: SlabProbe | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The targets (P, T, 3) mm and the layer in-plane (P, N2, 2) mm (`layer`: the layer's nodes in the slab,
+    `slab.layer_probe`; none: N2 = 0) of the nominal slab at each stroke vector (P, C), solved along `chain`
+    from rest."""
     eq = Equilibrium(slab, tol)
-    layer_nodes = slab.mesh.layer_nodes
     targets = np.empty((len(strokes), len(probe.nodes), 3))
-    layer = np.empty((len(strokes), len(layer_nodes), 2))
+    layer_xy = np.empty((len(strokes), 0 if layer is None else len(layer.nodes), 2))
     for k in chain(strokes):
         eq.move_to(strokes[k], tangent=False)
         targets[k] = probe.positions(eq.x)
-        layer[k] = eq.x[layer_nodes, :2]
+        if layer is not None:
+            layer_xy[k] = layer.positions(eq.x)[:, :2]
         advance(1)
-    return targets, layer
+    return targets, layer_xy
 
 
 #: solves groups of stroke points [(P_g, C)] → their (targets (P_g, T, 3), layer (P_g, N2, 2)), in order
@@ -119,7 +121,7 @@ def solve_samples(slab: Tissue, probe: SlabProbe, strokes: np.ndarray, tol: floa
 GroupSolver = Callable[[list[np.ndarray]], list[tuple[np.ndarray, np.ndarray]]]
 
 
-def train(slab: Tissue, probe: SlabProbe, lo, hi, samples: int, tol: float,
+def train(slab: Tissue, probe: SlabProbe, layer: SlabProbe, lo, hi, samples: int, tol: float,
           advance: Callable[[int], None] = lambda n: None, solve_groups: GroupSolver | None = None
           ) -> SurrogateSamples:
     """Solve the design (`design`) on the nominal slab, in its `groups`: the training set and the held-out set.
@@ -133,13 +135,13 @@ def train(slab: Tissue, probe: SlabProbe, lo, hi, samples: int, tol: float,
     parts = groups(points)
     if solve_groups is None:
         def solve_groups(chunks):
-            return [solve_samples(slab, probe, chunk, tol, advance) for chunk in chunks]
+            return [solve_samples(slab, probe, chunk, tol, advance, layer) for chunk in chunks]
     answers = np.empty((len(points), len(probe.nodes), 3))
-    layer = np.empty((len(points), slab.mesh.n_nodes_2d, 2))
+    layer_xy = np.empty((len(points), len(layer.nodes), 2))
     for part, (solved, solved_layer) in zip(parts, solve_groups([points[g] for g in parts])):
-        answers[part], layer[part] = solved, solved_layer
+        answers[part], layer_xy[part] = solved, solved_layer
     return SurrogateSamples(strokes, answers[:samples], held, answers[samples:], np.asarray(lo, float),
-                            np.asarray(hi, float), time.perf_counter() - t0, layer[:samples], layer[samples:])
+                            np.asarray(hi, float), time.perf_counter() - t0, layer_xy[:samples], layer_xy[samples:])
 
 
 class Surrogate:

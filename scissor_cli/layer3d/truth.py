@@ -3,10 +3,12 @@
 The controller keeps its 2-D model; the plant (`control.Plant`) settles the
 3-D slab instead, through a `control.TruthView`: the target the camera sees
 is the in-plane part of the slab's target at the layer's height, and the
-layer's nodes (for the corridor check) are the slab's nodes at that level.
-A trial's perturbation reaches the slab as it would the layer: the E field
-(one value per 2-D triangle) is carried to the tetrahedra each triangle
-became; ν, η and the fiber angle as they are.
+layer's nodes (for the corridor check) are the slab's points at that level
+(`slab.layer_probe`). A trial's perturbation reaches the slab as it would
+the layer: the E field (one value per 2-D triangle) is carried to the
+tetrahedra each triangle became (on a coarser slab plane, the triangle of
+the layer that holds the plane triangle's centroid); ν, η and the fiber
+angle as they are.
 
 Speed (docs/performance.md, "Slab truth"): the slab is built once per
 worker; each target's nominal slab equilibrium at the plan's strokes is
@@ -20,8 +22,9 @@ from __future__ import annotations
 import numpy as np
 
 from scissor_cli.control.plant import TruthPerturbation, TruthView, true_tissue
-from scissor_cli.layer3d.slab import SlabSpec, build_slab, slab_probe
+from scissor_cli.layer3d.slab import SlabSpec, build_slab, layer_probe, slab_probe
 from scissor_cli.mechanics.tissue import Tissue
+from scissor_cli.mesh.mesh import locate
 from scissor_cli.solvers.newton import solve_newton
 
 #: The slab truth's relative residual. The loop reads the target to a camera's noise (σ ≈ 0.15 mm at the
@@ -38,8 +41,10 @@ class SlabTruth:
         self.model = model
         self.slab = build_slab(model.scene, model.mesh, spec, model=model.params.model)
         sm = self.slab.mesh
-        self._layer_nodes = sm.layer_nodes
-        self._triangle = sm.element_triangle
+        self._layer = layer_probe(self.slab, model.mesh)
+        self._triangle = sm.element_triangle  # the layer's triangle of each tetrahedron
+        if sm.plane is not model.mesh:
+            self._triangle = locate(model.mesh, sm.plane.nodes[sm.plane.triangles].mean(axis=1))[0][self._triangle]
         self._starts: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
 
     def start(self, strokes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -59,11 +64,11 @@ class SlabTruth:
     def for_target(self, target_rest: np.ndarray, plan_strokes: np.ndarray | None = None):
         """The truth factory (`control.TruthFactory`) of one target, rest (2,) mm; its first move starts
         from the nominal slab at the plan's strokes (C,) mm when given (and not all zero)."""
-        probe = slab_probe(self.slab, self.model.mesh, np.asarray(target_rest, float)[None])
+        probe = slab_probe(self.slab, np.asarray(target_rest, float)[None])
         guesses = ()
         if plan_strokes is not None and np.any(plan_strokes):
             guesses = (self.start(plan_strokes),)
-        view = TruthView(target=lambda x: probe.positions(x)[0, :2], layer=lambda x: x[self._layer_nodes, :2],
+        view = TruthView(target=lambda x: probe.positions(x)[0, :2], layer=lambda x: self._layer.positions(x)[:, :2],
                          tol=SLAB_TRUTH_TOL, guesses=guesses)
 
         def factory(truth: TruthPerturbation) -> tuple[Tissue, TruthView]:

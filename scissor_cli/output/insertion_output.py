@@ -41,10 +41,10 @@ def _animation(ins, r, path: Path) -> Path:
         needles.append(None)
         labels.append(f"manipulation {k + 1}/{len(ins.manipulation_frames)}")
     for k in pick_frames(r.steps):
-        if ins.layer_nodes is None:
+        if ins.layer is None:
             x = mesh.nodes + r.displacement[k]
         else:  # in the slab: the layer's level, in its plane
-            x = mesh.nodes + r.displacement[k][ins.layer_nodes, :2]
+            x = mesh.nodes + ins.layer.positions(r.displacement[k])[:, :2]
         frames.append(x)
         targets.append(r.target[k][:2])
         needles.append(np.array([r.entry[:2], r.tip[k][:2]]))

@@ -416,14 +416,16 @@ def write_selection(out: ResultsFile, sel) -> None:
 
 
 def write_slab_resolution(out: ResultsFile, choice) -> None:
-    """/layer_check_resolution: the z gradings `layer_check.accuracy_mm` tried and the one it picked (docs/model.md §13)."""
+    """/layer_check_resolution: the slabs (in-plane scale, z grading) `layer_check.accuracy_mm` tried and the one it
+    picked (docs/model.md §13)."""
     c = choice.chosen
     out.attrs("layer_check_resolution", {
-        "accuracy_mm": choice.accuracy_mm, "explanation": choice.explain(), "first_layer_mm": c.first_layer_mm,
+        "accuracy_mm": choice.accuracy_mm, "explanation": choice.explain(), "in_plane_scale": c.in_plane_scale,
+        "first_layer_mm": c.first_layer_mm,
         "max_layer_mm": c.max_layer_mm, "levels": c.levels, "n_tetrahedra": c.n_tetrahedra, "error_mm": c.error_mm,
         "speed_up": choice.speed_up, "pick": choice.pick,
     })
     rows = choice.candidates
-    for name, unit in (("first_layer_mm", "mm"), ("max_layer_mm", "mm"), ("levels", "1"), ("n_tetrahedra", "1"),
+    for name, unit in (("in_plane_scale", "1"), ("first_layer_mm", "mm"), ("max_layer_mm", "mm"), ("levels", "1"), ("n_tetrahedra", "1"),
                        ("error_mm", "mm"), ("factor_s", "s"), ("solve_s", "s")):
         out.dataset(f"layer_check_resolution/{name}", np.array([getattr(r, name) for r in rows]), unit)
