@@ -1,7 +1,10 @@
 """Slab truth speed (docs/performance.md, "Slab truth"): kernels, one truth settle, one slab-truth trial.
 
-Usage: python benchmarks/bench_slab_truth.py [CONFIG] [--moves N] [--trial]
+Usage: python benchmarks/bench_slab_truth.py [CONFIG] [--moves N] [--trial] [--configured]
 Default CONFIG: configs/paper_trials_prosthesis_slab.yaml (first target, first trial's perturbation).
+The slab is the one `scissor simulate CONFIG` would use: with `layer_check.accuracy_mm` the ladder's pick
+(read from runs/.scissor-cache beside the default output folder when a run of the scene made it, else
+solved, minutes); --configured benches the configured (finest) slab instead.
 
 Prints, with the machine's load:
 * the slab's size; the compiled against the numpy gradient and stiffness (median of 5);
@@ -29,7 +32,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from scissor_cli import control, runtime  # noqa: E402
 from scissor_cli.config import load_config, resolved_yaml  # noqa: E402
+from scissor_cli.experiments.layer_check import slab_resolution_stage  # noqa: E402
 from scissor_cli.experiments.profiles import draw_trial  # noqa: E402
+from scissor_cli.experiments.run_cache import CACHE_DIR  # noqa: E402
 from scissor_cli.experiments.simulate import trial_tasks  # noqa: E402
 from scissor_cli.experiments.trials import TrialContext  # noqa: E402
 from scissor_cli.mechanics import compiled3d, fem, materials  # noqa: E402
@@ -38,6 +43,14 @@ from scissor_cli.solvers.linear import factorize_free  # noqa: E402
 from scissor_cli.solvers.tracking import Equilibrium  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+class Printer:
+    """The reporter `slab_resolution_stage` talks to."""
+
+    @staticmethod
+    def info(message: str) -> None:
+        print(message, flush=True)
 
 
 def median_s(f, repeats: int = 5) -> float:
@@ -80,12 +93,15 @@ def main() -> None:
     ap.add_argument("config", nargs="?", default=str(ROOT / "configs" / "paper_trials_prosthesis_slab.yaml"))
     ap.add_argument("--moves", type=int, default=12, help="moves of the replay after the first (default 12)")
     ap.add_argument("--trial", action="store_true", help="also run one whole slab-truth trial")
+    ap.add_argument("--configured", action="store_true", help="the configured slab, not accuracy_mm's pick")
     args = ap.parse_args()
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"load {os.getloadavg()[0]:.2f}; {args.config}")
     cfg = load_config(args.config)
     if cfg.trials.truth != "slab" or cfg.layer_check is None:
         sys.exit(f"{args.config}: needs trials.truth: slab and a layer_check section")
+    if cfg.layer_check.accuracy_mm is not None and not args.configured:
+        cfg, choice = slab_resolution_stage(cfg, Printer(), Path("runs") / CACHE_DIR)
     t0 = time.perf_counter()
     ctx = TrialContext(resolved_yaml(cfg))
     slab = ctx.slab_truth.slab
