@@ -125,14 +125,18 @@ def test_truth_option_needs_layer_check(tmp_path):
 
 def test_slab_truth_inserts_in_the_slab_nominally_and_in_trials(tmp_path):
     """With the slab truth the nominal insertion and the trials' run in the slab, every strategy (docs/model.md
-    §14): 3-D shapes in results.h5 (docs/contract.md), and export and report read them."""
+    §14): 3-D shapes in results.h5 (docs/contract.md), and export and report read them. The slab meshes its
+    own, coarser plane (`in_plane_scale`): the layer's nodes in the frames are points of the slab."""
     data = yaml.safe_load(small_scene(tmp_path).read_text())
     data["insertion"] = {"strategies": ["none", "depth", "loop"], "step_mm": 1.0}
+    data["layer_check"]["in_plane_scale"] = 1.5
     out = tmp_path / "run"
     r = _cli("simulate", write_scene(tmp_path, data), "--out", out, "--trials", "1", "--jobs", "1", "--truth", "slab")
     assert r.returncode == 0, r.stderr
     with h5py.File(out / "results.h5") as f:
         n3 = f["layer_check/mesh/nodes"].shape[0]
+        levels = np.unique(f["layer_check/mesh/nodes"][:, 2]).size
+        assert n3 // levels < f["mesh/nodes"].shape[0]  # the slab's plane is coarser than the layer's mesh
         for target in f["trials"]:
             g = f["trials"][target]
             assert not bool(g["failed"][0])
