@@ -51,7 +51,7 @@ def _params(cfg, **kw):
 def _insert(slab_model, params, strategy="none", depth=DEPTH, target=TARGET, **kw):
     cfg, mesh, tissue, slab = slab_model
     return run_insertion(slab, slab.rest.copy(), np.zeros(slab.n_cups), ENTRY, AXIS, depth, target, params, strategy,
-                         controller=cfg.controller, layer=mesh, **kw)
+                         controller=cfg.controller, **kw)
 
 
 def test_capture_spans_levels_and_each_node_keeps_both_transverse_offsets(slab_model):
@@ -215,3 +215,25 @@ def test_along_conditions_in_3d_check_their_frames(slab_model):
     dofs, frame = Conditions(along_nodes=node, along=transverse_basis(AXIS)[None]).along_free(slab)
     np.testing.assert_allclose(frame[0], np.column_stack([*transverse_basis(AXIS), AXIS]), atol=1e-15)
     assert dofs.shape == (1, 3)
+
+
+def test_in_a_slab_with_its_own_plane_the_target_is_the_slabs_point(slab_model):
+    """On a slab that extruded its own, coarser 2-D mesh (`SlabSpec.plane`), the insertion follows the target
+    as the slab carries it (its probe on the slab's plane, not the layer's mesh), and drags it about as far as
+    the slab on the layer's mesh does."""
+    from scissor_cli.layer3d.slab import slab_probe
+
+    cfg, mesh, tissue, fine = slab_model
+    m = cfg.tissue.mesh
+    plane = (m.min_edge_mm * 3.0, m.max_edge_mm * 3.0, m.min_angle_deg, m.grading, True)
+    coarse = build_slab(tissue.scene, mesh, SlabSpec(8.0, LAYER_Z, levels_mm=(0.0, 3.0, 4.0, 5.0, 8.0), plane=plane))
+    assert coarse.mesh.plane.n_nodes < 0.8 * mesh.n_nodes
+    params = _params(cfg)
+    drag = []
+    for slab in (fine, coarse):
+        r = _insert((cfg, mesh, tissue, slab), params)
+        probe = slab_probe(slab, TARGET[None])
+        np.testing.assert_allclose(r.target[-1], probe.positions(slab.rest + r.displacement[-1])[0], atol=1e-9)
+        drag.append(r.target[-1] - probe.positions(slab.rest)[0])
+    assert np.linalg.norm(drag[0]) > 0.2
+    assert np.linalg.norm(drag[1] - drag[0]) < 0.35 * np.linalg.norm(drag[0])

@@ -97,8 +97,7 @@ def _in_slab(cfg: Config, tissue: Tissue, truth, target, plan, params, animate: 
     model_x0 = solve_equilibrium(tissue, plan.strokes).x if "loop" in cfg.insertion.strategies else None
     results = [
         _insert(reporter, target, plan, params, strategy, slab, ramp[-1], plan.strokes, entry, direction,
-                plan.depth_mm, target.rest, controller=cfg.controller, model=tissue, model_x0=model_x0,
-                layer=tissue.mesh)
+                plan.depth_mm, target.rest, controller=cfg.controller, model=tissue, model_x0=model_x0)
         for strategy in cfg.insertion.strategies
     ]
     return results, frames, layer

@@ -191,7 +191,7 @@ class TrialContext:
                          tip_force_mN=base.tip_force_mN * tip_scale)
         meas = self.measurement(draw)
         rng = np.random.default_rng([int(self.cfg.seed), task.index, trial, 13])
-        entry, direction, layer = task.entry, task.direction, None
+        entry, direction = task.entry, task.direction
         if self.slab_truth is None:
             tissue = control.true_tissue(self.tissue, truth)
             model_start = (loop.final_strokes, loop.final_x)  # the model's warm start: the truth's, same mesh
@@ -199,7 +199,7 @@ class TrialContext:
             tissue = self.slab_truth.perturbed(truth)
             sm = tissue.mesh
             z = float(sm.levels_mm[sm.layer_level])
-            entry, direction, layer = np.append(entry, z), np.append(direction, 0.0), self.mesh
+            entry, direction = np.append(entry, z), np.append(direction, 0.0)
             model_start = self.guess(task)  # the model's own equilibrium at the plan's strokes (or None: rest)
         model_x0 = None
         if tissue is not self.tissue and "loop" in ins.strategies:
@@ -210,7 +210,7 @@ class TrialContext:
             r = run_insertion(tissue, loop.final_x, loop.final_strokes, entry, direction, task.depth_mm,
                               task.rest, params, strategy, controller=self.cfg.controller,
                               measure=lambda y: meas.measure(y[:2], rng), keep_displacement=False,
-                              model=self.tissue, model_x0=model_x0, layer=layer)
+                              model=self.tissue, model_x0=model_x0)
             miss.append(r.miss_mm)
             depth_error.append(r.depth_error_mm)
         return np.array(miss), np.array(depth_error)

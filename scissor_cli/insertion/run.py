@@ -16,7 +16,7 @@ Strategies:
 The plant may be the layer or the slab (`tissue.dim` 3, docs/model.md §14):
 in the slab the needle's axis lies in the layer (z = the layer's height),
 the target and the obstacles are the layer's points carried by the slab's
-nodes at the layer's level (their 2-D probe on the `layer` mesh), the
+nodes at the layer's level (their 2-D probe on the slab's plane), the
 camera sees the target's in-plane part and the clearance is measured in
 the layer's plane. With a 2-D controller model against the slab, `loop`
 runs the model's own insertion (`model_state.ModelInsertion`).
@@ -36,7 +36,6 @@ from scissor_cli.geometry import segment_polygon_distance
 from scissor_cli.insertion.model_state import ModelInsertion, ModelState, move_held
 from scissor_cli.insertion.needle import NeedleParams, NeedleState, advance, free_nodes, transverse_basis
 from scissor_cli.mechanics.tissue import Tissue
-from scissor_cli.mesh.mesh import Mesh
 from scissor_cli.mesh.outlines import deformed_outlines, embed_outlines
 from scissor_cli.mesh.probe import TargetProbe, probe_targets, target_positions
 from scissor_cli.solvers.common import SolverError
@@ -119,7 +118,6 @@ def run_insertion(
     target_name: str = "",
     model: Tissue | None = None,
     model_x0: np.ndarray | None = None,
-    layer: Mesh | None = None,
     on_step: Callable[[float], None] | None = None,
 ) -> InsertionResult:
     """Insert from the equilibrium x0 (N, d) at cup strokes (C,) mm along the plan; never raises on a solver failure.
@@ -131,8 +129,7 @@ def run_insertion(
     camera, true (d,) → measured in-plane (2,) (default exact). `tissue` is
     the plant; model: the controller's tissue for "loop" (default: the
     plant itself), model_x0 (N, 2) its equilibrium at the strokes (solved
-    from x0 when not given, which needs model and plant of one dimension);
-    layer: in the slab, the layer's 2-D mesh the slab was extruded from.
+    from x0 when not given, which needs model and plant of one dimension).
     on_step(depth_mm), if given, is called after every step (progress).
     A failed step ends the insertion with the reason in stop_reason; what
     was reached is kept.
@@ -142,7 +139,7 @@ def run_insertion(
     t0 = time.perf_counter()
     n = np.asarray(direction, float) / np.linalg.norm(direction)
     p0 = np.asarray(entry, float)
-    probe, embedding = _layer_points(tissue, layer, np.asarray(target_rest, float),
+    probe, embedding = _layer_points(tissue, np.asarray(target_rest, float),
                                      [o.outline for o in tissue.scene.obstacles])
     if n.size == 3 and abs(n[2]) > 1e-12:
         raise ValueError("in the slab the needle's axis lies in the layer (direction z = 0)")
@@ -193,20 +190,20 @@ def run_insertion(
                    bool(embedding.splits), reason, unsettled, time.perf_counter() - t0, probe, s)
 
 
-def _layer_points(tissue: Tissue, layer: Mesh | None, target_rest: np.ndarray, obstacles: list):
+def _layer_points(tissue: Tissue, target_rest: np.ndarray, obstacles: list):
     """The target's probe and the obstacles' embedding on the plant's nodes.
 
-    In the layer, on its own mesh; in the slab, the 2-D ones on the layer
-    mesh carried to the slab's nodes at the layer's level (its triangles are
+    In the layer, on its own mesh; in the slab, the 2-D ones on the slab's
+    plane (the 2-D mesh it extruded: the layer's or its own coarser one)
+    carried to the slab's nodes at the layer's level (its triangles are
     faces of the slab's tetrahedra there, so the weights are exact).
     """
     if tissue.dim == 2:
         return probe_targets(tissue.mesh, target_rest[None]), embed_outlines(tissue.mesh, obstacles)
-    if layer is None:
-        raise ValueError("an insertion in the slab needs the layer's 2-D mesh (`layer`)")
+    plane = tissue.mesh.plane
     offset = tissue.mesh.node(tissue.mesh.layer_level, 0)
-    p = probe_targets(layer, target_rest[None])
-    e = embed_outlines(layer, obstacles)
+    p = probe_targets(plane, target_rest[None])
+    e = embed_outlines(plane, obstacles)
     return (TargetProbe(p.tri_idx, p.nodes + offset, p.bary),
             dataclasses.replace(e, triangles=e.triangles + offset))
 
