@@ -34,6 +34,8 @@ def test_full_example_section_validates():
     ({"height_mm": 0.5, "layer_z_mm": 0.2}, ["layer_check.height_mm", "too thin for one prism layer"]),
     ({"height_mm": 400.0, "max_layer_mm": 0.1}, ["layer_check", "tetrahedra", "budget"]),
     ({"layer_z_mm": -1.0}, ["layer_check.layer_z_mm"]),
+    ({"in_plane_scale": 0.5}, ["layer_check.in_plane_scale"]),
+    ({"in_plane_scale": float("nan")}, ["layer_check.in_plane_scale"]),
 ])
 def test_bad_slab_exits_2(tmp_path, change, words):
     data = example_dict() | {"layer_check": dict(SPEC) | change}
