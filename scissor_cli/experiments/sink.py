@@ -39,6 +39,7 @@ if TYPE_CHECKING:  # the types the stages produce; annotations only
     from scissor_cli.layer3d.check import LayerCheckCase
     from scissor_cli.layer3d.extrude import SlabMesh
     from scissor_cli.layer3d.resolution import SlabChoice
+    from scissor_cli.layer3d.slab import SlabProbe
     from scissor_cli.control.corridor import Corridor
     from scissor_cli.control.result import LoopResult
     from scissor_cli.experiments.selection import Selection
@@ -112,7 +113,7 @@ class Insertion:
     desired: np.ndarray  # (2,) mm, the planned position
     manipulation_frames: list
     animate: bool = False
-    layer: Optional[object] = None
+    layer: Optional["SlabProbe"] = None
 
 
 class RunSink(Protocol):
