@@ -35,7 +35,7 @@ from scissor_cli.config import load_config, resolved_yaml  # noqa: E402
 from scissor_cli.experiments.layer_check import slab_resolution_stage  # noqa: E402
 from scissor_cli.experiments.profiles import draw_trial  # noqa: E402
 from scissor_cli.experiments.run_cache import CACHE_DIR  # noqa: E402
-from scissor_cli.experiments.simulate import trial_tasks  # noqa: E402
+from scissor_cli.experiments.simulate import robot_joint_check, trial_tasks  # noqa: E402
 from scissor_cli.experiments.trials import TrialContext  # noqa: E402
 from scissor_cli.mechanics import compiled3d, fem, materials  # noqa: E402
 from scissor_cli.planning.needle import plan_targets  # noqa: E402
@@ -108,7 +108,8 @@ def main() -> None:
     print(f"slab: {slab.ops.corners.shape[1]} tetrahedra, {len(slab.free_dofs)} free dofs; "
           f"worker context (layer model + slab) {time.perf_counter() - t0:.1f} s")
     kernels(slab)
-    tasks = trial_tasks(ctx.tissue, plan_targets(ctx.tissue, ctx.scene, cfg.needle))
+    # planned as `simulate` plans: the robot's joint limits decide which needle lines it can reach
+    tasks = trial_tasks(ctx.tissue, plan_targets(ctx.tissue, ctx.scene, cfg.needle, robot_check=robot_joint_check(cfg)))
     task = tasks[0]
     t0 = time.perf_counter()
     factory = ctx.slab_truth.for_target(task.rest, task.plan_strokes)
