@@ -35,7 +35,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from scissor_cli.geometry import graded_levels
-from scissor_cli.layer3d.slab import SlabSpec, build_slab, layer_probe, slab_probe
+from scissor_cli.layer3d.slab import SlabSpec, build_slab, layer_probe, plane_mesh, slab_probe
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.linear import factorize_free
 from scissor_cli.solvers.newton import solve_newton
@@ -117,9 +117,10 @@ def choose_slab(model: Tissue, spec: SlabSpec, cases: list[np.ndarray], accuracy
     points = np.array([t.rest for t in scene.targets]).reshape(-1, 2)
     reference, candidates = None, []
     for scale, plane in planes:
+        surface = plane_mesh(scene, mesh, replace(spec, plane=plane))  # meshed once for all its z rungs
         for first, largest in ladder(model, spec):
-            candidate_spec = replace(spec, first_layer_mm=first, max_layer_mm=largest, plane=plane)
-            slab = build_slab(scene, mesh, candidate_spec, model=model.params.model)
+            candidate_spec = replace(spec, first_layer_mm=first, max_layer_mm=largest, plane=None)
+            slab = build_slab(scene, surface, candidate_spec, model=model.params.model)
             probe = slab_probe(slab, points) if len(points) else layer_probe(slab, mesh)
             t0 = time.perf_counter()
             positions = np.array([probe.positions(solve_newton(slab, np.asarray(strokes, float), tol=SOLVE_TOL).x)
