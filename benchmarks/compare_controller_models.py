@@ -8,13 +8,16 @@ per iteration, the model's build time and error). `--reachable` makes the
 variant of docs/performance.md: T2 alone, desired y 21.0 mm.
 
     python benchmarks/compare_controller_models.py [CONFIG] [--trials 6] [--jobs 2] [--reachable]
-        [--only layer-none surrogate-none ...] [--localisation MM] [--out DIR]
+        [--only layer-none surrogate-none ...] [--localisation MM] [--accuracy-mm MM] [--stop-frames N]
+        [--out DIR]
 
 Default CONFIG: configs/example_full.yaml; the paper's scene is
 configs/paper_trials_prosthesis_slab.yaml (its slab grading is chosen by
 accuracy in each variant's run, about 4 min each). `--localisation 0` takes
-the profile's localisation error out (what is left is the loop's own). Each slab-truth trial takes about
-a minute on 2 cores (loaded: two); a surrogate is trained once and cached in
+the profile's localisation error out (what is left is the loop's own); `--accuracy-mm 0.1` lets a config
+that pins its slab (example_full.yaml) run on the slab its ladder picks. The `slab` rows steer with the
+nominal slab itself (the reference: one slab solve per control iteration). A slab-truth trial takes about
+3 s on the paper scene's picked slab (a minute on a pinned 128k one); a surrogate is trained once and cached in
 DIR/.scissor-cache.
 """
 
@@ -30,16 +33,21 @@ import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 MODELS = [("layer", "none"), ("layer", "broyden"), ("calibrated", "none"), ("calibrated", "broyden"),
-          ("surrogate", "none"), ("surrogate", "broyden")]
+          ("surrogate", "none"), ("surrogate", "broyden"), ("slab", "none"), ("slab", "broyden")]
 
 
-def variant(scene: dict, model: str, update: str, reachable: bool, localisation_mm: float | None = None) -> dict:
+def variant(scene: dict, model: str, update: str, reachable: bool, localisation_mm: float | None = None,
+            accuracy_mm: float | None = None, stop_frames: int | None = None) -> dict:
     data = dict(scene)
+    if accuracy_mm is not None:
+        data["layer_check"] = {**data.get("layer_check", {}), "accuracy_mm": accuracy_mm}
     data.pop("insertion", None)
     data["trials"] = {**data.get("trials", {}), "truth": "slab"}
     if localisation_mm is not None:
         data["trials"]["localisation_error_mm"] = localisation_mm
     data["controller"] = {**data.get("controller", {}), "model": model, "jacobian_update": update}
+    if stop_frames is not None:
+        data["controller"]["stop_frames"] = stop_frames
     if reachable:
         data["targets"] = [dict(t, desired_mm=[58.0, 21.0]) for t in data["targets"] if t["name"] == "T2"]
     return data
@@ -53,6 +61,10 @@ def main() -> None:
     ap.add_argument("--reachable", action="store_true", help="T2 alone with a desired point the slab can reach")
     ap.add_argument("--only", nargs="+", metavar="MODEL-UPDATE", help="a subset of the variants, e.g. surrogate-none")
     ap.add_argument("--localisation", type=float, default=None, help="override trials.localisation_error_mm (mm)")
+    ap.add_argument("--accuracy-mm", type=float, default=None,
+                    help="set layer_check.accuracy_mm: the slab the ladder picks instead of the one the config pins")
+    ap.add_argument("--stop-frames", type=int, default=None,
+                    help="set controller.stop_frames: stop on the mean of this many camera frames")
     ap.add_argument("--out", default=str(ROOT / "runs" / "controller-models"))
     args = ap.parse_args()
     out = Path(args.out)
@@ -64,7 +76,8 @@ def main() -> None:
         if args.only and name not in args.only:
             continue
         path = out / f"{name}.yaml"
-        path.write_text(yaml.safe_dump(variant(scene, model, update, args.reachable, args.localisation),
+        path.write_text(yaml.safe_dump(variant(scene, model, update, args.reachable, args.localisation,
+                                               args.accuracy_mm, args.stop_frames),
                                        sort_keys=False))
         t0 = time.perf_counter()
         r = subprocess.run([sys.executable, "-m", "scissor_cli", "simulate", str(path), "--trials", str(args.trials),
