@@ -197,6 +197,7 @@ def test_surrogate_run_records_the_model_plans_with_it_and_reuses_its_cache(tmp_
         plan = f["plan/T2"].attrs
         assert np.array_equal(plan["strokes"], plan["model_strokes"])
         assert abs(plan["model_strokes"][0] - plan["slab_strokes"][0]) <= 0.25  # (the layer asks 1.3 mm less)
+        assert 0 <= plan["model_error_mm"] <= 0.05  # the surrogate is the slab at its plan
         first_errors = f["trials/T2/final_error"][()]
     assert (tmp_path / "runs" / "a" / "controller_model.png").exists()
     second = _cli("simulate", scene_path, "--out", tmp_path / "runs" / "b", "--jobs", "1")
@@ -212,6 +213,7 @@ def test_surrogate_run_records_the_model_plans_with_it_and_reuses_its_cache(tmp_
     row = dict(zip(header, csv[1].split(",")))
     assert row["controller"] == "surrogate" and int(row["stroke_limit_stops"]) >= 0
     assert float(row["model_error_mm"]) <= 0.05 and float(row["time_per_iteration_s"]) > 0
+    assert 0 <= float(row["plan_model_error_mm"]) <= 0.05
 
 
 def test_a_target_the_slab_cannot_reach_is_reported_before_any_trial(tmp_path):
@@ -267,6 +269,7 @@ def test_a_resumed_run_steers_with_the_model_it_stored(tmp_path, monkeypatch):
         assert np.array_equal(a["controller_model"].attrs["transmission"], b["controller_model"].attrs["transmission"])
         for t in ("T1", "T2"):
             assert np.array_equal(a[f"plan/{t}"].attrs["model_strokes"], b[f"plan/{t}"].attrs["model_strokes"])
+            assert a[f"plan/{t}"].attrs["model_error_mm"] == b[f"plan/{t}"].attrs["model_error_mm"]
             assert np.array_equal(a[f"trials/{t}/final_error"][()], b[f"trials/{t}/final_error"][()])
 
 
@@ -522,3 +525,38 @@ def test_a_plan_whose_corridor_the_slab_blocks_is_refused_for_a_3d_model_and_rep
     kept = plan_with_model(cfg, [plan], layer, Blocking(-0.4), said)[0]
     assert kept.feasible and any("blocked" in line for line in said.lines)
     assert plan_with_model(cfg, [plan], surrogate, Blocking(0.8), _Said())[0].feasible
+
+
+def test_each_plan_records_its_models_error_against_the_slab_at_the_strokes_it_asks_for():
+    """/plan/<t> model_error_mm: the distance between where the controller's model and the nominal slab put the
+    target at the model's strokes; a slab that moves it half as far is off by half the model's move; the slab
+    model is the slab (0)."""
+    from types import SimpleNamespace
+
+    from scissor_cli.config import load_config
+    from scissor_cli.experiments.controller_model import plan_with_model
+    from scissor_cli.planning.needle import plan_target
+    from scissor_cli.planning.states import StateCache
+
+    cfg = load_config(ROOT / "configs" / "paper_push.yaml")
+    cfg = cfg.model_copy(update={"targets": cfg.targets[:1]})
+    _, mesh, tissue = build_model(cfg, mesh_scale=2.0)
+    plan = plan_target(tissue, tissue.scene, tissue.scene.targets[0], cfg.needle, cache=StateCache(tissue))
+    assert plan.feasible and plan.manipulated
+    rest = np.asarray(tissue.scene.targets[0].rest, float)
+    move = (np.asarray(plan.desired) - rest) / plan.strokes[0]  # the layer's move per mm of stroke, along its path
+
+    def along(gain):
+        return lambda strokes: (np.array([rest + gain * move * strokes[0]]), (gain * move)[None, :, None])
+
+    slab_half = along(0.5)
+    slab_answer = type("HalfSlab", (), {"__call__": lambda self, s: slab_half(s),
+                                        "clearance": lambda self, s, p, c: 1.0})()
+    layer = SimpleNamespace(kind="layer", transmission=None, scene_map=lambda: along(1.0), layer_map=lambda: None)
+    judged = plan_with_model(cfg, [plan], layer, slab_answer, _Said())[0]
+    np.testing.assert_allclose(judged.model_strokes, plan.strokes)
+    expected = 0.5 * np.linalg.norm(move * plan.strokes[0])
+    assert judged.model_error_mm == pytest.approx(expected, rel=1e-9) and expected > 1.0
+    reference = SimpleNamespace(kind="slab", transmission=None, scene_map=lambda: slab_half, layer_map=lambda: None)
+    assert plan_with_model(cfg, [plan], reference, slab_answer, _Said())[0].model_error_mm == 0.0
+    assert plan_with_model(cfg, [plan], layer, None, _Said())[0].model_error_mm is None  # no slab: not asked

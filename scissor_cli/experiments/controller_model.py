@@ -172,6 +172,7 @@ def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answe
     tol = cfg.controller.tolerance_mm
     mode = cfg.controller.error
     model_answer = model.scene_map() if model.kind != "layer" else None
+    model_view = model_answer if model_answer is not None else model.scene_map()  # the layer's too, for its error
     model_layer = model.layer_map()
 
     def model_strokes(t, plan):
@@ -229,7 +230,17 @@ def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answe
                     reporter.info(f"plan {plan.target}: {blocked}")
                 else:
                     return replace(plan, feasible=False, reason=blocked), True
-        return plan, False
+        return with_model_error(t, plan), False
+
+    def with_model_error(t, plan):
+        """The plan with the model's error against the nominal slab at the strokes the model asks for."""
+        if slab_answer is None:
+            return plan
+        if model.kind == "slab":
+            return replace(plan, model_error_mm=0.0)
+        s = np.asarray(plan.model_strokes, float)
+        error = float(np.linalg.norm(_one(model_view, t)(s)[0] - _one(slab_answer, t)(s)[0]))
+        return replace(plan, model_error_mm=error)
 
     seen = "target positions and obstacles" if model_layer is not None else "target positions"
     out = []

@@ -24,7 +24,7 @@ from scissor_cli.mesh.probe import probe_targets, target_positions
 from scissor_cli.solvers.equilibrium import EquilibriumSolver
 from scissor_cli.mesh.outlines import boundary_loop, deformed_outlines, embed_outlines
 from scissor_cli.planning.corridor import corridor_radius
-from scissor_cli.planning.needle import NeedlePlan, plan_target
+from scissor_cli.planning.needle import NeedlePlan, plan_target, stored_plan
 from scissor_cli.planning.states import StateCache
 from scissor_cli.experiments.pool import deferred_signals
 from scissor_cli.experiments.profiles import INSERTION_SPREADS, error_model
@@ -166,30 +166,6 @@ def resume_simulation(sink: ResumableSink, reporter: Reporter | None = None, exe
         return summary.trials_run
 
 
-def stored_plans(tissue: Tissue, stored: dict[str, dict]) -> list[NeedlePlan]:
-    """The plans of a stored run (/plan/<target> attributes, docs/contract.md) in the scene's target order.
-
-    Values the file holds as fills are restored to what the planner gave:
-    no geometry without a plan, no joints the robot cannot reach, an infinite
-    clearance without obstacles.
-    """
-    plans = []
-    for target in tissue.scene.targets:
-        a = stored[target.name]
-        feasible, reachable = bool(a["feasible"]), bool(a["robot_reachable"])
-        geometry = (lambda v: np.asarray(v, float)) if str(a["side"]) else (lambda v: np.full(np.shape(v), np.nan))
-        clearance = float(a["clearance_mm"]) if tissue.scene.obstacles else float("inf")
-        joints = np.asarray(a["joints"], float)
-        plans.append(NeedlePlan(
-            target.name, feasible, str(a["reason"]), np.asarray(a["desired"], float), np.asarray(a["strokes"], float),
-            geometry(a["entry"]), geometry(a["direction"]), float(geometry(a["depth_mm"])), clearance, str(a["side"]),
-            joints if reachable else np.full(joints.shape, np.nan), reachable, str(a["joints_note"]),
-            float(a["desired_error_mm"]),
-            model_strokes=np.asarray(a["model_strokes"], float) if "model_strokes" in a else None,
-            slab_strokes=np.asarray(a["slab_strokes"], float) if "slab_strokes" in a else None))
-    return plans
-
-
 def _build(cfg: Config, reporter: Reporter) -> Tissue:
     t_mesh = time.perf_counter()
     scene, mesh, tissue = build_model(cfg)
@@ -230,7 +206,8 @@ def _stages(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary, rep
         sink.mark_finished("study")
     stored = sink.plans() if "plan" in done else None
     if stored is not None:
-        summary.plans = stored_plans(tissue, stored)
+        obstacles = bool(tissue.scene.obstacles)
+        summary.plans = [stored_plan(t.name, stored[t.name], obstacles) for t in tissue.scene.targets]
         model_data = stored_model(cfg, tissue, sink)
     else:
         summary.plans, model_data = _plan_stage(cfg, tissue, sink, reporter, summary, execution.jobs)
@@ -438,7 +415,8 @@ def _plan_stage(cfg: Config, tissue: Tissue, sink: RunSink, reporter: Reporter, 
                   "planner" if plan.planned_with == "layer" else "model")
         how = (f"strokes {_fmt(plan.strokes)} mm" if plan.manipulated else "no manipulation needed")
         if plan.slab_strokes is not None and plan.feasible:
-            how += f" (the nominal slab needs {_fmt(plan.slab_strokes)} mm)"
+            off = "" if plan.model_error_mm is None else f"; the model's target there {plan.model_error_mm:.2f} mm off"
+            how += f" (the nominal slab needs {_fmt(plan.slab_strokes)} mm{off})"
         if plan.feasible and not plan.robot_ok:
             how += f"; ROBOT: {plan.robot_note}"
         reporter.info(

@@ -33,6 +33,8 @@ class TargetTrials:
     miss: np.ndarray = None  # (T,) mm across the needle (runs before it was stored: None)
     along: np.ndarray = None  # (T,) mm along the needle, for the depth
     stroke_limit: int = 0  # trials that ended at a stroke limit
+    #: the controller's model against the nominal slab at the plan's strokes (mm; /plan/<t> model_error_mm)
+    plan_model_error_mm: float = float("nan")
 
 
 @dataclass
@@ -62,8 +64,10 @@ def load_run(run_dir: Path, partial: bool = False) -> RunTrials:
             miss = g["manipulation_miss_mm"][:][ok] if "manipulation_miss_mm" in g else None
             along = g["along_mm"][:][ok] if "along_mm" in g else None
             stops = int(np.sum(g["stop_reason"][:][ok].astype(str) == "stroke_limit")) if "stop_reason" in g else 0
+            plan = f["plan"][t].attrs if "plan" in f and t in f["plan"] else {}
             targets[t] = TargetTrials(g["final_error"][:][ok], g["iterations"][:][ok], g["time_s"][:][ok],
-                                      g["corridor_clear"][:][ok], miss, along, stops)
+                                      g["corridor_clear"][:][ok], miss, along, stops,
+                                      float(plan.get("model_error_mm", np.nan)))
         cups = len(f["cups"]) if "cups" in f else 0
         controller, build, error = _controller(f)
     return RunTrials(f"{name} ({profile})", Path(run_dir), status, targets, cups, controller, build, error)
@@ -92,6 +96,7 @@ COLUMNS = [
     "iterations_mean", "iterations_max", "time_s_mean", "corridor_clear_pct",
     "cups", "miss_median", "miss_p95", "miss_max", "along_median_abs",
     "controller", "stroke_limit_stops", "time_per_iteration_s", "model_build_s", "model_error_mm",
+    "plan_model_error_mm",
 ]
 
 
@@ -118,6 +123,7 @@ def summary_rows(runs: list[RunTrials]) -> list[dict]:
                 row["time_per_iteration_s"] = (float(np.median(d.time_s[moved] / d.iterations[moved])) if moved.any()
                                                else float("nan"))
                 row["model_build_s"], row["model_error_mm"] = run.model_build_s, run.model_error_mm
+                row["plan_model_error_mm"] = d.plan_model_error_mm
                 if d.miss is not None:
                     row["miss_median"], row["miss_max"] = np.median(d.miss), d.miss.max()
                     row["miss_p95"] = np.percentile(d.miss, 95)

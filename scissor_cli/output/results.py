@@ -237,6 +237,7 @@ def write_plan(out: ResultsFile, plan, joints_note: str, robot_reachable: bool) 
         "desired_error_mm": float(plan.desired_error_mm),
         **{name: np.asarray(value, float) for name, value in (("model_strokes", plan.model_strokes),
                                                               ("slab_strokes", plan.slab_strokes)) if value is not None},
+        **({} if plan.model_error_mm is None else {"model_error_mm": float(plan.model_error_mm)}),
     })
 
 

@@ -56,7 +56,7 @@ class NeedlePlan:
     desired_error_mm: distance between `desired` and the target's deformed
         position at `strokes` (0 unless the config gave the desired position).
     reason: empty when feasible, else why no plan exists (with the best found).
-    model_strokes, slab_strokes (C,) mm: see the fields (docs/model.md §15).
+    model_strokes, slab_strokes (C,) mm, model_error_mm: see the fields (docs/model.md §15).
     """
 
     target: str
@@ -79,6 +79,9 @@ class NeedlePlan:
     #: model needs for `desired` (then also `strokes`), and those the nominal slab needs; None when not asked
     model_strokes: Optional[np.ndarray] = None
     slab_strokes: Optional[np.ndarray] = None
+    #: with a slab at hand: the distance (mm) between the target where the controller's model puts it at
+    #: `model_strokes` and where the nominal slab does at the same strokes (0 for the slab model itself)
+    model_error_mm: Optional[float] = None
     #: the model whose target positions chose `desired` and `strokes`: "layer" (the planner's tissue), or the
     #: controller model's kind when the plan was made again with it (`target_at`, docs/model.md §15)
     planned_with: str = "layer"
@@ -383,3 +386,22 @@ def plan_targets(
     """`plan_target` for every target of the scene, sharing one `StateCache`."""
     cache = kwargs.pop("cache", None) or StateCache(tissue)
     return [plan_target(tissue, scene, t, needle_cfg, robot_check=robot_check, cache=cache, **kwargs) for t in scene.targets]
+
+
+def stored_plan(name: str, a: dict, has_obstacles: bool) -> NeedlePlan:
+    """A plan from its stored /plan/<target> attributes (docs/contract.md), as the planner gave it.
+
+    Values the file holds as fills are restored: no geometry without a plan,
+    no joints the robot cannot reach, an infinite clearance without obstacles.
+    """
+    feasible, reachable = bool(a["feasible"]), bool(a["robot_reachable"])
+    geometry = (lambda v: np.asarray(v, float)) if str(a["side"]) else (lambda v: np.full(np.shape(v), np.nan))
+    joints = np.asarray(a["joints"], float)
+    optional = {k: np.asarray(a[k], float) for k in ("model_strokes", "slab_strokes") if k in a}
+    return NeedlePlan(
+        name, feasible, str(a["reason"]), np.asarray(a["desired"], float), np.asarray(a["strokes"], float),
+        geometry(a["entry"]), geometry(a["direction"]), float(geometry(a["depth_mm"])),
+        float(a["clearance_mm"]) if has_obstacles else float("inf"), str(a["side"]),
+        joints if reachable else np.full(joints.shape, np.nan), reachable, str(a["joints_note"]),
+        float(a["desired_error_mm"]), **optional,
+        model_error_mm=float(a["model_error_mm"]) if "model_error_mm" in a else None)
