@@ -119,7 +119,8 @@ def test_slab_truth_budget_runs_with_its_3d_row(tmp_path):
     """--truth slab --budget: the all row against the slab, a slab row, the other rows on the layer; the report's
     paper table names the truth."""
     data = _small(1)
-    data["layer_check"] = {"height_mm": 8.0, "layer_z_mm": 4.0, "max_layer_mm": 4.0}
+    # (a slab on its own plane twice as coarse as the layer's: the budget's rows, not the slab's fidelity, on test)
+    data["layer_check"] = {"height_mm": 8.0, "layer_z_mm": 4.0, "max_layer_mm": 4.0, "in_plane_scale": 2.0}
     data["forward"] = [{"name": "push4", "strokes": {"cup": 4.0}}]
     scene = write_scene(tmp_path, data)
     h5 = _simulate(scene, tmp_path / "run", "--budget", "--truth", "slab")

@@ -261,13 +261,15 @@ def killed_and_resumed_equals_reference(tmp_path: Path, make_scene, kill_after: 
 
 
 def test_slab_truth_insertion_run_sigkilled_then_resumed_equals_an_uninterrupted_one(tmp_path):
-    """Trials that insert in the slab (docs/model.md §14): a resume's workers rebuild the slab and rerun the
-    unfinished trials' insertions to the same numbers as an uninterrupted run."""
+    """Trials that insert in the slab (docs/model.md §14): a resume's workers rebuild the slab — on its own,
+    twice as coarse plane (`in_plane_scale`: the insertion probes that plane) — and rerun the unfinished
+    trials' insertions to the same numbers as an uninterrupted run."""
     import yaml
 
     def with_insertion(path: Path) -> Path:
         data = yaml.safe_load(path.read_text())
         data["insertion"] = {"step_mm": 2.0, "strategies": ["none"]}
+        data["layer_check"]["in_plane_scale"] = 2.0  # (a trial in 2 s instead of 9)
         path.write_text(yaml.safe_dump(data))
         return path
 
