@@ -200,6 +200,8 @@ def test_surrogate_run_records_the_model_plans_with_it_and_reuses_its_cache(tmp_
         assert 0 <= plan["model_error_mm"] <= 0.05  # the surrogate is the slab at its plan
         first_errors = f["trials/T2/final_error"][()]
     assert (tmp_path / "runs" / "a" / "controller_model.png").exists()
+    with h5py.File(tmp_path / "runs" / "a" / "results.h5") as f:
+        assert f["controller_model/paths"].attrs["kind"] == "surrogate"  # what report draws beside other models
     second = _cli("simulate", scene_path, "--out", tmp_path / "runs" / "b", "--jobs", "1")
     assert second.returncode == 0, second.stderr
     assert "from the cache" in " ".join(second.stdout.split() + second.stderr.split())
@@ -214,6 +216,7 @@ def test_surrogate_run_records_the_model_plans_with_it_and_reuses_its_cache(tmp_
     assert row["controller"] == "surrogate" and int(row["stroke_limit_stops"]) >= 0
     assert float(row["model_error_mm"]) <= 0.05 and float(row["time_per_iteration_s"]) > 0
     assert 0 <= float(row["plan_model_error_mm"]) <= 0.05
+    assert (tmp_path / "report" / "controller_models.png").exists()
 
 
 def test_a_target_the_slab_cannot_reach_is_reported_before_any_trial(tmp_path):
@@ -560,3 +563,37 @@ def test_each_plan_records_its_models_error_against_the_slab_at_the_strokes_it_a
     reference = SimpleNamespace(kind="slab", transmission=None, scene_map=lambda: slab_half, layer_map=lambda: None)
     assert plan_with_model(cfg, [plan], reference, slab_answer, _Said())[0].model_error_mm == 0.0
     assert plan_with_model(cfg, [plan], layer, None, _Said())[0].model_error_mm is None  # no slab: not asked
+
+
+def test_stored_model_paths_read_back_and_draw_every_model_against_the_slab(tmp_path):
+    """/controller_model/paths round-trips; report's controller_models.png holds one line per model kind (a
+    +Broyden run shares its model's line) beside the slab's points and the layer's line."""
+    from scissor_cli.layer3d.controller_model import ModelPaths
+    from scissor_cli.output.controller_model import read_paths, report_models_figure, write_paths
+
+    grid, dots = np.linspace(-15, 15, 7), np.linspace(-15, 15, 4)
+
+    def paths(kind, gain):
+        line = lambda s, g: np.stack([np.stack([g * s, -g * s], axis=1)] * 2, axis=1)  # (G, T=2, 2)
+        return ModelPaths(kind, ["cup"], ["T1", "T2"], [grid], [line(grid, gain)], [line(grid, 0.3)], [dots],
+                          [line(dots, 0.15)], np.zeros((2, 2)))
+
+    runs = []
+    for name, kind, gain in (("a", "surrogate", 0.15), ("b", "surrogate", 0.15), ("c", "calibrated", 0.17)):
+        with h5py.File(tmp_path / f"{name}.h5", "w") as f:
+            f.create_group("controller_model")
+            write_paths(f, paths(kind, gain))
+        runs.append((f"scene ({name})", tmp_path / f"{name}.h5"))
+    with h5py.File(tmp_path / "a.h5") as f:
+        back = read_paths(f)
+    want = paths("surrogate", 0.15)
+    assert back.kind == "surrogate" and back.cup_names == ["cup"] and back.target_names == ["T1", "T2"]
+    for field in ("strokes", "model", "layer", "slab_strokes", "slab"):
+        np.testing.assert_array_equal(getattr(back, field)[0], getattr(want, field)[0])
+    with h5py.File(tmp_path / "plain.h5", "w") as f:
+        f.create_group("controller_model")
+    with h5py.File(tmp_path / "plain.h5") as f:
+        assert read_paths(f) is None
+    files = report_models_figure(runs + [("scene (plain)", tmp_path / "plain.h5")], tmp_path / "rep")
+    assert [p.name for p in files] == ["controller_models.png"] and files[0].stat().st_size > 0
+    assert report_models_figure([("scene (plain)", tmp_path / "plain.h5")], tmp_path / "rep2") == []

@@ -16,6 +16,7 @@ import numpy as np
 from scissor_cli.output import figures, layer_check, tables
 from scissor_cli.experiments import study as study_mod
 from scissor_cli.output.budget_report import report_budget
+from scissor_cli.output.controller_model import report_models_figure
 from scissor_cli.output.insertion_report import report_insertion
 from scissor_cli.output.results import finished_trials, read_study
 
@@ -268,6 +269,7 @@ def report_trials(run_dirs: list[Path], out_dir: Path, partial: bool = False) ->
     (out_dir / "summary.md").write_text(table)
     write_csv(out_dir / "summary.csv", rows)
     files += [out_dir / "summary.md", out_dir / "summary.csv"]
+    files += report_models_figure([(r.label, _check_status(r.path, True)) for r in runs], out_dir)
     ins_files, ins_table = report_insertion([(r.label, _check_status(r.path, True)) for r in runs], out_dir)
     if ins_files:
         files += ins_files

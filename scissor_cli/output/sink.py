@@ -138,9 +138,12 @@ class ResultsSink:
     def controller_model(self, data, target_names: list[str], paths, jacobian_update: str, title: str
                          ) -> Optional[Path]:
         """The controller's model (docs/model.md §15): /controller_model and its path figure (when drawn)."""
-        from scissor_cli.output.controller_model import save_controller_model_figure, write_controller_model  # noqa: PLC0415
+        from scissor_cli.output.controller_model import (save_controller_model_figure, write_controller_model,  # noqa: PLC0415
+                                                         write_paths)
 
         write_controller_model(self.out.h5, data, target_names, jacobian_update)
+        if paths is not None:
+            write_paths(self.out.h5, paths)
         self.out.flush()
         return None if paths is None else save_controller_model_figure(paths, title, self.location)
 
