@@ -106,3 +106,22 @@ def test_a_target_without_a_plan_counts_no_trials(two_runs, tmp_path):
     rows = {r["target"]: r for r in csv.DictReader(open(tmp_path / "rep" / "summary.csv"))}
     assert rows["T2"]["trials"] == "0" and rows["T2"]["max_x"] == ""
     assert int(rows["T1"]["trials"]) == n_t1
+
+
+def test_extra_iterations_count_what_the_loop_took_beyond_the_drives_speed(tmp_path):
+    """iterations − ceil(max over cups of |final stroke| / (speed / rate)): the loop's own share of its time."""
+    import h5py
+
+    from scissor_cli.output.report import _extra_iterations
+
+    columns = np.array(["time_s", "stroke_cmd_a", "stroke_a", "stroke_cmd_b", "stroke_b", "measured_x"], dtype=object)
+    with h5py.File(tmp_path / "r.h5", "w") as f:
+        g = f.create_group("trials/T1")
+        g["iterations"] = np.array([5, 12, 9])
+        for k, final in enumerate(([1.0, 0.2], [0.4, -3.2], [0.0, 0.0])):
+            h = g.create_dataset(f"history/{k}", data=np.array([[0, 0, 0, 0, 0, 1.0], [0.1, 9, final[0], 9, final[1], 1.0]]))
+            h.attrs["columns"] = columns
+        step = np.array([0.5, 0.5])  # 5 mm/s at 10 Hz
+        np.testing.assert_array_equal(_extra_iterations(g, np.array([0, 1, 2]), step), [5 - 2, 12 - 7, 9 - 0])
+        np.testing.assert_array_equal(_extra_iterations(g, np.array([1]), np.array([0.5, 1.0])), [12 - 4])
+        assert _extra_iterations(g, np.array([0]), None) is None

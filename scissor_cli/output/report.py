@@ -9,10 +9,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import h5py
 import numpy as np
 
+from scissor_cli.config import ConfigError, parse_config
 from scissor_cli.output import figures, layer_check, tables
 from scissor_cli.experiments import study as study_mod
 from scissor_cli.output.budget_report import report_budget
@@ -36,6 +38,9 @@ class TargetTrials:
     stroke_limit: int = 0  # trials that ended at a stroke limit
     #: the controller's model against the nominal slab at the plan's strokes (mm; /plan/<t> model_error_mm)
     plan_model_error_mm: float = float("nan")
+    #: (T,) iterations beyond the fewest control periods the drives need, at full speed, to reach each trial's
+    #: final strokes from rest (None without histories)
+    extra_iterations: np.ndarray = None
 
 
 @dataclass
@@ -59,6 +64,7 @@ def load_run(run_dir: Path, partial: bool = False) -> RunTrials:
             raise ReportError(f"{path}: the run has no trials (it was run with --trials 0)")
         profile = f["trials"].attrs.get("profile", "")
         name = _config_name(f.attrs.get("config_yaml", ""))
+        step_mm = _period_step_mm(f.attrs.get("config_yaml", ""))
         targets = {}
         for t, g in f["trials"].items():
             ok = finished_trials(g) & np.isfinite(g["final_error"][:]).all(axis=1)
@@ -68,10 +74,35 @@ def load_run(run_dir: Path, partial: bool = False) -> RunTrials:
             plan = f["plan"][t].attrs if "plan" in f and t in f["plan"] else {}
             targets[t] = TargetTrials(g["final_error"][:][ok], g["iterations"][:][ok], g["time_s"][:][ok],
                                       g["corridor_clear"][:][ok], miss, along, stops,
-                                      float(plan.get("model_error_mm", np.nan)))
+                                      float(plan.get("model_error_mm", np.nan)),
+                                      _extra_iterations(g, np.flatnonzero(ok), step_mm))
         cups = len(f["cups"]) if "cups" in f else 0
         controller, build, error = _controller(f)
     return RunTrials(f"{name} ({profile})", Path(run_dir), status, targets, cups, controller, build, error)
+
+
+def _period_step_mm(config_yaml: str) -> Optional[np.ndarray]:
+    """(C,) mm each drive moves in one control period at full speed (speed / rate), or None (no readable config)."""
+    try:
+        cfg = parse_config(config_yaml, "<run config>")
+    except ConfigError:
+        return None
+    return np.array([c.speed_mm_per_s for c in cfg.cups]) / cfg.controller.rate_hz if cfg.cups else None
+
+
+def _extra_iterations(g, trials: np.ndarray, step_mm: Optional[np.ndarray]) -> Optional[np.ndarray]:
+    """(len(trials),) each trial's iterations less ceil(max_c |final stroke_c| / step_c): what the loop took beyond
+    the drives' speed (docs/model.md §15); None without histories or cups."""
+    if step_mm is None or "history" not in g:
+        return None
+    out = []
+    for k in trials:
+        h = g["history"][str(k)]
+        columns = [str(c) for c in h.attrs["columns"]]
+        strokes = [j for j, c in enumerate(columns) if c.startswith("stroke_") and not c.startswith("stroke_cmd_")]
+        final = np.abs(h[-1, strokes]) if len(strokes) == len(step_mm) and len(h) else np.zeros(len(step_mm))
+        out.append(int(g["iterations"][k]) - int(np.ceil(np.max(final / step_mm) - 1e-9)))
+    return np.asarray(out, int)
 
 
 def _controller(f) -> tuple[str, float, float]:
@@ -97,7 +128,7 @@ COLUMNS = [
     "iterations_mean", "iterations_max", "time_s_mean", "corridor_clear_pct",
     "cups", "miss_median", "miss_p95", "miss_max", "along_median_abs",
     "controller", "stroke_limit_stops", "time_per_iteration_s", "model_build_s", "model_error_mm",
-    "plan_model_error_mm",
+    "plan_model_error_mm", "extra_iterations_median", "extra_iterations_max",
 ]
 
 
@@ -125,6 +156,9 @@ def summary_rows(runs: list[RunTrials]) -> list[dict]:
                                                else float("nan"))
                 row["model_build_s"], row["model_error_mm"] = run.model_build_s, run.model_error_mm
                 row["plan_model_error_mm"] = d.plan_model_error_mm
+                if d.extra_iterations is not None and len(d.extra_iterations):
+                    row["extra_iterations_median"] = float(np.median(d.extra_iterations))
+                    row["extra_iterations_max"] = int(d.extra_iterations.max())
                 if d.miss is not None:
                     row["miss_median"], row["miss_max"] = np.median(d.miss), d.miss.max()
                     row["miss_p95"] = np.percentile(d.miss, 95)
