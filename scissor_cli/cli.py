@@ -131,6 +131,7 @@ def simulate(
     from scissor_cli.experiments.pool import WorkerLost, install_signal_handlers
     from scissor_cli.experiments.simulate import (Execution, NonFiniteError, ResumeError, TrialsFailed,
                                                   resume_simulation, run_simulation)
+    from scissor_cli.output.run_lock import RunBusy, claim
     from scissor_cli.output.sink import RunDirectory, open_for_resume
     from scissor_cli.experiments.study import StudyError
     from scissor_cli.solvers.common import SolverError
@@ -145,8 +146,9 @@ def simulate(
     install_signal_handlers()  # SIGTERM, SIGINT, SIGHUP: stop the workers, keep what finished, exit 128 + N
     if resume is not None:
         try:
+            lock = claim(resume) if resume.is_dir() else None  # (held to the process's end: one run per directory)
             n = resume_simulation(open_for_resume(resume), reporter, execution)
-        except (ResumeError, ConfigError) as exc:  # also: the run's own config no longer validates
+        except (ResumeError, ConfigError, RunBusy) as exc:  # also: the run's own config no longer validates
             _fail(2, str(exc))
         except (TrialsFailed, NonFiniteError, WorkerLost) as exc:
             err.print(f"results so far: {resume / 'results.h5'} (status = failed)")
@@ -182,6 +184,10 @@ def simulate(
 
         cfg = cfg.model_copy(update={"study": StudyConfig()})
     directory = _out_dir(out_dir, stem, force)
+    try:
+        lock = claim(directory)  # noqa: F841 (held to the process's end: a second run here would truncate this one's)
+    except RunBusy as exc:
+        _fail(2, f"--out {exc}")
     try:
         summary = run_simulation(cfg, RunDirectory(directory), reporter, execution)
     except (BoundaryError, MeshError, StudyError) as exc:

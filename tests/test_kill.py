@@ -180,6 +180,30 @@ def test_stop_signal_keeps_finished_trials_and_resume_completes(sig, reference, 
     assert_same_as_reference(out, reference)
 
 
+def test_a_second_run_into_a_running_runs_directory_is_refused_and_the_first_finishes_whole(reference, tmp_path):
+    """`--force` into, or `--resume` of, a directory a run is writing: exit 2 naming that run's pid, before
+    anything is touched (it used to truncate the running run's file); the first run ends as if alone, and its
+    lock is gone with it."""
+    from scissor_cli.output.run_lock import claim
+
+    out, config = tmp_path / "run", scene(tmp_path)
+    proc = start(config, "--jobs", "2", "--out", out, "--quiet")
+    try:
+        wait_for_trials(proc, out, 4)
+        for args in ((config, "--force", "--out", out, "--trials", "2"), ("--resume", out)):
+            second = finish(*args)
+            said = " ".join(second.stderr.split())
+            assert second.returncode == 2, said
+            assert f"another scissor run (pid {proc.pid}) is writing there" in said and "Traceback" not in said
+    except BaseException:
+        os.killpg(proc.pid, signal.SIGKILL)
+        raise
+    _, stderr = proc.communicate(timeout=240)
+    assert proc.returncode == 0, stderr
+    assert_same_as_reference(out, reference)
+    claim(out).release()  # the finished run holds nothing
+
+
 def test_sigkill_damaged_file_and_killed_resume_lose_no_trial(reference, tmp_path):
     """SIGKILL leaves only results.h5.tmp and the journal. Here the kill is made worse: the
     temporary file is damaged, as a kill in the middle of an HDF5 write can leave it. The resume
