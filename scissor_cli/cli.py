@@ -146,7 +146,7 @@ def simulate(
     install_signal_handlers()  # SIGTERM, SIGINT, SIGHUP: stop the workers, keep what finished, exit 128 + N
     if resume is not None:
         try:
-            lock = claim(resume) if resume.is_dir() else None  # (held to the process's end: one run per directory)
+            lock = claim(resume) if resume.is_dir() else None  # noqa: F841 (held to the process's end)
             n = resume_simulation(open_for_resume(resume), reporter, execution)
         except (ResumeError, ConfigError, RunBusy) as exc:  # also: the run's own config no longer validates
             _fail(2, str(exc))
