@@ -303,12 +303,13 @@ def report_trials(run_dirs: list[Path], out_dir: Path, partial: bool = False) ->
     (out_dir / "summary.md").write_text(table)
     write_csv(out_dir / "summary.csv", rows)
     files += [out_dir / "summary.md", out_dir / "summary.csv"]
-    files += report_models_figure([(r.label, _check_status(r.path, True)) for r in runs], out_dir)
-    ins_files, ins_table = report_insertion([(r.label, _check_status(r.path, True)) for r in runs], out_dir)
+    h5_files = [(r.label, _check_status(r.path, True)) for r in runs]
+    files += report_models_figure(h5_files, out_dir)
+    ins_files, ins_table = report_insertion(h5_files, out_dir)
     if ins_files:
         files += ins_files
         table += "\n" + ins_table
-    budget_files, budget_table = report_budget([(r.label, _check_status(r.path, True)) for r in runs], out_dir)
+    budget_files, budget_table = report_budget(h5_files, out_dir)
     files += budget_files
     table += budget_table
     return ReportOutput(out_dir, files, table)
