@@ -95,38 +95,10 @@ def read_controller_model(h5, target_names: list[str]) -> Optional[ModelData]:
     return ModelData(str(a["kind"]), float(a["build_time_s"]), error, calibration, surrogate)
 
 
-def controller_model_figure(paths: ModelPaths, title: str):
-    """One column per cup, rows: each target's x and y motion from rest against the stroke — layer, model, slab."""
-    import matplotlib.pyplot as plt  # noqa: PLC0415
-
-    C, T = len(paths.cup_names), len(paths.target_names)
-    fig, axes = plt.subplots(2, max(C, 1), figsize=(5.0 * max(C, 1), 6.5), squeeze=False, sharex="col")
-    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    for c in range(C):
-        for row, axis_name in enumerate("xy"):
-            ax = axes[row, c]
-            for t in range(T):
-                colour = colours[t % len(colours)]
-                rest = 0.0 if paths.rest is None else paths.rest[t, row]
-                ax.plot(paths.strokes[c], paths.layer[c][:, t, row] - rest, "--", color=colour, alpha=0.5, lw=1)
-                ax.plot(paths.strokes[c], paths.model[c][:, t, row] - rest, "-", color=colour, lw=1.5,
-                        label=f"{paths.target_names[t]}: {paths.kind}")
-                ax.plot(paths.slab_strokes[c], paths.slab[c][:, t, row] - rest, "o", color=colour, ms=4,
-                        label=f"{paths.target_names[t]}: slab")
-            ax.set_ylabel(f"target {axis_name} motion from rest (mm)")
-            ax.grid(alpha=0.3)
-        axes[1, c].set_xlabel(f"stroke of {paths.cup_names[c]} (mm), other cups at rest")
-    axes[0, 0].plot([], [], "--", color="grey", label="layer (dashed)")
-    axes[0, 0].legend(fontsize=7, ncol=2)
-    fig.suptitle(f"{title}: the {paths.kind} model's target path against the nominal slab's")
-    fig.tight_layout()
-    return fig
-
-
 def save_controller_model_figure(paths: ModelPaths, title: str, location: Path) -> Path:
     from scissor_cli.output import figures  # noqa: PLC0415
 
-    return figures.save(controller_model_figure(paths, title), Path(location) / "controller_model.png")
+    return figures.save(controller_models_figure([paths], title), Path(location) / "controller_model.png")
 
 
 MODEL_STYLES = {"calibrated": ("tab:orange", "-."), "surrogate": ("tab:blue", "-"), "slab": ("tab:green", ":")}
@@ -135,7 +107,7 @@ MODEL_STYLES = {"calibrated": ("tab:orange", "-."), "surrogate": ("tab:blue", "-
 def controller_models_figure(paths: list[ModelPaths], title: str):
     """Every model's target path against the nominal slab's (the slab's points) and the layer's (dashed), one
     column per cup and target, rows: x and y motion from rest. paths: one `ModelPaths` per model kind, all of
-    the same scene."""
+    the same scene (one: a run's own `controller_model.png`)."""
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
     first = paths[0]
@@ -157,7 +129,8 @@ def controller_models_figure(paths: list[ModelPaths], title: str):
         axes[0, k].set_title(f"{first.target_names[t]}", fontsize=10)
         axes[1, k].set_xlabel(f"stroke of {first.cup_names[c]} (mm)")
     axes[0, 0].legend(fontsize=7)
-    fig.suptitle(f"{title}: each controller model's target path against the nominal slab's")
+    whose = f"the {first.kind} model's" if len(paths) == 1 else "each controller model's"
+    fig.suptitle(f"{title}: {whose} target path against the nominal slab's")
     fig.tight_layout()
     return fig
 
