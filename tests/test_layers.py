@@ -2,7 +2,7 @@
 
 Order (docs/architecture.md): the base modules (`geometry`, `runtime`, the
 package root), then config → scene → mesh → mechanics → solvers → robot →
-planning → control → insertion → layer3d → experiments → output → cli. A
+planning → sensing → control → insertion → layer3d → experiments → output → cli. A
 module may import from its own package and from any earlier layer; the test
 reads every `import` statement (including those inside functions) with `ast`.
 """
@@ -17,7 +17,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "scissor_cli"
 LAYERS = [
     "", "geometry", "runtime", "config", "scene", "mesh", "mechanics", "solvers", "robot", "planning",
-    "control", "insertion", "layer3d", "experiments", "output", "cli", "__main__",
+    "sensing", "control", "insertion", "layer3d", "experiments", "output", "cli", "__main__",
 ]
 RANK = {name: i for i, name in enumerate(LAYERS)}
 BASE = {"", "geometry", "runtime"}  # importable from everywhere
