@@ -40,13 +40,13 @@ import numpy as np
 
 from scissor_cli import runtime  # noqa: E402
 from scissor_cli import control as ct
-from scissor_cli.scene.camera import Camera
+from scissor_cli.sensing.camera import Camera, CameraSensor
 from scissor_cli.config import ManipulationPointsConfig, load_config
 from scissor_cli.control.allocation import stroke_step
 from scissor_cli.planning.manipulation_points import plan_grips
 from scissor_cli.mesh.probe import probe_targets
 from scissor_cli.planning.corridor import corridor_radius
-from scissor_cli.planning.needle import plan_targets
+from scissor_cli.planning.needle_plan import plan_targets
 from scissor_cli.planning.states import StateCache
 from scissor_cli.experiments.simulate import build_model
 
@@ -142,13 +142,14 @@ def loop_steps(cfg, model, plans, trials: int, cache=None) -> tuple[np.ndarray, 
             cases.append(dict(
                 truth=ct.TruthPerturbation(E_scale=float(rng.uniform(0.8, 1.2)),
                                            fiber_offset_rad=float(np.deg2rad(rng.normal(0, 5)))),
-                measurement=ct.Measurement(cam, tuple(rng.normal(0, 0.2, 2))),
-                backlash_mm=0.1, rng=np.random.default_rng(int(rng.integers(1 << 31))),
+                sensor=CameraSensor(cam, tuple(rng.normal(0, 0.2, 2)), rng=np.random.default_rng(int(rng.integers(1 << 31)))),
+                backlash_mm=0.1,
             ))
         corridor = ct.Corridor.from_plan(plan, corridor_radius(cfg.needle))
         guess = None if cache is None else (plan.strokes, cache.state(plan.strokes))
         for kw in cases:
-            r = ct.run_target(model, target.rest, plan.desired, cfg.controller, corridor=corridor, guess=guess, **kw)
+            r = ct.run_target(model, target.rest, plan.desired, cfg.controller,
+                              ct.TargetRun(corridor=corridor, guess=guess, **kw))
             iterations.append(r.iterations)
             first.extend(r.step_wall_s[:1])
             later.extend(r.step_wall_s[1:])
@@ -164,11 +165,10 @@ def ms(a: np.ndarray) -> str:
 
 def model_iterations(path: Path, repeats: int) -> None:
     """Median time of the controller's side of a control iteration with each model, and its build time."""
-    from scissor_cli.experiments.controller_model import fitted_model  # noqa: PLC0415
+    from scissor_cli.experiments.controller_model_stage import fitted_model  # noqa: PLC0415
     from scissor_cli.experiments.run_cache import CACHE_DIR  # noqa: PLC0415
-    from scissor_cli.experiments.simulate import SilentReporter  # noqa: PLC0415
     from scissor_cli.layer3d.check import spec_from_config  # noqa: PLC0415
-    from scissor_cli.layer3d.controller_model import ControllerModel  # noqa: PLC0415
+    from scissor_cli.layer3d.tissue_models import ControllerModel  # noqa: PLC0415
     from scissor_cli.layer3d.slab import build_slab  # noqa: PLC0415
 
     cfg = load_config(path).model_copy(update={"manipulation_points": None})
@@ -182,7 +182,7 @@ def model_iterations(path: Path, repeats: int) -> None:
     act = ct.Actuator.from_scene(scene)
     for kind in ("layer", "calibrated", "surrogate", "slab"):
         kcfg = cfg.model_copy(update={"controller": cfg.controller.model_copy(update={"model": kind})})
-        data, cached = fitted_model(kcfg, layer, slab, plans, ROOT / "runs" / CACHE_DIR, SilentReporter(), jobs=2)
+        data, cached = fitted_model(kcfg, layer, slab, plans, ROOT / "runs" / CACHE_DIR, jobs=2)
         model = ControllerModel(data, layer, slab)
         ctrl = model.controller(0, act.lo, act.hi)
         s = np.full(layer.n_cups, 0.4 * scene.cups[0].stroke_max_mm)

@@ -30,8 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from scissor_cli.config import load_config, resolved_yaml  # noqa: E402
 from scissor_cli.experiments.run_cache import CACHE_DIR  # noqa: E402
-from scissor_cli.experiments.layer_check import slab_resolution_stage  # noqa: E402
-from scissor_cli.experiments.simulate import SilentReporter  # noqa: E402
+from scissor_cli.experiments.layer_check_stage import slab_resolution_stage  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -45,7 +44,7 @@ def scene_for(config: Path, trials: int, out: Path) -> Path:
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     cfg = load_config(path)
     if cfg.layer_check is not None and cfg.layer_check.accuracy_mm is not None:
-        cfg, choice = slab_resolution_stage(cfg, SilentReporter(), out / CACHE_DIR)
+        cfg, choice = slab_resolution_stage(cfg, out / CACHE_DIR)
         path.write_text(resolved_yaml(cfg))
         print(f"slab grading: {choice.explain()}", flush=True)
     return path

@@ -34,10 +34,10 @@ import numpy as np
 
 from scissor_cli import runtime
 from scissor_cli.config import load_config
-from scissor_cli.insertion import NeedleParams, run_insertion
+from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion
 from scissor_cli.insertion.needle import NeedleState, advance, free_nodes
 from scissor_cli.mechanics.tissue import build_model
-from scissor_cli.planning.needle import plan_target
+from scissor_cli.planning.needle_plan import plan_target
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -54,7 +54,7 @@ def main() -> None:
     if cfg.insertion is None:
         raise SystemExit(f"{args.config}: no insertion section")
     scene, mesh, tissue = build_model(cfg)
-    params = NeedleParams.from_config(cfg.insertion, cfg)
+    params = NeedleParams.from_config(cfg.insertion, cfg.needle, cfg.tissue.mesh)
     for target in scene.targets:
         plan = plan_target(tissue, scene, target, cfg.needle)
         if plan.feasible:
@@ -102,8 +102,8 @@ def main() -> None:
     for step in (2.0, 1.0, 0.5, 0.25):
         p = dataclasses.replace(params, step_mm=step)
         t0 = time.perf_counter()
-        r = run_insertion(tissue, x0, plan.strokes, plan.entry, plan.direction, args.depth, target.rest, p, "none",
-                          keep_displacement=False)
+        r = run_insertion(tissue, x0, plan.strokes, NeedlePath(plan.entry, plan.direction, args.depth, target.rest), p,
+                          InsertionOptions("none", keep_displacement=False))
         rows.append((step, r, time.perf_counter() - t0))
     ref = rows[-1][1]
     common = np.arange(2.0, args.depth + 1e-9, 2.0)

@@ -34,7 +34,7 @@ from scissor_cli.layer3d.check import spec_from_config
 from scissor_cli.layer3d.slab import build_slab, slab_probe
 from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
 from scissor_cli.mechanics.tissue import build_model
-from scissor_cli.planning.needle import plan_target
+from scissor_cli.planning.needle_plan import plan_target
 from scissor_cli.solvers.newton import solve_newton
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -55,7 +55,7 @@ def main() -> None:
     t0 = time.perf_counter()
     slab = build_slab(scene, mesh, spec_from_config(cfg), model=tissue.params.model)
     build_s = time.perf_counter() - t0
-    params = NeedleParams.from_config(cfg.insertion, cfg)
+    params = NeedleParams.from_config(cfg.insertion, cfg.needle, cfg.tissue.mesh)
     for target in scene.targets:
         plan = plan_target(tissue, scene, target, cfg.needle)
         if plan.feasible:

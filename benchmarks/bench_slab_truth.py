@@ -30,26 +30,25 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from scissor_cli import control, runtime  # noqa: E402
+from scissor_cli import control, progress, runtime  # noqa: E402
 from scissor_cli.config import load_config, resolved_yaml  # noqa: E402
-from scissor_cli.experiments.layer_check import slab_resolution_stage  # noqa: E402
+from scissor_cli.experiments.layer_check_stage import slab_resolution_stage  # noqa: E402
 from scissor_cli.experiments.profiles import draw_trial  # noqa: E402
 from scissor_cli.experiments.run_cache import CACHE_DIR  # noqa: E402
 from scissor_cli.experiments.simulate import robot_joint_check, trial_tasks  # noqa: E402
 from scissor_cli.experiments.trials import TrialContext  # noqa: E402
 from scissor_cli.mechanics import compiled3d, fem, materials  # noqa: E402
-from scissor_cli.planning.needle import plan_targets  # noqa: E402
+from scissor_cli.planning.needle_plan import plan_targets  # noqa: E402
 from scissor_cli.solvers.linear import factorize_free  # noqa: E402
 from scissor_cli.solvers.tracking import Equilibrium  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-class Printer:
-    """The reporter `slab_resolution_stage` talks to."""
+class Printer(progress.SilentReporter):
+    """The reporter the ladder's messages go to: printed."""
 
-    @staticmethod
-    def info(message: str) -> None:
+    def info(self, message: str) -> None:
         print(message, flush=True)
 
 
@@ -101,7 +100,8 @@ def main() -> None:
     if cfg.trials.truth != "slab" or cfg.layer_check is None:
         sys.exit(f"{args.config}: needs trials.truth: slab and a layer_check section")
     if cfg.layer_check.accuracy_mm is not None and not args.configured:
-        cfg, choice = slab_resolution_stage(cfg, Printer(), Path("runs") / CACHE_DIR)
+        with progress.reporting(Printer()):
+            cfg, choice = slab_resolution_stage(cfg, Path("runs") / CACHE_DIR)
     t0 = time.perf_counter()
     ctx = TrialContext(resolved_yaml(cfg))
     slab = ctx.slab_truth.slab

@@ -20,7 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from scissor_cli import runtime  # noqa: E402
 from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.experiments.simulate import Execution, run_simulation  # noqa: E402
-from scissor_cli.output.sink import RunDirectory  # noqa: E402
+from scissor_cli.output.results_sink import RunDirectory  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_MAX = {"prosthesis": (0.7, 1.7), "ex_vivo": (1.3, 2.5)}  # max |x|, |y| error (mm), paper section 4.2

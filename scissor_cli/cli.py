@@ -8,9 +8,13 @@ with the reason; 128 + N when `simulate` is stopped by signal N (130 Ctrl-C,
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
+import inspect
 import os
 import sys
+import typing
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -19,7 +23,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from scissor_cli import __version__, runtime
+from scissor_cli import __version__, progress, runtime
 from scissor_cli.config import Config, ConfigError, load_config, resolved_yaml
 
 app = typer.Typer(
@@ -109,91 +113,147 @@ def validate(config: Path = typer.Argument(..., help="Scene YAML file.")) -> Non
     sys.stdout.write(resolved_yaml(cfg))  # plain: a rich console would wrap long YAML lines
 
 
+@dataclass(frozen=True)
+class SimulateOptions:
+    """The options of `scissor simulate` (docs/contract.md#simulate), as one value."""
+
+    config: Optional[Path] = typer.Argument(None, help="Scene YAML file (default: the shipped example scene).")
+    out_dir: Optional[Path] = typer.Option(None, "--out", help="Output directory (default runs/<config-stem>-<time>/).")
+    trials: Optional[int] = typer.Option(None, "--trials", min=0, max=10_000, help="Trials per target (0: forward cases and plans only).")
+    seed: Optional[int] = typer.Option(None, "--seed", min=0, max=2**63 - 1, help="Override the config's seed.")
+    solver: Optional[str] = typer.Option(None, "--solver", help="Override the config's solver: admm | newton.")
+    truth: Optional[str] = typer.Option(None, "--truth", help="Override trials.truth: layer | slab (the 3-D slab of layer_check).")
+    jobs: Optional[int] = typer.Option(None, "--jobs", min=1, max=MAX_JOBS, help="Worker processes for trials (default: all cores).")
+    executor: str = typer.Option("local", "--executor", help="Where trials run: local | dask.")
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address (with --executor dask).")
+    resume: Optional[Path] = typer.Option(None, "--resume", help="Finish an interrupted run directory: the stages it had not finished, then its trials.")
+    study: bool = typer.Option(False, "--study", help="Also run the solver study (the config's `study` section or its defaults).")
+    budget: bool = typer.Option(False, "--budget", help="Also run the error budget: the trials again with one error source at a time.")
+    force: bool = typer.Option(False, "--force", help="Write into a non-empty --out directory.")
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress or messages, only the output path.")
+
+
+def takes_options(options_cls):
+    """A typer command whose parameters are the fields of the dataclass `options_cls`; the body gets one value of it.
+
+    typer reads a command's parameters from its signature, so the command
+    is given the fields' signature; the options are declared once, with
+    their help, on the dataclass.
+    """
+
+    def decorate(body):
+        hints = typing.get_type_hints(options_cls)
+        fields = dataclasses.fields(options_cls)
+
+        def command(**values):
+            return body(options_cls(**values))
+
+        command.__signature__ = inspect.Signature([
+            inspect.Parameter(f.name, inspect.Parameter.POSITIONAL_OR_KEYWORD, default=f.default, annotation=hints[f.name])
+            for f in fields])
+        command.__annotations__ = {f.name: hints[f.name] for f in fields}
+        command.__name__, command.__doc__ = body.__name__, body.__doc__
+        return command
+
+    return decorate
+
+
 @app.command()
-def simulate(
-    config: Optional[Path] = typer.Argument(None, help="Scene YAML file (default: the shipped example scene)."),
-    out_dir: Optional[Path] = typer.Option(None, "--out", help="Output directory (default runs/<config-stem>-<time>/)."),
-    trials: Optional[int] = typer.Option(None, "--trials", min=0, max=10_000, help="Trials per target (0: forward cases and plans only)."),
-    seed: Optional[int] = typer.Option(None, "--seed", min=0, max=2**63 - 1, help="Override the config's seed."),
-    solver: Optional[str] = typer.Option(None, "--solver", help="Override the config's solver: admm | newton."),
-    truth: Optional[str] = typer.Option(None, "--truth", help="Override trials.truth: layer | slab (the 3-D slab of layer_check)."),
-    jobs: Optional[int] = typer.Option(None, "--jobs", min=1, max=MAX_JOBS, help="Worker processes for trials (default: all cores)."),
-    executor: str = typer.Option("local", "--executor", help="Where trials run: local | dask."),
-    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address (with --executor dask)."),
-    resume: Optional[Path] = typer.Option(None, "--resume", help="Finish an interrupted run directory: the stages it had not finished, then its trials."),
-    study: bool = typer.Option(False, "--study", help="Also run the solver study (the config's `study` section or its defaults)."),
-    budget: bool = typer.Option(False, "--budget", help="Also run the error budget: the trials again with one error source at a time."),
-    force: bool = typer.Option(False, "--force", help="Write into a non-empty --out directory."),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress or messages, only the output path."),
-) -> None:
+@takes_options(SimulateOptions)
+def simulate(options: SimulateOptions) -> None:
     """Mesh the scene, solve its forward cases, plan the needle, manipulate the targets, run trials."""
-    from scissor_cli.mesh.mesh import MeshError
-    from scissor_cli.experiments.pool import WorkerLost, install_signal_handlers
-    from scissor_cli.experiments.simulate import (Execution, NonFiniteError, ResumeError, TrialsFailed,
-                                                  resume_simulation, run_simulation)
+    from scissor_cli.experiments.pool import install_signal_handlers
+    from scissor_cli.experiments.simulate import Execution
+
+    if options.executor not in ("local", "dask"):
+        _fail(2, f"--executor: must be 'local' or 'dask'; got {options.executor!r}")
+    if options.executor == "dask" and not options.scheduler:
+        _fail(2, "--executor dask needs --scheduler ADDRESS (e.g. tcp://127.0.0.1:8786)")
+    execution = Execution(options.jobs or os.cpu_count() or 1, options.executor, options.scheduler)
+    install_signal_handlers()  # SIGTERM, SIGINT, SIGHUP: stop the workers, keep what finished, exit 128 + N
+    with progress.reporting(ConsoleReporter(options.quiet)):
+        if options.resume is not None:
+            _resume(options.resume, execution)
+        else:
+            _new_run(options, execution)
+
+
+def _resume(directory: Path, execution) -> None:
+    """`simulate --resume DIR`: finish the run in DIR."""
+    from scissor_cli.experiments.pool import WorkerLost
+    from scissor_cli.experiments.simulate import NonFiniteError, ResumeError, TrialsFailed, resume_simulation
+    from scissor_cli.output.results_sink import open_for_resume
     from scissor_cli.output.run_lock import RunBusy, claim
-    from scissor_cli.output.sink import RunDirectory, open_for_resume
+
+    try:
+        lock = claim(directory) if directory.is_dir() else None  # noqa: F841 (held to the process's end)
+        n = resume_simulation(open_for_resume(directory), execution)
+    except (ResumeError, ConfigError, RunBusy) as exc:  # also: the run's own config no longer validates
+        _fail(2, str(exc))
+    except (TrialsFailed, NonFiniteError, WorkerLost) as exc:
+        err.print(f"results so far: {directory / 'results.h5'} (status = failed)")
+        _fail(1, str(exc))
+    except KeyboardInterrupt as exc:
+        _stopped(exc, directory, f"resume again with: scissor simulate --resume {directory}")
+    progress.info(f"resumed: {n} trial(s) run")
+    out.print(str(directory))
+
+
+def _configured(options: SimulateOptions) -> tuple[Config, str]:
+    """The scene with the command line's overrides; exit 2 on a bad combination."""
+    cfg, stem = _load(options.config)
+    scene = options.config or DEFAULT_SCENE
+    if options.solver is not None:
+        if options.solver not in ("admm", "newton"):
+            _fail(2, f"--solver: must be 'admm' or 'newton'; got {options.solver!r}")
+        cfg = cfg.model_copy(update={"solver": cfg.solver.model_copy(update={"kind": options.solver})})
+    if options.truth is not None:
+        if options.truth not in ("layer", "slab"):
+            _fail(2, f"--truth: must be 'layer' or 'slab'; got {options.truth!r}")
+        if options.truth == "slab" and cfg.layer_check is None:
+            _fail(2, f"--truth slab: {scene} has no layer_check section (the slab to use as the "
+                     "truth); add one, e.g. `layer_check: {}` for every default (docs/contract.md, layer_check)")
+        cfg = cfg.model_copy(update={"trials": cfg.trials.model_copy(update={"truth": options.truth})})
+    if options.seed is not None:
+        cfg = cfg.model_copy(update={"seed": options.seed})
+    if options.trials is not None:
+        cfg = cfg.model_copy(update={"trials": cfg.trials.model_copy(update={"count": options.trials})})
+    if options.budget:
+        if cfg.trials.count == 0:
+            _fail(2, f"--budget: the error budget reruns the trials, and {scene} runs none "
+                     f"(trials.count or --trials is 0); give --trials N with N >= 1")
+        cfg = cfg.model_copy(update={"trials": cfg.trials.model_copy(update={"budget": True})})
+    if options.study and cfg.study is None:
+        from scissor_cli.config import StudyConfig
+
+        cfg = cfg.model_copy(update={"study": StudyConfig()})
+    return cfg, stem
+
+
+def _new_run(options: SimulateOptions, execution) -> None:
+    """`simulate [CONFIG]`: a new run in its own directory."""
+    from scissor_cli.mesh.mesh import MeshError
+    from scissor_cli.experiments.pool import WorkerLost
+    from scissor_cli.experiments.simulate import NonFiniteError, TrialsFailed, run_simulation
+    from scissor_cli.output.run_lock import RunBusy, claim
+    from scissor_cli.output.results_sink import RunDirectory
     from scissor_cli.experiments.study import StudyError
     from scissor_cli.solvers.common import SolverError
     from scissor_cli.mechanics.tissue import BoundaryError
 
-    if executor not in ("local", "dask"):
-        _fail(2, f"--executor: must be 'local' or 'dask'; got {executor!r}")
-    if executor == "dask" and not scheduler:
-        _fail(2, "--executor dask needs --scheduler ADDRESS (e.g. tcp://127.0.0.1:8786)")
-    execution = Execution(jobs or os.cpu_count() or 1, executor, scheduler)
-    reporter = ConsoleReporter(quiet)
-    install_signal_handlers()  # SIGTERM, SIGINT, SIGHUP: stop the workers, keep what finished, exit 128 + N
-    if resume is not None:
-        try:
-            lock = claim(resume) if resume.is_dir() else None  # noqa: F841 (held to the process's end)
-            n = resume_simulation(open_for_resume(resume), reporter, execution)
-        except (ResumeError, ConfigError, RunBusy) as exc:  # also: the run's own config no longer validates
-            _fail(2, str(exc))
-        except (TrialsFailed, NonFiniteError, WorkerLost) as exc:
-            err.print(f"results so far: {resume / 'results.h5'} (status = failed)")
-            _fail(1, str(exc))
-        except KeyboardInterrupt as exc:
-            _stopped(exc, resume, f"resume again with: scissor simulate --resume {resume}")
-        reporter.info(f"resumed: {n} trial(s) run")
-        out.print(str(resume))
-        return
-    cfg, stem = _load(config)
-    if solver is not None:
-        if solver not in ("admm", "newton"):
-            _fail(2, f"--solver: must be 'admm' or 'newton'; got {solver!r}")
-        cfg = cfg.model_copy(update={"solver": cfg.solver.model_copy(update={"kind": solver})})
-    if truth is not None:
-        if truth not in ("layer", "slab"):
-            _fail(2, f"--truth: must be 'layer' or 'slab'; got {truth!r}")
-        if truth == "slab" and cfg.layer_check is None:
-            _fail(2, f"--truth slab: {config or DEFAULT_SCENE} has no layer_check section (the slab to use as the "
-                     "truth); add one, e.g. `layer_check: {}` for every default (docs/contract.md, layer_check)")
-        cfg = cfg.model_copy(update={"trials": cfg.trials.model_copy(update={"truth": truth})})
-    if seed is not None:
-        cfg = cfg.model_copy(update={"seed": seed})
-    if trials is not None:
-        cfg = cfg.model_copy(update={"trials": cfg.trials.model_copy(update={"count": trials})})
-    if budget:
-        if cfg.trials.count == 0:
-            _fail(2, f"--budget: the error budget reruns the trials, and {config or DEFAULT_SCENE} runs none "
-                     f"(trials.count or --trials is 0); give --trials N with N >= 1")
-        cfg = cfg.model_copy(update={"trials": cfg.trials.model_copy(update={"budget": True})})
-    if study and cfg.study is None:
-        from scissor_cli.config import StudyConfig
-
-        cfg = cfg.model_copy(update={"study": StudyConfig()})
-    directory = _out_dir(out_dir, stem, force)
+    cfg, stem = _configured(options)
+    scene = options.config or DEFAULT_SCENE
+    directory = _out_dir(options.out_dir, stem, options.force)
     try:
         lock = claim(directory)  # noqa: F841 (held to the process's end: a second run here would truncate this one's)
     except RunBusy as exc:
         _fail(2, f"--out {exc}")
     try:
-        summary = run_simulation(cfg, RunDirectory(directory), reporter, execution)
+        summary = run_simulation(cfg, RunDirectory(directory), execution)
     except (BoundaryError, MeshError, StudyError) as exc:
-        _fail(2, f"{config or DEFAULT_SCENE}: {exc}")
+        _fail(2, f"{scene}: {exc}")
     except NotImplementedError as exc:  # the needle planner's inverse kinematics for a custom chain
-        _fail(2, f"{config or DEFAULT_SCENE}: robot.dh: {exc}")
+        _fail(2, f"{scene}: robot.dh: {exc}")
     except (SolverError, TrialsFailed, NonFiniteError, WorkerLost) as exc:
         err.print(f"results so far: {directory / 'results.h5'} (status = failed)", markup=False, soft_wrap=True)
         _fail(1, str(exc))
@@ -224,7 +284,7 @@ def workspace(
 ) -> None:
     """Sample the puncture module's joint space: workspace.h5, the Fig. 8 projections, box coverage."""
     from scissor_cli.robot.chain import RobotModel
-    from scissor_cli.output.workspace import plot_workspace, write_workspace_h5
+    from scissor_cli.output.workspace_file import plot_workspace, write_workspace_h5
     from scissor_cli.robot.workspace import run_workspace
 
     if config is not None:

@@ -83,7 +83,7 @@ def test_zero_cup_loop_stops_at_once_and_says_so():
     scene, _, tissue = build_model(cfg, mesh_scale=2.0)
     bare = build_tissue(replace(scene, cups=()), tissue.mesh)
     target = scene.targets[1]
-    r = ct.run_target(bare, target.rest, target.desired, cfg.controller, direction=X, target="T2")
+    r = ct.run_target(bare, target.rest, target.desired, cfg.controller, ct.TargetRun(direction=X, target="T2"))
     assert r.iterations == 0 and "no cups: nothing to correct" in r.message
     assert r.miss_mm == pytest.approx(abs(target.desired[1] - target.rest[1]))
 

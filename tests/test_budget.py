@@ -11,8 +11,8 @@ import pytest
 import yaml
 
 from scissor_cli.config import parse_config, resolved_yaml
-from scissor_cli.experiments.budget import ROWS, budget_plan
-from scissor_cli.output.budget_results import BudgetCell, budget_rows
+from scissor_cli.experiments.error_budget import ROWS, budget_plan
+from scissor_cli.output.error_budget.results import BudgetCell, budget_rows
 from helpers import deep_update, example_dict, write_scene
 
 

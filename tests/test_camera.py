@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scissor_cli.scene.camera import Camera, intrinsics, looking_down, rigid_transform
+from scissor_cli.sensing.camera import Camera, intrinsics, looking_down, rigid_transform
 from scissor_cli.config import CameraConfig, load_config
 
 ROOT = Path(__file__).resolve().parents[1]

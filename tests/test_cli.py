@@ -119,12 +119,14 @@ def test_non_finite_value_exits_1_naming_where(tmp_path, monkeypatch):
 
     from scissor_cli import cli
     from scissor_cli import control
+    from scissor_cli.sensing.sensor import EXACT
 
     real = control.run_target
 
     def poisoned(*args, **kw):
         r = real(*args, **kw)
-        if kw.get("rng") is not None:  # a trial, not the nominal manipulation
+        run = args[4] if len(args) > 4 else kw.get("run", control.TargetRun())
+        if run.sensor is not EXACT:  # a trial, not the nominal manipulation
             r.final_error = np.array([np.nan, 0.0])
         return r
 

@@ -19,7 +19,8 @@ from pydantic import BaseModel
 from scissor_cli.config import (
     ELEMENT_BUDGET, MAX_CONFIG_BYTES, Config, ConfigError, estimate_elements, load_config, parse_config, resolved_yaml,
 )
-from scissor_cli.config import budget, checks, loading
+from scissor_cli.config import checks, loading
+from scissor_cli.config import element_budget as budget
 from scissor_cli.config.messages import _unwrap, field_type
 from helpers import EXAMPLE, ROOT, example_dict, write_scene, deep_update
 

@@ -14,13 +14,14 @@ from scissor_cli.solvers.tracking import HISTORY, REACH, Equilibrium
 from scissor_cli import control as ct
 from scissor_cli.output.manipulation import manipulation_figure_inputs
 from scissor_cli.output import figures
-from scissor_cli.scene.camera import Camera
+from scissor_cli.sensing.camera import Camera, CameraSensor
+from scissor_cli.sensing.sensor import EXACT, TrueState
 from scissor_cli.config import ControllerConfig, load_config
 from scissor_cli.mesh.probe import apply_probe, probe_targets, target_positions
 from scissor_cli.solvers.jacobian import cup_target_jacobian
 from scissor_cli.solvers.newton import solve_newton
 from scissor_cli.planning.corridor import corridor_radius
-from scissor_cli.planning.needle import plan_targets
+from scissor_cli.planning.needle_plan import plan_targets
 from scissor_cli.experiments.simulate import build_model, robot_joint_check
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -41,8 +42,8 @@ def manipulate(name: str, k: int, mode: str = "closed", controller_cfg=None, **k
     cfg, tissue, plans = scene_setup(name)
     target, plan = tissue.scene.targets[k], plans[k]
     corridor = ct.Corridor.from_plan(plan, corridor_radius(cfg.needle))
-    return ct.run_target(tissue, target.rest, plan.desired, controller_cfg or cfg.controller, corridor=corridor,
-                         mode=mode, target=target.name, **kw)
+    return ct.run_target(tissue, target.rest, plan.desired, controller_cfg or cfg.controller,
+                         ct.TargetRun(corridor=corridor, mode=mode, target=target.name, **kw))
 
 
 def all_targets():
@@ -120,7 +121,7 @@ def test_uncorrectable_part_is_reported():
     target = tissue.scene.targets[k]
     np.testing.assert_allclose(target.desired, [58.0, 20.5])
     position = cfg.controller.model_copy(update={"error": "position"})
-    r = ct.run_target(tissue, target.rest, target.desired, position, target="T2")
+    r = ct.run_target(tissue, target.rest, target.desired, position, ct.TargetRun(target="T2"))
     assert r.error_mode == "position" and r.along_error_mm == 0.0
     assert r.uncorrectable_error_mm > 0.1
     assert r.correctable_error_mm <= cfg.controller.tolerance_mm
@@ -128,7 +129,7 @@ def test_uncorrectable_part_is_reported():
     assert r.hist_uncorrectable[-1] > 0.1
     # Even a budget-free loop does not run forever on it.
     ctrl = ControllerConfig(tolerance_mm=1e-6, max_iterations=200, error="position")
-    r = ct.run_target(tissue, target.rest, target.desired, ctrl, target="T2")
+    r = ct.run_target(tissue, target.rest, target.desired, ctrl, ct.TargetRun(target="T2"))
     assert r.stop_reason in ("stalled", "tolerance", "stroke_limit") and r.iterations < 200
 
 
@@ -139,7 +140,8 @@ def test_miss_of_an_off_path_desired_is_corrected():
     k = [t.name for t in tissue.scene.targets].index("T2")
     target, plan = tissue.scene.targets[k], plans[k]
     assert cfg.controller.error == "miss"
-    r = ct.run_target(tissue, target.rest, target.desired, cfg.controller, target="T2", direction=plan.direction)
+    r = ct.run_target(tissue, target.rest, target.desired, cfg.controller,
+                      ct.TargetRun(target="T2", direction=plan.direction))
     assert r.stop_reason == "tolerance" and r.miss_mm <= cfg.controller.tolerance_mm
     n = plan.direction / np.linalg.norm(plan.direction)
     assert r.along_error_mm == pytest.approx(float(n @ (r.desired - r.final_position)))
@@ -162,8 +164,8 @@ def test_unreachable_desired_stops_at_the_stroke_limit():
 def test_history_and_table():
     cfg, tissue, plans = scene_setup("paper_push")
     cam = Camera.from_config(cfg.camera)
-    r = manipulate("paper_push", 0, measurement=ct.Measurement(cam, (0.1, -0.05)), backlash_mm=0.2,
-                   rng=np.random.default_rng(3))
+    r = manipulate("paper_push", 0, sensor=CameraSensor(cam, (0.1, -0.05), rng=np.random.default_rng(3)),
+                   backlash_mm=0.2)
     K = r.iterations + 1
     names, table = r.history_table()
     assert table.shape == (K, len(names)) and table.dtype == np.float64
@@ -180,12 +182,11 @@ def test_history_and_table():
 
 def test_same_seed_same_history():
     cfg, _, _ = scene_setup("paper_pull")
-    meas = ct.Measurement(Camera.from_config(cfg.camera), (0.2, 0.1))
-    kw = dict(truth=ct.TruthPerturbation(E_scale=1.2, fiber_offset_rad=0.05), measurement=meas,
-              backlash_mm=0.1, resolution_mm=0.01)
-    a = manipulate("paper_pull", 1, rng=np.random.default_rng(11), **kw)
-    b = manipulate("paper_pull", 1, rng=np.random.default_rng(11), **kw)
-    c = manipulate("paper_pull", 1, rng=np.random.default_rng(12), **kw)
+    meas = CameraSensor(Camera.from_config(cfg.camera), (0.2, 0.1))
+    kw = dict(truth=ct.TruthPerturbation(E_scale=1.2, fiber_offset_rad=0.05), backlash_mm=0.1, resolution_mm=0.01)
+    a = manipulate("paper_pull", 1, sensor=meas.reseeded(np.random.default_rng(11)), **kw)
+    b = manipulate("paper_pull", 1, sensor=meas.reseeded(np.random.default_rng(11)), **kw)
+    c = manipulate("paper_pull", 1, sensor=meas.reseeded(np.random.default_rng(12)), **kw)
     np.testing.assert_array_equal(a.history_table()[1], b.history_table()[1])
     assert a.stop_reason == b.stop_reason and a.iterations == b.iterations
     assert not np.array_equal(a.hist_measured, c.hist_measured)
@@ -224,7 +225,8 @@ def test_actuator_backlash_loses_motion_on_reversal():
     # A loop that overshoots (high gain) reverses through the play and still gets there.
     cfg, tissue, plans = scene_setup("paper_pull")
     target = tissue.scene.targets[0]
-    r = ct.run_target(tissue, target.rest, plans[0].desired, ControllerConfig(kp=1.9, tolerance_mm=0.02), backlash_mm=0.3)
+    r = ct.run_target(tissue, target.rest, plans[0].desired, ControllerConfig(kp=1.9, tolerance_mm=0.02),
+                      ct.TargetRun(backlash_mm=0.3))
     assert r.correctable_error_mm <= 0.1
     lost = r.hist_strokes[:, 0] - r.hist_strokes_cmd[:, 0]
     assert np.any(np.isclose(np.abs(lost), 0.3))
@@ -260,14 +262,15 @@ def test_pid_law_matches_model():
 def test_measurement():
     rng = np.random.default_rng(0)
     p = np.array([45.123456, 31.987654])
-    np.testing.assert_array_equal(ct.Measurement().measure(p, rng), p)
+    np.testing.assert_array_equal(CameraSensor(rng=rng).measure(TrueState(p)), p)
     assert rng.standard_normal() == np.random.default_rng(0).standard_normal()  # ideal draws nothing
+    np.testing.assert_array_equal(EXACT.measure(TrueState(p)), p)
     cfg, _, _ = scene_setup("example")
     cam = Camera.from_config(cfg.camera)
-    m = ct.Measurement(cam, noise_px=0.0)
-    assert np.all(np.abs(m.measure(p, rng) - p) <= cam.mm_per_pixel / 2 + 1e-9)  # pixel rounding only
-    biased = ct.Measurement(cam, bias_mm=(0.5, -0.25), noise_px=0.0)
-    np.testing.assert_allclose(biased.measure(p, rng) - m.measure(p, rng), [0.5, -0.25])
+    m = CameraSensor(cam, noise_px=0.0, rng=rng)
+    assert np.all(np.abs(m.measure(TrueState(p)) - p) <= cam.mm_per_pixel / 2 + 1e-9)  # pixel rounding only
+    biased = CameraSensor(cam, bias_mm=(0.5, -0.25), noise_px=0.0, rng=rng)
+    np.testing.assert_allclose(biased.measure(TrueState(p)) - m.measure(TrueState(p)), [0.5, -0.25])
 
 
 def test_split_error_one_cup():
@@ -468,7 +471,7 @@ def test_a_loop_chattering_on_a_camera_pixel_at_the_speed_limit_stalls():
     pixel = camera.mm_per_pixel
     # the desired point half a pixel off the pixel centres in both axes: no reading is within the tolerance
     desired = camera.measure(np.asarray(plan.desired, float)[None], np.random.default_rng(0), 0.0)[0] + 0.5 * pixel
-    r = run_loop(plant, controller, desired, loop_cfg, ct.Measurement(camera, noise_px=0.0),
+    r = run_loop(plant, controller, desired, loop_cfg, CameraSensor(camera, noise_px=0.0),
                  target=target.name, direction=plan.direction)
     travel = int(np.ceil(np.max(np.abs(plan.strokes)) / 0.2))
     assert r.stop_reason == "stalled" and r.iterations <= travel + 30
@@ -484,12 +487,12 @@ def test_a_stop_on_the_mean_of_several_frames_ends_nearer_than_a_stop_on_one_noi
 
     cfg, tissue, plans = scene_setup("example")
     camera = Camera.from_config(cfg.camera)
-    noisy = ct.Measurement(camera, noise_px=1.0)
+    noisy = CameraSensor(camera, noise_px=1.0)
     assert np.min(camera.mm_per_pixel) > 2 * cfg.controller.tolerance_mm  # σ of a frame ≫ the tolerance
 
     def misses(frames):
         loop_cfg = cfg.controller.model_copy(update={"stop_frames": frames})
-        runs = [manipulate("example", 0, measurement=noisy, rng=np.random.default_rng(seed), controller_cfg=loop_cfg)
+        runs = [manipulate("example", 0, sensor=noisy.reseeded(np.random.default_rng(seed)), controller_cfg=loop_cfg)
                 for seed in range(16)]
         return np.array([r.miss_mm for r in runs]), runs
 
@@ -504,7 +507,7 @@ def test_a_stop_on_the_mean_of_several_frames_ends_nearer_than_a_stop_on_one_noi
         def __init__(self):
             self.calls = 0
 
-        def measure(self, p, rng):
+        def measure(self, state):
             self.calls += 1
             return np.array([float(self.calls), 0.0])
 
@@ -512,10 +515,10 @@ def test_a_stop_on_the_mean_of_several_frames_ends_nearer_than_a_stop_on_one_noi
         def __init__(self, e):
             self.correctable, self.along_correctable_mm = np.array([e, 0.0]), 0.0
 
-    plant = type("P", (), {"position": np.zeros(2)})()
+    plant = type("P", (), {"true_state": lambda self: TrueState(np.zeros(2))})()
     five = cfg.controller.model_copy(update={"stop_frames": 5})
-    y, waited = _confirmed(np.array([0.0, 0.0]), Fixed(), plant, None, five, 0.1, lambda y: Step(1.0))
+    y, waited = _confirmed(np.array([0.0, 0.0]), Fixed(), plant, five, 0.1, lambda y: Step(1.0))
     assert waited == 0.0 and np.array_equal(y, [0.0, 0.0])
     camera_frames = Fixed()
-    y, waited = _confirmed(np.array([0.0, 0.0]), camera_frames, plant, None, five, 0.1, lambda y: Step(0.05))
+    y, waited = _confirmed(np.array([0.0, 0.0]), camera_frames, plant, five, 0.1, lambda y: Step(0.05))
     assert camera_frames.calls == 4 and waited == pytest.approx(0.4) and np.allclose(y, [2.0, 0.0])  # (0+1+2+3+4)/5

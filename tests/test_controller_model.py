@@ -18,7 +18,7 @@ from scissor_cli.config import parse_config, resolved_yaml
 from scissor_cli.control.models import INVERSE_TOL_MM, MapController, strokes_for
 from scissor_cli.layer3d.calibration import calibration_strokes, fit_transmission
 from scissor_cli.layer3d.check import spec_from_config
-from scissor_cli.layer3d.controller_model import ControllerModel, ModelData, build_model_data, slab_map
+from scissor_cli.layer3d.tissue_models import ControllerModel, ModelData, build_model_data, slab_map
 from scissor_cli.layer3d.slab import build_slab, layer_probe, slab_probe
 from scissor_cli.layer3d.surrogate import Surrogate, design, solve_samples
 from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
@@ -235,12 +235,11 @@ def test_a_target_the_slab_cannot_reach_is_reported_before_any_trial(tmp_path):
 
 def test_surrogate_trained_in_two_workers_equals_one_after_the_other(scene, surrogate_data):
     """The design's two groups solved in worker processes: the same numbers, bit for bit."""
-    from scissor_cli.experiments.controller_model import fitted_model
-    from scissor_cli.experiments.simulate import SilentReporter
+    from scissor_cli.experiments.controller_model_stage import fitted_model
 
     _, tissue, slab, _ = scene
     cfg = parse_config(resolved_yaml(parse_config(yaml.safe_dump(small("surrogate")))))
-    data, cached = fitted_model(cfg, tissue, slab, [], None, SilentReporter(), jobs=2)
+    data, cached = fitted_model(cfg, tissue, slab, [], None, jobs=2)
     assert not cached
     assert np.array_equal(data.samples.targets, surrogate_data.samples.targets)
     assert np.array_equal(data.samples.held_targets, surrogate_data.samples.held_targets)
@@ -251,8 +250,8 @@ def test_a_resumed_run_steers_with_the_model_it_stored(tmp_path, monkeypatch):
     and finishes with the numbers of an uninterrupted run."""
     from scissor_cli.config import load_config
     from scissor_cli.experiments.simulate import Execution, resume_simulation, run_simulation
-    from scissor_cli.output import sink as sink_module
-    from scissor_cli.output.sink import RunDirectory, open_for_resume
+    from scissor_cli.output import results_sink as sink_module
+    from scissor_cli.output.results_sink import RunDirectory, open_for_resume
 
     path = write_scene(tmp_path, small("calibrated", trials=1))
     run_simulation(load_config(path), RunDirectory(tmp_path / "runs" / "reference"), execution=Execution(jobs=1))
@@ -291,8 +290,8 @@ def test_a_model_that_cannot_reach_the_layers_point_gets_its_own_plan():
     from types import SimpleNamespace
 
     from scissor_cli.config import load_config
-    from scissor_cli.experiments.controller_model import plan_with_model, reserved_scene
-    from scissor_cli.planning.needle import plan_target
+    from scissor_cli.experiments.controller_model_stage import plan_with_model, reserved_scene
+    from scissor_cli.planning.needle_plan import plan_target
     from scissor_cli.planning.states import StateCache
 
     cfg = load_config(ROOT / "configs" / "paper_push.yaml")
@@ -348,8 +347,8 @@ def test_a_3d_model_whose_plan_the_slab_blocks_plans_again_on_its_own_obstacles(
     from types import SimpleNamespace
 
     from scissor_cli.config import load_config
-    from scissor_cli.experiments.controller_model import plan_with_model
-    from scissor_cli.planning.needle import plan_target
+    from scissor_cli.experiments.controller_model_stage import plan_with_model
+    from scissor_cli.planning.needle_plan import plan_target
     from scissor_cli.planning.states import StateCache
 
     cfg = load_config(ROOT / "configs" / "paper_push.yaml")
@@ -402,7 +401,7 @@ def test_a_3d_model_whose_plan_the_slab_blocks_plans_again_on_its_own_obstacles(
 def test_planner_on_a_given_layer_is_the_planner_on_the_tissue_when_they_agree():
     """`layer_at` carries the obstacles and the skin: handed the tissue's own states, the plan is the same."""
     from scissor_cli.config import load_config
-    from scissor_cli.planning.needle import plan_target
+    from scissor_cli.planning.needle_plan import plan_target
     from scissor_cli.planning.states import StateCache
 
     cfg = load_config(ROOT / "configs" / "paper_push.yaml")
@@ -424,7 +423,7 @@ def test_planner_on_a_given_layer_is_the_planner_on_the_tissue_when_they_agree()
 
 
 def test_reserved_limits_move_each_limit_towards_rest_and_never_past_it():
-    from scissor_cli.experiments.controller_model import reserved_limits
+    from scissor_cli.experiments.controller_model_stage import reserved_limits
 
     lo, hi = reserved_limits(np.array([-15.0, 0.0, 2.0]), np.array([15.0, 10.0, 8.0]), 0.1)
     np.testing.assert_allclose(lo, [-13.5, 0.0, 2.0])
@@ -440,8 +439,8 @@ def test_a_plan_in_the_stroke_reserve_is_refused_before_any_trial():
     from types import SimpleNamespace
 
     from scissor_cli.config import load_config
-    from scissor_cli.experiments.controller_model import plan_with_model
-    from scissor_cli.planning.needle import plan_target
+    from scissor_cli.experiments.controller_model_stage import plan_with_model
+    from scissor_cli.planning.needle_plan import plan_target
     from scissor_cli.planning.states import StateCache
 
     cfg = load_config(ROOT / "configs" / "paper_push.yaml")
@@ -491,8 +490,8 @@ def test_a_plan_whose_corridor_the_slab_blocks_is_refused_for_a_3d_model_and_rep
     from types import SimpleNamespace
 
     from scissor_cli.config import load_config
-    from scissor_cli.experiments.controller_model import plan_with_model
-    from scissor_cli.planning.needle import plan_target
+    from scissor_cli.experiments.controller_model_stage import plan_with_model
+    from scissor_cli.planning.needle_plan import plan_target
     from scissor_cli.planning.states import StateCache
 
     cfg = load_config(ROOT / "configs" / "paper_push.yaml")
@@ -537,8 +536,8 @@ def test_each_plan_records_its_models_error_against_the_slab_at_the_strokes_it_a
     from types import SimpleNamespace
 
     from scissor_cli.config import load_config
-    from scissor_cli.experiments.controller_model import plan_with_model
-    from scissor_cli.planning.needle import plan_target
+    from scissor_cli.experiments.controller_model_stage import plan_with_model
+    from scissor_cli.planning.needle_plan import plan_target
     from scissor_cli.planning.states import StateCache
 
     cfg = load_config(ROOT / "configs" / "paper_push.yaml")
@@ -568,7 +567,7 @@ def test_each_plan_records_its_models_error_against_the_slab_at_the_strokes_it_a
 def test_stored_model_paths_read_back_and_draw_every_model_against_the_slab(tmp_path):
     """/controller_model/paths round-trips; report's controller_models.png holds one line per model kind (a
     +Broyden run shares its model's line) beside the slab's points and the layer's line."""
-    from scissor_cli.layer3d.controller_model import ModelPaths
+    from scissor_cli.layer3d.tissue_models import ModelPaths
     from scissor_cli.output.controller_model import read_paths, report_models_figure, write_paths
 
     grid, dots = np.linspace(-15, 15, 7), np.linspace(-15, 15, 4)

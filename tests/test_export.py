@@ -49,7 +49,7 @@ def run(tmp_path_factory) -> Path:
     """A real `simulate --trials 0` of the example scene: mesh, two forward cases, no trials."""
     from scissor_cli.config import load_config
     from scissor_cli.experiments.simulate import run_simulation
-    from scissor_cli.output.sink import RunDirectory
+    from scissor_cli.output.results_sink import RunDirectory
 
     cfg = load_config(ROOT / "configs" / "example.yaml")
     cfg = cfg.model_copy(update={"trials": cfg.trials.model_copy(update={"count": 0})})

@@ -10,7 +10,8 @@ from hypothesis import given, settings, strategies as st
 from typer.testing import CliRunner
 
 from scissor_cli.config import load_config
-from scissor_cli.insertion import NeedleParams, run_insertion, shaft_lengths
+from scissor_cli import progress
+from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion, shaft_lengths
 from scissor_cli.insertion.needle import NeedleState, advance, free_nodes
 from scissor_cli.mechanics.tissue import build_model
 from helpers import example_dict, write_scene
@@ -37,14 +38,14 @@ def model(tmp_path_factory):
 
 
 def _params(cfg, **kw):
-    return dataclasses.replace(NeedleParams.from_config(cfg.insertion, cfg), **kw)
+    return dataclasses.replace(NeedleParams.from_config(cfg.insertion, cfg.needle, cfg.tissue.mesh), **kw)
 
 
 def _insert(tissue, params, strategy="none", entry=ENTRY, axis=AXIS, depth=DEPTH, target=(45.0, 32.0), cfg=None):
     x0 = tissue.rest.copy()
     s0 = np.zeros(tissue.n_cups)
-    return run_insertion(tissue, x0, s0, entry, axis, depth, np.asarray(target, float), params, strategy,
-                         controller=None if cfg is None else cfg.controller)
+    return run_insertion(tissue, x0, s0, NeedlePath(entry, axis, depth, np.asarray(target, float)), params,
+                         InsertionOptions(strategy, None if cfg is None else cfg.controller))
 
 
 def _finite(r):
@@ -514,8 +515,8 @@ def test_loop_on_a_mismatched_truth_still_corrects_the_miss(model):
     truth = _truth(tissue)
     params = _params(cfg)
     x0, s0 = truth.rest.copy(), np.zeros(truth.n_cups)
-    runs = {strategy: run_insertion(truth, x0, s0, ENTRY, AXIS, 30.0, np.array([30.0, 33.0]), params, strategy,
-                                    controller=cfg.controller, model=tissue)
+    runs = {strategy: run_insertion(truth, x0, s0, NeedlePath(ENTRY, AXIS, 30.0, np.array([30.0, 33.0])), params,
+                                    InsertionOptions(strategy, cfg.controller, model=tissue))
             for strategy in ("none", "loop")}
     for r in runs.values():
         _finite(r)
@@ -581,8 +582,10 @@ def test_an_insertion_shows_its_progress_and_ends_its_bar(model):
     for strategy, depth in (("none", DEPTH), ("depth", DEPTH), ("depth", 2 * DEPTH)):
         plan = SimpleNamespace(depth_mm=depth)
         bars = _Bars()
-        r = insert_with_bar(bars, target, plan, params, strategy, tissue, tissue.rest.copy(), np.zeros(tissue.n_cups),
-                            ENTRY, AXIS, depth, target.rest, controller=cfg.controller)
+        with progress.reporting(bars):
+            r = insert_with_bar(tissue, tissue.rest.copy(), np.zeros(tissue.n_cups),
+                                NeedlePath(ENTRY, AXIS, plan.depth_mm, target.rest, target.name), params,
+                                InsertionOptions(strategy, cfg.controller))
         [(label, total, advanced)] = bars.bars
         assert label == f"insertion T1 ({strategy})" and total == int(np.ceil(depth / params.step_mm))
         assert advanced == total

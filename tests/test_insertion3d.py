@@ -16,7 +16,7 @@ import scipy.sparse.linalg
 import yaml
 
 from scissor_cli.config import parse_config
-from scissor_cli.insertion import NeedleParams, run_insertion
+from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion
 from scissor_cli.insertion.chord import ChordSolver, Hold
 from scissor_cli.insertion.needle import NeedleState, advance, free_nodes, transverse_basis
 from scissor_cli.layer3d.slab import SlabSpec, build_slab
@@ -45,13 +45,13 @@ def slab_model():
 
 
 def _params(cfg, **kw):
-    return dataclasses.replace(NeedleParams.from_config(cfg.insertion, cfg), **kw)
+    return dataclasses.replace(NeedleParams.from_config(cfg.insertion, cfg.needle, cfg.tissue.mesh), **kw)
 
 
 def _insert(slab_model, params, strategy="none", depth=DEPTH, target=TARGET, **kw):
     cfg, mesh, tissue, slab = slab_model
-    return run_insertion(slab, slab.rest.copy(), np.zeros(slab.n_cups), ENTRY, AXIS, depth, target, params, strategy,
-                         controller=cfg.controller, **kw)
+    return run_insertion(slab, slab.rest.copy(), np.zeros(slab.n_cups), NeedlePath(ENTRY, AXIS, depth, target), params,
+                         InsertionOptions(strategy, cfg.controller, **kw))
 
 
 def test_capture_spans_levels_and_each_node_keeps_both_transverse_offsets(slab_model):

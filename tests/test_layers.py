@@ -1,7 +1,7 @@
 """The package's layers: data flows one way, and no module imports a later layer or forms a cycle.
 
-Order (docs/architecture.md): the base modules (`geometry`, `runtime`, the
-package root), then config → scene → mesh → mechanics → solvers → robot →
+Order (docs/architecture.md): the base modules (`geometry`, `runtime`,
+`progress`, `text`, the package root), then config → scene → mesh → mechanics → solvers → robot →
 planning → sensing → control → insertion → layer3d → experiments → output → cli. A
 module may import from its own package and from any earlier layer; the test
 reads every `import` statement (including those inside functions) with `ast`.
@@ -16,11 +16,11 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "scissor_cli"
 LAYERS = [
-    "", "geometry", "runtime", "config", "scene", "mesh", "mechanics", "solvers", "robot", "planning",
+    "", "geometry", "runtime", "progress", "text", "config", "scene", "mesh", "mechanics", "solvers", "robot", "planning",
     "sensing", "control", "insertion", "layer3d", "experiments", "output", "cli", "__main__",
 ]
 RANK = {name: i for i, name in enumerate(LAYERS)}
-BASE = {"", "geometry", "runtime"}  # importable from everywhere
+BASE = {"", "geometry", "runtime", "progress", "text"}  # importable from everywhere
 
 
 def _module_name(path: Path) -> str:

@@ -101,7 +101,7 @@ def test_miss_in_3d_is_the_distance_to_the_needle_line():
 @pytest.mark.parametrize("d", [2, 3])
 def test_target_path_figure_takes_a_slab_insertion(d):
     """The path figure draws the layer's plane; a slab insertion's targets (K, 3) show their in-plane part."""
-    from scissor_cli.output.insertion_figures import target_path_figure
+    from scissor_cli.output.insertion.figures import target_path_figure
 
     k = 5
     target = np.zeros((k, d))

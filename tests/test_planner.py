@@ -10,7 +10,8 @@ import pytest
 
 from scissor_cli import geometry
 from scissor_cli.mesh.outlines import boundary_loop, deformed_outlines, embed_outlines
-from scissor_cli.planning import corridor, needle, states
+from scissor_cli.planning import corridor, states
+from scissor_cli.planning import needle_plan as needle
 from scissor_cli.config import NeedleConfig, load_config, parse_config
 from scissor_cli.mesh.mesh import interpolate, locate, mesh_for_config
 from scissor_cli.solvers.newton import solve_newton

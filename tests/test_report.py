@@ -10,7 +10,7 @@ import pytest
 
 from scissor_cli.output.report import ReportError, report_trials
 from scissor_cli.experiments.simulate import Execution, run_simulation
-from scissor_cli.output.sink import RunDirectory
+from scissor_cli.output.results_sink import RunDirectory
 from test_trials import reduced
 
 
@@ -90,7 +90,7 @@ def test_a_target_without_a_plan_counts_no_trials(two_runs, tmp_path):
     budget's `all` row must not count them (they would read as perfect trials)."""
     import shutil
 
-    from scissor_cli.output.budget_report import paper_row
+    from scissor_cli.output.error_budget.report import paper_row
     from scissor_cli.output.results import finished_trials
 
     run = tmp_path / "unplanned"

@@ -30,8 +30,8 @@ import pytest
 from helpers import example_dict, write_scene
 from scissor_cli.config import load_config
 from scissor_cli.experiments.simulate import Execution, resume_simulation, run_simulation
-from scissor_cli.output import sink as sink_module
-from scissor_cli.output.sink import RunDirectory, open_for_resume
+from scissor_cli.output import results_sink as sink_module
+from scissor_cli.output.results_sink import RunDirectory, open_for_resume
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -68,7 +68,7 @@ def test_selection_is_recorded(tmp_path):
 
     from scissor_cli.config import parse_config
     from scissor_cli.experiments.simulate import run_simulation
-    from scissor_cli.output.sink import RunDirectory
+    from scissor_cli.output.results_sink import RunDirectory
 
     data = yaml.safe_load((ROOT / "configs" / "example.yaml").read_text())
     data["solver"]["accuracy_mm"] = 1.0

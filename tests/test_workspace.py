@@ -8,7 +8,7 @@ import numpy as np
 
 from scissor_cli.robot.chain import RobotModel
 from scissor_cli.robot.workspace import DEFAULT_BOX_MAX, DEFAULT_BOX_MIN, coverage, reachable_coverage, run_workspace
-from scissor_cli.output.workspace import plot_workspace, write_workspace_h5
+from scissor_cli.output.workspace_file import plot_workspace, write_workspace_h5
 
 PAPER = RobotModel.paper()
 

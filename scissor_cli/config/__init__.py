@@ -4,7 +4,7 @@ Everything outside this package imports from here, so the package's inner
 split may change.
 """
 
-from scissor_cli.config.budget import ELEMENT_BUDGET, estimate_elements
+from scissor_cli.config.element_budget import ELEMENT_BUDGET, estimate_elements
 from scissor_cli.config.checks import obstacle_outline, scene_problems, tissue_outline
 from scissor_cli.config.loading import MAX_CONFIG_BYTES, ConfigError, load_config, parse_config, read_config_text, resolved_yaml
 from scissor_cli.config.sections import (

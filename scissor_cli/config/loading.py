@@ -25,7 +25,7 @@ from typing import Optional
 import yaml
 from pydantic import ValidationError
 
-from scissor_cli.config.budget import budget_problems
+from scissor_cli.config.element_budget import budget_problems
 from scissor_cli.config.checks import scene_problems
 from scissor_cli.config.messages import located, loc_text, pydantic_problem, show
 from scissor_cli.config.sections import Config

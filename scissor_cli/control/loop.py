@@ -17,7 +17,7 @@ controller adopts the plant's equilibrium instead of solving it again.
 
 One loop iteration k (docs/model.md §6), Δt = 1/rate_hz:
 
-    y_k  = measure(true target)                      camera + localisation bias
+    y_k  = the sensor's reading of the true state     (camera: + localisation bias)
     e_k  = P (y_d − y_k)   (the miss across the needle axis n, P = I − n nᵀ)
     δs*_k = argmin ‖P J δs − e_k‖² + λ‖δs‖²      bounded: strokes, speed·Δt
     s_{k+1} = s_k + Kp δs*_k + Ki Σ δs*·Δt + Kd (δs*_k − δs*_{k−1})/Δt
@@ -43,21 +43,22 @@ known nearby equilibrium (e.g. the planner's state at the plan's strokes).
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from typing import Callable, Optional
 
 import numpy as np
 
 from scissor_cli.config import ControllerConfig
 from scissor_cli.control.actuator import Actuator, quantise
-from scissor_cli.control.corridor import Corridor, corridor_at
+from scissor_cli.control.corridor_check import Corridor, corridor_at
 from scissor_cli.control.allocation import stroke_step
 from scissor_cli.control.broyden import BroydenCorrection
 from scissor_cli.control.law import PID, stalled, traveling
-from scissor_cli.control.measurement import Measurement
 from scissor_cli.control.plant import Controller, Plant, TruthFactory, TruthPerturbation, true_tissue
 from scissor_cli.control.result import History, LoopResult
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import probe_targets
+from scissor_cli.sensing.sensor import EXACT, Sensor
 from scissor_cli.solvers.common import SolverError
 
 #: A step this small (mm) towards a stroke limit the command sits at ends the loop ("stroke_limit").
@@ -69,13 +70,14 @@ def run_loop(
     controller: Controller,
     desired: np.ndarray,
     cfg: ControllerConfig,
-    measurement: Measurement = Measurement(),
-    rng: Optional[np.random.Generator] = None,
+    sensor: Sensor = EXACT,
     target: str = "",
     cup_names: Optional[list[str]] = None,
     direction: Optional[np.ndarray] = None,
 ) -> LoopResult:
     """The closed loop of docs/model.md §6 from the plant's and controller's current states.
+
+    The target is seen only through `sensor` (its reading of the plant's true state).
 
     desired (2,) mm; direction (2,) the needle axis n: with cfg.error
     "miss" the loop drives the miss P (y_d − y) across it (the along-axis
@@ -93,7 +95,6 @@ def run_loop(
     in the history).
     """
     t0 = time.perf_counter()
-    rng = rng if rng is not None else np.random.default_rng(0)
     desired = np.asarray(desired, float)
     cup_names = cup_names or [f"cup{c}" for c in range(controller.n_cups)]
     dt = 1.0 / cfg.rate_hz
@@ -102,12 +103,12 @@ def run_loop(
     hist, corr_norms = History(), []
     command, sim_t, reason, message = controller.strokes.copy(), 0.0, "", ""
     max_step = plant.actuator.speed_mm_per_s * dt
-    correction = BroydenCorrection(measurement.noise_mm) if cfg.jacobian_update == "broyden" else None
+    correction = BroydenCorrection(sensor.noise_mm) if cfg.jacobian_update == "broyden" else None
     for k in range(cfg.max_iterations + 1):
-        y = measurement.measure(plant.position, rng)
+        y = sensor.measure(plant.true_state())
         J = controller.jacobian
-        if cfg.stop_frames > 1 and controller.n_cups and measurement.noise_mm > 0:  # (noiseless frames agree)
-            y, waited_s = _confirmed(y, measurement, plant, rng, cfg, dt,
+        if cfg.stop_frames > 1 and controller.n_cups and sensor.noise_mm > 0:  # (noiseless frames agree)
+            y, waited_s = _confirmed(y, sensor, plant, cfg, dt,
                                      lambda y: stroke_step(J if correction is None else correction.jacobian(J),
                                                            desired - y, command, controller.lo, controller.hi,
                                                            max_step, direction, cfg.error))
@@ -159,7 +160,7 @@ def _correctable_norm(step) -> float:
     return float(np.hypot(np.linalg.norm(step.correctable), step.along_correctable_mm))
 
 
-def _confirmed(y, measurement, plant, rng, cfg, dt, step_at) -> tuple[np.ndarray, float]:
+def _confirmed(y, sensor: Sensor, plant: Plant, cfg, dt, step_at) -> tuple[np.ndarray, float]:
     """The measurement (2,) a stop may be decided on, and the robot time (s) spent taking it.
 
     A frame within tolerance is not trusted alone: stop_frames − 1 more
@@ -169,7 +170,7 @@ def _confirmed(y, measurement, plant, rng, cfg, dt, step_at) -> tuple[np.ndarray
     """
     if _correctable_norm(step_at(y)) > cfg.tolerance_mm:
         return y, 0.0
-    frames = [y] + [measurement.measure(plant.position, rng) for _ in range(cfg.stop_frames - 1)]
+    frames = [y] + [sensor.measure(plant.true_state()) for _ in range(cfg.stop_frames - 1)]
     return np.mean(frames, axis=0), (cfg.stop_frames - 1) * dt
 
 
@@ -177,8 +178,7 @@ def open_loop(
     plant: Plant,
     controller: Controller,
     desired: np.ndarray,
-    measurement: Measurement = Measurement(),
-    rng: Optional[np.random.Generator] = None,
+    sensor: Sensor = EXACT,
     rate_hz: float = 10.0,
     target: str = "",
     cup_names: Optional[list[str]] = None,
@@ -191,11 +191,10 @@ def open_loop(
     prediction at rest, no feedback. Same result shape, iterations = 1.
     """
     t0 = time.perf_counter()
-    rng = rng if rng is not None else np.random.default_rng(0)
     desired = np.asarray(desired, float)
     cup_names = cup_names or [f"cup{c}" for c in range(controller.n_cups)]
     hist = History()
-    y = measurement.measure(plant.position, rng)
+    y = sensor.measure(plant.true_state())
     s0 = controller.strokes.copy()
     step = stroke_step(controller.jacobian, desired - y, s0, controller.lo, controller.hi, None, direction, mode)
     ds = step.ds
@@ -210,7 +209,7 @@ def open_loop(
         reason, message = "solver_failed", str(exc)
     else:
         hist.wall.append(time.perf_counter() - tw)
-        y = measurement.measure(plant.position, rng)
+        y = sensor.measure(plant.true_state())
         step = stroke_step(controller.jacobian, desired - y, command, controller.lo, controller.hi, None, direction,
                            mode)
         hist.add(max(1.0 / rate_hz, plant.actuator.last_move_s), command, plant.strokes, y, plant.position,
@@ -219,73 +218,83 @@ def open_loop(
                        direction, mode)
 
 
-def run_target(
-    model: Tissue,
-    target_rest: np.ndarray,
-    desired: np.ndarray,
-    cfg: ControllerConfig,
-    *,
-    truth: TruthPerturbation = TruthPerturbation(),
-    measurement: Measurement = Measurement(),
-    resolution_mm: float = 0.0,
-    backlash_mm: float = 0.0,
-    rng: Optional[np.random.Generator] = None,
-    corridor: Optional[Corridor] = None,
-    mode: str = "closed",
-    target: str = "",
-    tol: float = 1e-10,
-    guess: Optional[tuple[np.ndarray, np.ndarray]] = None,
-    direction: Optional[np.ndarray] = None,
-    truth_factory: Optional[TruthFactory] = None,
-    controller_factory: Optional[Callable] = None,
-) -> LoopResult:
+@dataclass(frozen=True)
+class TargetRun:
+    """How one target's manipulation runs, besides the model, the rest and desired points and the gains.
+
+    truth: how the true tissue differs from the model; resolution_mm,
+    backlash_mm: the actuator's (the controller knows the resolution, not
+    the backlash); sensor: how the target is seen; corridor: the plan's
+    needle corridor, checked on the final true state; mode "closed" (the
+    loop) or "open" (one Jacobian step, the baseline); target: its name;
+    tol: the solves' relative residual; guess: (strokes (C,), x (N, 2)) a
+    known equilibrium of the model the first big move may start from;
+    direction (2,): the needle axis of the miss (default the corridor's);
+    truth_factory: makes another true tissue (the 3-D slab) and its view
+    from the perturbation; controller_factory (lo, hi, resolution_mm, tol)
+    → controller: a controller on another model (docs/model.md §15).
+    """
+
+    truth: TruthPerturbation = TruthPerturbation()
+    sensor: Sensor = EXACT
+    resolution_mm: float = 0.0
+    backlash_mm: float = 0.0
+    corridor: Optional[Corridor] = None
+    mode: str = "closed"
+    target: str = ""
+    tol: float = 1e-10
+    guess: Optional[tuple[np.ndarray, np.ndarray]] = None
+    direction: Optional[np.ndarray] = None
+    truth_factory: Optional[TruthFactory] = None
+    controller_factory: Optional[Callable] = None
+
+
+def run_target(model: Tissue, target_rest: np.ndarray, desired: np.ndarray, cfg: ControllerConfig,
+               run: TargetRun = TargetRun()) -> LoopResult:
     """Manipulate one target from rest to `desired` (2,) mm; closed loop or the open-loop baseline.
 
-    Builds the truth (`true_tissue(model, truth)`), its actuator (the
-    scene's limits and speeds with the given resolution and backlash), the
-    controller on the model (same limits and resolution; it does not know
-    the backlash), and runs `run_loop` (mode "closed") or `open_loop`
-    ("open"). With a `corridor`, the needle corridor through the reached
-    true target is checked on the final true state: `corridor_clear`,
-    `clearance_mm`, `corridor_entry`. The needle axis of the miss is
-    `direction`, else the corridor's (the plan's direction).
-    `clearance_mm`, `corridor_entry`. A `truth_factory` makes the truth
-    instead (another tissue, e.g. the 3-D slab, and its `TruthView`) from
-    the same perturbation; the controller still runs on `model`, unless a
-    `controller_factory` (lo, hi, resolution_mm, tol) → controller makes
-    another (docs/model.md §15: calibrated, surrogate, slab); `model` then
-    still carries the scene and the corridor check.
+    Builds the truth (`true_tissue(model, run.truth)`, or `run.truth_factory`'s
+    tissue and view), its actuator (the scene's limits and speeds with the
+    run's resolution and backlash), the controller on the model (same limits
+    and resolution; or `run.controller_factory`'s, whose `model` then still
+    carries the scene and the corridor check), and runs `run_loop` (mode
+    "closed") or `open_loop` ("open"). With a corridor, the needle corridor
+    through the reached true target is checked on the final true state:
+    `corridor_clear`, `clearance_mm`, `corridor_entry`.
     """
-    if direction is None and corridor is not None:
-        direction = corridor.direction
+    direction = run.direction
+    if direction is None and run.corridor is not None:
+        direction = run.corridor.direction
     scene = model.scene
     probe = probe_targets(model.mesh, np.asarray(target_rest, float)[None])
-    actuator = Actuator.from_scene(scene, resolution_mm, backlash_mm)
-    if truth_factory is None:
-        plant = Plant(true_tissue(model, truth), actuator, probe, tol)
+    actuator = Actuator.from_scene(scene, run.resolution_mm, run.backlash_mm)
+    if run.truth_factory is None:
+        plant = Plant(true_tissue(model, run.truth), actuator, probe, run.tol)
     else:
-        plant = Plant(**_made(truth_factory, truth), actuator=actuator, probe=probe, tol=tol)
-    if controller_factory is None:
-        controller = Controller(model, probe, actuator.lo, actuator.hi, resolution_mm, tol)
+        plant = Plant(**_made(run.truth_factory, run.truth), actuator=actuator, probe=probe, tol=run.tol)
+    if run.controller_factory is None:
+        controller = Controller(model, probe, actuator.lo, actuator.hi, run.resolution_mm, run.tol)
     else:
-        controller = controller_factory(actuator.lo, actuator.hi, resolution_mm, tol)
+        controller = run.controller_factory(actuator.lo, actuator.hi, run.resolution_mm, run.tol)
     if controller.shares(plant):
         plant.eq.adopt(controller.eq)  # both at rest: one tangent serves both
-    if guess is not None:  # the guess is the layer's: for the trackers on `model` only
-        trackers = [plant.eq] if truth_factory is None else []
+    if run.guess is not None:  # the guess is the layer's: for the trackers on `model` only
+        trackers = [plant.eq] if run.truth_factory is None else []
         trackers += [controller.eq] if getattr(controller, "tissue", None) is model else []
         for eq in trackers:
-            eq.guesses.append((np.asarray(guess[0], float), np.asarray(guess[1], float)))
+            eq.guesses.append((np.asarray(run.guess[0], float), np.asarray(run.guess[1], float)))
     names = list(scene.cup_names)
-    if mode == "closed":
-        result = run_loop(plant, controller, desired, cfg, measurement, rng, target, names, direction)
-    elif mode == "open":
-        result = open_loop(plant, controller, desired, measurement, rng, cfg.rate_hz, target, names, direction,
+    if run.mode == "closed":
+        result = run_loop(plant, controller, desired, cfg, run.sensor, run.target, names, direction)
+    elif run.mode == "open":
+        result = open_loop(plant, controller, desired, run.sensor, cfg.rate_hz, run.target, names, direction,
                            cfg.error)
     else:
-        raise ValueError(f"mode must be 'closed' or 'open', got {mode!r}")
-    if corridor is not None:
-        entry, clearance = corridor_at(model if truth_factory else plant.tissue, plant.layer_x, result.final_position, corridor)
+        raise ValueError(f"mode must be 'closed' or 'open', got {run.mode!r}")
+    if run.corridor is not None:
+        corridor = run.corridor
+        entry, clearance = corridor_at(model if run.truth_factory else plant.tissue, plant.layer_x,
+                                       result.final_position, corridor)
         result.corridor_entry, result.clearance_mm = entry, clearance
         result.corridor_direction = corridor.direction
         result.corridor_clear = bool(clearance > 0)

@@ -17,6 +17,7 @@ import numpy as np
 from scissor_cli.control.actuator import Actuator
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import TargetProbe, apply_probe, target_positions
+from scissor_cli.sensing.sensor import TrueState
 from scissor_cli.solvers.tracking import Equilibrium
 
 
@@ -61,6 +62,10 @@ class Plant:
         if self.view is not None:
             return self.view.target(self.eq.x)
         return target_positions(self.probe, self.eq.x)[0]
+
+    def true_state(self) -> TrueState:
+        """What a sensor sees: the true target (2,) mm and the truth's nodes on its mesh."""
+        return TrueState(self.position, self.eq.x, self.tissue.mesh)
 
     @property
     def layer_x(self) -> np.ndarray:

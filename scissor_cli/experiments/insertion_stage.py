@@ -13,13 +13,15 @@ animation (in the layer's plane).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
+from scissor_cli import progress
 from scissor_cli.config import Config
 from scissor_cli.experiments.sink import Insertion, RunSink, product_key
-from scissor_cli.insertion import NeedleParams, run_insertion
+from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 from scissor_cli.solvers.newton import solve_newton
@@ -59,9 +61,9 @@ class _StepBar:
     steps than planned, or fewer): a live bar must end before the next one starts.
     """
 
-    def __init__(self, reporter, target, plan, params, strategy):
-        self.left = max(1, int(np.ceil(plan.depth_mm / params.step_mm)))
-        self.advance = reporter.progress(f"insertion {target.name} ({strategy})", self.left)
+    def __init__(self, target: str, depth_mm: float, params: NeedleParams, strategy: str):
+        self.left = max(1, int(np.ceil(depth_mm / params.step_mm)))
+        self.advance = progress.bar(f"insertion {target} ({strategy})", self.left)
 
     def __call__(self, depth_mm: float) -> None:
         if self.left > 1:
@@ -73,16 +75,17 @@ class _StepBar:
         self.left = 0
 
 
-def _insert(reporter, target, plan, params, strategy, *args, **kwargs):
-    """`run_insertion` (its arguments after the strategy) with a progress bar over its steps."""
-    bar = _StepBar(reporter, target, plan, params, strategy)
+def _insert(tissue: Tissue, x0: np.ndarray, strokes: np.ndarray, path: NeedlePath, params: NeedleParams,
+            options: InsertionOptions):
+    """`run_insertion` with a progress bar over its steps."""
+    bar = _StepBar(path.target_name, path.depth_mm, params, options.strategy)
     try:
-        return run_insertion(*args, params, strategy, on_step=bar, target_name=target.name, **kwargs)
+        return run_insertion(tissue, x0, strokes, path, params, replace(options, on_step=bar))
     finally:
         bar.close()
 
 
-def _in_slab(cfg: Config, tissue: Tissue, truth, target, plan, params, animate: bool, reporter):
+def _in_slab(cfg: Config, tissue: Tissue, truth, target, plan, params, animate: bool):
     """One target's insertions in the nominal slab (`layer3d.truth.SlabTruth`): results and the in-plane frames."""
     from scissor_cli.layer3d.slab import layer_probe
     from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
@@ -95,18 +98,19 @@ def _in_slab(cfg: Config, tissue: Tissue, truth, target, plan, params, animate: 
     z = float(sm.levels_mm[sm.layer_level])
     entry, direction = np.append(plan.entry, z), np.append(plan.direction, 0.0)
     model_x0 = solve_equilibrium(tissue, plan.strokes).x if "loop" in cfg.insertion.strategies else None
+    path = NeedlePath(entry, direction, plan.depth_mm, target.rest, target.name)
     results = [
-        _insert(reporter, target, plan, params, strategy, slab, ramp[-1], plan.strokes, entry, direction,
-                plan.depth_mm, target.rest, controller=cfg.controller, model=tissue, model_x0=model_x0)
+        _insert(slab, ramp[-1], plan.strokes, path, params,
+                InsertionOptions(strategy, cfg.controller, model=tissue, model_x0=model_x0))
         for strategy in cfg.insertion.strategies
     ]
     return results, frames, layer
 
 
-def insertion_stage(cfg: Config, tissue: Tissue, plans: list, sink: RunSink, reporter,
+def insertion_stage(cfg: Config, tissue: Tissue, plans: list, sink: RunSink,
                     done: frozenset[str] = frozenset()) -> list[Path]:
     """Insert into every planned target not in `done` under every strategy; print each target's miss per strategy."""
-    params = NeedleParams.from_config(cfg.insertion, cfg)
+    params = NeedleParams.from_config(cfg.insertion, cfg.needle, cfg.tissue.mesh)
     truth = None
     if cfg.trials.truth == "slab" and cfg.layer_check is not None:
         from scissor_cli.layer3d.check import spec_from_config
@@ -119,30 +123,28 @@ def insertion_stage(cfg: Config, tissue: Tissue, plans: list, sink: RunSink, rep
         if product_key("insertion", target.name) in done:
             continue
         if not plan.feasible:
-            reporter.info(f"insertion {target.name}: skipped, no plan ({plan.reason})")
+            progress.info(f"insertion {target.name}: skipped, no plan ({plan.reason})")
             continue
         animate = target.name == first
         layer = None
         if truth is None:
             frames = manipulation_ramp(tissue, plan.strokes, RAMP_FRAMES if animate else 1)
-            results = [
-                _insert(reporter, target, plan, params, strategy, tissue, frames[-1], plan.strokes, plan.entry,
-                        plan.direction, plan.depth_mm, target.rest, controller=cfg.controller)
-                for strategy in cfg.insertion.strategies
-            ]
+            path = NeedlePath(plan.entry, plan.direction, plan.depth_mm, target.rest, target.name)
+            results = [_insert(tissue, frames[-1], plan.strokes, path, params, InsertionOptions(strategy, cfg.controller))
+                       for strategy in cfg.insertion.strategies]
         else:
-            results, frames, layer = _in_slab(cfg, tissue, truth, target, plan, params, animate, reporter)
+            results, frames, layer = _in_slab(cfg, tissue, truth, target, plan, params, animate)
         paths += sink.insertion(Insertion(target.name, results, tissue, np.asarray(target.rest, float),
                                           np.asarray(plan.desired, float), frames, animate, layer))
         sink.mark_finished(product_key("insertion", target.name))
         parts = ", ".join(f"{r.strategy} {r.miss_mm:.3f} mm (depth error {r.depth_error_mm:+.3f} mm)" for r in results)
-        reporter.info(f"insertion {target.name}: miss {parts}")
+        progress.info(f"insertion {target.name}: miss {parts}")
         for r in results:
             if not r.completed:
-                reporter.info(f"insertion {target.name} ({r.strategy}): {r.stop_reason}")
+                progress.info(f"insertion {target.name} ({r.strategy}): {r.stop_reason}")
             if r.obstacle_touched:
-                reporter.info(f"insertion {target.name} ({r.strategy}): the shaft touched an obstacle")
+                progress.info(f"insertion {target.name} ({r.strategy}): the shaft touched an obstacle")
             if r.unsettled:
-                reporter.info(f"insertion {target.name} ({r.strategy}): the stick-slip set did not settle in "
+                progress.info(f"insertion {target.name} ({r.strategy}): the stick-slip set did not settle in "
                               f"{r.unsettled} step(s)")
     return paths

@@ -145,7 +145,7 @@ class TrialDraw:
     nu: float
     eta_scale: float
     fiber_offset_rad: float
-    localisation_offset_mm: np.ndarray  # (2,)
+    localisation_z: np.ndarray  # (2,) standard normals: the sensor scales them into its localisation bias
     release_slip_mm: float
     rng: np.random.Generator
 
@@ -168,14 +168,14 @@ def draw_trial(model: ErrorModel, nu_model: float, centroids: np.ndarray, seed: 
     # Every draw is made whatever its σ, so changing one σ does not shift the others.
     z = rng.standard_normal(5)
     field = smooth_field(centroids, model.heterogeneity_length_mm, rng)
-    offset = rng.standard_normal(2) * model.localisation_error_mm
+    localisation_z = rng.standard_normal(2)
     slip = float(rng.standard_normal()) * model.release_slip_mm
     return TrialDraw(
         E_field=np.exp(model.E_log_sd * z[0] + model.heterogeneity_log_sd * field),
         nu=float(np.clip(nu_model + model.nu_sd * z[1], -0.99, NU_MAX)),
         eta_scale=float(np.exp(model.eta_log_sd * z[2])),
         fiber_offset_rad=float(np.deg2rad(model.fiber_angle_sd_deg) * z[3]),
-        localisation_offset_mm=offset,
+        localisation_z=localisation_z,
         release_slip_mm=slip,
         rng=np.random.default_rng(rng.integers(0, 2**63 - 1)),
     )

@@ -25,10 +25,11 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
-from typing import Callable, Optional
+from typing import Optional
 
 import numpy as np
 
+from scissor_cli import progress
 from scissor_cli.config import Config
 from scissor_cli.mesh.probe import probe_targets, target_positions
 from scissor_cli.mesh.mesh import mesh_for_config
@@ -128,9 +129,8 @@ def _timed(fn, repeats: int = 1):
     return out, best
 
 
-def select(cfg: Config, accuracy_mm: float, say: Optional[Callable[[str], None]] = None) -> Selection:
+def select(cfg: Config, accuracy_mm: float) -> Selection:
     """Calibrate on the scene and pick the cheapest setting predicted to meet accuracy_mm."""
-    say = say or (lambda m: None)
     t_start = time.perf_counter()
     scene = scene_from_config(cfg)
     if not scene.targets:
@@ -191,7 +191,7 @@ def select(cfg: Config, accuracy_mm: float, say: Optional[Callable[[str], None]]
                                             base_t * admm_time[tol]))
     pick, meets = choose(candidates, accuracy_mm)
     sel = Selection(accuracy_mm, pick, meets, q, disc, model_err, solver_err, time.perf_counter() - t_start, case, candidates)
-    say(sel.explain())
+    progress.info(sel.explain())
     return sel
 
 

@@ -4,27 +4,28 @@ The stages (selection, model, forward cases, Jacobian, study, plans,
 manipulation, trials) compute; they hand every product to a `RunSink`
 (`experiments.sink`), which keeps it: `output` provides the one that writes
 results.h5 and the figures, and `cli.py` passes it in. Progress and messages
-go through a `Reporter` so the CLI decides what a terminal shows.
+go to `scissor_cli.progress`, where the CLI decides what a terminal shows.
 """
 
 from __future__ import annotations
 
 import time
 from contextlib import closing
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Callable, Protocol
 
 import numpy as np
 
-from scissor_cli import control
+
+from scissor_cli import control, progress
+from scissor_cli.text import duration, signed
 from scissor_cli.config import Config, parse_config, resolved_yaml
 from scissor_cli.solvers.jacobian import cup_target_jacobian
 from scissor_cli.mesh.probe import probe_targets, target_positions
 from scissor_cli.solvers.equilibrium import EquilibriumSolver
 from scissor_cli.mesh.outlines import boundary_loop, deformed_outlines, embed_outlines
 from scissor_cli.planning.corridor import corridor_radius
-from scissor_cli.planning.needle import NeedlePlan, plan_target, stored_plan
+from scissor_cli.planning.needle_plan import NeedlePlan, plan_target, stored_plan
 from scissor_cli.planning.states import StateCache
 from scissor_cli.experiments.pool import deferred_signals
 from scissor_cli.experiments.profiles import INSERTION_SPREADS, error_model
@@ -33,8 +34,8 @@ from scissor_cli.experiments.sink import NonFiniteError, ResumeError  # noqa: F4
 from scissor_cli.robot.chain import RobotModel
 from scissor_cli.robot.registration import plan_to_joints
 from scissor_cli.experiments.insertion_stage import insertion_stage
-from scissor_cli.experiments.budget import run_budget
-from scissor_cli.experiments.controller_model import controller_model_stage, needs_slab, refitted_model, reserved_scene
+from scissor_cli.experiments.error_budget import run_budget
+from scissor_cli.experiments.controller_model_stage import controller_model_stage, needs_slab, refitted_model, reserved_scene
 from scissor_cli.experiments.run_cache import cache_dir
 from scissor_cli.experiments.selection import select
 from scissor_cli.experiments.slab_starts import with_slab_starts
@@ -42,20 +43,6 @@ from scissor_cli.experiments.study import run_study
 from scissor_cli.experiments.trials import TargetTask, execute
 from scissor_cli.solvers.common import SolveResult, SolverError
 from scissor_cli.mechanics.tissue import Tissue, build_model  # noqa: F401 - build_model is part of this module's API
-
-
-class Reporter(Protocol):
-    def info(self, message: str) -> None: ...
-
-    def progress(self, description: str, total: int) -> Callable[[int], None]: ...
-
-
-class SilentReporter:
-    def info(self, message: str) -> None:
-        pass
-
-    def progress(self, description: str, total: int) -> Callable[[int], None]:
-        return lambda advance=1: None
 
 
 @dataclass
@@ -83,7 +70,7 @@ class Execution:
     scheduler: str | None = None
 
 
-def run_simulation(cfg: Config, run: SinkFactory, reporter: Reporter | None = None,
+def run_simulation(cfg: Config, run: SinkFactory,
                    execution: Execution = Execution()) -> RunSummary:
     """Everything `scissor simulate` does for a validated config, into the sink `run` opens.
 
@@ -92,22 +79,21 @@ def run_simulation(cfg: Config, run: SinkFactory, reporter: Reporter | None = No
     (Fig. 11) and the trials (Fig. 14). Raises SolverError, TrialsFailed or
     NonFiniteError after the sink has kept what was finished, marked failed.
     """
-    reporter = reporter or SilentReporter()
     selection = None
     if cfg.solver.accuracy_mm is not None:
-        selection = select(cfg, cfg.solver.accuracy_mm, reporter.info)
+        selection = select(cfg, cfg.solver.accuracy_mm)
         # the file records the config that ran; the budget stays in /selection
         cfg = selection.apply(cfg)
         cfg = cfg.model_copy(update={"solver": cfg.solver.model_copy(update={"accuracy_mm": None})})
     grips = None
     if cfg.manipulation_points is not None:
-        cfg, grips = grip_stage(cfg, reporter)
+        cfg, grips = grip_stage(cfg)
     slab_choice = None
     if cfg.layer_check is not None and cfg.layer_check.accuracy_mm is not None:
-        from scissor_cli.experiments.layer_check import slab_resolution_stage  # noqa: PLC0415
+        from scissor_cli.experiments.layer_check_stage import slab_resolution_stage  # noqa: PLC0415
 
-        cfg, slab_choice = slab_resolution_stage(cfg, reporter, cache_dir(run.location))
-    tissue = _build(cfg, reporter)
+        cfg, slab_choice = slab_resolution_stage(cfg, cache_dir(run.location))
+    tissue = _build(cfg)
     summary = RunSummary(run.location, tissue.mesh.n_elements)
     with run.open(resolved_yaml(cfg), cfg.seed) as sink:
         if grips is not None and hasattr(sink, "manipulation_points"):
@@ -116,11 +102,11 @@ def run_simulation(cfg: Config, run: SinkFactory, reporter: Reporter | None = No
                 summary.figures.append(path)
         if slab_choice is not None:
             sink.slab_resolution(slab_choice)
-        _stages(cfg, tissue, sink, summary, reporter, execution, selection)
+        _stages(cfg, tissue, sink, summary, execution, selection)
     return summary
 
 
-def grip_stage(cfg: Config, reporter: Reporter):
+def grip_stage(cfg: Config):
     """Choose where the cups grip (docs/model.md §7); the run goes on with the chosen contacts and axes.
 
     The config the run records has the chosen points in its first
@@ -133,16 +119,16 @@ def grip_stage(cfg: Config, reporter: Reporter):
     _, _, tissue = build_model(cfg)
     plan = plan_grips(cfg, tissue, lambda c: build_model(c)[2])
     placed = with_grips(cfg, plan.contacts, plan.axes).model_copy(update={"manipulation_points": None})
-    where = "; ".join(f"{c.name} at {_fmt(p)} mm pushing {_fmt(a)}" for c, p, a in
+    where = "; ".join(f"{c.name} at {signed(p)} mm pushing {signed(a)}" for c, p, a in
                       zip(placed.cups, plan.contacts, plan.axes))
-    reporter.info(f"manipulation points: {len(plan.candidates)} candidates ranked in {plan.search_s:.2f} s, "
+    progress.info(f"manipulation points: {len(plan.candidates)} candidates ranked in {plan.search_s:.2f} s, "
                   f"verified in {plan.verify_s:.2f} s: {where}")
     for note in plan.notes:
-        reporter.info(f"manipulation points: {note}")
+        progress.info(f"manipulation points: {note}")
     return placed, plan
 
 
-def resume_simulation(sink: ResumableSink, reporter: Reporter | None = None, execution: Execution = Execution()) -> int:
+def resume_simulation(sink: ResumableSink, execution: Execution = Execution()) -> int:
     """Finish an interrupted, killed or partly failed run in its sink; returns how many trials ran.
 
     The stored run's config is reused; every stage product the sink marks
@@ -152,32 +138,31 @@ def resume_simulation(sink: ResumableSink, reporter: Reporter | None = None, exe
     run again (they are deterministic) and the trials the sink recovered are
     kept.
     """
-    reporter = reporter or SilentReporter()
     for note in sink.notes():
-        reporter.info(note)
+        progress.info(note)
     with sink:
         cfg = parse_config(sink.config_yaml, str(sink.location / "results.h5"))
         done = sink.finished()
-        tissue = build_model(cfg)[2] if "trials" in done else _build(cfg, reporter)
+        tissue = build_model(cfg)[2] if "trials" in done else _build(cfg)
         summary = RunSummary(sink.location, tissue.mesh.n_elements)
         if done:
-            reporter.info(f"resume: {len(done)} finished stage product(s) kept")
-        _stages(cfg, tissue, sink, summary, reporter, execution, done=done)
+            progress.info(f"resume: {len(done)} finished stage product(s) kept")
+        _stages(cfg, tissue, sink, summary, execution, done=done)
         return summary.trials_run
 
 
-def _build(cfg: Config, reporter: Reporter) -> Tissue:
+def _build(cfg: Config) -> Tissue:
     t_mesh = time.perf_counter()
     scene, mesh, tissue = build_model(cfg)
     angles = mesh.angles_deg()
-    reporter.info(
+    progress.info(
         f"mesh: {mesh.n_elements} triangles, {mesh.n_nodes} nodes, min angle {angles.min():.1f}°, "
         f"edges {mesh.edge_lengths().min():.2f}–{mesh.edge_lengths().max():.2f} mm ({time.perf_counter() - t_mesh:.2f} s)"
     )
     return tissue
 
 
-def _stages(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary, reporter: Reporter,
+def _stages(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary,
             execution: Execution, selection=None, done: frozenset[str] = frozenset()) -> None:
     """The stages after the model is built, in the order of docs/contract.md#simulate.
 
@@ -190,11 +175,11 @@ def _stages(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary, rep
         if selection is not None:
             sink.selection(selection)
         sink.mark_finished("model")
-    _forward_stage(cfg, tissue, sink, summary, reporter, done)
+    _forward_stage(cfg, tissue, sink, summary, done)
     if cfg.layer_check is not None and cfg.forward:
-        from scissor_cli.experiments.layer_check import run_layer_check
+        from scissor_cli.experiments.layer_check_stage import run_layer_check
 
-        summary.figures += run_layer_check(cfg, tissue, sink, reporter, done)
+        summary.figures += run_layer_check(cfg, tissue, sink, done)
     probe = probe_targets(mesh, np.array([t.rest for t in scene.targets]).reshape(-1, 2))
     if len(scene.targets) and "jacobian" not in done:
         J = cup_target_jacobian(tissue, tissue.rest, probe)
@@ -202,7 +187,7 @@ def _stages(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary, rep
             sink.jacobian(target.name, J[2 * k : 2 * k + 2], scene.cup_names)
         sink.mark_finished("jacobian")
     if cfg.study is not None and "study" not in done:
-        _study_stage(cfg, sink, reporter)
+        _study_stage(cfg, sink)
         sink.mark_finished("study")
     stored = sink.plans() if "plan" in done else None
     if stored is not None:
@@ -210,32 +195,32 @@ def _stages(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary, rep
         summary.plans = [stored_plan(t.name, stored[t.name], obstacles) for t in tissue.scene.targets]
         model_data = stored_model(cfg, tissue, sink)
     else:
-        summary.plans, model_data = _plan_stage(cfg, tissue, sink, reporter, summary, execution.jobs)
+        summary.plans, model_data = _plan_stage(cfg, tissue, sink, summary, execution.jobs)
         sink.mark_finished("plan")
     if cfg.trials.count > 0:
-        summary.figures += _manipulation_stage(cfg, tissue, summary.plans, sink, reporter, done)
+        summary.figures += _manipulation_stage(cfg, tissue, summary.plans, sink, done)
     if cfg.insertion is not None:
-        summary.figures += insertion_stage(cfg, tissue, summary.plans, sink, reporter, done)
+        summary.figures += insertion_stage(cfg, tissue, summary.plans, sink, done)
     if cfg.trials.count > 0:
         tasks = trial_tasks(tissue, summary.plans, model_data)
         if "trials" not in done:
             allocate_trial_arrays(sink, cfg, tasks, summary.plans)
             sink.mark_finished("trials")
         if cfg.trials.truth == "slab" and (cfg.trials.budget or any(len(ks) for ks in sink.pending_trials().values())):
-            tasks = with_slab_starts(cfg, sink.config_yaml, tasks, cache_dir(sink.location), reporter, execution.jobs)
-        summary.trials_run = _trial_stage(sink, cfg, tasks, reporter, execution)
+            tasks = with_slab_starts(cfg, sink.config_yaml, tasks, cache_dir(sink.location), execution.jobs)
+        summary.trials_run = _trial_stage(sink, cfg, tasks, execution)
         if cfg.trials.budget:
-            summary.figures += run_budget(cfg, tasks, sink, reporter, execution, done)
+            summary.figures += run_budget(cfg, tasks, sink, execution, done)
 
 
-def _study_stage(cfg: Config, sink: RunSink, reporter: Reporter) -> None:
+def _study_stage(cfg: Config, sink: RunSink) -> None:
     t0 = time.perf_counter()
-    study = run_study(cfg, reporter.info)
+    study = run_study(cfg)
     seconds = time.perf_counter() - t0
     sink.study(study, seconds)
     for note in study.notes:
-        reporter.info(f"study: {note}")
-    reporter.info(f"study: {len(study.rows)} combinations in {seconds:.1f} s (speed vs error: scissor report {sink.location})")
+        progress.info(f"study: {note}")
+    progress.info(f"study: {len(study.rows)} combinations in {seconds:.1f} s (speed vs error: scissor report {sink.location})")
 
 
 def trial_tasks(tissue: Tissue, plans: list[NeedlePlan], model_data=None) -> list[TargetTask]:
@@ -264,8 +249,7 @@ def allocate_trial_arrays(sink: RunSink, cfg: Config, tasks: list[TargetTask], p
     sink.allocate_trials([p.target for p in plans], cfg.trials.count, attrs, without_plan)
 
 
-def _manipulation_stage(cfg: Config, tissue: Tissue, plans: list[NeedlePlan], sink: RunSink,
-                        reporter: Reporter, done: frozenset[str] = frozenset()) -> list[Path]:
+def _manipulation_stage(cfg: Config, tissue: Tissue, plans: list[NeedlePlan], sink: RunSink, done: frozenset[str] = frozenset()) -> list[Path]:
     """The nominal manipulation of each planned target (truth = model, exact camera): Fig. 11.
 
     The open-loop baseline (one Jacobian step from rest) is kept beside it.
@@ -276,14 +260,14 @@ def _manipulation_stage(cfg: Config, tissue: Tissue, plans: list[NeedlePlan], si
         if not plan.feasible or product_key("manipulation", target.name) in done:
             continue
         corridor = control.Corridor.from_plan(plan, radius)
-        kw = dict(corridor=corridor, target=target.name)
-        closed = control.run_target(tissue, target.rest, plan.desired, cfg.controller, **kw)
-        opened = control.run_target(tissue, target.rest, plan.desired, cfg.controller, mode="open", **kw)
+        run = control.TargetRun(corridor=corridor, target=target.name)
+        closed = control.run_target(tissue, target.rest, plan.desired, cfg.controller, run)
+        opened = control.run_target(tissue, target.rest, plan.desired, cfg.controller, replace(run, mode="open"))
         path = sink.manipulation(Manipulation(target.name, closed, opened, tissue, target.rest, corridor))
         sink.mark_finished(product_key("manipulation", target.name))
         if path is not None:
             paths.append(path)
-        reporter.info(
+        progress.info(
             f"manipulation {target.name}: closed loop {closed.iterations} iterations ({closed.stop_reason}), "
             f"miss {closed.miss_mm:.3f} mm (along the needle {closed.along_error_mm:+.3f} mm, for the depth) "
             f"vs open loop {opened.miss_mm:.3f} mm, "
@@ -292,7 +276,7 @@ def _manipulation_stage(cfg: Config, tissue: Tissue, plans: list[NeedlePlan], si
     return paths
 
 
-def _trial_stage(sink: RunSink, cfg: Config, tasks: list[TargetTask], reporter: Reporter,
+def _trial_stage(sink: RunSink, cfg: Config, tasks: list[TargetTask],
                  execution: Execution) -> int:
     """Run every pending trial of the sink and store each as it finishes; returns how many ran.
 
@@ -304,9 +288,9 @@ def _trial_stage(sink: RunSink, cfg: Config, tasks: list[TargetTask], reporter: 
     by_index = {t.index: t for t in tasks}
     work = [(by_name[name], int(k)) for name, ks in pending.items() if name in by_name for k in ks]
     if work:
-        reporter.info(f"trials: {len(work)} to run ({cfg.trials.profile} profile, {execution.jobs} job(s), "
+        progress.info(f"trials: {len(work)} to run ({cfg.trials.profile} profile, {execution.jobs} job(s), "
                       f"{execution.executor} executor)")
-    advance = reporter.progress("trials", len(work))
+    advance = progress.bar("trials", len(work))
     t0, failed, finished = time.perf_counter(), 0, 0
     with closing(execute(sink.config_yaml, work, execution.jobs, execution.executor, execution.scheduler)) as outcomes:
         for outcome in outcomes:
@@ -315,10 +299,10 @@ def _trial_stage(sink: RunSink, cfg: Config, tasks: list[TargetTask], reporter: 
             failed += not outcome.ok
             finished += 1
             if finished == 1 and len(work) > 1:
-                reporter.info(expected_duration(outcome.trial_time_s, len(work), execution, loop_s=outcome.time_s))
+                progress.info(expected_duration(outcome.trial_time_s, len(work), execution, loop_s=outcome.time_s))
             advance(1)
     if work:
-        reporter.info(f"trials done in {time.perf_counter() - t0:.1f} s")
+        progress.info(f"trials done in {time.perf_counter() - t0:.1f} s")
     sink.trial_figures(cfg.name)
     if failed:
         raise TrialsFailed(f"{failed} trial(s) crashed (see /trials/<target>/message); re-run them with --resume")
@@ -340,28 +324,18 @@ def expected_duration(first_s: float, n_trials: int, execution: Execution, loop_
     total = first_s * -(-n_trials // workers)
     split = ""
     if loop_s is not None and first_s - loop_s > 0.1 * first_s:
-        split = f" (the loop {_duration(loop_s)}, the needle's insertion {_duration(first_s - loop_s)})"
-    return (f"trials: the first took {_duration(first_s)}{split}; all {n_trials} should take about "
-            f"{_duration(total)} with {workers} worker(s), plus building each worker's model")
+        split = f" (the loop {duration(loop_s)}, the needle's insertion {duration(first_s - loop_s)})"
+    return (f"trials: the first took {duration(first_s)}{split}; all {n_trials} should take about "
+            f"{duration(total)} with {workers} worker(s), plus building each worker's model")
 
 
-def _duration(seconds: float) -> str:
-    if seconds < 10:
-        return f"{seconds:.1f} s"
-    if seconds < 90:
-        return f"{seconds:.0f} s"
-    if seconds < 5400:
-        return f"{seconds / 60:.0f} min"
-    return f"{seconds / 3600:.1f} h"
-
-
-def _forward_stage(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary, reporter: Reporter,
+def _forward_stage(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary,
                    done: frozenset[str] = frozenset()) -> None:
     scene, mesh = tissue.scene, tissue.mesh
     probe = probe_targets(mesh, np.array([t.rest for t in scene.targets]).reshape(-1, 2))
     solver = EquilibriumSolver.from_config(tissue, cfg.solver)
     cases = [case for case in cfg.forward if product_key("forward", case.name) not in done]
-    advance = reporter.progress("forward cases", len(cases))
+    advance = progress.bar("forward cases", len(cases))
     for case in cases:
         strokes = scene.strokes_vector(case.strokes)
         try:
@@ -377,7 +351,7 @@ def _forward_stage(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSumma
                                              result, mesh.nodes, targets, figure))
         sink.mark_finished(product_key("forward", case.name))
         note = "" if result.message.startswith("converged") else f" ({result.message})"
-        reporter.info(
+        progress.info(
             f"forward {case.name}: {result.solver} {result.iterations} iterations, "
             f"residual {result.residual:.2e}, {result.time_s * 1e3:.1f} ms{note}"
         )
@@ -386,14 +360,14 @@ def _forward_stage(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSumma
         advance(1)
 
 
-def _plan_stage(cfg: Config, tissue: Tissue, sink: RunSink, reporter: Reporter, summary: RunSummary, jobs: int = 1):
+def _plan_stage(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary, jobs: int = 1):
     """Plan every target's insertion (the plan's desired position becomes the target's), then with the
     controller's model where it is not the layer (docs/model.md §15); (plans, the model's data or None)."""
     scene = tissue.scene
     robot_check = robot_joint_check(cfg)
     plans = []
     cache = StateCache(tissue)
-    advance = reporter.progress("needle plans", len(scene.targets))
+    advance = progress.bar("needle plans", len(scene.targets))
     for target in scene.targets:
         plans.append(plan_target(tissue, scene, target, cfg.needle, robot_check=robot_check, cache=cache))
         advance(1)
@@ -404,7 +378,7 @@ def _plan_stage(cfg: Config, tissue: Tissue, sink: RunSink, reporter: Reporter, 
         return plan_target(tissue, reserved, scene.targets[t], cfg.needle, robot_check=robot_check, cache=cache,
                            target_at=target_at, layer_at=layer_at)
 
-    model_data, plans, paths = controller_model_stage(cfg, tissue, plans, sink.location, reporter, jobs, replan)
+    model_data, plans, paths = controller_model_stage(cfg, tissue, plans, sink.location, jobs, replan)
     if model_data is not None and hasattr(sink, "controller_model"):
         figure = sink.controller_model(model_data, [t.name for t in scene.targets], paths,
                                        cfg.controller.jacobian_update, cfg.name)
@@ -413,13 +387,13 @@ def _plan_stage(cfg: Config, tissue: Tissue, sink: RunSink, reporter: Reporter, 
     for target, plan in zip(scene.targets, plans):
         sink.plan(target, plan, "config" if target.desired is not None else
                   "planner" if plan.planned_with == "layer" else "model")
-        how = (f"strokes {_fmt(plan.strokes)} mm" if plan.manipulated else "no manipulation needed")
+        how = (f"strokes {signed(plan.strokes)} mm" if plan.manipulated else "no manipulation needed")
         if plan.slab_strokes is not None and plan.feasible:
             off = "" if plan.model_error_mm is None else f"; the model's target there {plan.model_error_mm:.2f} mm off"
-            how += f" (the nominal slab needs {_fmt(plan.slab_strokes)} mm{off})"
+            how += f" (the nominal slab needs {signed(plan.slab_strokes)} mm{off})"
         if plan.feasible and not plan.robot_ok:
             how += f"; ROBOT: {plan.robot_note}"
-        reporter.info(
+        progress.info(
             f"plan {target.name}: " + (f"{plan.side} entry, {_clearance_text(plan.clearance_mm)}, {how} ({plan.time_s:.1f} s)"
                                        if plan.feasible else f"infeasible: {plan.reason}")
         )
@@ -432,7 +406,10 @@ def stored_model(cfg: Config, tissue: Tissue, sink: RunSink):
         return None
     names = [t.name for t in tissue.scene.targets]
     data = sink.stored_controller_model(names) if hasattr(sink, "stored_controller_model") else None
-    return data if data is not None else refitted_model(cfg, tissue, sink.location, SilentReporter())
+    if data is not None:
+        return data
+    with progress.reporting(progress.SilentReporter()):  # a detail of the resume, not news
+        return refitted_model(cfg, tissue, sink.location)
 
 
 def robot_joint_check(cfg: Config):
@@ -450,10 +427,6 @@ def robot_joint_check(cfg: Config):
 
 def _clearance_text(clearance_mm: float) -> str:
     return "no obstacles" if np.isinf(clearance_mm) else f"clearance {clearance_mm:.2f} mm"
-
-
-def _fmt(values) -> str:
-    return ", ".join(f"{v:+.2f}" for v in np.atleast_1d(values))
 
 
 def _forward_figure_inputs(name, tissue, case, strokes, result, targets_now: dict) -> dict:

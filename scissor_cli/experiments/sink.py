@@ -40,13 +40,13 @@ if TYPE_CHECKING:  # the types the stages produce; annotations only
     from scissor_cli.layer3d.extrude import SlabMesh
     from scissor_cli.layer3d.resolution import SlabChoice
     from scissor_cli.layer3d.slab import SlabProbe
-    from scissor_cli.control.corridor import Corridor
+    from scissor_cli.control.corridor_check import Corridor
     from scissor_cli.control.result import LoopResult
     from scissor_cli.experiments.selection import Selection
     from scissor_cli.experiments.study import StudyResult
     from scissor_cli.experiments.trials import TrialOutcome
     from scissor_cli.mechanics.tissue import Tissue
-    from scissor_cli.planning.needle import NeedlePlan
+    from scissor_cli.planning.needle_plan import NeedlePlan
     from scissor_cli.scene.scene import Target
     from scissor_cli.solvers.common import SolveResult
 

@@ -20,6 +20,7 @@ from typing import Optional
 
 import numpy as np
 
+from scissor_cli import progress
 from scissor_cli.config import Config
 from scissor_cli.experiments import run_cache
 from scissor_cli.experiments.pool import run_pool
@@ -36,7 +37,7 @@ def start_key(cfg: Config, strokes: np.ndarray) -> str:
     })
 
 
-def with_slab_starts(cfg: Config, config_yaml: str, tasks: list[TargetTask], cache_dir: Optional[Path], reporter,
+def with_slab_starts(cfg: Config, config_yaml: str, tasks: list[TargetTask], cache_dir: Optional[Path],
                      jobs: int = 1) -> list[TargetTask]:
     """The tasks, each with the nominal slab's (strokes, x (N3, 3) mm) at its plan (`TargetTask.slab_start`).
 
@@ -55,8 +56,8 @@ def with_slab_starts(cfg: Config, config_yaml: str, tasks: list[TargetTask], cac
             states[key] = state
     missing = [key for key in wanted if key not in states]
     if missing:
-        reporter.info(f"slab truth: the nominal slab at {len(missing)} plan(s)' strokes, solved once for every trial")
-        advance = reporter.progress("nominal slab", len(missing))
+        progress.info(f"slab truth: the nominal slab at {len(missing)} plan(s)' strokes, solved once for every trial")
+        advance = progress.bar("nominal slab", len(missing))
         batches = [(config_yaml, key, wanted[key]) for key in missing]
         solved = (_solve_start(*b) for b in batches) if jobs <= 1 else run_pool(
             _solve_start_batch, [(b,) for b in batches], min(jobs, len(batches)))

@@ -21,6 +21,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from scissor_cli import progress
 from scissor_cli.config import Config, StudyConfig, estimate_elements
 from scissor_cli.mesh.probe import probe_targets, target_positions
 from scissor_cli.mesh.mesh import Mesh, mesh_for_config
@@ -92,10 +93,9 @@ def mesh_variants(cfg: Config, scene: Scene, study: StudyConfig, notes: list[str
     return out
 
 
-def run_study(cfg: Config, progress: Optional[Callable[[str], None]] = None) -> StudyResult:
+def run_study(cfg: Config) -> StudyResult:
     """Sweep meshes × models × solvers for the config's forward cases."""
     study = cfg.study or StudyConfig()
-    say = progress or (lambda message: None)
     scene = scene_from_config(cfg)
     if not scene.targets:
         raise StudyError("the study measures target errors: the scene needs at least one target")
@@ -119,7 +119,7 @@ def run_study(cfg: Config, progress: Optional[Callable[[str], None]] = None) -> 
                 if exact is not None and mesh.n_elements <= study.admm_max_elements:
                     for memory in [0] + ([study.anderson_memory] if study.anderson_memory else []):
                         _admm_rows(tissue, strokes, probe, exact, case.name, level, kind, model, memory, study, rows)
-            say(f"study: {kind} level {level:g} ({mesh.n_elements} elements), {model} done")
+            progress.info(f"study: {kind} level {level:g} ({mesh.n_elements} elements), {model} done")
     reference = _fill_reference_errors(rows, finest)
     return StudyResult(rows, reference, notes)
 

@@ -19,13 +19,14 @@ import numpy as np
 
 from scissor_cli import control, runtime
 from scissor_cli.control.allocation import along_mm, miss_mm
-from scissor_cli.scene.camera import Camera
+from scissor_cli.sensing.camera import Camera, CameraModel
+from scissor_cli.sensing.sensor import Sensor, SensorModel, TrialDraws
 from scissor_cli.config import parse_config
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 from scissor_cli.planning.corridor import corridor_radius
 from scissor_cli.experiments.pool import run_pool
 from scissor_cli.experiments.profiles import ErrorModel, draw_insertion, draw_trial, error_model
-from scissor_cli.insertion import NeedleParams, run_insertion
+from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion
 from scissor_cli.mechanics.tissue import build_model
 
 
@@ -78,13 +79,14 @@ class TrialOutcome:
 
 
 class TrialContext:
-    """Everything trials of one run share in one process: model, camera, error model, warm starts."""
+    """Everything trials of one run share in one process: model, sensor, error model, warm starts."""
 
     def __init__(self, config_yaml: str):
         self.cfg = parse_config(config_yaml, "<run config>")
         self.scene, self.mesh, self.tissue = build_model(self.cfg)
         self.errors: ErrorModel = error_model(self.cfg.trials)
-        self.camera = Camera.from_config(self.cfg.camera)
+        self.sensors: SensorModel = CameraModel(Camera.from_config(self.cfg.camera), self.errors.pixel_noise_px,
+                                                self.errors.localisation_error_mm, ideal=self.errors.exact_measurement)
         self.centroids = self.mesh.nodes[self.mesh.triangles].mean(axis=1)
         self._guesses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._controller_model = None  # built from the first task's ModelData (every task of a run has the same)
@@ -109,7 +111,7 @@ class TrialContext:
         if task.controller_model is None:
             return None
         if self._controller_model is None:
-            from scissor_cli.layer3d.controller_model import ControllerModel  # noqa: PLC0415
+            from scissor_cli.layer3d.tissue_models import ControllerModel  # noqa: PLC0415
 
             slab = self.slab_truth.slab if self.slab_truth is not None else None
             if slab is None and task.controller_model.kind == "slab":
@@ -122,10 +124,9 @@ class TrialContext:
         model = self._controller_model
         return lambda lo, hi, resolution_mm, tol: model.controller(task.index, lo, hi, resolution_mm, tol)
 
-    def measurement(self, draw) -> control.Measurement:
-        if self.errors.exact_measurement:
-            return control.Measurement()
-        return control.Measurement(self.camera, tuple(draw.localisation_offset_mm), noise_px=self.errors.pixel_noise_px)
+    def sensor(self, task: TargetTask, trial: int, draw) -> Sensor:
+        """The trial's sensor: its localisation bias from the trial's normals, its frame noise from the trial's stream."""
+        return self.sensors.for_trial(TrialDraws(draw.localisation_z, draw.rng, (int(self.cfg.seed), task.index, trial)))
 
     def run(self, task: TargetTask, trial: int) -> TrialOutcome:
         t0 = time.perf_counter()
@@ -138,19 +139,19 @@ class TrialContext:
         corridor = None
         if task.side:
             corridor = control.Corridor(task.side, task.direction, corridor_radius(self.cfg.needle))
-        r = control.run_target(
-            self.tissue, task.rest, task.desired, self.cfg.controller,
-            truth=truth, measurement=self.measurement(draw),
+        sensor = self.sensor(task, trial, draw)
+        r = control.run_target(self.tissue, task.rest, task.desired, self.cfg.controller, control.TargetRun(
+            truth=truth, sensor=sensor,
             resolution_mm=self.errors.actuator_resolution_mm, backlash_mm=self.errors.backlash_mm,
-            rng=draw.rng, corridor=corridor, target=task.name, guess=self.guess(task),
+            corridor=corridor, target=task.name, guess=self.guess(task),
             truth_factory=None if self.slab_truth is None else self.slab_truth.for_target(task.rest, task.plan_strokes),
             controller_factory=self.controller_factory(task),
-        )
+        ))
         # The optional release slip moves the target along the (first) cup's axis after the loop.
         slip = draw.release_slip_mm * self.scene.cups[0].axis if len(self.scene.cups) else np.zeros(2)
         columns, table = r.history_table()
         final = np.asarray(r.final_error, float) + slip
-        miss, depth_error = self.insert(task, trial, truth, draw, r)
+        miss, depth_error = self.insert(task, trial, truth, sensor, r)
         return TrialOutcome(
             target_index=task.index, trial=trial, ok=True, message=r.message,
             final_error=final, iterations=int(r.iterations), time_s=float(r.time_s),
@@ -162,12 +163,13 @@ class TrialContext:
             insertion_miss_mm=miss, insertion_depth_error_mm=depth_error, trial_time_s=time.perf_counter() - t0,
         )
 
-    def insert(self, task: TargetTask, trial: int, truth, draw, loop) -> tuple[np.ndarray, np.ndarray]:
+    def insert(self, task: TargetTask, trial: int, truth, sensor: Sensor, loop) -> tuple[np.ndarray, np.ndarray]:
         """With `insertion:`, each strategy from the loop's final true state (docs/model.md §12): miss, depth error (S,).
 
         The truth tissue carries the trial's drawn friction and tip force;
         the plan's entry and direction are the ones the robot was given; the
-        camera measures the target during insertion as during the loop. The
+        trial's sensor sees the target during insertion as during the loop
+        (its frame noise on a stream of the insertion's own). The
         `loop` strategy's controller runs on its model (`self.tissue`): J at
         the model's equilibrium under the needle, starting from the model's
         equilibrium at the loop's final strokes (the truth's final state
@@ -176,7 +178,7 @@ class TrialContext:
         With the slab truth (docs/model.md §14) the plant is the trial's
         perturbed slab from the loop's final slab state; the needle's entry
         and axis are the plan's lifted to the layer's height; the target is
-        the slab's, at the layer; the camera measures its in-plane part; and
+        the slab's, at the layer; the sensor reads its in-plane part; and
         `loop`'s 2-D model runs the insertion its own way
         (`insertion.model_state.ModelInsertion`), from its own equilibrium
         at the loop's final strokes.
@@ -185,12 +187,11 @@ class TrialContext:
         if ins is None or loop.final_x is None or task.entry is None:
             return np.zeros(0), np.zeros(0)
         f_scale, tip_scale = draw_insertion(self.errors, self.cfg.seed, task.index, trial)
-        base = NeedleParams.from_config(ins, self.cfg)
+        base = NeedleParams.from_config(ins, self.cfg.needle, self.cfg.tissue.mesh)
         params = replace(base, friction_static_mN_per_mm=base.friction_static_mN_per_mm * f_scale,
                          friction_kinetic_mN_per_mm=base.friction_kinetic_mN_per_mm * f_scale,
                          tip_force_mN=base.tip_force_mN * tip_scale)
-        meas = self.measurement(draw)
-        rng = np.random.default_rng([int(self.cfg.seed), task.index, trial, 13])
+        sensor = sensor.reseeded(np.random.default_rng([int(self.cfg.seed), task.index, trial, 13]))
         entry, direction = task.entry, task.direction
         if self.slab_truth is None:
             tissue = control.true_tissue(self.tissue, truth)
@@ -206,11 +207,11 @@ class TrialContext:
             s0, x0 = model_start if model_start is not None else (None, None)
             model_x0 = solve_equilibrium(self.tissue, loop.final_strokes, start=x0, start_strokes=s0).x
         miss, depth_error = [], []
+        path = NeedlePath(entry, direction, task.depth_mm, task.rest, task.name)
         for strategy in ins.strategies:
-            r = run_insertion(tissue, loop.final_x, loop.final_strokes, entry, direction, task.depth_mm,
-                              task.rest, params, strategy, controller=self.cfg.controller,
-                              measure=lambda y: meas.measure(y[:2], rng), keep_displacement=False,
-                              model=self.tissue, model_x0=model_x0)
+            options = InsertionOptions(strategy, self.cfg.controller, sensor, self.tissue, model_x0,
+                                       keep_displacement=False)
+            r = run_insertion(tissue, loop.final_x, loop.final_strokes, path, params, options)
             miss.append(r.miss_mm)
             depth_error.append(r.depth_error_mm)
         return np.array(miss), np.array(depth_error)

@@ -47,6 +47,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from scissor_cli.config import InsertionConfig, MeshConfig, NeedleConfig
 from scissor_cli.insertion import kernels
 from scissor_cli.insertion.chord import ChordFailed, ChordSolver, Hold, hold_conditions
 from scissor_cli.mechanics.tissue import Tissue
@@ -116,13 +117,13 @@ class NeedleParams:
         return (PASS_TOL, STEP_TOL) if d == 2 else (PASS_TOL_3D, STEP_TOL_3D)
 
     @classmethod
-    def from_config(cls, ins, cfg) -> "NeedleParams":
-        """From the `insertion` section and the whole config (capture radius default: half the coarsest edge)."""
+    def from_config(cls, ins: InsertionConfig, needle: NeedleConfig, mesh: MeshConfig) -> "NeedleParams":
+        """From the `insertion`, `needle` and `tissue.mesh` sections (capture radius default: half the coarsest edge)."""
         capture = ins.capture_radius_mm
         if capture is None:
-            capture = 0.5 * cfg.tissue.mesh.max_edge_mm * cfg.tissue.mesh.scale
+            capture = 0.5 * mesh.max_edge_mm * mesh.scale
         return cls(ins.step_mm, ins.friction_static_mN_per_mm, ins.friction_kinetic_mN_per_mm, ins.tip_force_mN,
-                   ins.tip_zone_mm, capture, 0.5 * cfg.needle.diameter_mm)
+                   ins.tip_zone_mm, capture, 0.5 * needle.diameter_mm)
 
 
 @dataclass

@@ -26,11 +26,12 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, Optional
 
 import numpy as np
 
+from scissor_cli.config import ControllerConfig
 from scissor_cli.control.law import PID, split_error
 from scissor_cli.geometry import segment_polygon_distance
 from scissor_cli.insertion.model_state import ModelInsertion, ModelState, move_held
@@ -38,6 +39,7 @@ from scissor_cli.insertion.needle import NeedleParams, NeedleState, advance, fre
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.outlines import deformed_outlines, embed_outlines
 from scissor_cli.mesh.probe import TargetProbe, probe_targets, target_positions
+from scissor_cli.sensing.sensor import EXACT, Sensor, TrueState
 from scissor_cli.solvers.common import SolverError
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 
@@ -101,49 +103,74 @@ def miss_and_depth_error(target: np.ndarray, entry: np.ndarray, direction: np.nd
     return float(miss), float(depth_mm - rel @ direction)
 
 
-def run_insertion(
-    tissue: Tissue,
-    x0: np.ndarray,
-    strokes: np.ndarray,
-    entry: np.ndarray,
-    direction: np.ndarray,
-    planned_depth_mm: float,
-    target_rest: np.ndarray,
-    params: NeedleParams,
-    strategy: str = "none",
-    *,
-    controller=None,
-    measure: Callable[[np.ndarray], np.ndarray] | None = None,
-    keep_displacement: bool = True,
-    target_name: str = "",
-    model: Tissue | None = None,
-    model_x0: np.ndarray | None = None,
-    on_step: Callable[[float], None] | None = None,
-) -> InsertionResult:
+@dataclass(frozen=True)
+class NeedlePath:
+    """The plan's needle as the robot holds it.
+
+    entry (d,) mm, direction (d,) unit, depth_mm: the plan (in the slab: the
+    layer's plan lifted to z = the layer's height, n_z = 0); target_rest
+    (2,) mm: the target in the layer's rest mesh; target_name: for the result.
+    """
+
+    entry: np.ndarray
+    direction: np.ndarray
+    depth_mm: float
+    target_rest: np.ndarray
+    target_name: str = ""
+
+
+@dataclass(frozen=True)
+class InsertionOptions:
+    """How an insertion runs: the strategy and what it steers and sees with.
+
+    controller: the `controller` section (gains, rate) for "loop"; sensor:
+    how the target is seen (default exact); model: the controller's tissue
+    for "loop" (default: the plant itself), model_x0 (N, 2) its equilibrium
+    at the strokes (solved from x0 when not given, which needs model and
+    plant of one dimension); keep_displacement: store every step's nodes;
+    on_step(depth_mm): called after every step (progress).
+    """
+
+    strategy: str = "none"
+    controller: Optional[ControllerConfig] = None
+    sensor: Sensor = EXACT
+    model: Optional[Tissue] = None
+    model_x0: Optional[np.ndarray] = None
+    keep_displacement: bool = True
+    on_step: Optional[Callable[[float], None]] = None
+
+
+@dataclass
+class _Trace:
+    """The rows of an insertion as it goes: one per step, and the nodes' displacement when kept."""
+
+    rows: list = field(default_factory=list)
+    frames: list = field(default_factory=list)
+    unsettled: int = 0
+
+
+def run_insertion(tissue: Tissue, x0: np.ndarray, strokes: np.ndarray, path: NeedlePath, params: NeedleParams,
+                  options: InsertionOptions = InsertionOptions()) -> InsertionResult:
     """Insert from the equilibrium x0 (N, d) at cup strokes (C,) mm along the plan; never raises on a solver failure.
 
-    entry (d,), direction (d,) unit, planned_depth_mm: the plan (in the
-    slab: the layer's plan lifted to z = the layer's height, n_z = 0);
-    target_rest (2,): the target in the layer's rest mesh; controller: the
-    `controller` config section (gains, rate) for "loop"; measure: the
-    camera, true (d,) → measured in-plane (2,) (default exact). `tissue` is
-    the plant; model: the controller's tissue for "loop" (default: the
-    plant itself), model_x0 (N, 2) its equilibrium at the strokes (solved
-    from x0 when not given, which needs model and plant of one dimension).
-    on_step(depth_mm), if given, is called after every step (progress).
-    A failed step ends the insertion with the reason in stop_reason; what
-    was reached is kept.
+    `tissue` is the plant. A failed step ends the insertion with the reason
+    in stop_reason; what was reached is kept.
     """
+    strategy = options.strategy
     if strategy not in STRATEGIES:
         raise ValueError(f"strategy must be one of {STRATEGIES}, got {strategy!r}")
     t0 = time.perf_counter()
-    n = np.asarray(direction, float) / np.linalg.norm(direction)
-    p0 = np.asarray(entry, float)
-    probe, embedding = _layer_points(tissue, np.asarray(target_rest, float),
-                                     [o.outline for o in tissue.scene.obstacles])
+    n = np.asarray(path.direction, float) / np.linalg.norm(path.direction)
+    p0 = np.asarray(path.entry, float)
+    target_rest = np.asarray(path.target_rest, float)
+    probe, embedding = _layer_points(tissue, target_rest, [o.outline for o in tissue.scene.obstacles])
     if n.size == 3 and abs(n[2]) > 1e-12:
         raise ValueError("in the slab the needle's axis lies in the layer (direction z = 0)")
-    measure = measure or (lambda y: y[:2])
+    sensor = options.sensor
+
+    def measure(y: np.ndarray, x: np.ndarray) -> np.ndarray:
+        return sensor.measure(TrueState(y, x, tissue.mesh))
+
     state = NeedleState(p0, n)
     candidates = free_nodes(tissue)
     x, s = np.array(x0, float), np.array(strokes, float)
@@ -151,16 +178,16 @@ def run_insertion(
     hi = np.array([c.stroke_max_mm for c in tissue.scene.cups])
     pid = controller_model = None
     if strategy == "loop":
-        pid = PID(controller.kp, controller.ki, controller.kd, 1.0 / controller.rate_hz)
-        controller_model = _model_state(tissue, model, x, model_x0, s, p0, n, target_rest, params)
-    rows: list[tuple] = []
-    frames: list[np.ndarray] = []
-    unsettled, reason = 0, ""
-    max_depth = MAX_DEPTH_FACTOR * planned_depth_mm + params.step_mm
+        gains = options.controller
+        pid = PID(gains.kp, gains.ki, gains.kd, 1.0 / gains.rate_hz)
+        controller_model = _model_state(tissue, options.model, x, options.model_x0, s, p0, n, target_rest, params)
+    trace = _Trace()
+    reason = ""
+    max_depth = MAX_DEPTH_FACTOR * path.depth_mm + params.step_mm
     last = False
     while True:
         y = target_positions(probe, x)[0]
-        goal = planned_depth_mm if strategy == "none" else float((measure(y) - p0[:2]) @ n[:2])
+        goal = path.depth_mm if strategy == "none" else float((measure(y, x) - p0[:2]) @ n[:2])
         remaining = goal - state.depth_mm
         if remaining <= 1e-9 or last:
             # the last step is shortened to the goal measured before it; the drag during it is not chased
@@ -174,20 +201,22 @@ def run_insertion(
             out = advance(tissue, state, x, s, min(params.step_mm, remaining), params, candidates)
             x = out.x
             if pid is not None:
-                x, s = _loop_correction(tissue, controller_model, state, x, s, out.loads, probe, pid, lo, hi, p0, measure)
+                x, s = _loop_correction(tissue, controller_model, state, x, s, out.loads, probe, pid, lo, hi, p0,
+                                        measure)
         except SolverError as exc:
             reason = f"solver failed at depth {state.depth_mm:.3g} mm: {exc}"
             break
-        unsettled += not out.settled
+        trace.unsettled += not out.settled
         y = target_positions(probe, x)[0]
-        rows.append((state.depth_mm, state.tip, y, out.force_mN, out.stuck, out.slipping,
-                     _clearance(embedding, x, p0[:2], state.tip[:2], params.radius_mm), s.copy()))
-        if keep_displacement:
-            frames.append(x - tissue.rest)
-        if on_step is not None:
-            on_step(state.depth_mm)
-    return _result(tissue, target_name, strategy, p0, n, rows, frames, keep_displacement, x, state,
-                   bool(embedding.splits), reason, unsettled, time.perf_counter() - t0, probe, s)
+        trace.rows.append((state.depth_mm, state.tip, y, out.force_mN, out.stuck, out.slipping,
+                           _clearance(embedding, x, p0[:2], state.tip[:2], params.radius_mm), s.copy()))
+        if options.keep_displacement:
+            trace.frames.append(x - tissue.rest)
+        if options.on_step is not None:
+            options.on_step(state.depth_mm)
+    y = target_positions(probe, x)[0]
+    return _result(tissue, path, strategy, trace, options.keep_displacement, x, s, y, state,
+                   bool(embedding.splits), reason, time.perf_counter() - t0)
 
 
 def _layer_points(tissue: Tissue, target_rest: np.ndarray, obstacles: list):
@@ -231,7 +260,7 @@ def _loop_correction(tissue, controller_model, state, x, s, loads, probe, pid, l
     controller_model.follow(state, x, s, loads)
     J, responses = controller_model.jacobian(state, probe, state.solver)
     y = target_positions(probe, x)[0]
-    e = np.array([-(measure(y) - p0[:2]) @ state.transverse[0][:2]])
+    e = np.array([-(measure(y, x) - p0[:2]) @ state.transverse[0][:2]])
     ds, _, _ = split_error(J, e)
     command, _ = pid.command(s, ds, lo, hi)
     if np.allclose(command, s, atol=1e-12, rtol=0):
@@ -256,18 +285,19 @@ def _clearance(embedding, x, p0, tip, radius_mm) -> float:
     return min(segment_polygon_distance(p0, tip, poly[:, :2]) for poly in outlines) - radius_mm
 
 
-def _result(tissue, name, strategy, p0, n, rows, frames, keep, x, state, has_obstacles, reason, unsettled, wall,
-            probe, s) -> InsertionResult:
+def _result(tissue, path: NeedlePath, strategy, trace: _Trace, keep, x, s, y, state, has_obstacles, reason,
+            wall) -> InsertionResult:
+    rows = trace.rows
     k = len(rows)
+    p0, n = np.asarray(path.entry, float), np.asarray(path.direction, float) / np.linalg.norm(path.direction)
     col = (lambda i, shape=(): np.array([r[i] for r in rows], float).reshape((k,) + shape))
     clearance = col(6)
-    y = target_positions(probe, x)[0]
     miss, depth_error = miss_and_depth_error(y, p0, n, state.depth_mm)
     touched = bool(has_obstacles and k and np.min(clearance) <= 0.0)
     return InsertionResult(
-        name, strategy, p0, n, col(0), col(1, (p0.size,)), col(2, (p0.size,)), col(3), col(4).astype(np.int64),
-        col(5).astype(np.int64), np.where(np.isfinite(clearance), clearance, 0.0),
+        path.target_name, strategy, p0, n, col(0), col(1, (p0.size,)), col(2, (p0.size,)), col(3),
+        col(4).astype(np.int64), col(5).astype(np.int64), np.where(np.isfinite(clearance), clearance, 0.0),
         np.array([r[7] for r in rows], float).reshape(k, tissue.n_cups),
-        np.array(frames) if keep else None, miss, depth_error, touched, has_obstacles,
-        reason, unsettled, wall, x,
+        np.array(trace.frames) if keep else None, miss, depth_error, touched, has_obstacles,
+        reason, trace.unsettled, wall, x,
     )

@@ -34,6 +34,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from scissor_cli import progress
 from scissor_cli.geometry import graded_levels
 from scissor_cli.layer3d.slab import SlabSpec, build_slab, layer_probe, plane_mesh, slab_probe
 from scissor_cli.mechanics.tissue import Tissue
@@ -107,7 +108,7 @@ def ladder(model: Tissue, spec: SlabSpec) -> list[tuple[float, float]]:
 
 
 def choose_slab(model: Tissue, spec: SlabSpec, cases: list[np.ndarray], accuracy_mm: float,
-                info=lambda message: None, planes=((1.0, None),)) -> SlabChoice:
+                planes=((1.0, None),)) -> SlabChoice:
     """Solve the forward cases' strokes (each (C,) mm) on every candidate and pick the smallest within accuracy_mm.
 
     planes: the in-plane ladder, (in_plane_scale, `SlabSpec.plane`) per rung, the configured one first
@@ -137,7 +138,7 @@ def choose_slab(model: Tissue, spec: SlabSpec, cases: list[np.ndarray], accuracy
             c = SlabCandidate(float(scale), first, largest, int(slab.mesh.levels_mm.size),
                               int(slab.ops.corners.shape[1]), error, factor_s, solve_s)
             candidates.append(c)
-            info(f"slab resolution: in-plane scale {scale:g}, z {first:.3g}–{largest:.3g} mm, {c.levels} levels, "
+            progress.info(f"slab resolution: in-plane scale {scale:g}, z {first:.3g}–{largest:.3g} mm, {c.levels} levels, "
                  f"{c.n_tetrahedra} tetrahedra: target error {error:.4f} mm, factorisation {factor_s:.2f} s")
     within = [k for k, c in enumerate(candidates) if c.error_mm <= accuracy_mm]
     pick = min(within, key=lambda k: (candidates[k].n_tetrahedra, k))

@@ -9,7 +9,7 @@ import h5py
 import numpy as np
 
 from scissor_cli.layer3d.calibration import Calibration
-from scissor_cli.layer3d.controller_model import ModelData, ModelPaths
+from scissor_cli.layer3d.tissue_models import ModelData, ModelPaths
 from scissor_cli.layer3d.surrogate import SurrogateSamples
 
 GROUP = "controller_model"

@@ -6,7 +6,7 @@ from typing import Optional
 
 import numpy as np
 
-from scissor_cli.control.corridor import Corridor, corridor_at
+from scissor_cli.control.corridor_check import Corridor, corridor_at
 from scissor_cli.control.result import LoopResult
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.outlines import boundary_loop, deformed_outlines, embed_outlines

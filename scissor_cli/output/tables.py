@@ -5,13 +5,7 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
-import numpy as np
-
-
-def fmt(v) -> str:
-    if isinstance(v, (float, np.floating)):
-        return f"{v:.3f}"
-    return str(v)
+from scissor_cli.text import cell as fmt
 
 
 def markdown_table(rows: list[dict], columns: list[str]) -> str:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from matplotlib.figure import Figure
 
-from scissor_cli.output.budget_results import PAPER_MAX_MM, PAPER_PROFILES
+from scissor_cli.output.error_budget.results import PAPER_MAX_MM, PAPER_PROFILES
 
 
 def budget_figure(title: str, rows: list[dict], profile: str) -> Figure:

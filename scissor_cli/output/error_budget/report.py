@@ -19,7 +19,7 @@ import numpy as np
 import yaml
 
 from scissor_cli.output import tables
-from scissor_cli.output.budget_results import PAPER_MAX_MM, PAPER_PROFILES, budget_rows, read_budget
+from scissor_cli.output.error_budget.results import PAPER_MAX_MM, PAPER_PROFILES, budget_rows, read_budget
 from scissor_cli.output.results import finished_trials
 
 BUDGET_COLUMNS = ["run", "source", "target", "trials", "x_median_mm", "x_p95_mm", "x_max_mm", "y_median_mm",

@@ -1,4 +1,4 @@
-"""A pinhole camera over the tissue layer: projection and simulated measurement (docs/model.md §8).
+"""The camera sensor: a pinhole camera over the tissue layer and a localisation bias (docs/model.md §8).
 
     z_c [u, v, 1]ᵀ = Ω T_cb [X, Y, Z, 1]ᵀ,    Ω = [[f/dx, 0, u0], [0, f/dy, v0], [0, 0, 1]]
 
@@ -23,11 +23,13 @@ measured wherever it projects.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Optional
 
 import numpy as np
 
 from scissor_cli.config import CameraConfig
+from scissor_cli.sensing.sensor import TrialDraws, TrueState
 
 
 def intrinsics(focal_mm: float, pixel_size_mm, principal_point_px) -> np.ndarray:
@@ -141,3 +143,59 @@ class Camera:
         uv = self.project(points)
         uv = uv + sigma * rng.standard_normal(uv.shape)
         return self.back_project(np.round(uv))
+
+
+@dataclass(frozen=True)
+class CameraSensor:
+    """One trial's camera: pixel noise + rounding, and a fixed localisation bias.
+
+    camera None reads the true position exactly (no rounding, no draws);
+    bias_mm (2,) is the trial's offset of the image-based localisation;
+    noise_px overrides the camera's pixel noise σ; rng is the stream of the
+    per-frame pixel noise (the trial's).
+    """
+
+    camera: Optional[Camera] = None
+    bias_mm: tuple[float, float] = (0.0, 0.0)
+    noise_px: Optional[float] = None
+    rng: Optional[np.random.Generator] = None
+
+    @property
+    def noise_mm(self) -> float:
+        """σ (mm) of one reading's random part at the layer: pixel noise and rounding (σ² + 1/12 px²); 0 without a camera."""
+        if self.camera is None:
+            return 0.0
+        px = self.camera.pixel_noise_px if self.noise_px is None else self.noise_px
+        return float(np.sqrt(px * px + 1.0 / 12.0) * np.max(self.camera.mm_per_pixel))
+
+    def measure(self, state: TrueState) -> np.ndarray:
+        """The measured target (2,) mm of the true target's in-plane part."""
+        p = np.array(state.target_mm, float)[:2]
+        if self.camera is not None:
+            rng = self.rng if self.rng is not None else np.random.default_rng(0)
+            p = self.camera.measure(p[None], rng, self.noise_px)[0]
+        return p + np.asarray(self.bias_mm, float)
+
+    def reseeded(self, rng: np.random.Generator) -> "CameraSensor":
+        return replace(self, rng=rng)
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """The run's camera and the σ of its errors: pixel noise (px) and the per-trial localisation bias (mm)."""
+
+    camera: Camera
+    pixel_noise_px: float
+    localisation_error_mm: float
+    ideal: bool = False
+
+    @property
+    def exact(self) -> bool:
+        return self.ideal
+
+    def for_trial(self, draws: TrialDraws) -> CameraSensor:
+        """The trial's camera: its bias is the trial's localisation normals times σ; its noise, the trial's stream."""
+        if self.ideal:
+            return CameraSensor()
+        bias = np.asarray(draws.localisation_z, float) * self.localisation_error_mm
+        return CameraSensor(self.camera, tuple(bias), noise_px=self.pixel_noise_px, rng=draws.rng)

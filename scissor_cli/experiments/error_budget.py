@@ -23,6 +23,7 @@ import time
 from contextlib import closing
 from dataclasses import dataclass, field
 
+from scissor_cli import progress
 from scissor_cli.config import Config, resolved_yaml
 from scissor_cli.experiments.pool import deferred_signals
 from scissor_cli.experiments.sink import product_key
@@ -83,7 +84,7 @@ def row_config_yaml(cfg: Config) -> str:
     return resolved_yaml(cfg)
 
 
-def run_budget(cfg: Config, tasks: list, sink, reporter, execution, done: frozenset[str] = frozenset()) -> list:
+def run_budget(cfg: Config, tasks: list, sink, execution, done: frozenset[str] = frozenset()) -> list:
     """Run every budget row not yet finished and store it whole (`budget/<row>`); returns figure paths.
 
     One set of workers runs every row's trials; a row is stored and marked
@@ -92,14 +93,14 @@ def run_budget(cfg: Config, tasks: list, sink, reporter, execution, done: frozen
     """
     plan = budget_plan(cfg)
     for note in plan.notes:
-        reporter.info(f"budget: {note}")
+        progress.info(f"budget: {note}")
     names = [t.name for t in tasks]
     by_index = {t.index: t for t in tasks}
     todo = [name for name in plan.rows if product_key("budget", name) not in done]
     work = [(task, k) for task in tasks for k in range(cfg.trials.count)]
     if todo:
-        reporter.info(f"budget: {len(todo)} row(s) of {len(work)} trials ({', '.join(todo)})")
-    advance = reporter.progress("budget", len(todo) * len(work))
+        progress.info(f"budget: {len(todo)} row(s) of {len(work)} trials ({', '.join(todo)})")
+    advance = progress.bar("budget", len(todo) * len(work))
     outcomes = {name: {n: [None] * cfg.trials.count for n in names} for name in todo}
     left = {name: len(work) for name in todo}
     t0 = time.perf_counter()
@@ -113,7 +114,7 @@ def run_budget(cfg: Config, tasks: list, sink, reporter, execution, done: frozen
                 with deferred_signals():
                     sink.budget_row(name, _fields_on(name, plan.rows[name]), outcomes.pop(name))
                     sink.mark_finished(product_key("budget", name))
-                reporter.info(f"budget {name}: done ({time.perf_counter() - t0:.1f} s into the budget)")
+                progress.info(f"budget {name}: done ({time.perf_counter() - t0:.1f} s into the budget)")
     return sink.budget_figures(cfg.name, list(plan.rows), cfg.trials.profile)
 
 

@@ -25,7 +25,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from scissor_cli.control.corridor import Corridor, corridor_at
+from scissor_cli.control.corridor_check import Corridor, corridor_at
 from scissor_cli.control.models import CalibratedController, MapController, SlabController
 from scissor_cli.control.plant import Controller
 from scissor_cli.layer3d.calibration import Calibration, calibration_strokes, fit_transmission

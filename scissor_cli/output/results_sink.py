@@ -35,13 +35,14 @@ import numpy as np
 from scissor_cli.experiments.sink import ForwardCase, Manipulation, ResumeError, product_key
 from scissor_cli.experiments.study import rows_as_columns
 from scissor_cli.output.manipulation import manipulation_figure_inputs
-from scissor_cli.output import budget_results, figures, journal, layer_check, results
-from scissor_cli.output.budget_figures import budget_figure
+from scissor_cli.output import figures, journal, layer_check, results
+from scissor_cli.output.error_budget import results as budget_results
+from scissor_cli.output.error_budget.figures import budget_figure
 from scissor_cli.output.results import ResultsFile, temporary
 
 #: root attribute: the `product_key`s of what the run stored whole (docs/contract.md#resume)
 FINISHED = "finished"
-from scissor_cli.output.insertion_results import write_insertion
+from scissor_cli.output.insertion.results import write_insertion
 
 
 class ResultsSink:
@@ -168,7 +169,7 @@ class ResultsSink:
         return figures.save(figures.manipulation_figure(**inputs), self.location / f"manipulation_{m.target}.png")
 
     def insertion(self, ins) -> list[Path]:
-        from scissor_cli.output.insertion_output import insertion_outputs
+        from scissor_cli.output.insertion.writer import insertion_outputs
 
         for r in ins.results:
             write_insertion(self.out, r)

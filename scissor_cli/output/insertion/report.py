@@ -14,6 +14,7 @@ import h5py
 import numpy as np
 from matplotlib.figure import Figure
 
+from scissor_cli.text import cell
 from scissor_cli.output.figures import save
 from scissor_cli.output.results import finished_trials
 
@@ -78,12 +79,6 @@ def insertion_rows(panels: list[tuple[str, dict[str, dict]]]) -> list[dict]:
 COLUMNS = ["run", "target", "what", "trials", "median_mm", "p90_mm", "max_mm", "median_abs_depth_error_mm"]
 
 
-def _fmt(v) -> str:
-    if isinstance(v, float):
-        return "–" if not np.isfinite(v) else f"{v:.3f}"
-    return str(v)
-
-
 def report_insertion(runs: list[tuple[str, Path]], out_dir: Path) -> tuple[list[Path], str]:
     """insertion_boxplots.png and insertion_summary.md for the runs (label, results.h5) with insertion trials."""
     panels = [(label, d) for label, path in runs if (d := load_insertion_trials(path))]
@@ -91,7 +86,7 @@ def report_insertion(runs: list[tuple[str, Path]], out_dir: Path) -> tuple[list[
         return [], ""
     rows = insertion_rows(panels)
     table = "| " + " | ".join(COLUMNS) + " |\n|" + "---|" * len(COLUMNS) + "\n"
-    table += "".join("| " + " | ".join(_fmt(r[c]) for c in COLUMNS) + " |\n" for r in rows)
+    table += "".join("| " + " | ".join(cell(r[c], missing="–") for c in COLUMNS) + " |\n" for r in rows)
     md = out_dir / "insertion_summary.md"
     md.write_text(table)
     return [save(insertion_boxplots(panels), out_dir / "insertion_boxplots.png"), md], table

@@ -14,8 +14,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Optional
 
-import numpy as np
-
+from scissor_cli import progress
 from scissor_cli.config import Config
 from scissor_cli.experiments import run_cache
 from scissor_cli.experiments.sink import product_key
@@ -25,7 +24,7 @@ from scissor_cli.mechanics.tissue import Tissue, build_model
 from scissor_cli.solvers.equilibrium import EquilibriumSolver
 
 
-def run_layer_check(cfg: Config, tissue: Tissue, sink, reporter, done: frozenset[str] = frozenset()) -> list:
+def run_layer_check(cfg: Config, tissue: Tissue, sink, done: frozenset[str] = frozenset()) -> list:
     """Solve and hand to the sink the layer check of every forward case not in `done`; returns the figures' paths."""
     cases = [case for case in cfg.forward if product_key("layer_check", case.name) not in done]
     if not cases:
@@ -33,13 +32,13 @@ def run_layer_check(cfg: Config, tissue: Tissue, sink, reporter, done: frozenset
     t0 = time.perf_counter()
     check = build_layer_check(tissue, spec_from_config(cfg))
     sm = check.mesh
-    reporter.info(f"layer check: slab of {sm.n_elements} tetrahedra, {sm.n_nodes} nodes, "
+    progress.info(f"layer check: slab of {sm.n_elements} tetrahedra, {sm.n_nodes} nodes, "
                   f"{len(sm.levels_mm) - 1} prism layers, built in {time.perf_counter() - t0:.1f} s")
     sink.layer_check_mesh(sm)
     scene, mesh = tissue.scene, tissue.mesh
     layer = EquilibriumSolver(tissue, "newton")
     paths = []
-    advance = reporter.progress("layer check", len(cases))
+    advance = progress.bar("layer check", len(cases))
     for case in cases:
         strokes = scene.strokes_vector(case.strokes)
         r2 = layer.solve(strokes)
@@ -55,7 +54,7 @@ def run_layer_check(cfg: Config, tissue: Tissue, sink, reporter, done: frozenset
         )
         path = sink.layer_check(result, figure)
         sink.mark_finished(product_key("layer_check", case.name))
-        reporter.info(
+        progress.info(
             f"layer check {case.name}: 3-D Newton {result.iterations} iterations, {result.time_s:.1f} s; in-plane "
             f"difference {result.in_plane_diff_mm:.3f} mm ({100 * result.in_plane_diff_fraction:.1f} %), "
             f"out of plane {result.out_of_plane_mm:.3f} mm, closer to {result.closer_to}"
@@ -66,7 +65,7 @@ def run_layer_check(cfg: Config, tissue: Tissue, sink, reporter, done: frozenset
     return paths
 
 
-def slab_resolution_stage(cfg: Config, reporter, cache: Optional[Path] = None) -> tuple[Config, SlabChoice]:
+def slab_resolution_stage(cfg: Config, cache: Optional[Path] = None) -> tuple[Config, SlabChoice]:
     """`layer_check.accuracy_mm`: choose the slab's z grading and in-plane mesh (docs/model.md §13); the run goes
     on with it.
 
@@ -82,13 +81,13 @@ def slab_resolution_stage(cfg: Config, reporter, cache: Optional[Path] = None) -
     path = None if cache is None else cache / f"slab-resolution-{_resolution_key(cfg)}.json"
     choice = _read_choice(path)
     if choice is not None:
-        reporter.info(f"slab resolution: {choice.explain()} (from the cache)")
+        progress.info(f"slab resolution: {choice.explain()} (from the cache)")
     else:
         _, _, tissue = build_model(cfg)
         cases = [tissue.scene.strokes_vector(case.strokes) for case in cfg.forward]
         t0 = time.perf_counter()
-        choice = choose_slab(tissue, spec_from_config(cfg), cases, lc.accuracy_mm, reporter.info, plane_ladder(cfg))
-        reporter.info(f"slab resolution: {choice.explain()} ({time.perf_counter() - t0:.1f} s)")
+        choice = choose_slab(tissue, spec_from_config(cfg), cases, lc.accuracy_mm, plane_ladder(cfg))
+        progress.info(f"slab resolution: {choice.explain()} ({time.perf_counter() - t0:.1f} s)")
         _write_choice(path, choice)
     chosen = choice.chosen
     section = lc.model_copy(update={"first_layer_mm": chosen.first_layer_mm, "max_layer_mm": chosen.max_layer_mm,

@@ -25,13 +25,16 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from scissor_cli import progress
+from scissor_cli.text import ranges, vector
+
 from scissor_cli.config import Config, resolved_yaml
 from scissor_cli.experiments import run_cache
 from scissor_cli.experiments.pool import run_pool
-from scissor_cli.control.corridor import Corridor
+from scissor_cli.control.corridor_check import Corridor
 from scissor_cli.control.models import strokes_for
 from scissor_cli.layer3d.calibration import Calibration
-from scissor_cli.layer3d.controller_model import (ControllerModel, ModelData, ModelPaths, SceneMap, build_model_data,
+from scissor_cli.layer3d.tissue_models import (ControllerModel, ModelData, ModelPaths, SceneMap, build_model_data,
                                                   model_solves, SlabMap, slab_map)
 from scissor_cli.layer3d.surrogate import SurrogateSamples, solve_samples
 from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
@@ -96,8 +99,7 @@ def load_model_data(path: Path) -> Optional[ModelData]:
     return ModelData(str(a["kind"]), float(a["build_time_s"]), None if np.isnan(error) else error, calibration, samples)
 
 
-def fitted_model(cfg: Config, tissue: Tissue, slab: Optional[Tissue], plans: list, cache_dir: Optional[Path],
-                 reporter, jobs: int = 1) -> tuple[ModelData, bool]:
+def fitted_model(cfg: Config, tissue: Tissue, slab: Optional[Tissue], plans: list, cache_dir: Optional[Path], jobs: int = 1) -> tuple[ModelData, bool]:
     """The controller's model data, from the cache when it holds this key; (data, came from the cache).
 
     With jobs ≥ 2 the surrogate's design groups are solved in worker
@@ -111,7 +113,7 @@ def fitted_model(cfg: Config, tissue: Tissue, slab: Optional[Tissue], plans: lis
         if data is not None and data.kind == kind:
             return data, True
     total = model_solves(kind, tissue, plan_strokes, cfg.controller.surrogate.samples)
-    advance = reporter.progress(f"controller model ({kind}): slab solves", total) if total else (lambda n: None)
+    advance = progress.bar(f"controller model ({kind}): slab solves", total) if total else (lambda n: None)
     parallel = solve_groups_in_workers(resolved_yaml(cfg), jobs, advance) if jobs > 1 else None
     data = build_model_data(kind, tissue, slab, plan_strokes, cfg.controller.surrogate.samples, advance, parallel)
     if path is not None and kind in ("calibrated", "surrogate"):
@@ -153,7 +155,7 @@ def _solve_group(config_yaml: str, index: int, strokes: np.ndarray) -> list[tupl
     return [(index, solve_samples(slab, probe, strokes, SLAB_TRUTH_TOL, layer=layer))]
 
 
-def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answer: Optional[SlabMap], reporter,
+def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answer: Optional[SlabMap],
                     replan: Optional[Replan] = None) -> list:
     """The plans with `model_strokes` (and `strokes`, for a 3-D-aware model) and `slab_strokes` (docs/model.md §15).
 
@@ -193,8 +195,8 @@ def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answe
         if left > tol and may_replan:
             again = replan(t, target_at(t), model_layer)
             if again.feasible:
-                reporter.info(f"plan {plan.target}: the layer's desired point is beyond the {model.kind} model's "
-                              f"reach (left {left:.2f} mm at strokes {_fmt(model_s)} mm): planned again on the "
+                progress.info(f"plan {plan.target}: the layer's desired point is beyond the {model.kind} model's "
+                              f"reach (left {left:.2f} mm at strokes {vector(model_s)} mm): planned again on the "
                               f"model's {seen}")
                 plan = replace(again, planned_with=model.kind)
                 model_s, left = model_strokes(t, plan)
@@ -206,28 +208,28 @@ def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answe
             slab_s, slab_left = (model_s, left) if model.kind == "slab" else strokes_for(
                 _one(slab_answer, t), plan.desired, lo, hi, direction, mode, model_s)
             if slab_left > tol and (model.kind == "layer" or left <= tol):  # (else the model's verdict says it)
-                reporter.info(f"plan {plan.target}: the nominal slab cannot bring the target within {tol:g} mm of its "
+                progress.info(f"plan {plan.target}: the nominal slab cannot bring the target within {tol:g} mm of its "
                               f"desired position inside the stroke limits (left {slab_left:.2f} mm at strokes "
-                              f"{_fmt(slab_s)} mm; the {model.kind} model asks {_fmt(model_s)} mm)")
+                              f"{vector(slab_s)} mm; the {model.kind} model asks {vector(model_s)} mm)")
         plan = replace(plan, model_strokes=model_s, slab_strokes=slab_s)
         if model_answer is not None:
             plan = replace(plan, strokes=model_s)
             if left > tol:
                 kept = "" if reserve == 0 else (f" less the stroke reserve of {reserve:g} (strokes in "
-                                                f"{_fmt_ranges(lo_kept, hi_kept)} mm)")
+                                                f"{ranges(lo_kept, hi_kept)} mm)")
                 plan = replace(plan, feasible=False, reason=(
                     f"the {model.kind} controller model cannot bring the target within {tol:g} mm of its desired "
-                    f"position inside the stroke limits{kept} (left {left:.2f} mm at strokes {_fmt(model_s)} mm)"
+                    f"position inside the stroke limits{kept} (left {left:.2f} mm at strokes {vector(model_s)} mm)"
                     + again_reason))
         corridor = Corridor.from_plan(plan, corridor_radius(cfg.needle))
         if slab_answer is not None and plan.feasible and corridor is not None:
             clearance = slab_answer.clearance(slab_s, plan.desired, corridor)
             if not clearance > 0:  # (NaN: the ray does not leave the slab's skin through the plan's side)
-                blocked = (f"in the nominal slab at strokes {_fmt(slab_s)} mm the needle's corridor to the desired "
+                blocked = (f"in the nominal slab at strokes {vector(slab_s)} mm the needle's corridor to the desired "
                            f"position is blocked (clearance {clearance:.2f} mm): the slab does not move the obstacles "
                            f"where the layer does")
                 if model_answer is None:
-                    reporter.info(f"plan {plan.target}: {blocked}")
+                    progress.info(f"plan {plan.target}: {blocked}")
                 else:
                     return replace(plan, feasible=False, reason=blocked), True
         return with_model_error(t, plan), False
@@ -255,7 +257,7 @@ def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answe
             # where the model puts them.
             again = replan(t, target_at(t), model_layer)
             if again.feasible:
-                reporter.info(f"plan {plan.target}: {first.reason}; planned again on the {model.kind} model's {seen}")
+                progress.info(f"plan {plan.target}: {first.reason}; planned again on the {model.kind} model's {seen}")
                 first = judged(t, replace(again, planned_with=model.kind), False)[0]
             else:
                 first = replace(first, reason=f"{first.reason}; planned again on the model's {seen}: {again.reason}")
@@ -263,7 +265,7 @@ def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answe
     return out
 
 
-def controller_model_stage(cfg: Config, tissue: Tissue, plans: list, location: Optional[Path], reporter, jobs: int = 1,
+def controller_model_stage(cfg: Config, tissue: Tissue, plans: list, location: Optional[Path], jobs: int = 1,
                            replan: Optional[Replan] = None) -> tuple[Optional[ModelData], list, Optional[ModelPaths]]:
     """Fit (or read) the controller's model and plan with it: (model data, plans, the figure's paths).
 
@@ -275,27 +277,27 @@ def controller_model_stage(cfg: Config, tissue: Tissue, plans: list, location: O
     if not needs_slab(cfg):
         return None, plans, None
     slab = _nominal_slab(cfg, tissue)
-    data, cached = fitted_model(cfg, tissue, slab, plans, run_cache.cache_dir(location), reporter, jobs)
+    data, cached = fitted_model(cfg, tissue, slab, plans, run_cache.cache_dir(location), jobs)
     model = ControllerModel(data, tissue, slab)
     how = "from the cache" if cached else f"in {data.build_time_s:.1f} s"
     error = "" if data.validation_error_mm is None else f", error against the slab {data.validation_error_mm:.3g} mm"
-    extra = "" if model.transmission is None else f", transmission {_fmt(model.transmission)}"
+    extra = "" if model.transmission is None else f", transmission {vector(model.transmission)}"
     if model.surrogate is not None and model.surrogate.knows_layer:
         extra += f"; its layer (obstacles, skin) within {model.surrogate.layer_error_mm():.3g} mm"
     if data.kind != "layer":
-        reporter.info(f"controller model {data.kind}: {how}{error}{extra}")
+        progress.info(f"controller model {data.kind}: {how}{error}{extra}")
     rests = np.array([t.rest for t in tissue.scene.targets]).reshape(-1, 2)
     slab_answer = slab_map(slab, tissue, rests)
-    plans = plan_with_model(cfg, plans, model, slab_answer, reporter, replan)
+    plans = plan_with_model(cfg, plans, model, slab_answer, replan)
     paths = model_paths(cfg, tissue, model, slab_answer) if model.kind != "layer" else None
     return data, plans, paths
 
 
-def refitted_model(cfg: Config, tissue: Tissue, location: Optional[Path], reporter) -> Optional[ModelData]:
+def refitted_model(cfg: Config, tissue: Tissue, location: Optional[Path]) -> Optional[ModelData]:
     """The model data alone, from the cache or fitted again: a resumed run whose file lost /controller_model."""
     if not needs_slab(cfg):
         return None
-    return fitted_model(cfg, tissue, _nominal_slab(cfg, tissue), [], run_cache.cache_dir(location), reporter)[0]
+    return fitted_model(cfg, tissue, _nominal_slab(cfg, tissue), [], run_cache.cache_dir(location))[0]
 
 
 def _nominal_slab(cfg: Config, tissue: Tissue) -> Tissue:
@@ -320,10 +322,6 @@ def reserved_scene(scene, reserve: float):
                                 for c, a, b in zip(scene.cups, lo, hi)])
 
 
-def _fmt_ranges(lo: np.ndarray, hi: np.ndarray) -> str:
-    return ", ".join(f"[{a:+.2f}, {b:+.2f}]" for a, b in zip(lo, hi))
-
-
 def _one(answer: SceneMap, target: int):
     """One target's `control.models.TargetMap` from a scene map."""
 
@@ -332,10 +330,6 @@ def _one(answer: SceneMap, target: int):
         return y[target], J[target]
 
     return one
-
-
-def _fmt(values) -> str:
-    return "(" + ", ".join(f"{v:+.2f}" for v in np.atleast_1d(values)) + ")"
 
 
 #: stroke grid of the model's (and the layer's) path in the figure; the slab's is solved at SLAB_PATH_POINTS
