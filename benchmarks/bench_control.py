@@ -48,7 +48,7 @@ from scissor_cli.mesh.probe import probe_targets
 from scissor_cli.planning.corridor import corridor_radius
 from scissor_cli.planning.needle_plan import plan_targets
 from scissor_cli.planning.states import StateCache
-from scissor_cli.experiments.simulate import build_model
+from scissor_cli.experiments.build import build_model, with_grips
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -96,7 +96,8 @@ def grip_search(path: Path, repeats: int = 3) -> tuple[float, float, int]:
     _, _, model = build_model(cfg)
     search, verify, n = [], [], 0
     for _ in range(repeats):
-        plan = plan_grips(cfg, model, lambda c: build_model(c)[2])
+        plan = plan_grips(cfg.manipulation_points, cfg.needle, model,
+                          lambda contacts, axes: build_model(with_grips(cfg, contacts, axes))[2])
         search.append(plan.search_s)
         verify.append(plan.verify_s)
         n = len(plan.candidates)
@@ -167,13 +168,13 @@ def model_iterations(path: Path, repeats: int) -> None:
     """Median time of the controller's side of a control iteration with each model, and its build time."""
     from scissor_cli.experiments.controller_model_stage import fitted_model  # noqa: PLC0415
     from scissor_cli.experiments.run_cache import CACHE_DIR  # noqa: PLC0415
-    from scissor_cli.layer3d.check import spec_from_config  # noqa: PLC0415
+    from scissor_cli.layer3d.check import slab_spec  # noqa: PLC0415
     from scissor_cli.layer3d.tissue_models import ControllerModel  # noqa: PLC0415
     from scissor_cli.layer3d.slab import build_slab  # noqa: PLC0415
 
     cfg = load_config(path).model_copy(update={"manipulation_points": None})
     scene, mesh, layer = build_model(cfg)
-    slab = build_slab(scene, mesh, spec_from_config(cfg), model=layer.params.model)
+    slab = build_slab(scene, mesh, slab_spec(cfg.layer_check, cfg.tissue.mesh), model=layer.params.model)
     plans = plan_targets(layer, scene, cfg.needle)
     print(f"{cfg.name}: layer {mesh.n_elements} triangles, slab {slab.mesh.n_elements} tetrahedra; "
           f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}")

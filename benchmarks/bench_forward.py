@@ -36,7 +36,7 @@ from scissor_cli.solvers.admm.solver import AdmmSolver  # noqa: E402
 from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.mesh.mesh import mesh_for_config  # noqa: E402
 from scissor_cli.solvers.newton import solve_newton  # noqa: E402
-from scissor_cli.scene.scene import scene_from_config  # noqa: E402
+from scissor_cli.experiments.build import scene_of  # noqa: E402
 from scissor_cli.experiments.study import timed  # noqa: E402
 from scissor_cli.mechanics.tissue import build_tissue  # noqa: E402
 
@@ -56,7 +56,7 @@ def main(argv=None) -> int:
 
     t_start = time.perf_counter()
     cfg = load_config(args.config)
-    scene = scene_from_config(cfg)
+    scene = scene_of(cfg)
     mesh = mesh_for_config(scene, cfg.tissue.mesh)
     tissue = build_tissue(scene, mesh)
     tol = args.tol if args.tol is not None else cfg.solver.tolerance

@@ -15,7 +15,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from scissor_cli import runtime  # noqa: E402
 from scissor_cli.config import load_config  # noqa: E402
-from scissor_cli.mechanics.tissue import build_model
+from scissor_cli.experiments.build import build_model
 from scissor_cli.solvers.equilibrium import EquilibriumSolver  # noqa: E402
 from scissor_cli.solvers.common import SolverError  # noqa: E402
 

@@ -36,7 +36,7 @@ from scissor_cli import runtime
 from scissor_cli.config import load_config
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion
 from scissor_cli.insertion.needle import NeedleState, advance, free_nodes
-from scissor_cli.mechanics.tissue import build_model
+from scissor_cli.experiments.build import build_model
 from scissor_cli.planning.needle_plan import plan_target
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 

@@ -30,10 +30,10 @@ from scissor_cli import runtime
 from scissor_cli.config import load_config
 from scissor_cli.insertion import NeedleParams, miss_and_depth_error
 from scissor_cli.insertion.needle import NeedleState, advance, free_nodes
-from scissor_cli.layer3d.check import spec_from_config
+from scissor_cli.layer3d.check import slab_spec
 from scissor_cli.layer3d.slab import build_slab, slab_probe
 from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
-from scissor_cli.mechanics.tissue import build_model
+from scissor_cli.experiments.build import build_model
 from scissor_cli.planning.needle_plan import plan_target
 from scissor_cli.solvers.newton import solve_newton
 
@@ -53,7 +53,7 @@ def main() -> None:
         raise SystemExit(f"{args.config}: needs an insertion and a layer_check section")
     scene, mesh, tissue = build_model(cfg)
     t0 = time.perf_counter()
-    slab = build_slab(scene, mesh, spec_from_config(cfg), model=tissue.params.model)
+    slab = build_slab(scene, mesh, slab_spec(cfg.layer_check, cfg.tissue.mesh), model=tissue.params.model)
     build_s = time.perf_counter() - t0
     params = NeedleParams.from_config(cfg.insertion, cfg.needle, cfg.tissue.mesh)
     for target in scene.targets:

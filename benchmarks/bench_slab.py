@@ -33,7 +33,8 @@ sys.path.insert(0, ROOT)
 from scissor_cli import runtime  # noqa: E402
 from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.layer3d.slab import SlabSpec, build_slab, slab_probe  # noqa: E402
-from scissor_cli.mechanics.tissue import Tissue, build_model  # noqa: E402
+from scissor_cli.experiments.build import build_model
+from scissor_cli.mechanics.tissue import Tissue  # noqa: E402
 from scissor_cli.solvers.equilibrium import solve_equilibrium  # noqa: E402
 
 CONFIG = os.path.join(ROOT, "scissor_cli", "scenes", "example.yaml")

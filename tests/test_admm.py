@@ -14,7 +14,7 @@ from scissor_cli.solvers.admm.weights import curvature_boost, rest_weights
 from scissor_cli.config import load_config
 from scissor_cli.mesh.mesh import mesh_for_config
 from scissor_cli.solvers.newton import solve_newton
-from scissor_cli.scene.scene import scene_from_config
+from scissor_cli.experiments.build import scene_of
 from scissor_cli.solvers.common import Inertia, SolverError
 from scissor_cli.mechanics.tissue import build_tissue
 
@@ -26,7 +26,7 @@ def scene_cfg():
     import os
 
     cfg = load_config(os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), CONFIG))
-    return scene_from_config(cfg), cfg
+    return scene_of(cfg), cfg
 
 
 @pytest.fixture(scope="module")

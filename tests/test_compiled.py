@@ -14,7 +14,7 @@ from scissor_cli.config import parse_config
 from scissor_cli.mechanics import compiled, fem, materials
 from scissor_cli.mechanics.tissue import build_tissue
 from scissor_cli.mesh.mesh import mesh_for_config
-from scissor_cli.scene.scene import scene_from_config
+from scissor_cli.experiments.build import scene_of
 
 SCENE = """
 tissue: {size_mm: [30, 20], mesh: {max_edge_mm: 4, min_edge_mm: 2}}
@@ -26,7 +26,7 @@ obstacles: [{name: v, circle: {center_mm: [10, 10], radius_mm: 2.5}, stiffness_f
 
 def _tissue(model, tension_only=False):
     cfg = parse_config(SCENE % (model, str(tension_only).lower()))
-    scene = scene_from_config(cfg)
+    scene = scene_of(cfg)
     return build_tissue(scene, mesh_for_config(scene, cfg.tissue.mesh))
 
 

@@ -284,7 +284,7 @@ def test_polygon_and_ellipse_layers_validate():
 
 def test_ellipse_targets_keep_clear_of_the_coarsest_outline():
     """A target between the ellipse and its 32-gon would lie outside the mesh: refused, not a crash later."""
-    from scissor_cli.scene.scene import scene_from_config
+    from scissor_cli.experiments.build import scene_of
 
     data = example_dict()
     deep_update(data, "tissue.shape", "ellipse")
@@ -296,7 +296,7 @@ def test_ellipse_targets_keep_clear_of_the_coarsest_outline():
     coarse = parse(deep_update(example_dict(), "tissue.shape", "ellipse"))
     coarse = coarse.model_copy(update={"tissue": coarse.tissue.model_copy(
         update={"mesh": coarse.tissue.mesh.model_copy(update={"scale": 100.0})})})
-    assert len(scene_from_config(coarse).outline) == checks.ELLIPSE_MIN_POINTS
+    assert len(scene_of(coarse).outline) == checks.ELLIPSE_MIN_POINTS
 
 
 def test_work_bounds_of_time_steps_and_robot():
@@ -360,11 +360,11 @@ def test_interleaved_obstacles_validate_in_seconds():
 
 def _mesh_count(cfg: Config, scale=None) -> int:
     from scissor_cli.mesh.mesh import mesh_for_config
-    from scissor_cli.scene.scene import scene_from_config
+    from scissor_cli.experiments.build import scene_of
 
     s = cfg.tissue.mesh.scale if scale is None else scale
     at = cfg.model_copy(update={"tissue": cfg.tissue.model_copy(update={"mesh": cfg.tissue.mesh.model_copy(update={"scale": s})})})
-    return mesh_for_config(scene_from_config(at), at.tissue.mesh).n_elements
+    return mesh_for_config(scene_of(at), at.tissue.mesh).n_elements
 
 
 def _variant(**changes) -> Config:
@@ -455,7 +455,7 @@ def test_accuracy_selection_stays_within_the_budget():
 
 def test_study_skips_levels_over_its_max_before_meshing(monkeypatch):
     from scissor_cli.experiments import study
-    from scissor_cli.scene.scene import scene_from_config
+    from scissor_cli.experiments.build import scene_of
 
     cfg = load_config(EXAMPLE)
     meshed = []
@@ -463,7 +463,7 @@ def test_study_skips_levels_over_its_max_before_meshing(monkeypatch):
     monkeypatch.setattr(study, "mesh_for_config", lambda scene, m, scale: meshed.append(scale) or real(scene, m, scale))
     settings = study.StudyConfig(levels=[1.0, 0.25, 0.05], uniform=False, max_elements=30000)
     notes = []
-    variants = study.mesh_variants(cfg, scene_from_config(cfg), settings, notes)
+    variants = study.mesh_variants(cfg, scene_of(cfg), settings, notes)
     assert [level for level, _, _ in variants] == [1.0, 0.25] and meshed == [1.0, 0.25]
     assert "graded level 0.05: about" in notes[0]
     # its max_elements is at most half the budget: a mesh it builds stays within it

@@ -410,9 +410,9 @@ def test_manipulation_figure(tmp_path):
     cfg, tissue, plans = scene_setup("paper_pull")
     corridor = ct.Corridor.from_plan(plans[0], corridor_radius(cfg.needle))
     r = manipulate("paper_pull", 0)
-    kw = manipulation_figure_inputs(tissue, r, tissue.scene.targets[0].rest, corridor)
-    assert kw["corridor_before"].shape == (2, 2) and np.all(np.isfinite(kw["corridor_after"]))
-    fig = figures.manipulation_figure(**kw)
+    drawing = manipulation_figure_inputs(tissue, r, tissue.scene.targets[0].rest, corridor)
+    assert drawing.corridor_before.shape == (2, 2) and np.all(np.isfinite(drawing.corridor_after))
+    fig = figures.manipulation_figure(drawing)
     path = figures.save(fig, tmp_path / "manipulation_T1.png")
     assert path.stat().st_size > 10_000
     assert "T1" in fig._suptitle.get_text() and "clearance" in fig._suptitle.get_text()

@@ -17,12 +17,12 @@ from helpers import deep_update, example_dict, write_scene
 from scissor_cli.config import parse_config, resolved_yaml
 from scissor_cli.control.models import INVERSE_TOL_MM, MapController, strokes_for
 from scissor_cli.layer3d.calibration import calibration_strokes, fit_transmission
-from scissor_cli.layer3d.check import spec_from_config
+from scissor_cli.layer3d.check import slab_spec
 from scissor_cli.layer3d.tissue_models import ControllerModel, ModelData, build_model_data, slab_map
 from scissor_cli.layer3d.slab import build_slab, layer_probe, slab_probe
 from scissor_cli.layer3d.surrogate import Surrogate, design, solve_samples
 from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
-from scissor_cli.mechanics.tissue import build_model
+from scissor_cli.experiments.build import build_model
 from scissor_cli.mesh.probe import probe_targets, target_positions
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -49,7 +49,7 @@ def small(model: str = "layer", trials: int = 0) -> dict:
 def scene():
     cfg = parse_config(resolved_yaml(parse_config(yaml.safe_dump(small()))))
     _, mesh, tissue = build_model(cfg)
-    slab = build_slab(tissue.scene, mesh, spec_from_config(cfg), model=tissue.params.model)
+    slab = build_slab(tissue.scene, mesh, slab_spec(cfg.layer_check, cfg.tissue.mesh), model=tissue.params.model)
     rests = np.array([t.rest for t in tissue.scene.targets])
     return cfg, tissue, slab, rests
 

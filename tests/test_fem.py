@@ -6,7 +6,7 @@ import pytest
 from scissor_cli.mechanics import fem
 from scissor_cli.config import parse_config
 from scissor_cli.mesh.mesh import mesh_for_config
-from scissor_cli.scene.scene import scene_from_config
+from scissor_cli.experiments.build import scene_of
 from scissor_cli.mechanics.tissue import build_tissue
 
 SCENE = """
@@ -20,7 +20,7 @@ obstacles: [{name: v, circle: {center_mm: [10, 10], radius_mm: 2.5}, stiffness_f
 @pytest.fixture(scope="module", params=["linear", "neo_hookean", "neo_hookean_fiber"])
 def tissue(request):
     cfg = parse_config(SCENE % request.param)
-    scene = scene_from_config(cfg)
+    scene = scene_of(cfg)
     return build_tissue(scene, mesh_for_config(scene, cfg.tissue.mesh))
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from scissor_cli.config import load_config
-from scissor_cli.mechanics.tissue import build_model
+from scissor_cli.experiments.build import build_model
 from scissor_cli.solvers.equilibrium import EquilibriumSolver
 from scissor_cli.solvers.common import SolverError
 from helpers import ROOT

@@ -13,7 +13,7 @@ from scissor_cli.config import load_config
 from scissor_cli import progress
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion, shaft_lengths
 from scissor_cli.insertion.needle import NeedleState, advance, free_nodes
-from scissor_cli.mechanics.tissue import build_model
+from scissor_cli.experiments.build import build_model
 from helpers import example_dict, write_scene
 
 INSERTION = {"step_mm": 1.0, "friction_static_mN_per_mm": 15.0, "friction_kinetic_mN_per_mm": 10.0,

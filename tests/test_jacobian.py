@@ -12,7 +12,7 @@ from scissor_cli.solvers.jacobian import cup_target_jacobian, nodal_response
 from scissor_cli.mesh.probe import probe_targets, target_positions
 from scissor_cli.mesh.mesh import mesh_for_config
 from scissor_cli.solvers.newton import solve_newton
-from scissor_cli.scene.scene import scene_from_config
+from scissor_cli.experiments.build import scene_of
 from scissor_cli.mechanics.tissue import build_tissue
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -36,7 +36,7 @@ SIDE_CUP = """\
 
 
 def _tissue(cfg):
-    scene = scene_from_config(cfg)
+    scene = scene_of(cfg)
     return build_tissue(scene, mesh_for_config(scene, cfg.tissue.mesh, scale=2.0))
 
 

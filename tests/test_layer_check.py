@@ -177,22 +177,22 @@ def test_bad_resolution_exits_2(tmp_path, change, words):
 def test_resolution_by_accuracy_picks_the_coarsest_within_it():
     """choose_slab: the configured grading is the reference (error 0); a loose accuracy takes the coarsest rung,
     a tight one the configured grading; every rung is coarser than the one before."""
-    from scissor_cli.layer3d.check import spec_from_config
+    from scissor_cli.layer3d.check import slab_spec
     from scissor_cli.layer3d.resolution import choose_slab
-    from scissor_cli.mechanics.tissue import build_model
+    from scissor_cli.experiments.build import build_model
 
     data = example_dict()
     data["layer_check"] = {"height_mm": 12.0, "layer_z_mm": 6.0, "max_layer_mm": 3.0}
     cfg = parse_config(yaml.safe_dump(data), "scene.yaml")
     _, _, model = build_model(cfg, mesh_scale=4.0)
     cases = [np.array([4.0])]
-    loose = choose_slab(model, spec_from_config(cfg), cases, 10.0)
+    loose = choose_slab(model, slab_spec(cfg.layer_check, cfg.tissue.mesh), cases, 10.0)
     rungs = loose.candidates
     assert len(rungs) >= 3 and rungs[0].error_mm == 0.0
     assert all(b.levels < a.levels and b.n_tetrahedra < a.n_tetrahedra for a, b in zip(rungs, rungs[1:]))
     assert all(r.error_mm >= 0 and r.factor_s > 0 for r in rungs)
     assert loose.pick == len(rungs) - 1 and loose.chosen.error_mm <= 10.0
-    tight = choose_slab(model, spec_from_config(cfg), cases, 1e-4)
+    tight = choose_slab(model, slab_spec(cfg.layer_check, cfg.tissue.mesh), cases, 1e-4)
     assert all(r.error_mm > 1e-4 for r in tight.candidates[1:]) == (tight.pick == 0)
     assert tight.chosen.error_mm <= 1e-4
 

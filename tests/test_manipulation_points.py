@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from scissor_cli.config import ManipulationPointsConfig, load_config
-from scissor_cli.mechanics.tissue import build_model
+from scissor_cli.experiments.build import build_model, with_grips
 from scissor_cli.mesh.probe import probe_targets, target_positions
 from scissor_cli.planning import manipulation_points as mp
 from scissor_cli.solvers.common import Conditions
@@ -58,7 +58,8 @@ def test_adjoint_responses_equal_finite_differences_of_full_solves():
 
 def test_plan_grips_ranks_verifies_and_replaces_the_first_cups():
     cfg, scene, tissue = example()
-    plan = mp.plan_grips(cfg, tissue, lambda c: build_model(c, mesh_scale=2.0)[2])
+    plan = mp.plan_grips(cfg.manipulation_points, cfg.needle, tissue,
+                         lambda contacts, axes: build_model(with_grips(cfg, contacts, axes), mesh_scale=2.0)[2])
     assert plan.contacts.shape == (1, 2) and plan.axes.shape == (1, 2)
     c = plan.chosen[0]
     np.testing.assert_allclose(plan.contacts[0], plan.candidates.points[c])
@@ -69,6 +70,6 @@ def test_plan_grips_ranks_verifies_and_replaces_the_first_cups():
         # linear prediction and the verifying nonlinear solve agree in direction
         assert np.all(np.isfinite(tr.verified)) and tr.predicted @ tr.verified > 0
     # the grip that the ranking prefers moves the targets across their needles at least as well as the configured one
-    new = mp.with_grips(cfg, plan.contacts, plan.axes)
+    new = with_grips(cfg, plan.contacts, plan.axes)
     assert new.cups[0].contact_mm == plan.contacts[0].tolist() and new.cups[0].radius_mm == cfg.cups[0].radius_mm
     assert new.cups[0].stroke_mm == cfg.cups[0].stroke_mm

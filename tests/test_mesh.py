@@ -6,7 +6,7 @@ import pytest
 from scissor_cli import geometry
 from scissor_cli.config import load_config, parse_config
 from scissor_cli.mesh.mesh import grip_ends, interpolate, locate, mesh_for_config
-from scissor_cli.scene.scene import scene_from_config
+from scissor_cli.experiments.build import scene_of
 from scissor_cli.mechanics.tissue import build_tissue
 from helpers import EXAMPLE
 
@@ -14,7 +14,7 @@ from helpers import EXAMPLE
 @pytest.fixture(scope="module")
 def example():
     cfg = load_config(EXAMPLE)
-    scene = scene_from_config(cfg)
+    scene = scene_of(cfg)
     return cfg, scene, mesh_for_config(scene, cfg.tissue.mesh)
 
 
@@ -111,7 +111,7 @@ def test_locate_and_interpolate_round_trip(example):
 def test_other_layer_shapes(tissue):
     cfg = parse_config(f"tissue: {tissue}\ncups: [{{name: c, contact_mm: [40, 50], axis: [0, -1]}}]\n"
                        "targets: [{name: t, position_mm: [40, 25]}]\n")
-    scene = scene_from_config(cfg)
+    scene = scene_of(cfg)
     mesh = mesh_for_config(scene, cfg.tissue.mesh)
     assert mesh.angles_deg().min() >= cfg.tissue.mesh.min_angle_deg - 1e-6
     area = build_tissue(scene, mesh).ops.area.sum()

@@ -15,7 +15,7 @@ from scissor_cli.planning import needle_plan as needle
 from scissor_cli.config import NeedleConfig, load_config, parse_config
 from scissor_cli.mesh.mesh import interpolate, locate, mesh_for_config
 from scissor_cli.solvers.newton import solve_newton
-from scissor_cli.scene.scene import scene_from_config
+from scissor_cli.experiments.build import scene_of
 from scissor_cli.mechanics.tissue import build_tissue
 
 RADIUS = 0.6 + 1.0  # 18G needle radius + the default margin, mm
@@ -26,14 +26,14 @@ LAYER = np.array([[0.0, 0.0], [100.0, 0.0], [100.0, 60.0], [0.0, 60.0]])
 @lru_cache(maxsize=None)
 def _setup(path: str):
     cfg = load_config(path)
-    scene = scene_from_config(cfg)
+    scene = scene_of(cfg)
     tissue = build_tissue(scene, mesh_for_config(scene, cfg.tissue.mesh, scale=2.0))
     return cfg, scene, tissue
 
 
 def _scene_from_yaml(text: str):
     cfg = parse_config(text, "<test>")
-    scene = scene_from_config(cfg)
+    scene = scene_of(cfg)
     return cfg, scene, build_tissue(scene, mesh_for_config(scene, cfg.tissue.mesh, scale=2.0))
 
 

@@ -6,9 +6,9 @@ import pytest
 import yaml
 
 from scissor_cli.config import parse_config
-from scissor_cli.layer3d.check import plane_ladder, plane_spec, spec_from_config
+from scissor_cli.layer3d.check import plane_ladder, plane_spec, slab_spec
 from scissor_cli.layer3d.slab import SlabSpec, build_slab, layer_probe, slab_probe
-from scissor_cli.mechanics.tissue import build_model
+from scissor_cli.experiments.build import build_model
 from scissor_cli.mesh.mesh import locate
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 
@@ -28,8 +28,8 @@ def scene_and_slabs():
     """The layer (mesh scale 2), its slab on the layer's own mesh and on a plane 3x coarser."""
     fine_cfg, coarse_cfg = _config(), _config(in_plane_scale=3.0)
     scene, mesh, model = build_model(fine_cfg)
-    return (scene, mesh, model, build_slab(scene, mesh, spec_from_config(fine_cfg)),
-            build_slab(scene, mesh, spec_from_config(coarse_cfg)))
+    return (scene, mesh, model, build_slab(scene, mesh, slab_spec(fine_cfg.layer_check, fine_cfg.tissue.mesh)),
+            build_slab(scene, mesh, slab_spec(coarse_cfg.layer_check, coarse_cfg.tissue.mesh)))
 
 
 def test_on_the_layers_mesh_the_layer_probe_is_the_layer_nodes(scene_and_slabs):
@@ -78,7 +78,8 @@ def test_a_trials_e_field_reaches_the_coarser_plane(scene_and_slabs):
     from scissor_cli.layer3d.truth import SlabTruth
 
     scene, mesh, model, _, _ = scene_and_slabs
-    truth = SlabTruth(model, spec_from_config(_config(in_plane_scale=3.0)))
+    coarse = _config(in_plane_scale=3.0)
+    truth = SlabTruth(model, slab_spec(coarse.layer_check, coarse.tissue.mesh))
     sm = truth.slab.mesh
     E_field = 1.0 + np.arange(mesh.n_elements) / mesh.n_elements  # a distinct value per layer triangle
     tissue, view = truth.for_target(scene.targets[0].rest)(TruthPerturbation(E_scale=E_field))
@@ -90,10 +91,10 @@ def test_a_trials_e_field_reaches_the_coarser_plane(scene_and_slabs):
 
 def test_plane_ladder_scales_the_layers_mesh():
     cfg = _config(in_plane_scale=1.5)
-    ladder = plane_ladder(cfg)
+    ladder = plane_ladder(cfg.layer_check, cfg.tissue.mesh)
     assert [s for s, _ in ladder] == [1.5, 2.25, 3.0, 3.75, 4.5]
     m = cfg.tissue.mesh
-    assert ladder[0][1] == plane_spec(cfg, 1.5) and ladder[0][1][:2] == (m.min_edge_mm * 3.0, m.max_edge_mm * 3.0)
+    assert ladder[0][1] == plane_spec(cfg.tissue.mesh, 1.5) and ladder[0][1][:2] == (m.min_edge_mm * 3.0, m.max_edge_mm * 3.0)
     assert plane_spec(_config(), 1.0) is None
 
 
@@ -104,9 +105,9 @@ def test_resolution_ladder_picks_the_smallest_slab_within_the_accuracy(scene_and
 
     _, _, model, _, _ = scene_and_slabs
     cfg = _config()
-    planes = plane_ladder(cfg)[:3]
+    planes = plane_ladder(cfg.layer_check, cfg.tissue.mesh)[:3]
     for accuracy in (10.0, 0.02):
-        choice = choose_slab(model, spec_from_config(cfg), [np.array([4.0])], accuracy, planes=planes)
+        choice = choose_slab(model, slab_spec(cfg.layer_check, cfg.tissue.mesh), [np.array([4.0])], accuracy, planes=planes)
         rungs = choice.candidates
         assert rungs[0].error_mm == 0.0 and rungs[0].in_plane_scale == 1.0
         assert {r.in_plane_scale for r in rungs} == {1.0, 1.5, 2.0}

@@ -160,7 +160,7 @@ def _correctable_norm(step) -> float:
     return float(np.hypot(np.linalg.norm(step.correctable), step.along_correctable_mm))
 
 
-def _confirmed(y, sensor: Sensor, plant: Plant, cfg, dt, step_at) -> tuple[np.ndarray, float]:
+def _confirmed(y, sensor: Sensor, plant: Plant, cfg: ControllerConfig, dt: float, step_at) -> tuple[np.ndarray, float]:
     """The measurement (2,) a stop may be decided on, and the robot time (s) spent taking it.
 
     A frame within tolerance is not trusted alone: stop_frames − 1 more

@@ -142,13 +142,13 @@ def _solve_group(config_yaml: str, index: int, strokes: np.ndarray) -> list[tupl
     """In a worker: the nominal slab's targets and layer at one design group's strokes (`surrogate.solve_samples`)."""
     if config_yaml not in _SLABS:
         from scissor_cli.config import parse_config  # noqa: PLC0415
-        from scissor_cli.layer3d.check import spec_from_config  # noqa: PLC0415
+        from scissor_cli.layer3d.check import slab_spec  # noqa: PLC0415
         from scissor_cli.layer3d.slab import build_slab, layer_probe, slab_probe  # noqa: PLC0415
-        from scissor_cli.mechanics.tissue import build_model  # noqa: PLC0415
+        from scissor_cli.experiments.build import build_model  # noqa: PLC0415
 
         cfg = parse_config(config_yaml, "<run config>")
         scene, mesh, tissue = build_model(cfg)
-        slab = build_slab(scene, mesh, spec_from_config(cfg), model=tissue.params.model)
+        slab = build_slab(scene, mesh, slab_spec(cfg.layer_check, cfg.tissue.mesh), model=tissue.params.model)
         _SLABS[config_yaml] = (slab, slab_probe(slab, np.array([t.rest for t in scene.targets]).reshape(-1, 2)),
                                layer_probe(slab, mesh))
     slab, probe, layer = _SLABS[config_yaml]
@@ -301,10 +301,10 @@ def refitted_model(cfg: Config, tissue: Tissue, location: Optional[Path]) -> Opt
 
 
 def _nominal_slab(cfg: Config, tissue: Tissue) -> Tissue:
-    from scissor_cli.layer3d.check import spec_from_config  # noqa: PLC0415
+    from scissor_cli.layer3d.check import slab_spec  # noqa: PLC0415
     from scissor_cli.layer3d.slab import build_slab  # noqa: PLC0415
 
-    return build_slab(tissue.scene, tissue.mesh, spec_from_config(cfg), model=tissue.params.model)
+    return build_slab(tissue.scene, tissue.mesh, slab_spec(cfg.layer_check, cfg.tissue.mesh), model=tissue.params.model)
 
 
 def reserved_limits(lo: np.ndarray, hi: np.ndarray, reserve: float) -> tuple[np.ndarray, np.ndarray]:

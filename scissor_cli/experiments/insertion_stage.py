@@ -113,10 +113,10 @@ def insertion_stage(cfg: Config, tissue: Tissue, plans: list, sink: RunSink,
     params = NeedleParams.from_config(cfg.insertion, cfg.needle, cfg.tissue.mesh)
     truth = None
     if cfg.trials.truth == "slab" and cfg.layer_check is not None:
-        from scissor_cli.layer3d.check import spec_from_config
+        from scissor_cli.layer3d.check import slab_spec
         from scissor_cli.layer3d.truth import SlabTruth
 
-        truth = SlabTruth(tissue, spec_from_config(cfg))
+        truth = SlabTruth(tissue, slab_spec(cfg.layer_check, cfg.tissue.mesh))
     paths: list[Path] = []
     first = next((t.name for t, p in zip(tissue.scene.targets, plans) if p.feasible), None)
     for target, plan in zip(tissue.scene.targets, plans):

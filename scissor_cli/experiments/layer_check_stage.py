@@ -18,9 +18,10 @@ from scissor_cli import progress
 from scissor_cli.config import Config
 from scissor_cli.experiments import run_cache
 from scissor_cli.experiments.sink import product_key
-from scissor_cli.layer3d.check import build_layer_check, plane_ladder, spec_from_config
+from scissor_cli.layer3d.check import build_layer_check, plane_ladder, slab_spec
 from scissor_cli.layer3d.resolution import SlabCandidate, SlabChoice, choose_slab
-from scissor_cli.mechanics.tissue import Tissue, build_model
+from scissor_cli.experiments.build import build_model
+from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.equilibrium import EquilibriumSolver
 
 
@@ -30,7 +31,7 @@ def run_layer_check(cfg: Config, tissue: Tissue, sink, done: frozenset[str] = fr
     if not cases:
         return []
     t0 = time.perf_counter()
-    check = build_layer_check(tissue, spec_from_config(cfg))
+    check = build_layer_check(tissue, slab_spec(cfg.layer_check, cfg.tissue.mesh))
     sm = check.mesh
     progress.info(f"layer check: slab of {sm.n_elements} tetrahedra, {sm.n_nodes} nodes, "
                   f"{len(sm.levels_mm) - 1} prism layers, built in {time.perf_counter() - t0:.1f} s")
@@ -86,7 +87,7 @@ def slab_resolution_stage(cfg: Config, cache: Optional[Path] = None) -> tuple[Co
         _, _, tissue = build_model(cfg)
         cases = [tissue.scene.strokes_vector(case.strokes) for case in cfg.forward]
         t0 = time.perf_counter()
-        choice = choose_slab(tissue, spec_from_config(cfg), cases, lc.accuracy_mm, plane_ladder(cfg))
+        choice = choose_slab(tissue, slab_spec(cfg.layer_check, cfg.tissue.mesh), cases, lc.accuracy_mm, plane_ladder(cfg.layer_check, cfg.tissue.mesh))
         progress.info(f"slab resolution: {choice.explain()} ({time.perf_counter() - t0:.1f} s)")
         _write_choice(path, choice)
     chosen = choice.chosen

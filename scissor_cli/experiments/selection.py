@@ -35,7 +35,7 @@ from scissor_cli.mesh.probe import probe_targets, target_positions
 from scissor_cli.mesh.mesh import mesh_for_config
 from scissor_cli.solvers.common import SolverError
 from scissor_cli.solvers.equilibrium import solve_equilibrium
-from scissor_cli.scene.scene import scene_from_config
+from scissor_cli.experiments.build import scene_of
 from scissor_cli.mechanics.tissue import build_tissue
 
 SAFETY = 0.7
@@ -132,13 +132,13 @@ def _timed(fn, repeats: int = 1):
 def select(cfg: Config, accuracy_mm: float) -> Selection:
     """Calibrate on the scene and pick the cheapest setting predicted to meet accuracy_mm."""
     t_start = time.perf_counter()
-    scene = scene_from_config(cfg)
+    scene = scene_of(cfg)
     if not scene.targets:
         raise ValueError("solver.accuracy_mm needs at least one target to measure the error at")
     case, strokes = hardest_case(cfg, scene)
     rest = np.array([t.rest for t in scene.targets])
     # Each level is built from the config it would run with (a circle's outline follows the mesh scale).
-    scenes = {L: scene_from_config(_at_level(cfg, L)) for L in CANDIDATE_LEVELS}
+    scenes = {L: scene_of(_at_level(cfg, L)) for L in CANDIDATE_LEVELS}
     meshes = {L: mesh_for_config(scenes[L], _at_level(cfg, L).tissue.mesh) for L in CANDIDATE_LEVELS}
     n = {L: m.n_elements for L, m in meshes.items()}
 

@@ -42,7 +42,8 @@ from scissor_cli.experiments.slab_starts import with_slab_starts
 from scissor_cli.experiments.study import run_study
 from scissor_cli.experiments.trials import TargetTask, execute
 from scissor_cli.solvers.common import SolveResult, SolverError
-from scissor_cli.mechanics.tissue import Tissue, build_model  # noqa: F401 - build_model is part of this module's API
+from scissor_cli.experiments.build import build_model, with_grips  # noqa: F401 - build_model: this module's API too
+from scissor_cli.mechanics.tissue import Tissue
 
 
 @dataclass
@@ -114,10 +115,11 @@ def grip_stage(cfg: Config):
     trials and `--resume` rebuild exactly the model that ran; the search
     itself is stored in /manipulation_points.
     """
-    from scissor_cli.planning.manipulation_points import plan_grips, with_grips  # noqa: PLC0415
+    from scissor_cli.planning.manipulation_points import plan_grips  # noqa: PLC0415
 
     _, _, tissue = build_model(cfg)
-    plan = plan_grips(cfg, tissue, lambda c: build_model(c)[2])
+    plan = plan_grips(cfg.manipulation_points, cfg.needle, tissue,
+                      lambda contacts, axes: build_model(with_grips(cfg, contacts, axes))[2])
     placed = with_grips(cfg, plan.contacts, plan.axes).model_copy(update={"manipulation_points": None})
     where = "; ".join(f"{c.name} at {signed(p)} mm pushing {signed(a)}" for c, p, a in
                       zip(placed.cups, plan.contacts, plan.axes))

@@ -26,7 +26,8 @@ from scissor_cli.config import Config, StudyConfig, estimate_elements
 from scissor_cli.mesh.probe import probe_targets, target_positions
 from scissor_cli.mesh.mesh import Mesh, mesh_for_config
 from scissor_cli.solvers.equilibrium import EquilibriumSolver, solve_equilibrium
-from scissor_cli.scene.scene import Scene, scene_from_config
+from scissor_cli.experiments.build import scene_of
+from scissor_cli.scene.scene import Scene
 from scissor_cli.solvers.common import SolverError
 from scissor_cli.mechanics.tissue import build_tissue
 
@@ -96,7 +97,7 @@ def mesh_variants(cfg: Config, scene: Scene, study: StudyConfig, notes: list[str
 def run_study(cfg: Config) -> StudyResult:
     """Sweep meshes × models × solvers for the config's forward cases."""
     study = cfg.study or StudyConfig()
-    scene = scene_from_config(cfg)
+    scene = scene_of(cfg)
     if not scene.targets:
         raise StudyError("the study measures target errors: the scene needs at least one target")
     cases = [c for c in cfg.forward if study.cases is None or c.name in study.cases]

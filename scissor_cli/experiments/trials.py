@@ -27,7 +27,7 @@ from scissor_cli.planning.corridor import corridor_radius
 from scissor_cli.experiments.pool import run_pool
 from scissor_cli.experiments.profiles import ErrorModel, draw_insertion, draw_trial, error_model
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion
-from scissor_cli.mechanics.tissue import build_model
+from scissor_cli.experiments.build import build_model
 
 
 @dataclass(frozen=True)
@@ -92,10 +92,10 @@ class TrialContext:
         self._controller_model = None  # built from the first task's ModelData (every task of a run has the same)
         self.slab_truth = None  # trials.truth: slab — the 3-D slab is the truth (docs/model.md §13)
         if self.cfg.trials.truth == "slab":
-            from scissor_cli.layer3d.check import spec_from_config
+            from scissor_cli.layer3d.check import slab_spec
             from scissor_cli.layer3d.truth import SlabTruth
 
-            self.slab_truth = SlabTruth(self.tissue, spec_from_config(self.cfg))
+            self.slab_truth = SlabTruth(self.tissue, slab_spec(self.cfg.layer_check, self.cfg.tissue.mesh))
 
     def guess(self, task: TargetTask) -> Optional[tuple[np.ndarray, np.ndarray]]:
         """The model's equilibrium at the plan's strokes: a warm start for the loop's first big move."""
@@ -115,10 +115,10 @@ class TrialContext:
 
             slab = self.slab_truth.slab if self.slab_truth is not None else None
             if slab is None and task.controller_model.kind == "slab":
-                from scissor_cli.layer3d.check import spec_from_config  # noqa: PLC0415
+                from scissor_cli.layer3d.check import slab_spec  # noqa: PLC0415
                 from scissor_cli.layer3d.slab import build_slab  # noqa: PLC0415
 
-                slab = build_slab(self.scene, self.mesh, spec_from_config(self.cfg),
+                slab = build_slab(self.scene, self.mesh, slab_spec(self.cfg.layer_check, self.cfg.tissue.mesh),
                                   model=self.tissue.params.model)
             self._controller_model = ControllerModel(task.controller_model, self.tissue, slab)
         model = self._controller_model

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from scissor_cli.config import LayerCheckConfig, MeshConfig
 from scissor_cli.layer3d.resolution import IN_PLANE_SCALES
 from scissor_cli.layer3d.slab import SlabProbe, SlabSpec, build_slab, layer_probe, slab_probe
 from scissor_cli.mechanics.tissue import Tissue
@@ -110,32 +111,31 @@ class LayerCheck:
         )
 
 
-def plane_spec(cfg, in_plane_scale: float) -> tuple | None:
-    """`SlabSpec.plane` of a validated config at an in-plane scale: `tissue.mesh`'s edge lengths times it (None at
-    1: the layer's own mesh)."""
+def plane_spec(mesh: MeshConfig, in_plane_scale: float) -> tuple | None:
+    """`SlabSpec.plane` at an in-plane scale: the `tissue.mesh` section's edge lengths times it (None at 1: the
+    layer's own mesh)."""
     if in_plane_scale == 1.0:
         return None
-    m = cfg.tissue.mesh
+    m = mesh
     s = float(m.scale) * float(in_plane_scale)
     return (float(m.min_edge_mm) * s, float(m.max_edge_mm) * s, float(m.min_angle_deg), float(m.grading),
             bool(m.graded))
 
 
-def plane_ladder(cfg) -> list[tuple[float, tuple | None]]:
+def plane_ladder(section: LayerCheckConfig, mesh: MeshConfig) -> list[tuple[float, tuple | None]]:
     """The in-plane candidates of `layer_check.accuracy_mm`: (in_plane_scale, `SlabSpec.plane`), the configured
     scale first (`resolution.IN_PLANE_SCALES` times it, at most the config's bound of 10)."""
-    base = float(cfg.layer_check.in_plane_scale)
+    base = float(section.in_plane_scale)
     scales = dict.fromkeys(min(base * f, 10.0) for f in IN_PLANE_SCALES)
-    return [(s, plane_spec(cfg, s)) for s in scales]
+    return [(s, plane_spec(mesh, s)) for s in scales]
 
 
-def spec_from_config(cfg) -> SlabSpec:
-    """The slab spec of a validated config's `layer_check` section (its plane from `tissue.mesh`)."""
-    section = cfg.layer_check
+def slab_spec(section: LayerCheckConfig, mesh: MeshConfig) -> SlabSpec:
+    """The slab spec of the `layer_check` section (its plane from the `tissue.mesh` section)."""
     first = None if section.first_layer_mm is None else float(section.first_layer_mm)
     return SlabSpec(float(section.height_mm), float(section.layer_z_mm), bool(section.chest_wall_fixed),
                     bool(section.cup_holds_z), float(section.max_layer_mm), first,
-                    plane=plane_spec(cfg, float(section.in_plane_scale)))
+                    plane=plane_spec(mesh, float(section.in_plane_scale)))
 
 
 def stress_spec(tissue: Tissue) -> SlabSpec:

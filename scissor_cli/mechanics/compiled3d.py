@@ -97,8 +97,12 @@ def _stress(f, c, a, mu, kappa, eta, tension_only, P):
 
 
 @njit(**_JIT)
-def energy_gradient_3d(x, corners, grad_rows, volume, mu, kappa, eta, fiber, tension_only, out):
-    """U (µJ) and ∇U written into out (3N,) mN; returns (U, -1), or (nan, e) for the first element e it cannot take."""
+def energy_gradient_3d(x, corners, grad_rows, volume, material, tension_only, out):
+    """U (µJ) and ∇U written into out (3N,) mN; returns (U, -1), or (nan, e) for the first element e it cannot take.
+
+    material: (μ, κ, η (M,) kPa, the unit fiber (M, 3)) per element (`_material`).
+    """
+    mu, kappa, eta, fiber = material
     out[:] = 0.0
     U = 0.0
     f, c, P, a = np.empty(9), np.empty(9), np.empty(9), np.empty(3)
@@ -153,13 +157,16 @@ def _tangent(C, f, c, a, J_terms, kappa, hd_index, hd_sign):
 
 
 @njit(**_JIT)
-def element_stiffness_3d(x, corners, grad_rows, volume, mu, kappa, eta, fiber, tension_only, hd_index, hd_sign,
-                         Ke, grad):
+def element_stiffness_3d(x, corners, grad_rows, volume, material, tension_only, hd_pattern, Ke, grad):
     """Exact packed element Hessians into Ke (78, M), mN/mm; (-1, U), or (the first element it cannot take, nan).
+
+    material: as `energy_gradient_3d`'s; hd_pattern: (`_HD_INDEX`, `_HD_SIGN`).
 
     K_e[3a+i, 3b+k] = V Σ_jl ∂N_a/∂X_j C[3i+j, 3k+l] ∂N_b/∂X_l. With grad of
     size 3N (not 0), ∇U goes into it and U is returned (one pass for both).
     """
+    mu, kappa, eta, fiber = material
+    hd_index, hd_sign = hd_pattern
     with_grad = grad.size > 0
     if with_grad:
         grad[:] = 0.0
@@ -220,7 +227,7 @@ def supports(ops, params) -> bool:
 def _material(params) -> tuple:
     fiber = np.zeros((params.n_elements, 3))
     fiber[:, :params.fiber.shape[1]] = params.fiber  # an in-plane fiber (a, b) is (a, b, 0)
-    return params.mu, params.kappa, params.eta, fiber, params.tension_only
+    return (params.mu, params.kappa, params.eta, fiber), params.tension_only
 
 
 def energy_gradient(ops, params, x: np.ndarray) -> tuple[float, np.ndarray] | None:
@@ -237,7 +244,7 @@ def element_stiffness(ops, params, x: np.ndarray, project: bool) -> np.ndarray |
         return None
     Ke = np.empty((78, ops.corners.shape[1]))
     bad, _ = element_stiffness_3d(np.ascontiguousarray(x, dtype=np.float64), ops.corners, ops.grad_rows, ops.volume,
-                                  *_material(params), _HD_INDEX, _HD_SIGN, Ke, np.empty(0))
+                                  *_material(params), (_HD_INDEX, _HD_SIGN), Ke, np.empty(0))
     return None if bad >= 0 else Ke
 
 
@@ -248,5 +255,5 @@ def energy_gradient_stiffness(ops, params, x: np.ndarray, project: bool) -> tupl
     Ke = np.empty((78, ops.corners.shape[1]))
     grad = np.empty(3 * ops.n_nodes)
     bad, U = element_stiffness_3d(np.ascontiguousarray(x, dtype=np.float64), ops.corners, ops.grad_rows, ops.volume,
-                                  *_material(params), _HD_INDEX, _HD_SIGN, Ke, grad)
+                                  *_material(params), (_HD_INDEX, _HD_SIGN), Ke, grad)
     return None if bad >= 0 else (float(U), grad, Ke)

@@ -329,13 +329,3 @@ def tissue_from_boundary(scene: Scene, mesh, ops, material, fixed, cup_nodes, cu
         pattern_free_upper=fem.sparse_pattern(ops, free_index, upper=True),
         mass=fem.lumped_mass(ops, scene.material.density_kg_per_mm3),
     )
-
-
-def build_model(cfg, model: str | None = None, mesh_scale: float | None = None):
-    """Scene, mesh and tissue of a validated config; `model` and `mesh_scale` override the config's."""
-    from scissor_cli.mesh.mesh import mesh_for_config
-    from scissor_cli.scene.scene import scene_from_config
-
-    scene = scene_from_config(cfg)
-    mesh = mesh_for_config(scene, cfg.tissue.mesh, scale=mesh_scale)
-    return scene, mesh, build_tissue(scene, mesh, model=model)

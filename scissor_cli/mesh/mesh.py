@@ -14,6 +14,7 @@ import numpy as np
 import triangle
 
 from scissor_cli import geometry
+from scissor_cli.config import MeshConfig
 from scissor_cli.config.mesh_file import read_mesh_arrays
 from scissor_cli.scene.scene import Scene
 
@@ -232,7 +233,7 @@ def mesh_from_arrays(scene: Scene, nodes: np.ndarray, triangles: np.ndarray) -> 
     return Mesh(nodes=nodes, triangles=tris, element_obstacle=owner, boundary_edges=_boundary_edges(tris))
 
 
-def mesh_for_config(scene: Scene, mesh_cfg, scale: float | None = None) -> Mesh:
+def mesh_for_config(scene: Scene, mesh_cfg: MeshConfig, scale: float | None = None) -> Mesh:
     """The mesh a config's `tissue.mesh` section asks for (scale overrides its `scale`).
 
     With `file` the run's own mesh is read from it (config.mesh_file, checked

@@ -7,6 +7,8 @@ processes.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 from pathlib import Path
 
 import numpy as np
@@ -99,63 +101,68 @@ def _corridor(ax, segment, radius: float, color, label: str) -> None:
     ax.plot(*np.array([entry, end]).T, color=color, lw=0.8, ls="-.", zorder=3)
 
 
-def manipulation_figure(
-    title: str,
-    triangles: np.ndarray,
-    rest: np.ndarray,
-    deformed: np.ndarray,
-    outline_rest: np.ndarray,
-    outline_deformed: np.ndarray,
-    obstacles_rest: list[tuple[str, np.ndarray]],
-    obstacles_deformed: list[np.ndarray],
-    target_rest: np.ndarray,
-    target_reached: np.ndarray,
-    desired: np.ndarray,
-    corridor_radius_mm: float,
-    corridor_before: np.ndarray | None = None,
-    corridor_after: np.ndarray | None = None,
-    cup_nodes: list[np.ndarray] | None = None,
-    subtitles: tuple[str, str] = ("before manipulation", "after manipulation"),
-) -> Figure:
-    """The paper's Fig. 11 for one target: the scene before | after manipulation (mm).
+@dataclass(frozen=True)
+class ManipulationDrawing:
+    """What the paper's Fig. 11 draws of one target's manipulation (mm).
 
-    Before: the rest tissue and mesh, the obstacles at rest, the needle
-    corridor through the rest target (purple band, `corridor_before` =
-    [entry, target] (2, 2)) and the rest target (red). After: the deformed
-    tissue and mesh, the deformed obstacles (their rest outlines dashed),
-    the corridor through the reached target (grey band, `corridor_after`),
-    the reached target (green) and the desired position (black ring).
-    Corridors are drawn corridor_radius_mm wide on each side; a None or NaN
-    corridor is left out.
+    Before: the rest tissue (`rest` (N, 2), `outline_rest`), the obstacles
+    at rest (`obstacles_rest`: (name, outline)), the needle corridor through
+    the rest target (`corridor_before` = [entry, target] (2, 2)) and the rest
+    target. After: the deformed tissue (`deformed`, `outline_deformed`), the
+    deformed obstacles (their rest outlines dashed), the corridor through the
+    reached target (`corridor_after`), the reached target and the desired
+    position. Corridors are drawn corridor_radius_mm wide on each side; a
+    None or NaN corridor is left out.
     """
+
+    title: str
+    triangles: np.ndarray
+    rest: np.ndarray
+    deformed: np.ndarray
+    outline_rest: np.ndarray
+    outline_deformed: np.ndarray
+    obstacles_rest: list[tuple[str, np.ndarray]]
+    obstacles_deformed: list[np.ndarray]
+    target_rest: np.ndarray
+    target_reached: np.ndarray
+    desired: np.ndarray
+    corridor_radius_mm: float
+    corridor_before: np.ndarray | None = None
+    corridor_after: np.ndarray | None = None
+    cup_nodes: list[np.ndarray] | None = None
+    subtitles: tuple[str, str] = ("before manipulation", "after manipulation")
+
+
+def manipulation_figure(d: ManipulationDrawing) -> Figure:
+    """The paper's Fig. 11 for one target: the scene before | after manipulation (`ManipulationDrawing`)."""
     fig = Figure(figsize=(12, 4.6))
     axes = fig.subplots(1, 2, sharex=True, sharey=True)
     states = [
-        (axes[0], rest, outline_rest, [p for _, p in obstacles_rest], corridor_before, CORRIDOR_BEFORE,
-         "needle corridor before", target_rest, "red", "target at rest"),
-        (axes[1], deformed, outline_deformed, obstacles_deformed, corridor_after, CORRIDOR_AFTER,
-         "needle corridor after", target_reached, "green", "target reached"),
+        (axes[0], d.rest, d.outline_rest, [p for _, p in d.obstacles_rest], d.corridor_before, CORRIDOR_BEFORE,
+         "needle corridor before", d.target_rest, "red", "target at rest"),
+        (axes[1], d.deformed, d.outline_deformed, d.obstacles_deformed, d.corridor_after, CORRIDOR_AFTER,
+         "needle corridor after", d.target_reached, "green", "target reached"),
     ]
     for ax, nodes, outline, obstacles, corridor, c_color, c_label, target, t_color, t_label in states:
         _outline(ax, outline, fc=TISSUE, ec="0.3", lw=0.8, zorder=0)
-        _mesh_lines(ax, nodes, triangles, colors="0.6", linewidths=0.2, zorder=1)
-        for k, ((name, _), poly) in enumerate(zip(obstacles_rest, obstacles)):
+        _mesh_lines(ax, nodes, d.triangles, colors="0.6", linewidths=0.2, zorder=1)
+        for k, ((name, _), poly) in enumerate(zip(d.obstacles_rest, obstacles)):
             _outline(ax, poly, fc=OBSTACLE, alpha=0.45, ec=OBSTACLE, lw=0.8, zorder=2,
                      label="vessel / nerve" if k == 0 else None)
             ax.annotate(name, np.asarray(poly).mean(axis=0), fontsize=7, ha="center", va="center", zorder=6)
-        _corridor(ax, corridor, corridor_radius_mm, c_color, c_label)
-        if cup_nodes:
-            for k, cn in enumerate(cup_nodes):
+        _corridor(ax, corridor, d.corridor_radius_mm, c_color, c_label)
+        if d.cup_nodes:
+            for k, cn in enumerate(d.cup_nodes):
                 ax.plot(*nodes[cn].T, "s", color="purple", ms=2.5, zorder=4, label="cup grip" if k == 0 else None)
         ax.plot(*target, "o", color=t_color, ms=6, mec="k", mew=0.5, zorder=5, label=t_label)
     ax_after = axes[1]
-    for k, (_, poly) in enumerate(obstacles_rest):
+    for k, (_, poly) in enumerate(d.obstacles_rest):
         _outline(ax_after, poly, fill=False, ls="--", ec=OBSTACLE, lw=0.7, zorder=2,
                  label="obstacle at rest" if k == 0 else None)
-    ax_after.plot(*np.asarray(desired, float), "o", mfc="none", mec="k", ms=10, mew=1.2, zorder=5, label="desired")
-    ax_after.plot(*np.asarray(target_rest, float), "o", color="red", ms=3, alpha=0.6, zorder=5)
-    ax_after.annotate("", target_reached, target_rest, arrowprops={"arrowstyle": "->", "color": "k", "lw": 0.7}, zorder=5)
-    for ax, sub in zip(axes, subtitles):
+    ax_after.plot(*np.asarray(d.desired, float), "o", mfc="none", mec="k", ms=10, mew=1.2, zorder=5, label="desired")
+    ax_after.plot(*np.asarray(d.target_rest, float), "o", color="red", ms=3, alpha=0.6, zorder=5)
+    ax_after.annotate("", d.target_reached, d.target_rest, arrowprops={"arrowstyle": "->", "color": "k", "lw": 0.7}, zorder=5)
+    for ax, sub in zip(axes, d.subtitles):
         ax.set_aspect("equal")
         ax.autoscale_view()
         ax.set_xlabel("x (mm)")
@@ -167,7 +174,7 @@ def manipulation_figure(
             handles.setdefault(lab, h)
     fig.legend(list(handles.values()), list(handles.keys()), loc="lower center", ncol=min(len(handles), 5),
                fontsize=8, frameon=False, bbox_to_anchor=(0.5, -0.02))
-    fig.suptitle(title, fontsize=10)
+    fig.suptitle(d.title, fontsize=10)
     fig.subplots_adjust(bottom=0.2, wspace=0.08)
     return fig
 

@@ -10,11 +10,12 @@ from scissor_cli.control.corridor_check import Corridor, corridor_at
 from scissor_cli.control.result import LoopResult
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.outlines import boundary_loop, deformed_outlines, embed_outlines
+from scissor_cli.output.figures import ManipulationDrawing
 
 
 def manipulation_figure_inputs(tissue: Tissue, result: LoopResult, target_rest: np.ndarray,
-                  corridor: Optional[Corridor] = None) -> dict:
-    """Keyword arguments of `figures.manipulation_figure` for one manipulation.
+                               corridor: Optional[Corridor] = None) -> ManipulationDrawing:
+    """What `figures.manipulation_figure` draws of one manipulation.
 
     tissue: the truth the result was simulated on (its mesh and obstacles);
     the "before" corridor runs through the rest target along the planned
@@ -36,7 +37,7 @@ def manipulation_figure_inputs(tissue: Tissue, result: LoopResult, target_rest: 
         f"{scene.name} — {result.target}: {result.mode} loop, {result.iterations} iterations ({result.stop_reason}), "
         f"final error ({result.final_error[0]:+.2f}, {result.final_error[1]:+.2f}) mm{clearance}"
     )
-    return dict(
+    return ManipulationDrawing(
         title=title, triangles=mesh.triangles, rest=mesh.nodes, deformed=x,
         outline_rest=mesh.nodes[loop], outline_deformed=x[loop],
         obstacles_rest=[(o.name, o.outline) for o in scene.obstacles],

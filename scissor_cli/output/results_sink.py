@@ -166,7 +166,7 @@ class ResultsSink:
         results.write_manipulation(self.out, m.target, m.closed, m.opened)
         self.out.flush()
         inputs = manipulation_figure_inputs(m.tissue, m.closed, m.target_rest, m.corridor)
-        return figures.save(figures.manipulation_figure(**inputs), self.location / f"manipulation_{m.target}.png")
+        return figures.save(figures.manipulation_figure(inputs), self.location / f"manipulation_{m.target}.png")
 
     def insertion(self, ins) -> list[Path]:
         from scissor_cli.output.insertion.writer import insertion_outputs

@@ -44,12 +44,12 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 
 from scissor_cli import geometry
-from scissor_cli.config import Config, ManipulationPointsConfig
+from scissor_cli.config import ManipulationPointsConfig, NeedleConfig
 from scissor_cli.mechanics.tissue import Tissue, build_tissue
 from scissor_cli.mesh.mesh import Mesh
 from scissor_cli.mesh.outlines import deformed_outlines, embed_outlines
@@ -171,7 +171,7 @@ def released(tissue: Tissue) -> Tissue:
     return build_tissue(scene, tissue.mesh)
 
 
-def needle_axis(scene: Scene, target_rest: np.ndarray, needle_cfg) -> np.ndarray:
+def needle_axis(scene: Scene, target_rest: np.ndarray, needle_cfg: NeedleConfig) -> np.ndarray:
     """The best insertion's direction (2,) at rest (largest clearance, whether clear or not), else +x."""
     ranked = ranked_insertions(target_rest, [o.outline for o in scene.obstacles], scene.outline,
                                candidate_directions(needle_cfg, scene), needle_cfg)
@@ -199,14 +199,18 @@ def adjoint_responses(tissue: Tissue, x: np.ndarray, targets: np.ndarray, F: np.
     return R, u, factor
 
 
-def plan_grips(cfg: Config, tissue: Tissue, build, verify: int = VERIFY) -> GripPlan:
-    """Choose where the first `cfg.manipulation_points.cups` cups grip (docs/model.md §7).
+#: (contacts (k, 2) mm, axes (k, 2)) → the model with the first k cups gripping there (re-meshed)
+GrippedModel = Callable[[np.ndarray, np.ndarray], Tissue]
 
-    `build(cfg) -> Tissue` builds the model of a config (the verification
-    re-meshes with the cup at each verified candidate). Raises ValueError
-    when no candidate exists (sides too short for the cup).
+
+def plan_grips(mp: ManipulationPointsConfig, needle: NeedleConfig, tissue: Tissue, gripped: GrippedModel,
+               verify: int = VERIFY) -> GripPlan:
+    """Choose where the first `mp.cups` cups grip (docs/model.md §7).
+
+    `gripped(contacts, axes)` builds the model with the cups there (the
+    verification re-meshes with the cup at each verified candidate). Raises
+    ValueError when no candidate exists (sides too short for the cup).
     """
-    mp: ManipulationPointsConfig = cfg.manipulation_points
     scene = tissue.scene
     n_place = mp.cups
     radius = scene.cups[0].radius_mm if scene.cups else 5.0
@@ -224,7 +228,7 @@ def plan_grips(cfg: Config, tissue: Tissue, build, verify: int = VERIFY) -> Grip
     responses = []
     total = np.zeros(len(cands))
     for k, t in enumerate(scene.targets):
-        n = needle_axis(scene, t.rest, cfg.needle)
+        n = needle_axis(scene, t.rest, needle)
         m = np.array([-n[1], n[0]])
         score = np.abs(per_stroke[k] @ m)
         responses.append(TargetResponse(t.name, R[k], per_stroke[k], score, n, m))
@@ -234,7 +238,7 @@ def plan_grips(cfg: Config, tissue: Tissue, build, verify: int = VERIFY) -> Grip
     search_s = time.perf_counter() - t0
     plan = GripPlan(cands, responses, np.zeros(0, int), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), u,
                     search_s=search_s)
-    _verify(cfg, plan, total, n_place, radius, build, verify)
+    _verify(tissue.scene.cups[0], plan, total, n_place, radius, gripped, verify)
     return plan
 
 
@@ -248,16 +252,8 @@ def _distinct(order: np.ndarray, points: np.ndarray, gap: float, count: int) -> 
     return out
 
 
-def with_grips(cfg: Config, contacts: np.ndarray, axes: np.ndarray) -> Config:
-    """The config with the first len(contacts) cups' contact_mm and axis replaced (radius, stroke, speed stay)."""
-    cups = list(cfg.cups)
-    for i, (p, a) in enumerate(zip(contacts, axes)):
-        cups[i] = cups[i].model_copy(update={"contact_mm": [float(p[0]), float(p[1])],
-                                             "axis": [float(a[0]) + 0.0, float(a[1]) + 0.0]})
-    return cfg.model_copy(update={"cups": cups})
-
-
-def _verify(cfg: Config, plan: GripPlan, total: np.ndarray, n_place: int, radius: float, build, verify: int) -> None:
+def _verify(cup0, plan: GripPlan, total: np.ndarray, n_place: int, radius: float, gripped: GrippedModel,
+            verify: int) -> None:
     """Full nonlinear solves at the best candidates; fills plan.chosen, contacts, axes and the targets'
     predicted / verified motion."""
     from scissor_cli.solvers.equilibrium import solve_equilibrium  # noqa: PLC0415 - same layer, kept local
@@ -266,15 +262,13 @@ def _verify(cfg: Config, plan: GripPlan, total: np.ndarray, n_place: int, radius
     cands = plan.candidates
     order = np.argsort(-total, kind="stable")
     pool = _distinct(order, cands.points, 2.0 * radius, max(verify, n_place))
-    cup0 = cfg.cups[0]
-    stroke = TEST_STROKE_FRACTION * max(abs(cup0.stroke_mm[0]), abs(cup0.stroke_mm[1]))
-    stroke = float(np.clip(stroke, cup0.stroke_mm[0], cup0.stroke_mm[1]))
+    lo, hi = cup0.stroke_min_mm, cup0.stroke_max_mm
+    stroke = float(np.clip(TEST_STROKE_FRACTION * max(abs(lo), abs(hi)), lo, hi))
     verified: dict[int, np.ndarray] = {}
     gains: dict[int, float] = {}
     for c in pool:
-        trial_cfg = with_grips(cfg, cands.points[c][None], cands.normals[c][None])
         try:
-            t = build(trial_cfg)
+            t = gripped(cands.points[c][None], cands.normals[c][None])
             s = np.zeros(t.n_cups)
             s[0] = stroke
             r = solve_equilibrium(t, s)

@@ -38,6 +38,8 @@ from typing import Optional
 
 import numpy as np
 
+from scissor_cli.config import RobotConfig
+
 JOINT_KINDS = ("revolute", "prismatic", "fixed")
 
 #: Feasibility slack on joint limits (mm or rad): absorbs round-off so that a
@@ -193,7 +195,7 @@ class RobotModel:
         return cls(paper_links(), name="paper")
 
     @classmethod
-    def from_config(cls, cfg) -> "RobotModel":
+    def from_config(cls, cfg: RobotConfig) -> "RobotModel":
         """From a robot config section: `cfg.dh` None → paper table.
 
         Each `cfg.dh` item has alpha_deg, a_mm, theta_deg, d_mm, joint and

@@ -8,10 +8,12 @@ the mechanics read it; nothing here knows about triangles.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
-from scissor_cli.config import Config, obstacle_outline, tissue_outline
+from scissor_cli.config import (CupConfig, MaterialConfig, ObstacleConfig, TargetConfig, TissueConfig, obstacle_outline,
+                                tissue_outline)
 
 
 @dataclass(frozen=True)
@@ -70,16 +72,18 @@ class Scene:
         return np.array([float(strokes.get(c.name, 0.0)) for c in self.cups])
 
 
-def scene_from_config(cfg: Config) -> Scene:
-    m = cfg.material
+def build_scene(name: str, tissue: TissueConfig, material: MaterialConfig, cups: Sequence[CupConfig],
+                targets: Sequence[TargetConfig], obstacles: Sequence[ObstacleConfig]) -> Scene:
+    """The scene of the config's scene sections, as plain arrays in mm (degrees become radians)."""
+    m = material
     return Scene(
-        name=cfg.name,
-        outline=tissue_outline(cfg.tissue, n_curve=_curve_points(cfg)),
-        thickness_mm=cfg.tissue.thickness_mm,
-        fixed_sides=tuple(cfg.tissue.fixed),
+        name=name,
+        outline=tissue_outline(tissue, n_curve=_curve_points(tissue)),
+        thickness_mm=tissue.thickness_mm,
+        fixed_sides=tuple(tissue.fixed),
         obstacles=tuple(
-            Obstacle(o.name, obstacle_outline(o, _obstacle_points(o, cfg)), o.stiffness_factor)
-            for o in cfg.obstacles
+            Obstacle(o.name, obstacle_outline(o, _obstacle_points(o, tissue)), o.stiffness_factor)
+            for o in obstacles
         ),
         cups=tuple(
             Cup(
@@ -91,11 +95,11 @@ def scene_from_config(cfg: Config) -> Scene:
                 c.stroke_mm[1],
                 c.speed_mm_per_s,
             )
-            for c in cfg.cups
+            for c in cups
         ),
         targets=tuple(
             Target(t.name, np.asarray(t.position_mm, float), None if t.desired_mm is None else np.asarray(t.desired_mm, float))
-            for t in cfg.targets
+            for t in targets
         ),
         material=Material(
             m.model,
@@ -109,17 +113,17 @@ def scene_from_config(cfg: Config) -> Scene:
     )
 
 
-def _curve_points(cfg: Config) -> int:
+def _curve_points(tissue: TissueConfig) -> int:
     # An ellipse is sampled finely enough that the finest edge still follows the curve.
-    if cfg.tissue.shape != "ellipse":
+    if tissue.shape != "ellipse":
         return 0
-    w, h = cfg.tissue.size_mm
+    w, h = tissue.size_mm
     perimeter = np.pi * (3 * (w + h) / 2 - np.sqrt((3 * w + h) * (w + 3 * h)) / 2)
-    return int(np.clip(perimeter / (cfg.tissue.mesh.min_edge_mm * cfg.tissue.mesh.scale), 32, 4096))
+    return int(np.clip(perimeter / (tissue.mesh.min_edge_mm * tissue.mesh.scale), 32, 4096))
 
 
-def _obstacle_points(o, cfg: Config) -> int:
+def _obstacle_points(o: ObstacleConfig, tissue: TissueConfig) -> int:
     if o.circle is None:
         return 0
     circumference = 2 * np.pi * o.circle.radius_mm
-    return int(np.clip(circumference / (cfg.tissue.mesh.min_edge_mm * cfg.tissue.mesh.scale), 12, 1024))
+    return int(np.clip(circumference / (tissue.mesh.min_edge_mm * tissue.mesh.scale), 12, 1024))

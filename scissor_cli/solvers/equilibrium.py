@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from scissor_cli.config import SolverConfig
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.common import NO_CONDITIONS, Conditions, Inertia, SolveResult, SolverError
 from scissor_cli.solvers.newton import solve_newton
@@ -63,7 +64,7 @@ class EquilibriumSolver:
             self.max_iter = 100 if self.method == "newton" else 2000
 
     @classmethod
-    def from_config(cls, tissue: Tissue, solver_cfg) -> "EquilibriumSolver":
+    def from_config(cls, tissue: Tissue, solver_cfg: SolverConfig) -> "EquilibriumSolver":
         """The solver a config's `solver` section asks for."""
         case = dict(dt_s=solver_cfg.dt_s, settle_steps=solver_cfg.steps, initial_guess=solver_cfg.initial_guess)
         if solver_cfg.kind == "newton":

@@ -1,0 +1,36 @@
+"""From a validated config to what the layers below take: each gets the sections it uses, nothing more.
+
+The whole `Config` stops here; the scene, the mesher, the slab and the
+planner are given their sections (or the plain data made from them).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from scissor_cli.config import Config
+from scissor_cli.mechanics.tissue import Tissue, build_tissue
+from scissor_cli.mesh.mesh import Mesh, mesh_for_config
+from scissor_cli.scene.scene import Scene, build_scene
+
+
+def scene_of(cfg: Config) -> Scene:
+    """The scene of a validated config (`scene.build_scene` on its scene sections)."""
+    return build_scene(cfg.name, cfg.tissue, cfg.material, cfg.cups, cfg.targets, cfg.obstacles)
+
+
+def build_model(cfg: Config, model: str | None = None, mesh_scale: float | None = None) -> tuple[Scene, Mesh, Tissue]:
+    """Scene, mesh and tissue of a validated config; `model` and `mesh_scale` override the config's."""
+    scene = scene_of(cfg)
+    mesh = mesh_for_config(scene, cfg.tissue.mesh, scale=mesh_scale)
+    return scene, mesh, build_tissue(scene, mesh, model=model)
+
+
+def with_grips(cfg: Config, contacts: np.ndarray, axes: np.ndarray) -> Config:
+    """The config with the first len(contacts) cups' contact_mm (k, 2) and axis (k, 2) replaced (radius, stroke, speed
+    stay)."""
+    cups = list(cfg.cups)
+    for i, (p, a) in enumerate(zip(contacts, axes)):
+        cups[i] = cups[i].model_copy(update={"contact_mm": [float(p[0]), float(p[1])],
+                                             "axis": [float(a[0]) + 0.0, float(a[1]) + 0.0]})
+    return cfg.model_copy(update={"cups": cups})
