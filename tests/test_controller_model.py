@@ -14,6 +14,7 @@ import pytest
 import yaml
 
 from helpers import deep_update, example_dict, write_scene
+from scissor_cli import progress
 from scissor_cli.config import parse_config, resolved_yaml
 from scissor_cli.control.models import INVERSE_TOL_MM, MapController, strokes_for
 from scissor_cli.layer3d.calibration import calibration_strokes, fit_transmission
@@ -275,12 +276,22 @@ def test_a_resumed_run_steers_with_the_model_it_stored(tmp_path, monkeypatch):
             assert np.array_equal(a[f"trials/{t}/final_error"][()], b[f"trials/{t}/final_error"][()])
 
 
-class _Said:
+class _Said(progress.SilentReporter):
+    """A reporter that keeps the lines it is told."""
+
     def __init__(self):
         self.lines = []
 
     def info(self, line):
         self.lines.append(line)
+
+
+def _planned(cfg, plans, model, slab_answer, said, replan=None):
+    """`plan_with_model`, its messages to `said`."""
+    from scissor_cli.experiments.model_planning import plan_with_model
+
+    with progress.reporting(said):
+        return plan_with_model(cfg, plans, model, slab_answer, replan)
 
 
 def test_a_model_that_cannot_reach_the_layers_point_gets_its_own_plan():
@@ -290,7 +301,7 @@ def test_a_model_that_cannot_reach_the_layers_point_gets_its_own_plan():
     from types import SimpleNamespace
 
     from scissor_cli.config import load_config
-    from scissor_cli.experiments.controller_model_stage import plan_with_model, reserved_scene
+    from scissor_cli.experiments.model_planning import reserved_scene
     from scissor_cli.planning.needle_plan import plan_target
     from scissor_cli.planning.states import StateCache
 
@@ -318,7 +329,7 @@ def test_a_model_that_cannot_reach_the_layers_point_gets_its_own_plan():
                            cfg.needle, cache=cache, target_at=target_at)
 
     said = _Said()
-    again = plan_with_model(cfg, plans, model, None, said, replan)
+    again = _planned(cfg, plans, model, None, said, replan)
     tol = cfg.controller.tolerance_mm
     for t, (plan, layer_plan) in enumerate(zip(again, plans)):
         assert np.linalg.norm(half_as_far(layer_plan.strokes)[t] - layer_plan.desired) > tol  # out of reach
@@ -335,7 +346,7 @@ def test_a_model_that_cannot_reach_the_layers_point_gets_its_own_plan():
     # the same point from the config: refused, not moved
     fixed = cfg.model_copy(update={"targets": [t.model_copy(update={"desired_mm": list(p.desired)})
                                                for t, p in zip(cfg.targets, plans)]})
-    refused = plan_with_model(fixed, plans, model, None, _Said(), replan)
+    refused = _planned(fixed, plans, model, None, _Said(), replan)
     assert not any(p.feasible for p in refused)
     assert all("cannot bring the target" in p.reason and p.planned_with == "layer" for p in refused)
 
@@ -347,7 +358,6 @@ def test_a_3d_model_whose_plan_the_slab_blocks_plans_again_on_its_own_obstacles(
     from types import SimpleNamespace
 
     from scissor_cli.config import load_config
-    from scissor_cli.experiments.controller_model_stage import plan_with_model
     from scissor_cli.planning.needle_plan import plan_target
     from scissor_cli.planning.states import StateCache
 
@@ -383,7 +393,7 @@ def test_a_3d_model_whose_plan_the_slab_blocks_plans_again_on_its_own_obstacles(
     surrogate = SimpleNamespace(kind="surrogate", transmission=None, scene_map=lambda: answer,
                                 layer_map=lambda: model_layer)
     said = _Said()
-    again = plan_with_model(cfg, [plan], surrogate, SlabSays(), said, replan)[0]
+    again = _planned(cfg, [plan], surrogate, SlabSays(), said, replan)[0]
     assert asked == [model_layer]
     assert again.feasible and again.planned_with == "surrogate"
     assert any("planned again on the surrogate model's target positions and obstacles" in line for line in said.lines)
@@ -393,7 +403,7 @@ def test_a_3d_model_whose_plan_the_slab_blocks_plans_again_on_its_own_obstacles(
         return replace(plan, feasible=False, reason="no entry side/direction clears the obstacles")
 
     asked.clear()
-    refused = plan_with_model(cfg, [plan], surrogate, SlabSays(), _Said(), no_plan)[0]
+    refused = _planned(cfg, [plan], surrogate, SlabSays(), _Said(), no_plan)[0]
     assert not refused.feasible and asked == [model_layer]
     assert "blocked (clearance -0.40 mm)" in refused.reason and "no entry side" in refused.reason
 
@@ -423,7 +433,7 @@ def test_planner_on_a_given_layer_is_the_planner_on_the_tissue_when_they_agree()
 
 
 def test_reserved_limits_move_each_limit_towards_rest_and_never_past_it():
-    from scissor_cli.experiments.controller_model_stage import reserved_limits
+    from scissor_cli.experiments.model_planning import reserved_limits
 
     lo, hi = reserved_limits(np.array([-15.0, 0.0, 2.0]), np.array([15.0, 10.0, 8.0]), 0.1)
     np.testing.assert_allclose(lo, [-13.5, 0.0, 2.0])
@@ -439,7 +449,6 @@ def test_a_plan_in_the_stroke_reserve_is_refused_before_any_trial():
     from types import SimpleNamespace
 
     from scissor_cli.config import load_config
-    from scissor_cli.experiments.controller_model_stage import plan_with_model
     from scissor_cli.planning.needle_plan import plan_target
     from scissor_cli.planning.states import StateCache
 
@@ -461,15 +470,15 @@ def test_a_plan_in_the_stroke_reserve_is_refused_before_any_trial():
     far = [replace(plans[0], desired=rests[0] + rate * 14.5)]
     with_cfg = cfg.model_copy(update={"targets": cfg.targets[:1]})
     none = with_cfg.model_copy(update={"controller": cfg.controller.model_copy(update={"stroke_reserve": 0.0})})
-    accepted = plan_with_model(none, far, model, None, _Said())[0]
+    accepted = _planned(none, far, model, None, _Said())[0]
     assert accepted.feasible
     np.testing.assert_allclose(accepted.strokes, [14.5], atol=0.05)
-    refused = plan_with_model(with_cfg, far, model, None, _Said())[0]
+    refused = _planned(with_cfg, far, model, None, _Said())[0]
     assert not refused.feasible
     assert "stroke reserve of 0.1" in refused.reason
     assert refused.strokes[0] <= 13.5 + 1e-9
     layer = SimpleNamespace(kind="layer", transmission=None, scene_map=lambda: answer, layer_map=lambda: None)
-    assert plan_with_model(with_cfg, far, layer, None, _Said())[0].feasible
+    assert _planned(with_cfg, far, layer, None, _Said())[0].feasible
 
 
 def test_slab_corridor_at_rest_is_the_layers_and_moves_with_the_slab(scene):
@@ -490,7 +499,6 @@ def test_a_plan_whose_corridor_the_slab_blocks_is_refused_for_a_3d_model_and_rep
     from types import SimpleNamespace
 
     from scissor_cli.config import load_config
-    from scissor_cli.experiments.controller_model_stage import plan_with_model
     from scissor_cli.planning.needle_plan import plan_target
     from scissor_cli.planning.states import StateCache
 
@@ -519,14 +527,14 @@ def test_a_plan_whose_corridor_the_slab_blocks_is_refused_for_a_3d_model_and_rep
     surrogate = SimpleNamespace(kind="surrogate", transmission=None, scene_map=lambda: answer, layer_map=lambda: None)
     layer = SimpleNamespace(kind="layer", transmission=None, scene_map=lambda: answer, layer_map=lambda: None)
     blocked = Blocking(-0.4)
-    refused = plan_with_model(cfg, [plan], surrogate, blocked, _Said())[0]
+    refused = _planned(cfg, [plan], surrogate, blocked, _Said())[0]
     assert not refused.feasible and "blocked (clearance -0.40 mm)" in refused.reason
     assert blocked.asked and blocked.asked[0][2] == plan.side
     np.testing.assert_array_equal(blocked.asked[0][1], plan.desired)
     said = _Said()
-    kept = plan_with_model(cfg, [plan], layer, Blocking(-0.4), said)[0]
+    kept = _planned(cfg, [plan], layer, Blocking(-0.4), said)[0]
     assert kept.feasible and any("blocked" in line for line in said.lines)
-    assert plan_with_model(cfg, [plan], surrogate, Blocking(0.8), _Said())[0].feasible
+    assert _planned(cfg, [plan], surrogate, Blocking(0.8), _Said())[0].feasible
 
 
 def test_each_plan_records_its_models_error_against_the_slab_at_the_strokes_it_asks_for():
@@ -536,7 +544,6 @@ def test_each_plan_records_its_models_error_against_the_slab_at_the_strokes_it_a
     from types import SimpleNamespace
 
     from scissor_cli.config import load_config
-    from scissor_cli.experiments.controller_model_stage import plan_with_model
     from scissor_cli.planning.needle_plan import plan_target
     from scissor_cli.planning.states import StateCache
 
@@ -555,13 +562,13 @@ def test_each_plan_records_its_models_error_against_the_slab_at_the_strokes_it_a
     slab_answer = type("HalfSlab", (), {"__call__": lambda self, s: slab_half(s),
                                         "clearance": lambda self, s, p, c: 1.0})()
     layer = SimpleNamespace(kind="layer", transmission=None, scene_map=lambda: along(1.0), layer_map=lambda: None)
-    judged = plan_with_model(cfg, [plan], layer, slab_answer, _Said())[0]
+    judged = _planned(cfg, [plan], layer, slab_answer, _Said())[0]
     np.testing.assert_allclose(judged.model_strokes, plan.strokes)
     expected = 0.5 * np.linalg.norm(move * plan.strokes[0])
     assert judged.model_error_mm == pytest.approx(expected, rel=1e-9) and expected > 1.0
     reference = SimpleNamespace(kind="slab", transmission=None, scene_map=lambda: slab_half, layer_map=lambda: None)
-    assert plan_with_model(cfg, [plan], reference, slab_answer, _Said())[0].model_error_mm == 0.0
-    assert plan_with_model(cfg, [plan], layer, None, _Said())[0].model_error_mm is None  # no slab: not asked
+    assert _planned(cfg, [plan], reference, slab_answer, _Said())[0].model_error_mm == 0.0
+    assert _planned(cfg, [plan], layer, None, _Said())[0].model_error_mm is None  # no slab: not asked
 
 
 def test_stored_model_paths_read_back_and_draw_every_model_against_the_slab(tmp_path):

@@ -19,31 +19,23 @@ not where the layer does).
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Optional
 
 import numpy as np
 
 from scissor_cli import progress
-from scissor_cli.text import ranges, vector
-
 from scissor_cli.config import Config, resolved_yaml
 from scissor_cli.experiments import run_cache
 from scissor_cli.experiments.pool import run_pool
-from scissor_cli.control.corridor_check import Corridor
-from scissor_cli.control.models import strokes_for
 from scissor_cli.layer3d.calibration import Calibration
+from scissor_cli.experiments.model_planning import Replan, plan_with_model
 from scissor_cli.layer3d.tissue_models import (ControllerModel, ModelData, ModelPaths, SceneMap, build_model_data,
-                                                  model_solves, SlabMap, slab_map)
+                                               model_solves, slab_map)
 from scissor_cli.layer3d.surrogate import SurrogateSamples, solve_samples
 from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
 from scissor_cli.mechanics.tissue import Tissue
-from scissor_cli.planning.corridor import corridor_radius
-
-#: (target index, its position (2,) at strokes (C,) → mm, the layer's nodes (N2, 2) at strokes → mm or None)
-#: → a `planning.needle.NeedlePlan`
-Replan = Callable[[int, Callable[[np.ndarray], np.ndarray], Optional[Callable[[np.ndarray], np.ndarray]]], object]
+from scissor_cli.text import vector
 
 
 def needs_slab(cfg: Config) -> bool:
@@ -155,116 +147,6 @@ def _solve_group(config_yaml: str, index: int, strokes: np.ndarray) -> list[tupl
     return [(index, solve_samples(slab, probe, strokes, SLAB_TRUTH_TOL, layer=layer))]
 
 
-def plan_with_model(cfg: Config, plans: list, model: ControllerModel, slab_answer: Optional[SlabMap],
-                    replan: Optional[Replan] = None) -> list:
-    """The plans with `model_strokes` (and `strokes`, for a 3-D-aware model) and `slab_strokes` (docs/model.md §15).
-
-    replan(t, target_at, layer_at): target t planned again with the
-    target's position at strokes given by target_at
-    (`planning.needle.TargetAt`) and the layer's nodes — the obstacles and
-    the skin — by layer_at (`ControllerModel.layer_map`; None: the 2-D
-    layer's). A 3-D-aware model that cannot reach a desired point the
-    planner chose (not the config), or whose plan's corridor the nominal
-    slab blocks, gets its own plan that way before the plan is given up.
-    """
-    lo = np.array([c.stroke_mm[0] for c in cfg.cups])
-    hi = np.array([c.stroke_mm[1] for c in cfg.cups])
-    reserve = cfg.controller.stroke_reserve
-    lo_kept, hi_kept = reserved_limits(lo, hi, reserve)
-    tol = cfg.controller.tolerance_mm
-    mode = cfg.controller.error
-    model_answer = model.scene_map() if model.kind != "layer" else None
-    model_view = model_answer if model_answer is not None else model.scene_map()  # the layer's too, for its error
-    model_layer = model.layer_map()
-
-    def model_strokes(t, plan):
-        if model_answer is None:
-            return np.asarray(plan.strokes, float), 0.0
-        direction = plan.direction if mode == "miss" else None
-        start = plan.strokes if model.transmission is None else plan.strokes / model.transmission
-        return strokes_for(_one(model_answer, t), plan.desired, lo_kept, hi_kept, direction, mode, start)
-
-    def target_at(t):
-        """Target t's position (2,) at strokes by the model (`planning.needle.TargetAt`)."""
-        return lambda s: _one(model_answer, t)(s)[0]
-
-    def judged(t, plan, may_replan: bool):
-        """(the plan with the model's and the slab's strokes and their verdicts, whether the slab blocks its corridor)."""
-        model_s, left = model_strokes(t, plan)
-        again_reason = ""
-        if left > tol and may_replan:
-            again = replan(t, target_at(t), model_layer)
-            if again.feasible:
-                progress.info(f"plan {plan.target}: the layer's desired point is beyond the {model.kind} model's "
-                              f"reach (left {left:.2f} mm at strokes {vector(model_s)} mm): planned again on the "
-                              f"model's {seen}")
-                plan = replace(again, planned_with=model.kind)
-                model_s, left = model_strokes(t, plan)
-            else:
-                again_reason = f"; planned again on the model's {seen}: {again.reason}"
-        direction = plan.direction if mode == "miss" else None
-        slab_s = None
-        if slab_answer is not None:
-            slab_s, slab_left = (model_s, left) if model.kind == "slab" else strokes_for(
-                _one(slab_answer, t), plan.desired, lo, hi, direction, mode, model_s)
-            if slab_left > tol and (model.kind == "layer" or left <= tol):  # (else the model's verdict says it)
-                progress.info(f"plan {plan.target}: the nominal slab cannot bring the target within {tol:g} mm of its "
-                              f"desired position inside the stroke limits (left {slab_left:.2f} mm at strokes "
-                              f"{vector(slab_s)} mm; the {model.kind} model asks {vector(model_s)} mm)")
-        plan = replace(plan, model_strokes=model_s, slab_strokes=slab_s)
-        if model_answer is not None:
-            plan = replace(plan, strokes=model_s)
-            if left > tol:
-                kept = "" if reserve == 0 else (f" less the stroke reserve of {reserve:g} (strokes in "
-                                                f"{ranges(lo_kept, hi_kept)} mm)")
-                plan = replace(plan, feasible=False, reason=(
-                    f"the {model.kind} controller model cannot bring the target within {tol:g} mm of its desired "
-                    f"position inside the stroke limits{kept} (left {left:.2f} mm at strokes {vector(model_s)} mm)"
-                    + again_reason))
-        corridor = Corridor.from_plan(plan, corridor_radius(cfg.needle))
-        if slab_answer is not None and plan.feasible and corridor is not None:
-            clearance = slab_answer.clearance(slab_s, plan.desired, corridor)
-            if not clearance > 0:  # (NaN: the ray does not leave the slab's skin through the plan's side)
-                blocked = (f"in the nominal slab at strokes {vector(slab_s)} mm the needle's corridor to the desired "
-                           f"position is blocked (clearance {clearance:.2f} mm): the slab does not move the obstacles "
-                           f"where the layer does")
-                if model_answer is None:
-                    progress.info(f"plan {plan.target}: {blocked}")
-                else:
-                    return replace(plan, feasible=False, reason=blocked), True
-        return with_model_error(t, plan), False
-
-    def with_model_error(t, plan):
-        """The plan with the model's error against the nominal slab at the strokes the model asks for."""
-        if slab_answer is None:
-            return plan
-        if model.kind == "slab":
-            return replace(plan, model_error_mm=0.0)
-        s = np.asarray(plan.model_strokes, float)
-        error = float(np.linalg.norm(_one(model_view, t)(s)[0] - _one(slab_answer, t)(s)[0]))
-        return replace(plan, model_error_mm=error)
-
-    seen = "target positions and obstacles" if model_layer is not None else "target positions"
-    out = []
-    for t, plan in enumerate(plans):
-        if not plan.feasible:
-            out.append(plan)
-            continue
-        may_replan = replan is not None and model_answer is not None and cfg.targets[t].desired_mm is None
-        first, blocked = judged(t, plan, may_replan)
-        if blocked and may_replan and model_layer is not None and first.planned_with == "layer":
-            # The layer's plan, reachable for the model, crosses obstacles where the slab has them: plan again
-            # where the model puts them.
-            again = replan(t, target_at(t), model_layer)
-            if again.feasible:
-                progress.info(f"plan {plan.target}: {first.reason}; planned again on the {model.kind} model's {seen}")
-                first = judged(t, replace(again, planned_with=model.kind), False)[0]
-            else:
-                first = replace(first, reason=f"{first.reason}; planned again on the model's {seen}: {again.reason}")
-        out.append(first)
-    return out
-
-
 def controller_model_stage(cfg: Config, tissue: Tissue, plans: list, location: Optional[Path], jobs: int = 1,
                            replan: Optional[Replan] = None) -> tuple[Optional[ModelData], list, Optional[ModelPaths]]:
     """Fit (or read) the controller's model and plan with it: (model data, plans, the figure's paths).
@@ -305,31 +187,6 @@ def _nominal_slab(cfg: Config, tissue: Tissue) -> Tissue:
     from scissor_cli.layer3d.slab import build_slab  # noqa: PLC0415
 
     return build_slab(tissue.scene, tissue.mesh, slab_spec(cfg.layer_check, cfg.tissue.mesh), model=tissue.params.model)
-
-
-def reserved_limits(lo: np.ndarray, hi: np.ndarray, reserve: float) -> tuple[np.ndarray, np.ndarray]:
-    """The stroke limits (C,) mm a 3-D-aware model's plan may use: each limit moved towards rest by the
-    fraction `reserve` of itself (a limit on rest's side of zero, e.g. a push-only cup's 0, stays)."""
-    return lo - reserve * np.minimum(lo, 0.0), hi - reserve * np.maximum(hi, 0.0)
-
-
-def reserved_scene(scene, reserve: float):
-    """The scene with each cup's stroke range cut to `reserved_limits`: where a 3-D-aware model plans again
-    (the planner's pick is then one the model's check keeps, not the same plan inside the reserve)."""
-    lo, hi = reserved_limits(np.array([c.stroke_min_mm for c in scene.cups]),
-                             np.array([c.stroke_max_mm for c in scene.cups]), reserve)
-    return replace(scene, cups=[replace(c, stroke_min_mm=float(a), stroke_max_mm=float(b))
-                                for c, a, b in zip(scene.cups, lo, hi)])
-
-
-def _one(answer: SceneMap, target: int):
-    """One target's `control.models.TargetMap` from a scene map."""
-
-    def one(strokes):
-        y, J = answer(strokes)
-        return y[target], J[target]
-
-    return one
 
 
 #: stroke grid of the model's (and the layer's) path in the figure; the slab's is solved at SLAB_PATH_POINTS

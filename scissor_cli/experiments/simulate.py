@@ -35,7 +35,8 @@ from scissor_cli.robot.chain import RobotModel
 from scissor_cli.robot.registration import plan_to_joints
 from scissor_cli.experiments.insertion_stage import insertion_stage
 from scissor_cli.experiments.error_budget import run_budget
-from scissor_cli.experiments.controller_model_stage import controller_model_stage, needs_slab, refitted_model, reserved_scene
+from scissor_cli.experiments.controller_model_stage import controller_model_stage, needs_slab, refitted_model
+from scissor_cli.experiments.model_planning import reserved_scene
 from scissor_cli.experiments.run_cache import cache_dir
 from scissor_cli.experiments.selection import select
 from scissor_cli.experiments.slab_starts import with_slab_starts
