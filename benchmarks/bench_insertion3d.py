@@ -1,4 +1,4 @@
-"""Speed of the needle insertion in the 3-D slab (docs/model.md §14, "Needle insertion in the slab"); not a timed test.
+"""Speed of the needle insertion in the 3-D slab (docs/model.md §14; figures in docs/performance.md, "Needle in the slab (§14)"); not a timed test.
 
 The scene's `layer_check` slab (default: configs/example_full.yaml's,
 ≈ 129k tetrahedra). For the first target with a plan, from the nominal

@@ -22,7 +22,8 @@ def limit_blas_threads() -> None:
     scissor's array work is many small operations, parallelised across
     processes (trials) rather than threads. A multi-threaded BLAS hands a
     large dot product to a second thread, and on a busy 2-core machine that
-    hand-off waits for the scheduler: ADMM ran 2.4x slower under load.
+    hand-off waits for the scheduler: ADMM ran much slower under load
+    (docs/performance.md, "Why the runtime settings").
     """
     # threadpoolctl limits only libraries already loaded: load every BLAS
     # scissor uses (numpy's, scipy's own, cvxopt's) before limiting them.

@@ -18,9 +18,8 @@ cells refined until each cell is no larger than the local h, so the fine
 zones around small features are resolved without a fine grid everywhere.
 A_FACTOR and B_FACTOR are fitted to real meshes; on 33 of them (rectangles,
 an ellipse, a polygon, 0 to 32 obstacles, 50 targets, grading 0.001-100,
-min_angle 20-33°, uniform meshes, 1 000 to 200 000 triangles) real /
-estimate was 0.89-1.29, the estimate taking 0-70 ms (tests/test_config.py
-holds it within a factor 1.5). Only a sliver narrower than the edge length
+min_angle 20-33°, uniform meshes, 1 000 to 200 000 triangles)
+tests/test_config.py holds real / estimate within a factor 1.5. Only a sliver narrower than the edge length
 is off by more: a 2 mm × 300 mm strip at 0.43 (the estimate is high) and 1.40.
 
 A config whose mesh is estimated at more than ELEMENT_BUDGET triangles is
@@ -42,13 +41,13 @@ from scissor_cli.config.checks import Problem, obstacle_outline, tissue_outline
 from scissor_cli.config.mesh_file import read_mesh_arrays
 from scissor_cli.config.sections import MAX_SCALE, MIN_EDGE_MM, Config
 
-#: the most triangles a mesh of any scissor run may have (estimated before meshing). At 236 000
-#: triangles building the tissue took 8 s and one Newton solve 7 s with 1 GB of memory (2-core
-#: machine): a run of trials there takes hours per target, and every worker process holds its own copy.
+#: the most triangles a mesh of any scissor run may have (estimated before meshing). Near it building the
+#: tissue and one Newton solve take seconds each and a gigabyte of memory (benchmarks/bench_forward.py):
+#: a run of trials there takes hours per target, and every worker process holds its own copy.
 ELEMENT_BUDGET = 250_000
 #: the most tetrahedra of the layer check's slab (docs/model.md §13), estimated before meshing as
-#: 3 × (estimated triangles) × (prism layers of `geometry.graded_levels`). At 100k tetrahedra one 3-D
-#: Newton solve takes a few seconds (benchmarks/bench_slab.py); 300k is about 3x that per forward case.
+#: 3 × (estimated triangles) × (prism layers of `geometry.graded_levels`): the largest slab whose forward
+#: cases still solve in the time of a run (benchmarks/bench_slab.py).
 TETRAHEDRA_BUDGET = 300_000
 #: the finest and coarsest mesh levels the accuracy selection meshes (experiments/selection.py CANDIDATE_LEVELS)
 SELECTION_FINEST_LEVEL = 0.25

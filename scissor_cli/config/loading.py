@@ -48,7 +48,7 @@ class _Constructor(yaml.constructor.SafeConstructor):
     def construct_object(self, node, deep=False):
         try:
             return super().construct_object(node, deep)
-        except (ValueError, OverflowError) as exc:  # a 5000-digit integer, the date 2001-02-30
+        except (ValueError, OverflowError) as exc:  # a 5000-digit integer, an impossible date (February 30th)
             raise yaml.constructor.ConstructorError(
                 None, None, f"cannot read the value {show(node.value)}: {exc}", node.start_mark
             ) from None

@@ -205,7 +205,7 @@ class SolverConfig(_Section):
     #: relative tolerance of the chosen solver's residual
     tolerance: Tolerance = 1.0e-4
     #: ADMM iterations per solve: a few thousand reach 1e-6; the cap bounds a solve that cannot
-    #: converge (50 000 iterations take about 40 s on a 600-element mesh, minutes on a fine one)
+    #: converge (the cap's iterations take minutes on a fine mesh)
     max_iterations: Int(1, 50_000) = 2000
     #: implicit-Euler step; absent means quasi-static equilibrium
     dt_s: Optional[Num(1.0e-4, 10.0)] = None

@@ -118,8 +118,8 @@ def _timed(fn, repeats: int = 1):
 
     Newton's calibration solves take a few ms; the first call on a new
     tissue also pays one-off work (the symbolic factorisation, first-touch
-    memory) that a run's many later solves do not, and timed once it made the
-    cost law predict 153 ms for a 7 ms solve.
+    memory) that a run's many later solves do not: timed once, it would make the
+    cost law predict many times a solve's real cost.
     """
     best, out = np.inf, None
     for _ in range(repeats):

@@ -254,8 +254,8 @@ def _run_batch(row: str, config_yaml: str, work: list[tuple[TargetTask, int]]) -
 
 def _run_batch_dask(row: str, config_yaml: str, work: list[tuple[TargetTask, int]]) -> list[tuple[str, TrialOutcome]]:
     """`_run_batch` in a Dask worker: scissor did not start that process, so its settings (one BLAS thread, freed
-    memory kept: `runtime.configure`, idempotent) are applied here; without them two single-thread Dask workers
-    on 2 cores ran the paper's slab-truth trials 1.4x slower than the local pool."""
+    memory kept: `runtime.configure`, idempotent) are applied here; without them Dask workers ran slab-truth
+    trials markedly slower than the local pool (benchmarks/bench_dask_slab.py)."""
     runtime.configure()
     return _run_batch(row, config_yaml, work)
 

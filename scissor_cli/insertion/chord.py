@@ -1,4 +1,4 @@
-"""The needle's equilibria on one kept factorisation (docs/model.md §12, "Speed").
+"""The needle's equilibria on one kept factorisation (docs/model.md §12, "The chord step's arithmetic").
 
 An insertion step solves the tissue with the needle's hold many times: one
 active-set pass after another, each with a few captured nodes switched
@@ -46,10 +46,10 @@ from scissor_cli.solvers.linear import factorize_free
 
 #: a chord step is kept when it shrinks the relative residual at least this much
 CONTRACTION = 0.5
-#: in the slab a factorisation costs ~15 triangular solves (1.1 s against 70–90 ms on
-#: example_full's slab) and then 3 solves per captured node for the kept responses (cvxopt's
-#: CHOLMOD solves many right-hand sides no faster per column than one): at 100 captured
-#: nodes a refresh costs as much as ~300 chord steps. So in 3-D a step on the kept factor is
+#: in the slab a factorisation costs a dozen or more triangular solves and then 3 solves per
+#: captured node for the kept responses (cvxopt's CHOLMOD solves many right-hand sides no faster
+#: per column than one; benchmarks/bench_insertion3d.py): with a hundred captured nodes a refresh
+#: costs as much as hundreds of chord steps. So in 3-D a step on the kept factor is
 #: kept while it contracts at all appreciably (Anderson-accelerated, `ANDERSON_3D`)
 CONTRACTION_3D = 0.9
 #: a hold's constraint is met when it is this close (mm): round-off of positions ~100 mm
@@ -59,8 +59,8 @@ GAP_TOL = 1e-10
 MAX_CHORD = 40
 MAX_CHORD_3D = 80
 #: In the slab the chord steps are Anderson-accelerated (type II, this many past steps): on a kept
-#: factor of an older state they contract slowly (≈ 0.6 a step on example_full's slab, 9 steps from
-#: 1e-2 to 1e-4), and each costs a 70 ms triangular solve. The acceleration reuses the steps already
+#: factor of an older state they contract slowly, and each costs a triangular solve on the slab's
+#: factor (benchmarks/bench_insertion3d.py). The acceleration reuses the steps already
 #: taken (vector work only); the rows stay met (every past step meets them: Σγ-combinations do too).
 #: 0 turns it off. The layer keeps the plain steps (a solve there costs about a gradient).
 ANDERSON_3D = 5

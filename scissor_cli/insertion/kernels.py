@@ -1,4 +1,4 @@
-"""Compiled (numba) small loops of the needle's chord steps (docs/model.md §12, "Speed").
+"""Compiled (numba) small loops of the needle's chord steps (docs/model.md §12, "The chord step's arithmetic").
 
 Beyond its triangular solve and its gradient, a chord step of the needle's
 solver (`chord.ChordSolver`) is a few dozen operations on arrays of a few

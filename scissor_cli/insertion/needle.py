@@ -59,14 +59,14 @@ STEP_TOL = 1e-8
 #: the active-set passes before the set settles are solved to this residual only;
 #: the settled set is then solved to STEP_TOL (and checked once more)
 PASS_TOL = 1e-5
-#: In the slab (3-D) a triangular solve on the kept factor costs 70–90 ms and a
-#: factorisation ~1.1 s plus 3 solves per captured node (example_full's slab, 65k
-#: unknowns), 50× the layer's. There a step is solved to 1e-4: over a 30 mm insertion
+#: In the slab (3-D) a triangular solve on the kept factor and a factorisation cost
+#: tens of times the layer's (benchmarks/bench_insertion3d.py). There a step is solved
+#: to 1e-4: over a 30 mm insertion
 #: of the test slab (tests/test_insertion3d.py, 0.5 mm steps) the target stays within
 #: 6e-6 mm of the 1e-8 solution, the stick–slip counts are the same at every step and
 #: the needle force within 3e-8; on the stale factor the chord steps stall between 1e-4
-#: and 1e-5 (contraction > 0.9), so 1e-5 cost a refactorisation nearly every step
-#: (10 steps of example_full: 17 s against 50 s). `NeedleParams.step_tol` overrides.
+#: and 1e-5 (contraction > 0.9), so 1e-5 cost a refactorisation nearly every step.
+#: `NeedleParams.step_tol` overrides.
 STEP_TOL_3D = 1e-4
 PASS_TOL_3D = 1e-4
 #: decide a pass from its chord step's prediction of the converged reactions and

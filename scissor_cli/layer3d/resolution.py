@@ -2,9 +2,8 @@
 
 The slab's cost is its size: every prism layer copies the whole 2-D mesh,
 and a sparse Cholesky factor of a 3-D mesh grows faster than its unknowns
-(the paper's prosthesis scene: 17 levels, 82k unknowns, 1.4 s per
-factorisation; 9 levels, 41k unknowns, 0.25 s; the same 9 levels on a 2-D
-mesh twice as coarse, 16k unknowns, 0.07 s). A run that only needs its
+(halving the levels or coarsening the plane divides a factorisation's time
+several times over; benchmarks/bench_slab_truth.py). A run that only needs its
 targets to a tolerance can use a coarser slab, and the slab-truth trials
 factor it dozens of times per trial.
 

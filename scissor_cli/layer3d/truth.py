@@ -29,8 +29,8 @@ from scissor_cli.solvers.newton import solve_newton
 
 #: The slab truth's relative residual. The loop reads the target to a camera's noise (σ ≈ 0.15 mm at the
 #: default camera); over a loop's moves on the paper's prosthesis slab the target is within 8e-7 mm of its
-#: 1e-10 solution at 1e-5 (1e-8 mm at 1e-7, 1.4e-5 mm at 1e-4), and a settle costs ~30 % less than at 1e-7
-#: (docs/performance.md, "Slab truth").
+#: 1e-10 solution at 1e-5 (1e-8 mm at 1e-7, 1.4e-5 mm at 1e-4), and a settle costs less than at 1e-7
+#: (benchmarks/bench_slab_truth.py).
 SLAB_TRUTH_TOL = 1e-5
 
 

@@ -4,9 +4,8 @@ The 3-D twin of `mechanics.compiled`: the same closed forms as
 `materials.solid3d` (Ψ, P, the exact tangent d²Ψ/dF²) evaluated per
 tetrahedron with every intermediate in registers, then the packed 12x12
 element matrix (78, M) in `fem.element_matrices`' order. numpy builds the
-same numbers from whole-array passes over (9, 9, M) stacks; on the default
-slab (128k tetrahedra) that is ~0.6 s per stiffness against ~0.1 s here
-(docs/performance.md, "Slab truth").
+same numbers from whole-array passes over (9, 9, M) stacks, several times
+slower (benchmarks/bench_slab_truth.py).
 
 The PSD-projected tangent stays on the numpy path (a batched eigh): the
 solvers ask for it only far from equilibrium. As in 2-D, a loop hands the
@@ -194,7 +193,7 @@ def element_stiffness_3d(x, corners, grad_rows, volume, material, tension_only, 
             I1 += f[p] * f[p]
         _tangent(C, f, c, a, (alpha, s, iJ, I1, I4m1, eta_eff, v0, v1, v2), kappa[e], hd_index, hd_sign)
         # T[r, b, k] = Σ_l C[r, 3k+l] ∂N_b/∂X_l. Unrolled per dimension as in `compiled`: one loop generic in d
-        # gave the same bits but was 3.7x slower in 2-D (numba does not unroll a runtime d).
+        # gave the same bits but was several times slower in 2-D (numba does not unroll a runtime d).
         for r in range(9):
             for bn in range(4):
                 g0, g1, g2 = grad_rows[bn, 0, e], grad_rows[bn, 1, e], grad_rows[bn, 2, e]

@@ -40,7 +40,7 @@ class FEOperators:
     thickness_mm: float  # 2-D: the layer's thickness; 3-D: 1.0 (volumes are real)
     n_nodes: int
     # Component-major copies for the hot loops: gathering and multiplying
-    # contiguous (M,) rows is 2.5x faster than strided columns of (M, 3, 2).
+    # contiguous (M,) rows is faster than strided columns of (M, 3, 2) (benchmarks/bench_forward.py).
     corners: np.ndarray  # (d+1, M) int64, triangles.T
     grad_rows: np.ndarray  # (d+1, d, M) 1/mm, grad_n.transpose(1, 2, 0)
 
@@ -114,9 +114,8 @@ def _tetrahedra_operators(nodes: np.ndarray, cells: np.ndarray) -> FEOperators:
 def deformation_gradients(ops: FEOperators, x: np.ndarray) -> np.ndarray:
     """F (M, d, d) of every element for node positions x (N, d).
 
-    Plain arithmetic on contiguous rows of the d+1 vertices: 0.27 ms at
-    15.7k triangles, against 0.67 ms for strided columns and 3x that for the
-    equivalent einsum.
+    Plain arithmetic on contiguous rows of the d+1 vertices: faster than
+    strided columns and than the equivalent einsum (benchmarks/bench_forward.py).
     """
     g = ops.grad_rows
     d = g.shape[1]
@@ -137,7 +136,7 @@ def element_forces(ops: FEOperators, P: np.ndarray) -> np.ndarray:
     g, vol = ops.grad_n, ops.volume
     d = g.shape[2]
     f = np.empty((len(g), d + 1, d))
-    for i in range(d):  # f[e, a, i] = V Σ_j P_ij ∂N_a/∂X_j, plain arithmetic (einsum is 3x slower here)
+    for i in range(d):  # f[e, a, i] = V Σ_j P_ij ∂N_a/∂X_j, plain arithmetic (einsum is slower here)
         Pi = [P[:, i, j] * vol for j in range(d)]
         for a in range(d + 1):
             acc = Pi[0] * g[:, a, 0] + Pi[1] * g[:, a, 1]
@@ -169,7 +168,7 @@ def element_matrices(ops: FEOperators, C: np.ndarray, scale: np.ndarray | None =
     K_e = scale_e G_eᵀ C_e G_e from tangents C (M, d², d²) in kPa, scale the
     element volumes by default (then mN/mm). Only the upper triangle, and
     component rows: with the gradients' structure (G_e has d nonzeros per
-    column) this is 2.2x faster than two batched matmuls in 2-D, and an
+    column) this beats two batched matmuls in 2-D, and an
     upper-triangle assembly needs nothing else. K_e[da+i, db+k] =
     Σ_jl ∂N_a/∂X_j C[di+j, dk+l] ∂N_b/∂X_l.
     """
@@ -309,7 +308,7 @@ def sparse_pattern(ops: FEOperators, dof_index: np.ndarray | None = None, upper:
     entries, slot = packed[keep], slot.ravel()
     # Scatter element by element: an element's entries land in the few rows of
     # its nodes, close to the last element's, where pair-major order jumps
-    # across the whole matrix for every entry (0.53 → 0.41 ms at 16k).
+    # across the whole matrix for every entry (cache misses).
     order = np.argsort((entries % M) * len(pairs) + entries // M, kind="stable")
     return SparsePattern(entries[order], slot[order], indptr, c.astype(np.int32), (size, size), upper)
 
@@ -370,7 +369,7 @@ def _feasibility_cubic(F: np.ndarray, dF: np.ndarray) -> tuple:
     """b, c, d (M,) of det(F + α dF) = J (1 + b α + c α² + d α³); F, dF (M, 3, 3).
 
     Plain arithmetic on the nine components (J and det dF by their
-    cofactors' first rows): 3x faster than np.linalg.det and np.cross.
+    cofactors' first rows): faster than np.linalg.det and np.cross on (M, 3, 3) stacks.
     """
     f = [[np.ascontiguousarray(F[:, i, j]) for j in range(3)] for i in range(3)]
     g = [[np.ascontiguousarray(dF[:, i, j]) for j in range(3)] for i in range(3)]

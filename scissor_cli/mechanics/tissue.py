@@ -157,8 +157,8 @@ class Tissue:
         """Element Hessians, packed (21, M) (`fem.element_matrices`), in mN/mm; PSD-projected if asked.
 
         The projection clamps each energy term's closed-form eigenvalues
-        (`materials.evaluate_projected`): 12x cheaper than eigendecomposing
-        the 4x4 tangents, and at 15.7k elements most of them need it.
+        (`materials.evaluate_projected`): far cheaper than eigendecomposing
+        the 4x4 tangents, and far from equilibrium most of them need it.
         """
         if self.compiled:
             Ke = self._kernels.element_stiffness(self.ops, self.params, x, project)

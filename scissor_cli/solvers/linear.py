@@ -24,8 +24,8 @@ from scissor_cli.solvers.common import SolverError
 #: a 3-D refactorisation costs about 25 of them at 65k unknowns (docs/performance.md)
 KRYLOV_MAX_ITER = 12
 #: a 2-D K_ff with at least this many unknowns is ordered by nested dissection (`factorize_free`):
-#: at 8k unknowns CHOLMOD still keeps AMD's sparser factor, at 16k METIS's is 5% sparser,
-#: and METIS's one-time cost (33 ms at 16k) pays off within ~50 factorisations
+#: below it CHOLMOD keeps AMD's sparser factor; above it METIS's factor is sparser and its one-time
+#: cost pays off within a run's factorisations (benchmarks/bench_forward.py)
 ND_MIN_UNKNOWNS_2D = 10_000
 #: a solve that needed more CG iterations than this marks its factor stale: the
 #: tangent has moved away from it, so the next solve factors instead of trying
@@ -40,8 +40,8 @@ class Factorization:
 
     Positive definite matrices (every projected Newton Hessian, the ADMM
     global matrix, a stable equilibrium's tangent) get CHOLMOD's supernodal
-    Cholesky (through cvxopt): 2.6x faster than a simplicial LDLᵀ at 16k
-    unknowns and 4x at 63k, because its dense supernode blocks run in BLAS.
+    Cholesky (through cvxopt): faster than a simplicial LDLᵀ from a few
+    thousand unknowns on, because its dense supernode blocks run in BLAS.
     With `supernodal=False` the solves use CHOLMOD's simplicial LDLᵀ
     instead: slower to factor but faster to solve with at a few thousand
     unknowns (no padded supernodes), for a factor kept over many solves (the
@@ -62,8 +62,8 @@ class Factorization:
     unknowns together. On a 3-D tetrahedral tangent AMD fills in badly:
     nested dissection halves the factor's nonzeros and its time at 65k
     unknowns (docs/performance.md). In 2-D AMD is as good up to ~10k
-    unknowns; beyond, nested dissection wins too (16k unknowns: 5% fewer
-    nonzeros, numeric 13.1 → 12.5 ms; 63k: 10% fewer, 73 → 64 ms). With a
+    unknowns; beyond, nested dissection wins too (fewer nonzeros, a faster
+    numeric factorisation; benchmarks/bench_forward.py). With a
     user ordering CHOLMOD still tries AMD and keeps the sparser factor.
     """
 

@@ -63,9 +63,9 @@ KRYLOV_FORCING_MAX_2D = 0.1
 #: with `krylov` (3-D), an exact Hessian that is not positive definite near the solution (relative residual
 #: below SHIFT_BELOW) is first shifted, K + μ k̄ I (k̄ its mean diagonal), μ the first of SHIFTS that
 #: factors: projecting every tetrahedron's Hessian on its eigenvalues costs ~2 factorisations, and its
-#: steps crawled through the indefinite states at a cup's rim (one settle of the paper's slab: 28 Newton
-#: iterations, 52 s; shifted 13, 10 s; docs/performance.md, "Slab truth"). Farther out the projected
-#: Hessian stays first: there the shifted one's steps stalled (the same slab, 5 → 10 s on another settle).
+#: steps crawled through the indefinite states at a cup's rim (twice the Newton iterations of the shifted
+#: Hessian on one settle of the paper's slab; benchmarks/bench_slab_truth.py). Farther out the projected
+#: Hessian stays first: there the shifted one's steps stalled.
 SHIFTS = (1e-4, 1e-3, 1e-2, 1e-1)
 SHIFT_BELOW = 1e-2
 
