@@ -145,3 +145,55 @@ def test_runtime_configure_limits_every_blas_to_one_thread():
     )
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "2"}
     subprocess.run([sys.executable, "-c", code], check=True, env=env, timeout=120)
+
+
+ROOT = PACKAGE.parent
+#: file names that mean the same thing in every feature sub-package of output/ (the feature's results.h5
+#: writers, figures, report rows) and at its top
+SHARED_OUTPUT_NAMES = {"results.py", "figures.py", "report.py"}
+
+
+def _is_face(path: Path) -> bool:
+    """A package's `__init__.py` that only hands names on (a docstring, imports, `__all__`)."""
+    if path.name != "__init__.py":
+        return False
+    for node in ast.parse(path.read_text()).body:
+        if isinstance(node, (ast.Import, ast.ImportFrom)) or (isinstance(node, ast.Expr)
+                                                             and isinstance(node.value, ast.Constant)):
+            continue
+        if isinstance(node, ast.Assign) and [getattr(t, "id", "") for t in node.targets] == ["__all__"]:
+            continue
+        return False
+    return True
+
+
+def test_every_module_has_its_row_in_the_architecture_page():
+    """docs/architecture.md lists every module by its path from scissor_cli/ (a package's face needs no row)."""
+    import re
+
+    rows = set(re.findall(r"^\| `([\w/]+\.py)` \|", (ROOT / "docs" / "architecture.md").read_text(), re.M))
+    modules = {str(p.relative_to(PACKAGE)) for p in PACKAGE.rglob("*.py") if not _is_face(p)}
+    assert not modules - rows, f"modules without a row in docs/architecture.md: {sorted(modules - rows)}"
+    gone = {r for r in rows if not (PACKAGE / r).exists()}
+    assert not gone, f"rows of docs/architecture.md for modules that do not exist: {sorted(gone)}"
+
+
+def test_a_file_name_means_one_thing():
+    """Two modules share a file name only as the same kind of file of output/'s features."""
+    by_name: dict[str, list[str]] = {}
+    for p in PACKAGE.rglob("*.py"):
+        if p.name != "__init__.py":
+            by_name.setdefault(p.name, []).append(str(p.relative_to(PACKAGE)))
+    shared = {n: sorted(ps) for n, ps in by_name.items() if len(ps) > 1
+              and not (n in SHARED_OUTPUT_NAMES and all(q.startswith("output/") for q in ps))}
+    assert not shared, f"one file name, several modules: {shared}"
+
+
+def test_the_readme_names_the_layers_in_order():
+    """README's layer chain is LAYERS' (the package root, base modules and __main__ aside)."""
+    import re
+
+    text = (ROOT / "README.md").read_text()
+    section = text[text.index("## Code"):]
+    chain = re.findall(r"`(\w+)(?:/|\.py)`", section[:section.index("importable")])
+    assert chain == [m for m in LAYERS if m and m not in BASE and m != "__main__"], chain
