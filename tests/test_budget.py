@@ -75,7 +75,7 @@ def test_rows_the_scene_cannot_have_are_skipped_with_a_note():
     plan = budget_plan(parse_config(yaml.safe_dump(data)))
     assert list(plan.rows) == ["none"]  # every spread is 0: only the floor is left
     data = _small()
-    data["layer_check"] = {"height_mm": 20.0, "layer_z_mm": 10.0, "max_layer_mm": 10.0}
+    data["layer_check"] = {"height_mm": 20.0, "layer_z_mm": 10.0, "max_layer_mm": 10.0, "accuracy_mm": None}
     plan = budget_plan(parse_config(yaml.safe_dump(data)))
     assert plan.rows["slab"].trials.truth == "slab" and plan.rows["camera"].trials.truth == "layer"
     assert set(ROWS) >= set(plan.rows)
@@ -120,7 +120,8 @@ def test_slab_truth_budget_runs_with_its_3d_row(tmp_path):
     paper table names the truth."""
     data = _small(1)
     # (a slab on its own plane twice as coarse as the layer's: the budget's rows, not the slab's fidelity, on test)
-    data["layer_check"] = {"height_mm": 8.0, "layer_z_mm": 4.0, "max_layer_mm": 4.0, "in_plane_scale": 2.0}
+    data["layer_check"] = {"height_mm": 8.0, "layer_z_mm": 4.0, "max_layer_mm": 4.0, "in_plane_scale": 2.0,
+                          "accuracy_mm": None}
     data["forward"] = [{"name": "push4", "strokes": {"cup": 4.0}}]
     scene = write_scene(tmp_path, data)
     h5 = _simulate(scene, tmp_path / "run", "--budget", "--truth", "slab")

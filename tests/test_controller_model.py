@@ -40,7 +40,8 @@ def small(model: str = "layer", trials: int = 0) -> dict:
     data["targets"][1]["desired_mm"] = [58.0, 21.0]
     data["trials"]["count"] = trials
     data["trials"]["truth"] = "slab"
-    data["layer_check"] = {"height_mm": 8.0, "layer_z_mm": 4.0, "max_layer_mm": 4.0, "chest_wall_fixed": False}
+    data["layer_check"] = {"height_mm": 8.0, "layer_z_mm": 4.0, "max_layer_mm": 4.0, "chest_wall_fixed": False,
+                          "accuracy_mm": None}
     data["controller"]["model"] = model
     data["controller"]["surrogate"] = {"samples": 8}
     return data

@@ -253,7 +253,7 @@ def slab_scene(tmp_path: Path, trials: int = 8) -> Path:
     data = yaml.safe_load(path.read_text())
     data["trials"]["count"] = trials
     data["trials"]["truth"] = "slab"
-    data["layer_check"] = {"height_mm": 8.0, "layer_z_mm": 4.0, "max_layer_mm": 4.0}
+    data["layer_check"] = {"height_mm": 8.0, "layer_z_mm": 4.0, "max_layer_mm": 4.0, "accuracy_mm": None}
     path.write_text(yaml.safe_dump(data))
     return path
 

@@ -10,10 +10,13 @@ import pytest
 import yaml
 
 from scissor_cli.config import ConfigError, parse_config
+from scissor_cli.experiments.build import build_model
 
 from tests.helpers import example_dict, write_scene
 
-SPEC = {"height_mm": 40.0, "layer_z_mm": 20.0, "chest_wall_fixed": True, "cup_holds_z": True, "max_layer_mm": 5.0}
+#: the slab as set (accuracy_mm null pins it: the tests here are not about its choice)
+SPEC = {"height_mm": 40.0, "layer_z_mm": 20.0, "chest_wall_fixed": True, "cup_holds_z": True, "max_layer_mm": 5.0,
+        "accuracy_mm": None}
 
 
 def _cli(*args, cwd=None):
@@ -61,7 +64,7 @@ def small_scene(tmp_path):
     data["tissue"]["mesh"]["scale"] = 4.0
     data["solver"]["kind"] = "newton"
     data["layer_check"] = {"height_mm": 8.0, "layer_z_mm": 4.0, "chest_wall_fixed": True, "cup_holds_z": True,
-                           "max_layer_mm": 4.0}
+                           "max_layer_mm": 4.0, "accuracy_mm": None}
     data["forward"] = [{"name": "push4", "strokes": {"cup": 4.0}}]
     return write_scene(tmp_path, data)
 
@@ -160,7 +163,6 @@ def test_slab_truth_inserts_in_the_slab_nominally_and_in_trials(tmp_path):
 
 @pytest.mark.parametrize("change, words", [
     ({"first_layer_mm": 6.0, "max_layer_mm": 4.0}, ["layer_check.first_layer_mm", "thicker than the thickest"]),
-    ({"accuracy_mm": 0.05}, ["layer_check.accuracy_mm", "forward case"]),
     ({"accuracy_mm": 0.0}, ["layer_check.accuracy_mm"]),
 ])
 def test_bad_resolution_exits_2(tmp_path, change, words):
@@ -174,11 +176,12 @@ def test_bad_resolution_exits_2(tmp_path, change, words):
     assert "Traceback" not in r.stderr
 
 
-def test_resolution_by_accuracy_picks_the_coarsest_within_it():
-    """choose_slab: the configured grading is the reference (error 0); a loose accuracy takes the coarsest rung,
-    a tight one the configured grading; every rung is coarser than the one before."""
+def test_resolution_by_accuracy_goes_coarse_to_fine_and_stops_within_it():
+    """choose_slab: the coarsest candidate is tried first against its one-rung-finer neighbour; a loose accuracy
+    takes it having solved only those two, a tight one goes on to the configured grading (its own reference,
+    error 0); every rung is coarser than the one before; the estimates bound the true errors."""
     from scissor_cli.layer3d.check import slab_spec
-    from scissor_cli.layer3d.resolution import choose_slab
+    from scissor_cli.layer3d.resolution import SAFETY, choose_slab, exhaustive_errors
     from scissor_cli.experiments.build import build_model
 
     data = example_dict()
@@ -186,15 +189,44 @@ def test_resolution_by_accuracy_picks_the_coarsest_within_it():
     cfg = parse_config(yaml.safe_dump(data), "scene.yaml")
     _, _, model = build_model(cfg, mesh_scale=4.0)
     cases = [np.array([4.0])]
-    loose = choose_slab(model, slab_spec(cfg.layer_check, cfg.tissue.mesh), cases, 10.0)
+    spec = slab_spec(cfg.layer_check, cfg.tissue.mesh)
+    loose = choose_slab(model, spec, cases, 10.0)
     rungs = loose.candidates
-    assert len(rungs) >= 3 and rungs[0].error_mm == 0.0
+    assert len(rungs) >= 3
     assert all(b.levels < a.levels and b.n_tetrahedra < a.n_tetrahedra for a, b in zip(rungs, rungs[1:]))
-    assert all(r.error_mm >= 0 and r.factor_s > 0 for r in rungs)
-    assert loose.pick == len(rungs) - 1 and loose.chosen.error_mm <= 10.0
-    tight = choose_slab(model, slab_spec(cfg.layer_check, cfg.tissue.mesh), cases, 1e-4)
-    assert all(r.error_mm > 1e-4 for r in tight.candidates[1:]) == (tight.pick == 0)
-    assert tight.chosen.error_mm <= 1e-4
+    assert loose.pick == len(rungs) - 1 and loose.solved == 2 and 0 <= loose.chosen.error_mm <= 10.0
+    assert loose.chosen.reference == len(rungs) - 2 and loose.chosen.factor_s > 0
+    tight = choose_slab(model, spec, cases, 1e-6)
+    assert tight.pick == 0 and tight.chosen.error_mm == 0.0 and tight.solved == len(rungs)
+    assert all(r.error_mm > 1e-6 for r in tight.candidates[1:])
+    # the estimate against every candidate solved and compared with the finest
+    candidates, true, estimate = exhaustive_errors(model, spec, cases)
+    assert true[0] == 0.0 and np.all(estimate[1:] > 0)
+    np.testing.assert_allclose(estimate[1:], [r.error_mm for r in tight.candidates[1:]], rtol=1e-9)
+    assert np.all(true <= estimate * (1 + 1 / SAFETY)), (true, estimate)
+
+
+def test_a_layer_check_without_accuracy_picks_its_slab_by_default(tmp_path):
+    """Without accuracy_mm the slab is picked to 0.1 mm (validate shows the default; null pins the slab); a scene
+    without forward cases is compared at each cup's strokes at two thirds of its limits."""
+    from scissor_cli.experiments.layer_check_stage import ladder_cases, slab_resolution_stage
+
+    path = small_scene(tmp_path)
+    data = yaml.safe_load(path.read_text())
+    del data["layer_check"]["accuracy_mm"]
+    path.write_text(yaml.safe_dump(data))
+    shown = _cli("validate", path)
+    assert shown.returncode == 0 and "accuracy_mm: 0.1" in shown.stdout
+    data["forward"] = []
+    cfg = parse_config(yaml.safe_dump(data), "scene.yaml")
+    assert cfg.layer_check.accuracy_mm == 0.1
+    scene = build_model(cfg)[0]
+    cases = ladder_cases(cfg, scene)
+    limits = scene.cups[0].stroke_max_mm, scene.cups[0].stroke_min_mm
+    np.testing.assert_allclose([c[0] for c in cases], [2 / 3 * v for v in limits])
+    ran, choice = slab_resolution_stage(cfg)
+    assert ran.layer_check.accuracy_mm is None and choice.accuracy_mm == 0.1
+    assert choice.chosen.error_mm <= 0.1 and ran.layer_check.in_plane_scale == choice.chosen.in_plane_scale
 
 
 def test_run_records_the_chosen_resolution(tmp_path):
@@ -210,7 +242,7 @@ def test_run_records_the_chosen_resolution(tmp_path):
         a = dict(f["layer_check_resolution"].attrs)
         ran = parse_config(str(f.attrs["config_yaml"]), "results.h5")
         levels = f["layer_check_resolution/levels"][()]
-        assert a["pick"] == len(levels) - 1 and a["speed_up"] > 0
+        assert a["pick"] == len(levels) - 1 and a["size_ratio"] > 1 and a["solved"] == 2
         # the recorded config is the slab that ran: the chosen grading, no accuracy left to choose again
         assert ran.layer_check.accuracy_mm is None
         assert ran.layer_check.first_layer_mm == pytest.approx(a["first_layer_mm"])

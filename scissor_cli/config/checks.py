@@ -335,9 +335,6 @@ def _layer_check_problems(cfg: Config) -> list[Problem]:
         problems.append((("layer_check", "first_layer_mm"), (
             f"the thinnest prism layer cannot be thicker than the thickest: first_layer_mm {lc.first_layer_mm:g} "
             f"> max_layer_mm {lc.max_layer_mm:g}")))
-    if lc.accuracy_mm is not None and not cfg.forward:
-        problems.append((("layer_check", "accuracy_mm"), (
-            "the slab's resolution is chosen on the forward cases: add a forward case, or leave out accuracy_mm")))
     return problems
 
 

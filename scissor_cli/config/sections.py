@@ -368,9 +368,9 @@ class LayerCheckConfig(_Section):
     first_layer_mm: Optional[Num(0.01, MAX_TISSUE_MM)] = None
     #: the slab's 2-D mesh: tissue.mesh's edge lengths times this (1: the layer's own mesh; docs/model.md §13)
     in_plane_scale: Num(1.0, 10.0) = 1.0
-    #: the coarsest slab (z grading and in-plane scale) whose targets stay this close to the finest's over the
-    #: forward cases (null: as set)
-    accuracy_mm: Optional[Num(1.0e-4, 100.0)] = None
+    #: the coarsest slab (z grading and in-plane scale) whose targets stay within this (mm) of the finest's over
+    #: the forward cases (docs/model.md §13, §18); null pins the slab as set by the fields above
+    accuracy_mm: Optional[Num(1.0e-4, 100.0)] = 0.1
 
 
 class Config(_Section):

@@ -19,6 +19,7 @@ not where the layer does).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Optional
 
@@ -30,6 +31,7 @@ from scissor_cli.experiments import run_cache
 from scissor_cli.experiments.pool import run_pool
 from scissor_cli.layer3d.calibration import Calibration
 from scissor_cli.experiments.model_planning import Replan, plan_with_model
+from scissor_cli.experiments.needle_model_stage import needle_models, needs_needle_models
 from scissor_cli.layer3d.tissue_models import (ControllerModel, ModelData, ModelPaths, SceneMap, build_model_data,
                                                model_solves, slab_map)
 from scissor_cli.layer3d.surrogate import SurrogateSamples, solve_samples
@@ -172,14 +174,21 @@ def controller_model_stage(cfg: Config, tissue: Tissue, plans: list, location: O
     slab_answer = slab_map(slab, tissue, rests)
     plans = plan_with_model(cfg, plans, model, slab_answer, replan)
     paths = model_paths(cfg, tissue, model, slab_answer) if model.kind != "layer" else None
+    if needs_needle_models(cfg):
+        data = replace(data, needle=needle_models(cfg, tissue, slab, plans, run_cache.cache_dir(location)))
     return data, plans, paths
 
 
-def refitted_model(cfg: Config, tissue: Tissue, location: Optional[Path]) -> Optional[ModelData]:
-    """The model data alone, from the cache or fitted again: a resumed run whose file lost /controller_model."""
+def refitted_model(cfg: Config, tissue: Tissue, location: Optional[Path], plans: list) -> Optional[ModelData]:
+    """The model data alone, from the cache or fitted again: a resumed run whose file lost /controller_model
+    (its needle models for the stored plans too)."""
     if not needs_slab(cfg):
         return None
-    return fitted_model(cfg, tissue, _nominal_slab(cfg, tissue), [], run_cache.cache_dir(location))[0]
+    slab = _nominal_slab(cfg, tissue)
+    data = fitted_model(cfg, tissue, slab, [], run_cache.cache_dir(location))[0]
+    if needs_needle_models(cfg):
+        data = replace(data, needle=needle_models(cfg, tissue, slab, plans, run_cache.cache_dir(location)))
+    return data
 
 
 def _nominal_slab(cfg: Config, tissue: Tissue) -> Tissue:

@@ -21,7 +21,7 @@ import numpy as np
 from scissor_cli import progress
 from scissor_cli.config import Config
 from scissor_cli.experiments.sink import Insertion, RunSink, product_key
-from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion
+from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, needle_path, run_insertion
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 from scissor_cli.solvers.newton import solve_newton
@@ -85,31 +85,39 @@ def _insert(tissue: Tissue, x0: np.ndarray, strokes: np.ndarray, path: NeedlePat
         bar.close()
 
 
-def _in_slab(cfg: Config, tissue: Tissue, truth, target, plan, params, animate: bool):
-    """One target's insertions in the nominal slab (`layer3d.truth.SlabTruth`): results and the in-plane frames."""
+def _in_slab(cfg: Config, tissue: Tissue, truth, target, plan, params, animate: bool, needle=None):
+    """One target's insertions in the nominal slab (`layer3d.truth.SlabTruth`): results and the in-plane frames.
+
+    needle: the target's `NeedleModel` (a 3-D-aware controller, docs/model.md §18): it aims the needle's height
+    per strategy and steers `loop`; without one the needle lies in the layer and `loop` steers with the 2-D
+    model's own insertion.
+    """
     from scissor_cli.layer3d.slab import layer_probe
     from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
 
     slab = truth.slab
-    sm = slab.mesh
     ramp = slab_ramp(slab, plan.strokes, RAMP_FRAMES if animate else 1, SLAB_TRUTH_TOL)
     layer = layer_probe(slab, tissue.mesh)
     frames = [tissue.rest.copy()] + [layer.positions(x)[:, :2] for x in ramp]
-    z = float(sm.levels_mm[sm.layer_level])
-    entry, direction = np.append(plan.entry, z), np.append(plan.direction, 0.0)
-    model_x0 = solve_equilibrium(tissue, plan.strokes).x if "loop" in cfg.insertion.strategies else None
-    path = NeedlePath(entry, direction, plan.depth_mm, target.rest, target.name)
+    model_x0 = None
+    if "loop" in cfg.insertion.strategies and needle is None:
+        model_x0 = solve_equilibrium(tissue, plan.strokes).x
     results = [
-        _insert(slab, ramp[-1], plan.strokes, path, params,
-                InsertionOptions(strategy, cfg.controller, model=tissue, model_x0=model_x0))
+        _insert(slab, ramp[-1], plan.strokes,
+                needle_path(slab, plan.entry, plan.direction, plan.depth_mm, target.rest, target.name,
+                            None if needle is None else needle.height_for(strategy)), params,
+                InsertionOptions(strategy, cfg.controller, model=tissue, model_x0=model_x0, needle_model=needle))
         for strategy in cfg.insertion.strategies
     ]
     return results, frames, layer
 
 
 def insertion_stage(cfg: Config, tissue: Tissue, plans: list, sink: RunSink,
-                    done: frozenset[str] = frozenset()) -> list[Path]:
-    """Insert into every planned target not in `done` under every strategy; print each target's miss per strategy."""
+                    done: frozenset[str] = frozenset(), needle: dict | None = None) -> list[Path]:
+    """Insert into every planned target not in `done` under every strategy; print each target's miss per strategy.
+
+    needle: {target name: NeedleModel} of a 3-D-aware controller in the slab (docs/model.md §18), else None.
+    """
     params = NeedleParams.from_config(cfg.insertion, cfg.needle, cfg.tissue.mesh)
     truth = None
     if cfg.trials.truth == "slab" and cfg.layer_check is not None:
@@ -133,7 +141,8 @@ def insertion_stage(cfg: Config, tissue: Tissue, plans: list, sink: RunSink,
             results = [_insert(tissue, frames[-1], plan.strokes, path, params, InsertionOptions(strategy, cfg.controller))
                        for strategy in cfg.insertion.strategies]
         else:
-            results, frames, layer = _in_slab(cfg, tissue, truth, target, plan, params, animate)
+            results, frames, layer = _in_slab(cfg, tissue, truth, target, plan, params, animate,
+                                              (needle or {}).get(target.name))
         paths += sink.insertion(Insertion(target.name, results, tissue, np.asarray(target.rest, float),
                                           np.asarray(plan.desired, float), frames, animate, layer))
         sink.mark_finished(product_key("insertion", target.name))

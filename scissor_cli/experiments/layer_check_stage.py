@@ -14,6 +14,8 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Optional
 
+import numpy as np
+
 from scissor_cli import progress
 from scissor_cli.config import Config
 from scissor_cli.experiments import run_cache
@@ -66,17 +68,35 @@ def run_layer_check(cfg: Config, tissue: Tissue, sink, done: frozenset[str] = fr
     return paths
 
 
+#: the share of each cup's stroke limits the ladder's cases use when the scene has no forward case
+LADDER_STROKE_FRACTION = 2.0 / 3.0
+
+
+def ladder_cases(cfg: Config, scene) -> list[np.ndarray]:
+    """The strokes (C,) mm the slab's candidates are compared at: the forward cases, or without any, each cup alone
+    at LADDER_STROKE_FRACTION of its push and of its pull limit."""
+    if cfg.forward:
+        return [scene.strokes_vector(case.strokes) for case in cfg.forward]
+    cases = []
+    for c, cup in enumerate(scene.cups):
+        for limit in (cup.stroke_max_mm, cup.stroke_min_mm):
+            if limit != 0.0:
+                s = np.zeros(len(scene.cups))
+                s[c] = LADDER_STROKE_FRACTION * limit
+                cases.append(s)
+    return cases
+
+
 def slab_resolution_stage(cfg: Config, cache: Optional[Path] = None) -> tuple[Config, SlabChoice]:
-    """`layer_check.accuracy_mm`: choose the slab's z grading and in-plane mesh (docs/model.md §13); the run goes
-    on with it.
+    """`layer_check.accuracy_mm` (0.1 mm unless set; null pins the slab): choose the slab's z grading and in-plane
+    mesh (docs/model.md §13, §18); the run goes on with it.
 
     The config the run records has the chosen `first_layer_mm`,
-    `max_layer_mm` and `in_plane_scale` and no `accuracy_mm`, so the layer check, the slab-truth
+    `max_layer_mm` and `in_plane_scale` and `accuracy_mm: null`, so the layer check, the slab-truth
     trials and `--resume` build exactly the slab that was chosen; the
     candidates are stored in /layer_check_resolution. The choice is kept in
     `cache` (the `.scissor-cache/` beside the run), keyed by what it depends
-    on: the ladder solves every rung's forward cases (minutes on the
-    paper's slab), so a second run of the scene reads it.
+    on, so a second run of the scene reads it.
     """
     lc = cfg.layer_check
     path = None if cache is None else cache / f"slab-resolution-{_resolution_key(cfg)}.json"
@@ -85,9 +105,9 @@ def slab_resolution_stage(cfg: Config, cache: Optional[Path] = None) -> tuple[Co
         progress.info(f"slab resolution: {choice.explain()} (from the cache)")
     else:
         _, _, tissue = build_model(cfg)
-        cases = [tissue.scene.strokes_vector(case.strokes) for case in cfg.forward]
         t0 = time.perf_counter()
-        choice = choose_slab(tissue, slab_spec(cfg.layer_check, cfg.tissue.mesh), cases, lc.accuracy_mm, plane_ladder(cfg.layer_check, cfg.tissue.mesh))
+        choice = choose_slab(tissue, slab_spec(lc, cfg.tissue.mesh), ladder_cases(cfg, tissue.scene), lc.accuracy_mm,
+                             plane_ladder(lc, cfg.tissue.mesh))
         progress.info(f"slab resolution: {choice.explain()} ({time.perf_counter() - t0:.1f} s)")
         _write_choice(path, choice)
     chosen = choice.chosen
@@ -98,7 +118,7 @@ def slab_resolution_stage(cfg: Config, cache: Optional[Path] = None) -> tuple[Co
 
 def _resolution_key(cfg: Config) -> str:
     """What the ladder's choice depends on, hashed: the scene, its forward cases, the slab, the code's version."""
-    return run_cache.key({"scene": cfg.model_dump(mode="json", include={
+    return run_cache.key({"ladder": "coarse-to-fine", "scene": cfg.model_dump(mode="json", include={
         "tissue", "material", "cups", "targets", "obstacles", "forward", "layer_check"})})
 
 

@@ -37,6 +37,7 @@ from scissor_cli.experiments.insertion_stage import insertion_stage
 from scissor_cli.experiments.error_budget import run_budget
 from scissor_cli.experiments.controller_model_stage import controller_model_stage, needs_slab, refitted_model
 from scissor_cli.experiments.model_planning import reserved_scene
+from scissor_cli.experiments.needle_model_stage import needs_needle_models
 from scissor_cli.experiments.run_cache import cache_dir
 from scissor_cli.experiments.selection import select
 from scissor_cli.experiments.slab_starts import with_slab_starts
@@ -196,14 +197,15 @@ def _stages(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary,
     if stored is not None:
         obstacles = bool(tissue.scene.obstacles)
         summary.plans = [stored_plan(t.name, stored[t.name], obstacles) for t in tissue.scene.targets]
-        model_data = stored_model(cfg, tissue, sink)
+        model_data = stored_model(cfg, tissue, sink, summary.plans)
     else:
         summary.plans, model_data = _plan_stage(cfg, tissue, sink, summary, execution.jobs)
         sink.mark_finished("plan")
     if cfg.trials.count > 0:
         summary.figures += _manipulation_stage(cfg, tissue, summary.plans, sink, done)
     if cfg.insertion is not None:
-        summary.figures += insertion_stage(cfg, tissue, summary.plans, sink, done)
+        summary.figures += insertion_stage(cfg, tissue, summary.plans, sink, done,
+                                           None if model_data is None else model_data.needle)
     if cfg.trials.count > 0:
         tasks = trial_tasks(tissue, summary.plans, model_data)
         if "trials" not in done:
@@ -403,16 +405,16 @@ def _plan_stage(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary,
     return plans, model_data
 
 
-def stored_model(cfg: Config, tissue: Tissue, sink: RunSink):
+def stored_model(cfg: Config, tissue: Tissue, sink: RunSink, plans: list):
     """A resumed run's controller model: what its file holds (the plans were made with it), else fitted again."""
     if not needs_slab(cfg):
         return None
     names = [t.name for t in tissue.scene.targets]
     data = sink.stored_controller_model(names) if hasattr(sink, "stored_controller_model") else None
-    if data is not None:
+    if data is not None and (data.needle is not None or not needs_needle_models(cfg)):
         return data
     with progress.reporting(progress.SilentReporter()):  # a detail of the resume, not news
-        return refitted_model(cfg, tissue, sink.location)
+        return refitted_model(cfg, tissue, sink.location, plans)
 
 
 def robot_joint_check(cfg: Config):

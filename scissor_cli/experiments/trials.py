@@ -26,7 +26,7 @@ from scissor_cli.solvers.equilibrium import solve_equilibrium
 from scissor_cli.planning.corridor import corridor_radius
 from scissor_cli.experiments.pool import run_pool
 from scissor_cli.experiments.profiles import ErrorModel, draw_insertion, draw_trial, error_model
-from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion
+from scissor_cli.insertion import InsertionOptions, NeedleParams, needle_path, run_insertion
 from scissor_cli.experiments.build import build_model
 
 
@@ -124,6 +124,13 @@ class TrialContext:
         model = self._controller_model
         return lambda lo, hi, resolution_mm, tol: model.controller(task.index, lo, hi, resolution_mm, tol)
 
+    def needle_model(self, task: TargetTask):
+        """The controller's 3-D model of the task's target under the needle (docs/model.md §18), or None."""
+        data = task.controller_model
+        if self.slab_truth is None or data is None or not data.needle:
+            return None
+        return data.needle.get(task.name)
+
     def sensor(self, task: TargetTask, trial: int, draw) -> Sensor:
         """The trial's sensor: its localisation bias from the trial's normals, its frame noise from the trial's stream."""
         return self.sensors.for_trial(TrialDraws(draw.localisation_z, draw.rng, (int(self.cfg.seed), task.index, trial)))
@@ -178,8 +185,11 @@ class TrialContext:
         With the slab truth (docs/model.md §14) the plant is the trial's
         perturbed slab from the loop's final slab state; the needle's entry
         and axis are the plan's lifted to the layer's height; the target is
-        the slab's, at the layer; the sensor reads its in-plane part; and
-        `loop`'s 2-D model runs the insertion its own way
+        the slab's, at the layer; the sensor reads its in-plane part. With a
+        3-D-aware controller model the plan's `NeedleModel` aims the needle's
+        height per strategy and `loop` steers with its held Jacobian
+        (docs/model.md §18); with the layer model the needle lies in the
+        layer's plane and `loop`'s 2-D model runs the insertion its own way
         (`insertion.model_state.ModelInsertion`), from its own equilibrium
         at the loop's final strokes.
         """
@@ -192,25 +202,23 @@ class TrialContext:
                          friction_kinetic_mN_per_mm=base.friction_kinetic_mN_per_mm * f_scale,
                          tip_force_mN=base.tip_force_mN * tip_scale)
         sensor = sensor.reseeded(np.random.default_rng([int(self.cfg.seed), task.index, trial, 13]))
-        entry, direction = task.entry, task.direction
+        needle = self.needle_model(task)
         if self.slab_truth is None:
             tissue = control.true_tissue(self.tissue, truth)
             model_start = (loop.final_strokes, loop.final_x)  # the model's warm start: the truth's, same mesh
         else:
             tissue = self.slab_truth.perturbed(truth)
-            sm = tissue.mesh
-            z = float(sm.levels_mm[sm.layer_level])
-            entry, direction = np.append(entry, z), np.append(direction, 0.0)
             model_start = self.guess(task)  # the model's own equilibrium at the plan's strokes (or None: rest)
         model_x0 = None
-        if tissue is not self.tissue and "loop" in ins.strategies:
+        if tissue is not self.tissue and "loop" in ins.strategies and needle is None:
             s0, x0 = model_start if model_start is not None else (None, None)
             model_x0 = solve_equilibrium(self.tissue, loop.final_strokes, start=x0, start_strokes=s0).x
         miss, depth_error = [], []
-        path = NeedlePath(entry, direction, task.depth_mm, task.rest, task.name)
         for strategy in ins.strategies:
-            options = InsertionOptions(strategy, self.cfg.controller, sensor, self.tissue, model_x0,
+            options = InsertionOptions(strategy, self.cfg.controller, sensor, self.tissue, model_x0, needle,
                                        keep_displacement=False)
+            path = needle_path(tissue, task.entry, task.direction, task.depth_mm, task.rest, task.name,
+                               None if needle is None else needle.height_for(strategy))
             r = run_insertion(tissue, loop.final_x, loop.final_strokes, path, params, options)
             miss.append(r.miss_mm)
             depth_error.append(r.depth_error_mm)

@@ -113,11 +113,23 @@ class ModelState:
                  kept: ChordSolver | None = None) -> tuple[np.ndarray, np.ndarray]:
         """J (1, C): the target's across-needle response to a unit stroke of each cup, the needle's hold kept.
 
-        Also the model's node responses (C, N, 2) per unit stroke (the
+        Also the model's node responses (C, N, d) per unit stroke (the
         plant's solve starts from them). kept: the plant's chord solver,
         whose factorisation preconditions the solve in the nominal run
-        (ignored when the model has its own).
+        (ignored when the model has its own). In 3-D across means the
+        in-plane normal (t, 0): the cups move the target in the layer.
         """
+        R, responses = self.target_response(state, probe, kept)
+        J = (state.transverse[0] @ R)[None, :]
+        if not np.all(np.isfinite(J)):
+            raise SolverError("the loop's Jacobian is not finite")
+        return J, responses
+
+    def target_response(self, state: NeedleState, probe: TargetProbe, kept: ChordSolver | None = None,
+                        tol: float = PCG_TOL) -> tuple[np.ndarray, np.ndarray]:
+        """The target's response (d, C) mm/mm to a unit stroke of each cup with the needle's hold, and the node
+        responses (C, N, d): K_ff d = −K_fd B e_c on the hold's null space (see the module doc), solved to the
+        relative tolerance tol."""
         model, x = self.tissue, self.x
         solver = self.solver if self.solver is not None else kept
         if solver is None:
@@ -131,21 +143,20 @@ class ModelState:
         held_zero = Hold(hold.captured, np.zeros_like(hold.base), hold.stuck, hold.ride, hold.n, hold.t)
         free = model.free_dofs
         Ke = model.element_stiffness(x)
-        t = state.transverse[0]  # in 3-D the in-plane normal (t, 0): the cups move the target in the layer
-        J = np.zeros((1, model.n_cups))
+        R = np.zeros((x.shape[1], model.n_cups))
         responses = np.zeros((model.n_cups,) + x.shape)
         its = 0
         for c in range(model.n_cups):
             b = -model.stiffness_times(x, model.cup_displacement(c), Ke)
-            d, k = _held_response(model, solver, hold, x, Ke, b, free)
+            d, k = _held_response(model, solver, hold, x, Ke, b, free, tol)
             its += k
             responses[c] = held_zero.place(d.reshape(x.shape))
             responses[c].ravel()[model.dirichlet_dofs] = model.cup_displacement(c)[model.dirichlet_dofs]
-            J[0, c] = target_positions(probe, responses[c])[0] @ t
+            R[:, c] = target_positions(probe, responses[c])[0]
         self.last_iterations, self.last_factorizations = its, solver.factorizations - n_factor
-        if not np.all(np.isfinite(J)):
-            raise SolverError("the loop's Jacobian is not finite")
-        return J, responses
+        if not np.all(np.isfinite(R)):
+            raise SolverError("the target's held response is not finite")
+        return R, responses
 
 
 class ModelInsertion:
@@ -220,13 +231,13 @@ def hold_at(state: NeedleState, x: np.ndarray) -> Hold:
                 state.transverse)
 
 
-def _held_response(model, solver, hold, x, Ke, b, free):
+def _held_response(model, solver, hold, x, Ke, b, free, tol=PCG_TOL):
     """d (2N,) with K d = b on the hold's null space (C d = 0), K the exact tangent at x; and the PCG iterations.
 
     b (2N,) is read on the free dofs. `linear.conjugate_gradients`, started
     from the preconditioner's answer, the preconditioner the solver's
     factorisation with the hold's Schur rows; if PCG_MAX iterations do not
-    reach PCG_TOL it is refreshed at x and the solve starts again.
+    reach tol it is refreshed at x and the solve starts again.
     """
     its = 0
     mask = np.zeros(x.size, bool)
@@ -242,7 +253,7 @@ def _held_response(model, solver, hold, x, Ke, b, free):
             g[free] = -r[free]
             return solver.step(g, hold, x)[0].ravel()
 
-        d, k, why = conjugate_gradients(K, precondition, rhs, PCG_TOL, PCG_MAX, x0=precondition(rhs),
+        d, k, why = conjugate_gradients(K, precondition, rhs, tol, PCG_MAX, x0=precondition(rhs),
                                         relative_to="solution")
         its += k
         if d is not None:

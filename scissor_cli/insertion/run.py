@@ -36,6 +36,7 @@ from scissor_cli.control.law import PID, split_error
 from scissor_cli.geometry import segment_polygon_distance
 from scissor_cli.insertion.model_state import ModelInsertion, ModelState, move_held
 from scissor_cli.insertion.needle import NeedleParams, NeedleState, advance, free_nodes, transverse_basis
+from scissor_cli.insertion.steering import NeedleModel, TableSteering
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.outlines import deformed_outlines, embed_outlines
 from scissor_cli.mesh.probe import TargetProbe, probe_targets, target_positions
@@ -119,16 +120,32 @@ class NeedlePath:
     target_name: str = ""
 
 
+def needle_path(tissue: Tissue, entry: np.ndarray, direction: np.ndarray, depth_mm: float, target_rest: np.ndarray,
+                target_name: str = "", height_mm: Optional[float] = None) -> NeedlePath:
+    """The layer's plan (entry (2,), direction (2,)) as the needle the plant is pierced by: as it is in the layer;
+    in the slab lifted to `height_mm` (default the layer's level; docs/model.md §14, §18), n_z = 0."""
+    entry, direction = np.asarray(entry, float), np.asarray(direction, float)
+    if tissue.dim == 3:
+        sm = tissue.mesh
+        z = float(sm.levels_mm[sm.layer_level]) if height_mm is None else float(height_mm)
+        entry, direction = np.append(entry, z), np.append(direction, 0.0)
+    return NeedlePath(entry, direction, float(depth_mm), np.asarray(target_rest, float), target_name)
+
+
 @dataclass(frozen=True)
 class InsertionOptions:
     """How an insertion runs: the strategy and what it steers and sees with.
 
-    controller: the `controller` section (gains, rate) for "loop"; sensor:
-    how the target is seen (default exact); model: the controller's tissue
-    for "loop" (default: the plant itself), model_x0 (N, 2) its equilibrium
-    at the strokes (solved from x0 when not given, which needs model and
-    plant of one dimension); keep_displacement: store every step's nodes;
-    on_step(depth_mm): called after every step (progress).
+    controller: the `controller` section (gains, rate, jacobian_update) for
+    "loop"; sensor: how the target is seen (default exact); model: the
+    controller's tissue for "loop" (default: the plant itself), model_x0
+    (N, 2) its equilibrium at the strokes (solved from x0 when not given,
+    which needs model and plant of one dimension); needle_model: the
+    controller's 3-D model of the target under the needle (`steering`):
+    with it "loop" steers with its held Jacobian instead of a model tissue's;
+    keep_displacement: store every step's nodes; on_step(depth_mm): called
+    after every step (progress); record(state, x, strokes): called after
+    every step with the needle, the nodes (N, d) and the strokes (C,).
     """
 
     strategy: str = "none"
@@ -136,8 +153,10 @@ class InsertionOptions:
     sensor: Sensor = EXACT
     model: Optional[Tissue] = None
     model_x0: Optional[np.ndarray] = None
+    needle_model: Optional[NeedleModel] = None
     keep_displacement: bool = True
     on_step: Optional[Callable[[float], None]] = None
+    record: Optional[Callable[[NeedleState, np.ndarray, np.ndarray], None]] = None
 
 
 @dataclass
@@ -163,7 +182,7 @@ def run_insertion(tissue: Tissue, x0: np.ndarray, strokes: np.ndarray, path: Nee
     n = np.asarray(path.direction, float) / np.linalg.norm(path.direction)
     p0 = np.asarray(path.entry, float)
     target_rest = np.asarray(path.target_rest, float)
-    probe, embedding = _layer_points(tissue, target_rest, [o.outline for o in tissue.scene.obstacles])
+    probe, embedding = layer_points(tissue, target_rest, [o.outline for o in tissue.scene.obstacles])
     if n.size == 3 and abs(n[2]) > 1e-12:
         raise ValueError("in the slab the needle's axis lies in the layer (direction z = 0)")
     sensor = options.sensor
@@ -176,11 +195,15 @@ def run_insertion(tissue: Tissue, x0: np.ndarray, strokes: np.ndarray, path: Nee
     x, s = np.array(x0, float), np.array(strokes, float)
     lo = np.array([c.stroke_min_mm for c in tissue.scene.cups])
     hi = np.array([c.stroke_max_mm for c in tissue.scene.cups])
-    pid = controller_model = None
+    pid = steering = None
     if strategy == "loop":
         gains = options.controller
         pid = PID(gains.kp, gains.ki, gains.kd, 1.0 / gains.rate_hz)
-        controller_model = _model_state(tissue, options.model, x, options.model_x0, s, p0, n, target_rest, params)
+        if options.needle_model is not None:
+            steering = TableSteering(options.needle_model, state.transverse[0][:2],
+                                     gains.jacobian_update == "broyden", sensor.noise_mm)
+        else:
+            steering = _model_state(tissue, options.model, x, options.model_x0, s, p0, n, target_rest, params)
     trace = _Trace()
     reason = ""
     max_depth = MAX_DEPTH_FACTOR * path.depth_mm + params.step_mm
@@ -201,8 +224,7 @@ def run_insertion(tissue: Tissue, x0: np.ndarray, strokes: np.ndarray, path: Nee
             out = advance(tissue, state, x, s, min(params.step_mm, remaining), params, candidates)
             x = out.x
             if pid is not None:
-                x, s = _loop_correction(tissue, controller_model, state, x, s, out.loads, probe, pid, lo, hi, p0,
-                                        measure)
+                x, s = _loop_correction(tissue, steering, state, x, s, out.loads, probe, pid, lo, hi, p0, measure)
         except SolverError as exc:
             reason = f"solver failed at depth {state.depth_mm:.3g} mm: {exc}"
             break
@@ -214,12 +236,14 @@ def run_insertion(tissue: Tissue, x0: np.ndarray, strokes: np.ndarray, path: Nee
             trace.frames.append(x - tissue.rest)
         if options.on_step is not None:
             options.on_step(state.depth_mm)
+        if options.record is not None:
+            options.record(state, x, s)
     y = target_positions(probe, x)[0]
     return _result(tissue, path, strategy, trace, options.keep_displacement, x, s, y, state,
                    bool(embedding.splits), reason, time.perf_counter() - t0)
 
 
-def _layer_points(tissue: Tissue, target_rest: np.ndarray, obstacles: list):
+def layer_points(tissue: Tissue, target_rest: np.ndarray, obstacles: list):
     """The target's probe and the obstacles' embedding on the plant's nodes.
 
     In the layer, on its own mesh; in the slab, the 2-D ones on the slab's
@@ -251,24 +275,31 @@ def _model_state(plant, model, x0, model_x0, strokes, p0, n, target_rest, params
     return ModelState(model, plant, model_x0, x0, strokes)
 
 
-def _loop_correction(tissue, controller_model, state, x, s, loads, probe, pid, lo, hi, p0, measure):
+def _loop_correction(tissue, steering, state, x, s, loads, probe, pid, lo, hi, p0, measure):
     """One §6 loop iteration on the miss across the needle, the needle holding its captured nodes.
 
-    J is the controller's (`ModelState`: its model, at its equilibrium under
-    the needle); the plant is then solved at the command with the same hold.
+    J is the controller's: its 3-D model's held Jacobian at this depth
+    (`steering.TableSteering`), or its model tissue's linear response with
+    the hold at its own equilibrium under the needle (`ModelState`,
+    `ModelInsertion`); the plant is then solved at the command with the
+    same hold.
     """
-    controller_model.follow(state, x, s, loads)
-    J, responses = controller_model.jacobian(state, probe, state.solver)
     y = target_positions(probe, x)[0]
-    e = np.array([-(measure(y, x) - p0[:2]) @ state.transverse[0][:2]])
+    seen = measure(y, x)
+    e = np.array([-(seen - p0[:2]) @ state.transverse[0][:2]])
+    if isinstance(steering, TableSteering):
+        J, responses = steering.jacobian(state.depth_mm, s, seen), None
+    else:
+        steering.follow(state, x, s, loads)
+        J, responses = steering.jacobian(state, probe, state.solver)
+        if responses.shape[1:] != x.shape:
+            # a 2-D model's responses are no start for the slab (its levels near the fixed chest wall do not
+            # move as the layer does): the strokes placed only
+            responses = None
     ds, _, _ = split_error(J, e)
     command, _ = pid.command(s, ds, lo, hi)
     if np.allclose(command, s, atol=1e-12, rtol=0):
         return x, s
-    if responses.shape[1:] != x.shape:
-        # a 2-D model's responses are no start for the slab (its levels near the fixed chest wall do not move
-        # as the layer does): the strokes placed only
-        responses = None
     return _move_plant(tissue, state, x, s, command, loads, responses), command
 
 

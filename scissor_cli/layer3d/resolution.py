@@ -1,11 +1,11 @@
-"""The slab's resolution by accuracy: `layer_check.accuracy_mm` (docs/model.md §13, "Resolution by accuracy").
+"""The slab's resolution by accuracy: `layer_check.accuracy_mm` (docs/model.md §13, §18).
 
 The slab's cost is its size: every prism layer copies the whole 2-D mesh,
 and a sparse Cholesky factor of a 3-D mesh grows faster than its unknowns
 (halving the levels or coarsening the plane divides a factorisation's time
-several times over; benchmarks/bench_slab_truth.py). A run that only needs its
-targets to a tolerance can use a coarser slab, and the slab-truth trials
-factor it dozens of times per trial.
+several times over; benchmarks/bench_slab_truth.py). A run that only needs
+its targets to a tolerance can use a coarser slab, and the slab-truth
+trials factor it dozens of times per trial.
 
 Candidates are the product of two ladders, the configured slab (the
 finest) first:
@@ -17,13 +17,20 @@ finest) first:
   configured one's, for each of IN_PLANE_SCALES (`tissue.mesh`'s edge
   lengths scaled: still finest at targets, obstacles and cups).
 
-Each candidate solves the forward cases (Newton to 1e-8); its error is the
-largest 3-D distance of a target (without targets: of a layer node) from
-the finest slab's. The pick is the candidate with the fewest tetrahedra
-within `accuracy_mm`, the finest when none other is. The error is not
-monotone along either ladder — which nodes a cup grips within its radius
-changes with the levels next to the layer and with the side's nodes — so
-every candidate is solved, not only until the first miss.
+Coarse to fine with an error estimate (`choose_slab`): the candidates are
+taken in the order of their tetrahedra (counted from the plane meshes and
+the z levels, without building a slab); each is solved over the forward
+cases (Newton to SOLVE_TOL) together with its neighbour one rung finer on
+both ladders, and its error is estimated as SAFETY times the largest 3-D
+distance of a target (without targets: of a layer node) between the two.
+The first candidate whose estimate is within `accuracy_mm` is the pick;
+the finest is its own reference (error 0) and the pick when none other
+is. SAFETY bounds the distance to the finest slab when each finer rung at
+least halves the error; the error is not monotone along either ladder
+(which nodes a cup grips within its radius changes with the levels next to
+the layer and with the side's nodes), so the estimate is checked against
+every candidate solved in full (`exhaustive_errors`,
+benchmarks/bench_slab_ladder.py; tests/test_layer_check.py).
 """
 
 from __future__ import annotations
@@ -36,7 +43,8 @@ import numpy as np
 from scissor_cli import progress
 from scissor_cli.geometry import graded_levels
 from scissor_cli.layer3d.slab import SlabSpec, build_slab, layer_probe, plane_mesh, slab_probe
-from scissor_cli.mechanics.tissue import Tissue
+from scissor_cli.mechanics.tissue import BoundaryError, Tissue
+from scissor_cli.solvers.common import SolverError
 from scissor_cli.solvers.linear import factorize_free
 from scissor_cli.solvers.newton import solve_newton
 
@@ -48,26 +56,35 @@ IN_PLANE_SCALES = (1.0, 1.5, 2.0, 2.5, 3.0)
 MAX_LAYER_GROWTH = 1.6
 #: the candidates' forward solves: well below any accuracy a run asks for
 SOLVE_TOL = 1e-8
+#: a candidate's estimated error is this times its distance to its one-rung-finer neighbour (the geometric
+#: bound Σ 2⁻ᵏ = 2 when every finer rung at least halves the error)
+SAFETY = 2.0
 
 
 @dataclass(frozen=True)
 class SlabCandidate:
-    """One slab: its 2-D mesh scale and z layers (mm), size, largest target error against the finest (mm), one
-    refactorisation (s)."""
+    """One slab: its 2-D mesh scale and z layers (mm), size; when solved, its estimated error (mm: `SAFETY` × the
+    distance to `reference`, the candidate it was compared with; the finest's is 0), one refactorisation and its
+    forward solves (s). An unsolved candidate has error_mm, factor_s and solve_s −1 and reference −1."""
 
     in_plane_scale: float
     first_layer_mm: float
     max_layer_mm: float
     levels: int
     n_tetrahedra: int
-    error_mm: float
-    factor_s: float
-    solve_s: float
+    error_mm: float = -1.0
+    factor_s: float = -1.0
+    solve_s: float = -1.0
+    reference: int = -1
+
+    @property
+    def solved(self) -> bool:
+        return self.solve_s >= 0.0
 
 
 @dataclass(frozen=True)
 class SlabChoice:
-    """What `layer_check.accuracy_mm` picked; `candidates[0]` is the configured (finest) grading."""
+    """What `layer_check.accuracy_mm` picked; `candidates[0]` is the configured (finest) slab."""
 
     accuracy_mm: float
     pick: int
@@ -78,16 +95,20 @@ class SlabChoice:
         return self.candidates[self.pick]
 
     @property
-    def speed_up(self) -> float:
-        """The finest slab's refactorisation time over the chosen one's."""
-        return self.candidates[0].factor_s / self.chosen.factor_s
+    def size_ratio(self) -> float:
+        """The finest slab's tetrahedra over the chosen one's."""
+        return self.candidates[0].n_tetrahedra / self.chosen.n_tetrahedra
+
+    @property
+    def solved(self) -> int:
+        return sum(c.solved for c in self.candidates)
 
     def explain(self) -> str:
         c = self.chosen
         return (f"in-plane scale {c.in_plane_scale:g}, z grading {c.first_layer_mm:.3g}–{c.max_layer_mm:.3g} mm "
-                f"({c.levels} levels, {c.n_tetrahedra} "
-                f"tetrahedra): targets within {c.error_mm:.3f} mm of the finest slab's (accuracy {self.accuracy_mm:g} "
-                f"mm), factorisation {self.speed_up:.1f}x faster")
+                f"({c.levels} levels, {c.n_tetrahedra} tetrahedra, {self.size_ratio:.1f}x fewer than the finest): "
+                f"targets within an estimated {c.error_mm:.3f} mm of the finest slab's (accuracy "
+                f"{self.accuracy_mm:g} mm; {self.solved} of {len(self.candidates)} candidates solved)")
 
 
 def ladder(model: Tissue, spec: SlabSpec) -> list[tuple[float, float]]:
@@ -106,39 +127,99 @@ def ladder(model: Tissue, spec: SlabSpec) -> list[tuple[float, float]]:
     return rungs
 
 
+class _Ladder:
+    """The candidates of a scene's slab (planes × z rungs, the configured one first) and their solves, on demand.
+
+    Plane meshes are meshed once each; a slab is built and solved only when
+    asked for, and its target positions (cases, P, 3) are kept.
+    """
+
+    def __init__(self, model: Tissue, spec: SlabSpec, cases: list[np.ndarray], planes):
+        self.model, self.spec, self.cases = model, spec, [np.asarray(s, float) for s in cases]
+        scene = model.scene
+        self.points = np.array([t.rest for t in scene.targets]).reshape(-1, 2)
+        self.surfaces = [(float(scale), plane_mesh(scene, model.mesh, replace(spec, plane=plane)))
+                         for scale, plane in planes]
+        self.rungs = ladder(model, spec)
+        self.grid = [(p, z) for p in range(len(self.surfaces)) for z in range(len(self.rungs))]
+        self.candidates = []
+        for p, z in self.grid:
+            scale, surface = self.surfaces[p]
+            first, largest = self.rungs[z]
+            levels = graded_levels(spec.height_mm, spec.layer_z_mm, first, largest)[0].size
+            self.candidates.append(SlabCandidate(scale, first, largest, int(levels),
+                                                 3 * surface.n_elements * (int(levels) - 1)))
+        self.positions: dict[int, np.ndarray] = {}
+
+    def index(self, p: int, z: int) -> int:
+        return self.grid.index((p, z))
+
+    def finer(self, k: int) -> int:
+        """The candidate one rung finer on both ladders (the finest is its own)."""
+        p, z = self.grid[k]
+        return self.index(max(p - 1, 0), max(z - 1, 0))
+
+    def solve(self, k: int) -> np.ndarray:
+        """Candidate k's target positions (cases, P, 3) mm, solved once; records its timings."""
+        if k in self.positions:
+            return self.positions[k]
+        c = self.candidates[k]
+        p, z = self.grid[k]
+        spec = replace(self.spec, first_layer_mm=c.first_layer_mm, max_layer_mm=c.max_layer_mm, plane=None)
+        slab = build_slab(self.model.scene, self.surfaces[p][1], spec, model=self.model.params.model)
+        probe = slab_probe(slab, self.points) if len(self.points) else layer_probe(slab, self.model.mesh)
+        t0 = time.perf_counter()
+        self.positions[k] = np.array([probe.positions(solve_newton(slab, s, tol=SOLVE_TOL).x) for s in self.cases])
+        solve_s = time.perf_counter() - t0
+        K = slab.stiffness_free(slab.rest, upper=True)
+        slot: dict = {}
+        factorize_free(slab, K, slot)
+        t0 = time.perf_counter()
+        factorize_free(slab, K, slot)  # the second: a refactorisation, as a trial's
+        self.candidates[k] = replace(c, factor_s=time.perf_counter() - t0, solve_s=solve_s,
+                                     n_tetrahedra=int(slab.ops.corners.shape[1]))
+        return self.positions[k]
+
+    def distance(self, a: int, b: int) -> float:
+        """The largest 3-D distance (mm) of a point between candidates a and b."""
+        return float(np.max(np.linalg.norm(self.solve(a) - self.solve(b), axis=-1), initial=0.0))
+
+
 def choose_slab(model: Tissue, spec: SlabSpec, cases: list[np.ndarray], accuracy_mm: float,
                 planes=((1.0, None),)) -> SlabChoice:
-    """Solve the forward cases' strokes (each (C,) mm) on every candidate and pick the smallest within accuracy_mm.
+    """The coarsest candidate whose estimated error is within accuracy_mm, coarse to fine (see the module doc).
 
-    planes: the in-plane ladder, (in_plane_scale, `SlabSpec.plane`) per rung, the configured one first
-    (`layer3d.check.plane_ladder`); the z ladder is `ladder`'s.
+    cases: the strokes (C,) mm the targets are compared at; planes: the
+    in-plane ladder, (in_plane_scale, `SlabSpec.plane`) per rung, the
+    configured one first (`layer3d.check.plane_ladder`); the z ladder is
+    `ladder`'s.
     """
-    scene, mesh = model.scene, model.mesh
-    points = np.array([t.rest for t in scene.targets]).reshape(-1, 2)
-    reference, candidates = None, []
-    for scale, plane in planes:
-        surface = plane_mesh(scene, mesh, replace(spec, plane=plane))  # meshed once for all its z rungs
-        for first, largest in ladder(model, spec):
-            candidate_spec = replace(spec, first_layer_mm=first, max_layer_mm=largest, plane=None)
-            slab = build_slab(scene, surface, candidate_spec, model=model.params.model)
-            probe = slab_probe(slab, points) if len(points) else layer_probe(slab, mesh)
-            t0 = time.perf_counter()
-            positions = np.array([probe.positions(solve_newton(slab, np.asarray(strokes, float), tol=SOLVE_TOL).x)
-                                  for strokes in cases])
-            solve_s = time.perf_counter() - t0
-            reference = positions if reference is None else reference
-            error = float(np.max(np.linalg.norm(positions - reference, axis=-1)))
-            K = slab.stiffness_free(slab.rest, upper=True)
-            slot: dict = {}
-            factorize_free(slab, K, slot)
-            t0 = time.perf_counter()
-            factorize_free(slab, K, slot)
-            factor_s = time.perf_counter() - t0
-            c = SlabCandidate(float(scale), first, largest, int(slab.mesh.levels_mm.size),
-                              int(slab.ops.corners.shape[1]), error, factor_s, solve_s)
-            candidates.append(c)
-            progress.info(f"slab resolution: in-plane scale {scale:g}, z {first:.3g}–{largest:.3g} mm, {c.levels} levels, "
-                 f"{c.n_tetrahedra} tetrahedra: target error {error:.4f} mm, factorisation {factor_s:.2f} s")
-    within = [k for k, c in enumerate(candidates) if c.error_mm <= accuracy_mm]
-    pick = min(within, key=lambda k: (candidates[k].n_tetrahedra, k))
-    return SlabChoice(float(accuracy_mm), pick, tuple(candidates))
+    lad = _Ladder(model, spec, cases, planes)
+    order = sorted(range(len(lad.candidates)), key=lambda k: (lad.candidates[k].n_tetrahedra, k))
+    pick = 0
+    for k in order:
+        reference = lad.finer(k)
+        try:
+            error = 0.0 if reference == k else SAFETY * lad.distance(k, reference)
+        except (BoundaryError, SolverError) as exc:  # (a cup that grips nothing on a coarse plane, say)
+            c = lad.candidates[k]
+            progress.info(f"slab resolution: in-plane scale {c.in_plane_scale:g}, {c.levels} levels skipped: {exc}")
+            continue
+        c = lad.candidates[k] = replace(lad.candidates[k], error_mm=error, reference=-1 if reference == k else reference)
+        progress.info(f"slab resolution: in-plane scale {c.in_plane_scale:g}, z {c.first_layer_mm:.3g}–"
+                      f"{c.max_layer_mm:.3g} mm, {c.levels} levels, {c.n_tetrahedra} tetrahedra: estimated error "
+                      f"{error:.4f} mm, factorisation {c.factor_s:.2f} s")
+        if error <= accuracy_mm:
+            pick = k
+            break
+    return SlabChoice(float(accuracy_mm), pick, tuple(lad.candidates))
+
+
+def exhaustive_errors(model: Tissue, spec: SlabSpec, cases: list[np.ndarray], planes=((1.0, None),)
+                      ) -> tuple[list[SlabCandidate], np.ndarray, np.ndarray]:
+    """Every candidate solved: (candidates, each one's true error against the finest (R,) mm, its `choose_slab`
+    estimate (R,) mm). The check of the estimate; slow on a fine slab."""
+    lad = _Ladder(model, spec, cases, planes)
+    true = np.array([lad.distance(k, 0) for k in range(len(lad.candidates))])
+    estimate = np.array([SAFETY * lad.distance(k, lad.finer(k)) for k in range(len(lad.candidates))])
+    return list(lad.candidates), true, estimate

@@ -53,6 +53,9 @@ class ModelData:
     validation_error_mm: Optional[float] = None
     calibration: Optional[Calibration] = None
     samples: Optional[SurrogateSamples] = None
+    #: with the needle in the slab: each planned target's model under the needle (`insertion.NeedleModel`,
+    #: docs/model.md §18), by target name
+    needle: Optional[dict] = None
 
 
 def build_model_data(kind: str, layer: Tissue, slab: Optional[Tissue], plan_strokes: list[np.ndarray],

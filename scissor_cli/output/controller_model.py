@@ -8,6 +8,7 @@ from typing import Optional
 import h5py
 import numpy as np
 
+from scissor_cli.insertion.steering import NeedleModel
 from scissor_cli.layer3d.calibration import Calibration
 from scissor_cli.layer3d.tissue_models import ModelData, ModelPaths
 from scissor_cli.layer3d.surrogate import SurrogateSamples
@@ -32,6 +33,13 @@ def write_controller_model(h5, data: ModelData, target_names: list[str], jacobia
         g.attrs.update({"stroke_min_mm": s.lo, "stroke_max_mm": s.hi})
         _samples(g, "samples", s.strokes, s.targets, target_names)
         _samples(g, "held_out", s.held_strokes, s.held_targets, target_names)
+    for target, model in (data.needle or {}).items():
+        n = g.require_group("needle").create_group(target)
+        for name, values, unit in (("depth_mm", model.depth_mm, "mm"), ("target", model.target_mm, "mm"),
+                                   ("jacobian", model.jacobian, "mm/mm")):
+            n.create_dataset(name, data=np.asarray(values, float)).attrs["units"] = unit
+        n.attrs.update({"entry_height_mm": model.entry_height_mm, "steered_height_mm": model.steered_height_mm,
+                        "end_height_mm": model.end_height_mm})
 
 
 def _samples(g, name: str, strokes: np.ndarray, targets: np.ndarray, target_names: list[str]) -> None:
@@ -92,7 +100,12 @@ def read_controller_model(h5, target_names: list[str]) -> Optional[ModelData]:
         held_strokes, held_targets = samples("held_out")
         surrogate = SurrogateSamples(strokes, targets, held_strokes, held_targets, np.asarray(a["stroke_min_mm"], float),
                                      np.asarray(a["stroke_max_mm"], float), float(a["build_time_s"]))
-    return ModelData(str(a["kind"]), float(a["build_time_s"]), error, calibration, surrogate)
+    needle = None
+    if "needle" in g:
+        needle = {t: NeedleModel(n["depth_mm"][()], n["target"][()], n["jacobian"][()],
+                                 float(n.attrs["entry_height_mm"]), float(n.attrs["steered_height_mm"]))
+                  for t, n in g["needle"].items()}
+    return ModelData(str(a["kind"]), float(a["build_time_s"]), error, calibration, surrogate, needle)
 
 
 def save_controller_model_figure(paths: ModelPaths, title: str, location: Path) -> Path:

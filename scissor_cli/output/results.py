@@ -424,9 +424,10 @@ def write_slab_resolution(out: ResultsFile, choice) -> None:
         "accuracy_mm": choice.accuracy_mm, "explanation": choice.explain(), "in_plane_scale": c.in_plane_scale,
         "first_layer_mm": c.first_layer_mm,
         "max_layer_mm": c.max_layer_mm, "levels": c.levels, "n_tetrahedra": c.n_tetrahedra, "error_mm": c.error_mm,
-        "speed_up": choice.speed_up, "pick": choice.pick,
+        "size_ratio": choice.size_ratio, "pick": choice.pick, "solved": choice.solved,
+        "missing_value": "-1: not solved (error_mm -1: solved as a reference only)",
     })
     rows = choice.candidates
-    for name, unit in (("in_plane_scale", "1"), ("first_layer_mm", "mm"), ("max_layer_mm", "mm"), ("levels", "1"), ("n_tetrahedra", "1"),
-                       ("error_mm", "mm"), ("factor_s", "s"), ("solve_s", "s")):
+    for name, unit in (("in_plane_scale", "1"), ("first_layer_mm", "mm"), ("max_layer_mm", "mm"), ("levels", "1"),
+                       ("n_tetrahedra", "1"), ("error_mm", "mm"), ("factor_s", "s"), ("solve_s", "s"), ("reference", "1")):
         out.dataset(f"layer_check_resolution/{name}", np.array([getattr(r, name) for r in rows]), unit)

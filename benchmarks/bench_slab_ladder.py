@@ -1,0 +1,81 @@
+"""The slab's resolution ladder (docs/model.md §13, §18): its time, and its estimate against the full ladder; not a test.
+
+For a scene with `layer_check` (its `accuracy_mm`, or 0.1 mm by default):
+
+* the coarse-to-fine choice as `scissor simulate` makes it
+  (`layer3d.resolution.choose_slab`): wall time, candidates solved, the
+  pick, its estimated error (goal: ≤ 60 s on the paper scenes);
+* with `--exhaustive`, every candidate solved and compared with the finest
+  slab (`exhaustive_errors`, the old way: minutes): per candidate the true
+  error beside its estimate, whether the estimate bounds it, and the true
+  error of the pick.
+
+    PYTHONPATH=. python benchmarks/bench_slab_ladder.py [CONFIG.yaml ...] [--exhaustive]
+
+The machine, its cores and load average are printed with the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from scissor_cli import runtime  # noqa: E402
+from scissor_cli.config import load_config  # noqa: E402
+from scissor_cli.experiments.build import build_model  # noqa: E402
+from scissor_cli.experiments.layer_check_stage import ladder_cases  # noqa: E402
+from scissor_cli.layer3d.check import plane_ladder, slab_spec  # noqa: E402
+from scissor_cli.layer3d.resolution import choose_slab, exhaustive_errors  # noqa: E402
+
+DEFAULT_CONFIGS = [ROOT / "configs" / "paper_trials_prosthesis_slab.yaml", ROOT / "configs" / "example_3d.yaml"]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("configs", nargs="*", type=Path, default=DEFAULT_CONFIGS)
+    ap.add_argument("--exhaustive", action="store_true", help="also solve every candidate (minutes)")
+    args = ap.parse_args()
+    runtime.configure()
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+          f"load {os.getloadavg()[0]:.2f}")
+    for path in args.configs:
+        cfg = load_config(path)
+        lc = cfg.layer_check
+        accuracy = lc.accuracy_mm if lc.accuracy_mm is not None else 0.1
+        _, _, model = build_model(cfg)
+        spec, planes = slab_spec(lc, cfg.tissue.mesh), plane_ladder(lc, cfg.tissue.mesh)
+        cases = ladder_cases(cfg, model.scene)
+        t0 = time.perf_counter()
+        choice = choose_slab(model, spec, cases, accuracy, planes)
+        wall = time.perf_counter() - t0
+        print(f"\n{path.name}: accuracy {accuracy:g} mm, {len(cases)} case(s): picked in {wall:.1f} s, "
+              f"{choice.solved} of {len(choice.candidates)} candidates solved; {choice.explain()}")
+        if not args.exhaustive:
+            continue
+        t0 = time.perf_counter()
+        candidates, true, estimate = exhaustive_errors(model, spec, cases, planes)
+        print(f"every candidate solved in {time.perf_counter() - t0:.0f} s")
+        print("| in-plane scale | levels | tetrahedra | true error (mm) | estimate (mm) | bounded |")
+        print("|---|---|---|---|---|---|")
+        for c, t, e in zip(candidates, true, estimate):
+            print(f"| {c.in_plane_scale:g} | {c.levels} | {c.n_tetrahedra} | {t:.4f} | {e:.4f} | "
+                  f"{'yes' if t <= e or e == 0 else 'NO'} |")
+        within = [k for k in range(len(candidates)) if true[k] <= accuracy]
+        best = min(within, key=lambda k: candidates[k].n_tetrahedra)
+        print(f"the pick's true error {true[choice.pick]:.4f} mm (≤ {accuracy:g}: "
+              f"{'yes' if true[choice.pick] <= accuracy else 'NO'}); the full ladder's pick: "
+              f"{candidates[best].n_tetrahedra} tetrahedra, error {true[best]:.4f} mm")
+    print(f"\nload {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()

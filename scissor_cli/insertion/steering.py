@@ -1,0 +1,114 @@
+"""The `loop` strategy steered by the controller's 3-D model of the target under the needle (docs/model.md §18).
+
+Against the slab a 2-D controller model cannot say how the needle's hold
+changes the cups' effect on the target, nor where the target goes out of
+the layer's plane. A 3-D-aware controller (`controller.model` calibrated,
+surrogate or slab) is given, per planned target, a `NeedleModel`: the
+nominal slab's own insertion at the plan's strokes (the needle aimed at the
+target's height there, strategy `depth` with an exact sensor), recorded at
+every step as
+
+* the target's 3-D position (the drag the needle will give it, in the
+  plane and out of it), and
+* its 3-D response to a unit stroke of each cup with the needle's hold as
+  it stands at that depth (the held Jacobian, `ModelState.target_response`
+  on the nominal slab).
+
+The plan takes the needle's height from it (`end_height_mm`: where the
+target is when the tip reaches it: the drag out of the plane is
+pre-compensated, since no sensor in the layer's plane can see it), and
+`loop` steers with its Jacobian at the current depth (`TableSteering`),
+corrected online by Broyden's update from what the sensor sees with the
+model's drag taken off (`controller.jacobian_update: broyden`). Nothing of
+the true tissue enters: the model is the nominal slab's, the measurement
+the sensor's.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from scissor_cli.control.broyden import BroydenCorrection
+
+
+@dataclass(frozen=True)
+class NeedleModel:
+    """One target under the needle, tabulated over depth (the nominal slab's insertion at the plan).
+
+    depth_mm (K,) increasing; target_mm (K, 3): the target after each step,
+    slab frame; jacobian (K, 3, C) mm/mm: its response to a unit stroke of
+    each cup with the needle's hold at that step; entry_height_mm: the
+    needle's height in that insertion; steered_height_mm: the target's
+    height at the end of the same insertion steered by `loop` with this
+    model (its cup moves lift or lower the target too).
+    """
+
+    depth_mm: np.ndarray
+    target_mm: np.ndarray
+    jacobian: np.ndarray
+    entry_height_mm: float
+    steered_height_mm: float
+
+    def __post_init__(self):
+        if self.depth_mm.ndim != 1 or not len(self.depth_mm) or np.any(np.diff(self.depth_mm) <= 0):
+            raise ValueError("a needle model needs at least one step, its depths increasing")
+
+    def _interpolated(self, table: np.ndarray, depth_mm: float) -> np.ndarray:
+        """The table (K, ...) at a depth, linear between steps and held at its ends."""
+        d = self.depth_mm
+        k = int(np.clip(np.searchsorted(d, depth_mm), 1, max(len(d) - 1, 1)))
+        if len(d) == 1:
+            return table[0]
+        w = float(np.clip((depth_mm - d[k - 1]) / (d[k] - d[k - 1]), 0.0, 1.0))
+        return (1.0 - w) * table[k - 1] + w * table[k]
+
+    def target_at(self, depth_mm: float) -> np.ndarray:
+        """The nominal target (3,) mm at a needle depth (mm)."""
+        return self._interpolated(self.target_mm, depth_mm)
+
+    def jacobian_at(self, depth_mm: float) -> np.ndarray:
+        """The held Jacobian (3, C) mm/mm at a needle depth (mm)."""
+        return self._interpolated(self.jacobian, depth_mm)
+
+    @property
+    def end_height_mm(self) -> float:
+        """The target's height (mm, slab frame) when the tip reached it with the cups still."""
+        return float(self.target_mm[-1, 2])
+
+    def height_for(self, strategy: str) -> float:
+        """The needle's height (mm, slab frame) for a strategy: where the target will be when the tip reaches it."""
+        return self.steered_height_mm if strategy == "loop" else self.end_height_mm
+
+
+class TableSteering:
+    """The `loop` strategy's Jacobian from a `NeedleModel`, with Broyden's correction when asked for.
+
+    across (2,): the in-plane unit normal of the needle's axis; broyden:
+    whether to correct J from the moves; noise_mm: the sensor's σ (Broyden's
+    guard). `jacobian` returns the (1, C) response of the across-axis miss.
+    """
+
+    def __init__(self, model: NeedleModel, across: np.ndarray, broyden: bool = False, noise_mm: float = 0.0):
+        self.model = model
+        self.across = np.asarray(across, float)[:2]
+        self.correction: Optional[BroydenCorrection] = BroydenCorrection(noise_mm) if broyden else None
+        self._drift0: Optional[np.ndarray] = None
+
+    def jacobian(self, depth_mm: float, strokes: np.ndarray, measured: np.ndarray) -> np.ndarray:
+        """J (1, C) of the across-axis miss at this depth; `measured` (2,) the sensor's target at strokes (C,) mm.
+
+        Broyden sees the measured target less the model's drag since the
+        first step (the cups' part of the motion, as far as the model knows
+        the drag).
+        """
+        J = self.model.jacobian_at(depth_mm)[:2]
+        if self.correction is not None:
+            drift = self.model.target_at(depth_mm)[:2]
+            if self._drift0 is None:
+                self._drift0 = drift
+            self.correction.observe(J, strokes, np.asarray(measured, float) - (drift - self._drift0))
+            J = self.correction.jacobian(J)
+        return (self.across @ J)[None, :]
