@@ -1,1 +1,28 @@
-"""Ultrasound imaging of the layer: probe, scatterers, image formation and speckle tracking (docs/model.md §17)."""
+"""Ultrasound imaging of the layer: probe, scatterers, image formation and speckle tracking (docs/model.md §17).
+
+Callers outside the package import from here. Per probe and run:
+`probe_params`, `image_grid`, `build_psf` (cacheable: `PsfModel.to_arrays`),
+`frame_kernels`. Per trial: `draw_scatterers`. Per frame: `fast_frame` (or
+`simus_frame`, the reference), then `localise_lesion` on the first frame and
+`SpeckleTracker.update` on the next ones. pymust and scikit-image are
+imported only by the functions that use them.
+"""
+
+from scissor_cli.sensing.ultrasound.fast import FrameKernels, fast_frame, frame_kernels, log_compress
+from scissor_cli.sensing.ultrasound.transducer import (
+    LINEAR_PROBES, ImageGrid, ProbeParams, ProbePose, image_grid, probe_params,
+)
+from scissor_cli.sensing.ultrasound.psf import PsfModel, build_psf, elevation_width_mm
+from scissor_cli.sensing.ultrasound.scatterers import ECHOGENICITY_DB, Scatterers, draw_scatterers
+from scissor_cli.sensing.ultrasound.simus_ref import simus_frame
+from scissor_cli.sensing.ultrasound.speckle_tracking import (
+    SpeckleTracker, TrackingParams, TrackState, block_match, localise_lesion,
+)
+from scissor_cli.sensing.ultrasound.validation import FastValidation, validate_fast
+
+__all__ = [
+    "ECHOGENICITY_DB", "FastValidation", "FrameKernels", "ImageGrid", "LINEAR_PROBES", "ProbeParams", "ProbePose",
+    "PsfModel", "Scatterers", "SpeckleTracker", "TrackState", "TrackingParams", "block_match", "build_psf",
+    "draw_scatterers", "elevation_width_mm", "fast_frame", "frame_kernels", "image_grid", "localise_lesion",
+    "log_compress", "probe_params", "simus_frame", "validate_fast",
+]
