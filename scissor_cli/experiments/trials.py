@@ -26,7 +26,7 @@ from scissor_cli.solvers.equilibrium import solve_equilibrium
 from scissor_cli.planning.corridor import corridor_radius
 from scissor_cli.experiments.pool import run_pool
 from scissor_cli.experiments.profiles import ErrorModel, draw_insertion, draw_trial, error_model
-from scissor_cli.insertion import InsertionOptions, NeedleParams, needle_path, run_insertion
+from scissor_cli.insertion import InsertionOptions, NeedleParams, needle_path, run_strategies
 from scissor_cli.experiments.build import build_model
 
 
@@ -213,15 +213,14 @@ class TrialContext:
         if tissue is not self.tissue and "loop" in ins.strategies and needle is None:
             s0, x0 = model_start if model_start is not None else (None, None)
             model_x0 = solve_equilibrium(self.tissue, loop.final_strokes, start=x0, start_strokes=s0).x
-        miss, depth_error = [], []
-        for strategy in ins.strategies:
-            options = InsertionOptions(strategy, self.cfg.controller, sensor, self.tissue, model_x0, needle,
-                                       keep_displacement=False)
-            path = needle_path(tissue, task.entry, task.direction, task.depth_mm, task.rest, task.name,
-                               None if needle is None else needle.height_for(strategy))
-            r = run_insertion(tissue, loop.final_x, loop.final_strokes, path, params, options)
-            miss.append(r.miss_mm)
-            depth_error.append(r.depth_error_mm)
+        options = {strategy: InsertionOptions(strategy, self.cfg.controller, sensor, self.tissue, model_x0, needle,
+                                              keep_displacement=False) for strategy in ins.strategies}
+        paths = {strategy: needle_path(tissue, task.entry, task.direction, task.depth_mm, task.rest, task.name,
+                                       None if needle is None else needle.height_for(strategy))
+                 for strategy in ins.strategies}
+        results = run_strategies(tissue, loop.final_x, loop.final_strokes, paths, params, options)
+        miss = [r.miss_mm for r in results]
+        depth_error = [r.depth_error_mm for r in results]
         return np.array(miss), np.array(depth_error)
 
 

@@ -24,6 +24,7 @@ runs the model's own insertion (`model_state.ModelInsertion`).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import time
 from dataclasses import dataclass, field
@@ -168,6 +169,90 @@ class _Trace:
     unsettled: int = 0
 
 
+class _Needle:
+    """One needle going in: the plant's equilibrium x (N, d) at strokes s (C,), the needle's state, the rows.
+
+    `pending` is a loop command not yet applied: with a tabulated model the
+    cups move with the needle's next step (one equilibrium for both), not in
+    an equilibrium of their own.
+    """
+
+    def __init__(self, tissue: Tissue, x0: np.ndarray, strokes: np.ndarray, path: NeedlePath, params: NeedleParams,
+                 options: InsertionOptions):
+        self.tissue, self.path, self.params, self.options = tissue, path, params, options
+        self.n = np.asarray(path.direction, float) / np.linalg.norm(path.direction)
+        self.p0 = np.asarray(path.entry, float)
+        if self.n.size == 3 and abs(self.n[2]) > 1e-12:
+            raise ValueError("in the slab the needle's axis lies in the layer (direction z = 0)")
+        self.probe, self.embedding = layer_points(tissue, np.asarray(path.target_rest, float),
+                                                  [o.outline for o in tissue.scene.obstacles])
+        self.state = NeedleState(self.p0, self.n)
+        self.candidates = free_nodes(tissue)
+        self.x, self.s = np.array(x0, float), np.array(strokes, float)
+        self.pending: Optional[np.ndarray] = None
+        self.trace = _Trace()
+
+    def target(self) -> np.ndarray:
+        """The true target (d,) mm."""
+        return target_positions(self.probe, self.x)[0]
+
+    def seen(self) -> np.ndarray:
+        """The sensor's reading of the target (2,) mm."""
+        return self.options.sensor.measure(TrueState(self.target(), self.x, self.tissue.mesh))
+
+    def step(self, step_mm: float):
+        """Advance by step_mm (with a pending cup command); the row recorded. Raises SolverError."""
+        x = self.x
+        if self.pending is not None:
+            self.s, self.pending = self.pending, None
+            x = self.tissue.apply_strokes(x, self.s)
+        out = advance(self.tissue, self.state, x, self.s, step_mm, self.params, self.candidates)
+        self.x = out.x
+        return out
+
+    def keep(self, out) -> None:
+        """The row of the step just taken (and the hooks')."""
+        t, state, x = self.trace, self.state, self.x
+        t.unsettled += not out.settled
+        t.rows.append((state.depth_mm, state.tip, self.target(), out.force_mN, out.stuck, out.slipping,
+                       _clearance(self.embedding, x, self.p0[:2], state.tip[:2], self.params.radius_mm),
+                       self.s.copy()))
+        if self.options.keep_displacement:
+            t.frames.append(x - self.tissue.rest)
+        if self.options.on_step is not None:
+            self.options.on_step(state.depth_mm)
+        if self.options.record is not None:
+            self.options.record(state, x, self.s)
+
+    def branch(self) -> "_Needle":
+        """A copy that can go on alone (its rows and state its own; the kept factorisation shared)."""
+        other = copy.copy(self)
+        other.state = dataclasses.replace(self.state)
+        other.trace = _Trace(list(self.trace.rows), list(self.trace.frames), self.trace.unsettled)
+        return other
+
+    def settle_pending(self, loads: np.ndarray) -> None:
+        """Apply a pending command in an equilibrium of its own (the insertion ends: no step to carry it)."""
+        if self.pending is not None:
+            command, self.pending = self.pending, None
+            self.x = move_held(self.tissue, self.state, self.x, self.s, command, loads, None)
+            self.s = command
+            if self.trace.rows:
+                row = self.trace.rows[-1]
+                self.trace.rows[-1] = row[:2] + (self.target(),) + row[3:7] + (self.s.copy(),)
+
+    def result(self, strategy: str, reason: str, wall_s: float) -> InsertionResult:
+        return _result(self.tissue, self.path, strategy, self.trace, self.options.keep_displacement, self.x,
+                       self.target(), self.state, bool(self.embedding.splits), reason, wall_s)
+
+
+def _goal(needle: _Needle, strategy: str) -> float:
+    """How deep (mm) the strategy wants the tip now: the plan's depth, or the measured target along the axis."""
+    if strategy == "none":
+        return needle.path.depth_mm
+    return float((needle.seen() - needle.p0[:2]) @ needle.n[:2])
+
+
 def run_insertion(tissue: Tissue, x0: np.ndarray, strokes: np.ndarray, path: NeedlePath, params: NeedleParams,
                   options: InsertionOptions = InsertionOptions()) -> InsertionResult:
     """Insert from the equilibrium x0 (N, d) at cup strokes (C,) mm along the plan; never raises on a solver failure.
@@ -175,72 +260,102 @@ def run_insertion(tissue: Tissue, x0: np.ndarray, strokes: np.ndarray, path: Nee
     `tissue` is the plant. A failed step ends the insertion with the reason
     in stop_reason; what was reached is kept.
     """
-    strategy = options.strategy
-    if strategy not in STRATEGIES:
-        raise ValueError(f"strategy must be one of {STRATEGIES}, got {strategy!r}")
+    return run_strategies(tissue, x0, strokes, {options.strategy: path}, params, {options.strategy: options})[0]
+
+
+def run_strategies(tissue: Tissue, x0: np.ndarray, strokes: np.ndarray, paths: dict, params: NeedleParams,
+                   options: dict) -> list[InsertionResult]:
+    """Every strategy's insertion from the same state: paths and options by strategy; the results in that order.
+
+    `none` and `depth` move no cup: on one path they take the same steps
+    until one of them is within a step of its goal, so they are inserted as
+    one needle that branches for the last, shortened step of the first to
+    stop (the kept factorisation shared). `loop` goes alone.
+    """
+    for strategy in paths:
+        if strategy not in STRATEGIES:
+            raise ValueError(f"strategy must be one of {STRATEGIES}, got {strategy!r}")
+    results: dict[str, InsertionResult] = {}
+    still = [k for k in paths if k != "loop"]
+    if len(still) == 2 and _same_path(paths[still[0]], paths[still[1]]):
+        results.update(_insert_together(tissue, x0, strokes, paths[still[0]], params,
+                                        {k: options[k] for k in still}))
+    for strategy in paths:
+        if strategy not in results:
+            results.update(_insert_together(tissue, x0, strokes, paths[strategy], params,
+                                            {strategy: options[strategy]}))
+    return [results[k] for k in paths]
+
+
+def _same_path(a: NeedlePath, b: NeedlePath) -> bool:
+    return (np.array_equal(a.entry, b.entry) and np.array_equal(a.direction, b.direction)
+            and a.depth_mm == b.depth_mm and np.array_equal(a.target_rest, b.target_rest))
+
+
+def _insert_together(tissue, x0, strokes, path, params, options: dict) -> dict:
+    """The strategies of `options` on one needle (one strategy, or `none` and `depth` sharing their steps)."""
     t0 = time.perf_counter()
-    n = np.asarray(path.direction, float) / np.linalg.norm(path.direction)
-    p0 = np.asarray(path.entry, float)
-    target_rest = np.asarray(path.target_rest, float)
-    probe, embedding = layer_points(tissue, target_rest, [o.outline for o in tissue.scene.obstacles])
-    if n.size == 3 and abs(n[2]) > 1e-12:
-        raise ValueError("in the slab the needle's axis lies in the layer (direction z = 0)")
-    sensor = options.sensor
-
-    def measure(y: np.ndarray, x: np.ndarray) -> np.ndarray:
-        return sensor.measure(TrueState(y, x, tissue.mesh))
-
-    state = NeedleState(p0, n)
-    candidates = free_nodes(tissue)
-    x, s = np.array(x0, float), np.array(strokes, float)
-    lo = np.array([c.stroke_min_mm for c in tissue.scene.cups])
-    hi = np.array([c.stroke_max_mm for c in tissue.scene.cups])
-    pid = steering = None
-    if strategy == "loop":
-        gains = options.controller
+    first = next(iter(options.values()))
+    needle = _Needle(tissue, x0, strokes, path, params, first)
+    steering = _steering(needle, first, params) if "loop" in options else None
+    pid = None
+    if steering is not None:
+        gains = first.controller
         pid = PID(gains.kp, gains.ki, gains.kd, 1.0 / gains.rate_hz)
-        if options.needle_model is not None:
-            steering = TableSteering(options.needle_model, state.transverse[0][:2],
-                                     gains.jacobian_update == "broyden", sensor.noise_mm)
-        else:
-            steering = _model_state(tissue, options.model, x, options.model_x0, s, p0, n, target_rest, params)
-    trace = _Trace()
-    reason = ""
+    running = {k: needle for k in options}  # each strategy's needle (a branch once it takes its last step)
+    last: dict[str, bool] = dict.fromkeys(options, False)
+    done: dict[str, InsertionResult] = {}
     max_depth = MAX_DEPTH_FACTOR * path.depth_mm + params.step_mm
-    last = False
-    while True:
-        y = target_positions(probe, x)[0]
-        goal = path.depth_mm if strategy == "none" else float((measure(y, x) - p0[:2]) @ n[:2])
-        remaining = goal - state.depth_mm
-        if remaining <= 1e-9 or last:
-            # the last step is shortened to the goal measured before it; the drag during it is not chased
-            reason = "depth reached" if strategy == "none" else "target reached"
+    loads = np.zeros(0)
+    while running:
+        # each strategy's goal, measured before the step (in the order of `options`: a sensor's draws with it)
+        remaining = {k: _goal(n, k) - n.state.depth_mm for k, n in running.items()}
+        for k in list(running):
+            if remaining[k] <= 1e-9 or last[k]:
+                # the last step is shortened to the goal measured before it; the drag during it is not chased
+                n = running.pop(k)
+                if steering is not None:
+                    n.settle_pending(loads)
+                done[k] = n.result(k, "depth reached" if k == "none" else "target reached", time.perf_counter() - t0)
+        if not running:
             break
-        last = remaining <= params.step_mm
-        if state.depth_mm >= max_depth:
-            reason = f"stopped at {state.depth_mm:.3g} mm: the target kept moving ahead of the tip"
+        if needle.state.depth_mm >= max_depth:
+            for k, n in running.items():
+                done[k] = n.result(k, f"stopped at {n.state.depth_mm:.3g} mm: the target kept moving ahead of the "
+                                      f"tip", time.perf_counter() - t0)
             break
+        shared = [k for k, n in running.items() if n is needle]
+        ending = [k for k in shared if remaining[k] <= params.step_mm]
+        for k in ending:
+            last[k] = True
+            if len(shared) > 1:  # the others go on from here: this one's last step on a branch
+                running[k] = needle.branch()
         try:
-            out = advance(tissue, state, x, s, min(params.step_mm, remaining), params, candidates)
-            x = out.x
-            if pid is not None:
-                x, s = _loop_correction(tissue, steering, state, x, s, out.loads, probe, pid, lo, hi, p0, measure)
+            for k, n in running.items():
+                if n is needle and k != shared[0] and k not in ending:
+                    continue  # (one step of the shared needle serves every strategy on it)
+                amount = min(params.step_mm, remaining[k]) if k in ending else params.step_mm
+                out = n.step(amount)
+                loads = out.loads
+                if steering is not None:
+                    _correct(n, steering, out.loads, pid)
+                n.keep(out)
         except SolverError as exc:
-            reason = f"solver failed at depth {state.depth_mm:.3g} mm: {exc}"
+            for k, n in list(running.items()):
+                done[k] = n.result(k, f"solver failed at depth {n.state.depth_mm:.3g} mm: {exc}",
+                                   time.perf_counter() - t0)
             break
-        trace.unsettled += not out.settled
-        y = target_positions(probe, x)[0]
-        trace.rows.append((state.depth_mm, state.tip, y, out.force_mN, out.stuck, out.slipping,
-                           _clearance(embedding, x, p0[:2], state.tip[:2], params.radius_mm), s.copy()))
-        if options.keep_displacement:
-            trace.frames.append(x - tissue.rest)
-        if options.on_step is not None:
-            options.on_step(state.depth_mm)
-        if options.record is not None:
-            options.record(state, x, s)
-    y = target_positions(probe, x)[0]
-    return _result(tissue, path, strategy, trace, options.keep_displacement, x, s, y, state,
-                   bool(embedding.splits), reason, time.perf_counter() - t0)
+    return done
+
+
+def _steering(needle: _Needle, options: InsertionOptions, params: NeedleParams):
+    """`loop`'s source of J: the tabulated 3-D model, or a model tissue under the needle."""
+    gains = options.controller
+    if options.needle_model is not None:
+        return TableSteering(options.needle_model, needle.state.transverse[0][:2], gains.jacobian_update == "broyden",
+                             options.sensor.noise_mm, gains.tolerance_mm)
+    return _model_state(needle.tissue, options.model, needle.x, options.model_x0, needle.s, needle.p0, needle.n,
+                        np.asarray(needle.path.target_rest, float), params)
 
 
 def layer_points(tissue: Tissue, target_rest: np.ndarray, obstacles: list):
@@ -275,32 +390,42 @@ def _model_state(plant, model, x0, model_x0, strokes, p0, n, target_rest, params
     return ModelState(model, plant, model_x0, x0, strokes)
 
 
-def _loop_correction(tissue, steering, state, x, s, loads, probe, pid, lo, hi, p0, measure):
+def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID) -> None:
     """One §6 loop iteration on the miss across the needle, the needle holding its captured nodes.
 
     J is the controller's: its 3-D model's held Jacobian at this depth
-    (`steering.TableSteering`), or its model tissue's linear response with
-    the hold at its own equilibrium under the needle (`ModelState`,
-    `ModelInsertion`); the plant is then solved at the command with the
-    same hold.
+    (`steering.TableSteering`; the command then moves the cups with the
+    next step), or its model tissue's linear response with the hold at its
+    own equilibrium under the needle (`ModelState`, `ModelInsertion`; the
+    plant is then solved at the command with the same hold).
     """
-    y = target_positions(probe, x)[0]
-    seen = measure(y, x)
-    e = np.array([-(seen - p0[:2]) @ state.transverse[0][:2]])
+    state, x, s = needle.state, needle.x, needle.s
+    seen = needle.seen()
+    e = np.array([-(seen - needle.p0[:2]) @ state.transverse[0][:2]])
     if isinstance(steering, TableSteering):
         J, responses = steering.jacobian(state.depth_mm, s, seen), None
+        e = np.array([-steering.offset(state.depth_mm, s, -e[0], J[0])])
     else:
         steering.follow(state, x, s, loads)
-        J, responses = steering.jacobian(state, probe, state.solver)
+        J, responses = steering.jacobian(state, needle.probe, state.solver)
         if responses.shape[1:] != x.shape:
             # a 2-D model's responses are no start for the slab (its levels near the fixed chest wall do not
             # move as the layer does): the strokes placed only
             responses = None
     ds, _, _ = split_error(J, e)
+    tissue = needle.tissue
+    lo = np.array([c.stroke_min_mm for c in tissue.scene.cups])
+    hi = np.array([c.stroke_max_mm for c in tissue.scene.cups])
+    if isinstance(steering, TableSteering):  # the drives' speed over one control period, as in the manipulation
+        reach = np.array([c.speed_mm_per_s for c in tissue.scene.cups]) * pid.dt
+        ds = np.clip(ds, -reach, reach)
     command, _ = pid.command(s, ds, lo, hi)
     if np.allclose(command, s, atol=1e-12, rtol=0):
-        return x, s
-    return _move_plant(tissue, state, x, s, command, loads, responses), command
+        return
+    if isinstance(steering, TableSteering):
+        needle.pending = command
+    else:
+        needle.x, needle.s = _move_plant(tissue, state, x, s, command, loads, responses), command
 
 
 def _move_plant(tissue, state, x, s, command, loads, responses) -> np.ndarray:
@@ -316,7 +441,7 @@ def _clearance(embedding, x, p0, tip, radius_mm) -> float:
     return min(segment_polygon_distance(p0, tip, poly[:, :2]) for poly in outlines) - radius_mm
 
 
-def _result(tissue, path: NeedlePath, strategy, trace: _Trace, keep, x, s, y, state, has_obstacles, reason,
+def _result(tissue, path: NeedlePath, strategy, trace: _Trace, keep, x, y, state, has_obstacles, reason,
             wall) -> InsertionResult:
     rows = trace.rows
     k = len(rows)

@@ -19,7 +19,8 @@ target is when the tip reaches it: the drag out of the plane is
 pre-compensated, since no sensor in the layer's plane can see it), and
 `loop` steers with its Jacobian at the current depth (`TableSteering`),
 corrected online by Broyden's update from what the sensor sees with the
-model's drag taken off (`controller.jacobian_update: broyden`). Nothing of
+model's drag taken off, averaged over BROYDEN_WINDOW frames
+(`controller.jacobian_update: broyden`). Nothing of
 the true tissue enters: the model is the nominal slab's, the measurement
 the sensor's.
 """
@@ -32,6 +33,12 @@ from typing import Optional
 import numpy as np
 
 from scissor_cli.control.broyden import BroydenCorrection
+
+#: the process noise (mm per step) of the across-axis offset's filter: the drag the model may miss in a step
+DRIFT_SD_MM = 0.01
+#: Broyden's secant during an insertion is taken on the mean of this many frames (and of their strokes): under
+#: the hold the cups move the target little, and one frame's noise would teach J the noise
+BROYDEN_WINDOW = 5
 
 
 @dataclass(frozen=True)
@@ -91,11 +98,36 @@ class TableSteering:
     guard). `jacobian` returns the (1, C) response of the across-axis miss.
     """
 
-    def __init__(self, model: NeedleModel, across: np.ndarray, broyden: bool = False, noise_mm: float = 0.0):
+    def __init__(self, model: NeedleModel, across: np.ndarray, broyden: bool = False, noise_mm: float = 0.0,
+                 prior_sd_mm: float = 0.1):
         self.model = model
+        self.prior_sd_mm = float(prior_sd_mm)
         self.across = np.asarray(across, float)[:2]
         self.correction: Optional[BroydenCorrection] = BroydenCorrection(noise_mm) if broyden else None
         self._drift0: Optional[np.ndarray] = None
+        self._window: list = []
+        self._noise_var = float(noise_mm) ** 2
+        #: the filter: the offset's estimate (mm) and variance (mm²), the depth and strokes it holds at
+        self._offset: Optional[float] = None
+        self._var = 0.0
+        self._at: tuple = ()
+
+    def offset(self, depth_mm: float, strokes: np.ndarray, seen_offset_mm: float, J_across: np.ndarray) -> float:
+        """The filtered across-axis offset (mm) of the target from the needle line, from this frame's
+        `seen_offset_mm` at depth (mm) and strokes (C,) mm; J_across (C,) the held Jacobian steered with."""
+        strokes = np.asarray(strokes, float)
+        if self._offset is None:  # the manipulation's end: on the line within the tolerance
+            self._offset, self._var = 0.0, self.prior_sd_mm ** 2
+        else:
+            depth0, strokes0, J0 = self._at
+            drift = self.across @ (self.model.target_at(depth_mm) - self.model.target_at(depth0))[:2]
+            self._offset += float(drift + J0 @ (strokes - strokes0))
+            self._var += DRIFT_SD_MM ** 2
+        gain = self._var / (self._var + self._noise_var) if self._var + self._noise_var > 0 else 1.0
+        self._offset += gain * (float(seen_offset_mm) - self._offset)
+        self._var *= 1.0 - gain
+        self._at = (depth_mm, strokes.copy(), np.asarray(J_across, float).copy())
+        return self._offset
 
     def jacobian(self, depth_mm: float, strokes: np.ndarray, measured: np.ndarray) -> np.ndarray:
         """J (1, C) of the across-axis miss at this depth; `measured` (2,) the sensor's target at strokes (C,) mm.
@@ -109,6 +141,10 @@ class TableSteering:
             drift = self.model.target_at(depth_mm)[:2]
             if self._drift0 is None:
                 self._drift0 = drift
-            self.correction.observe(J, strokes, np.asarray(measured, float) - (drift - self._drift0))
+            self._window.append((np.array(strokes, float), np.asarray(measured, float) - (drift - self._drift0), J))
+            if len(self._window) == BROYDEN_WINDOW:
+                s, y, Js = (np.mean(v, axis=0) for v in zip(*self._window))
+                self.correction.observe(Js, s, y)
+                self._window.clear()
             J = self.correction.jacobian(J)
         return (self.across @ J)[None, :]
