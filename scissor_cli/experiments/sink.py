@@ -116,6 +116,38 @@ class Insertion:
     layer: Optional["SlabProbe"] = None
 
 
+@dataclass(frozen=True)
+class ImagingRecord:
+    """The ultrasound frames of one target's nominal manipulation (docs/model.md §17, docs/contract.md `/imaging`).
+
+    grid_lateral_mm (W,), grid_depth_mm (H,): the image grid in the probe's
+    frame (depth along `axis`, lateral along axis turned +90°; depth is the
+    scanner's apparent depth); frames (K, H, W) float32: the envelope of
+    each frame, linear (before log compression); tracked (K, 2) mm: where
+    the tracking put the lesion, in the layer's frame; true (K, 2) mm: the
+    true target there (in-plane); strokes (K, C) mm: the strokes of each
+    frame; needle_entry (2,), needle_direction (2,): the plan's needle line
+    in the layer; desired (2,) mm; probe_position_mm (2,), probe_axis (2,):
+    the probe's pose in the layer (as the scanner assumes it); attrs: the
+    /imaging attributes (probe, sound speeds, model, frame_time_s, the fast
+    model's validation against SIMUS, …).
+    """
+
+    target: str
+    grid_lateral_mm: np.ndarray
+    grid_depth_mm: np.ndarray
+    frames: np.ndarray
+    tracked: np.ndarray
+    true: np.ndarray
+    strokes: np.ndarray
+    needle_entry: np.ndarray
+    needle_direction: np.ndarray
+    desired: np.ndarray
+    probe_position_mm: np.ndarray
+    probe_axis: np.ndarray
+    attrs: dict
+
+
 class RunSink(Protocol):
     """Where the stages' products go. A context manager: leaving it ends the run.
 
@@ -171,6 +203,10 @@ class RunSink(Protocol):
 
     def manipulation(self, manipulation: Manipulation) -> Optional[Path]:
         """The nominal manipulation of one target and its figure; returns the figure's path."""
+
+    def imaging(self, record: ImagingRecord, tissue: "Tissue", layer_frames: list) -> list[Path]:
+        """With `imaging`: /imaging/<target> and its figures (B-mode before/after, the manipulation's animation
+        beside the tissue; layer_frames: the tissue's nodes (N, 2) mm at each frame). Returns the figures."""
 
     def insertion(self, insertion: Insertion) -> list[Path]:
         """One target's insertions under every strategy and their figures; returns the figures' paths."""
