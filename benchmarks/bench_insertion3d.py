@@ -9,9 +9,17 @@ direction lifted to the layer's height (strategy `none`):
   median of the repeats, and one step's median;
 * the factorisations, active-set passes and chord steps per step, the
   captured nodes at the end and the final miss (the evidence that holds
-  when the machine is busy).
+  when the machine is busy);
+* a step against its floor (docs/model.md §18): one energy gradient plus
+  one solve on the kept factor per chord step (each timed alone, median of
+  20), plus each refactorisation; the rest is the step's own bookkeeping
+  (capture, shares, the hold's Schur complement, the active-set rule).
 
-    PYTHONPATH=. python benchmarks/bench_insertion3d.py [CONFIG.yaml] [--depth MM] [--repeats K]
+The slab is the one `scissor simulate` would use: with `layer_check.accuracy_mm`
+(0.1 mm by default) the ladder's pick (cached beside runs/); --configured
+benches the configured slab.
+
+    PYTHONPATH=. python benchmarks/bench_insertion3d.py [CONFIG.yaml] [--depth MM] [--repeats K] [--configured]
 
 The machine has 2 cores and other work may share them: the numbers are
 wall-clock medians, printed with the load average and the CPU time.
@@ -35,6 +43,9 @@ from scissor_cli.layer3d.slab import build_slab, slab_probe
 from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
 from scissor_cli.experiments.build import build_model
 from scissor_cli.planning.needle_plan import plan_target
+from scissor_cli.experiments.layer_check_stage import slab_resolution_stage
+from scissor_cli.experiments.run_cache import CACHE_DIR
+from scissor_cli.solvers.linear import factorize_free
 from scissor_cli.solvers.newton import solve_newton
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -46,9 +57,12 @@ def main() -> None:
     ap.add_argument("--depth", type=float, default=50.0, help="insertion depth (mm)")
     ap.add_argument("--step", type=float, default=0.5, help="step (mm)")
     ap.add_argument("--repeats", type=int, default=3, help="repeats of the insertion")
+    ap.add_argument("--configured", action="store_true", help="the configured slab, not accuracy_mm's pick")
     args = ap.parse_args()
     runtime.configure()
     cfg = load_config(args.config)
+    if cfg.layer_check is not None and cfg.layer_check.accuracy_mm is not None and not args.configured:
+        cfg = slab_resolution_stage(cfg, ROOT / "runs" / CACHE_DIR)[0]
     if cfg.insertion is None or cfg.layer_check is None:
         raise SystemExit(f"{args.config}: needs an insertion and a layer_check section")
     scene, mesh, tissue = build_model(cfg)
@@ -100,7 +114,33 @@ def main() -> None:
           f"passes, {k.mean():.1f} chord steps; at the end {state.captured.size} captured "
           f"({int(state.stuck.sum())} stuck), needle force {out.force_mN:.1f} mN, miss {miss:.3f} mm, "
           f"depth error {depth_error:+.3f} mm")
+    grad_s, solve_s, factor_s = _kernel_times(slab, x)
+    floor = (k.mean() * (grad_s + solve_s) + f.mean() * factor_s) * 1e3
+    print(f"floor of a step: {k.mean():.1f} chord steps × (gradient {grad_s * 1e3:.1f} ms + kept-factor solve "
+          f"{solve_s * 1e3:.1f} ms) + {f.mean():.2f} refactorisations × {factor_s * 1e3:.0f} ms = {floor:.0f} ms; "
+          f"measured {np.mean(t):.0f} ms (mean): {np.mean(t) - floor:.0f} ms is the step's own bookkeeping")
     print(f"load average {_load()}")
+
+
+def _kernel_times(slab, x) -> tuple[float, float, float]:
+    """Median (s) of one energy gradient, one solve on the factor and one refactorisation at x (N3, 3)."""
+    K = slab.stiffness_free(x, upper=True)
+    slot: dict = {}
+    factor = factorize_free(slab, K, slot)
+    g = np.random.default_rng(0).standard_normal(slab.free_dofs.size)
+    times = {"grad": [], "solve": [], "factor": []}
+    for _ in range(20):
+        t0 = time.perf_counter()
+        slab.energy_gradient(x)
+        times["grad"].append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        factor.solve(g)
+        times["solve"].append(time.perf_counter() - t0)
+    for _ in range(5):
+        t0 = time.perf_counter()
+        factorize_free(slab, K, slot)
+        times["factor"].append(time.perf_counter() - t0)
+    return tuple(float(np.median(times[k])) for k in ("grad", "solve", "factor"))
 
 
 if __name__ == "__main__":
