@@ -1,7 +1,9 @@
 """The controller models against the slab truth (docs/performance.md, "Controller models"): runs and report.
 
 Writes one variant of a scene per (controller.model, jacobian_update) — the
-scene with `trials.truth: slab` and without its insertion section — runs
+scene with `trials.truth: slab` and without its insertion section (with
+`--needle`, with it: the report then holds each model's needle miss per
+strategy beside the manipulation's, insertion_summary.md) — runs
 `scissor simulate VARIANT --trials N --jobs J` for each and `scissor report`
 over them (the summary table has the controller, stroke-limit stops, time
 per iteration, the model's build time and error). `--reachable` makes the
@@ -9,7 +11,7 @@ variant of docs/performance.md: T2 alone, desired y 21.0 mm.
 
     python benchmarks/compare_controller_models.py [CONFIG] [--trials 6] [--jobs 2] [--reachable]
         [--only layer-none surrogate-none ...] [--localisation MM] [--accuracy-mm MM] [--stop-frames N]
-        [--out DIR]
+        [--needle] [--profile ideal|prosthesis|ex_vivo] [--out DIR]
 
 Default CONFIG: configs/example_full.yaml; the paper's scene is
 configs/paper_trials_prosthesis_slab.yaml (its slab grading is chosen by
@@ -36,19 +38,22 @@ MODELS = [("layer", "none"), ("layer", "broyden"), ("calibrated", "none"), ("cal
           ("surrogate", "none"), ("surrogate", "broyden"), ("slab", "none"), ("slab", "broyden")]
 
 
-def variant(scene: dict, model: str, update: str, reachable: bool, localisation_mm: float | None = None,
-            accuracy_mm: float | None = None, stop_frames: int | None = None) -> dict:
+def variant(scene: dict, model: str, update: str, args) -> dict:
     data = dict(scene)
-    if accuracy_mm is not None:
-        data["layer_check"] = {**data.get("layer_check", {}), "accuracy_mm": accuracy_mm}
-    data.pop("insertion", None)
-    data["trials"] = {**data.get("trials", {}), "truth": "slab"}
+    if args.accuracy_mm is not None:
+        data["layer_check"] = {**data.get("layer_check", {}), "accuracy_mm": args.accuracy_mm}
+    if not args.needle:
+        data.pop("insertion", None)
+    data["trials"] = {**data.get("trials", {}), "truth": "slab", "budget": False}
+    if args.profile is not None:
+        data["trials"]["profile"] = args.profile
+    localisation_mm, stop_frames = args.localisation, args.stop_frames
     if localisation_mm is not None:
         data["trials"]["localisation_error_mm"] = localisation_mm
     data["controller"] = {**data.get("controller", {}), "model": model, "jacobian_update": update}
     if stop_frames is not None:
         data["controller"]["stop_frames"] = stop_frames
-    if reachable:
+    if args.reachable:
         data["targets"] = [dict(t, desired_mm=[58.0, 21.0]) for t in data["targets"] if t["name"] == "T2"]
     return data
 
@@ -65,6 +70,8 @@ def main() -> None:
                     help="set layer_check.accuracy_mm: the slab the ladder picks instead of the one the config pins")
     ap.add_argument("--stop-frames", type=int, default=None,
                     help="set controller.stop_frames: stop on the mean of this many camera frames")
+    ap.add_argument("--needle", action="store_true", help="keep the scene's insertion: the needle miss per model")
+    ap.add_argument("--profile", default=None, help="override trials.profile")
     ap.add_argument("--out", default=str(ROOT / "runs" / "controller-models"))
     args = ap.parse_args()
     out = Path(args.out)
@@ -76,9 +83,7 @@ def main() -> None:
         if args.only and name not in args.only:
             continue
         path = out / f"{name}.yaml"
-        path.write_text(yaml.safe_dump(variant(scene, model, update, args.reachable, args.localisation,
-                                               args.accuracy_mm, args.stop_frames),
-                                       sort_keys=False))
+        path.write_text(yaml.safe_dump(variant(scene, model, update, args), sort_keys=False))
         t0 = time.perf_counter()
         r = subprocess.run([sys.executable, "-m", "scissor_cli", "simulate", str(path), "--trials", str(args.trials),
                             "--jobs", str(args.jobs), "--out", str(out / name), "--force"])
