@@ -67,6 +67,31 @@ class FrameKernels:
     def rank(self) -> int:
         return self.axial_re.shape[0]
 
+    def window(self, rows: slice, columns: slice) -> "FrameKernels":
+        """The tables of a window of this grid (rows and columns of it): frames of only that part of the image.
+
+        A window's frame equals the whole frame's pixels there (the same
+        per-row kernels, gains and elevation beam; scatterers outside it
+        still reach it through the padding), up to the noise, which is drawn
+        for the window's pixels only.
+        """
+        g = self.grid
+        rr = range(*rows.indices(len(g.depth_mm)))
+        cc = range(*columns.indices(len(g.lateral_mm)))
+        if rr.step != 1 or cc.step != 1 or len(rr) < 2 or len(cc) < 2:
+            raise ValueError(f"a window needs at least 2 contiguous rows and columns, got {rows}, {columns}")
+        rows, columns = slice(rr.start, rr.stop), slice(cc.start, cc.stop)
+        c = np.ascontiguousarray
+        return FrameKernels(
+            grid=ImageGrid(g.lateral_mm[columns].copy(), g.depth_mm[rows].copy()),
+            assumed_sound_speed_m_per_s=self.assumed_sound_speed_m_per_s,
+            center_frequency_hz=self.center_frequency_hz,
+            axial_re=c(self.axial_re[:, rows]), axial_im=c(self.axial_im[:, rows]),
+            lateral_re=c(self.lateral_re[:, rows]), lateral_im=c(self.lateral_im[:, rows]),
+            gain_map=c(self.gain_map[rows, columns]), elevation_coef_re=c(self.elevation_coef_re[rows]),
+            elevation_coef_im=c(self.elevation_coef_im[rows]), pad_rows=self.pad_rows, pad_cols=self.pad_cols,
+        )
+
 
 def _bspline3(x: np.ndarray) -> np.ndarray:
     a = np.abs(x)
@@ -158,16 +183,22 @@ def fast_frame(
     snr_db: float | None = None,
     rng: np.random.Generator | None = None,
     attenuation_db_per_cm_mhz: float = 0.0,
+    noise_reference_power: float | None = None,
 ) -> np.ndarray:
     """Envelope (H, W) float32, linear, of scatterers (S,): probe-frame lateral, true depth, elevation mm; amplitude.
 
     `snr_db` sets the electronic noise (None: none); the normals come from
-    `rng` (required with snr_db). Attenuation (dB/cm/MHz, two-way, at the
-    centre frequency) is compensated by an ideal time-gain on apparent depth.
+    `rng` (required with snr_db). The noise power is 10^(-snr/10) times
+    `noise_reference_power` (the compensated signal power, |IQ|^2; default:
+    this frame's own mean), so frames of a window can share the whole
+    image's level. Attenuation (dB/cm/MHz, two-way, at the centre
+    frequency) is compensated by an ideal time-gain on apparent depth.
     """
     c_t = check_sound_speed(tissue_sound_speed_m_per_s, "tissue sound speed")
     if snr_db is not None and rng is None:
         raise ValueError("a noise level (snr_db) needs a random generator (rng)")
+    if noise_reference_power is not None and not (math.isfinite(noise_reference_power) and noise_reference_power >= 0):
+        raise ValueError(f"the noise's reference power must be finite and >= 0, got {noise_reference_power!r}")
     if not (math.isfinite(attenuation_db_per_cm_mhz) and attenuation_db_per_cm_mhz >= 0):
         raise ValueError(f"attenuation must be >= 0 dB/cm/MHz, got {attenuation_db_per_cm_mhz!r}")
     lat = np.ascontiguousarray(lateral_mm, dtype=np.float64)
@@ -188,9 +219,10 @@ def fast_frame(
     phase = np.empty(S, np.float32)
     log_mag = np.empty(S, np.float32)
     two_k = 2.0 * 2.0 * math.pi * k.center_frequency_hz / (c_t * 1e3)
-    bad = kn.scatterer_terms(lat, dep, ele, amp, c_a / c_t, 1.0 / g.dz_mm, k.pad_rows - g.depth_mm[0] / g.dz_mm,
-                             float(g.lateral_mm[0]), 1.0 / g.dx_mm, float(k.pad_cols), two_k, atten,
-                             float(k.pad_rows), k.elevation_coef_re, k.elevation_coef_im, u, v, phase, log_mag)
+    mapping = (c_a / c_t, 1.0 / g.dz_mm, k.pad_rows - g.depth_mm[0] / g.dz_mm, float(g.lateral_mm[0]), 1.0 / g.dx_mm,
+               float(k.pad_cols), two_k, atten, float(k.pad_rows))
+    bad = kn.scatterer_terms((lat, dep, ele, amp), mapping, (k.elevation_coef_re, k.elevation_coef_im),
+                             (u, v, phase, log_mag))
     if bad:
         raise ValueError(f"{bad} scatterers have a non-finite position or amplitude")
     rows, cols = H + 2 * k.pad_rows, W + 2 * k.pad_cols
@@ -217,7 +249,8 @@ def fast_frame(
     if rng is not None:
         noise = complex_normals(rng, (H, W))
         if snr_db is not None:
-            power = kn.signal_power(out_re, out_im, k.gain_map, tgc)
+            power = (kn.signal_power(out_re, out_im, k.gain_map, tgc) if noise_reference_power is None
+                     else float(noise_reference_power))
             std = math.sqrt(power * 10.0 ** (-snr_db / 10.0) / 2.0) if math.isfinite(snr_db) else 0.0
     kn.finish(out_re, out_im, k.gain_map, tgc, noise, np.float32(std), envelope)
     return envelope

@@ -34,9 +34,14 @@ _JIT = dict(cache=True, nogil=True, fastmath=True, boundscheck=False)
 
 # no fastmath here: this loop is where non-finite input is caught, and fastmath may assume there is none
 @njit(cache=True, nogil=True, boundscheck=False)
-def scatterer_terms(lateral_mm, depth_mm, elevation_mm, amplitude, depth_scale, inv_dz, u_offset, lateral0_mm,
-                    inv_dx, v_offset, two_k_per_mm, atten_per_mm, pad_rows, coef_re, coef_im, u, v, phase, log_mag):
+def scatterer_terms(scatterers, mapping, elevation_coef, out):
     """Grid coordinates (S,) float32 and the coefficient's phase (rad, wrapped) and log-magnitude of each scatterer.
+
+    scatterers: (lateral_mm, depth_mm, elevation_mm, amplitude) (S,) each;
+    mapping: (depth_scale, inv_dz, u_offset, lateral0_mm, inv_dx, v_offset,
+    two_k_per_mm, atten_per_mm, pad_rows), the grid's and the pulse's
+    numbers; elevation_coef: (coef_re, coef_im) per padded row; out: (u, v,
+    phase, log_mag) (S,) float32, written.
 
     u = apparent depth in padded rows, v = lateral in padded columns (both
     clamped to a range whose integer part is safe); the coefficient is
@@ -45,6 +50,10 @@ def scatterer_terms(lateral_mm, depth_mm, elevation_mm, amplitude, depth_scale, 
     scatterers with a non-finite position or amplitude (then the outputs
     are not to be used).
     """
+    lateral_mm, depth_mm, elevation_mm, amplitude = scatterers
+    depth_scale, inv_dz, u_offset, lateral0_mm, inv_dx, v_offset, two_k_per_mm, atten_per_mm, pad_rows = mapping
+    coef_re, coef_im = elevation_coef
+    u, v, phase, log_mag = out
     n_rows = coef_re.shape[0]
     two_pi = 2.0 * math.pi
     bad = 0
