@@ -197,3 +197,17 @@ def test_the_readme_names_the_layers_in_order():
     section = text[text.index("## Code"):]
     chain = re.findall(r"`(\w+)(?:/|\.py)`", section[:section.index("importable")])
     assert chain == [m for m in LAYERS if m and m not in BASE and m != "__main__"], chain
+
+
+def test_no_function_takes_more_than_12_parameters():
+    """Options travel as a dataclass (docs/architecture.md, "Few parameters")."""
+    many = []
+    for path in PACKAGE.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                a = node.args
+                names = [x.arg for x in a.posonlyargs + a.args + a.kwonlyargs]
+                count = len(names) + bool(a.vararg) + bool(a.kwarg) - (names[:1] in (["self"], ["cls"]))
+                if count > 12:
+                    many.append(f"{path.relative_to(PACKAGE)}:{node.lineno} {node.name} ({count})")
+    assert not many, many
