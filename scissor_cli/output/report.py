@@ -19,6 +19,8 @@ from scissor_cli.output import figures, layer_check, tables
 from scissor_cli.experiments import study as study_mod
 from scissor_cli.output.error_budget.report import report_budget
 from scissor_cli.output.controller_model import report_models_figure
+from scissor_cli.output.imaging.report import report_sensors
+from scissor_cli.output.imaging.results import sensor_of
 from scissor_cli.output.insertion.report import report_insertion
 from scissor_cli.output.results import finished_trials, read_study
 
@@ -54,6 +56,8 @@ class RunTrials:
     controller: str = "layer"
     model_build_s: float = float("nan")
     model_error_mm: float = float("nan")
+    #: what the loop saw the target with: "ultrasound" (the run has /imaging) or "camera"
+    sensor: str = "camera"
 
 
 def load_run(run_dir: Path, partial: bool = False) -> RunTrials:
@@ -78,7 +82,8 @@ def load_run(run_dir: Path, partial: bool = False) -> RunTrials:
                                       _extra_iterations(g, np.flatnonzero(ok), step_mm))
         cups = len(f["cups"]) if "cups" in f else 0
         controller, build, error = _controller(f)
-    return RunTrials(f"{name} ({profile})", Path(run_dir), status, targets, cups, controller, build, error)
+        sensor = sensor_of(f)
+    return RunTrials(f"{name} ({profile})", Path(run_dir), status, targets, cups, controller, build, error, sensor)
 
 
 def _period_step_mm(config_yaml: str) -> Optional[np.ndarray]:
@@ -127,7 +132,7 @@ COLUMNS = [
     "run", "target", "trials", "mean_x", "median_x", "max_x", "p95_x", "mean_y", "median_y", "max_y", "p95_y",
     "iterations_mean", "iterations_max", "time_s_mean", "corridor_clear_pct",
     "cups", "miss_median", "miss_p95", "miss_max", "along_median_abs",
-    "controller", "stroke_limit_stops", "time_per_iteration_s", "model_build_s", "model_error_mm",
+    "controller", "sensor", "stroke_limit_stops", "time_per_iteration_s", "model_build_s", "model_error_mm",
     "plan_model_error_mm", "extra_iterations_median", "extra_iterations_max",
 ]
 
@@ -137,7 +142,7 @@ def summary_rows(runs: list[RunTrials]) -> list[dict]:
     rows = []
     for run in runs:
         for t, d in run.targets.items():
-            row = {"run": run.label, "target": t, "trials": len(d.errors)}
+            row = {"run": run.label, "target": t, "trials": len(d.errors), "sensor": run.sensor}
             if len(d.errors):
                 a = np.abs(d.errors)
                 for j, axis in enumerate("xy"):
@@ -309,6 +314,10 @@ def report_trials(run_dirs: list[Path], out_dir: Path, partial: bool = False) ->
     if ins_files:
         files += ins_files
         table += "\n" + ins_table
+    sensor_files, sensor_table = report_sensors(h5_files, out_dir)
+    if sensor_files:
+        files += sensor_files
+        table += "\nCamera against ultrasound:\n" + sensor_table
     budget_files, budget_table = report_budget(h5_files, out_dir)
     files += budget_files
     table += budget_table

@@ -168,6 +168,15 @@ class ResultsSink:
         inputs = manipulation_figure_inputs(m.tissue, m.closed, m.target_rest, m.corridor)
         return figures.save(figures.manipulation_figure(inputs), self.location / f"manipulation_{m.target}.png")
 
+    def imaging(self, record, tissue, layer_frames: list) -> list[Path]:
+        """/imaging/<target> (docs/contract.md), flushed, then imaging_<target>.png and .gif; returns their paths."""
+        from scissor_cli.output.imaging.figures import imaging_outputs  # noqa: PLC0415
+        from scissor_cli.output.imaging.results import write_imaging  # noqa: PLC0415
+
+        write_imaging(self.out, record, [c.name for c in tissue.scene.cups])
+        self.out.flush()
+        return imaging_outputs(record, tissue, layer_frames, self.location)
+
     def insertion(self, ins) -> list[Path]:
         from scissor_cli.output.insertion.writer import insertion_outputs
 

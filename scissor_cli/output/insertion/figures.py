@@ -72,7 +72,7 @@ def target_path_figure(title: str, results: list, desired: np.ndarray) -> Figure
     return fig
 
 
-def _edges(triangles: np.ndarray) -> np.ndarray:
+def mesh_edges(triangles: np.ndarray) -> np.ndarray:
     e = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
     return np.unique(np.sort(e, axis=1), axis=0)
 
@@ -84,7 +84,7 @@ def insertion_animation(path: Path | str, title: str, triangles: np.ndarray, fra
 
     obstacles: the deformed obstacle outlines of each frame.
     """
-    edges = _edges(triangles)
+    edges = mesh_edges(triangles)
     fig = Figure(figsize=(7, 4.6))
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
