@@ -394,10 +394,12 @@ def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID) -> None:
     """One §6 loop iteration on the miss across the needle, the needle holding its captured nodes.
 
     J is the controller's: its 3-D model's held Jacobian at this depth
-    (`steering.TableSteering`; the command then moves the cups with the
-    next step), or its model tissue's linear response with the hold at its
-    own equilibrium under the needle (`ModelState`, `ModelInsertion`; the
-    plant is then solved at the command with the same hold).
+    (`steering.TableSteering`), or its model tissue's linear response with
+    the hold at its own equilibrium under the needle (`ModelState`,
+    `ModelInsertion`). On the table the command moves the cups with the
+    needle's next step (one equilibrium for both, the step bounded by the
+    drives' speed); otherwise the plant is solved at the command with the
+    same hold (§14, the layer model's loop as it was).
     """
     state, x, s = needle.state, needle.x, needle.s
     seen = needle.seen()
@@ -422,7 +424,7 @@ def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID) -> None:
     command, _ = pid.command(s, ds, lo, hi)
     if np.allclose(command, s, atol=1e-12, rtol=0):
         return
-    if isinstance(steering, TableSteering):
+    if isinstance(steering, TableSteering):  # the cups move with the needle's next step: one equilibrium, not two
         needle.pending = command
     else:
         needle.x, needle.s = _move_plant(tissue, state, x, s, command, loads, responses), command
