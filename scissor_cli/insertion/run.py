@@ -407,6 +407,8 @@ def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID) -> None:
     if isinstance(steering, TableSteering):
         J, responses = steering.jacobian(state.depth_mm, s, seen), None
         e = np.array([-steering.offset(state.depth_mm, s, -e[0], J[0])])
+        if abs(e[0]) <= steering.deadband_mm:  # on the line as well as the filter can tell: the cups stay
+            return
     else:
         steering.follow(state, x, s, loads)
         J, responses = steering.jacobian(state, needle.probe, state.solver)

@@ -36,6 +36,8 @@ from scissor_cli.control.broyden import BroydenCorrection
 
 #: the process noise (mm per step) of the across-axis offset's filter: the drag the model may miss in a step
 DRIFT_SD_MM = 0.01
+#: the share of the controller's tolerance within which the filtered offset leaves the cups where they are
+DEADBAND = 0.5
 #: Broyden's secant during an insertion is taken on the mean of this many frames (and of their strokes): under
 #: the hold the cups move the target little, and one frame's noise would teach J the noise
 BROYDEN_WINDOW = 5
@@ -94,14 +96,18 @@ class TableSteering:
     """The `loop` strategy's Jacobian from a `NeedleModel`, with Broyden's correction when asked for.
 
     across (2,): the in-plane unit normal of the needle's axis; broyden:
-    whether to correct J from the moves; noise_mm: the sensor's σ (Broyden's
-    guard). `jacobian` returns the (1, C) response of the across-axis miss.
+    whether to correct J from the moves; noise_mm: the sensor's σ (the
+    filter's, and Broyden's guard); tolerance_mm: the controller's (the
+    filter's prior σ and the deadband). `jacobian` returns the (1, C)
+    response of the across-axis miss, `offset` the filtered miss.
     """
 
     def __init__(self, model: NeedleModel, across: np.ndarray, broyden: bool = False, noise_mm: float = 0.0,
-                 prior_sd_mm: float = 0.1):
+                 tolerance_mm: float = 0.1):
         self.model = model
-        self.prior_sd_mm = float(prior_sd_mm)
+        self.prior_sd_mm = float(tolerance_mm)
+        #: |offset| (mm) below which the loop does not move the cups
+        self.deadband_mm = DEADBAND * float(tolerance_mm)
         self.across = np.asarray(across, float)[:2]
         self.correction: Optional[BroydenCorrection] = BroydenCorrection(noise_mm) if broyden else None
         self._drift0: Optional[np.ndarray] = None
