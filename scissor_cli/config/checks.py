@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from scissor_cli import geometry
+from scissor_cli.config.imaging_checks import imaging_problems
 from scissor_cli.config.mesh_file import MeshFileError, mesh_file_problem, read_mesh_arrays
 from scissor_cli.config.sections import (MAX_TISSUE_MM, MIN_EDGE_MM, SURROGATE_SAMPLES_PER_CUP, Config, ObstacleConfig,
                                          TissueConfig)
@@ -360,6 +361,7 @@ def scene_problems(cfg: Config) -> list[Problem]:
     problems += _manipulation_point_problems(cfg)
     problems += _insertion_problems(cfg, outline)
     problems += _layer_check_problems(cfg)
+    problems += imaging_problems(cfg, outline, lambda p, o: _inside(p, o, cfg.tissue))
     problems += _point_spacing_problems(cfg)
     if cfg.trials.budget and cfg.trials.count == 0:
         problems.append((("trials", "budget"), "the error budget reruns the trials: it needs trials.count >= 1"))

@@ -299,6 +299,13 @@ class TrialsConfig(_Section):
     #: with `insertion`: σ of log of the factor on the config's friction, and on its tip force
     friction_log_sd: Optional[Spread] = None
     tip_force_log_sd: Optional[Spread] = None
+    #: with `imaging`: σ (m/s) of the tissue's sound speed about imaging.sound_speed_m_per_s
+    sound_speed_sd_m_per_s: Optional[Num(0.0, 200.0)] = None
+    #: with `imaging`: the probe pose's calibration error, σ of its position per axis (mm) and of its angle (deg)
+    probe_position_sd_mm: Optional[Num(0.0, 10.0)] = None
+    probe_angle_sd_deg: Optional[Num(0.0, 10.0)] = None
+    #: with `imaging`: the electronic noise's amplitude relative to imaging.snr_db's (1: that SNR; 0: no noise)
+    electronic_noise_scale: Optional[Num(0.0, 10.0)] = None
     #: the error budget (docs/model.md §16): the trials again with one error source at a time
     budget: bool = False
 
@@ -373,6 +380,51 @@ class LayerCheckConfig(_Section):
     accuracy_mm: Optional[Num(1.0e-4, 100.0)] = 0.1
 
 
+#: the linear arrays the ultrasound sensor simulates, `sensing.ultrasound.LINEAR_PROBES` (config does not import
+#: sensing: tests/test_ultrasound_loop.py holds the two equal)
+LINEAR_PROBE_NAMES = ("L11-5v", "L12-3v", "P4-2v")
+
+
+class ImagingConfig(_Section):
+    """Ultrasound in the loop (docs/ultrasound.md, docs/model.md §17): a linear probe on the skin images the layer's
+    plane and the lesion is localised and tracked on its frames; absent, the camera measures the target.
+
+    The probe's face is centred at position_mm on the tissue's outline,
+    its beam along `axis` into the tissue (lateral: axis turned +90°); the
+    image reaches depth_mm. The scanner converts echo time to depth with
+    assumed_sound_speed_m_per_s, the tissue has sound_speed_m_per_s. The
+    lesion is a disc (in the slab a sphere) of lesion_radius_mm about each
+    target's rest position; echogenicities are in dB relative to the
+    background tissue (obstacles: by their names' kind, or
+    obstacle_echogenicity_db). Checks: `config.imaging_checks`.
+    """
+
+    probe: Literal[LINEAR_PROBE_NAMES] = "L11-5v"
+    position_mm: Vec2 = [0.0, 30.0]
+    #: the beam's direction, a unit vector (length 1 ± 0.01, normalised)
+    axis: Vec2 = [1.0, 0.0]
+    depth_mm: Num(5.0, 250.0) = 70.0
+    assumed_sound_speed_m_per_s: Num(1000.0, 2000.0) = 1540.0
+    sound_speed_m_per_s: Num(1000.0, 2000.0) = 1540.0
+    lesion_radius_mm: Num(gt=0.0, hi=100.0) = 2.0
+    #: not 0: a lesion like the background cannot be seen (checks)
+    lesion_echogenicity_db: Num(-100.0, 40.0) = -10.0
+    #: electronic noise: signal-to-noise ratio (dB) of a frame of background speckle; null: none
+    snr_db: Optional[Num(-20.0, 120.0)] = 30.0
+    #: fast: the fast model, validated against SIMUS; simus: the PyMUST reference (minutes per trial)
+    model: Literal["fast", "simus"] = "fast"
+    #: per obstacle name: its echogenicity (dB), overriding the kind its name says (docs/ultrasound.md §6)
+    obstacle_echogenicity_db: Optional[Annotated[dict[str, Num(-100.0, 40.0)], Len(0, 64)]] = None
+
+    @field_validator("axis")
+    @classmethod
+    def _unit_axis(cls, v: list[float]) -> list[float]:
+        n = float(np.hypot(*v))
+        if abs(n - 1.0) > 1e-2:
+            raise ValueError(f"must be a unit vector (length 1 ± 0.01); got length {n:.4g}")
+        return [v[0] / n, v[1] / n]
+
+
 class Config(_Section):
     name: Annotated[str, Field(pattern=SCENE_NAME_PATTERN)] = "scene"
     #: stored in results.h5 as a signed 64-bit integer
@@ -395,3 +447,5 @@ class Config(_Section):
     manipulation_points: Optional[ManipulationPointsConfig] = None
     insertion: Optional[InsertionConfig] = None
     layer_check: Optional[LayerCheckConfig] = None
+    #: ultrasound in the loop instead of the camera (docs/model.md §17)
+    imaging: Optional[ImagingConfig] = None

@@ -9,12 +9,20 @@ a row equals the trials of that variant config run on its own, bit for
 bit, and the `all` row is the run's own trials (not run again).
 
 Rows, where the scene has them: camera pixel noise; localisation bias;
-material mismatch as four rows (E with its heterogeneity field; ν; η; the
-fiber angle); actuator (resolution and backlash); release slip (only when
-the run sets one); the 3-D truth (with a `layer_check`: the slab against the
-layer); the needle (with `insertion`: the drawn friction and tip force);
+with `imaging` instead of those two (the camera's sources do not apply to
+the ultrasound, docs/model.md §17): the tissue's sound speed; the probe's
+calibration (position and angle); the electronic noise; the speckle alone
+(every other source off: the realisation of the scatterers, always there,
+is what is left of the ultrasound's error); material mismatch as four
+rows (E with its heterogeneity field; ν; η; the fiber angle); actuator
+(resolution and backlash); release slip (only when the run sets one); the
+3-D truth (with a `layer_check`: the slab against the layer); the needle
+(with `insertion`: the drawn friction and tip force);
 `none` (every source off: what is left is the loop's own tolerance, pixel
-rounding and, with insertion, the nominal needle drag).
+rounding and, with insertion, the nominal needle drag; with `imaging`, the
+exact sensor: the imaging section left out and the `ideal` profile, since
+the ultrasound cannot be switched off within itself). With imaging every
+other row keeps the speckle, as the camera's rows keep the pixel rounding.
 """
 
 from __future__ import annotations
@@ -28,16 +36,20 @@ from scissor_cli.config import Config, resolved_yaml
 from scissor_cli.experiments.pool import deferred_signals
 from scissor_cli.experiments.sink import product_key
 from scissor_cli.experiments.trials import execute_rows
-from scissor_cli.experiments.profiles import error_model
+from scissor_cli.experiments.profiles import CAMERA_SPREADS, IMAGING_SPREADS, error_model
 
 #: every `trials` field that switches an error source (their values: the profile's, or the config's)
 SOURCE_FIELDS = ("pixel_noise_px", "localisation_error_mm", "E_log_sd", "heterogeneity_log_sd", "nu_sd",
                  "eta_log_sd", "fiber_angle_sd_deg", "actuator_resolution_mm", "backlash_mm", "release_slip_mm",
-                 "friction_log_sd", "tip_force_log_sd")
+                 "friction_log_sd", "tip_force_log_sd") + IMAGING_SPREADS
 #: the rows of the budget and the fields each switches on, in the order they are reported
 ROWS: dict[str, tuple[str, ...]] = {
     "camera": ("pixel_noise_px",),
     "localisation": ("localisation_error_mm",),
+    "sound_speed": ("sound_speed_sd_m_per_s",),
+    "probe_calibration": ("probe_position_sd_mm", "probe_angle_sd_deg"),
+    "electronic_noise": ("electronic_noise_scale",),
+    "speckle": (),
     "E": ("E_log_sd", "heterogeneity_log_sd"),
     "nu": ("nu_sd",),
     "eta": ("eta_log_sd",),
@@ -49,6 +61,9 @@ ROWS: dict[str, tuple[str, ...]] = {
     "none": (),
 }
 assert set(f for fs in ROWS.values() for f in fs) == set(SOURCE_FIELDS)
+#: the rows only a scene with imaging has, and those (the camera's) it then has not
+IMAGING_ROWS = ("sound_speed", "probe_calibration", "electronic_noise", "speckle")
+CAMERA_ROWS = tuple(name for name, fields in ROWS.items() if fields and set(fields) <= set(CAMERA_SPREADS))
 
 
 @dataclass(frozen=True)
@@ -63,7 +78,13 @@ def budget_plan(cfg: Config) -> BudgetPlan:
     """The budget's rows for a config: variant configs (trials.budget off) by row name, and the rows skipped."""
     values = {k: getattr(error_model(cfg.trials), k) for k in SOURCE_FIELDS}
     rows, notes = {}, []
+    if cfg.imaging is None:
+        notes.append(f"no imaging rows ({', '.join(IMAGING_ROWS)}): the scene has no imaging section")
+    else:
+        notes.append(f"no {' or '.join(CAMERA_ROWS)} row: with imaging the camera's sources do not apply")
     for name, fields in ROWS.items():
+        if (name in IMAGING_ROWS and cfg.imaging is None) or (name in CAMERA_ROWS and cfg.imaging is not None):
+            continue
         if name == "slab" and cfg.layer_check is None:
             notes.append("no 3-D truth row: the scene has no layer_check section")
             continue
@@ -75,7 +96,11 @@ def budget_plan(cfg: Config) -> BudgetPlan:
             continue
         on = {f: (values[f] if f in fields else 0.0) for f in SOURCE_FIELDS}
         truth = "slab" if name == "slab" else "layer"
-        rows[name] = cfg.model_copy(update={"trials": cfg.trials.model_copy(update={**on, "truth": truth, "budget": False})})
+        trials = {**on, "truth": truth, "budget": False}
+        update = {}
+        if name == "none" and cfg.imaging is not None:  # the exact sensor (module docstring)
+            trials["profile"], update["imaging"] = "ideal", None
+        rows[name] = cfg.model_copy(update={**update, "trials": cfg.trials.model_copy(update=trials)})
     return BudgetPlan(rows, notes)
 
 

@@ -57,6 +57,40 @@ factor, so f_k ≤ f_s stays) and its tip force by log-normal factors,
 They are drawn from a stream of their own (seeded by seed, target, trial and
 a fixed tag), so a scene without insertion draws exactly what it drew before.
 
+Ultrasound (only with an `imaging:` section, docs/model.md §17): with
+imaging the camera's sources (pixel noise, localisation bias) do not
+apply; the ultrasound sensor draws its own (`sensing.ultrasound.
+imaging_sensor`), on streams of its own, so a scene without imaging draws
+exactly what it drew before:
+
+* ``sound_speed_sd_m_per_s``: σ of the tissue's speed of sound about
+  `imaging.sound_speed_m_per_s` (the scanner keeps its assumed speed; the
+  time of flight then moves the lesion along the beam by depth ×
+  (c_assumed / c_tissue − 1)). prosthesis 10 m/s: an ultrasound phantom is
+  made of a tissue-mimicking material whose speed is specified or measured
+  (e.g. the CIRS breast phantoms' Zerdine gel, 1540 ± 10 m/s; agar and
+  gelatin recipes are tuned to ±10 m/s). ex_vivo 35 m/s: the beam crosses
+  fat and gland or muscle in unknown shares — breast fat ≈ 1450–1470 m/s,
+  fibroglandular tissue ≈ 1510–1570 m/s (and porcine fat and muscle about
+  the same), so a path's mean speed lies anywhere in a ≈ 120 m/s range,
+  whose σ as a uniform spread is 120 / √12 ≈ 35 m/s;
+* ``probe_position_sd_mm``, ``probe_angle_sd_deg``: the probe's pose as
+  the scanner believes it against where it sits (per axis, and the beam's
+  angle). prosthesis and ex_vivo 0.2 mm and 0.5°: a probe clamped in a
+  machined holder on the robot and calibrated with a phantom; freehand
+  tracked-probe calibrations reach about 0.5–1 mm RMS (Mercier et al.
+  2005 review), a rigid mount registered to the bench does better; the
+  same bench for both profiles;
+* ``electronic_noise_scale``: the electronic noise's amplitude relative
+  to `imaging.snr_db` (1: the configured SNR; 0: none). 1 for prosthesis
+  and ex_vivo: the scanner's noise is the same on both;
+* the speckle realisation (the scatterers' draw) is always there: a trial
+  draws its own tissue.
+
+``ideal`` has none of them (the tissue's speed is the configured one,
+matched to the scanner's in the example scenes; a configured mismatch is a
+property of the scene and applies in every profile).
+
 ``release_slip_mm`` (default 0 in every profile) is an optional extra source:
 the tissue slipping in the cup along the push axis after the loop stops,
 which the paper names as its main error (no prone position, no vertical
@@ -77,16 +111,19 @@ PROFILES: dict[str, dict[str, float]] = {
         pixel_noise_px=0.0, localisation_error_mm=0.0, E_log_sd=0.0, nu_sd=0.0, eta_log_sd=0.0,
         fiber_angle_sd_deg=0.0, heterogeneity_log_sd=0.0, actuator_resolution_mm=0.0, backlash_mm=0.0,
         release_slip_mm=0.0, friction_log_sd=0.0, tip_force_log_sd=0.0,
+        sound_speed_sd_m_per_s=0.0, probe_position_sd_mm=0.0, probe_angle_sd_deg=0.0, electronic_noise_scale=0.0,
     ),
     "prosthesis": dict(
         pixel_noise_px=0.5, localisation_error_mm=0.3, E_log_sd=0.10, nu_sd=0.01, eta_log_sd=0.2,
         fiber_angle_sd_deg=10.0, heterogeneity_log_sd=0.05, actuator_resolution_mm=0.01, backlash_mm=0.02,
         release_slip_mm=0.0, friction_log_sd=0.2, tip_force_log_sd=0.2,
+        sound_speed_sd_m_per_s=10.0, probe_position_sd_mm=0.2, probe_angle_sd_deg=0.5, electronic_noise_scale=1.0,
     ),
     "ex_vivo": dict(
         pixel_noise_px=1.0, localisation_error_mm=0.6, E_log_sd=0.30, nu_sd=0.02, eta_log_sd=0.5,
         fiber_angle_sd_deg=20.0, heterogeneity_log_sd=0.30, actuator_resolution_mm=0.01, backlash_mm=0.02,
         release_slip_mm=0.0, friction_log_sd=0.4, tip_force_log_sd=0.4,
+        sound_speed_sd_m_per_s=35.0, probe_position_sd_mm=0.2, probe_angle_sd_deg=0.5, electronic_noise_scale=1.0,
     ),
 }
 
@@ -114,6 +151,10 @@ class ErrorModel:
     release_slip_mm: float
     friction_log_sd: float = 0.0
     tip_force_log_sd: float = 0.0
+    sound_speed_sd_m_per_s: float = 0.0
+    probe_position_sd_mm: float = 0.0
+    probe_angle_sd_deg: float = 0.0
+    electronic_noise_scale: float = 0.0
 
     @property
     def exact_measurement(self) -> bool:
@@ -185,6 +226,9 @@ def draw_trial(model: ErrorModel, nu_model: float, centroids: np.ndarray, seed: 
 INSERTION_SPREADS = ("friction_log_sd", "tip_force_log_sd")
 #: the tag of the insertion draws' own stream
 INSERTION_STREAM = 12
+#: the ErrorModel fields that only a scene with imaging uses (and stores); the camera's it then does not
+IMAGING_SPREADS = ("sound_speed_sd_m_per_s", "probe_position_sd_mm", "probe_angle_sd_deg", "electronic_noise_scale")
+CAMERA_SPREADS = ("pixel_noise_px", "localisation_error_mm")
 
 
 def draw_insertion(model: ErrorModel, seed: int, target_index: int, trial: int) -> tuple[float, float]:

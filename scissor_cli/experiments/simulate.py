@@ -28,13 +28,14 @@ from scissor_cli.planning.corridor import corridor_radius
 from scissor_cli.planning.needle_plan import NeedlePlan, plan_target, stored_plan
 from scissor_cli.planning.states import StateCache
 from scissor_cli.experiments.pool import deferred_signals
-from scissor_cli.experiments.profiles import INSERTION_SPREADS, error_model
+from scissor_cli.experiments.profiles import CAMERA_SPREADS, IMAGING_SPREADS, INSERTION_SPREADS, error_model
 from scissor_cli.experiments.sink import ForwardCase, Manipulation, ResumableSink, RunSink, SinkFactory, product_key
 from scissor_cli.experiments.sink import NonFiniteError, ResumeError  # noqa: F401 - raised through this module's API
 from scissor_cli.robot.chain import RobotModel
 from scissor_cli.robot.registration import plan_to_joints
 from scissor_cli.experiments.insertion_stage import insertion_stage
 from scissor_cli.experiments.error_budget import run_budget
+from scissor_cli.experiments.imaging_stage import prepare_imaging
 from scissor_cli.experiments.controller_model_stage import controller_model_stage, needs_slab, refitted_model
 from scissor_cli.experiments.model_planning import reserved_scene
 from scissor_cli.experiments.needle_model_stage import needs_needle_models
@@ -201,13 +202,16 @@ def _stages(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary,
     else:
         summary.plans, model_data = _plan_stage(cfg, tissue, sink, summary, execution.jobs)
         sink.mark_finished("plan")
+    imaging_data, nominal_imaging = None, None
+    if cfg.imaging is not None and cfg.trials.count > 0:  # the probe's tables, once per run (docs/model.md §17)
+        imaging_data, nominal_imaging = prepare_imaging(cfg, tissue, cache_dir(sink.location))
     if cfg.trials.count > 0:
-        summary.figures += _manipulation_stage(cfg, tissue, summary.plans, sink, done)
+        summary.figures += _manipulation_stage(cfg, tissue, summary.plans, sink, done, nominal_imaging)
     if cfg.insertion is not None:
         summary.figures += insertion_stage(cfg, tissue, summary.plans, sink, done,
                                            None if model_data is None else model_data.needle)
     if cfg.trials.count > 0:
-        tasks = trial_tasks(tissue, summary.plans, model_data)
+        tasks = [replace(t, imaging=imaging_data) for t in trial_tasks(tissue, summary.plans, model_data)]
         if "trials" not in done:
             allocate_trial_arrays(sink, cfg, tasks, summary.plans)
             sink.mark_finished("trials")
@@ -244,8 +248,10 @@ def trial_tasks(tissue: Tissue, plans: list[NeedlePlan], model_data=None) -> lis
 def allocate_trial_arrays(sink: RunSink, cfg: Config, tasks: list[TargetTask], plans: list[NeedlePlan]) -> None:
     """Room for every trial, with the error model's resolved values; a target without a plan is done at once."""
     em = error_model(cfg.trials)
+    # the sensor's sources: the camera's, or with imaging the ultrasound's (the camera's do not apply then)
+    other_sensor = CAMERA_SPREADS if cfg.imaging is not None else IMAGING_SPREADS
     attrs = {"count": cfg.trials.count, "profile": cfg.trials.profile, "seed": cfg.seed,
-             **{k: v for k, v in asdict(em).items() if k not in ("profile",) + INSERTION_SPREADS}}
+             **{k: v for k, v in asdict(em).items() if k not in ("profile",) + INSERTION_SPREADS + other_sensor}}
     if cfg.insertion is not None:
         attrs.update({k: getattr(em, k) for k in INSERTION_SPREADS})
         attrs["insertion_strategies"] = list(cfg.insertion.strategies)
@@ -254,21 +260,29 @@ def allocate_trial_arrays(sink: RunSink, cfg: Config, tasks: list[TargetTask], p
     sink.allocate_trials([p.target for p in plans], cfg.trials.count, attrs, without_plan)
 
 
-def _manipulation_stage(cfg: Config, tissue: Tissue, plans: list[NeedlePlan], sink: RunSink, done: frozenset[str] = frozenset()) -> list[Path]:
+def _manipulation_stage(cfg: Config, tissue: Tissue, plans: list[NeedlePlan], sink: RunSink, done: frozenset[str] = frozenset(),
+                        imaging=None) -> list[Path]:
     """The nominal manipulation of each planned target (truth = model, exact camera): Fig. 11.
 
     The open-loop baseline (one Jacobian step from rest) is kept beside it.
+    With `imaging` (an `imaging_stage.NominalImaging`) the target is seen by
+    the ultrasound with the ideal profile's draws, and the closed loop's
+    frames go to the sink (docs/model.md §17).
     """
     radius = corridor_radius(cfg.needle)
     paths = []
-    for target, plan in zip(tissue.scene.targets, plans):
+    for index, (target, plan) in enumerate(zip(tissue.scene.targets, plans)):
         if not plan.feasible or product_key("manipulation", target.name) in done:
             continue
         corridor = control.Corridor.from_plan(plan, radius)
         run = control.TargetRun(corridor=corridor, target=target.name)
-        closed = control.run_target(tissue, target.rest, plan.desired, cfg.controller, run)
-        opened = control.run_target(tissue, target.rest, plan.desired, cfg.controller, replace(run, mode="open"))
+        seen = (run.sensor, run.sensor) if imaging is None else imaging.sensors(index, plan.desired)
+        closed = control.run_target(tissue, target.rest, plan.desired, cfg.controller, replace(run, sensor=seen[0]))
+        opened = control.run_target(tissue, target.rest, plan.desired, cfg.controller,
+                                    replace(run, mode="open", sensor=seen[1]))
         path = sink.manipulation(Manipulation(target.name, closed, opened, tissue, target.rest, corridor))
+        if imaging is not None:
+            paths += imaging.hand_over(sink, target.name, plan, closed, seen[0], tissue)
         sink.mark_finished(product_key("manipulation", target.name))
         if path is not None:
             paths.append(path)
@@ -296,18 +310,23 @@ def _trial_stage(sink: RunSink, cfg: Config, tasks: list[TargetTask],
         progress.info(f"trials: {len(work)} to run ({cfg.trials.profile} profile, {execution.jobs} job(s), "
                       f"{execution.executor} executor)")
     advance = progress.bar("trials", len(work))
-    t0, failed, finished = time.perf_counter(), 0, 0
+    t0, failed, finished, lost = time.perf_counter(), 0, 0, []
     with closing(execute(sink.config_yaml, work, execution.jobs, execution.executor, execution.scheduler)) as outcomes:
         for outcome in outcomes:
             with deferred_signals():
                 sink.trial(by_index[outcome.target_index].name, outcome)
             failed += not outcome.ok
+            if outcome.lost_frames:
+                lost.append(f"{by_index[outcome.target_index].name}#{outcome.trial}: {outcome.lost_frames}")
             finished += 1
             if finished == 1 and len(work) > 1:
                 progress.info(expected_duration(outcome.trial_time_s, len(work), execution, loop_s=outcome.time_s))
             advance(1)
     if work:
         progress.info(f"trials done in {time.perf_counter() - t0:.1f} s")
+    if lost:  # with imaging: frames on which the tracking lost the lesion (the last position held)
+        progress.info(f"imaging: the lesion was lost on some frames of {len(lost)} trial(s) ({', '.join(lost[:10])}"
+                      f"{', …' if len(lost) > 10 else ''})")
     sink.trial_figures(cfg.name)
     if failed:
         raise TrialsFailed(f"{failed} trial(s) crashed (see /trials/<target>/message); re-run them with --resume")

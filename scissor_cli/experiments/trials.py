@@ -19,13 +19,13 @@ import numpy as np
 
 from scissor_cli import control, runtime
 from scissor_cli.control.allocation import along_mm, miss_mm
-from scissor_cli.sensing.camera import Camera, CameraModel
 from scissor_cli.sensing.sensor import Sensor, SensorModel, TrialDraws
 from scissor_cli.config import parse_config
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 from scissor_cli.planning.corridor import corridor_radius
 from scissor_cli.experiments.pool import run_pool
 from scissor_cli.experiments.profiles import ErrorModel, draw_insertion, draw_trial, error_model
+from scissor_cli.experiments.sensor_models import sensor_model
 from scissor_cli.insertion import InsertionOptions, NeedleParams, needle_path, run_strategies
 from scissor_cli.experiments.build import build_model
 
@@ -48,6 +48,9 @@ class TargetTask:
     #: slab truth: the nominal slab's (strokes (C,), x (N3, 3)) mm at the plan, solved once per run
     #: (`experiments.slab_starts`); None: the worker solves it
     slab_start: Optional[tuple] = None
+    #: with `imaging`: the probe and its PSF as plain data (`sensor_models.imaging_data`), made once per run;
+    #: None: the worker makes them
+    imaging: Optional[dict] = None
 
 
 @dataclass
@@ -76,6 +79,9 @@ class TrialOutcome:
     insertion_depth_error_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
     #: wall clock of the whole trial: the loop and, with insertion, every strategy's insertion (s)
     trial_time_s: float = 0.0
+    #: with `imaging`: frames on which the tracking lost the lesion (the loop's and the insertions'), and all frames
+    lost_frames: int = 0
+    frames: int = 0
 
 
 class TrialContext:
@@ -85,8 +91,7 @@ class TrialContext:
         self.cfg = parse_config(config_yaml, "<run config>")
         self.scene, self.mesh, self.tissue = build_model(self.cfg)
         self.errors: ErrorModel = error_model(self.cfg.trials)
-        self.sensors: SensorModel = CameraModel(Camera.from_config(self.cfg.camera), self.errors.pixel_noise_px,
-                                                self.errors.localisation_error_mm, ideal=self.errors.exact_measurement)
+        self._sensors: Optional[SensorModel] = None  # made on first use (with imaging, from a task's tables)
         self.centroids = self.mesh.nodes[self.mesh.triangles].mean(axis=1)
         self._guesses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._controller_model = None  # built from the first task's ModelData (every task of a run has the same)
@@ -96,6 +101,13 @@ class TrialContext:
             from scissor_cli.layer3d.truth import SlabTruth
 
             self.slab_truth = SlabTruth(self.tissue, slab_spec(self.cfg.layer_check, self.cfg.tissue.mesh))
+
+    @property
+    def sensors(self) -> SensorModel:
+        """The run's sensor model (`sensor_models.sensor_model`): the camera, or the ultrasound with `imaging`."""
+        if self._sensors is None:
+            self._sensors = sensor_model(self.cfg, self.scene, self.errors)
+        return self._sensors
 
     def guess(self, task: TargetTask) -> Optional[tuple[np.ndarray, np.ndarray]]:
         """The model's equilibrium at the plan's strokes: a warm start for the loop's first big move."""
@@ -132,8 +144,12 @@ class TrialContext:
         return data.needle.get(task.name)
 
     def sensor(self, task: TargetTask, trial: int, draw) -> Sensor:
-        """The trial's sensor: its localisation bias from the trial's normals, its frame noise from the trial's stream."""
-        return self.sensors.for_trial(TrialDraws(draw.localisation_z, draw.rng, (int(self.cfg.seed), task.index, trial)))
+        """The trial's sensor: its localisation bias from the trial's normals, its frame noise from the trial's stream
+        (the ultrasound: its own streams, and the plan's desired position to aim its window at)."""
+        if self._sensors is None and task.imaging is not None:
+            self._sensors = sensor_model(self.cfg, self.scene, self.errors, task.imaging)
+        return self.sensors.for_trial(TrialDraws(draw.localisation_z, draw.rng, (int(self.cfg.seed), task.index, trial),
+                                                 goal_mm=np.asarray(task.desired, float)))
 
     def run(self, task: TargetTask, trial: int) -> TrialOutcome:
         t0 = time.perf_counter()
@@ -168,6 +184,7 @@ class TrialContext:
             history_columns=list(columns), history=table,
             miss_mm=miss_mm(final, task.direction), along_mm=along_mm(-final, task.direction),
             insertion_miss_mm=miss, insertion_depth_error_mm=depth_error, trial_time_s=time.perf_counter() - t0,
+            lost_frames=int(getattr(sensor, "lost_frames", 0)), frames=int(getattr(sensor, "frames", 0)),
         )
 
     def insert(self, task: TargetTask, trial: int, truth, sensor: Sensor, loop) -> tuple[np.ndarray, np.ndarray]:
@@ -201,7 +218,9 @@ class TrialContext:
         params = replace(base, friction_static_mN_per_mm=base.friction_static_mN_per_mm * f_scale,
                          friction_kinetic_mN_per_mm=base.friction_kinetic_mN_per_mm * f_scale,
                          tip_force_mN=base.tip_force_mN * tip_scale)
-        sensor = sensor.reseeded(np.random.default_rng([int(self.cfg.seed), task.index, trial, 13]))
+        # each strategy's sensor goes on from the loop's on its own (a tracker follows one needle), all drawing
+        # their frame noise from the one insertion stream, in the order they measure
+        rng = np.random.default_rng([int(self.cfg.seed), task.index, trial, 13])
         needle = self.needle_model(task)
         if self.slab_truth is None:
             tissue = control.true_tissue(self.tissue, truth)
@@ -213,8 +232,8 @@ class TrialContext:
         if tissue is not self.tissue and "loop" in ins.strategies and needle is None:
             s0, x0 = model_start if model_start is not None else (None, None)
             model_x0 = solve_equilibrium(self.tissue, loop.final_strokes, start=x0, start_strokes=s0).x
-        options = {strategy: InsertionOptions(strategy, self.cfg.controller, sensor, self.tissue, model_x0, needle,
-                                              keep_displacement=False) for strategy in ins.strategies}
+        options = {strategy: InsertionOptions(strategy, self.cfg.controller, sensor.reseeded(rng), self.tissue, model_x0,
+                                              needle, keep_displacement=False) for strategy in ins.strategies}
         paths = {strategy: needle_path(tissue, task.entry, task.direction, task.depth_mm, task.rest, task.name,
                                        None if needle is None else needle.height_for(strategy))
                  for strategy in ins.strategies}

@@ -54,12 +54,15 @@ class TrialDraws:
     localisation bias (the sensor scales them by its σ); rng: the trial's
     stream for per-frame noise; key: (seed, target, trial), the root of any
     further draw a sensor makes on a stream of its own
-    (`np.random.default_rng(key + (tag,))`).
+    (`np.random.default_rng(key + (tag,))`); goal_mm (2,): where the trial
+    is to move the target, when known (a sensor may aim at it: an
+    ultrasound images a window around the target's way; None: unknown).
     """
 
     localisation_z: np.ndarray
     rng: np.random.Generator
     key: tuple[int, ...] = ()
+    goal_mm: Optional[np.ndarray] = None
 
 
 class SensorModel(Protocol):

@@ -6,6 +6,10 @@ Callers outside the package import from here. Per probe and run:
 `simus_frame`, the reference), then `localise_lesion` on the first frame and
 `SpeckleTracker.update` on the next ones. pymust and scikit-image are
 imported only by the functions that use them.
+
+As the loop's sensor (`imaging_sensor`): `imaging_tables` per run,
+`UltrasoundModel` (a `sensing.sensor.SensorModel`), its `for_trial` and
+`nominal` sensors (`UltrasoundSensor`).
 """
 
 from scissor_cli.sensing.ultrasound.fast import FrameKernels, fast_frame, frame_kernels, log_compress
@@ -19,10 +23,14 @@ from scissor_cli.sensing.ultrasound.speckle_tracking import (
     SpeckleTracker, TrackingParams, TrackState, block_match, localise_lesion,
 )
 from scissor_cli.sensing.ultrasound.validation import FastValidation, validate_fast
+from scissor_cli.sensing.ultrasound.imaging_sensor import (
+    ImagingErrors, ImagingTables, UltrasoundModel, UltrasoundSensor, imaging_tables, obstacle_echogenicity,
+)
 
 __all__ = [
-    "ECHOGENICITY_DB", "FastValidation", "FrameKernels", "ImageGrid", "LINEAR_PROBES", "ProbeParams", "ProbePose",
-    "PsfModel", "Scatterers", "SpeckleTracker", "TrackState", "TrackingParams", "block_match", "build_psf",
-    "draw_scatterers", "elevation_width_mm", "fast_frame", "frame_kernels", "image_grid", "localise_lesion",
-    "log_compress", "probe_params", "simus_frame", "validate_fast",
+    "ECHOGENICITY_DB", "FastValidation", "FrameKernels", "ImageGrid", "ImagingErrors", "ImagingTables", "LINEAR_PROBES",
+    "ProbeParams", "ProbePose", "PsfModel", "Scatterers", "SpeckleTracker", "TrackState", "TrackingParams",
+    "UltrasoundModel", "UltrasoundSensor", "block_match", "build_psf", "draw_scatterers", "elevation_width_mm",
+    "fast_frame", "frame_kernels", "image_grid", "imaging_tables", "localise_lesion", "log_compress",
+    "obstacle_echogenicity", "probe_params", "simus_frame", "validate_fast",
 ]
