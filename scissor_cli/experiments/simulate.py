@@ -251,6 +251,7 @@ def allocate_trial_arrays(sink: RunSink, cfg: Config, tasks: list[TargetTask], p
     # the sensor's sources: the camera's, or with imaging the ultrasound's (the camera's do not apply then)
     other_sensor = CAMERA_SPREADS if cfg.imaging is not None else IMAGING_SPREADS
     attrs = {"count": cfg.trials.count, "profile": cfg.trials.profile, "seed": cfg.seed,
+             "sensor": "camera" if cfg.imaging is None else "ultrasound",
              **{k: v for k, v in asdict(em).items() if k not in ("profile",) + INSERTION_SPREADS + other_sensor}}
     if cfg.insertion is not None:
         attrs.update({k: getattr(em, k) for k in INSERTION_SPREADS})

@@ -281,6 +281,10 @@ def allocate_trials(out: ResultsFile, names: list[str], count: int, attrs: dict)
         out.dataset(f"{t}/failed", np.zeros(count, bool), description="trial crashed; see message")
         out.dataset(f"{t}/message", np.array([""] * count, dtype=h5py.string_dtype()))
         out.group(f"{t}/history")
+        if attrs.get("sensor") == "ultrasound":
+            out.dataset(f"{t}/frames", np.zeros(count, np.int64), description="ultrasound frames the trial formed")
+            out.dataset(f"{t}/lost_frames", np.zeros(count, np.int64),
+                        description="frames on which the tracking lost the lesion (the last position kept)")
         strategies = list(attrs.get("insertion_strategies", []))
         if strategies:
             out.dataset(f"{t}/miss_mm", np.full((count, len(strategies)), FILL), "mm", strategies=strategies,
@@ -315,6 +319,8 @@ def trial_record(name: str, o) -> dict:
         "uncorrectable_mm": float(o.uncorrectable_mm) if ok else FILL,
         "manipulation_miss_mm": float(getattr(o, "miss_mm", FILL)) if ok else FILL,
         "along_mm": float(getattr(o, "along_mm", FILL)) if ok else FILL,
+        "frames": int(getattr(o, "frames", 0)) if ok else 0,
+        "lost_frames": int(getattr(o, "lost_frames", 0)) if ok else 0,
         "history_columns": [str(c) for c in o.history_columns] if ok else [],
         "history": np.asarray(o.history, float) if ok else np.zeros((0, 0)),
     }
@@ -340,7 +346,7 @@ def write_trial(out: ResultsFile, rec: dict) -> None:
         out.flush()
     for key in TRIAL_FLOATS + ("iterations", "corridor_clear", "stop_reason", "message"):
         out.put(f"{t}/{key}", k, rec[key])
-    for key in ("miss_mm", "depth_error_mm"):
+    for key in ("miss_mm", "depth_error_mm", "frames", "lost_frames"):
         if key in rec and f"{t}/{key}" in out.h5:
             out.put(f"{t}/{key}", k, rec[key])
     out.put(f"{t}/failed", k, not rec["ok"])
