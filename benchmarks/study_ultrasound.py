@@ -1,0 +1,97 @@
+"""Camera against ultrasound (docs/model.md §17, docs/performance.md "Ultrasound in the loop"); a study, not a test.
+
+Runs `scissor simulate --jobs 2` for each pair (camera, ultrasound) of:
+
+* the paper's prosthesis scene, layer truth, with the error budget
+  (configs/paper_trials_prosthesis.yaml, configs/paper_trials_prosthesis_ultrasound.yaml);
+* the same against the slab (…_slab.yaml, …_slab_ultrasound.yaml);
+* configs/example_ultrasound.yaml (slab truth, the needle, the surrogate) and its camera twin (the same file
+  without `imaging`), without the budget unless --budget;
+
+30 trials per target unless --trials. Then `scissor report` over all of them (summary.md with the sensor
+column, sensors.md: manipulation miss, needle miss and the sensor's error per run and target, budget.md).
+Prints each run's wall time and trial time, and per pair the ultrasound's over the camera's (the goal: a
+slab-truth study with ultrasound ≤ 2× the camera's).
+
+    PYTHONPATH=. python benchmarks/study_ultrasound.py [--trials 30] [--only paper-layer paper-slab example]
+        [--budget] [--out runs/study-ultrasound]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = ROOT / "configs"
+
+
+def pairs(out: Path) -> dict[str, tuple[Path, Path, list[str]]]:
+    """{study: (camera config, ultrasound config, extra options)}."""
+    example = yaml.safe_load((CONFIGS / "example_ultrasound.yaml").read_text())
+    example.pop("imaging")
+    example["name"] = "paper-push-camera"
+    camera_twin = out / "example_camera.yaml"
+    camera_twin.write_text(yaml.safe_dump(example, sort_keys=False))
+    return {
+        "paper-layer": (CONFIGS / "paper_trials_prosthesis.yaml", CONFIGS / "paper_trials_prosthesis_ultrasound.yaml",
+                        ["--budget"]),
+        "paper-slab": (CONFIGS / "paper_trials_prosthesis_slab.yaml",
+                       CONFIGS / "paper_trials_prosthesis_slab_ultrasound.yaml", []),
+        "example": (camera_twin, CONFIGS / "example_ultrasound.yaml", []),
+    }
+
+
+def run(config: Path, out: Path, trials: int, extra: list[str]) -> tuple[float, float]:
+    """(wall time s, the trials' time s from the run's own message)."""
+    t0 = time.perf_counter()
+    r = subprocess.run([sys.executable, "-m", "scissor_cli", "simulate", str(config), "--jobs", "2", "--trials",
+                        str(trials), "--out", str(out), "--force", *extra], capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if r.returncode != 0:
+        print(r.stderr[-3000:])
+        raise SystemExit(f"{config.name}: exit {r.returncode}")
+    found = re.search(r"trials done in ([\d.]+) s", " ".join(r.stderr.split()))
+    return wall, float(found.group(1)) if found else float("nan")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--trials", type=int, default=30)
+    ap.add_argument("--only", nargs="+", default=None)
+    ap.add_argument("--budget", action="store_true", help="the example's pair with its budget too")
+    ap.add_argument("--out", type=Path, default=ROOT / "runs" / "study-ultrasound")
+    args = ap.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+          f"load {os.getloadavg()[0]:.2f}", flush=True)
+    dirs = []
+    for name, (camera, ultrasound, extra) in pairs(args.out).items():
+        if args.only and name not in args.only:
+            continue
+        if name == "example" and args.budget:
+            extra = ["--budget"]
+        times = {}
+        for sensor, config in (("camera", camera), ("ultrasound", ultrasound)):
+            out = args.out / f"{name}-{sensor}"
+            times[sensor] = run(config, out, args.trials, extra)
+            dirs.append(str(out))
+            print(f"{name} {sensor}: {times[sensor][0] / 60:.1f} min in all, trials {times[sensor][1]:.0f} s "
+                  f"(load {os.getloadavg()[0]:.2f})", flush=True)
+        print(f"{name}: ultrasound / camera = {times['ultrasound'][0] / times['camera'][0]:.2f} in all, "
+              f"{times['ultrasound'][1] / times['camera'][1]:.2f} for the trials", flush=True)
+    r = subprocess.run([sys.executable, "-m", "scissor_cli", "report", *dirs, "--out", str(args.out / "report")],
+                       capture_output=True, text=True)
+    print(r.stdout[-6000:])
+
+
+if __name__ == "__main__":
+    main()
