@@ -247,6 +247,7 @@ def test_surrogate_trained_in_two_workers_equals_one_after_the_other(scene, surr
     assert np.array_equal(data.samples.held_targets, surrogate_data.samples.held_targets)
 
 
+@pytest.mark.slow  # (tests/test_resume_stages.py resumes after the plans; this adds the stored model's path)
 def test_a_resumed_run_steers_with_the_model_it_stored(tmp_path, monkeypatch):
     """Stopped after its plans, cache deleted: --resume reads /controller_model (its plans were made with it)
     and finishes with the numbers of an uninterrupted run."""

@@ -154,7 +154,8 @@ def reference(tmp_path_factory):
     return extract(tmp / "run" / "results.h5")
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+@pytest.mark.parametrize("sig", [signal.SIGTERM, pytest.param(signal.SIGINT, marks=pytest.mark.slow)],
+                         ids=["SIGTERM", "SIGINT"])  # (one handler serves both: SIGINT's run is the slow one)
 def test_stop_signal_keeps_finished_trials_and_resume_completes(sig, reference, tmp_path):
     out = tmp_path / "run"
     proc = start(scene(tmp_path), "--jobs", "2", "--out", out)
@@ -284,6 +285,7 @@ def killed_and_resumed_equals_reference(tmp_path: Path, make_scene, kill_after: 
     return reference
 
 
+@pytest.mark.slow  # (the layer's insertion kill, tests/test_resume_stages.py, and slab-truth resume cover its parts)
 def test_slab_truth_insertion_run_sigkilled_then_resumed_equals_an_uninterrupted_one(tmp_path):
     """Trials that insert in the slab (docs/model.md §14): a resume's workers rebuild the slab — on its own,
     twice as coarse plane (`in_plane_scale`: the insertion probes that plane) — and rerun the unfinished
@@ -310,6 +312,7 @@ def budget_rows_of(results_h5: Path) -> dict[str, np.ndarray]:
     return out
 
 
+@pytest.mark.slow  # (a budget row is a run's trials: their kill and resume are the default tests')
 def test_a_budget_run_sigkilled_between_rows_keeps_them_and_resumes_to_the_same_numbers(tmp_path):
     """A budget row is stored and marked finished as a whole: a SIGKILL after some rows keeps those, and
     `--resume` runs only the others, ending with the uninterrupted run's numbers (trials and every row)."""

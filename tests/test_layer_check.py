@@ -96,6 +96,7 @@ def test_run_writes_layer_check(tmp_path):
     assert "layer check" in rep.stdout.lower()
 
 
+@pytest.mark.slow  # (test_slab_truth_inserts_in_the_slab_nominally_and_in_trials runs slab-truth trials too)
 def test_slab_truth_trials(tmp_path):
     """trials.truth: slab runs the closed loop on the 2-D model against the 3-D slab (docs/model.md §13)."""
     path = small_scene(tmp_path)

@@ -24,7 +24,7 @@ from scissor_cli.sensing.sensor import TrueState
 from scissor_cli.solvers.newton import solve_newton
 from helpers import example_dict
 
-INSERTION = {"step_mm": 1.0, "friction_static_mN_per_mm": 15.0, "friction_kinetic_mN_per_mm": 10.0,
+INSERTION = {"step_mm": 2.0, "friction_static_mN_per_mm": 15.0, "friction_kinetic_mN_per_mm": 10.0,
              "tip_force_mN": 100.0, "tip_zone_mm": 2.0, "capture_radius_mm": 2.5, "strategies": ["none", "depth", "loop"]}
 LAYER_Z = 4.0
 TARGET = np.array([48.0, 45.0])  # below the cup

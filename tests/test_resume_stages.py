@@ -88,7 +88,8 @@ def reference(tmp_path_factory) -> tuple[Path, Path]:
     return path, base / "run" / "results.h5"
 
 
-@pytest.mark.parametrize("stage, target", [("layer_check", "push10"), ("insertion", "T2")])
+@pytest.mark.parametrize("stage, target", [pytest.param("layer_check", "push10", marks=pytest.mark.slow),
+                                           ("insertion", "T2")])  # (one resume rule for every stage)
 def test_a_run_stopped_before_its_trials_resumes_without_redoing_what_finished(stage, target, reference, tmp_path,
                                                                                monkeypatch):
     path, ref = reference

@@ -57,6 +57,7 @@ def test_pick_meets_budget_on_example():
     assert picks[0][1] < default_mesh.n_elements  # 1 mm does not need the default mesh
 
 
+@pytest.mark.slow  # (test_pick_meets_budget_on_example is the same check on the default scene)
 @pytest.mark.parametrize("config", ["paper_pull.yaml", "paper_push.yaml", "paper_trials_prosthesis.yaml"])
 def test_pick_meets_budget_on_paper_configs(config):
     check(config, [1.0, 0.5, 0.3])

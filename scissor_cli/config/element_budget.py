@@ -34,7 +34,6 @@ before meshing it, and every level whose mesh has more than `max_elements`.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from scissor_cli import geometry
 from scissor_cli.config.checks import Problem, obstacle_outline, tissue_outline
@@ -99,6 +98,8 @@ class _SizeField:
                   np.asarray([c.contact_mm for c in cfg.cups], float).reshape(-1, 2),
                   _grip_ends(cfg, outline)]
         points += [_sample_closed(o, lo) for o in obstacles]  # within lo/2 of the outline
+        from scipy.spatial import cKDTree  # noqa: PLC0415 - scipy.spatial costs every CLI start half a second
+
         self.tree = cKDTree(np.concatenate(points))
 
     def __call__(self, p: np.ndarray) -> np.ndarray:

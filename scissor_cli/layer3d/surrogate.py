@@ -36,8 +36,6 @@ from dataclasses import dataclass
 from typing import Callable, Optional
 
 import numpy as np
-from scipy.interpolate import RBFInterpolator
-from scipy.stats import qmc
 
 from scissor_cli.layer3d.slab import SlabProbe
 from scissor_cli.mechanics.tissue import Tissue
@@ -73,6 +71,8 @@ def design(lo: np.ndarray, hi: np.ndarray, samples: int) -> tuple[np.ndarray, np
     if 2 ** C <= samples // 2:
         corners = np.array(np.meshgrid(*[[0.0, 1.0]] * C, indexing="ij")).reshape(C, -1).T
     n_held = max(4, samples // 4)
+    from scipy.stats import qmc  # noqa: PLC0415 - scipy.stats costs every `simulate` start most of a second
+
     unit = qmc.Halton(d=C, scramble=True, seed=DESIGN_SEED).random(samples - len(corners) + n_held)
     train = np.vstack([corners, unit[:samples - len(corners)]])
     return lo + train * (hi - lo), lo + unit[samples - len(corners):] * (hi - lo)
@@ -151,6 +151,8 @@ class Surrogate:
         self.data = data
         self._centre = 0.5 * (data.lo + data.hi)
         self._half = np.maximum(0.5 * (data.hi - data.lo), 1e-12)
+        from scipy.interpolate import RBFInterpolator  # noqa: PLC0415 - as scipy.stats above
+
         S, T, _ = data.targets.shape
         self.n_targets = T
         self._rbf = RBFInterpolator(self._scaled(data.strokes), data.targets.reshape(S, 3 * T),
