@@ -115,6 +115,7 @@ def test_a_bias_has_no_variance_but_its_mean_square_share_says_it_dominates():
     assert rows["all"]["mean_square_share"] == 1.0
 
 
+@pytest.mark.slow  # (its rows are runs' trials, which the layer budget above and the slab-truth trials test by default)
 def test_slab_truth_budget_runs_with_its_3d_row(tmp_path):
     """--truth slab --budget: the all row against the slab, a slab row, the other rows on the layer; the report's
     paper table names the truth."""

@@ -221,6 +221,7 @@ def test_surrogate_run_records_the_model_plans_with_it_and_reuses_its_cache(tmp_
     assert (tmp_path / "report" / "controller_models.png").exists()
 
 
+@pytest.mark.slow  # (a plan refused before the trials: tests/test_planner.py's infeasible plans are the default's)
 def test_a_target_the_slab_cannot_reach_is_reported_before_any_trial(tmp_path):
     """With the chest wall held the thin slab barely moves: the calibrated plan is infeasible, said up front."""
     data = small("calibrated", trials=2)

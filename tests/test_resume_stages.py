@@ -89,7 +89,9 @@ def reference(tmp_path_factory) -> tuple[Path, Path]:
 
 
 @pytest.mark.parametrize("stage, target", [pytest.param("layer_check", "push10", marks=pytest.mark.slow),
-                                           ("insertion", "T2")])  # (one resume rule for every stage)
+                                           pytest.param("insertion", "T2", marks=pytest.mark.slow)])
+# (one resume rule for every stage; by default test_sigkill_during_the_insertions_then_resume below resumes a run
+# stopped inside a stage, the harder case)
 def test_a_run_stopped_before_its_trials_resumes_without_redoing_what_finished(stage, target, reference, tmp_path,
                                                                                monkeypatch):
     path, ref = reference
