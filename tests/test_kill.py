@@ -358,3 +358,31 @@ def test_a_budget_run_sigkilled_between_rows_keeps_them_and_resumes_to_the_same_
     reference, now = budget_rows_of(ref_dir / "run" / "results.h5"), budget_rows_of(out / "results.h5")
     assert sorted(now) == sorted(reference)
     assert not [k for k in reference if not np.array_equal(now[k], reference[k])]
+
+
+def _sleep_then_nothing(seconds: float) -> list:
+    time.sleep(seconds)
+    return []
+
+
+def test_a_stop_whose_exception_was_lost_still_stops_the_pool():
+    """A handler's exception raised inside a finaliser is dropped by Python ("Exception ignored in"); the run then
+    ignored later signals as its own clean-up's and went on (seen: a SIGTERM'd slab-truth budget ran on). The pool's
+    wait raises the stop again within STOP_POLL_S and its workers go."""
+    from scissor_cli.experiments import pool
+
+    saved = dict(pool._state)
+    try:
+        pool._state.update(defer=0, pending=None, stopping=False, signum=None)
+        try:
+            pool._on_signal(signal.SIGTERM, None)
+        except pool.Interrupted:
+            pass  # (lost, as in a finaliser)
+        t0 = time.perf_counter()
+        with pytest.raises(pool.Interrupted) as raised:
+            list(pool.run_pool(_sleep_then_nothing, [(30.0,), (30.0,)], 2))
+        assert raised.value.exit_code == 128 + signal.SIGTERM
+        assert time.perf_counter() - t0 < 15.0  # (the workers' start-up and one poll, not their 30 s)
+    finally:
+        pool._state.clear()
+        pool._state.update(saved)

@@ -18,6 +18,12 @@ end with it (docs/contract.md#resume):
   finished.
 * **Storing a trial** is not cut short by a signal: inside
   `deferred_signals()` a signal is noted and raised when the block ends.
+* **A stop that got lost.** Python drops an exception raised by a handler
+  that runs inside a finaliser or a garbage-collector callback ("Exception
+  ignored in ..."); the run then went on, ignoring later signals as the
+  clean-up's. The pool's wait wakes every STOP_POLL_S and raises the stop
+  again, so a run in its trials stops within that time whatever the
+  handler met.
 """
 
 from __future__ import annotations
@@ -57,7 +63,9 @@ class WorkerLost(RuntimeError):
     """A worker process died while the run was going (killed on its own, or out of memory)."""
 
 
-_state = {"defer": 0, "pending": None, "stopping": False}
+_state = {"defer": 0, "pending": None, "stopping": False, "signum": None}
+#: how often (s) the pool's wait looks for a stop whose exception was lost
+STOP_POLL_S = 1.0
 
 
 def _on_signal(signum, frame) -> None:
@@ -66,13 +74,13 @@ def _on_signal(signum, frame) -> None:
     if _state["defer"]:
         _state["pending"] = signum
         return
-    _state["stopping"] = True
+    _state["stopping"], _state["signum"] = True, signum
     raise Interrupted(signum)
 
 
 def install_signal_handlers() -> None:
     """SIGTERM, SIGINT and SIGHUP raise `Interrupted` in the main thread (once; later ones are ignored)."""
-    _state.update(defer=0, pending=None, stopping=False)
+    _state.update(defer=0, pending=None, stopping=False, signum=None)
     for sig in STOP_SIGNALS:
         signal.signal(sig, _on_signal)
 
@@ -91,7 +99,7 @@ def deferred_signals():
         _state["defer"] -= 1
     if not _state["defer"] and _state["pending"] is not None and not _state["stopping"]:
         signum, _state["pending"] = _state["pending"], None
-        _state["stopping"] = True
+        _state["stopping"], _state["signum"] = True, signum
         raise Interrupted(signum)
 
 
@@ -155,7 +163,9 @@ def run_pool(fn: Callable[..., list[T]], batches: Iterable[tuple], jobs: int) ->
     try:
         pending = {pool.submit(fn, *batch) for batch in batches}
         while pending:
-            done, pending = wait(pending, return_when=FIRST_COMPLETED)
+            done, pending = wait(pending, timeout=STOP_POLL_S, return_when=FIRST_COMPLETED)
+            if _state["stopping"] and _state["signum"] is not None:
+                raise Interrupted(_state["signum"])  # (its first raise was lost: see the module doc)
             for future in done:
                 try:
                     items = future.result()
