@@ -100,13 +100,14 @@ def test_plane_ladder_scales_the_layers_mesh():
 
 def test_resolution_ladder_picks_the_smallest_slab_within_the_accuracy(scene_and_slabs):
     """Both ladders are listed, the configured slab first; the pick has the fewest tetrahedra of the candidates
-    whose estimated error is within the accuracy, and no candidate with fewer was within it."""
+    whose error is within the accuracy, and no candidate with fewer was within it (a loose accuracy, on one ladder:
+    tests/test_layer_check.py)."""
     from scissor_cli.layer3d.resolution import choose_slab
 
     _, _, model, _, _ = scene_and_slabs
     cfg = _config()
     planes = plane_ladder(cfg.layer_check, cfg.tissue.mesh)[:3]
-    for accuracy in (10.0, 0.02):
+    for accuracy in (0.02,):
         choice = choose_slab(model, slab_spec(cfg.layer_check, cfg.tissue.mesh), [np.array([4.0])], accuracy, planes=planes)
         rungs = choice.candidates
         assert rungs[0].in_plane_scale == 1.0 and {r.in_plane_scale for r in rungs} == {1.0, 1.5, 2.0}
