@@ -44,6 +44,14 @@ def Int(lo: int, hi: int):
     return Annotated[int, Field(ge=lo, le=hi)]
 
 
+def unit_2d(v: list[float], tol: float) -> list[float]:
+    """A 2-D direction normalised, refused (ValueError) when its length is off 1 by more than tol."""
+    n = float(np.hypot(*v))
+    if abs(n - 1.0) > tol:
+        raise ValueError(f"must be a unit vector (length 1 ± {tol:g}); got length {n:.4g}")
+    return [v[0] / n, v[1] / n]
+
+
 Side = Literal["bottom", "top", "left", "right"]
 Name = Annotated[str, Field(pattern=NAME_PATTERN)]
 Coord = Num(-COORD_MM, COORD_MM)
@@ -117,10 +125,7 @@ class CupConfig(_Section):
     @field_validator("axis")
     @classmethod
     def _unit_axis(cls, v: list[float]) -> list[float]:
-        n = float(np.hypot(*v))
-        if abs(n - 1.0) > 1e-3:
-            raise ValueError(f"must be a unit vector (length 1 ± 0.001); got length {n:.4g}")
-        return [v[0] / n, v[1] / n]
+        return unit_2d(v, 1e-3)
 
 
 class TargetConfig(_Section):
@@ -419,10 +424,7 @@ class ImagingConfig(_Section):
     @field_validator("axis")
     @classmethod
     def _unit_axis(cls, v: list[float]) -> list[float]:
-        n = float(np.hypot(*v))
-        if abs(n - 1.0) > 1e-2:
-            raise ValueError(f"must be a unit vector (length 1 ± 0.01); got length {n:.4g}")
-        return [v[0] / n, v[1] / n]
+        return unit_2d(v, 1e-2)
 
 
 class Config(_Section):
