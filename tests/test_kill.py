@@ -382,7 +382,7 @@ def test_a_stop_whose_exception_was_lost_still_stops_the_pool():
 
     saved = dict(pool._state)
     try:
-        pool._state.update(defer=0, pending=None, stopping=False, signum=None)
+        pool._state.update(defer=0, pending=None, signum=None)
         try:
             pool._on_signal(signal.SIGTERM, None)
         except pool.Interrupted:

@@ -63,24 +63,25 @@ class WorkerLost(RuntimeError):
     """A worker process died while the run was going (killed on its own, or out of memory)."""
 
 
-_state = {"defer": 0, "pending": None, "stopping": False, "signum": None}
+#: signum: the stop signal once the run is stopping (None before); pending: one held by `deferred_signals`
+_state = {"defer": 0, "pending": None, "signum": None}
 #: how often (s) the pool's wait looks for a stop whose exception was lost
 STOP_POLL_S = 1.0
 
 
 def _on_signal(signum, frame) -> None:
-    if _state["stopping"]:
+    if _state["signum"] is not None:
         return  # already stopping: a second Ctrl-C does not cut the clean-up short
     if _state["defer"]:
         _state["pending"] = signum
         return
-    _state["stopping"], _state["signum"] = True, signum
+    _state["signum"] = signum
     raise Interrupted(signum)
 
 
 def install_signal_handlers() -> None:
     """SIGTERM, SIGINT and SIGHUP raise `Interrupted` in the main thread (once; later ones are ignored)."""
-    _state.update(defer=0, pending=None, stopping=False, signum=None)
+    _state.update(defer=0, pending=None, signum=None)
     for sig in STOP_SIGNALS:
         signal.signal(sig, _on_signal)
 
@@ -97,9 +98,9 @@ def deferred_signals():
         yield
     finally:
         _state["defer"] -= 1
-    if not _state["defer"] and _state["pending"] is not None and not _state["stopping"]:
+    if not _state["defer"] and _state["pending"] is not None and _state["signum"] is None:
         signum, _state["pending"] = _state["pending"], None
-        _state["stopping"], _state["signum"] = True, signum
+        _state["signum"] = signum
         raise Interrupted(signum)
 
 
@@ -164,7 +165,7 @@ def run_pool(fn: Callable[..., list[T]], batches: Iterable[tuple], jobs: int) ->
         pending = {pool.submit(fn, *batch) for batch in batches}
         while pending:
             done, pending = wait(pending, timeout=STOP_POLL_S, return_when=FIRST_COMPLETED)
-            if _state["stopping"] and _state["signum"] is not None:
+            if _state["signum"] is not None:
                 raise Interrupted(_state["signum"])  # (its first raise was lost: see the module doc)
             for future in done:
                 try:
