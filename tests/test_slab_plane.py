@@ -107,14 +107,14 @@ def test_resolution_ladder_picks_the_smallest_slab_within_the_accuracy(scene_and
     _, _, model, _, _ = scene_and_slabs
     cfg = _config()
     planes = plane_ladder(cfg.layer_check, cfg.tissue.mesh)[:3]
-    for accuracy in (0.02,):
-        choice = choose_slab(model, slab_spec(cfg.layer_check, cfg.tissue.mesh), [np.array([4.0])], accuracy, planes=planes)
-        rungs = choice.candidates
-        assert rungs[0].in_plane_scale == 1.0 and {r.in_plane_scale for r in rungs} == {1.0, 1.5, 2.0}
-        within = [r for r in rungs if 0 <= r.error_mm <= accuracy]
-        assert choice.chosen.n_tetrahedra == min(r.n_tetrahedra for r in within)
-        tried = [r for r in rungs if r.error_mm >= 0]
-        assert all(r.error_mm > accuracy for r in tried if r.n_tetrahedra < choice.chosen.n_tetrahedra)
+    accuracy = 0.02
+    choice = choose_slab(model, slab_spec(cfg.layer_check, cfg.tissue.mesh), [np.array([4.0])], accuracy, planes=planes)
+    rungs = choice.candidates
+    assert rungs[0].in_plane_scale == 1.0 and {r.in_plane_scale for r in rungs} == {1.0, 1.5, 2.0}
+    within = [r for r in rungs if 0 <= r.error_mm <= accuracy]
+    assert choice.chosen.n_tetrahedra == min(r.n_tetrahedra for r in within)
+    tried = [r for r in rungs if r.error_mm >= 0]
+    assert all(r.error_mm > accuracy for r in tried if r.n_tetrahedra < choice.chosen.n_tetrahedra)
     assert min(r.n_tetrahedra for r in rungs) < rungs[0].n_tetrahedra / 4
 
 
