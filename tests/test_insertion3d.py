@@ -237,3 +237,25 @@ def test_in_a_slab_with_its_own_plane_the_target_is_the_slabs_point(slab_model):
         drag.append(r.target[-1] - probe.positions(slab.rest)[0])
     assert np.linalg.norm(drag[0]) > 0.2
     assert np.linalg.norm(drag[1] - drag[0]) < 0.35 * np.linalg.norm(drag[0])
+
+
+def test_a_cup_moves_from_the_kept_factors_response_not_from_its_nodes_alone(slab_model):
+    """`moved_start`: the cups at the command, the captured nodes where they were, the rest near the held equilibrium."""
+    from scissor_cli.insertion.model_state import move_held, moved_start
+
+    cfg, slab = slab_model[0], slab_model[3]
+    state = NeedleState(ENTRY, AXIS)
+    x, s = slab.rest.copy(), np.zeros(slab.n_cups)
+    while state.depth_mm < 8.0 - 1e-9:
+        out = advance(slab, state, x, s, 1.0, _params(cfg), free_nodes(slab))
+        x, loads = out.x, out.loads
+    command = s + 0.4
+    unfactored = dataclasses.replace(state, solver=None)
+    np.testing.assert_array_equal(moved_start(slab, unfactored, x, command), slab.apply_strokes(x, command))
+    start = moved_start(slab, state, x, command)
+    placed = slab.apply_strokes(x, command)
+    np.testing.assert_array_equal(start[state.captured], x[state.captured])
+    np.testing.assert_array_equal(start.ravel()[slab.dirichlet_dofs], placed.ravel()[slab.dirichlet_dofs])
+    settled = move_held(slab, state, x, s, command, loads, None)
+    far_placed = np.abs(placed - settled).max()
+    assert np.abs(start - settled).max() < 0.2 * far_placed and far_placed > 0.05

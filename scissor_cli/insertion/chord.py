@@ -118,6 +118,11 @@ class ChordSolver:
         self._used = 0
 
     @property
+    def factored(self) -> bool:
+        """Whether there is a kept factorisation to step on."""
+        return self._factor is not None
+
+    @property
     def _key(self) -> tuple:
         """What the kept factor's derived data (Schur complements, solves) is valid for."""
         return self._factor, self.factorizations

@@ -58,6 +58,8 @@ from scissor_cli.solvers.linear import conjugate_gradients
 PCG_TOL = 1e-8
 #: iterations before the kept factorisation is refreshed at the state (and then as many again)
 PCG_MAX = 40
+#: a cup move's K_fD Δu_D is the gradient's change over this much of the move (mm, its largest boundary displacement)
+MOVE_PROBE_MM = 1e-3
 
 
 class ModelState:
@@ -211,7 +213,8 @@ def move_held(tissue: Tissue, state: NeedleState, x: np.ndarray, s: np.ndarray, 
     """
     tol = STEP_TOL if tissue.dim == 2 else STEP_TOL_3D  # an insertion step's settled residual (`needle`)
     hold = hold_at(state, x)
-    predicted = x if responses is None else x + np.tensordot(command - s, responses, axes=1)
+    predicted = moved_start(tissue, state, x, command) if responses is None else \
+        x + np.tensordot(command - s, responses, axes=1)
     start = hold.place(tissue.apply_strokes(predicted, command))
     _, g = objective_gradient(tissue, start, None, loads, require_positive_J=True)
     if g is not None:
@@ -222,6 +225,38 @@ def move_held(tissue: Tissue, state: NeedleState, x: np.ndarray, s: np.ndarray, 
     r = solve_equilibrium(tissue, command, start=x, start_strokes=s, conditions=needle_conditions(state, loads),
                           tol=tol)
     return r.x
+
+
+def moved_start(tissue: Tissue, state: NeedleState, x: np.ndarray, command: np.ndarray) -> np.ndarray:
+    """A start (N, d) for the equilibrium after the cups move to the command (C,) mm from x (N, d) under the needle.
+
+    The strokes placed, and the free nodes moved by the kept factorisation's
+    linear response to them with every captured node held where it is: one
+    chord step, −K⁻¹ K_fD Δu_D under the hold's rows, K_fD Δu_D the
+    gradient's change over MOVE_PROBE_MM of the move. The strokes alone move
+    only the cup's nodes: at the cup's rim the step from there does not
+    contract on the kept factor and ends in a refactorisation or Newton
+    (docs/performance.md, "The needle that hits in 3-D"). The strokes
+    placed alone when there is no kept factorisation yet or the predicted
+    start inverts an element.
+    """
+    placed = tissue.apply_strokes(x, command)
+    jump = placed - x
+    largest = float(np.max(np.abs(jump), initial=0.0))
+    solver = state.solver
+    if largest == 0.0 or solver is None or not solver.factored:
+        return placed
+    eps = MOVE_PROBE_MM / largest
+    _, g0 = tissue.energy_gradient(x)
+    _, g1 = tissue.energy_gradient(x + eps * jump, require_positive_J=True)
+    if g1 is None:
+        return placed
+    captured = state.captured
+    hold = Hold(captured, x[captured].copy(), np.ones(captured.size, bool), np.zeros(captured.size), state.direction,
+                state.transverse)
+    d, _ = solver.step((g1 - g0) / eps, hold, x)
+    start = placed + d
+    return start if np.min(tissue.jacobians(start)) > 0 else placed
 
 
 def hold_at(state: NeedleState, x: np.ndarray) -> Hold:

@@ -35,7 +35,7 @@ import numpy as np
 from scissor_cli.config import ControllerConfig
 from scissor_cli.control.law import PID, split_error
 from scissor_cli.geometry import segment_polygon_distance
-from scissor_cli.insertion.model_state import ModelInsertion, ModelState, move_held
+from scissor_cli.insertion.model_state import ModelInsertion, ModelState, move_held, moved_start
 from scissor_cli.insertion.needle import NeedleParams, NeedleState, advance, free_nodes, transverse_basis
 from scissor_cli.insertion.steering import NeedleModel, TableSteering
 from scissor_cli.mechanics.tissue import Tissue
@@ -204,8 +204,8 @@ class _Needle:
         """Advance by step_mm (with a pending cup command); the row recorded. Raises SolverError."""
         x = self.x
         if self.pending is not None:
+            x = moved_start(self.tissue, self.state, x, self.pending)
             self.s, self.pending = self.pending, None
-            x = self.tissue.apply_strokes(x, self.s)
         out = advance(self.tissue, self.state, x, self.s, step_mm, self.params, self.candidates)
         self.x = out.x
         return out
