@@ -15,11 +15,20 @@ direction lifted to the layer's height (strategy `none`):
   20), plus each refactorisation; the rest is the step's own bookkeeping
   (capture, shares, the hold's Schur complement, the active-set rule).
 
+With --loop, the `loop` strategy instead (exact sensor, the scene's
+controller gains, steering on the target's `NeedleModel` tabulated first
+as the needle-model stage does), once as `scissor simulate` runs it and
+once with each cup move starting from the cups' nodes placed alone (the
+old start, the peer in the same run): each run's time, and its steps with
+and without a cup move — their count, time and refactorisations
+(docs/model.md §18, "Insertion control").
+
 The slab is the one `scissor simulate` would use: with `layer_check.accuracy_mm`
 (0.1 mm by default) the ladder's pick (cached beside runs/); --configured
 benches the configured slab.
 
     PYTHONPATH=. python benchmarks/bench_insertion3d.py [CONFIG.yaml] [--depth MM] [--repeats K] [--configured]
+        [--loop]
 
 The machine has 2 cores and other work may share them: the numbers are
 wall-clock medians, printed with the load average and the CPU time.
@@ -36,7 +45,9 @@ import numpy as np
 from bench_insertion import _load  # the same load line as the layer's benchmark (this directory is on sys.path)
 from scissor_cli import runtime
 from scissor_cli.config import load_config
-from scissor_cli.insertion import NeedleParams, miss_and_depth_error
+from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, miss_and_depth_error, run_insertion
+from scissor_cli.insertion import run as insertion_run
+from scissor_cli.insertion.model_table import tabulate
 from scissor_cli.insertion.needle import NeedleState, advance, free_nodes
 from scissor_cli.layer3d.check import slab_spec
 from scissor_cli.layer3d.slab import build_slab, slab_probe
@@ -58,6 +69,7 @@ def main() -> None:
     ap.add_argument("--step", type=float, default=0.5, help="step (mm)")
     ap.add_argument("--repeats", type=int, default=3, help="repeats of the insertion")
     ap.add_argument("--configured", action="store_true", help="the configured slab, not accuracy_mm's pick")
+    ap.add_argument("--loop", action="store_true", help="the loop strategy, against the cup moves' old start")
     args = ap.parse_args()
     runtime.configure()
     cfg = load_config(args.config)
@@ -88,6 +100,9 @@ def main() -> None:
           f"f_k {params.friction_kinetic_mN_per_mm:g} mN/mm, F_tip {params.tip_force_mN:g} mN, "
           f"capture radius {params.capture_radius_mm:g} mm")
     print(f"load average {_load()}")
+    if args.loop:
+        _loop_runs(cfg, slab, x0, plan, target, params, entry, axis)
+        return
     totals, times, cpu, counts = [], [], [], []
     for _ in range(args.repeats):
         state, x = NeedleState(entry, axis), x0.copy()
@@ -120,6 +135,43 @@ def main() -> None:
           f"{solve_s * 1e3:.1f} ms) + {f.mean():.2f} refactorisations × {factor_s * 1e3:.0f} ms = {floor:.0f} ms; "
           f"measured {np.mean(t):.0f} ms (mean): {np.mean(t) - floor:.0f} ms is the step's own bookkeeping")
     print(f"load average {_load()}")
+
+
+def _loop_runs(cfg, slab, x0, plan, target, params, entry, axis) -> None:
+    """`loop` on the target's NeedleModel, with the cup moves' start as shipped and with the cups' nodes placed alone."""
+    t0 = time.perf_counter()
+    height = float(slab_probe(slab, target.rest[None]).positions(x0)[0, 2])  # aimed as the needle-model stage aims
+    path = NeedlePath(np.append(entry[:2], height), axis, float(plan.depth_mm), target.rest, target.name)
+    table = tabulate(slab, x0, plan.strokes, path, params, cfg.controller)
+    print(f"needle model: {len(table.depth_mm)} steps in {time.perf_counter() - t0:.1f} s")
+    aimed = NeedlePath(np.append(entry[:2], table.height_for("loop")), axis, float(plan.depth_mm), target.rest,
+                       target.name)
+    shipped = insertion_run.moved_start
+    for name, start in (("held response (shipped)", shipped),
+                        ("cups' nodes placed alone", lambda tissue, state, x, command: tissue.apply_strokes(x, command))):
+        insertion_run.moved_start = start
+        rows = []
+
+        def record(state, x, s, rows=rows):
+            rows.append((time.perf_counter(), s.copy(), state.solver.factorizations))
+
+        try:
+            t0 = time.perf_counter()
+            rows.append((t0, np.asarray(plan.strokes, float), 0))
+            r = run_insertion(slab, x0, plan.strokes, aimed, params,
+                              InsertionOptions("loop", cfg.controller, needle_model=table, keep_displacement=False,
+                                               record=record))
+            wall = time.perf_counter() - t0
+        finally:
+            insertion_run.moved_start = shipped
+        t = np.diff([row[0] for row in rows])
+        moved = np.array([not np.array_equal(a[1], b[1]) for a, b in zip(rows, rows[1:])])
+        factored = np.diff([row[2] for row in rows])
+        print(f"loop, cup moves from the {name}: {wall:.1f} s, {r.steps} steps, miss {r.miss_mm:.3f} mm "
+              f"({r.stop_reason}); load {_load()}")
+        for label, m in (("with a cup move", moved), ("without", ~moved)):
+            print(f"  steps {label}: {int(m.sum())}, {t[m].sum():.1f} s ({1e3 * np.median(t[m]) if m.any() else 0:.0f} ms "
+                  f"median), {int(factored[m].sum())} refactorisations of the kept factor")
 
 
 def _kernel_times(slab, x) -> tuple[float, float, float]:
