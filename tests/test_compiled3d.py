@@ -80,3 +80,11 @@ def test_projected_and_inverted_elements_go_to_numpy(slab):
     # the tissue then answers with the numpy path's policy: infinite energy, no crash
     U, _ = slab.energy_gradient(x)
     assert U == np.inf
+
+
+@pytest.mark.parametrize("A", DEFORMATIONS)
+def test_the_jacobians_are_numpys_bit_for_bit(slab, A):
+    x = _state(slab, A, 0.05, 3)
+    np.testing.assert_array_equal(slab.jacobians(x), materials.jacobian_det(fem.deformation_gradients(slab.ops, x)))
+    x[slab.ops.corners[0, 0]] = x[slab.ops.corners[1, 0]]  # a collapsed tetrahedron: J = 0, not skipped
+    assert slab.jacobians(x)[0] == pytest.approx(0.0, abs=1e-12)

@@ -96,6 +96,18 @@ def _stress(f, c, a, mu, kappa, eta, tension_only, P):
 
 
 @njit(**_JIT)
+def jacobians_3d(x, corners, grad_rows):
+    """J = det F (M,) of every tetrahedron at positions x (N, 3) (`Tissue.jacobians`): numpy's J, F₀ · (F₁ × F₂)."""
+    J = np.empty(corners.shape[1])
+    f = np.empty(9)
+    for e in range(corners.shape[1]):
+        _deformation(x, corners, grad_rows, e, f)
+        J[e] = f[0] * (f[4] * f[8] - f[5] * f[7]) + f[1] * (f[5] * f[6] - f[3] * f[8]) \
+            + f[2] * (f[3] * f[7] - f[4] * f[6])
+    return J
+
+
+@njit(**_JIT)
 def energy_gradient_3d(x, corners, grad_rows, volume, material, tension_only, out):
     """U (µJ) and ∇U written into out (3N,) mN; returns (U, -1), or (nan, e) for the first element e it cannot take.
 

@@ -328,7 +328,7 @@ def max_feasible_step_3d(F: np.ndarray, dF: np.ndarray) -> float:
     Only the largest β over all elements matters, so the eigenvalues are
     computed only where they can reach it: Fujiwara's bound
     2 max(|b|, |c|^½, |d/2|^⅓) on every root (0 where no coefficient is
-    negative: Descartes, no positive root) is sorted, the elements with the
+    negative: Descartes, no positive root) ranks the elements: those with the
     largest bounds are solved first, then only those whose bound exceeds the
     β found. The same β as solving every element (each matrix's
     eigenvalues do not depend on the batch), at a fraction of the cost.
@@ -338,7 +338,10 @@ def max_feasible_step_3d(F: np.ndarray, dF: np.ndarray) -> float:
         bound = 2.0 * np.maximum(np.maximum(np.abs(b), np.sqrt(np.abs(c))), np.cbrt(np.abs(0.5 * d)))
         bound[(b >= 0) & (c >= 0) & (d >= 0)] = 0.0
         bound[~np.isfinite(bound)] = np.inf  # non-finite coefficients: always solved
-    order = np.argsort(-bound, kind="stable")
+    if bound.size > _FIRST_SOLVED:  # the largest bounds, in no order (a partition, not a sort: only the set matters)
+        order = np.argpartition(-bound, _FIRST_SOLVED - 1)
+    else:
+        order = np.arange(bound.size)
     first = order[:_FIRST_SOLVED][bound[order[:_FIRST_SOLVED]] > 0]
     top = _largest_positive_root(b[first], c[first], d[first])
     rest = order[_FIRST_SOLVED:]

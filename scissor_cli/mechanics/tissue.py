@@ -94,9 +94,8 @@ class Tissue:
 
     def jacobians(self, x: np.ndarray) -> np.ndarray:
         """J = det F (M,) of every element at positions x (N, d)."""
-        if self.dim == 2:
-            return compiled.jacobians_2d(np.ascontiguousarray(x, dtype=np.float64), self.ops.corners, self.ops.grad_rows)
-        return materials.jacobian_det(fem.deformation_gradients(self.ops, x))
+        kernel = compiled.jacobians_2d if self.dim == 2 else compiled3d.jacobians_3d
+        return kernel(np.ascontiguousarray(x, dtype=np.float64), self.ops.corners, self.ops.grad_rows)
 
     def max_feasible_step(self, x: np.ndarray, dx: np.ndarray) -> float:
         """The largest α ≥ 0 (inf if unbounded) keeping every J > 0 along x + α dx, both (N, 2).
