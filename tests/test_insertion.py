@@ -233,6 +233,8 @@ def test_simulate_and_report_with_insertion(tmp_path):
                 assert np.isfinite(g.attrs[key])
         assert f["trials/T1/miss_mm"].shape == (1, 2)
         assert list(f["trials/T1/miss_mm"].attrs["strategies"]) == ["none", "depth"]
+        # the whole trial's wall time holds the insertions beside the loop's own
+        assert f["trials/T1/trial_time_s"][0] > f["trials/T1/time_s"][0] > 0.0
     for name in ("insertion_force_T1.png", "insertion_path_T1.png", "insertion_T1.gif"):
         assert (out / name).stat().st_size > 1000
     rep = CliRunner().invoke(cli.app, ["report", str(out), "--out", str(tmp_path / "rep")])

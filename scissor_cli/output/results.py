@@ -255,7 +255,7 @@ def write_manipulation(out: ResultsFile, target: str, closed, opened) -> None:
     out.dataset(f"manipulation/{target}/history", table, "mm (time_s: s)", columns=names)
 
 
-TRIALS_FILL_NOTE = ("not done or crashed (see done, failed): final_error, time_s, clearance_mm, correctable_mm, "
+TRIALS_FILL_NOTE = ("not done or crashed (see done, failed): final_error, time_s, trial_time_s, clearance_mm, correctable_mm, "
                     "uncorrectable_mm, manipulation_miss_mm, along_mm 0, iterations -1; clearance_mm is also 0 where undefined (no obstacles, "
                     "no corridor)")
 
@@ -268,6 +268,8 @@ def allocate_trials(out: ResultsFile, names: list[str], count: int, attrs: dict)
         out.dataset(f"{t}/final_error", np.full((count, 2), FILL), "mm", description="true minus desired, x and y")
         out.dataset(f"{t}/iterations", np.full(count, -1, np.int64))
         out.dataset(f"{t}/time_s", np.full(count, FILL), "s", description="wall time of the loop")
+        out.dataset(f"{t}/trial_time_s", np.full(count, FILL), "s",
+                    description="wall time of the whole trial: the loop and every strategy's insertion")
         out.dataset(f"{t}/corridor_clear", np.zeros(count, bool))
         out.dataset(f"{t}/clearance_mm", np.full(count, FILL), "mm")
         out.dataset(f"{t}/correctable_mm", np.full(count, FILL), "mm")
@@ -313,6 +315,7 @@ def trial_record(name: str, o) -> dict:
         "final_error": np.asarray(o.final_error, float) if ok else np.zeros(2),
         "iterations": int(o.iterations) if ok else -1,
         "time_s": float(o.time_s) if np.isfinite(o.time_s) else FILL,
+        "trial_time_s": float(o.trial_time_s) if np.isfinite(o.trial_time_s) else FILL,
         "corridor_clear": bool(o.corridor_clear) and ok,
         "clearance_mm": clearance(o.clearance_mm) if ok else FILL,
         "correctable_mm": float(o.correctable_mm) if ok else FILL,
@@ -332,7 +335,7 @@ def trial_record(name: str, o) -> dict:
     for key in TRIAL_FLOATS:
         check_finite(where.format(key), rec[key])
     check_finite(where.format(f"history/{rec['trial']}"), rec["history"])
-    for key in ("miss_mm", "depth_error_mm"):
+    for key in ("miss_mm", "depth_error_mm", "trial_time_s"):
         if key in rec:
             check_finite(where.format(key), rec[key])
     return rec
@@ -346,7 +349,7 @@ def write_trial(out: ResultsFile, rec: dict) -> None:
         out.flush()
     for key in TRIAL_FLOATS + ("iterations", "corridor_clear", "stop_reason", "message"):
         out.put(f"{t}/{key}", k, rec[key])
-    for key in ("miss_mm", "depth_error_mm", "frames", "lost_frames"):
+    for key in ("miss_mm", "depth_error_mm", "frames", "lost_frames", "trial_time_s"):  # (a run begun without them)
         if key in rec and f"{t}/{key}" in out.h5:
             out.put(f"{t}/{key}", k, rec[key])
     out.put(f"{t}/failed", k, not rec["ok"])
