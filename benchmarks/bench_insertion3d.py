@@ -17,7 +17,10 @@ direction lifted to the layer's height (strategy `none`):
 
 With --loop, the `loop` strategy instead (exact sensor, the scene's
 controller gains, steering on the target's `NeedleModel` tabulated first
-as the needle-model stage does), once as `scissor simulate` runs it and
+as the needle-model stage does; with --run DIR, the config, plan and needle
+model that run used, read from DIR/results.h5: its nominal `loop`
+replayed; CONFIG is then not read),
+once as `scissor simulate` runs it and
 once with each cup move starting from the cups' nodes placed alone (the
 old start, the peer in the same run): each run's time, and its steps with
 and without a cup move — their count, time and refactorisations
@@ -28,7 +31,7 @@ The slab is the one `scissor simulate` would use: with `layer_check.accuracy_mm`
 benches the configured slab.
 
     PYTHONPATH=. python benchmarks/bench_insertion3d.py [CONFIG.yaml] [--depth MM] [--repeats K] [--configured]
-        [--loop]
+        [--loop [--run DIR]]
 
 The machine has 2 cores and other work may share them: the numbers are
 wall-clock medians, printed with the load average and the CPU time.
@@ -39,15 +42,19 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from types import SimpleNamespace
+
+import h5py
 
 import numpy as np
 
 from bench_insertion import _load  # the same load line as the layer's benchmark (this directory is on sys.path)
 from scissor_cli import runtime
-from scissor_cli.config import load_config
+from scissor_cli.config import load_config, parse_config
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, miss_and_depth_error, run_insertion
 from scissor_cli.insertion import run as insertion_run
 from scissor_cli.insertion.model_table import tabulate
+from scissor_cli.insertion.steering import NeedleModel
 from scissor_cli.insertion.needle import NeedleState, advance, free_nodes
 from scissor_cli.layer3d.check import slab_spec
 from scissor_cli.layer3d.slab import build_slab, slab_probe
@@ -70,9 +77,10 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3, help="repeats of the insertion")
     ap.add_argument("--configured", action="store_true", help="the configured slab, not accuracy_mm's pick")
     ap.add_argument("--loop", action="store_true", help="the loop strategy, against the cup moves' old start")
+    ap.add_argument("--run", type=Path, help="with --loop: the plan and needle model of this run directory")
     args = ap.parse_args()
     runtime.configure()
-    cfg = load_config(args.config)
+    cfg = load_config(args.config) if args.run is None else _run_config(args.run)
     if cfg.layer_check is not None and cfg.layer_check.accuracy_mm is not None and not args.configured:
         cfg = slab_resolution_stage(cfg, ROOT / "runs" / CACHE_DIR)[0]
     if cfg.insertion is None or cfg.layer_check is None:
@@ -82,12 +90,16 @@ def main() -> None:
     slab = build_slab(scene, mesh, slab_spec(cfg.layer_check, cfg.tissue.mesh), model=tissue.params.model)
     build_s = time.perf_counter() - t0
     params = NeedleParams.from_config(cfg.insertion, cfg.needle, cfg.tissue.mesh)
-    for target in scene.targets:
-        plan = plan_target(tissue, scene, target, cfg.needle)
-        if plan.feasible:
-            break
+    table = None
+    if args.run is not None:
+        plan, target, table = _from_run(args.run, scene)
     else:
-        raise SystemExit("no target has a plan")
+        for target in scene.targets:
+            plan = plan_target(tissue, scene, target, cfg.needle)
+            if plan.feasible:
+                break
+        else:
+            raise SystemExit("no target has a plan")
     t0 = time.perf_counter()
     x0 = solve_newton(slab, plan.strokes, tol=SLAB_TRUTH_TOL).x
     settle_s = time.perf_counter() - t0
@@ -101,7 +113,7 @@ def main() -> None:
           f"capture radius {params.capture_radius_mm:g} mm")
     print(f"load average {_load()}")
     if args.loop:
-        _loop_runs(cfg, slab, x0, plan, target, params, entry, axis)
+        _loop_runs(cfg, slab, x0, plan, target, params, entry, axis, table)
         return
     totals, times, cpu, counts = [], [], [], []
     for _ in range(args.repeats):
@@ -137,13 +149,38 @@ def main() -> None:
     print(f"load average {_load()}")
 
 
-def _loop_runs(cfg, slab, x0, plan, target, params, entry, axis) -> None:
+def _run_config(run: Path):
+    """The config a run resolved (its chosen cups, its slab pinned), from DIR/results.h5."""
+    with h5py.File(run / "results.h5", "r") as f:
+        return parse_config(str(f.attrs["config_yaml"]), str(run / "results.h5"))
+
+
+def _from_run(run: Path, scene):
+    """The first feasible plan of a run (as a `SimpleNamespace` with strokes, entry, direction, depth_mm, side), its
+    target and the NeedleModel the run steered with."""
+    with h5py.File(run / "results.h5", "r") as f:
+        for target in scene.targets:
+            a = f[f"plan/{target.name}"].attrs
+            if not a["feasible"]:
+                continue
+            g = f[f"controller_model/needle/{target.name}"]
+            table = NeedleModel(g["depth_mm"][()], g["target"][()], g["jacobian"][()],
+                                float(g.attrs["entry_height_mm"]), float(g.attrs["steered_height_mm"]))
+            plan = SimpleNamespace(strokes=np.asarray(a["strokes"], float), entry=np.asarray(a["entry"], float),
+                                   direction=np.asarray(a["direction"], float), depth_mm=float(a["depth_mm"]),
+                                   side=str(a["side"]))
+            return plan, target, table
+    raise SystemExit(f"{run}: no feasible plan with a needle model")
+
+
+def _loop_runs(cfg, slab, x0, plan, target, params, entry, axis, table=None) -> None:
     """`loop` on the target's NeedleModel, with the cup moves' start as shipped and with the cups' nodes placed alone."""
-    t0 = time.perf_counter()
-    height = float(slab_probe(slab, target.rest[None]).positions(x0)[0, 2])  # aimed as the needle-model stage aims
-    path = NeedlePath(np.append(entry[:2], height), axis, float(plan.depth_mm), target.rest, target.name)
-    table = tabulate(slab, x0, plan.strokes, path, params, cfg.controller)
-    print(f"needle model: {len(table.depth_mm)} steps in {time.perf_counter() - t0:.1f} s")
+    if table is None:
+        t0 = time.perf_counter()
+        height = float(slab_probe(slab, target.rest[None]).positions(x0)[0, 2])  # aimed as the needle-model stage
+        path = NeedlePath(np.append(entry[:2], height), axis, float(plan.depth_mm), target.rest, target.name)
+        table = tabulate(slab, x0, plan.strokes, path, params, cfg.controller)
+        print(f"needle model: {len(table.depth_mm)} steps in {time.perf_counter() - t0:.1f} s")
     aimed = NeedlePath(np.append(entry[:2], table.height_for("loop")), axis, float(plan.depth_mm), target.rest,
                        target.name)
     shipped = insertion_run.moved_start
