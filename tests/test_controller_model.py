@@ -183,6 +183,7 @@ def _cli(*args, cwd=None):
                           timeout=600, cwd=cwd)
 
 
+@pytest.mark.slow  # (two whole runs, 40 s: the surrogate's fit, J, inverse and plans are the default tests above)
 def test_surrogate_run_records_the_model_plans_with_it_and_reuses_its_cache(tmp_path):
     """simulate: /controller_model with its samples, the plans' model and slab strokes, the path figure; a
     second run takes the model from the cache beside the runs and gives the same trials."""

@@ -528,6 +528,8 @@ def test_loop_on_a_mismatched_truth_still_corrects_the_miss(model):
     assert runs["loop"].miss_mm < 0.1 * runs["none"].miss_mm
 
 
+@pytest.mark.slow  # (every strategy in a run's trials: tests/test_layer_check.py's slab-truth run; the layer's
+# none and depth: test_simulate_and_report_with_insertion; loop against the layer model: the tests above)
 def test_trials_insert_every_strategy_with_a_finite_miss(tmp_path):
     """Trials (truth drawn ≠ model) insert under none, depth and loop: finite misses, nothing failed."""
     import h5py
