@@ -55,12 +55,7 @@ def main() -> None:
         raise SystemExit(f"{args.config}: no insertion section")
     scene, mesh, tissue = build_model(cfg)
     params = NeedleParams.from_config(cfg.insertion, cfg.needle, cfg.tissue.mesh)
-    for target in scene.targets:
-        plan = plan_target(tissue, scene, target, cfg.needle)
-        if plan.feasible:
-            break
-    else:
-        raise SystemExit("no target has a plan")
+    plan, target = first_plan(tissue, scene, cfg.needle)
     x0 = solve_equilibrium(tissue, plan.strokes).x
     print(f"{cfg.name}: {mesh.n_nodes} nodes, {mesh.n_elements} elements; target {target.name}, "
           f"{plan.side} entry, f_s {params.friction_static_mN_per_mm:g}, f_k {params.friction_kinetic_mN_per_mm:g} mN/mm, "
@@ -115,6 +110,15 @@ def main() -> None:
               f"  {r.stuck[-1]:5d}  {r.needle_force_mN[-1]:10.1f}  {np.linalg.norm(y - ref.target[-1]):21.4f}"
               f"  {np.median(diff):6.4f}  {diff.max():8.4f}")
     print(f"load average {_load()}")
+
+
+def first_plan(tissue, scene, needle):
+    """(plan, target) of the scene's first target with a feasible needle plan on the layer; exits when none has."""
+    for target in scene.targets:
+        plan = plan_target(tissue, scene, target, needle)
+        if plan.feasible:
+            return plan, target
+    raise SystemExit("no target has a plan")
 
 
 def _load() -> str:

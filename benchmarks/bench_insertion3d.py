@@ -48,7 +48,7 @@ import h5py
 
 import numpy as np
 
-from bench_insertion import _load  # the same load line as the layer's benchmark (this directory is on sys.path)
+from bench_insertion import _load, first_plan  # the layer's benchmark's load line and plan (this directory is on sys.path)
 from scissor_cli import runtime
 from scissor_cli.config import load_config, parse_config
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, miss_and_depth_error, run_insertion
@@ -60,7 +60,6 @@ from scissor_cli.layer3d.check import slab_spec
 from scissor_cli.layer3d.slab import build_slab, slab_probe
 from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
 from scissor_cli.experiments.build import build_model
-from scissor_cli.planning.needle_plan import plan_target
 from scissor_cli.experiments.layer_check_stage import slab_resolution_stage
 from scissor_cli.experiments.run_cache import CACHE_DIR
 from scissor_cli.solvers.linear import factorize_free
@@ -94,12 +93,7 @@ def main() -> None:
     if args.run is not None:
         plan, target, table = _from_run(args.run, scene)
     else:
-        for target in scene.targets:
-            plan = plan_target(tissue, scene, target, cfg.needle)
-            if plan.feasible:
-                break
-        else:
-            raise SystemExit("no target has a plan")
+        plan, target = first_plan(tissue, scene, cfg.needle)
     t0 = time.perf_counter()
     x0 = solve_newton(slab, plan.strokes, tol=SLAB_TRUTH_TOL).x
     settle_s = time.perf_counter() - t0
