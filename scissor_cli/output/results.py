@@ -335,7 +335,7 @@ def trial_record(name: str, o) -> dict:
     for key in TRIAL_FLOATS:
         check_finite(where.format(key), rec[key])
     check_finite(where.format(f"history/{rec['trial']}"), rec["history"])
-    for key in ("miss_mm", "depth_error_mm", "trial_time_s"):
+    for key in ("miss_mm", "depth_error_mm"):
         if key in rec:
             check_finite(where.format(key), rec[key])
     return rec
