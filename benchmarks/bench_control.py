@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from scissor_cli import runtime  # noqa: E402
+runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
 from scissor_cli import control as ct
 from scissor_cli.sensing.camera import Camera, CameraSensor
 from scissor_cli.config import ManipulationPointsConfig, load_config
@@ -245,5 +246,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    runtime.configure()
     main()

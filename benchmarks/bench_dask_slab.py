@@ -28,6 +28,8 @@ import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from scissor_cli import runtime  # noqa: E402
+runtime.configure()  # before scissor's modules load cvxopt (the workers inherit its OPENBLAS_CORETYPE)
 from scissor_cli.config import load_config, resolved_yaml  # noqa: E402
 from scissor_cli.experiments.run_cache import CACHE_DIR  # noqa: E402
 from scissor_cli.experiments.layer_check_stage import slab_resolution_stage  # noqa: E402

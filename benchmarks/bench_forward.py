@@ -32,6 +32,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from scissor_cli import runtime  # noqa: E402
+runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
 from scissor_cli.solvers.admm.solver import AdmmSolver  # noqa: E402
 from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.mesh.mesh import mesh_for_config  # noqa: E402
@@ -103,5 +104,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    runtime.configure()
     raise SystemExit(main())

@@ -14,6 +14,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from scissor_cli import runtime  # noqa: E402
+runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
 from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.experiments.build import build_model
 from scissor_cli.solvers.equilibrium import EquilibriumSolver  # noqa: E402
@@ -47,5 +48,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    runtime.configure()
     main()

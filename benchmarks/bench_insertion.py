@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from scissor_cli import runtime
+runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
 from scissor_cli.config import load_config
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion
 from scissor_cli.insertion.needle import NeedleState, advance, free_nodes
@@ -49,7 +50,6 @@ def main() -> None:
     ap.add_argument("--depth", type=float, default=50.0, help="insertion depth (mm)")
     ap.add_argument("--repeats", type=int, default=3, help="repeats of the 0.5 mm insertion")
     args = ap.parse_args()
-    runtime.configure()
     cfg = load_config(args.config)
     if cfg.insertion is None:
         raise SystemExit(f"{args.config}: no insertion section")

@@ -50,6 +50,7 @@ import numpy as np
 
 from bench_insertion import _load, first_plan  # the layer's benchmark's load line and plan (this directory is on sys.path)
 from scissor_cli import runtime
+runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
 from scissor_cli.config import load_config, parse_config
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, miss_and_depth_error, run_insertion
 from scissor_cli.insertion import run as insertion_run
@@ -78,7 +79,6 @@ def main() -> None:
     ap.add_argument("--loop", action="store_true", help="the loop strategy, against the cup moves' old start")
     ap.add_argument("--run", type=Path, help="with --loop: the plan and needle model of this run directory")
     args = ap.parse_args()
-    runtime.configure()
     cfg = load_config(args.config) if args.run is None else _run_config(args.run)
     if cfg.layer_check is not None and cfg.layer_check.accuracy_mm is not None and not args.configured:
         cfg = slab_resolution_stage(cfg, ROOT / "runs" / CACHE_DIR)[0]

@@ -31,6 +31,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 from scissor_cli import runtime  # noqa: E402
+runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
 from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.layer3d.slab import SlabSpec, build_slab, slab_probe  # noqa: E402
 from scissor_cli.experiments.build import build_model
@@ -149,7 +150,6 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="only the 37.8k and 53.0k slabs")
     ap.add_argument("--no-peer", action="store_true", help="scissor only")
     args = ap.parse_args()
-    runtime.configure()
     cfg = load_config(CONFIG)
     print(f"bench_slab: example scene, slab {SPEC.height_mm:g} mm, layer at {SPEC.layer_z_mm:g} mm, "
           f"{STROKE[0]:g} mm push, both Newton to relative residual {TOL:g}; machine: {os.cpu_count()} cores, "

@@ -31,6 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from scissor_cli import runtime  # noqa: E402
+runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
 from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.experiments.build import build_model  # noqa: E402
 from scissor_cli.experiments.layer_check_stage import ladder_cases  # noqa: E402
@@ -45,7 +46,6 @@ def main() -> None:
     ap.add_argument("configs", nargs="*", type=Path, default=DEFAULT_CONFIGS)
     ap.add_argument("--exhaustive", action="store_true", help="also solve every candidate (minutes)")
     args = ap.parse_args()
-    runtime.configure()
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"load {os.getloadavg()[0]:.2f}")
     for path in args.configs:

@@ -30,7 +30,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from scissor_cli import control, progress, runtime  # noqa: E402
+from scissor_cli import runtime  # noqa: E402
+runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
+from scissor_cli import control, progress  # noqa: E402
 from scissor_cli.config import load_config, resolved_yaml  # noqa: E402
 from scissor_cli.experiments.layer_check_stage import slab_resolution_stage  # noqa: E402
 from scissor_cli.experiments.profiles import draw_trial  # noqa: E402
@@ -142,5 +144,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    runtime.configure()
     main()

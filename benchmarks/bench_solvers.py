@@ -83,6 +83,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 from scissor_cli import runtime  # noqa: E402
+runtime.match_blas_kernels()  # before scissor's modules load cvxopt; threads are set in __main__
 from scissor_cli.solvers.admm.solver import AdmmSolver  # noqa: E402
 from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.mesh.probe import probe_targets, target_positions  # noqa: E402

@@ -18,6 +18,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from scissor_cli import runtime  # noqa: E402
+runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
 from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.experiments.simulate import Execution, run_simulation  # noqa: E402
 from scissor_cli.output.results_sink import RunDirectory  # noqa: E402
@@ -51,5 +52,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    runtime.configure()
     main()

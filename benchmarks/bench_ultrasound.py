@@ -30,6 +30,7 @@ import time
 import numpy as np
 
 from scissor_cli import runtime
+runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
 
 DEPTH_MM = 70.0
 LESION = np.array([0.0, 30.0])
@@ -210,5 +211,4 @@ def _peak(env: np.ndarray, depth_mm: np.ndarray) -> float:
 
 
 if __name__ == "__main__":
-    runtime.configure()
     main()

@@ -34,6 +34,7 @@ import numpy as np
 import yaml
 
 from scissor_cli import runtime
+runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -62,7 +63,6 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=3, help="speckle draws of the nominal loops")
     ap.add_argument("--slab-scale", type=float, default=2.0, help="the slab's in-plane mesh scale")
     args = ap.parse_args()
-    runtime.configure()
     print(f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}")
 
     from scissor_cli import control

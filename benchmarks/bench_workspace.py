@@ -16,6 +16,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from scissor_cli import runtime  # noqa: E402
+runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
 from scissor_cli.robot.chain import RobotModel  # noqa: E402
 from scissor_cli.robot.workspace import run_workspace  # noqa: E402
 
@@ -40,5 +41,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    runtime.configure()
     main()

@@ -8,12 +8,43 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import os
+import sys
+
+#: OpenBLAS core names (`OPENBLAS_CORETYPE`) that cvxopt's bundled OpenBLAS knows, by the name numpy's newer
+#: OpenBLAS reports for the same machine; a newer core maps to the older one whose kernels it runs
+KNOWN_CORES = {"Sandybridge": "Sandybridge", "Haswell": "Haswell", "SkylakeX": "SkylakeX",
+               "Cooperlake": "Cooperlake", "SapphireRapids": "SkylakeX", "Zen": "Zen"}
 
 
 def configure() -> None:
-    """One BLAS thread, and freed array memory kept in the heap. Idempotent."""
+    """cvxopt's BLAS kernels matched to the CPU, one BLAS thread, freed array memory kept in the heap. Idempotent."""
+    match_blas_kernels()
     limit_blas_threads()
     keep_freed_memory()
+
+
+def match_blas_kernels() -> None:
+    """Let cvxopt's OpenBLAS (CHOLMOD's dense kernels) run the kernels numpy's OpenBLAS picked for this CPU.
+
+    cvxopt's wheel bundles an older OpenBLAS that does not recognise recent
+    CPUs and falls back to its generic Prescott (SSE3) kernels: on this VM a
+    4x slower dgemm and a 2.5x slower 3-D factorisation (docs/performance.md,
+    "Why the runtime settings"). OpenBLAS reads `OPENBLAS_CORETYPE` when it
+    is loaded, so this runs before cvxopt is imported, and does nothing when
+    it already is, when the user set the variable, or when numpy's BLAS is not
+    an OpenBLAS naming a core in KNOWN_CORES. The variable is inherited by
+    worker processes; numpy's own OpenBLAS, loaded first, is not changed.
+    """
+    if "OPENBLAS_CORETYPE" in os.environ or "cvxopt" in sys.modules:
+        return
+    import numpy  # noqa: F401  (its OpenBLAS detects the core)
+    from threadpoolctl import threadpool_info
+
+    cores = {i.get("architecture") for i in threadpool_info() if i.get("internal_api") == "openblas"}
+    known = sorted({KNOWN_CORES[c] for c in cores if c in KNOWN_CORES})
+    if len(known) == 1:
+        os.environ["OPENBLAS_CORETYPE"] = known[0]
 
 
 def limit_blas_threads() -> None:

@@ -147,6 +147,36 @@ def test_runtime_configure_limits_every_blas_to_one_thread():
     subprocess.run([sys.executable, "-c", code], check=True, env=env, timeout=120)
 
 
+def test_runtime_configure_gives_cvxopts_blas_the_kernels_numpys_picked():
+    """CHOLMOD's dense kernels run what numpy's OpenBLAS detected (cvxopt's own fell back to Prescott on recent CPUs);
+    a core the user set is kept."""
+    import os
+    import subprocess
+    import sys
+
+    code = (
+        "import os, sys\n"
+        "from scissor_cli import runtime\n"
+        "runtime.configure()\n"
+        "import numpy, cvxopt\n"
+        "from threadpoolctl import threadpool_info\n"
+        "arch = {i['prefix']: i.get('architecture') for i in threadpool_info() if i.get('internal_api') == 'openblas'}\n"
+        "mine = [a for p, a in arch.items() if 'scipy' not in p]\n"
+        "theirs = {a for p, a in arch.items() if 'scipy' in p}\n"
+        "core = os.environ.get('OPENBLAS_CORETYPE')\n"
+        "if sys.argv[1] != '-':\n"
+        "    assert core == sys.argv[1], core\n"
+        "elif core is not None:\n"
+        "    assert runtime.KNOWN_CORES[theirs.pop()] == core and mine == [core], (arch, core)\n"
+        "else:\n"
+        "    assert not theirs & set(runtime.KNOWN_CORES), arch\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_CORETYPE"}
+    subprocess.run([sys.executable, "-c", code, "-"], check=True, env=env, timeout=120)
+    subprocess.run([sys.executable, "-c", code, "Prescott"], check=True, env={**env, "OPENBLAS_CORETYPE": "Prescott"},
+                   timeout=120)
+
+
 ROOT = PACKAGE.parent
 #: file names that mean the same thing in every feature sub-package of output/ (the feature's results.h5
 #: writers, figures, report rows) and at its top
