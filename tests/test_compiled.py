@@ -191,3 +191,19 @@ def test_feasible_step_unbounded_for_rigid_translation_and_zero_motion():
     x = _state(t, np.eye(2), 0.05, 0)
     assert t.max_feasible_step(x, np.zeros_like(x)) == np.inf
     assert t.max_feasible_step(x, np.tile([1.0, -2.0], (len(x), 1))) > 1e12  # dF is round-off only
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 40).flatmap(lambda size: st.tuples(
+    st.just(size), st.lists(st.tuples(st.integers(0, size - 1), st.integers(0, size - 1)), max_size=200))))
+def test_the_csr_pattern_is_numpys_unique_of_the_keys(case):
+    """`compiled.csr_pattern` (two counting sorts) gives np.unique's sorted keys and inverse, empty rows included."""
+    size, entries = case
+    rows = np.array([r for r, _ in entries], np.int64)
+    cols = np.array([c for _, c in entries], np.int64)
+    indptr, indices, slot = compiled.csr_pattern(rows, cols, size)
+    unique, inverse = np.unique(rows * size + cols, return_inverse=True)
+    r, c = np.divmod(unique, size)
+    assert np.array_equal(indices, c) and indices.dtype == np.int32
+    assert np.array_equal(slot, inverse.ravel())
+    assert np.array_equal(indptr, np.concatenate([[0], np.cumsum(np.bincount(r, minlength=size))]))

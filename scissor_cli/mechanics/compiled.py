@@ -286,6 +286,52 @@ def scatter_packed(Ke, entries, slot, out):
 
 
 @njit(**_JIT)
+def csr_pattern(rows, cols, size):
+    """The CSR pattern of entries (rows, cols) (E,) on a (size, size) matrix (`fem.sparse_pattern`).
+
+    Returns indptr (size+1,), indices (nnz,) int32 (sorted in each row) and
+    slot (E,): the position of each entry's (row, col) in indices — what
+    np.unique of the keys row·size + col with return_inverse gives, from two
+    stable counting sorts (by column, then by row) instead of a sort of every key.
+    """
+    n = rows.shape[0]
+    by_col = _counting_order(cols, np.arange(n), size)
+    order = _counting_order(rows, by_col, size)
+    indptr = np.zeros(size + 1, np.int64)
+    indices = np.empty(n, np.int32)
+    slot = np.empty(n, np.int64)
+    nnz, last_row, last_col = 0, -1, -1
+    for t in range(n):
+        k = order[t]
+        r, c = rows[k], cols[k]
+        if r != last_row or c != last_col:
+            indices[nnz] = c
+            nnz += 1
+            indptr[r + 1] = nnz
+            last_row, last_col = r, c
+        slot[k] = nnz - 1
+    for r in range(size):  # rows without entries end where the row before them ends
+        indptr[r + 1] = max(indptr[r + 1], indptr[r])
+    return indptr, indices[:nnz].copy(), slot
+
+
+@njit(**_JIT)
+def _counting_order(key, within, size):
+    """`within` (E,) (entry indices) reordered stably by key[entry] in [0, size)."""
+    start = np.zeros(size + 1, np.int64)
+    for t in range(within.shape[0]):
+        start[key[within[t]] + 1] += 1
+    for i in range(size):
+        start[i + 1] += start[i]
+    out = np.empty(within.shape[0], np.int64)
+    for t in range(within.shape[0]):
+        k = within[t]
+        out[start[key[k]]] = k
+        start[key[k]] += 1
+    return out
+
+
+@njit(**_JIT)
 def jacobians_2d(x, corners, grad_rows):
     """J = det F (M,) of every element at positions x (N, 2) (`Tissue.jacobians`), bit for bit numpy's."""
     J = np.empty(corners.shape[1])

@@ -270,7 +270,7 @@ class SparsePattern:
         """The CSR matrix of this pattern with data (nnz,).
 
         Its column indices are sorted by construction (`sparse_pattern` takes
-        them from np.unique), so the matrix says so: no O(nnz) check later.
+        them sorted from `compiled.csr_pattern`), so the matrix says so: no O(nnz) check later.
         """
         K = sp.csr_matrix((data, self.indices, self.indptr), shape=self.shape)
         K.has_sorted_indices = True
@@ -291,26 +291,24 @@ def sparse_pattern(ops: FEOperators, dof_index: np.ndarray | None = None, upper:
     M = len(local)
     pairs = pairs_for(ops.dim)
     p, q = np.array(pairs).T
-    rows, cols = local[:, p].T.ravel(), local[:, q].T.ravel()  # packed order: pair-major
-    packed = np.arange(len(pairs) * M)
+    # Element-major (M, P) arrays: the scatter then goes element by element, where an
+    # element's entries land in the few rows of its nodes, close to the last
+    # element's (pair-major order jumps across the whole matrix for every entry).
+    # A slot gets at most one entry of an element, so its sum runs over the
+    # elements in order whatever the order inside one.
+    rows, cols = local[:, p], local[:, q]
+    packed = np.arange(len(pairs))[None, :] * M + np.arange(M)[:, None]  # into the flattened (P, M) packed data
     if upper:
         rows, cols = np.minimum(rows, cols), np.maximum(rows, cols)
-    else:  # the mirror image of every off-diagonal pair
-        off = rows != cols
-        rows, cols = np.concatenate([rows, cols[off]]), np.concatenate([cols, rows[off]])
-        packed = np.concatenate([packed, packed[off]])
+    else:  # the mirror image of every off-diagonal pair, beside the element's others
+        off = p != q
+        rows, cols = np.hstack([rows, cols[:, off]]), np.hstack([cols, rows[:, off]])
+        packed = np.hstack([packed, packed[:, off]])
+    rows, cols, packed = rows.ravel(), cols.ravel(), packed.ravel()
     keep = (rows >= 0) & (cols >= 0)
     size = int(dof_index.max()) + 1
-    key = rows[keep].astype(np.int64) * size + cols[keep]
-    unique, slot = np.unique(key, return_inverse=True)
-    r, c = np.divmod(unique, size)
-    indptr = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=size))])
-    entries, slot = packed[keep], slot.ravel()
-    # Scatter element by element: an element's entries land in the few rows of
-    # its nodes, close to the last element's, where pair-major order jumps
-    # across the whole matrix for every entry (cache misses).
-    order = np.argsort((entries % M) * len(pairs) + entries // M, kind="stable")
-    return SparsePattern(entries[order], slot[order], indptr, c.astype(np.int32), (size, size), upper)
+    indptr, indices, slot = compiled.csr_pattern(rows[keep].astype(np.int64), cols[keep].astype(np.int64), size)
+    return SparsePattern(packed[keep], slot, indptr, indices, (size, size), upper)
 
 
 def max_feasible_step_3d(F: np.ndarray, dF: np.ndarray) -> float:
