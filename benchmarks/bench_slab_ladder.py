@@ -11,7 +11,7 @@ For a scene with `layer_check` (its `accuracy_mm`, or 0.1 mm by default):
   slab (`exhaustive_errors`, the old way: minutes), and whether the choice
   is the full ladder's pick.
 
-    PYTHONPATH=. python benchmarks/bench_slab_ladder.py [CONFIG.yaml ...] [--exhaustive]
+    PYTHONPATH=. python benchmarks/bench_slab_ladder.py [CONFIG.yaml ...] [--jobs N] [--exhaustive]
 
 The machine, its cores and load average are printed with the figures.
 """
@@ -25,7 +25,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -34,7 +33,7 @@ from scissor_cli import runtime  # noqa: E402
 runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
 from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.experiments.build import build_model  # noqa: E402
-from scissor_cli.experiments.layer_check_stage import ladder_cases  # noqa: E402
+from scissor_cli.experiments.layer_check_stage import ladder_cases, ladder_runner  # noqa: E402
 from scissor_cli.layer3d.check import plane_ladder, slab_spec  # noqa: E402
 from scissor_cli.layer3d.resolution import choose_slab, exhaustive_errors  # noqa: E402
 
@@ -45,6 +44,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("configs", nargs="*", type=Path, default=DEFAULT_CONFIGS)
     ap.add_argument("--exhaustive", action="store_true", help="also solve every candidate (minutes)")
+    ap.add_argument("--jobs", type=int, default=2, help="worker processes, as `simulate --jobs` (default 2)")
     args = ap.parse_args()
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"load {os.getloadavg()[0]:.2f}")
@@ -56,9 +56,9 @@ def main() -> None:
         spec, planes = slab_spec(lc, cfg.tissue.mesh), plane_ladder(lc, cfg.tissue.mesh)
         cases = ladder_cases(cfg, model.scene)
         t0 = time.perf_counter()
-        choice = choose_slab(model, spec, cases, accuracy, planes)
+        choice = choose_slab(model, spec, cases, accuracy, planes, ladder_runner(args.jobs), args.jobs)
         wall = time.perf_counter() - t0
-        print(f"\n{path.name}: accuracy {accuracy:g} mm, {len(cases)} case(s): picked in {wall:.1f} s, "
+        print(f"\n{path.name}: accuracy {accuracy:g} mm, {len(cases)} case(s), --jobs {args.jobs}: picked in {wall:.1f} s, "
               f"{choice.solved} of {len(choice.candidates)} candidates solved; {choice.explain()}")
         print("| in-plane scale | levels | tetrahedra | error (mm) | forward solves (s) |")
         print("|---|---|---|---|---|")

@@ -210,6 +210,32 @@ def test_resolution_by_accuracy_goes_coarse_to_fine_and_stops_within_it():
             within, key=lambda k: candidates[k].n_tetrahedra)
 
 
+def test_the_ladder_on_two_workers_picks_as_one_process_does_with_the_same_numbers():
+    """choose_slab with the finest slab's cases split over worker processes and the candidates solved beside them
+    (`--jobs 2`): the same pick and, number for number, the same errors; the workers end with the choice."""
+    import multiprocessing
+
+    from scissor_cli.experiments.build import build_model
+    from scissor_cli.experiments.layer_check_stage import ladder_runner
+    from scissor_cli.layer3d.check import slab_spec
+    from scissor_cli.layer3d.resolution import choose_slab, exhaustive_errors, in_process
+
+    data = example_dict()
+    data["layer_check"] = {"height_mm": 12.0, "layer_z_mm": 6.0, "max_layer_mm": 3.0}
+    cfg = parse_config(yaml.safe_dump(data), "scene.yaml")
+    _, _, model = build_model(cfg, mesh_scale=4.0)
+    cases = [np.array([4.0]), np.array([-4.0])]
+    spec = slab_spec(cfg.layer_check, cfg.tissue.mesh)
+    _, true = exhaustive_errors(model, spec, cases)
+    accuracy = float(np.min(true[1:]))  # the closest candidate: coarser ones are tried (and refused) first
+    serial = choose_slab(model, spec, cases, accuracy, run_tasks=in_process)
+    parallel = choose_slab(model, spec, cases, accuracy, run_tasks=ladder_runner(2), workers=2)
+    assert serial.pick == parallel.pick != 0 and serial.solved == parallel.solved >= 3
+    assert [c.error_mm for c in parallel.candidates] == [c.error_mm for c in serial.candidates]
+    assert [c.n_tetrahedra for c in parallel.candidates] == [c.n_tetrahedra for c in serial.candidates]
+    assert not multiprocessing.active_children()
+
+
 def test_a_layer_check_without_accuracy_picks_its_slab_by_default(tmp_path):
     """Without accuracy_mm the slab is picked to 0.1 mm (validate shows the default; null pins the slab); a scene
     without forward cases is compared at each cup's strokes at two thirds of its limits."""

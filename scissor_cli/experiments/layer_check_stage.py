@@ -19,9 +19,10 @@ import numpy as np
 from scissor_cli import progress
 from scissor_cli.config import Config
 from scissor_cli.experiments import run_cache
+from scissor_cli.experiments.pool import run_pool
 from scissor_cli.experiments.sink import product_key
 from scissor_cli.layer3d.check import build_layer_check, plane_ladder, slab_spec
-from scissor_cli.layer3d.resolution import SlabCandidate, SlabChoice, choose_slab
+from scissor_cli.layer3d.resolution import SlabCandidate, SlabChoice, choose_slab, in_process
 from scissor_cli.experiments.build import build_model
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.equilibrium import EquilibriumSolver
@@ -87,7 +88,7 @@ def ladder_cases(cfg: Config, scene) -> list[np.ndarray]:
     return cases
 
 
-def slab_resolution_stage(cfg: Config, cache: Optional[Path] = None) -> tuple[Config, SlabChoice]:
+def slab_resolution_stage(cfg: Config, cache: Optional[Path] = None, jobs: int = 1) -> tuple[Config, SlabChoice]:
     """`layer_check.accuracy_mm` (0.1 mm unless set; null pins the slab): choose the slab's z grading and in-plane
     mesh (docs/model.md §13, §18); the run goes on with it.
 
@@ -96,7 +97,8 @@ def slab_resolution_stage(cfg: Config, cache: Optional[Path] = None) -> tuple[Co
     trials and `--resume` build exactly the slab that was chosen; the
     candidates are stored in /layer_check_resolution. The choice is kept in
     `cache` (the `.scissor-cache/` beside the run), keyed by what it depends
-    on, so a second run of the scene reads it.
+    on, so a second run of the scene reads it. With jobs ≥ 2 the ladder's
+    slabs are solved in that many worker processes (the same pick and numbers).
     """
     lc = cfg.layer_check
     path = None if cache is None else cache / f"slab-resolution-{_resolution_key(cfg)}.json"
@@ -107,13 +109,18 @@ def slab_resolution_stage(cfg: Config, cache: Optional[Path] = None) -> tuple[Co
         _, _, tissue = build_model(cfg)
         t0 = time.perf_counter()
         choice = choose_slab(tissue, slab_spec(lc, cfg.tissue.mesh), ladder_cases(cfg, tissue.scene), lc.accuracy_mm,
-                             plane_ladder(lc, cfg.tissue.mesh))
+                             plane_ladder(lc, cfg.tissue.mesh), ladder_runner(jobs), jobs)
         progress.info(f"slab resolution: {choice.explain()} ({time.perf_counter() - t0:.1f} s)")
         _write_choice(path, choice)
     chosen = choice.chosen
     section = lc.model_copy(update={"first_layer_mm": chosen.first_layer_mm, "max_layer_mm": chosen.max_layer_mm,
                                     "in_plane_scale": chosen.in_plane_scale, "accuracy_mm": None})
     return cfg.model_copy(update={"layer_check": section}), choice
+
+
+def ladder_runner(jobs: int):
+    """`choose_slab`'s run_tasks: here with one job, else `jobs` worker processes that end with the choice."""
+    return (lambda fn, batches: run_pool(fn, batches, jobs)) if jobs > 1 else in_process
 
 
 def _resolution_key(cfg: Config) -> str:

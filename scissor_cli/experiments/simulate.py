@@ -96,7 +96,8 @@ def run_simulation(cfg: Config, run: SinkFactory,
     if cfg.layer_check is not None and cfg.layer_check.accuracy_mm is not None:
         from scissor_cli.experiments.layer_check_stage import slab_resolution_stage  # noqa: PLC0415
 
-        cfg, slab_choice = slab_resolution_stage(cfg, cache_dir(run.location))
+        cfg, slab_choice = slab_resolution_stage(cfg, cache_dir(run.location),
+                                                 execution.jobs if execution.executor == "local" else 1)
     tissue = _build(cfg)
     summary = RunSummary(run.location, tissue.mesh.n_elements)
     with run.open(resolved_yaml(cfg), cfg.seed) as sink:

@@ -129,10 +129,11 @@ def ladder(model: Tissue, spec: SlabSpec) -> list[tuple[float, float]]:
 
 
 class _Ladder:
-    """The candidates of a scene's slab (planes × z rungs, the configured one first) and their solves, on demand.
+    """The candidates of a scene's slab (planes × z rungs, the configured one first) and their solved positions.
 
-    Plane meshes are meshed once each; a slab is built and solved only when
-    asked for, and its target positions (cases, P, 3) are kept.
+    Plane meshes are meshed once each; a candidate's slab is built and solved
+    by `solve_group` (in this process or a worker), and its target positions
+    (cases, P, 3) are kept here.
     """
 
     def __init__(self, model: Tissue, spec: SlabSpec, cases: list[np.ndarray], planes):
@@ -150,36 +151,79 @@ class _Ladder:
             levels = graded_levels(spec.height_mm, spec.layer_z_mm, first, largest)[0].size
             self.candidates.append(SlabCandidate(scale, first, largest, int(levels),
                                                  3 * surface.n_elements * (int(levels) - 1)))
-        self.positions: dict[int, np.ndarray] = {}
+        self.solved: dict[int, dict[int, object]] = {}  # k -> case -> (positions (P, 3), solve_s, factor_s, tets) or the error
 
-    def solve(self, k: int) -> np.ndarray:
-        """Candidate k's target positions (cases, P, 3) mm, solved once; records its timings."""
-        if k in self.positions:
-            return self.positions[k]
+    def task(self, k: int, cases: list[int]) -> tuple:
+        """`solve_group`'s arguments for candidate k's forward cases `cases` (indices)."""
         c = self.candidates[k]
-        p, z = self.grid[k]
         spec = replace(self.spec, first_layer_mm=c.first_layer_mm, max_layer_mm=c.max_layer_mm, plane=None)
-        slab = build_slab(self.model.scene, self.surfaces[p][1], spec, model=self.model.params.model)
-        probe = slab_probe(slab, self.points) if len(self.points) else layer_probe(slab, self.model.mesh)
-        t0 = time.perf_counter()
-        self.positions[k] = np.array([probe.positions(solve_newton(slab, s, tol=SOLVE_TOL).x) for s in self.cases])
-        solve_s = time.perf_counter() - t0
-        K = slab.stiffness_free(slab.rest, upper=True)
-        slot: dict = {}
-        factorize_free(slab, K, slot)
-        t0 = time.perf_counter()
-        factorize_free(slab, K, slot)  # the second: a refactorisation, as a trial's
-        self.candidates[k] = replace(c, factor_s=time.perf_counter() - t0, solve_s=solve_s,
-                                     n_tetrahedra=int(slab.ops.corners.shape[1]))
-        return self.positions[k]
+        return (self.model, spec, self.surfaces[self.grid[k][0]][1], self.points, k,
+                [(i, self.cases[i]) for i in cases])
+
+    def record(self, k: int, answers: list) -> None:
+        self.solved.setdefault(k, {}).update(answers)
+
+    def complete(self, k: int) -> bool:
+        return len(self.solved.get(k, {})) == len(self.cases)
+
+    def failure(self, k: int) -> Exception | None:
+        return next((a for a in self.solved[k].values() if isinstance(a, Exception)), None)
+
+    def positions(self, k: int) -> np.ndarray:
+        """Candidate k's target positions (cases, P, 3) mm; records its timings on the candidate."""
+        answers = [self.solved[k][i] for i in range(len(self.cases))]
+        factor_s = max(a[2] for a in answers)
+        self.candidates[k] = replace(self.candidates[k], solve_s=sum(a[1] for a in answers), factor_s=factor_s,
+                                     n_tetrahedra=int(answers[0][3]))
+        return np.array([a[0] for a in answers])
 
     def distance(self, a: int, b: int) -> float:
-        """The largest 3-D distance (mm) of a point between candidates a and b."""
-        return float(np.max(np.linalg.norm(self.solve(a) - self.solve(b), axis=-1), initial=0.0))
+        """The largest 3-D distance (mm) of a point between solved candidates a and b."""
+        return float(np.max(np.linalg.norm(self.positions(a) - self.positions(b), axis=-1), initial=0.0))
+
+
+def solve_group(model: Tissue, spec: SlabSpec, surface, points: np.ndarray, k: int, cases: list) -> list:
+    """One candidate's slab built and solved at some forward cases: [(k, [(case, answer), ...])] (`run_tasks`' item).
+
+    answer: (positions (P, 3) mm, forward solve s, one refactorisation s (case 0 only, else −1), tetrahedra), or
+    the BoundaryError / SolverError that stopped it. Each case is solved from rest with its own factorisation
+    slot, so a case's numbers do not depend on which cases share its process (`--jobs` changes nothing).
+    """
+    try:
+        slab = build_slab(model.scene, surface, spec, model=model.params.model)
+    except BoundaryError as exc:
+        return [(k, [(i, exc) for i, _ in cases])]
+    probe = slab_probe(slab, points) if len(points) else layer_probe(slab, model.mesh)
+    n_tets = int(slab.ops.corners.shape[1])
+    answers = []
+    for i, strokes in cases:
+        t0 = time.perf_counter()
+        try:
+            x = solve_newton(slab, strokes, tol=SOLVE_TOL, factors={}).x
+        except SolverError as exc:
+            answers.append((i, exc))
+            continue
+        solve_s = time.perf_counter() - t0
+        factor_s = -1.0
+        if i == 0:
+            K = slab.stiffness_free(slab.rest, upper=True)
+            slot: dict = {}
+            factorize_free(slab, K, slot)
+            t0 = time.perf_counter()
+            factorize_free(slab, K, slot)  # the second: a refactorisation, as a trial's
+            factor_s = time.perf_counter() - t0
+        answers.append((i, (probe.positions(x), solve_s, factor_s, n_tets)))
+    return [(k, answers)]
+
+
+def in_process(fn, batches):
+    """fn(*batch) for each batch in turn, here, lazily: the items of each result (`choose_slab`'s default runner)."""
+    for batch in batches:
+        yield from fn(*batch)
 
 
 def choose_slab(model: Tissue, spec: SlabSpec, cases: list[np.ndarray], accuracy_mm: float,
-                planes=((1.0, None),)) -> SlabChoice:
+                planes=((1.0, None),), run_tasks=in_process, workers: int = 1) -> SlabChoice:
     """The coarsest candidate whose targets stay within accuracy_mm of the finest slab's (see the module doc).
 
     cases: the strokes (C,) mm the targets are compared at; planes: the
@@ -187,32 +231,66 @@ def choose_slab(model: Tissue, spec: SlabSpec, cases: list[np.ndarray], accuracy
     configured one first (`layer3d.check.plane_ladder`); the z ladder is
     `ladder`'s. The finest slab failing (a cup that grips nothing, a solve
     that does not converge) raises: it is the configured slab.
+
+    run_tasks(fn, batches) yields the items of fn(*batch) for every batch,
+    in any order (`in_process`, or worker processes: `experiments.pool.run_pool`);
+    it is closed once the pick is known. With `workers` ≥ 2 the finest
+    slab's cases are separate tasks, and the candidates are solved beside
+    them, ahead of the finest's answer. The pick and every number are the
+    same either way.
     """
     lad = _Ladder(model, spec, cases, planes)
     order = sorted(range(1, len(lad.candidates)), key=lambda k: (lad.candidates[k].n_tetrahedra, k))
     order = [k for k in order if lad.candidates[k].n_tetrahedra < lad.candidates[0].n_tetrahedra]
+    every = list(range(len(cases)))
+    groups = [(0, [i]) for i in every] if workers > 1 else [(0, every)]
+    groups += [(k, every) for k in order]
+    measured: set[int] = set()
 
-    def measured(k: int) -> float | None:
-        """Candidate k's error against the finest, recorded; None when k cannot be solved."""
-        try:
-            error = lad.distance(k, 0)
-        except (BoundaryError, SolverError) as exc:  # (a cup that grips nothing on a coarse plane, say)
-            c = lad.candidates[k]
-            progress.info(f"slab resolution: in-plane scale {c.in_plane_scale:g}, {c.levels} levels skipped: {exc}")
+    def pick() -> int | None:
+        """The pick once the answers decide it, else None; the finest slab's failure raises."""
+        if not lad.complete(0):
             return None
-        c = lad.candidates[k] = replace(lad.candidates[k], error_mm=error, reference=0)
-        progress.info(f"slab resolution: in-plane scale {c.in_plane_scale:g}, z {c.first_layer_mm:.3g}–"
-                      f"{c.max_layer_mm:.3g} mm, {c.levels} levels, {c.n_tetrahedra} tetrahedra: "
-                      f"{error:.4f} mm from the finest, factorisation {c.factor_s:.2f} s")
-        return error
+        if lad.failure(0) is not None:
+            raise lad.failure(0)
+        for k in order:
+            if not lad.complete(k):
+                return None
+            c = lad.candidates[k]
+            if lad.failure(k) is not None:  # (a cup that grips nothing on a coarse plane, say)
+                if k not in measured:
+                    progress.info(f"slab resolution: in-plane scale {c.in_plane_scale:g}, {c.levels} levels "
+                                  f"skipped: {lad.failure(k)}")
+                measured.add(k)
+                continue
+            if k not in measured:
+                error = lad.distance(k, 0)  # (records the candidate's timings first)
+                c = lad.candidates[k] = replace(lad.candidates[k], error_mm=error, reference=0)
+                progress.info(f"slab resolution: in-plane scale {c.in_plane_scale:g}, z {c.first_layer_mm:.3g}–"
+                              f"{c.max_layer_mm:.3g} mm, {c.levels} levels, {c.n_tetrahedra} tetrahedra: "
+                              f"{c.error_mm:.4f} mm from the finest, factorisation {c.factor_s:.2f} s")
+                measured.add(k)
+            if lad.candidates[k].error_mm <= accuracy_mm:
+                return k
+        return 0
 
-    lad.solve(0)  # (raises if the configured slab cannot be solved)
+    answers = run_tasks(solve_group, [lad.task(k, ks) for k, ks in groups])
+    chosen = None
+    try:
+        for k, solved in answers:
+            lad.record(k, solved)
+            chosen = pick()
+            if chosen is not None:
+                break
+    finally:
+        answers.close()
+    lad.positions(0)
     lad.candidates[0] = replace(lad.candidates[0], error_mm=0.0, reference=-1)
+    # (candidates solved ahead of the pick but not needed for it keep error −1: they were not compared)
     for k in order:
-        error = measured(k)
-        if error is not None and error <= accuracy_mm:
-            return SlabChoice(float(accuracy_mm), k, tuple(lad.candidates))
-    return SlabChoice(float(accuracy_mm), 0, tuple(lad.candidates))
+        if k in lad.solved and k not in measured:
+            lad.candidates[k] = replace(lad.candidates[k], solve_s=-1.0, factor_s=-1.0)
+    return SlabChoice(float(accuracy_mm), chosen, tuple(lad.candidates))
 
 
 def exhaustive_errors(model: Tissue, spec: SlabSpec, cases: list[np.ndarray], planes=((1.0, None),)
@@ -220,5 +298,8 @@ def exhaustive_errors(model: Tissue, spec: SlabSpec, cases: list[np.ndarray], pl
     """Every candidate solved: (candidates, each one's error against the finest (R,) mm). The full ladder, whose
     pick `choose_slab` must make; slow on a fine slab."""
     lad = _Ladder(model, spec, cases, planes)
+    every = list(range(len(cases)))
+    for k, solved in in_process(solve_group, [lad.task(k, every) for k in range(len(lad.candidates))]):
+        lad.record(k, solved)
     true = np.array([lad.distance(k, 0) for k in range(len(lad.candidates))])
     return list(lad.candidates), true
