@@ -63,7 +63,10 @@ def timed_run(name: str, config: Path, out: Path) -> None:
             g = f[f"trials/{target}"]
             if "miss_mm" not in g or "done" not in g:
                 continue
-            done = g["done"][()].astype(bool)
+            done = g["done"][()].astype(bool) & (g["stop_reason"].asstr()[()] != "no_plan")  # (zeros: contract.md)
+            if not done.any():
+                print(f"  {target}: no plan, no insertion")
+                continue
             miss = np.atleast_2d(g["miss_mm"][()][done].T).T
             strategies = [s.decode() if isinstance(s, bytes) else str(s) for s in g["miss_mm"].attrs.get("strategies", [])]
             for k, s in enumerate(strategies):
