@@ -27,6 +27,13 @@ within `accuracy_mm` is the pick — the one the full ladder, every
 candidate solved, picks — having solved the finest and the candidates
 coarser than the pick; the finest is the pick when none is.
 
+Each forward case is solved from rest with a factorisation slot of its
+own, so its numbers do not depend on what its process solved before. That
+lets the ladder run on worker processes (`run_tasks`, `--jobs`): the
+finest slab's cases as separate tasks, the candidates beside them in the
+same order, the workers stopped once the pick is known — the same pick and
+numbers as one process.
+
 An estimate that would spare the finest solve — twice a candidate's
 distance to its neighbour one rung finer on both ladders, a bound if each
 rung halved the error — was tried and dropped: the error is not monotone
