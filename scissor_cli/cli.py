@@ -24,7 +24,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from scissor_cli import __version__, progress, runtime
-from scissor_cli.config import Config, ConfigError, load_config, resolved_yaml
+from scissor_cli.config import Config, ConfigError, load_config, parse_config, resolved_yaml
 
 app = typer.Typer(
     add_completion=False,
@@ -182,12 +182,23 @@ def _resume(directory: Path, execution) -> None:
     """`simulate --resume DIR`: finish the run in DIR."""
     from scissor_cli.experiments.pool import WorkerLost
     from scissor_cli.experiments.simulate import NonFiniteError, ResumeError, TrialsFailed, resume_simulation
-    from scissor_cli.output.results_sink import open_for_resume
+    from scissor_cli.output.results_sink import STARTED, open_for_resume, started_config
     from scissor_cli.output.run_lock import RunBusy, claim
 
     try:
         lock = claim(directory) if directory.is_dir() else None  # noqa: F841 (held to the process's end)
-        n = resume_simulation(open_for_resume(directory), execution)
+        try:
+            sink = open_for_resume(directory)
+        except ResumeError:
+            started = started_config(directory)
+            if started is None:
+                raise
+            cfg = parse_config(started, str(directory / STARTED))
+            progress.info(f"--resume {directory}: the run stopped before it wrote results.h5; it starts again "
+                          f"from its config ({STARTED})")
+            _run(cfg, directory, execution, directory / STARTED)
+            return
+        n = resume_simulation(sink, execution)
     except (ResumeError, ConfigError, RunBusy) as exc:  # also: the run's own config no longer validates
         _fail(2, str(exc))
     except (TrialsFailed, NonFiniteError, WorkerLost) as exc:
@@ -232,24 +243,31 @@ def _configured(options: SimulateOptions) -> tuple[Config, str]:
 
 def _new_run(options: SimulateOptions, execution) -> None:
     """`simulate [CONFIG]`: a new run in its own directory."""
-    from scissor_cli.mesh.mesh import MeshError
-    from scissor_cli.experiments.pool import WorkerLost
-    from scissor_cli.experiments.simulate import NonFiniteError, TrialsFailed, run_simulation
     from scissor_cli.output.run_lock import RunBusy, claim
-    from scissor_cli.output.results_sink import RunDirectory
-    from scissor_cli.experiments.study import StudyError
-    from scissor_cli.solvers.common import SolverError
-    from scissor_cli.mechanics.tissue import BoundaryError
 
     cfg, stem = _configured(options)
-    scene = options.config or DEFAULT_SCENE
     directory = _out_dir(options.out_dir, stem, options.force)
     try:
         lock = claim(directory)  # noqa: F841 (held to the process's end: a second run here would truncate this one's)
     except RunBusy as exc:
         _fail(2, f"--out {exc}")
+    _run(cfg, directory, execution, options.config or DEFAULT_SCENE)
+
+
+def _run(cfg: Config, directory: Path, execution, scene) -> None:
+    """A run of cfg from its first stage into `directory` (claimed); its config recorded first for `--resume`."""
+    from scissor_cli.mesh.mesh import MeshError
+    from scissor_cli.experiments.pool import WorkerLost
+    from scissor_cli.experiments.simulate import NonFiniteError, TrialsFailed, run_simulation
+    from scissor_cli.output.results_sink import RunDirectory
+    from scissor_cli.experiments.study import StudyError
+    from scissor_cli.solvers.common import SolverError
+    from scissor_cli.mechanics.tissue import BoundaryError
+
+    run = RunDirectory(directory)
+    run.start(resolved_yaml(cfg))
     try:
-        summary = run_simulation(cfg, RunDirectory(directory), execution)
+        summary = run_simulation(cfg, run, execution)
     except (BoundaryError, MeshError, StudyError) as exc:
         _fail(2, f"{scene}: {exc}")
     except NotImplementedError as exc:  # the needle planner's inverse kinematics for a custom chain

@@ -170,3 +170,47 @@ def test_sigkill_during_the_insertions_then_resume(reference, tmp_path):
     assert "finished stage product(s) kept" in r.stdout + r.stderr
     assert wall_times(run / "results.h5", list(kept)) == kept
     assert_same_run(ref, run / "results.h5")
+
+
+def test_a_run_stopped_before_results_h5_starts_again_from_its_recorded_config_on_resume(reference, tmp_path):
+    """A new run records its config (`.scissor-run.yaml`) before its first stage; a run stopped before it wrote
+    results.h5 (in the slab's ladder, say: the directory holds only that file) is started again by `--resume`
+    and equals an uninterrupted run; without the file `--resume` still refuses (exit 2)."""
+    from typer.testing import CliRunner
+
+    from scissor_cli.cli import app
+    from scissor_cli.config import resolved_yaml
+    from scissor_cli.output.results_sink import STARTED
+
+    path, ref = reference
+    runner = CliRunner()
+    recorded = tmp_path / "recorded"
+    RunDirectory(recorded).start(resolved_yaml(load_config(path)))
+    stopped = tmp_path / "stopped"
+    stopped.mkdir()
+    shutil.copy(recorded / STARTED, stopped / STARTED)
+    resumed = runner.invoke(app, ["simulate", "--resume", str(stopped), "--jobs", "1", "-q"])
+    assert resumed.exit_code == 0, resumed.output
+    assert_same_run(ref, stopped / "results.h5")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert runner.invoke(app, ["simulate", "--resume", str(empty)]).exit_code == 2
+
+
+def test_a_new_run_records_its_config_before_its_first_stage(tmp_path):
+    """`simulate` writes `.scissor-run.yaml` (the config with the command line's overrides) into its directory."""
+    from typer.testing import CliRunner
+
+    from scissor_cli.cli import app
+    from scissor_cli.config import resolved_yaml
+    from scissor_cli.output.results_sink import STARTED
+
+    data = example_dict()
+    data["tissue"]["mesh"].update(max_edge_mm=8.0, min_edge_mm=2.5)
+    data["trials"] = {"count": 0}
+    path = write_scene(tmp_path, data)
+    run = tmp_path / "run"
+    result = CliRunner().invoke(app, ["simulate", str(path), "--out", str(run), "--seed", "11", "-q"])
+    assert result.exit_code == 0, result.output
+    expected = load_config(path).model_copy(update={"seed": 11})
+    assert (run / STARTED).read_text() == resolved_yaml(expected)

@@ -243,11 +243,23 @@ class ResultsSink:
         return paths
 
 
+#: the config a new run starts with (the command line's overrides applied), written before its first stage: a run
+#: stopped before results.h5 exists (in the slab's ladder, say) starts again from it on `--resume`
+STARTED = ".scissor-run.yaml"
+
+
 class RunDirectory:
     """The sink factory of a new run into `path` (`experiments.sink.SinkFactory`)."""
 
     def __init__(self, path: Path | str):
         self.location = Path(path)
+
+    def start(self, config_yaml: str) -> None:
+        """Record the run's config (STARTED) before its first stage, whole or not at all."""
+        self.location.mkdir(parents=True, exist_ok=True)
+        tmp = self.location / (STARTED + ".tmp")
+        tmp.write_text(config_yaml, encoding="utf-8")
+        tmp.replace(self.location / STARTED)
 
     def open(self, config_yaml: str, seed: int) -> ResultsSink:
         self.location.mkdir(parents=True, exist_ok=True)
@@ -298,6 +310,14 @@ def _repair(out: ResultsFile) -> int:
     if n:
         out.flush()
     return n
+
+
+def started_config(run_dir: Path | str) -> Optional[str]:
+    """The config a run in `run_dir` started with (`RunDirectory.start`), or None when it left none readable."""
+    try:
+        return (Path(run_dir) / STARTED).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        return None
 
 
 def open_for_resume(run_dir: Path | str) -> ResultsSink:
