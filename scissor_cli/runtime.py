@@ -28,9 +28,9 @@ def match_blas_kernels() -> None:
     """Let cvxopt's OpenBLAS (CHOLMOD's dense kernels) run the kernels numpy's OpenBLAS picked for this CPU.
 
     cvxopt's wheel bundles an older OpenBLAS that does not recognise recent
-    CPUs and falls back to its generic Prescott (SSE3) kernels: on this VM a
-    4x slower dgemm and a 2.5x slower 3-D factorisation (docs/performance.md,
-    "Why the runtime settings"). OpenBLAS reads `OPENBLAS_CORETYPE` when it
+    CPUs and falls back to its generic Prescott (SSE3) kernels, several times
+    slower on a 3-D factorisation (docs/performance.md, "Why the runtime
+    settings"; benchmarks/bench_slab_ladder.py). OpenBLAS reads `OPENBLAS_CORETYPE` when it
     is loaded, so this runs before cvxopt is imported, and does nothing when
     it already is, when the user set the variable, or when numpy's BLAS is not
     an OpenBLAS naming a core in KNOWN_CORES. The variable is inherited by

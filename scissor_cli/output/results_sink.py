@@ -32,6 +32,7 @@ from typing import Optional
 import h5py
 import numpy as np
 
+from scissor_cli.experiments import run_cache
 from scissor_cli.experiments.sink import ForwardCase, Manipulation, ResumeError, product_key
 from scissor_cli.experiments.study import rows_as_columns
 from scissor_cli.output.manipulation import manipulation_figure_inputs
@@ -256,10 +257,7 @@ class RunDirectory:
 
     def start(self, config_yaml: str) -> None:
         """Record the run's config (STARTED) before its first stage, whole or not at all."""
-        self.location.mkdir(parents=True, exist_ok=True)
-        tmp = self.location / (STARTED + ".tmp")
-        tmp.write_text(config_yaml, encoding="utf-8")
-        tmp.replace(self.location / STARTED)
+        run_cache.write_whole(self.location / STARTED, lambda partial: partial.write_text(config_yaml, encoding="utf-8"))
 
     def open(self, config_yaml: str, seed: int) -> ResultsSink:
         self.location.mkdir(parents=True, exist_ok=True)
