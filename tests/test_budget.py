@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from scissor_cli.config import parse_config, resolved_yaml
-from scissor_cli.experiments.error_budget import ROWS, budget_plan
+from scissor_cli.experiments.error_budget import ROWS, budget_plan, identical_trials
 from scissor_cli.output.error_budget.results import BudgetCell, budget_rows
 from helpers import deep_update, example_dict, write_scene
 
@@ -51,6 +51,33 @@ def test_a_row_is_the_trials_of_its_variant_config(budget_run):
         for target in ("T1", "T2"):
             assert np.array_equal(a[f"budget/localisation/{target}/final_error"][()], b[f"trials/{target}/final_error"][()])
             assert np.array_equal(a[f"budget/localisation/{target}/miss_mm"][()], b[f"trials/{target}/manipulation_miss_mm"][()])
+
+
+def test_a_row_that_draws_nothing_runs_once_and_equals_its_variant_run_in_full(budget_run):
+    """The `none` row switches every source off: its trials are all the same, so the budget runs one per target.
+    Its stored trials equal those of its variant config run alone with every trial run, bit for bit."""
+    tmp, scene, h5_path = budget_run
+    cfg = parse_config(scene.read_text())
+    plan = budget_plan(cfg)
+    assert identical_trials(plan.rows["none"]) and not identical_trials(plan.rows["camera"])
+    path = tmp / "none.yaml"
+    path.write_text(resolved_yaml(plan.rows["none"]))
+    alone = _simulate(path, tmp / "none")
+    with h5py.File(h5_path) as a, h5py.File(alone) as b:
+        assert a["budget/none"].attrs["identical_trials"] and "identical_trials" not in a["budget/camera"].attrs
+        for target in ("T1", "T2"):
+            stored = a[f"budget/none/{target}/final_error"][()]
+            assert stored.shape == (cfg.trials.count, 2)
+            assert np.array_equal(stored, b[f"trials/{target}/final_error"][()])
+            assert np.array_equal(a[f"budget/none/{target}/miss_mm"][()], b[f"trials/{target}/manipulation_miss_mm"][()])
+
+
+def test_only_rows_without_a_drawn_source_or_speckle_are_identical():
+    data = _small()
+    data["layer_check"] = {"height_mm": 20.0, "layer_z_mm": 10.0, "max_layer_mm": 10.0, "accuracy_mm": None}
+    plan = budget_plan(parse_config(yaml.safe_dump(data)))
+    assert {name for name, row in plan.rows.items() if identical_trials(row)} == {"none", "slab"}
+    # (with imaging the speckle is drawn in every row: tests/test_ultrasound_loop.py)
 
 
 def test_the_all_row_is_the_ordinary_trials(budget_run):

@@ -210,7 +210,7 @@ def test_the_camera_without_imaging():
 
 
 def test_profiles_and_budget_rows_with_imaging():
-    from scissor_cli.experiments.error_budget import budget_plan
+    from scissor_cli.experiments.error_budget import budget_plan, identical_trials
 
     for name, values in PROFILES.items():
         assert {"sound_speed_sd_m_per_s", "probe_position_sd_mm", "probe_angle_sd_deg", "electronic_noise_scale"} <= set(values)
@@ -224,6 +224,8 @@ def test_profiles_and_budget_rows_with_imaging():
     assert plan.rows["none"].imaging is None and plan.rows["none"].trials.profile == "ideal"
     row = plan.rows["probe_calibration"].trials
     assert (row.probe_position_sd_mm, row.probe_angle_sd_deg, row.E_log_sd, row.electronic_noise_scale) == (0.2, 0.5, 0, 0)
+    # the speckle is drawn per trial: only the exact sensor's `none` row has identical trials
+    assert [name for name, row in plan.rows.items() if identical_trials(row)] == ["none"]
 
 
 def test_a_trial_reads_the_ultrasound(world):

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import time
 from contextlib import closing
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from scissor_cli import progress
 from scissor_cli.config import Config, resolved_yaml
@@ -109,12 +109,27 @@ def row_config_yaml(cfg: Config) -> str:
     return resolved_yaml(cfg)
 
 
+def identical_trials(row: Config) -> bool:
+    """Whether every trial of a row gives the same numbers: no source's spread on and no imaging.
+
+    A trial draws all its numbers whatever their σ (experiments/profiles.py)
+    and scales them by σ, so with every σ 0 no draw changes a number (x + 0·z
+    is x); the ultrasound draws its speckle per trial whatever the profile.
+    Such a row (`none`, `slab` of a camera scene) runs one trial per target,
+    which stands for all its trials.
+    """
+    em = error_model(row.trials)
+    return row.imaging is None and not any(getattr(em, f) for f in SOURCE_FIELDS)
+
+
 def run_budget(cfg: Config, tasks: list, sink, execution, done: frozenset[str] = frozenset()) -> list:
     """Run every budget row not yet finished and store it whole (`budget/<row>`); returns figure paths.
 
     One set of workers runs every row's trials; a row is stored and marked
     finished as soon as its last trial is in, so a killed run keeps its
-    finished rows and `--resume` runs the others.
+    finished rows and `--resume` runs the others. A row of identical trials
+    (`identical_trials`) runs trial 0 of each target and stores it as each
+    of its trials, marked `identical_trials` in its attributes.
     """
     plan = budget_plan(cfg)
     for note in plan.notes:
@@ -122,22 +137,29 @@ def run_budget(cfg: Config, tasks: list, sink, execution, done: frozenset[str] =
     names = [t.name for t in tasks]
     by_index = {t.index: t for t in tasks}
     todo = [name for name in plan.rows if product_key("budget", name) not in done]
-    work = [(task, k) for task in tasks for k in range(cfg.trials.count)]
+    count = cfg.trials.count
+    once = {name for name in todo if identical_trials(plan.rows[name])}
+    work = {name: [(task, k) for task in tasks for k in range(1 if name in once else count)] for name in todo}
     if todo:
-        progress.info(f"budget: {len(todo)} row(s) of {len(work)} trials ({', '.join(todo)})")
-    advance = progress.bar("budget", len(todo) * len(work))
-    outcomes = {name: {n: [None] * cfg.trials.count for n in names} for name in todo}
-    left = {name: len(work) for name in todo}
+        progress.info(f"budget: {len(todo)} row(s) of {len(tasks) * count} trials ({', '.join(todo)})")
+    if once:
+        progress.info(f"budget: {', '.join(sorted(once))}: no source drawn, every trial the same: one per target run")
+    advance = progress.bar("budget", sum(len(w) for w in work.values()))
+    outcomes = {name: {n: [None] * count for n in names} for name in todo}
+    left = {name: len(work[name]) for name in todo}
     t0 = time.perf_counter()
     rows_yaml = {name: row_config_yaml(plan.rows[name]) for name in todo}
     with closing(execute_rows(rows_yaml, work, execution.jobs, execution.executor, execution.scheduler)) as stream:
         for name, outcome in stream:
-            outcomes[name][by_index[outcome.target_index].name][outcome.trial] = outcome
+            copies = range(count) if name in once else (outcome.trial,)
+            for k in copies:
+                outcomes[name][by_index[outcome.target_index].name][k] = replace(outcome, trial=k)
             left[name] -= 1
             advance(1)
             if left[name] == 0:  # a row is stored whole as soon as its last trial is in
+                fields = _fields_on(name, plan.rows[name]) | ({"identical_trials": True} if name in once else {})
                 with deferred_signals():
-                    sink.budget_row(name, _fields_on(name, plan.rows[name]), outcomes.pop(name))
+                    sink.budget_row(name, fields, outcomes.pop(name))
                     sink.mark_finished(product_key("budget", name))
                 progress.info(f"budget {name}: done ({time.perf_counter() - t0:.1f} s into the budget)")
     return sink.budget_figures(cfg.name, list(plan.rows), cfg.trials.profile)

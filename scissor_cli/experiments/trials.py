@@ -305,41 +305,43 @@ def execute(
     scheduler at `scheduler`. Close the generator (or let an exception leave
     the loop over it) to stop the workers at once.
     """
-    for _, outcome in execute_rows({"": config_yaml}, work, jobs, executor, scheduler):
+    for _, outcome in execute_rows({"": config_yaml}, {"": work}, jobs, executor, scheduler):
         yield outcome
 
 
 def execute_rows(
     rows: dict[str, str],
-    work: list[tuple[TargetTask, int]],
+    work: dict[str, list[tuple[TargetTask, int]]],
     jobs: int = 1,
     executor: str = "local",
     scheduler: Optional[str] = None,
 ) -> Iterator[tuple[str, TrialOutcome]]:
-    """`execute` for the same trials under several configs {row: config YAML} on one set of workers.
+    """`execute` for trials under several configs {row: config YAML} on one set of workers, {row: its trials}.
 
     Yields (row, outcome). Batches go row by row, so a worker rebuilds its
     model (`_context`) only when it moves to the next row; one pool serves
     every row instead of one pool started per row (the error budget).
     """
-    if not work or not rows:
+    todo = {row: work.get(row, []) for row in rows}
+    total = sum(len(w) for w in todo.values())
+    if not total:
         return
     if executor == "dask":
-        yield from _execute_dask(rows, work, scheduler)
+        yield from _execute_dask(rows, todo, scheduler)
         return
     if jobs <= 1:
         for row, config_yaml in rows.items():
-            for task, k in work:
+            for task, k in todo[row]:
                 yield row, run_trial(config_yaml, task, k)
         return
-    jobs = min(jobs, len(work) * len(rows))  # a worker without a trial would only cost its start-up
+    jobs = min(jobs, total)  # a worker without a trial would only cost its start-up
     # Batches amortise the per-task overhead while keeping both workers busy to the end.
-    size = max(1, min(8, len(work) // (4 * jobs)))
+    size = max(1, min(8, total // (len(rows) * 4 * jobs)))
     yield from run_pool(_run_batch, [(row, config_yaml, batch) for row, config_yaml in rows.items()
-                                     for batch in _batches(work, size)], jobs)
+                                     for batch in _batches(todo[row], size)], jobs)
 
 
-def _execute_dask(rows: dict[str, str], work, scheduler: Optional[str]) -> Iterator[tuple[str, TrialOutcome]]:
+def _execute_dask(rows: dict[str, str], work: dict, scheduler: Optional[str]) -> Iterator[tuple[str, TrialOutcome]]:
     try:
         from dask.distributed import Client, as_completed
     except ImportError:  # pragma: no cover - depends on the installation
@@ -348,8 +350,8 @@ def _execute_dask(rows: dict[str, str], work, scheduler: Optional[str]) -> Itera
         raise RuntimeError("--executor dask needs --scheduler ADDRESS (e.g. tcp://127.0.0.1:8786)")
     with Client(scheduler, timeout="20s") as client:
         n_workers = max(1, len(client.scheduler_info().get("workers", {})))
-        size = max(1, min(8, len(work) // (4 * n_workers)))
+        size = max(1, min(8, sum(len(w) for w in work.values()) // (len(rows) * 4 * n_workers)))
         futures = [client.submit(_run_batch_dask, row, config_yaml, batch, pure=False)
-                   for row, config_yaml in rows.items() for batch in _batches(work, size)]
+                   for row, config_yaml in rows.items() for batch in _batches(work[row], size)]
         for future in as_completed(futures):
             yield from future.result()
