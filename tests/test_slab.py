@@ -104,7 +104,6 @@ def test_patch_uniform_stretch_exact():
     free_index = np.full(3 * sm.n_nodes, -1)
     free_index[free] = np.arange(len(free))
     held = replace(slab, dirichlet_dofs=dirichlet, free_dofs=free, free_index=free_index,
-                   pattern_free=fem.sparse_pattern(slab.ops, free_index),
                    pattern_free_upper=fem.sparse_pattern(slab.ops, free_index, upper=True), factor_cache={})
     held = held.with_material(E_scale=10.0 / slab.element_E_kPa)  # homogeneous (the obstacles are stiffer)
     assert len(free) > 0
@@ -297,7 +296,7 @@ def test_indefinite_hessian_near_the_solution_is_shifted_not_projected(coarse, m
     shifted one, not the eigen-projected one (whose steps crawled through a cup rim's indefinite states:
     52 s for one settle, docs/performance.md), and Newton still converges to the same equilibrium."""
     from scissor_cli.solvers import newton
-    from scissor_cli.solvers.common import SolverError
+    from scissor_cli.solvers.linear import NotPositiveDefinite
 
     scene, mesh, _ = coarse
     spec = SlabSpec(20.0, 10.0, max_layer_mm=5.0)
@@ -310,7 +309,7 @@ def test_indefinite_hessian_near_the_solution_is_shifted_not_projected(coarse, m
     def refusing(tissue, K, b, factors=None, rtol=None, max_iter=12):
         if not exact_refused:  # the first exact Hessian "is not positive definite"
             exact_refused.append(True)
-            raise SolverError("system matrix is not positive definite")
+            raise NotPositiveDefinite("system matrix is not positive definite", factored=True)
         return solve_free(tissue, K, b, factors, rtol, max_iter)
 
     system = newton._system

@@ -113,15 +113,17 @@ def test_preconditioned_cg_solves_to_tolerance_and_refuses_indefinite():
     near = (A + 0.2 * sp.diags(np.random.default_rng(3).random(A.shape[0]))).tocsr()
     b = np.random.default_rng(4).random(A.shape[0])
     f = Factorization(A, definite=True)
-    x, k = preconditioned_cg(sp.triu(near).tocsr(), b, f, 1e-12, max_iter=50)
-    assert x is not None and 1 < k < 50 and f.cg_iterations == k
+    x, k, why = preconditioned_cg(sp.triu(near).tocsr(), b, f, 1e-12, max_iter=50)
+    assert x is not None and 1 < k < 50 and f.cg_iterations == k and why == "converged"
     direct = Factorization(near, definite=True).solve(b)
     assert np.linalg.norm(x - direct) <= 1e-10 * np.linalg.norm(direct)
-    x1, k1 = preconditioned_cg(A, b, f, 1e-10, upper=False)  # its own factor: one iteration
+    x1, k1, _ = preconditioned_cg(A, b, f, 1e-10, upper=False)  # its own factor: one iteration
     assert k1 == 1 and np.linalg.norm(A @ x1 - b) <= 1e-10 * np.linalg.norm(b)
     bad = (A - 2.0 * sp.eye(A.shape[0])).tocsr()  # indefinite: not returned
-    assert preconditioned_cg(sp.triu(bad).tocsr(), b, f, 1e-12, max_iter=200)[0] is None
-    assert preconditioned_cg(sp.triu(near).tocsr(), b, f, 1e-14, max_iter=2)[0] is None  # budget spent
+    x, _, why = preconditioned_cg(sp.triu(bad).tocsr(), b, f, 1e-12, max_iter=200)
+    assert x is None and why == "curvature"
+    x, _, why = preconditioned_cg(sp.triu(near).tocsr(), b, f, 1e-14, max_iter=2)
+    assert x is None and why == "iterations"  # budget spent
 
 
 def test_solve_free_uses_cg_on_the_old_factor_refactors_when_stale_or_failing():
@@ -147,6 +149,31 @@ def test_solve_free_uses_cg_on_the_old_factor_refactors_when_stale_or_failing():
         assert linear.solve_free(tissue, far, b, rtol=1e-10)[1]
     assert not f.stale
     assert linear.solve_free(tissue, far, b)[1]  # no rtol: always the direct solve
+
+
+def test_solve_free_takes_negative_curvature_as_proof_and_keeps_its_factor():
+    """An indefinite K_ff that CG on the slot's factor exposes is refused without the factorisation (which would fail
+    after most of its cost); the slot's factor stays usable. Without rtol the factorisation itself says so."""
+    from types import SimpleNamespace
+
+    from scissor_cli.solvers import linear
+
+    A = sp.triu(_laplacian_3d(8, 0.5)).tocsr()
+    n = A.shape[0]
+    tissue = SimpleNamespace(factor_cache={}, dim=3, free_dofs=np.arange(n))
+    b = np.random.default_rng(5).random(n)
+    linear.solve_free(tissue, A, b, rtol=1e-8)
+    f = tissue.factor_cache["free"]
+    bad = sp.triu(A - 2.0 * sp.eye(n)).tocsr()
+    assert np.linalg.eigvalsh((bad + sp.triu(bad, 1).T).toarray())[0] < 0  # indefinite indeed
+    with pytest.raises(linear.NotPositiveDefinite) as caught:
+        linear.solve_free(tissue, bad, b, rtol=1e-8)
+    assert not caught.value.factored and f.factorizations == 1
+    x, factored = linear.solve_free(tissue, A, b, rtol=1e-8)  # the kept factor still preconditions
+    assert not factored and np.linalg.norm(A @ x + A.T @ x - A.diagonal() * x - b) <= 1e-8 * np.linalg.norm(b)
+    with pytest.raises(linear.NotPositiveDefinite) as caught:
+        linear.solve_free(tissue, bad, b)
+    assert caught.value.factored and f.factorizations == 2
 
 
 def test_large_2d_factors_are_ordered_by_nested_dissection():
@@ -186,7 +213,7 @@ def test_a_preconditioned_solve_records_its_rate_and_a_refactorisation_forgets_i
     assert f.cg_rate is None and f.cg_iterations_for(1e-2) == 0.0  # unknown: worth a try
     near = (A + sp.diags(0.2 * np.random.default_rng(3).random(n))).tocsr()
     b = np.random.default_rng(4).random(n)
-    x, k = linear.preconditioned_cg(near, b, f, 1e-6)
+    x, k, _ = linear.preconditioned_cg(near, b, f, 1e-6)
     assert x is not None and k > 1 and f.cg_rate == pytest.approx(1e-6 ** (1.0 / k))
     assert f.cg_iterations_for(1e-6) == pytest.approx(k) and f.cg_iterations_for(1e-12) == pytest.approx(2 * k)
     f.refactor(near)

@@ -165,7 +165,7 @@ class _Ladder:
         c = self.candidates[k]
         spec = replace(self.spec, first_layer_mm=c.first_layer_mm, max_layer_mm=c.max_layer_mm, plane=None)
         return (self.model, spec, self.surfaces[self.grid[k][0]][1], self.points, k,
-                [(i, self.cases[i]) for i in cases])
+                [(i, self.cases[i]) for i in cases], len(self.cases) - 1)
 
     def record(self, k: int, answers: list) -> None:
         self.solved.setdefault(k, {}).update(answers)
@@ -189,10 +189,12 @@ class _Ladder:
         return float(np.max(np.linalg.norm(self.positions(a) - self.positions(b), axis=-1), initial=0.0))
 
 
-def solve_group(model: Tissue, spec: SlabSpec, surface, points: np.ndarray, k: int, cases: list) -> list:
+def solve_group(model: Tissue, spec: SlabSpec, surface, points: np.ndarray, k: int, cases: list,
+                timed_case: int = 0) -> list:
     """One candidate's slab built and solved at some forward cases: [(k, [(case, answer), ...])] (`run_tasks`' item).
 
-    answer: (positions (P, 3) mm, forward solve s, one refactorisation s (case 0 only, else −1), tetrahedra), or
+    answer: (positions (P, 3) mm, forward solve s, one refactorisation s (at case `timed_case` only, else −1),
+    tetrahedra), or
     the BoundaryError / SolverError that stopped it. Each case is solved from rest with its own factorisation
     slot, so a case's numbers do not depend on which cases share its process (`--jobs` changes nothing).
     """
@@ -205,19 +207,20 @@ def solve_group(model: Tissue, spec: SlabSpec, surface, points: np.ndarray, k: i
     answers = []
     for i, strokes in cases:
         t0 = time.perf_counter()
+        slot: dict = {}
         try:
-            x = solve_newton(slab, strokes, tol=SOLVE_TOL, factors={}).x
+            x = solve_newton(slab, strokes, tol=SOLVE_TOL, factors=slot).x
         except SolverError as exc:
             answers.append((i, exc))
             continue
         solve_s = time.perf_counter() - t0
         factor_s = -1.0
-        if i == 0:
+        if i == timed_case:  # (`_Ladder` times the last case: with --jobs the finest's first is the longest)
             K = slab.stiffness_free(slab.rest, upper=True)
-            slot: dict = {}
-            factorize_free(slab, K, slot)
+            if "free" not in slot:  # (the solve's symbolic analysis is reused: a refactorisation, as a trial's)
+                factorize_free(slab, K, slot)
             t0 = time.perf_counter()
-            factorize_free(slab, K, slot)  # the second: a refactorisation, as a trial's
+            factorize_free(slab, K, slot)
             factor_s = time.perf_counter() - t0
         answers.append((i, (probe.positions(x), solve_s, factor_s, n_tets)))
     return [(k, answers)]

@@ -51,8 +51,7 @@ class Tissue:
     dirichlet_dofs: np.ndarray  # (Nd,) sorted
     free_dofs: np.ndarray  # (Nf,) sorted
     free_index: np.ndarray  # (2N,) position in free_dofs or -1
-    pattern_free: fem.SparsePattern  # K_ff, both triangles
-    pattern_free_upper: fem.SparsePattern  # its upper triangle, what a Cholesky factorisation reads
+    pattern_free_upper: fem.SparsePattern  # K_ff's upper triangle, what a Cholesky factorisation reads
     mass: np.ndarray  # (2N,) kg, lumped
     #: one symbolic factorisation of K_ff's pattern, reused by every solve on this mesh
     factor_cache: dict = field(default_factory=dict, compare=False, repr=False)
@@ -60,6 +59,12 @@ class Tissue:
     @property
     def rest(self) -> np.ndarray:
         return self.mesh.nodes
+
+    @cached_property
+    def pattern_free(self) -> fem.SparsePattern:
+        """K_ff's pattern, both triangles (the Jacobian's, the grip planner's), built on first use: the solvers read
+        only the upper one, and on a 3-D slab this one costs as much to build as the rest of the slab."""
+        return fem.sparse_pattern(self.ops, self.free_index)
 
     @property
     def dim(self) -> int:
@@ -324,7 +329,6 @@ def tissue_from_boundary(scene: Scene, mesh, ops, material, fixed, cup_nodes, cu
         dirichlet_dofs=dirichlet,
         free_dofs=free,
         free_index=free_index,
-        pattern_free=fem.sparse_pattern(ops, free_index),
         pattern_free_upper=fem.sparse_pattern(ops, free_index, upper=True),
         mass=fem.lumped_mass(ops, scene.material.density_kg_per_mm3),
     )

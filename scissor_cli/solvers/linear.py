@@ -32,6 +32,15 @@ ND_MIN_UNKNOWNS_2D = 10_000
 KRYLOV_STALE_ITER = 6
 
 
+class NotPositiveDefinite(SolverError):
+    """K_ff is not positive definite. `factored`: a factorisation found it (else preconditioned conjugate
+    gradients met a direction of non-positive curvature, which proves it: no factorisation was tried)."""
+
+    def __init__(self, message: str, factored: bool):
+        super().__init__(message)
+        self.factored = factored
+
+
 class Factorization:
     """Sparse factorisation of a symmetric matrix, its symbolic analysis reused.
 
@@ -121,7 +130,7 @@ class Factorization:
         except ArithmeticError:
             if self.definite:
                 self._active = None
-                raise SolverError("system matrix is not positive definite") from None
+                raise NotPositiveDefinite("system matrix is not positive definite", factored=True) from None
         if self.upper:  # qdldl reads the upper triangle of a CSC matrix
             A_csc = A.tocsc()
         else:  # a symmetric CSR matrix is its own transpose: reinterpret it as CSC
@@ -260,15 +269,16 @@ def conjugate_gradients(times: Callable[[np.ndarray], np.ndarray], precondition:
 
 
 def preconditioned_cg(A: sp.csr_matrix, b: np.ndarray, factor: Factorization, rtol: float,
-                      max_iter: int = KRYLOV_MAX_ITER, upper: bool = True) -> tuple[np.ndarray | None, int]:
+                      max_iter: int = KRYLOV_MAX_ITER, upper: bool = True) -> tuple[np.ndarray | None, int, str]:
     """x with A x = b to ‖b − A x‖ ≤ rtol ‖b‖ by `conjugate_gradients` preconditioned with `factor`.
 
     A (n, n) symmetric, given by its upper triangle when `upper`; `factor` a
     Cholesky factorisation of a nearby matrix (an earlier Newton tangent).
-    Returns (x, iterations), or (None, iterations) when the iteration meets
-    a direction of non-positive curvature (A not positive definite), turns
-    non-finite, or does not reach rtol within max_iter: the caller then
-    factors A itself. The true residual is checked before x is returned.
+    Returns (x, iterations, "converged"), or (None, iterations, why) when the
+    iteration meets a direction of non-positive curvature ("curvature": A is
+    not positive definite), turns non-finite, or does not reach rtol within
+    max_iter (`conjugate_gradients`' reasons). The true residual is checked
+    before x is returned.
     """
     if upper:
         diag, AT = A.diagonal(), A.T
@@ -277,11 +287,11 @@ def preconditioned_cg(A: sp.csr_matrix, b: np.ndarray, factor: Factorization, rt
             return A @ v + AT @ v - diag * v
     else:
         times = A.__matmul__
-    x, k, _ = conjugate_gradients(times, factor.solve, b, rtol, max_iter)
+    x, k, why = conjugate_gradients(times, factor.solve, b, rtol, max_iter)
     factor.cg_iterations += k
     if x is not None and k > 0:
         factor.cg_rate = rtol ** (1.0 / k)
-    return x, k
+    return x, k, why
 
 
 def solve_free(tissue, K_upper: sp.csr_matrix, b: np.ndarray, factors: dict | None = None,
@@ -293,17 +303,23 @@ def solve_free(tissue, K_upper: sp.csr_matrix, b: np.ndarray, factors: dict | No
     (`preconditioned_cg`, at most max_iter iterations); only when that
     fails, or when the last such solve needed more than KRYLOV_STALE_ITER
     iterations (the factor is stale), is
-    K_ff factored (`factorize_free`, SolverError if it is not positive
-    definite). Without rtol K_ff is always factored: the direct solve.
+    K_ff factored (`factorize_free`). NotPositiveDefinite if it is not
+    positive definite: found by the factorisation, or by conjugate gradients
+    meeting negative curvature (then the factorisation, which would fail
+    after most of its cost, is not tried, and the slot keeps its factor).
+    Without rtol K_ff is always factored: the direct solve.
     """
     factors = tissue.factor_cache if factors is None else factors
     factor = factors.get("free")
     if (rtol is not None and factor is not None and factor.method == "cholesky" and not factor.stale
             and factor.matches(K_upper)):
-        x, k = preconditioned_cg(K_upper, b, factor, rtol, max_iter)
+        x, k, why = preconditioned_cg(K_upper, b, factor, rtol, max_iter)
         if x is not None:
             factor.stale = k > KRYLOV_STALE_ITER
             return x, False
+        if why == "curvature":
+            raise NotPositiveDefinite("system matrix is not positive definite (conjugate gradients met negative "
+                                      "curvature)", factored=False)
     return factorize_free(tissue, K_upper, factors).solve(b), True
 
 

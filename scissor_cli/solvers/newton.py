@@ -26,7 +26,7 @@ import time
 import numpy as np
 import scipy.sparse as sp
 
-from scissor_cli.solvers.linear import KRYLOV_MAX_ITER, factorize_free, solve_free
+from scissor_cli.solvers.linear import KRYLOV_MAX_ITER, NotPositiveDefinite, factorize_free, solve_free
 from scissor_cli.solvers.common import (
     NO_CONDITIONS, Conditions, Inertia, SolveResult, SolverError, check_finite, objective_gradient,
 )
@@ -225,8 +225,8 @@ def newton_iterations(
             K = _system(tissue, x, project, inertia, held)
             try:
                 d, factored = solve_free(tissue, K, g, factors, rtol, cg_iter)
-            except SolverError:  # singular exact Hessian: shifted (3-D), then the projected one
-                n_factor += 1
+            except NotPositiveDefinite as exc:  # an indefinite exact Hessian: shifted (3-D), then the projected one
+                n_factor += exc.factored
                 shifted = _shifted_solve(tissue, K, g, factors) if krylov and not project and res < SHIFT_BELOW else None
                 if shifted is None:
                     continue
