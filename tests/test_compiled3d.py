@@ -70,13 +70,30 @@ def test_stiffness_is_the_derivative_of_the_gradient(slab):
     np.testing.assert_allclose(Kv, (gp - gm) / (2 * h), rtol=1e-5, atol=1e-6 * np.abs(Kv).max())
 
 
-def test_projected_and_inverted_elements_go_to_numpy(slab):
+@pytest.mark.parametrize("A", DEFORMATIONS[1:])
+def test_the_projected_stiffness_is_numpys(slab, A):
+    """The loop projects each tangent by the numpy path's rule (`materials.psd`): the same packed Hessians to
+    round-off, indefinite tangents included; the gradient of the same pass is the exact one's."""
+    x = _state(slab, A, 0.05, 4)
+    F = fem.deformation_gradients(slab.ops, x)
+    C = materials.evaluate(F, slab.params, order=2)[2]
+    Cp = materials.evaluate_projected(F, slab.params)[2]
+    indefinite = np.linalg.eigvalsh(C)[:, 0] < -1e-6 * np.abs(C).max(axis=(1, 2))
+    assert indefinite.any() or A is DEFORMATIONS[1]  # (stretch alone may leave every tangent definite)
+    K0 = fem.element_matrices(slab.ops, Cp)
+    Ke = compiled3d.element_stiffness(slab.ops, slab.params, x, True)
+    np.testing.assert_allclose(Ke, K0, rtol=1e-8, atol=1e-10 * np.abs(K0).max())
+    U, g, Ke1 = compiled3d.energy_gradient_stiffness(slab.ops, slab.params, x, True)
+    assert np.array_equal(Ke1, Ke) and np.array_equal(g, compiled3d.energy_gradient(slab.ops, slab.params, x)[1])
+
+
+def test_inverted_elements_go_to_numpy(slab):
     x = _state(slab, DEFORMATIONS[2], 0.05, 3)
-    assert compiled3d.element_stiffness(slab.ops, slab.params, x, True) is None
     a, b = slab.ops.corners[:2, 0]
     x[a] = x[b]  # a collapsed tetrahedron: J = 0
     assert compiled3d.energy_gradient(slab.ops, slab.params, x) is None
     assert compiled3d.element_stiffness(slab.ops, slab.params, x, False) is None
+    assert compiled3d.element_stiffness(slab.ops, slab.params, x, True) is None
     # the tissue then answers with the numpy path's policy: infinite energy, no crash
     U, _ = slab.energy_gradient(x)
     assert U == np.inf

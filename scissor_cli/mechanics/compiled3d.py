@@ -7,8 +7,9 @@ element matrix (78, M) in `fem.element_matrices`' order. numpy builds the
 same numbers from whole-array passes over (9, 9, M) stacks, several times
 slower (benchmarks/bench_slab_truth.py).
 
-The PSD-projected tangent stays on the numpy path (a batched eigh): the
-solvers ask for it only far from equilibrium. As in 2-D, a loop hands the
+The PSD-projected tangent is projected per tetrahedron inside the loop
+(`materials.psd.project_matrix`, the rule of the numpy path's batched
+projection: no (M, 9, 9) stacks). As in 2-D, a loop hands the
 first element it cannot take (J ≤ J_FLOOR, a non-finite term) back to the
 caller, which then uses the numpy path and its policy for such elements.
 """
@@ -21,6 +22,7 @@ import numpy as np
 from numba import njit
 
 from scissor_cli.mechanics.materials.params import J_FLOOR
+from scissor_cli.mechanics.materials.psd import project_matrix
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
@@ -168,10 +170,11 @@ def _tangent(C, f, c, a, J_terms, kappa, hd_index, hd_sign):
 
 
 @njit(**_JIT)
-def element_stiffness_3d(x, corners, grad_rows, volume, material, tension_only, hd_pattern, Ke, grad):
-    """Exact packed element Hessians into Ke (78, M), mN/mm; (-1, U), or (the first element it cannot take, nan).
+def element_stiffness_3d(x, corners, grad_rows, volume, material, tension_only, hd_pattern, project, Ke, grad):
+    """Packed element Hessians into Ke (78, M), mN/mm; (-1, U), or (the first element it cannot take, nan).
 
-    material: as `energy_gradient_3d`'s; hd_pattern: (`_HD_INDEX`, `_HD_SIGN`).
+    material: as `energy_gradient_3d`'s; hd_pattern: (`_HD_INDEX`, `_HD_SIGN`). With `project` each
+    tetrahedron's tangent C is PSD-projected first (`materials.psd.project_matrix`, the numpy path's rule).
 
     K_e[3a+i, 3b+k] = V Σ_jl ∂N_a/∂X_j C[3i+j, 3k+l] ∂N_b/∂X_l. With grad of
     size 3N (not 0), ∇U goes into it and U is returned (one pass for both).
@@ -184,6 +187,7 @@ def element_stiffness_3d(x, corners, grad_rows, volume, material, tension_only, 
     U = 0.0
     f, c, P, a = np.empty(9), np.empty(9), np.empty(9), np.empty(3)
     C = np.empty((9, 9))
+    L, A = np.empty((9, 9)), np.empty((9, 9))
     T = np.empty((9, 4, 3))
     for e in range(corners.shape[1]):
         _deformation(x, corners, grad_rows, e, f)
@@ -204,6 +208,14 @@ def element_stiffness_3d(x, corners, grad_rows, volume, material, tension_only, 
         for p in range(9):
             I1 += f[p] * f[p]
         _tangent(C, f, c, a, (alpha, s, iJ, I1, I4m1, eta_eff, v0, v1, v2), kappa[e], hd_index, hd_sign)
+        if project:
+            finite = 0.0
+            for p in range(9):
+                for q in range(9):
+                    finite += C[p, q]
+            if not math.isfinite(finite):
+                return e, math.nan
+            project_matrix(C, L, A)
         # T[r, b, k] = Σ_l C[r, 3k+l] ∂N_b/∂X_l. Unrolled per dimension as in `compiled`: one loop generic in d
         # gave the same bits but was several times slower in 2-D (numba does not unroll a runtime d).
         for r in range(9):
@@ -250,21 +262,17 @@ def energy_gradient(ops, params, x: np.ndarray) -> tuple[float, np.ndarray] | No
 
 
 def element_stiffness(ops, params, x: np.ndarray, project: bool) -> np.ndarray | None:
-    """Exact packed element Hessians (78, M) mN/mm at x (N, 3); None when projected (numpy's eigh) or as above."""
-    if project:
-        return None
+    """Packed element Hessians (78, M) mN/mm at x (N, 3), exact or PSD-projected; None as above."""
     Ke = np.empty((78, ops.corners.shape[1]))
     bad, _ = element_stiffness_3d(np.ascontiguousarray(x, dtype=np.float64), ops.corners, ops.grad_rows, ops.volume,
-                                  *_material(params), (_HD_INDEX, _HD_SIGN), Ke, np.empty(0))
+                                  *_material(params), (_HD_INDEX, _HD_SIGN), project, Ke, np.empty(0))
     return None if bad >= 0 else Ke
 
 
 def energy_gradient_stiffness(ops, params, x: np.ndarray, project: bool) -> tuple[float, np.ndarray, np.ndarray] | None:
-    """U (µJ), ∇U (3N,) mN and the exact packed element Hessians (78, M) at x (N, 3), in one pass; None as above."""
-    if project:
-        return None
+    """U (µJ), ∇U (3N,) mN and the packed element Hessians (78, M) at x (N, 3), in one pass; None as above."""
     Ke = np.empty((78, ops.corners.shape[1]))
     grad = np.empty(3 * ops.n_nodes)
     bad, U = element_stiffness_3d(np.ascontiguousarray(x, dtype=np.float64), ops.corners, ops.grad_rows, ops.volume,
-                                  *_material(params), (_HD_INDEX, _HD_SIGN), Ke, grad)
+                                  *_material(params), (_HD_INDEX, _HD_SIGN), project, Ke, grad)
     return None if bad >= 0 else (float(U), grad, Ke)
