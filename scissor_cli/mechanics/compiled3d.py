@@ -8,8 +8,8 @@ same numbers from whole-array passes over (9, 9, M) stacks, several times
 slower (benchmarks/bench_slab_truth.py).
 
 The PSD-projected tangent is projected per tetrahedron inside the loop
-(`materials.psd.project_matrix`, the rule of the numpy path's batched
-projection: no (M, 9, 9) stacks). As in 2-D, a loop hands the
+(`project_matrix`: the numpy path's rule, `materials.psd._project_psd_scaled`,
+without its (M, 9, 9) stacks). As in 2-D, a loop hands the
 first element it cannot take (J ≤ J_FLOOR, a non-finite term) back to the
 caller, which then uses the numpy path and its policy for such elements.
 """
@@ -22,7 +22,6 @@ import numpy as np
 from numba import njit
 
 from scissor_cli.mechanics.materials.params import J_FLOOR
-from scissor_cli.mechanics.materials.psd import project_matrix
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
@@ -170,11 +169,64 @@ def _tangent(C, f, c, a, J_terms, kappa, hd_index, hd_sign):
 
 
 @njit(**_JIT)
+def project_matrix(C, L, A):
+    """C (k, k), symmetric and finite, replaced in place by its PSD projection: `materials.psd`'s rule, compiled.
+
+    Scaled by its largest |entry| first. A matrix that a Cholesky factorisation of C/max|C| − 1e-10 I proves
+    positive definite is left as it is without its eigendecomposition (most of the cost: LAPACK's per matrix);
+    the others get it, and those with a negative eigenvalue are rebuilt from the clamped ones, exactly
+    symmetric (0 if that overflows). L, A (k, k): scratch. The lower triangle is read, as by ``eigh``.
+    """
+    k = C.shape[0]
+    big = 0.0
+    for i in range(k):
+        for j in range(k):
+            big = max(big, abs(C[i, j]))
+    if big == 0.0:
+        return
+    definite = True
+    for j in range(k):
+        s = C[j, j] / big - 1e-10
+        for m in range(j):
+            s -= L[j, m] * L[j, m]
+        if not s > 0.0:
+            definite = False
+            break
+        L[j, j] = math.sqrt(s)
+        for i in range(j + 1, k):
+            t = C[i, j] / big
+            for m in range(j):
+                t -= L[i, m] * L[j, m]
+            L[i, j] = t / L[j, j]
+    if definite:
+        return
+    for i in range(k):
+        for j in range(k):
+            A[i, j] = C[max(i, j), min(i, j)] / big
+    w, V = np.linalg.eigh(A)
+    if w[0] >= 0.0:
+        return
+    finite = True
+    for i in range(k):
+        for j in range(i, k):
+            s = 0.0
+            for m in range(k):
+                if w[m] > 0.0:
+                    s += V[i, m] * w[m] * V[j, m]
+            s *= big
+            finite = finite and np.isfinite(s)
+            C[i, j] = s
+            C[j, i] = s
+    if not finite:
+        C[:, :] = 0.0
+
+
+@njit(**_JIT)
 def element_stiffness_3d(x, corners, grad_rows, volume, material, tension_only, hd_pattern, project, Ke, grad):
     """Packed element Hessians into Ke (78, M), mN/mm; (-1, U), or (the first element it cannot take, nan).
 
     material: as `energy_gradient_3d`'s; hd_pattern: (`_HD_INDEX`, `_HD_SIGN`). With `project` each
-    tetrahedron's tangent C is PSD-projected first (`materials.psd.project_matrix`, the numpy path's rule).
+    tetrahedron's tangent C is PSD-projected first (`project_matrix`, the numpy path's rule).
 
     K_e[3a+i, 3b+k] = V Σ_jl ∂N_a/∂X_j C[3i+j, 3k+l] ∂N_b/∂X_l. With grad of
     size 3N (not 0), ∇U goes into it and U is returned (one pass for both).

@@ -1,11 +1,8 @@
-"""Batched PSD projection of symmetric matrix stacks by eigendecomposition (numpy; the 3-D tangent's compiled)."""
+"""Batched PSD projection of symmetric matrix stacks by eigendecomposition."""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
-from numba import njit
 
 
 def project_psd(C, floor: float = 0.0) -> np.ndarray:
@@ -62,83 +59,25 @@ def _project_psd_scaled(C: np.ndarray) -> np.ndarray:
     """PSD projection of a symmetric stack (M, k, k) with arbitrary entries; finite and PSD in every row.
 
     Non-finite matrices become 0. Each matrix is divided by its largest
-    |entry| (the projection is positively homogeneous), so huge finite
-    entries do not overflow; matrices whose smallest eigenvalue (of the
-    scaled matrix) is ``>= 0`` are returned bit for bit, the others are
-    rebuilt from their clamped eigenvalues (exactly symmetric) and scaled
-    back (0 if that overflows). The result is a new C-ordered array.
+    |entry| before ``eigh`` (the projection is positively homogeneous), so
+    huge finite entries do not overflow inside it; matrices whose smallest
+    eigenvalue (of the scaled matrix) is ``>= 0`` are returned bit for bit,
+    the others are rebuilt from their clamped eigenvalues, symmetrised and
+    scaled back (0 if that overflows). The result is a new array.
     """
-    C = np.ascontiguousarray(C, dtype=np.float64)
-    out = np.empty_like(C)
-    _project_rows(C, out)
+    out = np.array(C, dtype=np.float64, copy=True, order="C")
+    if out.shape[0] == 0:
+        return out
+    out[~np.isfinite(out).all(axis=(1, 2))] = 0.0
+    scale = np.abs(out).max(axis=(1, 2))
+    scale[scale == 0.0] = 1.0
+    w, V = np.linalg.eigh(out / scale[:, None, None])
+    neg = w[:, 0] < 0.0
+    if neg.any():
+        Vn = V[neg]
+        Cn = (Vn * np.maximum(w[neg], 0.0)[:, None, :]) @ np.swapaxes(Vn, 1, 2)
+        Cn += np.swapaxes(Cn, 1, 2)  # V w Vᵀ is symmetric only to round-off
+        Cn *= 0.5 * scale[neg][:, None, None]
+        Cn[~np.isfinite(Cn).all(axis=(1, 2))] = 0.0
+        out[neg] = Cn
     return out
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _project_rows(C, out):
-    """`_project_psd_scaled`'s loop over the stack: non-finite matrices 0, the others `project_matrix`."""
-    M, k = C.shape[0], C.shape[1]
-    L, A = np.empty((k, k)), np.empty((k, k))
-    for e in range(M):
-        finite = True
-        for i in range(k):
-            for j in range(k):
-                finite = finite and np.isfinite(C[e, i, j])
-        if not finite:
-            out[e] = 0.0
-            continue
-        out[e] = C[e]
-        project_matrix(out[e], L, A)
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def project_matrix(C, L, A):
-    """C (k, k), symmetric and finite, replaced in place by its PSD projection (the compiled loops' too).
-
-    Scaled by its largest |entry| first. A matrix that a Cholesky factorisation of C/max|C| − 1e-10 I proves
-    positive definite is left as it is without its eigendecomposition (most of the cost: LAPACK's per matrix);
-    the others get it, and those with a negative eigenvalue are rebuilt from the clamped ones, exactly
-    symmetric (0 if that overflows). L, A (k, k): scratch. The lower triangle is read, as by ``eigh``.
-    """
-    k = C.shape[0]
-    big = 0.0
-    for i in range(k):
-        for j in range(k):
-            big = max(big, abs(C[i, j]))
-    if big == 0.0:
-        return
-    definite = True
-    for j in range(k):
-        s = C[j, j] / big - 1e-10
-        for m in range(j):
-            s -= L[j, m] * L[j, m]
-        if not s > 0.0:
-            definite = False
-            break
-        L[j, j] = math.sqrt(s)
-        for i in range(j + 1, k):
-            t = C[i, j] / big
-            for m in range(j):
-                t -= L[i, m] * L[j, m]
-            L[i, j] = t / L[j, j]
-    if definite:
-        return
-    for i in range(k):
-        for j in range(k):
-            A[i, j] = C[max(i, j), min(i, j)] / big
-    w, V = np.linalg.eigh(A)
-    if w[0] >= 0.0:
-        return
-    finite = True
-    for i in range(k):
-        for j in range(i, k):
-            s = 0.0
-            for m in range(k):
-                if w[m] > 0.0:
-                    s += V[i, m] * w[m] * V[j, m]
-            s *= big
-            finite = finite and np.isfinite(s)
-            C[i, j] = s
-            C[j, i] = s
-    if not finite:
-        C[:, :] = 0.0
