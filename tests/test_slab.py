@@ -343,3 +343,37 @@ def test_a_loop_passing_the_plan_keeps_its_own_fit_not_the_nominal_start(coarse)
         eq.move_to(np.array([s]), tangent=False)
     assert asked[0] == 0.5 and 3.9 not in asked  # the first move has no history; at 3.9 (0.1 from the plan) its fit
     assert eq.stats["fallbacks"] == 0
+
+
+def test_a_tangent_cg_proves_indefinite_is_not_factored_and_the_equilibrium_is_the_same(coarse, monkeypatch):
+    """A 20 mm push of the coarse slab meets an indefinite exact tangent that CG on the kept factor exposes
+    (negative curvature): the step goes to the projected Hessian without the factorisation that would fail.
+    The equilibrium is the one reached when that factorisation is tried first (the earlier behaviour), with
+    fewer factorisations."""
+    from scissor_cli.solvers import linear, newton
+
+    scene, mesh, _ = coarse
+    spec = SlabSpec(20.0, 10.0, max_layer_mm=5.0)
+    solve_free = newton.solve_free
+    results = {}
+    for tries_factor in (False, True):
+        proofs = []
+
+        def recording(tissue, K, b, factors=None, rtol=None, max_iter=12, tries_factor=tries_factor, proofs=proofs):
+            try:
+                return solve_free(tissue, K, b, factors, rtol, max_iter)
+            except linear.NotPositiveDefinite as exc:
+                proofs.append(exc.factored)
+                if tries_factor and not exc.factored:  # the earlier way: factor it anyway (it fails)
+                    slot = tissue.factor_cache if factors is None else factors
+                    return linear.factorize_free(tissue, K, slot).solve(b), True
+                raise
+
+        monkeypatch.setattr(newton, "solve_free", recording)
+        results[tries_factor] = newton.solve_newton(build_slab(scene, mesh, spec), np.array([20.0]), tol=1e-10)
+        if not tries_factor:
+            assert False in proofs  # CG's proof was met
+    new, old = results[False], results[True]
+    assert new.converged and old.converged
+    assert new.factorizations < old.factorizations
+    assert np.abs(new.x - old.x).max() <= 1e-7 * 20.0  # mm, against the 20 mm stroke
