@@ -1,4 +1,5 @@
-"""Compiled (numba) element loops of the 3-D slab: energy, gradient and exact stiffness in one pass (docs/model.md §3, §13).
+"""Compiled (numba) element loops of the 3-D slab: energy, gradient and stiffness (exact or PSD-projected) in one pass
+(docs/model.md §3, §13).
 
 The 3-D twin of `mechanics.compiled`: the same closed forms as
 `materials.solid3d` (Ψ, P, the exact tangent d²Ψ/dF²) evaluated per

@@ -158,11 +158,13 @@ class Tissue:
         return U, grad, self.element_stiffness(x)
 
     def element_stiffness(self, x: np.ndarray, project: bool = False) -> np.ndarray:
-        """Element Hessians, packed (21, M) (`fem.element_matrices`), in mN/mm; PSD-projected if asked.
+        """Element Hessians, packed (21, M) in 2-D, (78, M) in 3-D (`fem.element_matrices`), in mN/mm; PSD-projected if asked.
 
-        The projection clamps each energy term's closed-form eigenvalues
-        (`materials.evaluate_projected`): far cheaper than eigendecomposing
-        the 4x4 tangents, and far from equilibrium most of them need it.
+        In 2-D the projection clamps each energy term's closed-form
+        eigenvalues (`materials.evaluate_projected`): far cheaper than
+        eigendecomposing the 4x4 tangents, and far from equilibrium most of
+        them need it. In 3-D each tetrahedron's 9x9 tangent is clamped
+        (`compiled3d.project_matrix`; `materials.psd` on the numpy path).
         """
         if self.compiled:
             Ke = self._kernels.element_stiffness(self.ops, self.params, x, project)
