@@ -9,9 +9,12 @@ For a scene with `layer_check` (its `accuracy_mm`, or 0.1 mm by default):
   scenes);
 * with `--exhaustive`, every candidate solved and compared with the finest
   slab (`exhaustive_errors`, the old way: minutes), and whether the choice
-  is the full ladder's pick.
+  is the full ladder's pick;
+* with `--finest CASE`, instead, the finest slab's forward case CASE alone
+  in this process (what bounds the ladder with `--jobs 2`): its build, and
+  its Newton solve's time, load substeps, iterations and factorisations.
 
-    PYTHONPATH=. python benchmarks/bench_slab_ladder.py [CONFIG.yaml ...] [--jobs N] [--exhaustive]
+    PYTHONPATH=. python benchmarks/bench_slab_ladder.py [CONFIG.yaml ...] [--jobs N] [--exhaustive | --finest CASE]
 
 The machine, its cores and load average are printed with the figures.
 """
@@ -35,7 +38,9 @@ from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.experiments.build import build_model  # noqa: E402
 from scissor_cli.experiments.layer_check_stage import ladder_cases, ladder_runner  # noqa: E402
 from scissor_cli.layer3d.check import plane_ladder, slab_spec  # noqa: E402
-from scissor_cli.layer3d.resolution import choose_slab, exhaustive_errors  # noqa: E402
+from scissor_cli.layer3d.resolution import SOLVE_TOL, _Ladder, choose_slab, exhaustive_errors  # noqa: E402
+from scissor_cli.layer3d.slab import build_slab  # noqa: E402
+from scissor_cli.solvers.newton import solve_newton  # noqa: E402
 
 DEFAULT_CONFIGS = [ROOT / "configs" / "paper_trials_prosthesis_slab.yaml", ROOT / "configs" / "example_3d.yaml"]
 
@@ -45,6 +50,7 @@ def main() -> None:
     ap.add_argument("configs", nargs="*", type=Path, default=DEFAULT_CONFIGS)
     ap.add_argument("--exhaustive", action="store_true", help="also solve every candidate (minutes)")
     ap.add_argument("--jobs", type=int, default=2, help="worker processes, as `simulate --jobs` (default 2)")
+    ap.add_argument("--finest", type=int, metavar="CASE", help="instead: the finest slab's forward case CASE alone")
     args = ap.parse_args()
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"load {os.getloadavg()[0]:.2f}")
@@ -55,6 +61,9 @@ def main() -> None:
         _, _, model = build_model(cfg)
         spec, planes = slab_spec(lc, cfg.tissue.mesh), plane_ladder(lc, cfg.tissue.mesh)
         cases = ladder_cases(cfg, model.scene)
+        if args.finest is not None:
+            finest_case(path.name, model, spec, planes, cases, args.finest)
+            continue
         t0 = time.perf_counter()
         choice = choose_slab(model, spec, cases, accuracy, planes, ladder_runner(args.jobs), args.jobs)
         wall = time.perf_counter() - t0
@@ -75,6 +84,20 @@ def main() -> None:
         print(f"the full ladder's pick: {candidates[best].n_tetrahedra} tetrahedra, error {true[best]:.4f} mm "
               f"({'the same' if best == choice.pick else 'NOT the same'})")
     print(f"\nload {os.getloadavg()[0]:.2f}")
+
+
+def finest_case(name: str, model, spec, planes, cases, case: int) -> None:
+    """The finest slab (the ladder's candidate 0) built and solved at one forward case, as `solve_group` does."""
+    if not 0 <= case < len(cases):
+        raise SystemExit(f"--finest: the scene has forward cases 0..{len(cases) - 1}, not {case}")
+    _, finest_spec, surface, *_ = _Ladder(model, spec, cases, planes).task(0, [case])
+    t0 = time.perf_counter()
+    slab = build_slab(model.scene, surface, finest_spec, model=model.params.model)
+    built = time.perf_counter() - t0
+    r = solve_newton(slab, cases[case], tol=SOLVE_TOL, factors={})
+    print(f"\n{name}: the finest slab ({slab.ops.corners.shape[1]} tetrahedra), case {case} (strokes "
+          f"{cases[case].tolist()} mm): built in {built:.1f} s, solved in {r.time_s:.1f} s: {r.message}, "
+          f"{r.iterations} Newton iterations, {r.factorizations} factorisations")
 
 
 if __name__ == "__main__":
