@@ -447,7 +447,12 @@ def _old_loop(monkeypatch):
 
 
 def test_loop_with_truth_equal_to_model_is_the_old_loop(model, monkeypatch):
-    """The nominal run: the same insertion as with the plant's own tangent, to solver tolerance."""
+    """The nominal run: the same insertion as with the plant's own tangent, to solver tolerance.
+
+    Both are solved to STEP_TOL (a relative residual of 1e-5): on this 30 mm insertion they then differ by
+    4e-6 mm in the nodes and 1.3e-5 mm in the stroke (solved to 1e-8: 6e-9 and 1.2e-8), so the
+    comparison is to 5e-5 mm.
+    """
     target = (30.0, 33.0)
     cfg, tissue = model
     params = _params(cfg)
@@ -456,9 +461,9 @@ def test_loop_with_truth_equal_to_model_is_the_old_loop(model, monkeypatch):
         _old_loop(m)
         old = _insert(tissue, params, "loop", target=target, depth=30.0, cfg=cfg)
     assert new.steps == old.steps and new.stop_reason == old.stop_reason
-    np.testing.assert_allclose(new.x, old.x, rtol=0, atol=1e-6)
-    np.testing.assert_allclose(new.strokes, old.strokes, rtol=0, atol=1e-6)
-    assert new.miss_mm == pytest.approx(old.miss_mm, abs=1e-6)
+    np.testing.assert_allclose(new.x, old.x, rtol=0, atol=5e-5)
+    np.testing.assert_allclose(new.strokes, old.strokes, rtol=0, atol=5e-5)
+    assert new.miss_mm == pytest.approx(old.miss_mm, abs=5e-5)
     assert np.any(np.abs(new.strokes) > 0.05)  # the loop did move the cup
 
 
