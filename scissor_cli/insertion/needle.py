@@ -37,7 +37,9 @@ stuck nodes, `along_nodes` across the axis for slipping ones, loads) as the
 fallback. A pass's decisions are taken from the chord step's prediction of
 its converged reactions and lags when none lies within the prediction's
 error of its threshold (EARLY_DECISIONS); otherwise, and for the settled
-set, from the solve converged to PASS_TOL and then STEP_TOL.
+set, from the solve converged to PASS_TOL (and again to STEP_TOL when a
+caller's `NeedleParams.step_tol` asks for less; the layer's STEP_TOL is
+PASS_TOL, the slab's STEP_TOL_3D is PASS_TOL_3D).
 """
 
 from __future__ import annotations
