@@ -326,7 +326,7 @@ def test_the_compiled_hold_loops_equal_their_numpy_definitions(model):
     mu_dense = np.linalg.solve(D.T @ W @ D, D.T @ d0[idx] - hold.gap(y))
     np.testing.assert_allclose(mu, mu_dense, rtol=1e-9, atol=1e-12 * np.abs(mu_dense).max())
     np.testing.assert_allclose(d_captured.ravel(), d0[idx] - W @ D @ mu_dense, atol=1e-10)
-    np.testing.assert_allclose(solver.complete(d0, mu, hold), d0 - K_inv[:, idx] @ D @ mu_dense, atol=1e-10)
+    np.testing.assert_allclose(solver.complete(d0, mu, d_captured, hold), d0 - K_inv[:, idx] @ D @ mu_dense, atol=1e-10)
     # what an early decision reads: the stuck nodes' reactions (−μ of their along rows) and every node's lag
     axial, lag = np.empty(hold.captured.size), np.empty(hold.captured.size)
     kernels.predicted_reactions(mu, hold.stuck, d_captured, y, hold.captured, hold.base, hold.n, hold.ride, axial, lag)

@@ -23,6 +23,7 @@ from scissor_cli.layer3d.slab import SlabSpec, build_slab
 from scissor_cli.experiments.build import build_model
 from scissor_cli.solvers.common import Conditions, objective_gradient
 from scissor_cli.solvers.equilibrium import solve_equilibrium
+from scissor_cli.solvers.supernodal import SupernodalFactor
 from helpers import example_dict
 
 INSERTION = {"step_mm": 1.0, "friction_static_mN_per_mm": 15.0, "friction_kinetic_mN_per_mm": 10.0,
@@ -146,13 +147,17 @@ def _a_hold(slab_model, depth=8.0):
 
 
 def test_the_3d_schur_step_meets_the_hold_and_its_kernels_equal_numpy(slab_model):
-    """Rows: two across per node and the stuck ones' along; μ and d against dense K⁻¹ with the explicit directions."""
+    """Rows: two across per node and the stuck ones' along; μ and d against dense K⁻¹ with the explicit directions.
+
+    On the float64 factor, so the kernels' arithmetic is checked to round-off
+    (the slab's own float32 factor: the next test).
+    """
     from scissor_cli.solvers.held import Held
 
     slab, x, hold, loads = _a_hold(slab_model)
     p = hold.captured.size
     assert hold.frame.shape == (3, 3) and hold.rows.size == 2 * p + hold.stuck.sum()
-    solver = ChordSolver(slab)
+    solver = ChordSolver(slab, single_precision=False)
     solver.refactor(x)
     y = x + 0.01 * np.sin(np.arange(x.size)).reshape(x.shape)  # off equilibrium, the rows not met
     _, g = objective_gradient(slab, y, None, loads)
@@ -180,6 +185,50 @@ def test_the_3d_schur_step_meets_the_hold_and_its_kernels_equal_numpy(slab_model
     force = np.zeros(y.size)
     force[idx_dofs(hold)] = D @ mu
     np.testing.assert_allclose(K @ d.ravel()[f] + force[f], -g[f], atol=1e-9 * np.abs(g[f]).max())
+
+
+def test_the_float32_factor_steps_meet_the_hold_exactly_and_the_equilibrium_to_its_precision(slab_model):
+    """The slab's chord solver solves on a float32 copy of its factor (solvers.supernodal): its step still closes
+    the hold to round-off (the captured nodes take the Schur prediction's step), and K d + Cᵀμ = −g holds to
+    float32's precision; against the float64 factor's step the same to that precision."""
+    slab, x, hold, loads = _a_hold(slab_model)
+    f = slab.free_dofs
+    y = x + 0.01 * np.sin(np.arange(x.size)).reshape(x.shape)
+    _, g = objective_gradient(slab, y, None, loads)
+    single, double = ChordSolver(slab), ChordSolver(slab, single_precision=False)
+    assert single.single_precision and not double.single_precision
+    single.refactor(x)
+    double.refactor(x)
+    assert isinstance(single._factor, SupernodalFactor)
+    d, mu = single.step(g, hold, y)
+    d64, mu64 = double.step(g, hold, y)
+    np.testing.assert_allclose(hold.gap(y + d), 0.0, atol=1e-10)
+    K = slab.stiffness_free(x).tocsc()
+    force = np.zeros(y.size)
+    force[idx_dofs(hold)] = hold.directions() @ mu
+    scale = np.abs(g[f]).max()
+    balance = np.abs(K @ d.ravel()[f] + force[f] + g[f]).max()
+    assert balance < 1e-4 * scale  # float32's precision
+    np.testing.assert_allclose(d, d64, atol=1e-5 * np.abs(d64).max())
+    np.testing.assert_allclose(mu, mu64, atol=1e-4 * np.abs(mu64).max())
+
+
+def test_a_float32_factor_that_does_not_contract_hands_the_solver_to_float64(slab_model, monkeypatch):
+    """A fresh float32 factor whose chord step does not contract is float32's floor, not a bad tangent: the
+    solver switches to float64 for the rest of its run and still converges (not ChordFailed)."""
+    slab, x, hold, loads = _a_hold(slab_model)
+    start = hold.place(x)
+    exact = SupernodalFactor.solve
+    monkeypatch.setattr(SupernodalFactor, "solve", lambda self, b: 0.05 * exact(self, b))  # contracts by 0.95
+    solver = ChordSolver(slab)
+    solver.refactor(start)
+    _, g = objective_gradient(slab, start, None, loads)
+    chord_x, _, its, verdict = solver.converge(start, g, hold, 1e-8, loads)
+    assert verdict is None and its > 0
+    assert not solver.single_precision and not isinstance(solver._factor, SupernodalFactor)
+    zero = np.zeros(slab.n_cups)
+    newton = solve_equilibrium(slab, zero, start=start, start_strokes=zero, conditions=hold.conditions(loads), tol=1e-8)
+    np.testing.assert_allclose(chord_x, newton.x, atol=1e-6)
 
 
 def idx_dofs(hold):

@@ -234,3 +234,22 @@ def test_reading_the_factor_size_leaves_the_factor_usable():
     x = f.solve(b)
     assert f.nnz_factor >= n and f.nnz_factor == f.nnz_factor
     assert np.allclose(f.solve(b), x) and np.allclose(A @ x, b)
+
+
+@pytest.mark.parametrize("ordering", ["amd", "nested_dissection"])
+def test_a_detached_float32_factor_solves_to_single_precision_and_the_slot_refactors(ordering):
+    """detach hands the supernodal factor over as float32 blocks (solvers.supernodal): it solves one or many
+    columns to float32's precision in the original ordering; the Factorization refactors and solves again."""
+    A = sp.triu(_laplacian_3d(12, 0.1)).tocsr()  # wide supernodes in a nested-dissection order
+    full = (A + sp.triu(A, 1).T).tocsc()
+    f = Factorization(A, definite=True, upper=True, ordering=ordering, supernodal=True)
+    kept = f.detach()
+    b = np.random.default_rng(3).random((A.shape[0], 3))
+    ref = spla.spsolve(full, b)
+    for x, r in ((kept.solve(b), ref), (kept.solve(b[:, 2]), ref[:, 2])):
+        assert x.shape == r.shape and x.dtype == np.float64
+        assert np.linalg.norm(x - r) <= 1e-5 * np.linalg.norm(r)
+    with pytest.raises(SolverError):
+        f.detach()  # given away already
+    f.refactor(A)
+    np.testing.assert_allclose(f.solve(b), ref, rtol=1e-10)

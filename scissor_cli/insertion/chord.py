@@ -78,8 +78,10 @@ class ChordSolver:
     accepted iterate.
     """
 
-    def __init__(self, tissue: Tissue):
+    def __init__(self, tissue: Tissue, single_precision: bool | None = None):
         self.tissue = tissue
+        #: solve on a float32 copy of the factor (`solvers.supernodal`); None: in 3-D
+        self.single_precision = tissue.dim == 3 if single_precision is None else single_precision
         self._factors: dict = {}  # its own slot: other solves refactor the tissue's shared one
         self._factor = None
         self.factorizations = 0
@@ -107,7 +109,9 @@ class ChordSolver:
             try:
                 # simplicial: a kept factor is solved with about 200 times per factorisation here
                 # (in 3-D the factor's fill makes the supernodal one the faster to build and to solve with)
-                factor = factorize_free(self.tissue, K, self._factors, supernodal=self.d == 3)
+                factor = factorize_free(self.tissue, K, self._factors, supernodal=self.d == 3 or self.single_precision)
+                if self.single_precision:  # solved a thousand times or more before the next refactorisation
+                    factor = factor.detach()
                 break
             except SolverError:
                 continue
@@ -205,20 +209,28 @@ class ChordSolver:
         kernels.captured_step(d0, schur.idx, hold.frame, schur.rows, schur.S_upper, schur.A_rows, gap, mu, d_captured)
         return d0, mu, d_captured
 
-    def complete(self, d0: np.ndarray, mu: np.ndarray, hold: "Hold") -> np.ndarray:
-        """The whole chord step on the free dofs (Nf,) of a prediction (`predict`): d0 − K⁻¹Cᵀμ."""
+    def complete(self, d0: np.ndarray, mu: np.ndarray, d_captured: np.ndarray, hold: "Hold") -> np.ndarray:
+        """The whole chord step on the free dofs (Nf,) of a prediction (`predict`): d0 − K⁻¹Cᵀμ.
+
+        The captured nodes take the prediction's own step d_captured (P, d),
+        which meets the hold's rows to round-off: d0 − K⁻¹Cᵀμ meets them only
+        as well as the kept factor's solves agree with its compliance (float32
+        in the slab, `solvers.supernodal`), and a hold must close exactly.
+        """
         if mu.size == 0:
             return d0
-        return kernels.chord_direction(d0, hold.rows, mu, hold.frame, self.responses(hold.captured))
+        d = kernels.chord_direction(d0, hold.rows, mu, hold.frame, self.responses(hold.captured))
+        d[hold.schur_on(self).idx] = d_captured.ravel()
+        return d
 
     def step(self, g: np.ndarray, hold: "Hold", x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The whole chord step d (N, d) from x (N, d) with objective gradient g (dN,) under the hold, and μ (m,)."""
         free = self.tissue.free_dofs
         gap = np.empty(hold.rows.size)
         hold.gap_into(x, gap)
-        d0, mu, _ = self.predict(g[free], hold, gap)
+        d0, mu, d_captured = self.predict(g[free], hold, gap)
         d = np.zeros(x.size)
-        d[free] = self.complete(d0, mu, hold)
+        d[free] = self.complete(d0, mu, d_captured, hold)
         check_finite(d, "the needle's chord step")
         return d.reshape(x.shape), mu
 
@@ -273,7 +285,7 @@ class ChordSolver:
                 verdict = decide(x, d_captured, mu, res)
                 if verdict is not None:
                     return x, g, its, verdict
-            step = self.complete(d0, mu, hold)
+            step = self.complete(d0, mu, d_captured, hold)
             contraction = CONTRACTION if self.d == 2 else CONTRACTION_3D
             trial, g_t, res_t = None, None, np.inf
             if not closing:
@@ -285,7 +297,10 @@ class ChordSolver:
             if trial is None:
                 trial, g_t, res_t = self._trial(x, step, hold, loads)
             if not (res_t <= contraction * res or res_t <= tol or (closing and g_t is not None)):
-                if self.fresh:
+                if self.fresh and self.single_precision and g_t is not None:
+                    # float32's floor, not the tangent's: the rest of this solver's solves in float64
+                    self.single_precision = False
+                elif self.fresh:
                     raise ChordFailed(f"a chord step on a fresh factorisation went from {res:.3g} to {res_t:.3g}")
                 self.refactor(x)
                 accelerate.reset()  # its steps were on the old factor

@@ -19,6 +19,7 @@ import qdldl
 from cvxopt import cholmod
 
 from scissor_cli.solvers.common import SolverError
+from scissor_cli.solvers.supernodal import SupernodalFactor
 
 #: conjugate-gradient iterations `solve_free` spends on an earlier factor before it refactors:
 #: a 3-D refactorisation costs about 25 of them at 65k unknowns (docs/performance.md)
@@ -110,7 +111,7 @@ class Factorization:
             upper = slice(None) if self.upper else A.indices >= row
             lower = cvxopt.spmatrix(A.data[upper], A.indices[upper].astype(int), row[upper].astype(int), (n, n))
             self._pattern, self._upper, self._lower = (A.nnz, n), upper, lower
-            self._chol = self._ldl = None
+            self._chol = self._ldl = self._perm = None
         else:
             self._lower.V = cvxopt.matrix(A.data[self._upper])
         self.factorizations += 1
@@ -182,11 +183,31 @@ class Factorization:
         cholmod.options["supernodal"] = 2 if supernodal else 0  # read by the analysis only
         try:
             if self.ordering == "nested_dissection":
-                p = cvxopt.matrix(nested_dissection(A, self.groups).tolist(), tc="i")
-                return cholmod.symbolic(self._lower, p=p)
+                if self._perm is None:  # once per pattern (`detach` makes the analysis run again)
+                    self._perm = cvxopt.matrix(nested_dissection(A, self.groups).tolist(), tc="i")
+                return cholmod.symbolic(self._lower, p=self._perm)
             return cholmod.symbolic(self._lower)
         finally:
             cholmod.options["supernodal"] = saved
+
+    def detach(self) -> SupernodalFactor:
+        """The current CHOLMOD factor as a float32 copy for compiled solves (`solvers.supernodal`).
+
+        cvxopt reads a factor out only by converting it into a simplicial,
+        symbolic one, so this object gives its factor away: it cannot solve
+        until the next `refactor`, which analyses the pattern again (the
+        ordering is kept). For a factor solved with many times between
+        refactorisations (the needle's chord solver in the slab).
+        """
+        if self._active != "cholesky" or not self.supernodal:
+            raise SolverError("only a supernodal Cholesky factor can be detached")
+        n = self._pattern[1]
+        order = cvxopt.matrix(np.arange(n, dtype=float))
+        cholmod.solve(self._chol, order, sys=7)  # P e: the ordering CHOLMOD kept (its own AMD may have won)
+        perm = np.rint(np.asarray(memoryview(order)).ravel()).astype(np.int64)
+        colptr, rows, values = cholmod.getfactor(self._chol).CCS
+        self._chol = self._check = self._active = None
+        return SupernodalFactor(*(np.asarray(memoryview(a)).ravel() for a in (colptr, rows, values)), perm)
 
     @property
     def method(self) -> str:

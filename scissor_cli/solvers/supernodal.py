@@ -1,0 +1,153 @@
+"""A Cholesky factor kept in single precision, solved in compiled loops with BLAS (docs/model.md §12, "The chord step's arithmetic").
+
+The needle's chord solver (`insertion.chord`) solves with one kept factor of
+the slab's K_ff a thousand times or more before it refactors. CHOLMOD's
+supernodal solve through cvxopt reads the whole float64 factor twice per
+solve (tens of MB on a picked slab: memory-bound) and converts its operands
+on every call. A chord step only needs the solve as a preconditioner — its
+convergence is judged on the float64 residual of the true gradient, so the
+step's solution is the same equilibrium to the solver's tolerance — so the
+factor is copied once per factorisation into float32 dense supernode
+blocks (half the bytes) and solved here: per supernode a triangular solve
+on its diagonal block and a matrix–vector product with the rows below
+(BLAS `strsv`, `sgemv` from scipy's own BLAS, called from the compiled loop).
+
+Layout: L = the factor of P A Pᵀ (P the ordering `perm`); supernode s spans
+columns starts[s] … starts[s+1] − 1, all with the rows block_rows[row_ptr[s]
+: row_ptr[s+1]] (its own columns first), stored column-major (lda = its row
+count) from blocks[block_ptr[s]].
+"""
+
+from __future__ import annotations
+
+import ctypes
+
+import numpy as np
+import scipy.linalg.cython_blas as _cython_blas
+from numba import njit
+
+
+def _blas(name: str, n_args: int):
+    """scipy's BLAS routine `name` as a ctypes function of n_args pointers (Fortran: every argument by reference)."""
+    capsule = _cython_blas.__pyx_capi__[name]
+    get_name = ctypes.pythonapi.PyCapsule_GetName
+    get_name.restype, get_name.argtypes = ctypes.c_char_p, [ctypes.py_object]
+    get_pointer = ctypes.pythonapi.PyCapsule_GetPointer
+    get_pointer.restype, get_pointer.argtypes = ctypes.c_void_p, [ctypes.py_object, ctypes.c_char_p]
+    address = get_pointer(capsule, get_name(capsule))
+    return ctypes.CFUNCTYPE(None, *[ctypes.c_void_p] * n_args)(address)
+
+
+# (uplo, trans, diag, n, A, lda, x, incx) and (trans, m, n, alpha, A, lda, x, incx, beta, y, incy)
+_strsv = _blas("strsv", 8)
+_sgemv = _blas("sgemv", 11)
+
+
+class SupernodalFactor:
+    """L of P A Pᵀ = L Lᵀ in float32 supernode blocks (module docstring); `solve` gives A⁻¹b.
+
+    Built from a factor's columns: colptr (n + 1,), rows (nnz,) and values
+    (nnz,) of L in CSC with each column's diagonal first, perm (n,) (row k
+    of P A Pᵀ is row perm[k] of A). The relative error of a solve is that
+    of float32 arithmetic on the factor's condition.
+    """
+
+    def __init__(self, colptr: np.ndarray, rows: np.ndarray, values: np.ndarray, perm: np.ndarray):
+        colptr, rows = np.asarray(colptr, np.int64), np.asarray(rows, np.int64)
+        self.perm = np.asarray(perm, np.int64)
+        self.n = self.perm.size
+        self.starts = _supernodes(colptr, rows)
+        first = self.starts[:-1]
+        width = np.diff(self.starts)
+        height = colptr[first + 1] - colptr[first]
+        self.row_ptr = np.concatenate([[0], np.cumsum(height)]).astype(np.int64)
+        self.block_ptr = np.concatenate([[0], np.cumsum(height * width)]).astype(np.int64)
+        self.block_rows = np.empty(self.row_ptr[-1], np.int32)
+        self.blocks = np.zeros(self.block_ptr[-1], np.float32)
+        _pack(colptr, rows, np.asarray(values, float), self.starts, self.row_ptr, self.block_ptr, self.block_rows,
+              self.blocks)
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """x (float64) with A x = b, for b (n,) or (n, k)."""
+        b = np.asarray(b, dtype=float)
+        B = b.reshape(b.shape[0], -1)
+        X = np.empty(B.shape)
+        _solve_columns(self.starts, self.row_ptr, self.block_rows, self.block_ptr, self.blocks, self.perm, B, X)
+        return X.reshape(b.shape)
+
+
+@njit(cache=True)
+def _supernodes(colptr, rows):
+    """The first column of each supernode, and n (S + 1,): runs of columns whose patterns nest (j's = {j} ∪ j+1's)."""
+    n = colptr.size - 1
+    starts = [0]
+    for j in range(n - 1):
+        a, b, c, e = colptr[j], colptr[j + 1], colptr[j + 1], colptr[j + 2]
+        same = (b - a) == (e - c) + 1 and rows[a + 1] == j + 1 if b - a > 1 else False
+        if same:
+            for k in range(e - c):
+                if rows[a + 1 + k] != rows[c + k]:
+                    same = False
+                    break
+        if not same:
+            starts.append(j + 1)
+    starts.append(n)
+    return np.array(starts, np.int64)
+
+
+@njit(cache=True)
+def _pack(colptr, rows, values, starts, row_ptr, block_ptr, block_rows, blocks):
+    """Each supernode's rows and its columns as one column-major block (zeros above the diagonal)."""
+    for s in range(starts.size - 1):
+        c0, w = starts[s], starts[s + 1] - starts[s]
+        r = row_ptr[s + 1] - row_ptr[s]
+        for k in range(r):
+            block_rows[row_ptr[s] + k] = rows[colptr[c0] + k]
+        for c in range(w):
+            first = colptr[c0 + c]
+            for k in range(c, r):
+                blocks[block_ptr[s] + c * r + k] = values[first + k - c]
+
+
+@njit
+def _solve_columns(starts, row_ptr, block_rows, block_ptr, blocks, perm, B, X):
+    """X[:, c] = A⁻¹ B[:, c] for each column: P, L⁻¹ and L⁻ᵀ supernode by supernode, Pᵀ.
+
+    Not cached: it calls BLAS through ctypes addresses, which differ between processes.
+    """
+    n = perm.size
+    y = np.empty(n, np.float32)
+    tmp = np.empty(n, np.float32)
+    # the by-reference scalars: dims (n, lda, m, inc), scalars (1, 0, −1), chars (L, N, T)
+    dims = np.empty(4, np.int32)
+    scalars = np.array([1.0, 0.0, -1.0], np.float32)
+    chars = np.array([76, 78, 84], np.uint8)
+    d, s_, ch = dims.ctypes.data, scalars.ctypes.data, chars.ctypes.data
+    blk, yp, tp = blocks.ctypes.data, y.ctypes.data, tmp.ctypes.data
+    dims[3] = 1
+    n_super = starts.size - 1
+    for col in range(B.shape[1]):
+        for k in range(n):
+            y[k] = B[perm[k], col]
+        for s in range(n_super):  # L y = b
+            c0, w = starts[s], starts[s + 1] - starts[s]
+            r0, r = row_ptr[s], row_ptr[s + 1] - row_ptr[s]
+            dims[0], dims[1], dims[2] = w, r, r - w
+            a = blk + 4 * block_ptr[s]
+            _strsv(ch, ch + 1, ch + 1, d, a, d + 4, yp + 4 * c0, d + 12)
+            if r > w:
+                _sgemv(ch + 1, d + 8, d, s_, a + 4 * w, d + 4, yp + 4 * c0, d + 12, s_ + 4, tp, d + 12)
+                for k in range(r - w):
+                    y[block_rows[r0 + w + k]] -= tmp[k]
+        for s in range(n_super - 1, -1, -1):  # Lᵀ x = y
+            c0, w = starts[s], starts[s + 1] - starts[s]
+            r0, r = row_ptr[s], row_ptr[s + 1] - row_ptr[s]
+            dims[0], dims[1], dims[2] = w, r, r - w
+            a = blk + 4 * block_ptr[s]
+            if r > w:
+                for k in range(r - w):
+                    tmp[k] = y[block_rows[r0 + w + k]]
+                _sgemv(ch + 2, d + 8, d, s_ + 8, a + 4 * w, d + 4, tp, d + 12, s_, yp + 4 * c0, d + 12)
+            _strsv(ch, ch + 2, ch + 1, d, a, d + 4, yp + 4 * c0, d + 12)
+        for k in range(n):
+            X[perm[k], col] = y[k]
