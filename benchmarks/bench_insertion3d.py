@@ -63,10 +63,15 @@ from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
 from scissor_cli.experiments.build import build_model
 from scissor_cli.experiments.layer_check_stage import slab_resolution_stage
 from scissor_cli.experiments.run_cache import CACHE_DIR
+from scissor_cli.insertion.chord import ChordSolver
 from scissor_cli.solvers.linear import factorize_free
 from scissor_cli.solvers.newton import solve_newton
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+#: the kept factor's precisions compared (`ChordSolver.single_precision`)
+PRECISIONS = {"float32": True, "float64": False}
 
 
 def main() -> None:
@@ -109,38 +114,57 @@ def main() -> None:
     if args.loop:
         _loop_runs(cfg, slab, x0, plan, target, params, entry, axis, table)
         return
-    totals, times, cpu, counts = [], [], [], []
+    runs = {precision: {"totals": [], "times": [], "cpu": [], "counts": []} for precision in PRECISIONS}
     for _ in range(args.repeats):
-        state, x = NeedleState(entry, axis), x0.copy()
-        cand = free_nodes(slab)
-        step_times = []
-        c0 = time.process_time()
-        while state.depth_mm < args.depth - 1e-9:
-            t0 = time.perf_counter()
-            out = advance(slab, state, x, plan.strokes, min(args.step, args.depth - state.depth_mm), params, cand)
-            step_times.append(time.perf_counter() - t0)
-            counts.append((out.factorizations, out.passes, out.iterations))
-            x = out.x
-        cpu.append(time.process_time() - c0)
-        times += step_times
-        totals.append(sum(step_times))
-        print(f"  one run: {totals[-1]:.1f} s, {len(step_times)} steps, load {_load()}", flush=True)
-    t = np.array(times) * 1e3
-    f, p, k = np.array(counts).T
-    miss, depth_error = miss_and_depth_error(probe.positions(x)[0], entry, axis, state.depth_mm)
-    print(f"one step ({args.step:g} mm): median {np.median(t):.0f} ms (min {t.min():.0f}, max {t.max():.0f})")
-    print(f"{args.depth:g} mm in {args.step:g} mm steps: {np.median(totals):.1f} s, median of {args.repeats} "
-          f"(min {min(totals):.1f}; target ≤ 30 s); CPU time {np.median(cpu):.1f} s")
-    print(f"per step: {f.mean():.2f} factorisations ({f.sum() // args.repeats} per run), {p.mean():.1f} active-set "
+        for precision, single in PRECISIONS.items():  # alternately: peers under the same load
+            r = runs[precision]
+            state, x = NeedleState(entry, axis), x0.copy()
+            state.solver = ChordSolver(slab, single_precision=single)
+            cand = free_nodes(slab)
+            step_times = []
+            c0 = time.process_time()
+            while state.depth_mm < args.depth - 1e-9:
+                t0 = time.perf_counter()
+                out = advance(slab, state, x, plan.strokes, min(args.step, args.depth - state.depth_mm), params, cand)
+                step_times.append(time.perf_counter() - t0)
+                r["counts"].append((out.factorizations, out.passes, out.iterations))
+                x = out.x
+            r["cpu"].append(time.process_time() - c0)
+            r["times"] += step_times
+            r["totals"].append(sum(step_times))
+            r["x"], r["state"], r["out"] = x, state, out
+            print(f"  one run, {precision} factor: {r['totals'][-1]:.1f} s, {len(step_times)} steps, load {_load()}",
+                  flush=True)
+    kernels = _kernel_times(slab, x0)
+    for precision, r in runs.items():
+        _report(args, precision, r, probe, entry, axis, kernels)
+    a, b = (runs[p]["x"] for p in PRECISIONS)
+    print(f"float32 against float64 factor: the nodes' final positions differ by at most {np.abs(a - b).max():.2e} mm; "
+          f"whole insertion {np.median(runs['float32']['totals']) / np.median(runs['float64']['totals']):.2f}× the time")
+    print(f"load average {_load()}")
+
+
+def _report(args, precision, r, probe, entry, axis, kernels) -> None:
+    """One precision's insertion: a step's time, the whole, the counts, the miss, and the step against its floor."""
+    t = np.array(r["times"]) * 1e3
+    f, p, k = np.array(r["counts"]).T
+    state, out, totals = r["state"], r["out"], r["totals"]
+    miss, depth_error = miss_and_depth_error(probe.positions(r["x"])[0], entry, axis, state.depth_mm)
+    print(f"{precision} factor — one step ({args.step:g} mm): median {np.median(t):.0f} ms (min {t.min():.0f}, "
+          f"max {t.max():.0f})")
+    print(f"  {args.depth:g} mm in {args.step:g} mm steps: {np.median(totals):.1f} s, median of {args.repeats} "
+          f"(min {min(totals):.1f}; target ≤ 30 s); CPU time {np.median(r['cpu']):.1f} s")
+    print(f"  per step: {f.mean():.2f} factorisations ({f.sum() // args.repeats} per run), {p.mean():.1f} active-set "
           f"passes, {k.mean():.1f} chord steps; at the end {state.captured.size} captured "
           f"({int(state.stuck.sum())} stuck), needle force {out.force_mN:.1f} mN, miss {miss:.3f} mm, "
-          f"depth error {depth_error:+.3f} mm")
-    grad_s, solve_s, factor_s = _kernel_times(slab, x)
-    floor = (k.mean() * (grad_s + solve_s) + f.mean() * factor_s) * 1e3
-    print(f"floor of a step: {k.mean():.1f} chord steps × (gradient {grad_s * 1e3:.1f} ms + kept-factor solve "
-          f"{solve_s * 1e3:.1f} ms) + {f.mean():.2f} refactorisations × {factor_s * 1e3:.0f} ms = {floor:.0f} ms; "
-          f"measured {np.mean(t):.0f} ms (mean): {np.mean(t) - floor:.0f} ms is the step's own bookkeeping")
-    print(f"load average {_load()}")
+          f"depth error {depth_error:+.3f} mm; the solver in float32 at the end: {state.solver.single_precision}")
+    grad_s, solves, factor_s = kernels
+    solve_s = solves[precision]
+    floor = (k.mean() * (grad_s + solve_s) + f.mean() * factor_s[precision]) * 1e3
+    print(f"  floor of a step: {k.mean():.1f} chord steps × (gradient {grad_s * 1e3:.1f} ms + kept-factor solve "
+          f"{solve_s * 1e3:.1f} ms) + {f.mean():.2f} refactorisations × {factor_s[precision] * 1e3:.0f} ms = "
+          f"{floor:.0f} ms; measured {np.mean(t):.0f} ms (mean): {np.mean(t) - floor:.0f} ms is the step's own "
+          f"bookkeeping")
 
 
 def _run_config(run: Path):
@@ -205,25 +229,37 @@ def _loop_runs(cfg, slab, x0, plan, target, params, entry, axis, table=None) -> 
                   f"median), {int(factored[m].sum())} refactorisations of the kept factor")
 
 
-def _kernel_times(slab, x) -> tuple[float, float, float]:
-    """Median (s) of one energy gradient, one solve on the factor and one refactorisation at x (N3, 3)."""
+def _kernel_times(slab, x) -> tuple[float, dict, dict]:
+    """Medians (s) at x (N3, 3): one energy gradient; per precision one solve on the kept factor and one
+    refactorisation (float32: CHOLMOD's factor copied out, `Factorization.detach`)."""
     K = slab.stiffness_free(x, upper=True)
     slot: dict = {}
     factor = factorize_free(slab, K, slot)
     g = np.random.default_rng(0).standard_normal(slab.free_dofs.size)
-    times = {"grad": [], "solve": [], "factor": []}
+    times = {"grad": [], "float64": [], "float32": [], "factor64": [], "factor32": []}
     for _ in range(20):
         t0 = time.perf_counter()
         slab.energy_gradient(x)
         times["grad"].append(time.perf_counter() - t0)
         t0 = time.perf_counter()
         factor.solve(g)
-        times["solve"].append(time.perf_counter() - t0)
+        times["float64"].append(time.perf_counter() - t0)
     for _ in range(5):
         t0 = time.perf_counter()
         factorize_free(slab, K, slot)
-        times["factor"].append(time.perf_counter() - t0)
-    return tuple(float(np.median(times[k])) for k in ("grad", "solve", "factor"))
+        times["factor64"].append(time.perf_counter() - t0)
+    for _ in range(5):
+        t0 = time.perf_counter()
+        single = factorize_free(slab, K, slot).detach()
+        times["factor32"].append(time.perf_counter() - t0)
+    single.solve(g)  # compiled on the first call
+    for _ in range(20):
+        t0 = time.perf_counter()
+        single.solve(g)
+        times["float32"].append(time.perf_counter() - t0)
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    return (med["grad"], {"float64": med["float64"], "float32": med["float32"]},
+            {"float64": med["factor64"], "float32": med["factor32"]})
 
 
 if __name__ == "__main__":
