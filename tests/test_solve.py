@@ -1,5 +1,8 @@
 """The shared sparse factorisation: CHOLMOD for definite matrices, qdldl's LDLᵀ otherwise."""
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -253,3 +256,21 @@ def test_a_detached_float32_factor_solves_to_single_precision_and_the_slot_refac
         f.detach()  # given away already
     f.refactor(A)
     np.testing.assert_allclose(f.solve(b), ref, rtol=1e-10)
+
+
+def test_the_float32_solve_compiled_in_one_process_solves_in_another():
+    """The compiled solve links BLAS by symbol name (solvers.supernodal._link_blas), so numba may cache it: a
+    second process, which loads the cached code and links the name again, solves as the first did."""
+    script = (
+        "import numpy as np, scipy.sparse as sp\n"
+        "from scissor_cli.solvers.supernodal import SupernodalFactor\n"
+        "n = 400\n"
+        "A = sp.diags([-1.0, 4.0, -1.0], [-1, 0, 1], (n, n)).toarray()\n"
+        "L = sp.csc_matrix(np.linalg.cholesky(A))\n"
+        "x = SupernodalFactor(L.indptr, L.indices, L.data, np.arange(n)).solve(np.ones(n))\n"
+        "print(np.abs(A @ x - 1.0).max())\n"
+    )
+    for _ in range(2):  # the first may compile (and cache), the second loads
+        out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0, out.stderr
+        assert float(out.stdout.strip()) < 1e-5

@@ -21,26 +21,36 @@ count) from blocks[block_ptr[s]].
 from __future__ import annotations
 
 import ctypes
+import functools
 
+import llvmlite.binding
 import numpy as np
 import scipy.linalg.cython_blas as _cython_blas
-from numba import njit
+from numba import njit, types
+
+#: the BLAS routines the compiled solve calls, by the symbol names they are linked under (`_link_blas`):
+#: (uplo, trans, diag, n, A, lda, x, incx) and (trans, m, n, alpha, A, lda, x, incx, beta, y, incy), every
+#: argument a pointer (Fortran: by reference), passed as an address
+_BLAS = {"strsv": 8, "sgemv": 11}
+_strsv = types.ExternalFunction("scissor_blas_strsv", types.void(*[types.intp] * _BLAS["strsv"]))
+_sgemv = types.ExternalFunction("scissor_blas_sgemv", types.void(*[types.intp] * _BLAS["sgemv"]))
 
 
-def _blas(name: str, n_args: int):
-    """scipy's BLAS routine `name` as a ctypes function of n_args pointers (Fortran: every argument by reference)."""
-    capsule = _cython_blas.__pyx_capi__[name]
+@functools.cache
+def _link_blas() -> None:
+    """Link the symbols `_strsv`, `_sgemv` name to scipy's own BLAS in this process (once, before the first solve).
+
+    By name, not by address: the compiled solve then refers to a symbol,
+    so numba can cache it on disk and a new process only links the name
+    again (an address baked in would differ between processes).
+    """
     get_name = ctypes.pythonapi.PyCapsule_GetName
     get_name.restype, get_name.argtypes = ctypes.c_char_p, [ctypes.py_object]
     get_pointer = ctypes.pythonapi.PyCapsule_GetPointer
     get_pointer.restype, get_pointer.argtypes = ctypes.c_void_p, [ctypes.py_object, ctypes.c_char_p]
-    address = get_pointer(capsule, get_name(capsule))
-    return ctypes.CFUNCTYPE(None, *[ctypes.c_void_p] * n_args)(address)
-
-
-# (uplo, trans, diag, n, A, lda, x, incx) and (trans, m, n, alpha, A, lda, x, incx, beta, y, incy)
-_strsv = _blas("strsv", 8)
-_sgemv = _blas("sgemv", 11)
+    for name in _BLAS:
+        capsule = _cython_blas.__pyx_capi__[name]
+        llvmlite.binding.add_symbol(f"scissor_blas_{name}", get_pointer(capsule, get_name(capsule)))
 
 
 class SupernodalFactor:
@@ -72,6 +82,7 @@ class SupernodalFactor:
         b = np.asarray(b, dtype=float)
         B = b.reshape(b.shape[0], -1)
         X = np.empty(B.shape)
+        _link_blas()
         _solve_columns(self.starts, self.row_ptr, self.block_rows, self.block_ptr, self.blocks, self.perm, B, X)
         return X.reshape(b.shape)
 
@@ -109,12 +120,9 @@ def _pack(colptr, rows, values, starts, row_ptr, block_ptr, block_rows, blocks):
                 blocks[block_ptr[s] + c * r + k] = values[first + k - c]
 
 
-@njit
+@njit(cache=True)
 def _solve_columns(starts, row_ptr, block_rows, block_ptr, blocks, perm, B, X):
-    """X[:, c] = A⁻¹ B[:, c] for each column: P, L⁻¹ and L⁻ᵀ supernode by supernode, Pᵀ.
-
-    Not cached: it calls BLAS through ctypes addresses, which differ between processes.
-    """
+    """X[:, c] = A⁻¹ B[:, c] for each column: P, L⁻¹ and L⁻ᵀ supernode by supernode, Pᵀ (BLAS linked: `_link_blas`)."""
     n = perm.size
     y = np.empty(n, np.float32)
     tmp = np.empty(n, np.float32)
@@ -122,8 +130,9 @@ def _solve_columns(starts, row_ptr, block_rows, block_ptr, blocks, perm, B, X):
     dims = np.empty(4, np.int32)
     scalars = np.array([1.0, 0.0, -1.0], np.float32)
     chars = np.array([76, 78, 84], np.uint8)
-    d, s_, ch = dims.ctypes.data, scalars.ctypes.data, chars.ctypes.data
-    blk, yp, tp = blocks.ctypes.data, y.ctypes.data, tmp.ctypes.data
+    # addresses as signed integers: unsigned plus signed would be a float in numba's arithmetic
+    d, s_, ch = np.int64(dims.ctypes.data), np.int64(scalars.ctypes.data), np.int64(chars.ctypes.data)
+    blk, yp, tp = np.int64(blocks.ctypes.data), np.int64(y.ctypes.data), np.int64(tmp.ctypes.data)
     dims[3] = 1
     n_super = starts.size - 1
     for col in range(B.shape[1]):
