@@ -40,6 +40,7 @@ wall-clock medians, printed with the load average and the CPU time.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -64,7 +65,9 @@ from scissor_cli.experiments.build import build_model
 from scissor_cli.experiments.layer_check_stage import slab_resolution_stage
 from scissor_cli.experiments.run_cache import CACHE_DIR
 from scissor_cli.insertion.chord import ChordSolver
-from scissor_cli.solvers.linear import factorize_free
+from scissor_cli.mechanics.tissue import Tissue
+from scissor_cli.solvers.linear import Factorization, factorize_free
+from scissor_cli.solvers.supernodal import SupernodalFactor
 from scissor_cli.solvers.newton import solve_newton
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -123,12 +126,15 @@ def main() -> None:
             cand = free_nodes(slab)
             step_times = []
             c0 = time.process_time()
-            while state.depth_mm < args.depth - 1e-9:
-                t0 = time.perf_counter()
-                out = advance(slab, state, x, plan.strokes, min(args.step, args.depth - state.depth_mm), params, cand)
-                step_times.append(time.perf_counter() - t0)
-                r["counts"].append((out.factorizations, out.passes, out.iterations))
-                x = out.x
+            with _in_situ() as spent:
+                while state.depth_mm < args.depth - 1e-9:
+                    t0 = time.perf_counter()
+                    out = advance(slab, state, x, plan.strokes, min(args.step, args.depth - state.depth_mm), params,
+                                  cand)
+                    step_times.append(time.perf_counter() - t0)
+                    r["counts"].append((out.factorizations, out.passes, out.iterations))
+                    x = out.x
+            r.setdefault("in_situ", []).append(spent)
             r["cpu"].append(time.process_time() - c0)
             r["times"] += step_times
             r["totals"].append(sum(step_times))
@@ -162,9 +168,45 @@ def _report(args, precision, r, probe, entry, axis, kernels) -> None:
     solve_s = solves[precision]
     floor = (k.mean() * (grad_s + solve_s) + f.mean() * factor_s[precision]) * 1e3
     print(f"  floor of a step: {k.mean():.1f} chord steps × (gradient {grad_s * 1e3:.1f} ms + kept-factor solve "
-          f"{solve_s * 1e3:.1f} ms) + {f.mean():.2f} refactorisations × {factor_s[precision] * 1e3:.0f} ms = "
-          f"{floor:.0f} ms; measured {np.mean(t):.0f} ms (mean): {np.mean(t) - floor:.0f} ms is the step's own "
-          f"bookkeeping")
+          f"{solve_s * 1e3:.1f} ms, each timed alone) + {f.mean():.2f} refactorisations × "
+          f"{factor_s[precision] * 1e3:.0f} ms = {floor:.0f} ms; measured {np.mean(t):.0f} ms (mean)")
+    spent = r["in_situ"][-1]  # the last run's
+    steps = len(t) // len(totals)
+    grad_calls, grad_time = spent["gradient"]
+    solve_calls, solve_time = spent["solve"]
+    rest = sum(totals[-1:]) - grad_time - solve_time
+    print(f"  in the last run, timed where they ran: {grad_calls} gradients {grad_time:.2f} s "
+          f"({grad_time / max(grad_calls, 1) * 1e3:.1f} ms each), {solve_calls} kept-factor solve columns "
+          f"{solve_time:.2f} s ({solve_time / max(solve_calls, 1) * 1e3:.1f} ms each: the factor no longer in "
+          f"cache after a gradient, and the captured nodes' responses), the rest {rest:.2f} s "
+          f"({rest / steps * 1e3:.0f} ms a step: capture, shares, the hold's Schur complement, the active-set rule, "
+          f"refactorisations)")
+
+
+@contextlib.contextmanager
+def _in_situ():
+    """Time every energy gradient and kept-factor solve (per column) while the block runs: {name: [calls, s]}."""
+    spent = {"gradient": [0, 0.0], "solve": [0, 0.0]}
+    timed = [(Tissue, "energy_gradient", "gradient"), (SupernodalFactor, "solve", "solve"),
+             (Factorization, "solve", "solve")]
+    originals = [(cls, name, getattr(cls, name)) for cls, name, _ in timed]
+
+    def wrap(fn, key):
+        def timed_call(self, b, *args, **kwargs):
+            t0 = time.perf_counter()
+            out = fn(self, b, *args, **kwargs)
+            spent[key][1] += time.perf_counter() - t0
+            spent[key][0] += 1 if key == "gradient" or np.ndim(b) == 1 else np.shape(b)[1]
+            return out
+        return timed_call
+
+    for (cls, name, key), (_, _, fn) in zip(timed, originals):
+        setattr(cls, name, wrap(fn, key))
+    try:
+        yield spent
+    finally:
+        for cls, name, fn in originals:
+            setattr(cls, name, fn)
 
 
 def _run_config(run: Path):
@@ -254,6 +296,7 @@ def _kernel_times(slab, x) -> tuple[float, dict, dict]:
         times["factor32"].append(time.perf_counter() - t0)
     single.solve(g)  # compiled on the first call
     for _ in range(20):
+        slab.energy_gradient(x)  # each solve after a gradient, as in a chord step (and as float64's above)
         t0 = time.perf_counter()
         single.solve(g)
         times["float32"].append(time.perf_counter() - t0)
