@@ -174,12 +174,12 @@ def _report(args, precision, r, probe, entry, axis, kernels) -> None:
     steps = len(t) // len(totals)
     grad_calls, grad_time = spent["gradient"]
     solve_calls, solve_time = spent["solve"]
-    rest = sum(totals[-1:]) - grad_time - solve_time
+    rest = totals[-1] - grad_time - solve_time
     print(f"  in the last run, timed where they ran: {grad_calls} gradients {grad_time:.2f} s "
           f"({grad_time / max(grad_calls, 1) * 1e3:.1f} ms each), {solve_calls} kept-factor solve columns "
-          f"{solve_time:.2f} s ({solve_time / max(solve_calls, 1) * 1e3:.1f} ms each, the captured nodes' responses among them), the rest {rest:.2f} s "
-          f"({rest / steps * 1e3:.0f} ms a step: capture, shares, the hold's Schur complement, the active-set rule, "
-          f"refactorisations)")
+          f"{solve_time:.2f} s ({solve_time / max(solve_calls, 1) * 1e3:.1f} ms each, the captured nodes' "
+          f"responses among them), the rest {rest:.2f} s ({rest / steps * 1e3:.0f} ms a step: capture, shares, the "
+          f"hold's Schur complement, the active-set rule, refactorisations)")
 
 
 @contextlib.contextmanager

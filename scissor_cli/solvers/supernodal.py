@@ -38,7 +38,7 @@ _sgemv = types.ExternalFunction("scissor_blas_sgemv", types.void(*[types.intp] *
 
 @functools.cache
 def _link_blas() -> None:
-    """Link the symbols `_strsv`, `_sgemv` name to scipy's own BLAS in this process (once, before the first solve).
+    """Point the symbol names `_strsv`, `_sgemv` call at scipy's own BLAS in this process (once, before the first solve).
 
     By name, not by address: the compiled solve then refers to a symbol,
     so numba can cache it on disk and a new process only links the name
