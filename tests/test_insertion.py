@@ -578,7 +578,8 @@ class _Bars:
 
 def test_an_insertion_shows_its_progress_and_ends_its_bar(model):
     """The insertion stage's bar advances after every step and ends at its total whether the insertion took
-    fewer steps than planned (`depth` stops at the target) or more (a bar must end before the next starts)."""
+    fewer steps than planned (`depth` stops at the target) or more (a bar must end before the next starts);
+    `none` and `depth` share their steps, so their needle counts once."""
     from types import SimpleNamespace
 
     from scissor_cli.experiments.insertion_stage import _insert as insert_with_bar
@@ -588,17 +589,20 @@ def test_an_insertion_shows_its_progress_and_ends_its_bar(model):
     target = SimpleNamespace(name="T1", rest=np.array([45.0, 32.0]))
     steps = {}
     # the target lies 45 mm in: `depth` planned 25 mm takes more steps than planned, planned 50 mm fewer
-    for strategy, depth in (("none", DEPTH), ("depth", DEPTH), ("depth", 2 * DEPTH)):
-        plan = SimpleNamespace(depth_mm=depth)
+    for strategies, depth in ((("none",), DEPTH), (("depth",), DEPTH), (("depth",), 2 * DEPTH),
+                              (("none", "depth", "loop"), DEPTH)):
         bars = _Bars()
+        path = NeedlePath(ENTRY, AXIS, depth, target.rest, target.name)
         with progress.reporting(bars):
-            r = insert_with_bar(tissue, tissue.rest.copy(), np.zeros(tissue.n_cups),
-                                NeedlePath(ENTRY, AXIS, plan.depth_mm, target.rest, target.name), params,
-                                InsertionOptions(strategy, cfg.controller))
+            results = insert_with_bar(tissue, tissue.rest.copy(), np.zeros(tissue.n_cups),
+                                      dict.fromkeys(strategies, path), params,
+                                      {k: InsertionOptions(k, cfg.controller) for k in strategies})
         [(label, total, advanced)] = bars.bars
-        assert label == f"insertion T1 ({strategy})" and total == int(np.ceil(depth / params.step_mm))
-        assert advanced == total
-        steps[strategy, depth] = (r.steps, total)
-    assert steps["none", DEPTH][0] == steps["none", DEPTH][1]
-    assert steps["depth", DEPTH][0] > steps["depth", DEPTH][1]
-    assert steps["depth", 2 * DEPTH][0] < steps["depth", 2 * DEPTH][1]
+        needles = 2 if "loop" in strategies else 1
+        assert label == f"insertion T1 ({', '.join(strategies)})"
+        assert total == needles * int(np.ceil(depth / params.step_mm)) and advanced == total
+        assert [r.strategy for r in results] == list(strategies)
+        steps[strategies, depth] = (results[0].steps, total)
+    assert steps[("none",), DEPTH][0] == steps[("none",), DEPTH][1]
+    assert steps[("depth",), DEPTH][0] > steps[("depth",), DEPTH][1]
+    assert steps[("depth",), 2 * DEPTH][0] < steps[("depth",), 2 * DEPTH][1]

@@ -2,8 +2,9 @@
 
 Each target is inserted from the equilibrium at its plan's strokes (the
 nominal manipulation's end: exact camera, no perturbation) along the plan's
-entry and direction, once per configured strategy. The truth is the layer
-(model = truth), or with `trials.truth: slab` the nominal slab of
+entry and direction, once per configured strategy (`none` and `depth` on
+one needle that branches for its last step, `run_strategies`). The truth
+is the layer (model = truth), or with `trials.truth: slab` the nominal slab of
 `layer_check` (docs/model.md §14): entry and axis lifted to the layer's
 height, `loop`'s controller on its 2-D model, and the results with 3-D
 shapes (`tip`, `target` (K, 3), `displacement` (K, N3, 3)). The results and
@@ -21,7 +22,7 @@ import numpy as np
 from scissor_cli import progress
 from scissor_cli.config import Config
 from scissor_cli.experiments.sink import Insertion, RunSink, product_key
-from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, needle_path, run_insertion
+from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, needle_path, run_strategies
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 from scissor_cli.solvers.newton import solve_newton
@@ -55,15 +56,18 @@ def slab_ramp(slab: Tissue, strokes: np.ndarray, frames: int, tol: float) -> lis
 
 
 class _StepBar:
-    """The progress of one insertion: a bar over the plan's steps, advanced after each step (`on_step`).
+    """The progress of one target's insertions: a bar over their planned steps, advanced after each step.
 
-    It holds at its last step until `close` (an insertion may take more
-    steps than planned, or fewer): a live bar must end before the next one starts.
+    `none` and `depth` share their steps (`run_strategies`), so their needle
+    counts once. The bar holds at its last step until `close` (an insertion
+    may take more steps than planned, or fewer): a live bar must end before
+    the next one starts.
     """
 
-    def __init__(self, target: str, depth_mm: float, params: NeedleParams, strategy: str):
-        self.left = max(1, int(np.ceil(depth_mm / params.step_mm)))
-        self.advance = progress.bar(f"insertion {target} ({strategy})", self.left)
+    def __init__(self, target: str, depth_mm: float, params: NeedleParams, strategies: list[str]):
+        needles = bool(set(strategies) - {"loop"}) + ("loop" in strategies)
+        self.left = max(1, needles * int(np.ceil(depth_mm / params.step_mm)))
+        self.advance = progress.bar(f"insertion {target} ({', '.join(strategies)})", self.left)
 
     def __call__(self, depth_mm: float) -> None:
         if self.left > 1:
@@ -75,12 +79,14 @@ class _StepBar:
         self.left = 0
 
 
-def _insert(tissue: Tissue, x0: np.ndarray, strokes: np.ndarray, path: NeedlePath, params: NeedleParams,
-            options: InsertionOptions):
-    """`run_insertion` with a progress bar over its steps."""
-    bar = _StepBar(path.target_name, path.depth_mm, params, options.strategy)
+def _insert(tissue: Tissue, x0: np.ndarray, strokes: np.ndarray, paths: dict, params: NeedleParams,
+            options: dict) -> list:
+    """`run_strategies` ({strategy: path}, {strategy: options}) with one progress bar over the steps."""
+    first = next(iter(paths.values()))
+    bar = _StepBar(first.target_name, first.depth_mm, params, list(paths))
     try:
-        return run_insertion(tissue, x0, strokes, path, params, replace(options, on_step=bar))
+        return run_strategies(tissue, x0, strokes, paths, params,
+                              {k: replace(o, on_step=bar) for k, o in options.items()})
     finally:
         bar.close()
 
@@ -102,13 +108,12 @@ def _in_slab(cfg: Config, tissue: Tissue, truth, target, plan, params, animate: 
     model_x0 = None
     if "loop" in cfg.insertion.strategies and needle is None:
         model_x0 = solve_equilibrium(tissue, plan.strokes).x
-    results = [
-        _insert(slab, ramp[-1], plan.strokes,
-                needle_path(slab, plan.entry, plan.direction, plan.depth_mm, target.rest, target.name,
-                            None if needle is None else needle.height_for(strategy)), params,
-                InsertionOptions(strategy, cfg.controller, model=tissue, model_x0=model_x0, needle_model=needle))
-        for strategy in cfg.insertion.strategies
-    ]
+    strategies = cfg.insertion.strategies
+    paths = {k: needle_path(slab, plan.entry, plan.direction, plan.depth_mm, target.rest, target.name,
+                            None if needle is None else needle.height_for(k)) for k in strategies}
+    results = _insert(slab, ramp[-1], plan.strokes, paths, params,
+                      {k: InsertionOptions(k, cfg.controller, model=tissue, model_x0=model_x0, needle_model=needle)
+                       for k in strategies})
     return results, frames, layer
 
 
@@ -138,8 +143,9 @@ def insertion_stage(cfg: Config, tissue: Tissue, plans: list, sink: RunSink,
         if truth is None:
             frames = manipulation_ramp(tissue, plan.strokes, RAMP_FRAMES if animate else 1)
             path = NeedlePath(plan.entry, plan.direction, plan.depth_mm, target.rest, target.name)
-            results = [_insert(tissue, frames[-1], plan.strokes, path, params, InsertionOptions(strategy, cfg.controller))
-                       for strategy in cfg.insertion.strategies]
+            strategies = cfg.insertion.strategies
+            results = _insert(tissue, frames[-1], plan.strokes, dict.fromkeys(strategies, path), params,
+                              {k: InsertionOptions(k, cfg.controller) for k in strategies})
         else:
             results, frames, layer = _in_slab(cfg, tissue, truth, target, plan, params, animate,
                                               (needle or {}).get(target.name))
