@@ -14,6 +14,7 @@ from scissor_cli import progress
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion, shaft_lengths
 from scissor_cli.insertion.needle import NeedleState, advance, free_nodes
 from scissor_cli.experiments.build import build_model
+from scissor_cli.solvers.newton import solve_newton
 from helpers import example_dict, write_scene
 
 INSERTION = {"step_mm": 1.0, "friction_static_mN_per_mm": 15.0, "friction_kinetic_mN_per_mm": 10.0,
@@ -401,6 +402,39 @@ def test_a_step_on_the_kept_factorisation_matches_newton_passes(model, monkeypat
     np.testing.assert_array_equal(fast.stuck, slow.stuck)
     np.testing.assert_allclose(fast.x, slow.x, atol=1e-6)
     np.testing.assert_allclose(fast.needle_force_mN, slow.needle_force_mN, rtol=1e-6)
+
+
+def test_the_nearly_incompressible_hard_case_decides_as_the_converged_passes(monkeypatch):
+    """ν = 0.499, the example's needle and friction, 40 mm: early decisions give every step the stuck set the
+    converged passes give. A pass there predicts lurches of 4.4 mm in a 0.5 mm step, outside the range the
+    guards were measured in; deciding on that prediction once sent a step down another path (0.71 mm at the
+    end), so no decision is taken on a lurch (`needle.LURCH_STEPS`)."""
+    from scissor_cli.insertion import needle
+    from scissor_cli.planning.needle_plan import plan_target
+    from helpers import ROOT
+
+    cfg = load_config(ROOT / "configs" / "hard" / "nearly_incompressible.yaml")
+    ins = load_config(ROOT / "configs" / "example_3d.yaml").insertion
+    scene, _, tissue = build_model(cfg)
+    plan = plan_target(tissue, scene, scene.targets[0], cfg.needle)
+    assert plan.feasible
+    params = NeedleParams.from_config(ins, cfg.needle, cfg.tissue.mesh)
+    x0 = solve_newton(tissue, plan.strokes, tol=1e-10).x
+
+    def stuck_counts(early_decisions):
+        monkeypatch.setattr(needle, "EARLY_DECISIONS", early_decisions)
+        state, x = NeedleState(plan.entry, plan.direction), x0.copy()
+        counts = []
+        while state.depth_mm < 40.0 - 1e-9:
+            out = advance(tissue, state, x, plan.strokes, ins.step_mm, params, free_nodes(tissue))
+            x = out.x
+            counts.append(out.stuck)
+        return np.array(counts), x
+
+    fast, x_fast = stuck_counts(True)
+    exact, x_exact = stuck_counts(False)
+    np.testing.assert_array_equal(fast, exact)
+    np.testing.assert_allclose(x_fast, x_exact, atol=1e-3)
 
 
 # -- the loop strategy's controller model (insertion/model_state.py) --------------------------------------------

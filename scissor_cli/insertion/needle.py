@@ -90,6 +90,11 @@ GUARD_POSITION = 3.0
 #: captured node does not); the guards keep the layer's margin (≈ 3×)
 GUARD_FORCE_3D = 0.4
 GUARD_POSITION_3D = 1.5
+#: no early decision on a prediction in which a captured node moves more than this many steps along the
+#: axis beyond the needle's ride: such a lurch (the nearly incompressible hard case, ν = 0.499: 4.4 mm in
+#: a 0.5 mm step) lies outside the kept factor's linearisation, whose errors the guards were measured on;
+#: deciding on it there changed the step's path (docs/model.md §12, "Early decisions, calibrated")
+LURCH_STEPS = 2.0
 #: active-set passes per step before the step is reported as unsettled
 MAX_ACTIVE_SET = 50
 #: halvings of a step whose start would invert an element (a 0.5 mm step
@@ -383,6 +388,8 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
             # the converged state's reactions and lags, predicted by this chord step (its Schur forces)
             axial_p, lag_p = np.empty(captured.size), np.empty(captured.size)
             kernels.predicted_reactions(mu, rule.stuck, d_captured, xc, captured, base_x, n, ride, axial_p, lag_p)
+            if np.max(np.abs(lag_p), initial=0.0) > LURCH_STEPS * step_mm:
+                return None  # a lurch: the linearisation is out of its range, decide on the converged state
             release, against, changed = rule.apply(axial_p, lag_p, guard_force * res * scale, guard_position * res)
             return (release, against, axial_p) if changed > 0 else None  # nothing to do, or unclear (−1)
 
