@@ -11,12 +11,18 @@ strokes, along the plan's entry and direction (strategy `none`):
 * cost against step size: 2, 1, 0.5, 0.25 mm, each with the final target
   position's distance from the 0.25 mm run's and the median and largest
   distance over every depth all four reach (the stick–slip saw-tooth makes
-  the final distance alone a sample of one tooth: docs/model.md §12).
+  the final distance alone a sample of one tooth: docs/model.md §12);
+* with --decisions: the same 0.5 mm insertion with early decisions off
+  (every active-set pass converged before the rule decides), and how many
+  steps end with another stuck set (0 expected: docs/model.md §12, "Early
+  decisions, calibrated") and how far apart the final nodes are.
 
-    PYTHONPATH=. python benchmarks/bench_insertion.py [CONFIG.yaml] [--depth MM] [--repeats K]
+    PYTHONPATH=. python benchmarks/bench_insertion.py [CONFIG.yaml] [--depth MM] [--repeats K] [--decisions]
+        [--insertion-from CONFIG.yaml]
 
 The config needs an `insertion:` section (its friction and tip force are
-used; the step sizes are the benchmark's). The machine has 2 cores and other
+used; the step sizes are the benchmark's), or --insertion-from names the
+config whose section to use (the hard cases, configs/hard/, have none). The machine has 2 cores and other
 work may share them: the numbers are wall-clock medians, not CPU time, and
 the load average is printed next to them, with the CPU time (process_time),
 which another process's load inflates less.
@@ -36,6 +42,7 @@ from scissor_cli import runtime
 runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
 from scissor_cli.config import load_config
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion
+from scissor_cli.insertion import needle as needle_module
 from scissor_cli.insertion.needle import NeedleState, advance, free_nodes
 from scissor_cli.experiments.build import build_model
 from scissor_cli.planning.needle_plan import plan_target
@@ -49,12 +56,15 @@ def main() -> None:
     ap.add_argument("config", nargs="?", default=str(ROOT / "configs" / "example_insertion.yaml"))
     ap.add_argument("--depth", type=float, default=50.0, help="insertion depth (mm)")
     ap.add_argument("--repeats", type=int, default=3, help="repeats of the 0.5 mm insertion")
+    ap.add_argument("--decisions", action="store_true", help="compare with early decisions off")
+    ap.add_argument("--insertion-from", help="a config whose insertion section to use")
     args = ap.parse_args()
     cfg = load_config(args.config)
-    if cfg.insertion is None:
-        raise SystemExit(f"{args.config}: no insertion section")
+    insertion = load_config(args.insertion_from).insertion if args.insertion_from else cfg.insertion
+    if insertion is None:
+        raise SystemExit(f"{args.insertion_from or args.config}: no insertion section")
     scene, mesh, tissue = build_model(cfg)
-    params = NeedleParams.from_config(cfg.insertion, cfg.needle, cfg.tissue.mesh)
+    params = NeedleParams.from_config(insertion, cfg.needle, cfg.tissue.mesh)
     plan, target = first_plan(tissue, scene, cfg.needle)
     x0 = solve_equilibrium(tissue, plan.strokes).x
     print(f"{cfg.name}: {mesh.n_nodes} nodes, {mesh.n_elements} elements; target {target.name}, "
@@ -65,15 +75,7 @@ def main() -> None:
     # one step: every step of a 0.5 mm insertion to args.depth; the whole insertion: the median of the repeats
     totals, times, cpu, counts = [], [], [], None
     for _ in range(args.repeats):
-        state, x, step_times, counts = NeedleState(plan.entry, plan.direction), x0.copy(), [], []
-        cand = free_nodes(tissue)
-        while state.depth_mm < args.depth - 1e-9:
-            t0, c0 = time.perf_counter(), time.process_time()
-            out = advance(tissue, state, x, plan.strokes, 0.5, params, cand)
-            step_times.append(time.perf_counter() - t0)
-            cpu.append(time.process_time() - c0)
-            counts.append((out.factorizations, out.passes, out.iterations))
-            x = out.x
+        step_times, counts, stuck, x = _insert_half_mm(tissue, plan, x0, params, args.depth, cpu)
         times += step_times
         totals.append(sum(step_times))
     t = np.array(times) * 1e3
@@ -85,6 +87,14 @@ def main() -> None:
     print(f"per step: {f.mean():.2f} factorisations ({f.sum()} in all), {p.mean():.1f} active-set passes, "
           f"{k.mean():.1f} chord steps (each one gradient and one triangular solve)")
     print(f"load average {_load()}")
+    if args.decisions:
+        needle_module.EARLY_DECISIONS = False
+        t0 = time.perf_counter()
+        _, counts_off, stuck_off, x_off = _insert_half_mm(tissue, plan, x0, params, args.depth, [])
+        needle_module.EARLY_DECISIONS = True
+        print(f"early decisions off: {time.perf_counter() - t0:.2f} s, {np.mean([c[2] for c in counts_off]):.1f} chord "
+              f"steps a step; steps with another stuck set: {int(np.sum(np.array(stuck) != np.array(stuck_off)))} "
+              f"of {len(stuck)}; final nodes {np.abs(x - x_off).max():.2e} mm apart")
 
     # cost and error against step size. Stick–slip makes the tissue's state a
     # saw-tooth in depth (a node sticks, is dragged, lets go), and which side
@@ -110,6 +120,22 @@ def main() -> None:
               f"  {r.stuck[-1]:5d}  {r.needle_force_mN[-1]:10.1f}  {np.linalg.norm(y - ref.target[-1]):21.4f}"
               f"  {np.median(diff):6.4f}  {diff.max():8.4f}")
     print(f"load average {_load()}")
+
+
+def _insert_half_mm(tissue, plan, x0, params, depth_mm, cpu):
+    """The plan's insertion to depth_mm in 0.5 mm steps: step times (s), (factorisations, passes, chord steps)
+    and stuck count per step, the final nodes; each step's CPU time appended to cpu."""
+    state, x, step_times, counts, stuck = NeedleState(plan.entry, plan.direction), x0.copy(), [], [], []
+    cand = free_nodes(tissue)
+    while state.depth_mm < depth_mm - 1e-9:
+        t0, c0 = time.perf_counter(), time.process_time()
+        out = advance(tissue, state, x, plan.strokes, 0.5, params, cand)
+        step_times.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+        counts.append((out.factorizations, out.passes, out.iterations))
+        stuck.append(out.stuck)
+        x = out.x
+    return step_times, counts, stuck, x
 
 
 def first_plan(tissue, scene, needle):
