@@ -22,10 +22,11 @@ strokes, along the plan's entry and direction (strategy `none`):
 
 The config needs an `insertion:` section (its friction and tip force are
 used; the step sizes are the benchmark's), or --insertion-from names the
-config whose section to use (the hard cases, configs/hard/, have none). The machine has 2 cores and other
-work may share them: the numbers are wall-clock medians, not CPU time, and
-the load average is printed next to them, with the CPU time (process_time),
-which another process's load inflates less.
+config whose section to use (the hard cases, configs/hard/, have none).
+The machine has 2 cores and other work may share them: the numbers are
+wall-clock medians, not CPU time, and the load average is printed next to
+them, with the CPU time (process_time), which another process's load
+inflates less.
 """
 
 from __future__ import annotations

@@ -93,7 +93,7 @@ GUARD_POSITION_3D = 1.5
 #: no early decision on a prediction in which a captured node moves more than this many steps along the
 #: axis beyond the needle's ride: such a lurch (the nearly incompressible hard case, ν = 0.499: 4.4 mm in
 #: a 0.5 mm step) lies outside the kept factor's linearisation, whose errors the guards were measured on;
-#: deciding on it there changed the step's path (docs/model.md §12, "Early decisions, calibrated")
+#: deciding on it there changed the step's path (docs/model.md §12, "No decision on a lurch")
 LURCH_STEPS = 2.0
 #: active-set passes per step before the step is reported as unsettled
 MAX_ACTIVE_SET = 50
