@@ -420,13 +420,14 @@ def test_the_nearly_incompressible_hard_case_decides_as_the_converged_passes(mon
     assert plan.feasible
     params = NeedleParams.from_config(ins, cfg.needle, cfg.tissue.mesh)
     x0 = solve_newton(tissue, plan.strokes, tol=1e-10).x
+    candidates = free_nodes(tissue)
 
     def stuck_counts(early_decisions):
         monkeypatch.setattr(needle, "EARLY_DECISIONS", early_decisions)
         state, x = NeedleState(plan.entry, plan.direction), x0.copy()
         counts = []
         while state.depth_mm < 40.0 - 1e-9:
-            out = advance(tissue, state, x, plan.strokes, ins.step_mm, params, free_nodes(tissue))
+            out = advance(tissue, state, x, plan.strokes, ins.step_mm, params, candidates)
             x = out.x
             counts.append(out.stuck)
         return np.array(counts), x
