@@ -301,9 +301,8 @@ def supports(ops, params) -> bool:
 
 
 def _material(params) -> tuple:
-    fiber = np.zeros((params.n_elements, 3))
-    fiber[:, :params.fiber.shape[1]] = params.fiber  # an in-plane fiber (a, b) is (a, b, 0)
-    return (params.mu, params.kappa, params.eta, fiber), params.tension_only
+    """(per-element (μ, κ, η, fiber (M, 3)), tension_only) as the loops take them (an in-plane fiber as (a, b, 0))."""
+    return (params.mu, params.kappa, params.eta, params._fiber3), params.tension_only
 
 
 def energy_gradient(ops, params, x: np.ndarray) -> tuple[float, np.ndarray] | None:

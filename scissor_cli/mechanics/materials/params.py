@@ -90,6 +90,11 @@ class MaterialParams:
             b = np.ascontiguousarray(self.fiber[:, 1])
             fib = tuple(_ro(x) for x in (a, b, a * a, a * b, b * b))
         set_(self, "_fib", fib)
+        # The fiber as the 3-D kernels take it, (M, 3) C-contiguous (an in-plane one as (a0, 0)): made once here,
+        # not on every 3-D gradient (the copy cost a few % of a slab's gradient)
+        fiber3 = np.zeros((M, 3))
+        fiber3[:, :fiber.shape[1]] = self.fiber
+        set_(self, "_fiber3", fiber3)
 
     @property
     def n_elements(self) -> int:
