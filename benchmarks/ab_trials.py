@@ -1,0 +1,166 @@
+"""A/B of solver settings on a run's own trials, alternately in one process; not a timed test.
+
+A whole-command A/B (`farm-bench`) of a change that saves a few % of a
+trial drowns in the machine's drift (about 10 % over a day on the 2-core
+VM, docs/performance.md). This runs the config's pre-trial stages once
+(`scissor simulate --jobs 1` into a temporary folder, its trials
+recorded as they run), then replays those trials (same config text, same
+tasks, same trial indices: the same draws) under each setting in turn,
+round after round, and prints per setting the median CPU time
+(process_time) of the round, the counts that do not depend on the load
+(gradients, sparse-solve columns, factorisations) and the largest
+difference of every insertion miss from the first setting's.
+
+A setting is NAME=module.ATTR:value[,module.ATTR:value…], with a module
+of `scissor_cli.insertion` (`chord`, `needle`) and a Python literal; the
+first setting is the reference, e.g.
+
+    PYTHONPATH=. python benchmarks/ab_trials.py configs/example_3d.yaml --truth layer --count 4 \\
+        a=chord.CONTRACTION:0.5 b=chord.CONTRACTION:0.85 --rounds 6
+
+`--truth layer` runs a layer-truth trial as the error budget's rows do;
+`--count` trials per target (the budget is off). Settings touch module
+constants only, so the replay is of this code; code changes are compared
+across two checkouts, or by a setting that switches them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import collections
+import importlib
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from scissor_cli import runtime
+
+runtime.configure()  # before scissor's modules load cvxopt (runtime.match_blas_kernels)
+import scissor_cli.experiments.trials as trials_module  # noqa: E402
+import scissor_cli.solvers.linear as linear  # noqa: E402
+import scissor_cli.solvers.supernodal as supernodal  # noqa: E402
+from scissor_cli.config import load_config  # noqa: E402
+from scissor_cli.experiments.simulate import Execution, run_simulation  # noqa: E402
+from scissor_cli.mechanics.tissue import Tissue  # noqa: E402
+from scissor_cli.output.results_sink import RunDirectory  # noqa: E402
+
+
+def parse_setting(text: str) -> tuple[str, dict]:
+    """'name=module.ATTR:value,…' → (name, {(module, ATTR): value})."""
+    name, _, body = text.partition("=")
+    if not name or not body:
+        raise SystemExit(f"a setting is NAME=module.ATTR:value[,…], got {text!r}")
+    out = {}
+    for item in body.split(","):
+        target, _, value = item.partition(":")
+        module, _, attr = target.partition(".")
+        mod = importlib.import_module(f"scissor_cli.insertion.{module}")
+        if not hasattr(mod, attr):
+            raise SystemExit(f"scissor_cli.insertion.{module} has no {attr}")
+        out[(mod, attr)] = ast.literal_eval(value)
+    return name, out
+
+
+def record_trials(config: Path, truth: str | None, count: int) -> list[tuple]:
+    """Run the config's stages with its trials (budget off) and return each trial's (config text, task, index)."""
+    cfg = load_config(config)
+    update = {"count": count, "budget": False} | ({"truth": truth} if truth else {})
+    cfg = cfg.model_copy(update={"trials": cfg.trials.model_copy(update=update)})
+    recorded, run_trial = [], trials_module.run_trial
+
+    def recording(config_yaml, task, k):
+        recorded.append((config_yaml, task, k))
+        return run_trial(config_yaml, task, k)
+
+    trials_module.run_trial = recording
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            run_simulation(cfg, RunDirectory(tmp), execution=Execution(jobs=1))
+    finally:
+        trials_module.run_trial = run_trial
+    return recorded
+
+
+class Counts:
+    """Gradients, sparse-solve columns (CHOLMOD's and the slab's float32 ones) and factorisations, counted by
+    wrapping the methods every caller uses."""
+
+    def __init__(self):
+        self.n = collections.Counter()
+        solve, refactor, gradient = linear.Factorization.solve, linear.Factorization.refactor, Tissue.energy_gradient
+        solve32 = supernodal.SupernodalFactor.solve
+        counter = self.n
+
+        def counted_solve(factor, b, solve=solve):
+            counter["solve columns"] += 1 if np.ndim(b) == 1 else np.shape(b)[1]
+            return solve(factor, b)
+
+        def counted_solve32(factor, b):
+            return counted_solve(factor, b, solve32)
+
+        def counted_refactor(factor, A):
+            counter["factorisations"] += 1
+            return refactor(factor, A)
+
+        def counted_gradient(tissue, *args, **kwargs):
+            counter["gradients"] += 1
+            return gradient(tissue, *args, **kwargs)
+
+        linear.Factorization.solve, linear.Factorization.refactor = counted_solve, counted_refactor
+        supernodal.SupernodalFactor.solve = counted_solve32
+        Tissue.energy_gradient = counted_gradient
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("config", type=Path)
+    ap.add_argument("settings", nargs="+", help="NAME=module.ATTR:value[,…]; the first is the reference")
+    ap.add_argument("--truth", choices=("layer", "slab"), help="the trials' truth (default: the config's)")
+    ap.add_argument("--count", type=int, default=2, help="trials per target")
+    ap.add_argument("--rounds", type=int, default=3)
+    args = ap.parse_args()
+    settings = dict(parse_setting(s) for s in args.settings)
+    defaults = {key: getattr(*key) for s in settings.values() for key in s}
+    t0 = time.perf_counter()
+    work = record_trials(args.config, args.truth, args.count)
+    print(f"{args.config}: {len(work)} trials recorded in {time.perf_counter() - t0:.0f} s "
+          f"(truth {args.truth or 'as configured'}); {args.rounds} rounds, settings in turn; load {_load()}")
+    counts = Counts()
+    cpu = {name: [] for name in settings}
+    seen, misses = {}, {}
+    for _ in range(args.rounds):
+        for name, setting in settings.items():
+            for (mod, attr), value in (defaults | setting).items():
+                setattr(mod, attr, value)
+            counts.n.clear()
+            t = time.process_time()
+            outcomes = [trials_module.run_trial(*w) for w in work]
+            cpu[name].append(time.process_time() - t)
+            seen[name] = dict(counts.n)
+            misses[name] = np.concatenate([o.insertion_miss_mm for o in outcomes] + [np.zeros(0)])
+            failed = [o.message for o in outcomes if not o.ok]
+            if failed:
+                raise SystemExit(f"setting {name}: a trial failed: {failed[0]}")
+    reference = next(iter(settings))
+    for name in settings:
+        c = np.array(cpu[name])
+        apart = np.max(np.abs(misses[name] - misses[reference]), initial=0.0)
+        print(f"{name}: CPU {np.median(c):.2f} s median of {c.size} ({c.min():.2f}–{c.max():.2f}), "
+              f"{np.median(c) / np.median(cpu[reference]):.3f}× {reference}; "
+              + ", ".join(f"{k} {v}" for k, v in sorted(seen[name].items()))
+              + f"; insertion misses within {apart:.1e} mm of {reference}'s")
+    print(f"load {_load()}")
+
+
+def _load() -> str:
+    try:
+        return " ".join(Path("/proc/loadavg").read_text().split()[:3])
+    except OSError:
+        return "unknown"
+
+
+if __name__ == "__main__":
+    main()
