@@ -1,6 +1,9 @@
-"""Tests of the 2-D plane-strain kernels of scissor_cli.mechanics.materials (3-D: test_materials_3d.py):
-closed forms against finite differences, rest state, invariance, small-strain consistency,
-inversion handling."""
+"""Tests of the material kernels of scissor_cli.mechanics.materials: closed forms against finite
+differences, rest state, frame invariance, small-strain consistency, inversion handling, the
+projected tangent. A check that holds in both dimensions is one test parametrised by dim (2: the
+plane-strain kernels, 3: the 3-D ones); the 2-D-only checks follow them here, the 3-D-only ones
+(3-component fibers, the plane-strain embedding, the eigenvalue-clamped projection) are in
+test_materials_3d.py. Both draw their states and parameters with material_checks.py."""
 
 import warnings
 
@@ -8,81 +11,58 @@ import numpy as np
 import pytest
 
 from scissor_cli.mechanics import materials as mat
-from material_checks import VARIANTS, VARIANT_IDS, NONLINEAR, NONLINEAR_IDS, away_from_fiber_kink, fd_gradient, assert_close_per_element, per_element_scale
+from material_checks import (VARIANTS, VARIANT_IDS, NONLINEAR, NONLINEAR_IDS, away_from_fiber_kink, fd_gradient,
+                             assert_close_per_element, per_element_scale, rotation, random_rotations, random_params,
+                             with_fiber, without_fiber, random_F, kron_rotation, skew_directions, invalid_F, extreme_F,
+                             project_and_compare)
+
+DIMS = pytest.mark.parametrize("dim", [2, 3], ids=["2d", "3d"])
 
 
-def random_params(model, M, rng, tension_only=False):
-    theta = rng.uniform(-np.pi, np.pi, M)
-    return mat.material_params(
-        model,
-        E_kPa=rng.uniform(5.0, 50.0, M),
-        nu=rng.uniform(0.2, 0.49, M),
-        eta_kPa=rng.uniform(1.0, 20.0, M),
-        fiber=np.c_[np.cos(theta), np.sin(theta)],
-        tension_only=tension_only,
-    )
+# --------------------------------------------------------------------------
+# both dimensions: closed forms against finite differences
+# --------------------------------------------------------------------------
 
 
-def rotation(theta):
-    c, s = np.cos(theta), np.sin(theta)
-    return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
-
-
-def random_F(M, rng, regime):
-    """Random F with J > 0: 'near' I (|F - I| ~ 0.05) or 'far' (large stretch,
-    shear, rotation, compression)."""
-    if regime == "near":
-        F = np.eye(2) + 0.05 * rng.standard_normal((M, 2, 2))
-    else:
-        # R1 diag(l1, l2) R2: stretches in [0.4, 2.5], arbitrary rotations.
-        lam = np.exp(rng.uniform(np.log(0.4), np.log(2.5), (M, 2)))
-        R1 = rotation(rng.uniform(-np.pi, np.pi, M))
-        R2 = rotation(rng.uniform(-np.pi, np.pi, M))
-        F = R1 @ (lam[:, :, None] * R2)
-    assert np.all(mat.jacobian_det(F) > 0.1)
-    return F
-
-
+@DIMS
 @pytest.mark.parametrize("regime", ["near", "far"])
 @pytest.mark.parametrize("model,tension_only", VARIANTS, ids=VARIANT_IDS)
-def test_stress_matches_fd_of_energy(model, tension_only, regime):
-    rng = np.random.default_rng(1)
-    M = 200
-    params = random_params(model, M, rng, tension_only)
-    F = random_F(M, rng, regime)
-    P = mat.stress(F, params)
-    P_fd = fd_gradient(lambda G: mat.energy_density(G, params), F).reshape(M, 2, 2)
-    assert_close_per_element(P, P_fd)
+@pytest.mark.parametrize("order", [1, 2], ids=["stress", "tangent"])
+def test_derivative_matches_fd(order, model, tension_only, regime, dim):
+    """The stress P = ∂Ψ/∂F (order 1) and the tangent C = ∂vec(P)/∂vec(F) (order 2) against
+    central differences of the order below."""
+    rng = np.random.default_rng({(1, 2): 1, (2, 2): 2, (1, 3): 101, (2, 3): 102}[order, dim])
+    M = {2: 200, 3: 150}[dim]
+    params = random_params(dim, model, M, rng, tension_only)
+    F = random_F(dim, M, rng, regime)
+    if order == 2:  # the tension-only tangent jumps at I4 = 1 (Ψ and P are smooth enough there)
+        F, params = away_from_fiber_kink(F, params)
+    closed, below = {1: (mat.stress, mat.energy_density), 2: (mat.tangent, mat.stress)}[order]
+    out = closed(F, params)
+    assert out.shape == (len(F),) + ((dim, dim) if order == 1 else (dim * dim, dim * dim))
+    assert out.flags.c_contiguous
+    # fd_gradient stacks d(below) / d f_k in the last axis: C_fd[e, m, k] = d vec(P)_m / d f_k.
+    fd = fd_gradient(lambda G: below(G, params).reshape(len(G), -1), F).reshape(out.shape)
+    assert_close_per_element(out, fd)
+    if order == 2:
+        np.testing.assert_array_equal(out, np.swapaxes(out, 1, 2))
 
 
-@pytest.mark.parametrize("regime", ["near", "far"])
-@pytest.mark.parametrize("model,tension_only", VARIANTS, ids=VARIANT_IDS)
-def test_tangent_matches_fd_of_stress(model, tension_only, regime):
-    rng = np.random.default_rng(2)
-    M = 200
-    params = random_params(model, M, rng, tension_only)
-    F = random_F(M, rng, regime)
-    F, params = away_from_fiber_kink(F, params)
-    M = F.shape[0]
-    C = mat.tangent(F, params)
-    # fd_gradient stacks d vec(P) / d f_k in the last axis: C_fd[e, m, k].
-    C_fd = fd_gradient(lambda G: mat.stress(G, params).reshape(-1, 4), F)
-    assert_close_per_element(C, C_fd)
-    np.testing.assert_array_equal(C, np.swapaxes(C, 1, 2))
+# --------------------------------------------------------------------------
+# both dimensions: rest state, frame invariance, closed forms
+# --------------------------------------------------------------------------
 
 
+@DIMS
 @pytest.mark.parametrize("tension_only", [False, True])
-def test_tension_only_fiber_is_inactive_in_compression(tension_only):
-    model = "neo_hookean_fiber"
-    rng = np.random.default_rng(3)
+def test_tension_only_fiber_is_inactive_in_compression(tension_only, dim):
+    rng = np.random.default_rng({2: 3, 3: 113}[dim])
     M = 50
-    params = random_params(model, M, rng, tension_only)
-    # The same material without its fiber term.
-    base = mat.MaterialParams("neo_hookean", params.mu, params.kappa, params.lam,
-                              np.zeros(M), params.fiber)
+    params = random_params(dim, "neo_hookean_fiber", M, rng, tension_only)
+    base = without_fiber(params)
     # Compress along the fiber: F = I - 0.2 a aᵀ gives I4 = 0.64 < 1.
     a = params.fiber
-    F = np.eye(2) - 0.2 * a[:, :, None] * a[:, None, :]
+    F = np.eye(dim) - 0.2 * a[:, :, None] * a[:, None, :]
     psi, P, C = mat.evaluate(F, params)
     psi0, P0, C0 = mat.evaluate(F, base)
     if tension_only:
@@ -94,136 +74,185 @@ def test_tension_only_fiber_is_inactive_in_compression(tension_only):
         np.testing.assert_allclose(psi - psi0, expected, rtol=1e-12)
 
 
+@DIMS
 @pytest.mark.parametrize("model,tension_only", VARIANTS, ids=VARIANT_IDS)
-def test_rest_state_has_zero_energy_and_stress(model, tension_only):
-    rng = np.random.default_rng(4)
+def test_rest_state_has_zero_energy_and_stress(model, tension_only, dim):
+    rng = np.random.default_rng({2: 4, 3: 105}[dim])
     M = 20
-    params = random_params(model, M, rng, tension_only)
-    F = np.broadcast_to(np.eye(2), (M, 2, 2))
+    params = random_params(dim, model, M, rng, tension_only)
+    F = np.broadcast_to(np.eye(dim), (M, dim, dim))
     psi, P, C = mat.evaluate(F, params)
     scale = params.kappa.max()
     assert np.all(np.abs(psi) <= 1e-12 * scale)
     assert np.all(np.abs(P) <= 1e-12 * scale)
-    # The rest tangent is positive semidefinite with exactly one null
-    # direction: the infinitesimal rotation vec([[0, 1], [-1, 0]]).
+    # The rest tangent is PSD and its null directions are exactly the infinitesimal
+    # rotations (one in 2-D, three in 3-D).
+    skews = skew_directions(dim)
+    n_null = len(skews)
     w = np.linalg.eigvalsh(C)
-    assert np.all(np.abs(w[:, 0]) <= 1e-12 * scale)
-    assert np.all(w[:, 1] > 0.0)
-    skew = np.array([0.0, 1.0, -1.0, 0.0])
-    assert np.all(np.abs(C @ skew) <= 1e-12 * scale)
+    assert np.all(np.abs(w[:, :n_null]) <= 1e-12 * scale)
+    assert np.all(w[:, n_null] > 1e-3 * params.mu.min())
+    for skew in skews:
+        assert np.all(np.abs(C @ skew) <= 1e-12 * scale)
 
 
+@DIMS
 @pytest.mark.parametrize("model,tension_only", NONLINEAR, ids=NONLINEAR_IDS)
-def test_energy_is_rotation_invariant(model, tension_only):
-    rng = np.random.default_rng(5)
-    M = 100
-    params = random_params(model, M, rng, tension_only)
-    F = random_F(M, rng, "far")
-    R = rotation(rng.uniform(-np.pi, np.pi, M))
-    psi, P, _ = mat.evaluate(F, params, order=1)
-    psi_r, P_r, _ = mat.evaluate(R @ F, params, order=1)
+def test_frame_invariance(model, tension_only, dim):
+    """Ψ(RF) = Ψ(F), P(RF) = R P(F) (objectivity of the first Piola–Kirchhoff stress) and
+    C(RF) = K C(F) Kᵀ with K = R ⊗ I."""
+    rng = np.random.default_rng({2: 5, 3: 108}[dim])
+    M = {2: 100, 3: 150}[dim]
+    params = random_params(dim, model, M, rng, tension_only)
+    F = random_F(dim, M, rng, "far")
+    R = random_rotations(dim, M, rng)
+    psi, P, C = mat.evaluate(F, params)
+    psi_r, P_r, C_r = mat.evaluate(R @ F, params)
     np.testing.assert_allclose(psi_r, psi, rtol=1e-11, atol=1e-12 * params.kappa.max())
-    # Objectivity of the first Piola–Kirchhoff stress: P(RF) = R P(F).
+    # The stress both entrywise (relative to the largest stress) and per element.
     np.testing.assert_allclose(P_r, R @ P, rtol=1e-9, atol=1e-10 * np.abs(P).max())
+    assert_close_per_element(P_r, R @ P, rtol=1e-10)
+    K = kron_rotation(R)
+    assert_close_per_element(C_r, K @ C @ np.swapaxes(K, 1, 2), rtol=1e-10)
 
 
-def test_fiber_energy_follows_rotated_material():
-    """Rotating the fiber with the reference body: Ψ(F R^T; R a0) = Ψ(F; a0)."""
-    rng = np.random.default_rng(6)
+@DIMS
+def test_fiber_energy_follows_rotated_material(dim):
+    """Rotating the fiber with the reference body: Ψ(F Rᵀ; R a0) = Ψ(F; a0)."""
+    rng = np.random.default_rng({2: 6, 3: 109}[dim])
     M = 100
-    params = random_params("neo_hookean_fiber", M, rng)
-    F = random_F(M, rng, "far")
-    R = rotation(rng.uniform(-np.pi, np.pi, M))
-    rotated = mat.MaterialParams(
-        params.model, params.mu, params.kappa, params.lam, params.eta,
-        np.einsum("eij,ej->ei", R, params.fiber),
-    )
+    params = random_params(dim, "neo_hookean_fiber", M, rng)
+    F = random_F(dim, M, rng, "far")
+    R = random_rotations(dim, M, rng)
+    rotated = with_fiber(params, np.einsum("eij,ej->ei", R, params.fiber))
     psi = mat.energy_density(F, params)
     psi_r = mat.energy_density(F @ np.swapaxes(R, 1, 2), rotated)
     np.testing.assert_allclose(psi_r, psi, rtol=1e-11)
 
 
-def test_neo_hookean_rest_tangent_equals_linear_tangent():
-    rng = np.random.default_rng(7)
+@DIMS
+def test_neo_hookean_rest_tangent_equals_linear_tangent(dim):
+    rng = np.random.default_rng({2: 7, 3: 112}[dim])
     M = 30
     E = rng.uniform(5.0, 50.0, M)
     nu = rng.uniform(0.0, 0.49, M)
     nh = mat.material_params("neo_hookean", E, nu, None, None)
     lin = mat.material_params("linear", E, nu, None, None)
     np.testing.assert_allclose(nh.lam, nh.kappa - 2.0 * nh.mu / 3.0, rtol=1e-12)
-    F = np.broadcast_to(np.eye(2), (M, 2, 2))
+    F = np.broadcast_to(np.eye(dim), (M, dim, dim))
     C_nh = mat.tangent(F, nh)
     C_lin = mat.tangent(F, lin)
     np.testing.assert_allclose(C_nh, C_lin, rtol=1e-12, atol=1e-12 * nh.kappa.max())
     # ... and so the energies agree to second order in the strain.
-    F = np.eye(2) + 1e-4 * rng.standard_normal((M, 2, 2))
+    F = np.eye(dim) + 1e-4 * rng.standard_normal((M, dim, dim))
     psi_nh = mat.energy_density(F, nh)
     psi_lin = mat.energy_density(F, lin)
     np.testing.assert_allclose(psi_nh, psi_lin, rtol=1e-3)
 
 
-def test_linear_model_closed_form():
-    rng = np.random.default_rng(8)
+@DIMS
+def test_linear_model_closed_form(dim):
+    rng = np.random.default_rng({2: 8, 3: 111}[dim])
     M = 40
-    params = random_params("linear", M, rng)
-    F = np.eye(2) + 0.3 * rng.standard_normal((M, 2, 2))
-    eps = 0.5 * (F + np.swapaxes(F, 1, 2)) - np.eye(2)
-    tr = eps[:, 0, 0] + eps[:, 1, 1]
+    params = random_params(dim, "linear", M, rng)
+    F = np.eye(dim) + 0.3 * rng.standard_normal((M, dim, dim))
+    eps = 0.5 * (F + np.swapaxes(F, 1, 2)) - np.eye(dim)
+    tr = np.trace(eps, axis1=1, axis2=2)
     mu, lam = params.mu, params.lam
     psi_ref = mu * np.sum(eps * eps, axis=(1, 2)) + 0.5 * lam * tr**2
-    P_ref = 2 * mu[:, None, None] * eps + (lam * tr)[:, None, None] * np.eye(2)
-    psi, P, _ = mat.evaluate(F, params)
+    P_ref = 2 * mu[:, None, None] * eps + (lam * tr)[:, None, None] * np.eye(dim)
+    psi, P, C = mat.evaluate(F, params)
     np.testing.assert_allclose(psi, psi_ref, rtol=1e-12)
     np.testing.assert_allclose(P, P_ref, rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(lam, params.kappa - 2 * params.mu / 3, rtol=1e-12)
+    # Constant, PSD, with the skew (rotation) directions as its null space.
+    np.testing.assert_array_equal(mat.tangent(np.broadcast_to(np.eye(dim), F.shape), params), C)
+    skews = skew_directions(dim)
+    w = np.linalg.eigvalsh(C)
+    assert np.all(np.abs(w[:, :len(skews)]) <= 1e-12 * params.kappa.max()) and np.all(w[:, len(skews)] > 0.0)
+    for skew in skews:
+        np.testing.assert_array_equal(C @ skew, 0.0)
+    # vec(F) indices: F00 is 0, F01 is 1, F10 is dim, F11 is dim + 1.
+    np.testing.assert_allclose(C[:, 0, 0], 2 * mu + lam, rtol=1e-15)
+    np.testing.assert_allclose(C[:, 0, dim + 1], lam, rtol=1e-15)
+    np.testing.assert_allclose(C[:, 1, dim], mu, rtol=1e-15)
 
 
+# --------------------------------------------------------------------------
+# both dimensions: inverted and extreme elements
+# --------------------------------------------------------------------------
+
+
+@DIMS
 @pytest.mark.parametrize("model,tension_only", NONLINEAR, ids=NONLINEAR_IDS)
-def test_inverted_element_energy_is_inf_without_warnings(model, tension_only):
-    rng = np.random.default_rng(9)
-    M = 6
-    params = random_params(model, M, rng, tension_only)
-    F = np.broadcast_to(np.eye(2), (M, 2, 2)).copy()
-    F[1] = np.diag([1.0, -1.0])  # reflected
-    F[2] = np.diag([-0.5, -0.5])  # a half-turn with J = 0.25 > 0: valid
-    F[3] = np.zeros((2, 2))  # collapsed, J = 0
-    F[4] = [[1.0, 2.0], [0.5, 1.0]]  # J = 0 with shear
-    F[5] = [[0.2, 1.0], [1.0, 0.1]]  # J < 0
-    J = mat.jacobian_det(F)
+def test_inverted_element_energy_is_inf_without_warnings(model, tension_only, dim):
+    rng = np.random.default_rng({2: 9, 3: 114}[dim])
+    F, expected_bad = invalid_F(dim)
+    params = random_params(dim, model, len(F), rng, tension_only)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
+        J = mat.jacobian_det(F)
         psi, P, C = mat.evaluate(F, params)
         psi0 = mat.energy_density(F, params)
     bad = J <= 0.0
-    np.testing.assert_array_equal(bad, [False, True, False, True, True, True])
+    np.testing.assert_array_equal(bad, expected_bad)
     assert np.all(np.isposinf(psi[bad])) and np.all(np.isposinf(psi0[bad]))
     assert np.all(np.isfinite(psi[~bad]))
     assert not np.isnan(psi).any()
     assert np.all(np.isfinite(P)) and np.all(np.isfinite(C))
     # Valid rows are unaffected by invalid neighbours.
-    psi_ok, P_ok, C_ok = mat.evaluate(F[~bad], params.take(~bad))
-    np.testing.assert_array_equal(psi[~bad], psi_ok)
-    np.testing.assert_array_equal(P[~bad], P_ok)
-    np.testing.assert_array_equal(C[~bad], C_ok)
+    for a, b in zip((psi, P, C), mat.evaluate(F[~bad], params.take(~bad))):
+        np.testing.assert_array_equal(a[~bad], b)
 
 
+@DIMS
 @pytest.mark.parametrize("model", mat.MODELS)
-def test_extreme_input_never_warns(model):
-    rng = np.random.default_rng(13)
-    params = random_params(model, 4, rng)
-    F = np.array([np.eye(2) * 1e200, np.eye(2) * 1e-200, np.eye(2) * 1e-7,
-                  [[1e300, 0.0], [0.0, -1e300]]])
+def test_extreme_input_never_warns(model, dim):
+    rng = np.random.default_rng({2: 13, 3: 115}[dim])
+    F = extreme_F(dim)
+    params = random_params(dim, model, len(F), rng)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         psi, P, C = mat.evaluate(F, params)
-        mat.project_psd(np.nan_to_num(C))
-    assert not np.isnan(psi).any()
+        psi_p, P_p, Cp = mat.evaluate_projected(F, params)
+        # Known gaps, each checked where it holds: project_psd of a 9x9 stack near the float64
+        # limit still warns (the 3-D evaluate_projected scales before eigh), and the 2-D
+        # jacobian_det still overflows with a warning on the 1e200 rows.
+        if dim == 2:
+            mat.project_psd(np.nan_to_num(C))
+        else:
+            mat.jacobian_det(F)
+    nan_in = np.isnan(F).any(axis=(1, 2))
+    if model == "linear":
+        # NaN in, NaN out; C is constant.
+        assert np.all(np.isnan(psi[nan_in])) and not np.isnan(psi[~nan_in]).any()
+        assert np.all(np.isfinite(Cp))
+    else:
+        assert not np.isnan(psi).any()
+        # Overflow, J < 0, NaN and inf give an infinite energy.
+        expected_inf = ~np.isfinite(F).all(axis=(1, 2))
+        expected_inf[[0, 3]] = True
+        assert np.all(np.isposinf(psi[expected_inf]))
+        # The projected tangent is finite and PSD in every row, whatever the input.
+        assert np.all(np.isfinite(Cp))
+        np.testing.assert_array_equal(Cp, np.swapaxes(Cp, 1, 2))
+        scale = np.maximum(np.abs(Cp).max(axis=(1, 2)), 1e-300)
+        assert np.all(np.linalg.eigvalsh(Cp / scale[:, None, None])[:, 0] >= -1e-10)
+    np.testing.assert_array_equal(psi_p, psi)
+    np.testing.assert_array_equal(P_p, P)
 
 
-def test_evaluate_orders_agree_with_single_functions():
-    rng = np.random.default_rng(10)
+# --------------------------------------------------------------------------
+# both dimensions: API (orders, shapes, validation), project_psd
+# --------------------------------------------------------------------------
+
+
+@DIMS
+def test_evaluate_orders_agree_with_single_functions(dim):
+    rng = np.random.default_rng({2: 10, 3: 121}[dim])
     M = 64
-    params = random_params("neo_hookean_fiber", M, rng, tension_only=True)
-    F = random_F(M, rng, "far")
+    params = random_params(dim, "neo_hookean_fiber", M, rng, tension_only=True)
+    F = random_F(dim, M, rng, "far")
     psi0, P0, C0 = mat.evaluate(F, params, order=0)
     psi1, P1, C1 = mat.evaluate(F, params, order=1)
     psi2, P2, C2 = mat.evaluate(F, params, order=2)
@@ -235,21 +264,87 @@ def test_evaluate_orders_agree_with_single_functions():
     np.testing.assert_array_equal(mat.stress(F, params), P2)
     np.testing.assert_array_equal(mat.tangent(F, params), C2)
     assert C2.flags.c_contiguous and P2.flags.c_contiguous
+    # Non-contiguous input gives the same answer.
+    Ft = np.ascontiguousarray(np.swapaxes(F, 1, 2))
+    for a, b in zip(mat.evaluate(np.swapaxes(Ft, 1, 2), params), (psi2, P2, C2)):
+        np.testing.assert_array_equal(a, b)
     with pytest.raises(ValueError):
         mat.evaluate(F, params, order=3)
     with pytest.raises(ValueError):
         mat.evaluate(F[:-1], params)
+    with pytest.raises(ValueError):
+        mat.evaluate_projected(F[:-1], params)
+    with pytest.raises(ValueError, match=r"\(M, 2, 2\) or \(M, 3, 3\)"):
+        mat.evaluate(np.zeros((M, 4, 4)), params)
+    with pytest.raises(ValueError):
+        mat.evaluate_projected(F.reshape(M, dim * dim), params)
+
+
+@DIMS
+@pytest.mark.parametrize("model", mat.MODELS)
+def test_empty_stack(model, dim):
+    n = dim * dim
+    params = mat.material_params(model, np.zeros(0) + 10.0, 0.3, 1.0, np.zeros((0, dim)))
+    for psi, P, C in (mat.evaluate(np.zeros((0, dim, dim)), params),
+                      mat.evaluate_projected(np.zeros((0, dim, dim)), params)):
+        assert psi.shape == (0,) and P.shape == (0, dim, dim) and C.shape == (0, n, n)
+    assert mat.project_psd(C).shape == (0, n, n)
+    assert mat.jacobian_det(np.zeros((0, dim, dim))).shape == (0,)
+
+
+@DIMS
+def test_project_psd(dim):
+    """On stacks of tangent-sized (d² x d²) symmetric matrices."""
+    rng = np.random.default_rng({2: 12, 3: 122}[dim])
+    M, n = {2: 500, 3: 300}[dim], dim * dim
+    A = rng.standard_normal((M, n, n))
+    C = A + np.swapaxes(A, 1, 2)
+    Cp = mat.project_psd(C)
+    np.testing.assert_allclose(Cp, np.swapaxes(Cp, 1, 2), atol=1e-12)
+    w_in = np.linalg.eigvalsh(C)
+    w_out = np.linalg.eigvalsh(Cp)
+    assert w_out.min() > -1e-12
+    np.testing.assert_allclose(w_out, np.sort(np.maximum(w_in, 0.0), axis=1), atol=1e-12)
+    # Already PSD: returned unchanged (bit for bit), as a new array.
+    B = A @ np.swapaxes(A, 1, 2) + 1e-3 * np.eye(n)
+    Bp = mat.project_psd(B)
+    np.testing.assert_array_equal(Bp, B)
+    assert Bp is not B
+    # A positive floor.
+    Cf = mat.project_psd(C, floor=0.5)
+    assert np.linalg.eigvalsh(Cf).min() > 0.5 - 1e-10
+    # Projecting a tangent stack far from rest keeps the rest of the stack.
+    params = random_params(dim, "neo_hookean_fiber", 100, rng)
+    Ct = mat.tangent(random_F(dim, 100, rng, "far"), params)
+    Ctp = mat.project_psd(Ct)
+    assert np.linalg.eigvalsh(Ctp).min() > -1e-9 * np.abs(Ct).max()
+
+
+@DIMS
+def test_projected_linear_model_is_evaluate(dim):
+    rng = np.random.default_rng({2: 25, 3: 119}[dim])
+    M = 50
+    params = random_params(dim, "linear", M, rng)
+    F = np.eye(dim) + 0.3 * rng.standard_normal((M, dim, dim))
+    for a, b in zip(mat.evaluate_projected(F, params), mat.evaluate(F, params)):
+        np.testing.assert_array_equal(a, b)
+    assert np.linalg.eigvalsh(mat.tangent(F, params)).min() > -1e-12
+
+
+# --------------------------------------------------------------------------
+# 2-D only: scratch reuse, parameter validation
+# --------------------------------------------------------------------------
 
 
 def test_outputs_do_not_alias_scratch_and_any_layout_works():
     rng = np.random.default_rng(11)
-    params = random_params("neo_hookean_fiber", 50, rng)
-    F = random_F(50, rng, "far")
+    params = random_params(2, "neo_hookean_fiber", 50, rng)
+    F = random_F(2, 50, rng, "far")
     psi, P, C = mat.evaluate(F, params)
     saved = (psi.copy(), P.copy(), C.copy())
     # A larger and then a smaller call reuse (and grow) the scratch buffer.
-    big = random_params("neo_hookean", 300, rng)
-    mat.evaluate(random_F(300, rng, "near"), big)
+    big = random_params(2, "neo_hookean", 300, rng)
+    mat.evaluate(random_F(2, 300, rng, "near"), big)
     mat.evaluate(F[:7], params.take(slice(0, 7)))
     for a, b in zip((psi, P, C), saved):
         np.testing.assert_array_equal(a, b)
@@ -261,40 +356,6 @@ def test_outputs_do_not_alias_scratch_and_any_layout_works():
     np.testing.assert_array_equal(C_t, C)
     mat.release_workspace()
     np.testing.assert_array_equal(mat.evaluate(F, params)[2], C)
-
-
-@pytest.mark.parametrize("model", mat.MODELS)
-def test_empty_stack(model):
-    params = mat.material_params(model, np.zeros(0) + 10.0, 0.3, 1.0, np.zeros((0, 2)))
-    psi, P, C = mat.evaluate(np.zeros((0, 2, 2)), params)
-    assert psi.shape == (0,) and P.shape == (0, 2, 2) and C.shape == (0, 4, 4)
-    assert mat.project_psd(C).shape == (0, 4, 4)
-
-
-def test_project_psd():
-    rng = np.random.default_rng(12)
-    M = 500
-    A = rng.standard_normal((M, 4, 4))
-    C = A + np.swapaxes(A, 1, 2)
-    Cp = mat.project_psd(C)
-    np.testing.assert_allclose(Cp, np.swapaxes(Cp, 1, 2), atol=1e-12)
-    w_in = np.linalg.eigvalsh(C)
-    w_out = np.linalg.eigvalsh(Cp)
-    assert w_out.min() > -1e-12
-    np.testing.assert_allclose(w_out, np.sort(np.maximum(w_in, 0.0), axis=1), atol=1e-12)
-    # Already PSD: returned unchanged (bit for bit), as a new array.
-    B = A @ np.swapaxes(A, 1, 2) + 1e-3 * np.eye(4)
-    Bp = mat.project_psd(B)
-    np.testing.assert_array_equal(Bp, B)
-    assert Bp is not B
-    # A positive floor.
-    Cf = mat.project_psd(C, floor=0.5)
-    assert np.linalg.eigvalsh(Cf).min() > 0.5 - 1e-10
-    # Projecting a tangent stack far from rest keeps the rest of the stack.
-    params = random_params("neo_hookean_fiber", 100, rng)
-    Ct = mat.tangent(random_F(100, rng, "far"), params)
-    Ctp = mat.project_psd(Ct)
-    assert np.linalg.eigvalsh(Ctp).min() > -1e-9 * np.abs(Ct).max()
 
 
 def test_material_params_validation_and_values():
@@ -332,7 +393,7 @@ def test_material_params_validation_and_values():
 
 
 # --------------------------------------------------------------------------
-# analytic per-term PSD projection (evaluate_projected)
+# 2-D only: the analytic per-term PSD projection (evaluate_projected)
 # --------------------------------------------------------------------------
 
 
@@ -360,7 +421,7 @@ def special_F(M, rng):
 
 
 def state(regime, M, rng):
-    return special_F(M, rng) if regime == "special" else random_F(M, rng, regime)
+    return special_F(M, rng) if regime == "special" else random_F(2, M, rng, regime)
 
 
 def outer_sum(lam, vec):
@@ -376,7 +437,7 @@ REGIMES = ["near", "far", "special"]
 def test_analytic_eigensystem_reconstructs_tangent(model, tension_only, regime):
     rng = np.random.default_rng(20)
     M = 300
-    params = random_params(model, M, rng, tension_only)
+    params = random_params(2, model, M, rng, tension_only)
     F = state(regime, M, rng)
     C = mat.tangent(F, params)
     lam_i, vec_i, lam_f, vec_f = mat._eigensystem(F, params)
@@ -388,8 +449,7 @@ def test_analytic_eigensystem_reconstructs_tangent(model, tension_only, regime):
     # Σ λ e eᵀ over both terms (unclamped) is the exact tangent.
     assert_close_per_element(outer_sum(lam_i, vec_i) + outer_sum(lam_f, vec_f), C, rtol=1e-10)
     # ... and each eigenpair is one of the isotropic term's tangent.
-    iso = mat.MaterialParams("neo_hookean", params.mu, params.kappa, params.lam,
-                             np.zeros(M), params.fiber)
+    iso = without_fiber(params)
     C_iso = mat.tangent(F, iso)
     resid = np.einsum("eij,ekj->eki", C_iso, vec_i) - lam_i[:, :, None] * vec_i
     assert np.abs(resid).max(axis=(1, 2)).max() / per_element_scale(C_iso).min() < 1e-10
@@ -407,7 +467,7 @@ def test_fast_path_decomposition_reconstructs_tangent(model, tension_only, regim
     sum back to evaluate's tangent."""
     rng = np.random.default_rng(21)
     M = 300
-    params = random_params(model, M, rng, tension_only)
+    params = random_params(2, model, M, rng, tension_only)
     F = state(regime, M, rng)
     C = mat.tangent(F, params)
     _, _, residual = mat._evaluate_projected(F, params, clamp=False)
@@ -419,26 +479,17 @@ def test_fast_path_decomposition_reconstructs_tangent(model, tension_only, regim
 def test_projected_tangent_is_per_term_psd_projection(model, tension_only, regime):
     rng = np.random.default_rng(22)
     M = 400
-    params = random_params(model, M, rng, tension_only)
+    params = random_params(2, model, M, rng, tension_only)
     F = state(regime, M, rng)
     if regime == "near":  # volumetric compression (twist < 0) and expansion
         F = F * rng.uniform(0.9, 1.1, M)[:, None, None]
-    psi0, P0, C = mat.evaluate(F, params)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        psi, P, Cp = mat.evaluate_projected(F, params)
-    np.testing.assert_array_equal(psi, psi0)
-    np.testing.assert_array_equal(P, P0)
-    assert Cp.shape == (M, 4, 4) and Cp.flags.c_contiguous
-    np.testing.assert_array_equal(Cp, np.swapaxes(Cp, 1, 2))
-    scale = per_element_scale(C)
-    assert np.all(np.linalg.eigvalsh(Cp)[:, 0] >= -1e-12 * scale)
+    # PSD, and only negative parts are removed: Cp − C = −Σ min(λ, 0) e eᵀ is PSD.
+    C, Cp, scale = project_and_compare(F, params, psd_rtol=1e-12)
+    assert Cp.shape == (M, 4, 4)
     # Σ_k max(λ_k, 0) e_k e_kᵀ per term, from the reference eigensystem.
     lam_i, vec_i, lam_f, vec_f = mat._eigensystem(F, params)
     expected = outer_sum(np.maximum(lam_i, 0.0), vec_i) + outer_sum(np.maximum(lam_f, 0.0), vec_f)
     assert_close_per_element(Cp, expected, rtol=1e-10)
-    # Only negative parts are removed: Cp − C = −Σ min(λ, 0) e eᵀ is PSD.
-    assert np.all(np.linalg.eigvalsh(Cp - C)[:, 0] >= -1e-12 * scale)
     # Unchanged (bit for bit) where every term is PSD; changed where one is not.
     tol = 1e-9 * scale[:, None]
     psd = np.all(lam_i >= tol, axis=1) & np.all((lam_f >= tol) | (lam_f == 0.0), axis=1)
@@ -456,12 +507,12 @@ def test_projected_tangent_matches_project_psd_for_a_single_term(regime):
     rng = np.random.default_rng(23)
     M = 300
     F = state(regime, M, rng)
-    params = random_params("neo_hookean", M, rng)
+    params = random_params(2, "neo_hookean", M, rng)
     C = mat.tangent(F, params)
     _, _, Cp = mat.evaluate_projected(F, params)
     assert_close_per_element(Cp, mat.project_psd(C), rtol=1e-10)
 
-    fib = random_params("neo_hookean_fiber", M, rng, tension_only=True)
+    fib = random_params(2, "neo_hookean_fiber", M, rng, tension_only=True)
     a = fib.fiber
     Fc = (np.eye(2) - 0.3 * a[:, :, None] * a[:, None, :]) @ rotation(rng.uniform(-1, 1, M))
     Fc = rotation(rng.uniform(-np.pi, np.pi, M)) @ Fc @ np.swapaxes(rotation(rng.uniform(-1, 1, M)), 1, 2)
@@ -476,15 +527,14 @@ def test_projected_tangent_frame_behaviour(model, tension_only):
     reference body together with its fiber)."""
     rng = np.random.default_rng(24)
     M = 200
-    params = random_params(model, M, rng, tension_only)
-    F = random_F(M, rng, "far")
+    params = random_params(2, model, M, rng, tension_only)
+    F = random_F(2, M, rng, "far")
     F[: M // 2] *= rng.uniform(0.85, 1.0, M // 2)[:, None, None]
-    R = rotation(rng.uniform(-np.pi, np.pi, M))
-    K = np.einsum("eij,kl->eikjl", R, np.eye(2)).reshape(M, 4, 4)
+    R = random_rotations(2, M, rng)
+    K = kron_rotation(R)
     L = np.einsum("ij,ekl->eikjl", np.eye(2), R).reshape(M, 4, 4)
     Kt, Lt = np.swapaxes(K, 1, 2), np.swapaxes(L, 1, 2)
-    rotated = mat.MaterialParams(params.model, params.mu, params.kappa, params.lam, params.eta,
-                                 np.einsum("eij,ej->ei", R, params.fiber), tension_only)
+    rotated = with_fiber(params, np.einsum("eij,ej->ei", R, params.fiber))
     Rt = np.swapaxes(R, 1, 2)
     for evaluate in (mat.tangent, lambda G, p: mat.evaluate_projected(G, p)[2]):
         C = evaluate(F, params)
@@ -494,16 +544,6 @@ def test_projected_tangent_frame_behaviour(model, tension_only):
             keep = np.abs(np.sum(v * v, axis=1) - 1.0) > 1e-3  # away from the I4 = 1 kink
             assert_close_per_element(evaluate(F[keep] @ Rt[keep], rotated.take(keep)),
                                      L[keep] @ C[keep] @ Lt[keep], rtol=1e-10)
-
-
-def test_projected_linear_model_is_evaluate():
-    rng = np.random.default_rng(25)
-    M = 50
-    params = random_params("linear", M, rng)
-    F = np.eye(2) + 0.3 * rng.standard_normal((M, 2, 2))
-    for a, b in zip(mat.evaluate_projected(F, params), mat.evaluate(F, params)):
-        np.testing.assert_array_equal(a, b)
-    assert np.linalg.eigvalsh(mat.tangent(F, params)).min() > -1e-12
 
 
 @pytest.mark.parametrize("model,tension_only", NONLINEAR, ids=NONLINEAR_IDS)
@@ -517,7 +557,7 @@ def test_projected_invalid_rows_are_finite_psd_without_warnings(model, tension_o
         np.full((2, 2), np.nan), np.diag([np.inf, 1.0]), [[0.9, 0.1], [-0.2, 0.8]],
     ])
     M = len(Fs)
-    params = random_params(model, M, rng, tension_only)
+    params = random_params(2, model, M, rng, tension_only)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         psi, P, Cp = mat.evaluate_projected(Fs, params)
@@ -545,8 +585,8 @@ def test_projected_scratch_reuse_and_validation():
     compared to round-off: a reallocated scratch buffer may be aligned differently, and numpy's SIMD
     loops then round differently in the last bit)."""
     rng = np.random.default_rng(27)
-    params = random_params("neo_hookean_fiber", 60, rng)
-    F = random_F(60, rng, "far")
+    params = random_params(2, "neo_hookean_fiber", 60, rng)
+    F = random_F(2, 60, rng, "far")
     before = mat.evaluate(F, params)
     out = mat.evaluate_projected(F, params)
     saved = [a.copy() for a in out]
@@ -554,7 +594,7 @@ def test_projected_scratch_reuse_and_validation():
     # not write into earlier results.
     for a, b in zip(mat.evaluate(F, params), before):
         _same(a, b)
-    mat.evaluate_projected(random_F(500, rng, "near"), random_params("neo_hookean", 500, rng))
+    mat.evaluate_projected(random_F(2, 500, rng, "near"), random_params(2, "neo_hookean", 500, rng))
     mat.evaluate_projected(F[:5], params.take(slice(0, 5)))
     for a, b in zip(out, saved):
         _same(a, b)
