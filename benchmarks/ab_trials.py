@@ -30,6 +30,7 @@ import argparse
 import ast
 import collections
 import importlib
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -127,7 +128,7 @@ def main() -> None:
     t0 = time.perf_counter()
     work = record_trials(args.config, args.truth, args.count)
     print(f"{args.config}: {len(work)} trials recorded in {time.perf_counter() - t0:.0f} s "
-          f"(truth {args.truth or 'as configured'}); {args.rounds} rounds, settings in turn; load {_load()}")
+          f"(truth {args.truth or 'as configured'}); {args.rounds} rounds, settings in turn; load average {os.getloadavg()[0]:.2f}")
     counts = Counts()
     cpu = {name: [] for name in settings}
     seen, misses = {}, {}
@@ -152,14 +153,7 @@ def main() -> None:
               f"{np.median(c) / np.median(cpu[reference]):.3f}× {reference}; "
               + ", ".join(f"{k} {v}" for k, v in sorted(seen[name].items()))
               + f"; insertion misses within {apart:.1e} mm of {reference}'s")
-    print(f"load {_load()}")
-
-
-def _load() -> str:
-    try:
-        return " ".join(Path("/proc/loadavg").read_text().split()[:3])
-    except OSError:
-        return "unknown"
+    print(f"load average now {os.getloadavg()[0]:.2f}")
 
 
 if __name__ == "__main__":
