@@ -89,8 +89,13 @@ def test_the_projected_stiffness_is_numpys(slab, A):
 
 def test_inverted_elements_go_to_numpy(slab):
     x = _state(slab, DEFORMATIONS[2], 0.05, 3)
-    a, b = slab.ops.corners[:2, 0]
-    x[a] = x[b]  # a collapsed tetrahedron: J = 0
+    a, b, c, d = slab.ops.corners[:, 0]
+    # an inverted tetrahedron: its first corner mirrored through the plane of the other three (J < 0 well
+    # beyond round-off; a collapsed one, J = 0 exactly on paper, is tiny and of either sign in floating point)
+    normal = np.cross(x[c] - x[b], x[d] - x[b])
+    normal /= np.linalg.norm(normal)
+    x[a] -= 2.0 * ((x[a] - x[b]) @ normal) * normal
+    assert slab.jacobians(x)[0] < -0.1
     assert compiled3d.energy_gradient(slab.ops, slab.params, x) is None
     assert compiled3d.element_stiffness(slab.ops, slab.params, x, False) is None
     assert compiled3d.element_stiffness(slab.ops, slab.params, x, True) is None
