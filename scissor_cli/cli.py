@@ -256,13 +256,13 @@ def _new_run(options: SimulateOptions, execution) -> None:
 
 def _run(cfg: Config, directory: Path, execution, scene) -> None:
     """A run of cfg from its first stage into `directory` (claimed); its config recorded first for `--resume`."""
-    from scissor_cli.mesh.mesh import MeshError
     from scissor_cli.experiments.pool import WorkerLost
     from scissor_cli.experiments.simulate import NonFiniteError, TrialsFailed, run_simulation
-    from scissor_cli.output.results_sink import RunDirectory
     from scissor_cli.experiments.study import StudyError
-    from scissor_cli.solvers.common import SolverError
     from scissor_cli.mechanics.tissue import BoundaryError
+    from scissor_cli.mesh.mesh import MeshError
+    from scissor_cli.output.results_sink import RunDirectory
+    from scissor_cli.solvers.common import SolverError
 
     run = RunDirectory(directory)
     run.start(resolved_yaml(cfg))
@@ -301,8 +301,8 @@ def workspace(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Only the output path."),
 ) -> None:
     """Sample the puncture module's joint space: workspace.h5, the Fig. 8 projections, box coverage."""
-    from scissor_cli.robot.chain import RobotModel
     from scissor_cli.output.workspace_file import plot_workspace, write_workspace_h5
+    from scissor_cli.robot.chain import RobotModel
     from scissor_cli.robot.workspace import run_workspace
 
     if config is not None:

@@ -18,9 +18,9 @@ import pytest
 pytest.importorskip("skfem")
 
 from scissor_cli.config import load_config  # noqa: E402
+from scissor_cli.experiments.simulate import build_model  # noqa: E402
 from scissor_cli.mesh.probe import probe_targets, target_positions  # noqa: E402
 from scissor_cli.solvers.newton import solve_newton  # noqa: E402
-from scissor_cli.experiments.simulate import build_model  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 

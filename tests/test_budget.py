@@ -13,6 +13,7 @@ import yaml
 from scissor_cli.config import parse_config, resolved_yaml
 from scissor_cli.experiments.error_budget import ROWS, budget_plan, identical_trials
 from scissor_cli.output.error_budget.results import BudgetCell, budget_rows
+
 from helpers import deep_update, example_dict, write_scene
 
 

@@ -9,7 +9,7 @@ import h5py
 import numpy as np
 import pytest
 
-from helpers import ROOT, example_dict, write_scene, deep_update
+from helpers import ROOT, deep_update, example_dict, write_scene
 
 
 def run_cli(*args, cwd=None):
@@ -117,8 +117,7 @@ def test_non_finite_value_exits_1_naming_where(tmp_path, monkeypatch):
 
     from typer.testing import CliRunner
 
-    from scissor_cli import cli
-    from scissor_cli import control
+    from scissor_cli import cli, control
     from scissor_cli.sensing.sensor import EXACT
 
     real = control.run_target

@@ -8,13 +8,14 @@ to the numpy path, whose policy then holds.
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from scissor_cli.config import parse_config
+from scissor_cli.experiments.build import scene_of
 from scissor_cli.mechanics import compiled, fem, materials
 from scissor_cli.mechanics.tissue import build_tissue
 from scissor_cli.mesh.mesh import mesh_for_config
-from scissor_cli.experiments.build import scene_of
 
 SCENE = """
 tissue: {size_mm: [30, 20], mesh: {max_edge_mm: 4, min_edge_mm: 2}}

@@ -10,10 +10,9 @@ import pytest
 import yaml
 
 from scissor_cli.config import parse_config
+from scissor_cli.experiments.build import build_model
 from scissor_cli.layer3d.slab import SlabSpec, build_slab
 from scissor_cli.mechanics import compiled3d, fem, materials
-from scissor_cli.experiments.build import build_model
-
 from tests.helpers import example_dict
 
 

@@ -17,12 +17,21 @@ import yaml
 from pydantic import BaseModel
 
 from scissor_cli.config import (
-    ELEMENT_BUDGET, MAX_CONFIG_BYTES, Config, ConfigError, estimate_elements, load_config, parse_config, resolved_yaml,
+    ELEMENT_BUDGET,
+    MAX_CONFIG_BYTES,
+    Config,
+    ConfigError,
+    checks,
+    estimate_elements,
+    load_config,
+    loading,
+    parse_config,
+    resolved_yaml,
 )
-from scissor_cli.config import checks, loading
 from scissor_cli.config import element_budget as budget
 from scissor_cli.config.messages import _unwrap, field_type
-from helpers import EXAMPLE, ROOT, example_dict, write_scene, deep_update
+
+from helpers import EXAMPLE, ROOT, deep_update, example_dict, write_scene
 
 
 def run_cli(*args, cwd=None):
@@ -359,8 +368,8 @@ def test_interleaved_obstacles_validate_in_seconds():
 
 
 def _mesh_count(cfg: Config, scale=None) -> int:
-    from scissor_cli.mesh.mesh import mesh_for_config
     from scissor_cli.experiments.build import scene_of
+    from scissor_cli.mesh.mesh import mesh_for_config
 
     s = cfg.tissue.mesh.scale if scale is None else scale
     at = cfg.model_copy(update={"tissue": cfg.tissue.model_copy(update={"mesh": cfg.tissue.mesh.model_copy(update={"scale": s})})})

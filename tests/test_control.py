@@ -10,19 +10,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scissor_cli.solvers.tracking import HISTORY, REACH, Equilibrium
 from scissor_cli import control as ct
-from scissor_cli.output.manipulation import manipulation_figure_inputs
-from scissor_cli.output import figures
-from scissor_cli.sensing.camera import Camera, CameraSensor
-from scissor_cli.sensing.sensor import EXACT, TrueState
 from scissor_cli.config import ControllerConfig, load_config
+from scissor_cli.experiments.simulate import build_model, robot_joint_check
 from scissor_cli.mesh.probe import apply_probe, probe_targets, target_positions
-from scissor_cli.solvers.jacobian import cup_target_jacobian
-from scissor_cli.solvers.newton import solve_newton
+from scissor_cli.output import figures
+from scissor_cli.output.manipulation import manipulation_figure_inputs
 from scissor_cli.planning.corridor import corridor_radius
 from scissor_cli.planning.needle_plan import plan_targets
-from scissor_cli.experiments.simulate import build_model, robot_joint_check
+from scissor_cli.sensing.camera import Camera, CameraSensor
+from scissor_cli.sensing.sensor import EXACT, TrueState
+from scissor_cli.solvers.jacobian import cup_target_jacobian
+from scissor_cli.solvers.newton import solve_newton
+from scissor_cli.solvers.tracking import HISTORY, REACH, Equilibrium
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ("paper_pull", "paper_push", "example")

@@ -13,18 +13,19 @@ import numpy as np
 import pytest
 import yaml
 
-from helpers import deep_update, example_dict, write_scene
 from scissor_cli import progress
 from scissor_cli.config import parse_config, resolved_yaml
 from scissor_cli.control.models import INVERSE_TOL_MM, MapController, strokes_for
+from scissor_cli.experiments.build import build_model
 from scissor_cli.layer3d.calibration import calibration_strokes, fit_transmission
 from scissor_cli.layer3d.check import slab_spec
-from scissor_cli.layer3d.tissue_models import ControllerModel, ModelData, build_model_data, slab_map
 from scissor_cli.layer3d.slab import build_slab, layer_probe, slab_probe
 from scissor_cli.layer3d.surrogate import Surrogate, design, solve_samples
+from scissor_cli.layer3d.tissue_models import ControllerModel, ModelData, build_model_data, slab_map
 from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
-from scissor_cli.experiments.build import build_model
 from scissor_cli.mesh.probe import probe_targets, target_positions
+
+from helpers import deep_update, example_dict, write_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 

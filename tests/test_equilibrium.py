@@ -8,6 +8,7 @@ from scissor_cli.experiments.build import build_model
 from scissor_cli.solvers.common import Conditions, SolverError, relative_residual
 from scissor_cli.solvers.equilibrium import EquilibriumSolver, solve_equilibrium
 from scissor_cli.solvers.linear import Factorization
+
 from helpers import EXAMPLE
 
 

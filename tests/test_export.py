@@ -21,8 +21,9 @@ import pytest
 
 meshio = pytest.importorskip("meshio")
 
-from helpers import ROOT  # noqa: E402
 from scissor_cli.output.export import ExportError, export_run  # noqa: E402
+
+from helpers import ROOT  # noqa: E402
 
 FORMATS = ["xdmf", "vtu"]
 

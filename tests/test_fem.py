@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from scissor_cli.mechanics import fem
 from scissor_cli.config import parse_config
-from scissor_cli.mesh.mesh import mesh_for_config
 from scissor_cli.experiments.build import scene_of
+from scissor_cli.mechanics import fem
 from scissor_cli.mechanics.tissue import build_tissue
+from scissor_cli.mesh.mesh import mesh_for_config
 
 SCENE = """
 tissue: {size_mm: [30, 20], mesh: {max_edge_mm: 5, min_edge_mm: 2.5}}

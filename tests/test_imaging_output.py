@@ -8,7 +8,6 @@ from dataclasses import dataclass
 import h5py
 import numpy as np
 import pytest
-from helpers import example_dict, write_scene
 from PIL import Image
 from scipy.ndimage import gaussian_filter
 
@@ -26,6 +25,8 @@ from scissor_cli.output.imaging.results import (
 from scissor_cli.output.report import report_trials
 from scissor_cli.output.results import ResultsFile, reopen
 from scissor_cli.output.results_sink import RunDirectory
+
+from helpers import example_dict, write_scene
 
 POSITION = np.array([45.0, 60.0])  # on the top skin, looking down: lateral = +x, depth = 60 − y
 AXIS = np.array([0.0, -1.0])

@@ -6,15 +6,17 @@ import dataclasses
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from typer.testing import CliRunner
 
-from scissor_cli.config import load_config
 from scissor_cli import progress
+from scissor_cli.config import load_config
+from scissor_cli.experiments.build import build_model
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion, shaft_lengths
 from scissor_cli.insertion.needle import NeedleState, advance, free_nodes
-from scissor_cli.experiments.build import build_model
 from scissor_cli.solvers.newton import solve_newton
+
 from helpers import example_dict, write_scene
 
 INSERTION = {"step_mm": 1.0, "friction_static_mN_per_mm": 15.0, "friction_kinetic_mN_per_mm": 10.0,
@@ -411,6 +413,7 @@ def test_the_nearly_incompressible_hard_case_decides_as_the_converged_passes(mon
     end), so no decision is taken on a lurch (`needle.LURCH_STEPS`)."""
     from scissor_cli.insertion import needle
     from scissor_cli.planning.needle_plan import plan_target
+
     from helpers import ROOT
 
     cfg = load_config(ROOT / "configs" / "hard" / "nearly_incompressible.yaml")

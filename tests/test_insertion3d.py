@@ -16,14 +16,15 @@ import scipy.sparse.linalg
 import yaml
 
 from scissor_cli.config import parse_config
+from scissor_cli.experiments.build import build_model
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion
 from scissor_cli.insertion.chord import ChordSolver, Hold
 from scissor_cli.insertion.needle import NeedleState, advance, free_nodes, transverse_basis
 from scissor_cli.layer3d.slab import SlabSpec, build_slab
-from scissor_cli.experiments.build import build_model
 from scissor_cli.solvers.common import Conditions, objective_gradient
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 from scissor_cli.solvers.supernodal import SupernodalFactor
+
 from helpers import example_dict
 
 INSERTION = {"step_mm": 1.0, "friction_static_mN_per_mm": 15.0, "friction_kinetic_mN_per_mm": 10.0,

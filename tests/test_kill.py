@@ -26,8 +26,9 @@ import h5py
 import numpy as np
 import pytest
 
-from helpers import deep_update, example_dict, write_scene
 from scissor_cli.output import journal
+
+from helpers import deep_update, example_dict, write_scene
 
 sys.path.insert(0, str(Path(__file__).parent / "golden"))
 from extract import extract  # noqa: E402

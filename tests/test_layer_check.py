@@ -11,7 +11,6 @@ import yaml
 
 from scissor_cli.config import ConfigError, parse_config
 from scissor_cli.experiments.build import build_model
-
 from tests.helpers import example_dict, write_scene
 
 #: the slab as set (accuracy_mm null pins it: the tests here are not about its choice)
@@ -182,9 +181,9 @@ def test_resolution_by_accuracy_goes_coarse_to_fine_and_stops_within_it():
     coarsest having solved only those two, a tight one goes on to the configured grading (error 0); every rung is
     coarser than the one before; the errors are those of every candidate solved against the finest, and an
     accuracy between two of them picks as the full ladder does."""
+    from scissor_cli.experiments.build import build_model
     from scissor_cli.layer3d.check import slab_spec
     from scissor_cli.layer3d.resolution import choose_slab, exhaustive_errors
-    from scissor_cli.experiments.build import build_model
 
     data = example_dict()
     data["layer_check"] = {"height_mm": 12.0, "layer_z_mm": 6.0, "max_layer_mm": 3.0}

@@ -9,6 +9,7 @@ import pytest
 import yaml
 
 from scissor_cli.config import ConfigError, parse_config
+
 from helpers import ROOT, example_dict
 
 FULL = ROOT.parent / "shared" / "spec" / "example-full.yaml"

@@ -12,6 +12,7 @@ from scissor_cli.mesh.probe import probe_targets, target_positions
 from scissor_cli.planning import manipulation_points as mp
 from scissor_cli.solvers.common import Conditions
 from scissor_cli.solvers.equilibrium import solve_equilibrium
+
 from helpers import ROOT
 
 

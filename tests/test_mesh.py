@@ -5,9 +5,10 @@ import pytest
 
 from scissor_cli import geometry
 from scissor_cli.config import load_config, parse_config
-from scissor_cli.mesh.mesh import grip_ends, interpolate, locate, mesh_for_config
 from scissor_cli.experiments.build import scene_of
 from scissor_cli.mechanics.tissue import build_tissue
+from scissor_cli.mesh.mesh import grip_ends, interpolate, locate, mesh_for_config
+
 from helpers import EXAMPLE
 
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from scissor_cli.insertion import shaft_lengths
-from scissor_cli.insertion.run import miss_and_depth_error
 from scissor_cli.insertion.needle import NeedleState, capture, free_nodes, tip_weights, transverse_basis
+from scissor_cli.insertion.run import miss_and_depth_error
 
 
 @pytest.mark.parametrize("n", [

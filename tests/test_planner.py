@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 
 from scissor_cli import geometry
+from scissor_cli.config import NeedleConfig, load_config, parse_config
+from scissor_cli.experiments.build import scene_of
+from scissor_cli.mechanics.tissue import build_tissue
+from scissor_cli.mesh.mesh import interpolate, locate, mesh_for_config
 from scissor_cli.mesh.outlines import boundary_loop, deformed_outlines, embed_outlines
 from scissor_cli.planning import corridor, states
 from scissor_cli.planning import needle_plan as needle
-from scissor_cli.config import NeedleConfig, load_config, parse_config
-from scissor_cli.mesh.mesh import interpolate, locate, mesh_for_config
 from scissor_cli.solvers.newton import solve_newton
-from scissor_cli.experiments.build import scene_of
-from scissor_cli.mechanics.tissue import build_tissue
 
 RADIUS = 0.6 + 1.0  # 18G needle radius + the default margin, mm
 SQUARE = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]])

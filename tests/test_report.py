@@ -7,11 +7,11 @@ import sys
 import h5py
 import numpy as np
 import pytest
-
-from scissor_cli.output.report import ReportError, report_trials
-from scissor_cli.experiments.simulate import Execution, run_simulation
-from scissor_cli.output.results_sink import RunDirectory
 from test_trials import reduced
+
+from scissor_cli.experiments.simulate import Execution, run_simulation
+from scissor_cli.output.report import ReportError, report_trials
+from scissor_cli.output.results_sink import RunDirectory
 
 
 @pytest.fixture(scope="module")
@@ -53,6 +53,7 @@ def test_report_refuses_incomplete_run_unless_partial(two_runs, tmp_path):
 def test_study_report(tmp_path):
     """A small study through simulate and report: the plot, the cheapest-setting table, graded vs uniform."""
     from scissor_cli.config import StudyConfig, load_config
+
     from helpers import ROOT
 
     cfg = load_config(ROOT / "configs" / "example.yaml")

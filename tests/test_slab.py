@@ -11,17 +11,16 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg  # noqa: F401
+import yaml
 
 from scissor_cli.config import parse_config
+from scissor_cli.experiments.build import build_model
 from scissor_cli.layer3d.extrude import extrude, graded_levels, volumes
 from scissor_cli.layer3d.slab import SlabSpec, build_slab, slab_probe
 from scissor_cli.mechanics import fem
-from scissor_cli.experiments.build import build_model
 from scissor_cli.mesh.probe import probe_targets, target_positions
 from scissor_cli.solvers.equilibrium import solve_equilibrium
-
 from tests.helpers import example_dict
-import yaml
 
 
 def _model(scale=4.0, **material):

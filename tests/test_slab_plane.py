@@ -6,12 +6,11 @@ import pytest
 import yaml
 
 from scissor_cli.config import parse_config
-from scissor_cli.layer3d.check import plane_ladder, plane_spec, slab_spec
-from scissor_cli.layer3d.slab import SlabSpec, build_slab, layer_probe, slab_probe
 from scissor_cli.experiments.build import build_model
+from scissor_cli.layer3d.check import plane_ladder, plane_spec, slab_spec
+from scissor_cli.layer3d.slab import build_slab, layer_probe, slab_probe
 from scissor_cli.mesh.mesh import locate
 from scissor_cli.solvers.equilibrium import solve_equilibrium
-
 from tests.helpers import example_dict
 
 

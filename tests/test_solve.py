@@ -8,8 +8,8 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from scissor_cli.solvers.linear import Factorization
 from scissor_cli.solvers.common import SolverError
+from scissor_cli.solvers.linear import Factorization
 
 
 def _spd(n=60, shift=10.0, seed=1):

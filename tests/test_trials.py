@@ -10,6 +10,7 @@ from scissor_cli.experiments.profiles import draw_trial, error_model
 from scissor_cli.experiments.simulate import Execution, TrialsFailed, resume_simulation, run_simulation
 from scissor_cli.output.results_sink import RunDirectory, open_for_resume
 from scissor_cli.sensing.sensor import EXACT
+
 from helpers import ROOT
 
 

@@ -13,8 +13,18 @@ import numpy as np
 import pytest
 
 from scissor_cli.sensing.ultrasound import (
-    PsfModel, SpeckleTracker, block_match, build_psf, draw_scatterers, elevation_width_mm, fast_frame, frame_kernels,
-    image_grid, localise_lesion, log_compress, probe_params,
+    PsfModel,
+    SpeckleTracker,
+    block_match,
+    build_psf,
+    draw_scatterers,
+    elevation_width_mm,
+    fast_frame,
+    frame_kernels,
+    image_grid,
+    localise_lesion,
+    log_compress,
+    probe_params,
 )
 
 DEPTH_MM = 60.0

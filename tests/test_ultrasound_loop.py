@@ -24,6 +24,7 @@ from scissor_cli.experiments.build import build_model
 from scissor_cli.experiments.profiles import PROFILES, error_model
 from scissor_cli.experiments.sensor_models import imaging_data, imaging_tables_for, sensor_model
 from scissor_cli.sensing.sensor import TrialDraws, TrueState
+
 from helpers import example_dict
 
 IMAGING = {"probe": "L11-5v", "position_mm": [0.0, 30.0], "axis": [1.0, 0.0], "depth_mm": 70.0}

@@ -6,9 +6,9 @@ import sys
 import h5py
 import numpy as np
 
+from scissor_cli.output.workspace_file import plot_workspace, write_workspace_h5
 from scissor_cli.robot.chain import RobotModel
 from scissor_cli.robot.workspace import DEFAULT_BOX_MAX, DEFAULT_BOX_MIN, coverage, reachable_coverage, run_workspace
-from scissor_cli.output.workspace_file import plot_workspace, write_workspace_h5
 
 PAPER = RobotModel.paper()
 

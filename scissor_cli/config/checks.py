@@ -20,8 +20,14 @@ import numpy as np
 from scissor_cli import geometry
 from scissor_cli.config.imaging_checks import imaging_problems
 from scissor_cli.config.mesh_file import MeshFileError, mesh_file_problem, read_mesh_arrays
-from scissor_cli.config.sections import (MAX_TISSUE_MM, MIN_EDGE_MM, SURROGATE_SAMPLES_PER_CUP, Config, ObstacleConfig,
-                                         TissueConfig)
+from scissor_cli.config.sections import (
+    MAX_TISSUE_MM,
+    MIN_EDGE_MM,
+    SURROGATE_SAMPLES_PER_CUP,
+    Config,
+    ObstacleConfig,
+    TissueConfig,
+)
 
 #: implicit-Euler steps (ramp + settling) one forward case may take with solver.dt_s
 MAX_TIME_STEPS = 10_000

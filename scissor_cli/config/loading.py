@@ -25,9 +25,9 @@ from typing import Optional
 import yaml
 from pydantic import ValidationError
 
-from scissor_cli.config.element_budget import budget_problems
 from scissor_cli.config.checks import scene_problems
-from scissor_cli.config.messages import located, loc_text, pydantic_problem, show
+from scissor_cli.config.element_budget import budget_problems
+from scissor_cli.config.messages import loc_text, located, pydantic_problem, show
 from scissor_cli.config.sections import Config
 
 #: the largest scene file read, in bytes

@@ -50,9 +50,9 @@ import numpy as np
 
 from scissor_cli.config import ControllerConfig
 from scissor_cli.control.actuator import Actuator, quantise
-from scissor_cli.control.corridor_check import Corridor, corridor_at
 from scissor_cli.control.allocation import stroke_step
 from scissor_cli.control.broyden import BroydenCorrection
+from scissor_cli.control.corridor_check import Corridor, corridor_at
 from scissor_cli.control.law import PID, stalled, traveling
 from scissor_cli.control.plant import Controller, Plant, TruthFactory, TruthPerturbation, true_tissue
 from scissor_cli.control.result import History, LoopResult

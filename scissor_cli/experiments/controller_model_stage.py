@@ -28,13 +28,20 @@ import numpy as np
 from scissor_cli import progress
 from scissor_cli.config import Config, resolved_yaml
 from scissor_cli.experiments import run_cache
-from scissor_cli.experiments.pool import run_pool
-from scissor_cli.layer3d.calibration import Calibration
 from scissor_cli.experiments.model_planning import Replan, plan_with_model
 from scissor_cli.experiments.needle_model_stage import needle_models, needs_needle_models
-from scissor_cli.layer3d.tissue_models import (ControllerModel, ModelData, ModelPaths, SceneMap, build_model_data,
-                                               model_solves, slab_map)
+from scissor_cli.experiments.pool import run_pool
+from scissor_cli.layer3d.calibration import Calibration
 from scissor_cli.layer3d.surrogate import SurrogateSamples, solve_samples
+from scissor_cli.layer3d.tissue_models import (
+    ControllerModel,
+    ModelData,
+    ModelPaths,
+    SceneMap,
+    build_model_data,
+    model_solves,
+    slab_map,
+)
 from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.text import vector
@@ -136,9 +143,9 @@ def _solve_group(config_yaml: str, index: int, strokes: np.ndarray) -> list[tupl
     """In a worker: the nominal slab's targets and layer at one design group's strokes (`surrogate.solve_samples`)."""
     if config_yaml not in _SLABS:
         from scissor_cli.config import parse_config  # noqa: PLC0415
+        from scissor_cli.experiments.build import build_model  # noqa: PLC0415
         from scissor_cli.layer3d.check import slab_spec  # noqa: PLC0415
         from scissor_cli.layer3d.slab import build_slab, layer_probe, slab_probe  # noqa: PLC0415
-        from scissor_cli.experiments.build import build_model  # noqa: PLC0415
 
         cfg = parse_config(config_yaml, "<run config>")
         scene, mesh, tissue = build_model(cfg)

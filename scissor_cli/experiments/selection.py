@@ -31,12 +31,12 @@ import numpy as np
 
 from scissor_cli import progress
 from scissor_cli.config import Config
-from scissor_cli.mesh.probe import probe_targets, target_positions
-from scissor_cli.mesh.mesh import mesh_for_config
-from scissor_cli.solvers.common import SolverError
-from scissor_cli.solvers.equilibrium import solve_equilibrium
 from scissor_cli.experiments.build import scene_of
 from scissor_cli.mechanics.tissue import build_tissue
+from scissor_cli.mesh.mesh import mesh_for_config
+from scissor_cli.mesh.probe import probe_targets, target_positions
+from scissor_cli.solvers.common import SolverError
+from scissor_cli.solvers.equilibrium import solve_equilibrium
 
 SAFETY = 0.7
 CALIBRATION_LEVELS = (4.0, 2.0, 1.0)

@@ -45,7 +45,10 @@ def sensor_model(cfg: Config, scene, errors: ErrorModel, imaging: Optional[dict]
         return CameraModel(Camera.from_config(cfg.camera), errors.pixel_noise_px, errors.localisation_error_mm,
                            ideal=errors.exact_measurement)
     from scissor_cli.sensing.ultrasound import (  # noqa: PLC0415
-        ImagingErrors, ProbePose, UltrasoundModel, obstacle_echogenicity,
+        ImagingErrors,
+        ProbePose,
+        UltrasoundModel,
+        obstacle_echogenicity,
     )
 
     im = cfg.imaging

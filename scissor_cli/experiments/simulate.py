@@ -16,37 +16,44 @@ from pathlib import Path
 
 import numpy as np
 
-
 from scissor_cli import control, progress
-from scissor_cli.text import duration, signed
 from scissor_cli.config import Config, parse_config, resolved_yaml
-from scissor_cli.solvers.jacobian import cup_target_jacobian
-from scissor_cli.mesh.probe import probe_targets, target_positions
-from scissor_cli.solvers.equilibrium import EquilibriumSolver
-from scissor_cli.mesh.outlines import boundary_loop, deformed_outlines, embed_outlines
-from scissor_cli.planning.corridor import corridor_radius
-from scissor_cli.planning.needle_plan import NeedlePlan, plan_target, stored_plan
-from scissor_cli.planning.states import StateCache
-from scissor_cli.experiments.pool import deferred_signals
-from scissor_cli.experiments.profiles import CAMERA_SPREADS, IMAGING_SPREADS, INSERTION_SPREADS, error_model
-from scissor_cli.experiments.sink import ForwardCase, Manipulation, ResumableSink, RunSink, SinkFactory, product_key
-from scissor_cli.experiments.sink import NonFiniteError, ResumeError  # noqa: F401 - raised through this module's API
-from scissor_cli.robot.chain import RobotModel
-from scissor_cli.robot.registration import plan_to_joints
-from scissor_cli.experiments.insertion_stage import insertion_stage
+from scissor_cli.experiments.build import build_model, with_grips  # noqa: F401 - build_model: this module's API too
+from scissor_cli.experiments.controller_model_stage import controller_model_stage, needs_slab, refitted_model
 from scissor_cli.experiments.error_budget import run_budget
 from scissor_cli.experiments.imaging_stage import prepare_imaging
-from scissor_cli.experiments.controller_model_stage import controller_model_stage, needs_slab, refitted_model
+from scissor_cli.experiments.insertion_stage import insertion_stage
 from scissor_cli.experiments.model_planning import reserved_scene
 from scissor_cli.experiments.needle_model_stage import needs_needle_models
+from scissor_cli.experiments.pool import deferred_signals
+from scissor_cli.experiments.profiles import CAMERA_SPREADS, IMAGING_SPREADS, INSERTION_SPREADS, error_model
 from scissor_cli.experiments.run_cache import cache_dir
 from scissor_cli.experiments.selection import select
+from scissor_cli.experiments.sink import (  # noqa: F401 - raised through this module's API
+    ForwardCase,
+    Manipulation,
+    NonFiniteError,
+    ResumableSink,
+    ResumeError,
+    RunSink,
+    SinkFactory,
+    product_key,
+)
 from scissor_cli.experiments.slab_starts import with_slab_starts
 from scissor_cli.experiments.study import run_study
 from scissor_cli.experiments.trials import TargetTask, execute
-from scissor_cli.solvers.common import SolveResult, SolverError
-from scissor_cli.experiments.build import build_model, with_grips  # noqa: F401 - build_model: this module's API too
 from scissor_cli.mechanics.tissue import Tissue
+from scissor_cli.mesh.outlines import boundary_loop, deformed_outlines, embed_outlines
+from scissor_cli.mesh.probe import probe_targets, target_positions
+from scissor_cli.planning.corridor import corridor_radius
+from scissor_cli.planning.needle_plan import NeedlePlan, plan_target, stored_plan
+from scissor_cli.planning.states import StateCache
+from scissor_cli.robot.chain import RobotModel
+from scissor_cli.robot.registration import plan_to_joints
+from scissor_cli.solvers.common import SolverError, SolveResult
+from scissor_cli.solvers.equilibrium import EquilibriumSolver
+from scissor_cli.solvers.jacobian import cup_target_jacobian
+from scissor_cli.text import duration, signed
 
 
 @dataclass

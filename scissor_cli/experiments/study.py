@@ -23,13 +23,13 @@ import numpy as np
 
 from scissor_cli import progress
 from scissor_cli.config import Config, StudyConfig, estimate_elements
-from scissor_cli.mesh.probe import probe_targets, target_positions
-from scissor_cli.mesh.mesh import Mesh, mesh_for_config
-from scissor_cli.solvers.equilibrium import EquilibriumSolver, solve_equilibrium
 from scissor_cli.experiments.build import scene_of
+from scissor_cli.mechanics.tissue import build_tissue
+from scissor_cli.mesh.mesh import Mesh, mesh_for_config
+from scissor_cli.mesh.probe import probe_targets, target_positions
 from scissor_cli.scene.scene import Scene
 from scissor_cli.solvers.common import SolverError
-from scissor_cli.mechanics.tissue import build_tissue
+from scissor_cli.solvers.equilibrium import EquilibriumSolver, solve_equilibrium
 
 RICHEST = "neo_hookean_fiber"
 

@@ -18,16 +18,16 @@ from typing import Iterator, Optional
 import numpy as np
 
 from scissor_cli import control, runtime
-from scissor_cli.control.allocation import along_mm, miss_mm
-from scissor_cli.sensing.sensor import Sensor, SensorModel, TrialDraws
 from scissor_cli.config import parse_config
-from scissor_cli.solvers.equilibrium import solve_equilibrium
-from scissor_cli.planning.corridor import corridor_radius
+from scissor_cli.control.allocation import along_mm, miss_mm
+from scissor_cli.experiments.build import build_model
 from scissor_cli.experiments.pool import run_pool
 from scissor_cli.experiments.profiles import ErrorModel, draw_insertion, draw_trial, error_model
 from scissor_cli.experiments.sensor_models import sensor_model
 from scissor_cli.insertion import InsertionOptions, NeedleParams, needle_path, run_strategies
-from scissor_cli.experiments.build import build_model
+from scissor_cli.planning.corridor import corridor_radius
+from scissor_cli.sensing.sensor import Sensor, SensorModel, TrialDraws
+from scissor_cli.solvers.equilibrium import solve_equilibrium
 
 
 @dataclass(frozen=True)

@@ -46,8 +46,15 @@ from __future__ import annotations
 import numpy as np
 
 from scissor_cli.insertion.chord import ChordFailed, ChordSolver, Hold
-from scissor_cli.insertion.needle import (STEP_TOL, STEP_TOL_3D, NeedleParams, NeedleState, advance, free_nodes,
-                                         needle_conditions)
+from scissor_cli.insertion.needle import (
+    STEP_TOL,
+    STEP_TOL_3D,
+    NeedleParams,
+    NeedleState,
+    advance,
+    free_nodes,
+    needle_conditions,
+)
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import TargetProbe, probe_targets, target_positions
 from scissor_cli.solvers.common import SolverError, objective_gradient

@@ -22,7 +22,6 @@ from dataclasses import replace
 import numpy as np
 
 from scissor_cli.config import ControllerConfig
-
 from scissor_cli.insertion.model_state import ModelState
 from scissor_cli.insertion.needle import NeedleParams, NeedleState
 from scissor_cli.insertion.run import InsertionOptions, NeedlePath, layer_points, run_insertion

@@ -27,7 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scissor_cli.geometry import LEVEL_GROWTH as GROWTH, graded_levels  # noqa: F401 (shared with config's budget)
+from scissor_cli.geometry import LEVEL_GROWTH as GROWTH  # noqa: F401 (shared with config's budget)
+from scissor_cli.geometry import graded_levels
 
 
 @dataclass(frozen=True)

@@ -34,6 +34,7 @@ from numba import njit
 
 from scissor_cli.mechanics.materials.params import J_FLOOR
 from scissor_cli.mechanics.materials.plane_strain_projection import _TINY
+
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 

@@ -16,15 +16,13 @@ The same class holds the 3-D slab of docs/model.md §13 (`layer3d`): then
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
 
-from scissor_cli.mechanics import compiled, compiled3d, fem
-from scissor_cli.mechanics import materials
+from scissor_cli.mechanics import compiled, compiled3d, fem, materials
 from scissor_cli.mesh.mesh import Mesh
 from scissor_cli.scene.scene import Scene
 

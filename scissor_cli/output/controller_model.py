@@ -10,8 +10,8 @@ import numpy as np
 
 from scissor_cli.insertion.steering import NeedleModel
 from scissor_cli.layer3d.calibration import Calibration
-from scissor_cli.layer3d.tissue_models import ModelData, ModelPaths
 from scissor_cli.layer3d.surrogate import SurrogateSamples
+from scissor_cli.layer3d.tissue_models import ModelData, ModelPaths
 
 GROUP = "controller_model"
 

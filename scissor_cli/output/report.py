@@ -15,10 +15,10 @@ import h5py
 import numpy as np
 
 from scissor_cli.config import ConfigError, parse_config
-from scissor_cli.output import figures, layer_check, tables
 from scissor_cli.experiments import study as study_mod
-from scissor_cli.output.error_budget.report import report_budget
+from scissor_cli.output import figures, layer_check, tables
 from scissor_cli.output.controller_model import report_models_figure
+from scissor_cli.output.error_budget.report import report_budget
 from scissor_cli.output.imaging.report import report_sensors
 from scissor_cli.output.imaging.results import sensor_of
 from scissor_cli.output.insertion.report import report_insertion

@@ -35,10 +35,10 @@ import numpy as np
 from scissor_cli.experiments import run_cache
 from scissor_cli.experiments.sink import ForwardCase, Manipulation, ResumeError, product_key
 from scissor_cli.experiments.study import rows_as_columns
-from scissor_cli.output.manipulation import manipulation_figure_inputs
 from scissor_cli.output import figures, journal, layer_check, results
 from scissor_cli.output.error_budget import results as budget_results
 from scissor_cli.output.error_budget.figures import budget_figure
+from scissor_cli.output.manipulation import manipulation_figure_inputs
 from scissor_cli.output.results import ResultsFile, temporary
 
 #: root attribute: the `product_key`s of what the run stored whole (docs/contract.md#resume)
@@ -140,8 +140,11 @@ class ResultsSink:
     def controller_model(self, data, target_names: list[str], paths, jacobian_update: str, title: str
                          ) -> Optional[Path]:
         """The controller's model (docs/model.md §15): /controller_model and its path figure (when drawn)."""
-        from scissor_cli.output.controller_model import (save_controller_model_figure, write_controller_model,  # noqa: PLC0415
-                                                         write_paths)
+        from scissor_cli.output.controller_model import (  # noqa: PLC0415
+            save_controller_model_figure,
+            write_controller_model,
+            write_paths,
+        )
 
         write_controller_model(self.out.h5, data, target_names, jacobian_update)
         if paths is not None:

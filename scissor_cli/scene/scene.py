@@ -12,8 +12,15 @@ from typing import Sequence
 
 import numpy as np
 
-from scissor_cli.config import (CupConfig, MaterialConfig, ObstacleConfig, TargetConfig, TissueConfig, obstacle_outline,
-                                tissue_outline)
+from scissor_cli.config import (
+    CupConfig,
+    MaterialConfig,
+    ObstacleConfig,
+    TargetConfig,
+    TissueConfig,
+    obstacle_outline,
+    tissue_outline,
+)
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ import numpy as np
 
 from scissor_cli.config import SolverConfig
 from scissor_cli.mechanics.tissue import Tissue
-from scissor_cli.solvers.common import NO_CONDITIONS, Conditions, Inertia, SolveResult, SolverError
+from scissor_cli.solvers.common import NO_CONDITIONS, Conditions, Inertia, SolverError, SolveResult
 from scissor_cli.solvers.newton import solve_newton
 
 METHODS = ("newton", "admm")

@@ -11,11 +11,11 @@ from __future__ import annotations
 import math
 from typing import Callable
 
-import numpy as np
-import scipy.sparse as sp
 import cvxopt
+import numpy as np
 import pymetis
 import qdldl
+import scipy.sparse as sp
 from cvxopt import cholmod
 
 from scissor_cli.solvers.common import SolverError

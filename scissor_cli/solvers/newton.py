@@ -26,12 +26,18 @@ import time
 import numpy as np
 import scipy.sparse as sp
 
-from scissor_cli.solvers.linear import KRYLOV_MAX_ITER, NotPositiveDefinite, factorize_free, solve_free
+from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.common import (
-    NO_CONDITIONS, Conditions, Inertia, SolveResult, SolverError, check_finite, objective_gradient,
+    NO_CONDITIONS,
+    Conditions,
+    Inertia,
+    SolverError,
+    SolveResult,
+    check_finite,
+    objective_gradient,
 )
 from scissor_cli.solvers.held import Held as _Held
-from scissor_cli.mechanics.tissue import Tissue
+from scissor_cli.solvers.linear import KRYLOV_MAX_ITER, NotPositiveDefinite, factorize_free, solve_free
 
 ARMIJO = 1e-4
 #: a full step whose Φ decrease reaches this fraction of the linear prediction

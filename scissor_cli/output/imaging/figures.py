@@ -33,8 +33,7 @@ from matplotlib.figure import Figure
 from scissor_cli.experiments.sink import ImagingRecord
 from scissor_cli.mesh.outlines import boundary_loop, deformed_outlines, embed_outlines
 from scissor_cli.output.figures import OBSTACLE, TISSUE, save
-from scissor_cli.output.insertion.figures import mesh_edges
-from scissor_cli.output.insertion.figures import pick_frames
+from scissor_cli.output.insertion.figures import mesh_edges, pick_frames
 from scissor_cli.sensing.ultrasound import ProbePose, log_compress
 
 #: the displayed dynamic range (dB) unless the record's attrs give `dynamic_range_db`

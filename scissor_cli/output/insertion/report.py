@@ -14,9 +14,9 @@ import h5py
 import numpy as np
 from matplotlib.figure import Figure
 
-from scissor_cli.text import cell
 from scissor_cli.output.figures import save
 from scissor_cli.output.results import finished_trials
+from scissor_cli.text import cell
 
 
 def load_insertion_trials(path: Path) -> dict[str, dict]:

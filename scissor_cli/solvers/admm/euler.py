@@ -12,7 +12,7 @@ import numpy as np
 
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.admm.solver import AdmmSolver, AdmmState
-from scissor_cli.solvers.common import Inertia, SolveResult, SolverError
+from scissor_cli.solvers.common import Inertia, SolverError, SolveResult
 
 
 @dataclass

@@ -91,7 +91,7 @@ from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.admm.anderson import Anderson
 from scissor_cli.solvers.admm.local import IDENTITY, LocalCache, closest_rotation, det4, evaluate_local, local_newton
 from scissor_cli.solvers.admm.weights import curvature_boost, rest_weights
-from scissor_cli.solvers.common import Inertia, SolveResult, SolverError, objective_gradient, relative_residual
+from scissor_cli.solvers.common import Inertia, SolverError, SolveResult, objective_gradient, relative_residual
 from scissor_cli.solvers.linear import Factorization
 
 STRAIN_FLOOR = 1e-9  # primal scale floor (strain), × ‖W I‖: defines "relative" at rest
