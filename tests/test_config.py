@@ -129,7 +129,7 @@ def test_bad_config_exits_2_naming_the_field(tmp_path, field, value, words):
 
 def test_line_number_points_into_the_file(tmp_path):
     text = EXAMPLE.read_text().replace("nu: 0.45", "nu: 0.7")
-    line = next(i + 1 for i, l in enumerate(text.splitlines()) if l.strip().startswith("nu: 0.7"))
+    line = next(i + 1 for i, row in enumerate(text.splitlines()) if row.strip().startswith("nu: 0.7"))
     path = tmp_path / "s.yaml"
     path.write_text(text)
     proc = run_cli("simulate", path, "--trials", "0", "--out", tmp_path / "o")
@@ -162,7 +162,7 @@ LEAVES = list(_numeric_leaves())
 def test_every_number_has_a_finite_range():
     assert len(LEAVES) > 75  # every section is walked (the DH table and the study included)
     unbounded = []
-    for loc, tp, meta in LEAVES:
+    for loc, _, meta in LEAVES:
         lower = [getattr(m, k) for m in meta for k in ("ge", "gt") if getattr(m, k, None) is not None]
         upper = [getattr(m, k) for m in meta for k in ("le", "lt") if getattr(m, k, None) is not None]
         if not (lower and upper and all(np.isfinite(lower + upper))):

@@ -585,7 +585,9 @@ def test_stored_model_paths_read_back_and_draw_every_model_against_the_slab(tmp_
     grid, dots = np.linspace(-15, 15, 7), np.linspace(-15, 15, 4)
 
     def paths(kind, gain):
-        line = lambda s, g: np.stack([np.stack([g * s, -g * s], axis=1)] * 2, axis=1)  # (G, T=2, 2)
+        def line(s, g):  # (G, T=2, 2)
+            return np.stack([np.stack([g * s, -g * s], axis=1)] * 2, axis=1)
+
         return ModelPaths(kind, ["cup"], ["T1", "T2"], [grid], [line(grid, gain)], [line(grid, 0.3)], [dots],
                           [line(dots, 0.15)], np.zeros((2, 2)))
 

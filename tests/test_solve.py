@@ -86,8 +86,8 @@ def test_refactor_with_a_new_pattern_and_unsorted_indices():
 def _laplacian_3d(k=8, shift=0.0):
     """The 7-point Laplacian of a k³ grid (+ shift I): a 3-D mesh's fill pattern."""
     T = sp.diags([-np.ones(k - 1), 2 * np.ones(k), -np.ones(k - 1)], [-1, 0, 1])
-    I = sp.eye(k)
-    A = sp.kron(sp.kron(T, I), I) + sp.kron(sp.kron(I, T), I) + sp.kron(sp.kron(I, I), T)
+    eye = sp.eye(k)
+    A = sp.kron(sp.kron(T, eye), eye) + sp.kron(sp.kron(eye, T), eye) + sp.kron(sp.kron(eye, eye), T)
     return (A + shift * sp.eye(k**3)).tocsr()
 
 

@@ -213,7 +213,7 @@ def test_the_camera_without_imaging():
 def test_profiles_and_budget_rows_with_imaging():
     from scissor_cli.experiments.error_budget import budget_plan, identical_trials
 
-    for name, values in PROFILES.items():
+    for values in PROFILES.values():
         assert {"sound_speed_sd_m_per_s", "probe_position_sd_mm", "probe_angle_sd_deg", "electronic_noise_scale"} <= set(values)
     cfg = parse_config(yaml.safe_dump(scene_data(profile="prosthesis", budget=True)), "scene.yaml")
     em = error_model(cfg.trials)

@@ -52,7 +52,7 @@ def imaging_problems(cfg: Config, outline: np.ndarray, inside) -> list:
     half = image_half_width_mm(im.probe)
     lateral_unit = np.array([-axis[1], axis[0]])
     scale = im.assumed_sound_speed_m_per_s / im.sound_speed_m_per_s  # apparent / true depth
-    for i, target in enumerate(cfg.targets):
+    for target in cfg.targets:
         q = np.asarray(target.position_mm, float) - pos
         lateral, depth = float(q @ lateral_unit), float(q @ axis)
         if abs(lateral) > half:

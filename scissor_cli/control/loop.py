@@ -108,9 +108,10 @@ def run_loop(
         y = sensor.measure(plant.true_state())
         J = controller.jacobian
         if cfg.stop_frames > 1 and controller.n_cups and sensor.noise_mm > 0:  # (noiseless frames agree)
+            # _confirmed calls the step function at once, in this iteration: J and command are this step's
             y, waited_s = _confirmed(y, sensor, plant, cfg, dt,
-                                     lambda y: stroke_step(J if correction is None else correction.jacobian(J),
-                                                           desired - y, command, controller.lo, controller.hi,
+                                     lambda y: stroke_step(J if correction is None else correction.jacobian(J),  # noqa: B023
+                                                           desired - y, command, controller.lo, controller.hi,  # noqa: B023
                                                            max_step, direction, cfg.error))
             sim_t += waited_s
         if correction is not None:  # J learnt from the moves so far (control.broyden)

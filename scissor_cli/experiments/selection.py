@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import Optional
 
 import numpy as np
@@ -129,6 +130,14 @@ def _timed(fn, repeats: int = 1):
     return out, best
 
 
+def _admm_or_unconverged(tissue, strokes: np.ndarray, tol: float):
+    """ADMM's equilibrium at tolerance tol; not converged (this tolerance is out of reach), its last iterate."""
+    try:
+        return solve_equilibrium(tissue, strokes, method="admm", tol=tol, max_iter=5000)
+    except SolverError as exc:
+        return exc.result
+
+
 def select(cfg: Config, accuracy_mm: float) -> Selection:
     """Calibrate on the scene and pick the cheapest setting predicted to meet accuracy_mm."""
     t_start = time.perf_counter()
@@ -145,7 +154,7 @@ def select(cfg: Config, accuracy_mm: float) -> Selection:
     positions, newton_time = {}, {}
     for L in CALIBRATION_LEVELS:
         tissue = build_tissue(scenes[L], meshes[L], model="neo_hookean_fiber")
-        r, t = _timed(lambda: solve_equilibrium(tissue, strokes), repeats=2)
+        r, t = _timed(partial(solve_equilibrium, tissue, strokes), repeats=2)
         positions[L], newton_time[L] = target_positions(probe_targets(meshes[L], rest), r.x), t
     d1 = float(np.linalg.norm(positions[4.0] - positions[2.0], axis=1).max())
     d2 = float(np.linalg.norm(positions[2.0] - positions[1.0], axis=1).max())
@@ -156,18 +165,13 @@ def select(cfg: Config, accuracy_mm: float) -> Selection:
     model_err, model_time = {}, {}
     for model in MODELS:
         tissue = build_tissue(scenes[2.0], meshes[2.0], model=model)
-        r, t = _timed(lambda: solve_equilibrium(tissue, strokes), repeats=2)
+        r, t = _timed(partial(solve_equilibrium, tissue, strokes), repeats=2)
         model_err[model] = float(np.linalg.norm(target_positions(probe2, r.x) - positions[2.0], axis=1).max())
         model_time[model] = t / newton_time[2.0]  # relative cost of the model
     tissue2 = build_tissue(scenes[2.0], meshes[2.0], model="neo_hookean_fiber")
     solver_err, admm_time = {}, {}
     for tol in ADMM_TOLERANCES:
-        def run():
-            try:
-                return solve_equilibrium(tissue2, strokes, method="admm", tol=tol, max_iter=5000)
-            except SolverError as exc:  # not converged: this tolerance is out of reach
-                return exc.result
-        r, t = _timed(run)
+        r, t = _timed(partial(_admm_or_unconverged, tissue2, strokes, tol))
         ok = r is not None and r.converged
         solver_err[tol] = float(np.linalg.norm(target_positions(probe2, r.x) - positions[2.0], axis=1).max()) if ok else np.inf
         admm_time[tol] = t / newton_time[2.0]  # relative to Newton at the same level

@@ -450,7 +450,10 @@ def _result(tissue, path: NeedlePath, strategy, trace: _Trace, keep, x, y, state
     rows = trace.rows
     k = len(rows)
     p0, n = np.asarray(path.entry, float), np.asarray(path.direction, float) / np.linalg.norm(path.direction)
-    col = (lambda i, shape=(): np.array([r[i] for r in rows], float).reshape((k,) + shape))
+
+    def col(i, shape=()):
+        return np.array([r[i] for r in rows], float).reshape((k,) + shape)
+
     clearance = col(6)
     miss, depth_error = miss_and_depth_error(y, p0, n, state.depth_mm)
     touched = bool(has_obstacles and k and np.min(clearance) <= 0.0)

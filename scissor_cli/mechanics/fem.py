@@ -177,15 +177,15 @@ def element_matrices(ops: FEOperators, C: np.ndarray, scale: np.ndarray | None =
     d = g.shape[1]
     dd = d * d
     rows = np.ascontiguousarray(C.reshape(M, dd * dd).T)  # rows[d²r + c] = C[:, r, c]
-    # T[r, b, k] = Σ_l C[r, dk+l] ∂N_b/∂X_l
+    # T[r, b, k] = Σ_j C[r, dk+j] ∂N_b/∂X_j
     T = np.empty((dd, d + 1, d, M))
     tmp = np.empty(M)
     for r in range(dd):
         for k in range(d):
             for b in range(d + 1):
                 np.multiply(rows[dd * r + d * k], g[b, 0], out=T[r, b, k])
-                for l in range(1, d):
-                    np.multiply(rows[dd * r + d * k + l], g[b, l], out=tmp)
+                for j in range(1, d):
+                    np.multiply(rows[dd * r + d * k + j], g[b, j], out=tmp)
                     T[r, b, k] += tmp
     gs = g * (ops.volume if scale is None else scale)
     pairs = pairs_for(d)

@@ -38,12 +38,12 @@ from scissor_cli.experiments.study import rows_as_columns
 from scissor_cli.output import figures, journal, layer_check, results
 from scissor_cli.output.error_budget import results as budget_results
 from scissor_cli.output.error_budget.figures import budget_figure
+from scissor_cli.output.insertion.results import write_insertion
 from scissor_cli.output.manipulation import manipulation_figure_inputs
 from scissor_cli.output.results import ResultsFile, temporary
 
 #: root attribute: the `product_key`s of what the run stored whole (docs/contract.md#resume)
 FINISHED = "finished"
-from scissor_cli.output.insertion.results import write_insertion
 
 
 class ResultsSink:

@@ -162,7 +162,8 @@ class Equilibrium:
         if fit is None:
             return None
         E, coefficient, equations = fit
-        past = with_tangent[-(-(-equations // per_state)):]  # the last ⌈equations / per_state⌉
+        n_past = -(-equations // per_state)  # ⌈equations / per_state⌉
+        past = with_tangent[-n_past:]
         d = np.array([h[0] - self.strokes for h in past])  # (m, C)
         if np.linalg.norm(ds) > REACH * np.max(np.linalg.norm(d, axis=1)):
             return None  # a polynomial extrapolates badly: beyond the history the tangent is safer
