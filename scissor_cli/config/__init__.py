@@ -42,7 +42,8 @@ from scissor_cli.config.sections import (
 __all__ = [
     "ELEMENT_BUDGET", "MAX_CONFIG_BYTES",
     "BoxConfig", "CameraConfig", "CircleConfig", "Config", "ConfigError", "ControllerConfig", "CupConfig",
-    "DHLinkConfig", "ForwardCase", "ImagingConfig", "InsertionConfig", "LayerCheckConfig", "ManipulationPointsConfig", "MaterialConfig", "MeshConfig",
+    "DHLinkConfig", "ForwardCase", "ImagingConfig", "InsertionConfig", "LayerCheckConfig", "ManipulationPointsConfig",
+    "MaterialConfig", "MeshConfig",
     "NeedleConfig", "ObstacleConfig",
     "RobotConfig", "SolverConfig", "StudyConfig", "TargetConfig", "TissueConfig", "TrialsConfig",
     "estimate_elements", "load_config", "obstacle_outline", "parse_config", "read_config_text", "resolved_yaml",

@@ -152,8 +152,8 @@ def run_loop(
         hist.wall.append(time.perf_counter() - tw)
         sim_t += max(dt, plant.actuator.last_move_s)
         command = new
-    return hist.result(plant, controller, desired, target, "closed", reason, message, time.perf_counter() - t0, cup_names,
-                       direction, cfg.error)
+    return hist.result(plant, controller, desired, target, "closed", reason, message, time.perf_counter() - t0,
+                       cup_names, direction, cfg.error)
 
 
 def _correctable_norm(step) -> float:

@@ -154,7 +154,10 @@ def true_tissue(model: Tissue, truth: TruthPerturbation) -> Tissue:
     """The trial's true tissue; the model itself when nothing differs (so one solve serves both)."""
     m = model.scene.material
     nu = None if truth.nu is None or truth.nu == m.nu else truth.nu
-    eta = truth.eta_kPa if truth.eta_kPa is not None else (m.eta_kPa * truth.eta_scale if truth.eta_scale != 1 else None)
+    if truth.eta_kPa is not None:
+        eta = truth.eta_kPa
+    else:
+        eta = m.eta_kPa * truth.eta_scale if truth.eta_scale != 1 else None
     eta = None if eta == m.eta_kPa else eta
     E_uniform = np.all(np.asarray(truth.E_scale) == 1.0)
     if E_uniform and truth.fiber_offset_rad == 0 and nu is None and eta is None:

@@ -53,7 +53,8 @@ def needs_slab(cfg: Config) -> bool:
 
 
 def cache_key(cfg: Config, plan_strokes: list[np.ndarray]) -> str:
-    """What the fitted model depends on, hashed: the scene, material, cups, targets, slab, design, the code's version."""
+    """What the fitted model depends on, hashed: the scene, material, cups, targets, slab, design, the code's
+    version."""
     kind = cfg.controller.model
     parts = {
         "kind": kind, "tol": SLAB_TRUTH_TOL,
@@ -100,7 +101,8 @@ def load_model_data(path: Path) -> Optional[ModelData]:
     return ModelData(str(a["kind"]), float(a["build_time_s"]), None if np.isnan(error) else error, calibration, samples)
 
 
-def fitted_model(cfg: Config, tissue: Tissue, slab: Optional[Tissue], plans: list, cache_dir: Optional[Path], jobs: int = 1) -> tuple[ModelData, bool]:
+def fitted_model(cfg: Config, tissue: Tissue, slab: Optional[Tissue], plans: list, cache_dir: Optional[Path],
+                 jobs: int = 1) -> tuple[ModelData, bool]:
     """The controller's model data, from the cache when it holds this key; (data, came from the cache).
 
     With jobs ≥ 2 the surrogate's design groups are solved in worker

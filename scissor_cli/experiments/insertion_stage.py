@@ -32,7 +32,8 @@ RAMP_FRAMES = 6
 
 
 def manipulation_ramp(tissue: Tissue, strokes: np.ndarray, frames: int = RAMP_FRAMES) -> list[np.ndarray]:
-    """Equilibria (N, 2) at strokes × k/frames, k = 0..frames, each warm-started from the last; the last is the start."""
+    """Equilibria (N, 2) at strokes × k/frames, k = 0..frames, each warm-started from the last; the last is the
+    start."""
     strokes = np.asarray(strokes, float)
     x, s_prev, out = tissue.rest.copy(), np.zeros_like(strokes), [tissue.rest.copy()]
     for k in range(1, frames + 1):

@@ -1,4 +1,5 @@
-"""The needle-model stage: each plan's target under the needle, as the controller's 3-D model knows it (docs/model.md §18).
+"""The needle-model stage: each plan's target under the needle, as the controller's 3-D model knows it
+(docs/model.md §18).
 
 With the needle inserted into the slab (`insertion`, `trials.truth: slab`)
 and a 3-D-aware controller model (calibrated, surrogate, slab), every

@@ -203,7 +203,8 @@ def smooth_field(centroids: np.ndarray, length_mm: float, rng: np.random.Generat
     return np.sqrt(2.0 / N_FEATURES) * np.cos(centroids @ omega.T + phase).sum(axis=1)
 
 
-def draw_trial(model: ErrorModel, nu_model: float, centroids: np.ndarray, seed: int, target_index: int, trial: int) -> TrialDraw:
+def draw_trial(model: ErrorModel, nu_model: float, centroids: np.ndarray, seed: int, target_index: int,
+               trial: int) -> TrialDraw:
     """Draw one trial's error sources; the same arguments give the same draw."""
     rng = trial_rng(seed, target_index, trial)
     # Every draw is made whatever its σ, so changing one σ does not shift the others.

@@ -77,10 +77,12 @@ class Selection:
                 + (f" (tol {p.tolerance:g})" if p.solver == "admm" else "")
                 + f", {p.model}, mesh level {p.level:g} ({p.n_elements} elements); predicted error "
                 f"{p.predicted_error_mm:.3g} mm = mesh {self.discretisation_mm[p.level]:.3g} + model "
-                f"{self.model_mm[p.model]:.3g}" + (f" + solver {self.solver_mm[p.tolerance]:.3g}" if p.solver == "admm" else "")
+                f"{self.model_mm[p.model]:.3g}"
+                + (f" + solver {self.solver_mm[p.tolerance]:.3g}" if p.solver == "admm" else "")
                 + f", predicted {p.predicted_time_s * 1e3:.0f} ms per solve")
         why = (f"; the cheapest of {len(self.candidates)} settings within {SAFETY:g} x the budget "
-               f"(calibrated on case {self.case!r} in {self.calibration_s:.1f} s, observed mesh order {self.order:.2f})")
+               f"(calibrated on case {self.case!r} in {self.calibration_s:.1f} s, "
+               f"observed mesh order {self.order:.2f})")
         if not self.meets_budget:
             why = f"; NO setting is predicted to meet the budget: this is the most accurate one{why}"
         return head + why
@@ -93,7 +95,8 @@ class Selection:
     def apply(self, cfg: Config) -> Config:
         """The config that runs with the picked mesh level, model and solver."""
         p = self.pick
-        solver = cfg.solver.model_copy(update={"kind": p.solver, "tolerance": p.tolerance if p.solver == "admm" else cfg.solver.tolerance})
+        tolerance = p.tolerance if p.solver == "admm" else cfg.solver.tolerance
+        solver = cfg.solver.model_copy(update={"kind": p.solver, "tolerance": tolerance})
         return _at_level(cfg, p.level).model_copy(update={
             "material": cfg.material.model_copy(update={"model": p.model}),
             "solver": solver,
@@ -173,7 +176,8 @@ def select(cfg: Config, accuracy_mm: float) -> Selection:
     for tol in ADMM_TOLERANCES:
         r, t = _timed(partial(_admm_or_unconverged, tissue2, strokes, tol))
         ok = r is not None and r.converged
-        solver_err[tol] = float(np.linalg.norm(target_positions(probe2, r.x) - positions[2.0], axis=1).max()) if ok else np.inf
+        solver_err[tol] = (float(np.linalg.norm(target_positions(probe2, r.x) - positions[2.0], axis=1).max())
+                           if ok else np.inf)
         admm_time[tol] = t / newton_time[2.0]  # relative to Newton at the same level
 
     # cost of Newton in elements: a power law through the calibration levels
@@ -194,7 +198,8 @@ def select(cfg: Config, accuracy_mm: float) -> Selection:
                 candidates.append(Candidate(L, model, "admm", tol, n[L], disc[L] + model_err[model] + solver_err[tol],
                                             base_t * admm_time[tol]))
     pick, meets = choose(candidates, accuracy_mm)
-    sel = Selection(accuracy_mm, pick, meets, q, disc, model_err, solver_err, time.perf_counter() - t_start, case, candidates)
+    sel = Selection(accuracy_mm, pick, meets, q, disc, model_err, solver_err, time.perf_counter() - t_start, case,
+                    candidates)
     progress.info(sel.explain())
     return sel
 

@@ -170,7 +170,8 @@ def _build(cfg: Config) -> Tissue:
     angles = mesh.angles_deg()
     progress.info(
         f"mesh: {mesh.n_elements} triangles, {mesh.n_nodes} nodes, min angle {angles.min():.1f}°, "
-        f"edges {mesh.edge_lengths().min():.2f}–{mesh.edge_lengths().max():.2f} mm ({time.perf_counter() - t_mesh:.2f} s)"
+        f"edges {mesh.edge_lengths().min():.2f}–{mesh.edge_lengths().max():.2f} mm "
+        f"({time.perf_counter() - t_mesh:.2f} s)"
     )
     return tissue
 
@@ -237,7 +238,8 @@ def _study_stage(cfg: Config, sink: RunSink) -> None:
     sink.study(study, seconds)
     for note in study.notes:
         progress.info(f"study: {note}")
-    progress.info(f"study: {len(study.rows)} combinations in {seconds:.1f} s (speed vs error: scissor report {sink.location})")
+    progress.info(f"study: {len(study.rows)} combinations in {seconds:.1f} s "
+                  f"(speed vs error: scissor report {sink.location})")
 
 
 def trial_tasks(tissue: Tissue, plans: list[NeedlePlan], model_data=None) -> list[TargetTask]:
@@ -269,8 +271,8 @@ def allocate_trial_arrays(sink: RunSink, cfg: Config, tasks: list[TargetTask], p
     sink.allocate_trials([p.target for p in plans], cfg.trials.count, attrs, without_plan)
 
 
-def _manipulation_stage(cfg: Config, tissue: Tissue, plans: list[NeedlePlan], sink: RunSink, done: frozenset[str] = frozenset(),
-                        imaging=None) -> list[Path]:
+def _manipulation_stage(cfg: Config, tissue: Tissue, plans: list[NeedlePlan], sink: RunSink,
+                        done: frozenset[str] = frozenset(), imaging=None) -> list[Path]:
     """The nominal manipulation of each planned target (truth = model, exact camera): Fig. 11.
 
     The open-loop baseline (one Jacobian step from rest) is kept beside it.
@@ -427,8 +429,9 @@ def _plan_stage(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary,
         if plan.feasible and not plan.robot_ok:
             how += f"; ROBOT: {plan.robot_note}"
         progress.info(
-            f"plan {target.name}: " + (f"{plan.side} entry, {_clearance_text(plan.clearance_mm)}, {how} ({plan.time_s:.1f} s)"
-                                       if plan.feasible else f"infeasible: {plan.reason}")
+            f"plan {target.name}: "
+            + (f"{plan.side} entry, {_clearance_text(plan.clearance_mm)}, {how} ({plan.time_s:.1f} s)"
+               if plan.feasible else f"infeasible: {plan.reason}")
         )
     return plans, model_data
 
@@ -468,7 +471,8 @@ def _forward_figure_inputs(name, tissue, case, strokes, result, targets_now: dic
     loop = boundary_loop(mesh)
     obstacles = embed_outlines(mesh, [o.outline for o in scene.obstacles])
     return dict(
-        title=f"{name} — forward case {case}: " + ", ".join(f"{c.name} {s:+.1f} mm" for c, s in zip(scene.cups, strokes)),
+        title=f"{name} — forward case {case}: "
+        + ", ".join(f"{c.name} {s:+.1f} mm" for c, s in zip(scene.cups, strokes)),
         rest=mesh.nodes,
         deformed=result.x,
         triangles=mesh.triangles,

@@ -171,7 +171,8 @@ def _admm_rows(tissue, strokes, probe, exact, case, level, kind, model, memory, 
             break
     for j, (tol, _, used, ok, x, message) in enumerate(runs[0]):
         t = float(np.median([run[j][1] for run in runs if len(run) > j]))
-        row = StudyRow(case, level, kind, model, name, tol, tissue.mesh.n_elements, t, used, ok, note="" if ok else message)
+        row = StudyRow(case, level, kind, model, name, tol, tissue.mesh.n_elements, t, used, ok,
+                       note="" if ok else message)
         if x is not None:
             positions = target_positions(probe, x)
             row.error_discrete_mm = float(np.linalg.norm(positions - exact, axis=1).max())

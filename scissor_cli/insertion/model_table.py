@@ -1,4 +1,5 @@
-"""The controller's 3-D model of a target under the needle, tabulated from the nominal slab's insertion (docs/model.md §18).
+"""The controller's 3-D model of a target under the needle, tabulated from the nominal slab's insertion
+(docs/model.md §18).
 
 `tabulate` inserts the needle into the nominal slab (the controller's
 knowledge, no trial's perturbation) from its equilibrium at the plan's

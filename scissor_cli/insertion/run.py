@@ -95,7 +95,8 @@ class InsertionResult:
         return self.stop_reason in ("depth reached", "target reached")
 
 
-def miss_and_depth_error(target: np.ndarray, entry: np.ndarray, direction: np.ndarray, depth_mm: float) -> tuple[float, float]:
+def miss_and_depth_error(target: np.ndarray, entry: np.ndarray, direction: np.ndarray,
+                         depth_mm: float) -> tuple[float, float]:
     """Distance (mm) from the target (d,) to the needle line, and tip minus target along the axis (mm); d = 2 or 3."""
     rel = np.asarray(target, float) - entry
     if rel.size == 2:
@@ -438,7 +439,8 @@ def _move_plant(tissue, state, x, s, command, loads, responses) -> np.ndarray:
 
 
 def _clearance(embedding, x, p0, tip, radius_mm) -> float:
-    """Shaft (p0 → tip (2,), radius) to the nearest deformed obstacle in the layer's plane (mm); +inf without obstacles."""
+    """Shaft (p0 → tip (2,), radius) to the nearest deformed obstacle in the layer's plane (mm); +inf without
+    obstacles."""
     outlines = deformed_outlines(embedding, x)
     if not outlines:
         return float("inf")

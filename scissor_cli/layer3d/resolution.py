@@ -158,7 +158,8 @@ class _Ladder:
             levels = graded_levels(spec.height_mm, spec.layer_z_mm, first, largest)[0].size
             self.candidates.append(SlabCandidate(scale, first, largest, int(levels),
                                                  3 * surface.n_elements * (int(levels) - 1)))
-        self.solved: dict[int, dict[int, object]] = {}  # k -> case -> (positions (P, 3), solve_s, factor_s, tets) or the error
+        # k -> case -> (positions (P, 3), solve_s, factor_s, tets) or the error
+        self.solved: dict[int, dict[int, object]] = {}
 
     def task(self, k: int, cases: list[int]) -> tuple:
         """`solve_group`'s arguments for candidate k's forward cases `cases` (indices)."""

@@ -1,4 +1,5 @@
-"""The controller's surrogate: the targets' positions over the strokes, learned from nominal slab equilibria (docs/model.md §15).
+"""The controller's surrogate: the targets' positions over the strokes, learned from nominal slab equilibria
+(docs/model.md §15).
 
 Training: the nominal slab (no trial perturbation) is solved at a
 space-filling design of strokes within the cups' limits — the 2^C corners

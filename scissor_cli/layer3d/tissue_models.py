@@ -94,7 +94,8 @@ def model_solves(kind: str, layer: Tissue, plan_strokes: list[np.ndarray], sampl
 
 
 def _limits(tissue: Tissue) -> tuple[np.ndarray, np.ndarray]:
-    return (np.array([c.stroke_min_mm for c in tissue.scene.cups]), np.array([c.stroke_max_mm for c in tissue.scene.cups]))
+    cups = tissue.scene.cups
+    return np.array([c.stroke_min_mm for c in cups]), np.array([c.stroke_max_mm for c in cups])
 
 
 class ControllerModel:

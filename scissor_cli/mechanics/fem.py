@@ -51,7 +51,8 @@ class FEOperators:
 
     @cached_property
     def volume(self) -> np.ndarray:
-        """Element volumes (M,) in mm³ (h·A_e in 2-D): energy density × volume = µJ; made once (every gradient reads it)."""
+        """Element volumes (M,) in mm³ (h·A_e in 2-D): energy density × volume = µJ; made once (every gradient
+        reads it)."""
         return self.thickness_mm * self.area
 
 
@@ -238,7 +239,8 @@ def reduction_matrix(ops: FEOperators) -> sp.csr_matrix:
     dd, n = d * d, d * (d + 1)
     rows = np.repeat(np.arange(dd * M).reshape(M, dd), n, axis=1)
     cols = np.broadcast_to(ops.elem_dofs[:, None, :], (M, dd, n)).reshape(M, dd * n)
-    return sp.csr_matrix((ops.G.reshape(M, dd * n).ravel(), (rows.ravel(), cols.ravel())), shape=(dd * M, d * ops.n_nodes))
+    return sp.csr_matrix((ops.G.reshape(M, dd * n).ravel(), (rows.ravel(), cols.ravel())),
+                         shape=(dd * M, d * ops.n_nodes))
 
 
 @dataclass(frozen=True)

@@ -156,7 +156,8 @@ class Tissue:
         return U, grad, self.element_stiffness(x)
 
     def element_stiffness(self, x: np.ndarray, project: bool = False) -> np.ndarray:
-        """Element Hessians, packed (21, M) in 2-D, (78, M) in 3-D (`fem.element_matrices`), in mN/mm; PSD-projected if asked.
+        """Element Hessians, packed (21, M) in 2-D, (78, M) in 3-D (`fem.element_matrices`), in mN/mm;
+        PSD-projected if asked.
 
         In 2-D the projection clamps each energy term's closed-form
         eigenvalues (`materials.evaluate_projected`): far cheaper than
@@ -209,7 +210,8 @@ class Tissue:
 
     @cached_property
     def compiled(self) -> bool:
-        """Whether gradient and stiffness run in compiled loops: `mechanics.compiled` (2-D) or `compiled3d`, neo-Hookean."""
+        """Whether gradient and stiffness run in compiled loops: `mechanics.compiled` (2-D) or `compiled3d`,
+        neo-Hookean."""
         return self._kernels is not None
 
     @cached_property
@@ -287,10 +289,12 @@ def build_tissue(scene: Scene, mesh: Mesh, model: str | None = None) -> Tissue:
     for cup in scene.cups:
         nodes = mesh.boundary_nodes_near(cup.contact, cup.radius_mm)
         if len(nodes) == 0:
-            raise BoundaryError(f"cup {cup.name!r} grips no boundary node within {cup.radius_mm} mm of {cup.contact.tolist()}")
+            raise BoundaryError(f"cup {cup.name!r} grips no boundary node within {cup.radius_mm} mm "
+                                f"of {cup.contact.tolist()}")
         clash = np.intersect1d(nodes, fixed)
         if len(clash):
-            raise BoundaryError(f"cup {cup.name!r} grips {len(clash)} node(s) of a fixed side; move it or shrink radius_mm")
+            raise BoundaryError(f"cup {cup.name!r} grips {len(clash)} node(s) of a fixed side; "
+                                "move it or shrink radius_mm")
         for other, prev in zip(scene.cups, cup_nodes):
             if len(np.intersect1d(nodes, prev)):
                 raise BoundaryError(f"cups {other.name!r} and {cup.name!r} grip the same nodes")

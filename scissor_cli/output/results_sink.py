@@ -210,7 +210,8 @@ class ResultsSink:
                 restored.add((rec["target"], rec["trial"]))
                 pending[rec["target"]].discard(rec["trial"])
         if restored:
-            self._notes.append(f"restored {len(restored)} finished trial(s) from {journal.journal_path(self.out.path).name}")
+            self._notes.append(f"restored {len(restored)} finished trial(s) "
+                               f"from {journal.journal_path(self.out.path).name}")
         self._replay = []
 
     def pending_trials(self) -> dict[str, np.ndarray]:
@@ -260,7 +261,8 @@ class RunDirectory:
 
     def start(self, config_yaml: str) -> None:
         """Record the run's config (STARTED) before its first stage, whole or not at all."""
-        run_cache.write_whole(self.location / STARTED, lambda partial: partial.write_text(config_yaml, encoding="utf-8"))
+        run_cache.write_whole(self.location / STARTED,
+                              lambda partial: partial.write_text(config_yaml, encoding="utf-8"))
 
     def open(self, config_yaml: str, seed: int) -> ResultsSink:
         self.location.mkdir(parents=True, exist_ok=True)

@@ -324,6 +324,7 @@ class RobotModel:
         T = self.fk(q)
         tip, axis = _closed_tip_axis(q, cf)
         scale = 1.0 + np.abs(T[:, :3, 3]).max()
-        if np.allclose(tip, T[:, :3, 3], rtol=0, atol=1e-9 * scale) and np.allclose(axis, T[:, :3, 2], rtol=0, atol=1e-12):
+        if (np.allclose(tip, T[:, :3, 3], rtol=0, atol=1e-9 * scale)
+                and np.allclose(axis, T[:, :3, 2], rtol=0, atol=1e-12)):
             return cf
         return None

@@ -108,7 +108,8 @@ class EquilibriumSolver:
             state = self._admm_state
         else:
             state = None if start is None else solver.state_from_positions(start)
-        result, self._admm_state = solver.solve(strokes, state=state, inertia=inertia, tol=self.tol, max_iter=self.max_iter)
+        result, self._admm_state = solver.solve(strokes, state=state, inertia=inertia, tol=self.tol,
+                                                max_iter=self.max_iter)
         if not result.converged:
             raise SolverError(f"ADMM did not converge: {result.message}", result)
         return result

@@ -119,7 +119,8 @@ class Equilibrium:
             x = self._corrected(strokes, x0, s0, fitted)
             if x is None:
                 self.stats["fallbacks"] += 1
-                r = solve_newton(self.tissue, strokes, x0=self.x, strokes0=self.strokes, tol=self.tol, factors=self.factors)
+                r = solve_newton(self.tissue, strokes, x0=self.x, strokes0=self.strokes, tol=self.tol,
+                                 factors=self.factors)
                 x = r.x
                 self.stats["refactors"] += r.factorizations
                 self.refactor(x)  # the old tangent just failed as a predictor
@@ -276,7 +277,8 @@ def _polynomial(C: int, exact: bool, p: int) -> tuple[np.ndarray, np.ndarray, in
 
 
 def _weights(A: np.ndarray, f: np.ndarray) -> np.ndarray:
-    """w (m,) = f pinv(A) for the fit's equations A (m, k) and the terms f (k,) at the move: the min-norm lstsq of Aᵀ w = f.
+    """w (m,) = f pinv(A) for the fit's equations A (m, k) and the terms f (k,) at the move: the min-norm lstsq
+    of Aᵀ w = f.
 
     LAPACK's gelsy (rank-revealing QR): half the time of the SVD's gelsd on these few-dozen-row systems.
     """

@@ -255,6 +255,6 @@ def imaging_outputs(record: ImagingRecord, tissue, layer_frames: list, out_dir: 
     name = tissue.scene.name
     png = save(bmode_figure(record, f"{name} — {record.target}: B-mode before and after the manipulation "
                                     f"({probe}{model}{K} frames)"), Path(out_dir) / f"imaging_{record.target}.png")
-    gif = imaging_animation(Path(out_dir) / f"imaging_{record.target}.gif", record, tissue, layer_frames,
-                            f"{name} — {record.target}: the manipulation in B-mode ({probe.rstrip(', ') or 'ultrasound'})")
+    title = f"{name} — {record.target}: the manipulation in B-mode ({probe.rstrip(', ') or 'ultrasound'})"
+    gif = imaging_animation(Path(out_dir) / f"imaging_{record.target}.gif", record, tissue, layer_frames, title)
     return [png, gif]
