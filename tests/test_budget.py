@@ -50,8 +50,10 @@ def test_a_row_is_the_trials_of_its_variant_config(budget_run):
     alone = _simulate(path, tmp / "alone")
     with h5py.File(h5_path) as a, h5py.File(alone) as b:
         for target in ("T1", "T2"):
-            assert np.array_equal(a[f"budget/localisation/{target}/final_error"][()], b[f"trials/{target}/final_error"][()])
-            assert np.array_equal(a[f"budget/localisation/{target}/miss_mm"][()], b[f"trials/{target}/manipulation_miss_mm"][()])
+            assert np.array_equal(a[f"budget/localisation/{target}/final_error"][()],
+                                  b[f"trials/{target}/final_error"][()])
+            assert np.array_equal(a[f"budget/localisation/{target}/miss_mm"][()],
+                                  b[f"trials/{target}/manipulation_miss_mm"][()])
 
 
 def test_a_row_that_draws_nothing_runs_once_and_equals_its_variant_run_in_full(budget_run):
@@ -70,7 +72,8 @@ def test_a_row_that_draws_nothing_runs_once_and_equals_its_variant_run_in_full(b
             stored = a[f"budget/none/{target}/final_error"][()]
             assert stored.shape == (cfg.trials.count, 2)
             assert np.array_equal(stored, b[f"trials/{target}/final_error"][()])
-            assert np.array_equal(a[f"budget/none/{target}/miss_mm"][()], b[f"trials/{target}/manipulation_miss_mm"][()])
+            assert np.array_equal(a[f"budget/none/{target}/miss_mm"][()],
+                                  b[f"trials/{target}/manipulation_miss_mm"][()])
 
 
 def test_only_rows_without_a_drawn_source_or_speckle_are_identical():
@@ -114,7 +117,8 @@ def test_budget_without_trials_is_refused(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "scissor_cli", "validate", str(write_scene(tmp_path, data))],
                           capture_output=True, text=True)
     assert proc.returncode == 2 and "trials.budget" in proc.stderr and "Traceback" not in proc.stderr
-    proc = subprocess.run([sys.executable, "-m", "scissor_cli", "simulate", str(write_scene(tmp_path, _small(), "b.yaml")),
+    proc = subprocess.run([sys.executable, "-m", "scissor_cli", "simulate",
+                           str(write_scene(tmp_path, _small(), "b.yaml")),
                            "--budget", "--trials", "0", "--out", str(tmp_path / "o")], capture_output=True, text=True)
     assert proc.returncode == 2 and "--budget" in proc.stderr and "Traceback" not in proc.stderr
 

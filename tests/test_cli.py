@@ -54,7 +54,8 @@ def test_simulate_writes_contract_layout(run):
         for key in ("model", "E_kPa", "nu", "eta_kPa", "thickness_mm", "density_kg_per_mm3", "fiber_tension_only"):
             assert key in f["material"].attrs
         assert f["cups/cup/nodes"].dtype == np.int64
-        assert np.allclose(f["cups/cup"].attrs["axis"], [0, -1]) and np.allclose(f["cups/cup"].attrs["contact"], [50, 60])
+        assert np.allclose(f["cups/cup"].attrs["axis"], [0, -1])
+        assert np.allclose(f["cups/cup"].attrs["contact"], [50, 60])
         for case, stroke in (("push10", 10.0), ("pull8", -8.0)):
             g = f[f"forward/{case}"]
             assert g["strokes"].attrs["cup"] == stroke

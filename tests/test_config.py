@@ -35,7 +35,8 @@ from helpers import EXAMPLE, ROOT, deep_update, example_dict, write_scene
 
 
 def run_cli(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "scissor_cli.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd)
+    return subprocess.run([sys.executable, "-m", "scissor_cli.cli", *map(str, args)], capture_output=True, text=True,
+                          cwd=cwd)
 
 
 def parse(data: dict) -> Config:
@@ -194,7 +195,8 @@ def test_nonsense_numbers_are_refused_everywhere(value):
         deep_update(mutated, ".".join(map(str, path)), value)
         message = refused(mutated)
         dotted = path[0] + "".join(f"[{k}]" if isinstance(k, int) else f".{k}" for k in path[1:])
-        assert message.split(" (line")[0] in (f"scene.yaml: {dotted}", f"scene.yaml: {dotted.rsplit('[', 1)[0]}"), message
+        named = (f"scene.yaml: {dotted}", f"scene.yaml: {dotted.rsplit('[', 1)[0]}")
+        assert message.split(" (line")[0] in named, message
         assert "must be" in message or "must" in message, message
 
 
@@ -285,9 +287,10 @@ def test_odd_keys_and_file_names_are_shown_escaped(tmp_path):
 
 
 def test_polygon_and_ellipse_layers_validate():
-    cfg = parse_config("tissue: {shape: ellipse, size_mm: [80, 50]}\ncups: [{name: c, contact_mm: [40, 50], axis: [0, -1]}]\n")
+    cups = "cups: [{name: c, contact_mm: [40, 50], axis: [0, -1]}]\n"
+    cfg = parse_config("tissue: {shape: ellipse, size_mm: [80, 50]}\n" + cups)
     assert cfg.tissue.shape == "ellipse"
-    poly = "tissue: {shape: polygon, polygon_mm: [[0, 0], [90, 0], [80, 50], [10, 50]]}\ncups: [{name: c, contact_mm: [40, 50], axis: [0, -1]}]\n"
+    poly = "tissue: {shape: polygon, polygon_mm: [[0, 0], [90, 0], [80, 50], [10, 50]]}\n" + cups
     assert parse_config(poly).tissue.polygon_mm[2] == [80.0, 50.0]
 
 
@@ -335,7 +338,8 @@ def test_largest_scene_file_validates_in_seconds():
     outline = np.column_stack([500 + 499 * np.cos(t), 500 + 499 * np.sin(t)]).round(3).tolist()
     s = np.linspace(0, 2 * np.pi, 150, endpoint=False)
     obstacles = [{"name": f"o{k}", "polygon_mm": np.column_stack([
-        250 + 70 * (k % 6) + 20 * np.cos(s), 250 + 70 * (k // 6) + 20 * np.sin(s)]).round(3).tolist()} for k in range(33)]
+        250 + 70 * (k % 6) + 20 * np.cos(s), 250 + 70 * (k // 6) + 20 * np.sin(s)]).round(3).tolist()}
+        for k in range(33)]
     data = {"tissue": {"shape": "polygon", "size_mm": None, "polygon_mm": outline,
                        "mesh": {"min_edge_mm": 20.0, "max_edge_mm": 60.0}},
             "cups": [{"name": "c", "contact_mm": outline[250], "axis": [0.0, -1.0], "radius_mm": 5.0}],
@@ -372,7 +376,8 @@ def _mesh_count(cfg: Config, scale=None) -> int:
     from scissor_cli.mesh.mesh import mesh_for_config
 
     s = cfg.tissue.mesh.scale if scale is None else scale
-    at = cfg.model_copy(update={"tissue": cfg.tissue.model_copy(update={"mesh": cfg.tissue.mesh.model_copy(update={"scale": s})})})
+    mesh = cfg.tissue.mesh.model_copy(update={"scale": s})
+    at = cfg.model_copy(update={"tissue": cfg.tissue.model_copy(update={"mesh": mesh})})
     return mesh_for_config(scene_of(at), at.tissue.mesh).n_elements
 
 
@@ -435,7 +440,8 @@ def test_estimate_of_an_absurd_mesh_is_quick():
     deep_update(data, "tissue.size_mm", [1000.0, 1000.0])
     deep_update(data, "cups.0.contact_mm", [50.0, 1000.0])
     deep_update(data, "tissue.mesh.min_edge_mm", 0.05)
-    data["targets"] = [{"name": f"t{k}", "position_mm": [50.0 + 120 * (k % 8), 50.0 + 120 * (k // 8)]} for k in range(64)]
+    data["targets"] = [{"name": f"t{k}", "position_mm": [50.0 + 120 * (k % 8), 50.0 + 120 * (k // 8)]}
+                       for k in range(64)]
     cfg = Config.model_validate(data)
     t0 = time.perf_counter()
     assert estimate_elements(cfg, graded=False) > 1000 * ELEMENT_BUDGET

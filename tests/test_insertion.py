@@ -273,7 +273,8 @@ def test_the_chord_holds_residual_is_newtons(model):
     x, hold, loads = _a_hold(tissue, cfg)
     x = hold.place(x) + 0.01 * np.sin(np.arange(x.size)).reshape(x.shape)  # off equilibrium
     _, g = objective_gradient(tissue, x, None, loads)
-    assert hold.residual(tissue, g) == pytest.approx(_Held(tissue, hold.conditions(loads)).residual(tissue, g), rel=1e-12)
+    assert hold.residual(tissue, g) == pytest.approx(_Held(tissue, hold.conditions(loads)).residual(tissue, g),
+                                                     rel=1e-12)
 
 
 def test_a_schur_chord_step_meets_the_hold_and_the_tangent_equations(model):
@@ -387,7 +388,8 @@ def test_the_kept_factorisation_and_a_fresh_newton_reach_the_same_equilibrium(mo
 
 
 def test_a_step_on_the_kept_factorisation_matches_newton_passes(model, monkeypatch):
-    """The same insertion with the chord solver and with every pass solved by Newton: same stick/slip, same positions."""
+    """The same insertion with the chord solver and with every pass solved by Newton: same stick/slip, same
+    positions."""
     from scissor_cli.insertion import chord, needle
     from scissor_cli.insertion.chord import ChordFailed
 

@@ -16,8 +16,8 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "scissor_cli"
 LAYERS = [
-    "", "geometry", "runtime", "progress", "text", "config", "scene", "mesh", "mechanics", "solvers", "robot", "planning",
-    "sensing", "control", "insertion", "layer3d", "experiments", "output", "cli", "__main__",
+    "", "geometry", "runtime", "progress", "text", "config", "scene", "mesh", "mechanics", "solvers", "robot",
+    "planning", "sensing", "control", "insertion", "layer3d", "experiments", "output", "cli", "__main__",
 ]
 RANK = {name: i for i, name in enumerate(LAYERS)}
 BASE = {"", "geometry", "runtime", "progress", "text"}  # importable from everywhere
@@ -160,7 +160,8 @@ def test_runtime_configure_gives_cvxopts_blas_the_kernels_numpys_picked():
         "runtime.configure()\n"
         "import numpy, cvxopt\n"
         "from threadpoolctl import threadpool_info\n"
-        "arch = {i['prefix']: i.get('architecture') for i in threadpool_info() if i.get('internal_api') == 'openblas'}\n"
+        "arch = {i['prefix']: i.get('architecture') for i in threadpool_info()\n"
+        "        if i.get('internal_api') == 'openblas'}\n"
         "mine = [a for p, a in arch.items() if 'scipy' not in p]\n"
         "theirs = {a for p, a in arch.items() if 'scipy' in p}\n"
         "core = os.environ.get('OPENBLAS_CORETYPE')\n"

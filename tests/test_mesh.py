@@ -80,7 +80,8 @@ def test_boundary_conditions(example):
     cfg, scene, mesh = example
     tissue = build_tissue(scene, mesh)
     assert np.allclose(mesh.nodes[tissue.fixed_nodes, 1], 0.0)
-    assert np.isclose(mesh.nodes[tissue.fixed_nodes, 0].min(), 0) and np.isclose(mesh.nodes[tissue.fixed_nodes, 0].max(), 100)
+    assert np.isclose(mesh.nodes[tissue.fixed_nodes, 0].min(), 0)
+    assert np.isclose(mesh.nodes[tissue.fixed_nodes, 0].max(), 100)
     grip = mesh.nodes[tissue.cup_nodes[0]]
     assert np.allclose(grip[:, 1], 60.0)
     # the grip ends are vertices: every mesh grips exactly contact ± radius

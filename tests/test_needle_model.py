@@ -31,7 +31,8 @@ from scissor_cli.solvers.newton import solve_newton
 from helpers import example_dict
 
 INSERTION = {"step_mm": 2.0, "friction_static_mN_per_mm": 15.0, "friction_kinetic_mN_per_mm": 10.0,
-             "tip_force_mN": 100.0, "tip_zone_mm": 2.0, "capture_radius_mm": 2.5, "strategies": ["none", "depth", "loop"]}
+             "tip_force_mN": 100.0, "tip_zone_mm": 2.0, "capture_radius_mm": 2.5,
+             "strategies": ["none", "depth", "loop"]}
 LAYER_Z = 4.0
 TARGET = np.array([48.0, 45.0])  # below the cup
 ENTRY, AXIS, DEPTH = np.array([0.0, 45.0]), np.array([1.0, 0.0]), 48.0

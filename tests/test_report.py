@@ -120,7 +120,8 @@ def test_extra_iterations_count_what_the_loop_took_beyond_the_drives_speed(tmp_p
         g = f.create_group("trials/T1")
         g["iterations"] = np.array([5, 12, 9])
         for k, final in enumerate(([1.0, 0.2], [0.4, -3.2], [0.0, 0.0])):
-            h = g.create_dataset(f"history/{k}", data=np.array([[0, 0, 0, 0, 0, 1.0], [0.1, 9, final[0], 9, final[1], 1.0]]))
+            h = g.create_dataset(f"history/{k}",
+                                 data=np.array([[0, 0, 0, 0, 0, 1.0], [0.1, 9, final[0], 9, final[1], 1.0]]))
             h.attrs["columns"] = columns
         step = np.array([0.5, 0.5])  # 5 mm/s at 10 Hz
         np.testing.assert_array_equal(_extra_iterations(g, np.array([0, 1, 2]), step), [5 - 2, 12 - 7, 9 - 0])

@@ -15,7 +15,8 @@ PAPER = RobotModel.paper()
 
 def test_coverage_of_hand_checkable_boxes():
     # tips filling x in [0, 10] of a 20 x 10 x 10 box: exactly half its voxels
-    g = np.stack(np.meshgrid(np.arange(0.5, 10, 1.0), np.arange(0.5, 10, 1.0), np.arange(0.5, 10, 1.0)), -1).reshape(-1, 3)
+    centres = np.arange(0.5, 10, 1.0)
+    g = np.stack(np.meshgrid(centres, centres, centres), -1).reshape(-1, 3)
     axes = np.tile([1.0, 0.0, 0.0], (len(g), 1))
     c = coverage(g, axes, [0, 0, 0], [20, 10, 10], voxel_mm=5.0)
     assert np.isclose(c.coverage, 0.5) and c.coverage_multi_direction == 0.0
