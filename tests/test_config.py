@@ -493,3 +493,10 @@ def test_every_shipped_scene_validates(path):
     """What the README and docs tell a user to run must load (configs/, the package's default)."""
     cfg = load_config(path)
     assert cfg.name
+
+
+def test_the_packaged_example_is_configs_example():
+    """`scissor simulate` with no config runs the packaged scene; the docs point at configs/example.yaml;
+    the tests read either: one file, twice."""
+    packaged = ROOT / "scissor_cli" / "scenes" / "example.yaml"
+    assert packaged.read_text() == (ROOT / "configs" / "example.yaml").read_text()
