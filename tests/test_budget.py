@@ -14,6 +14,7 @@ from scissor_cli.config import parse_config, resolved_yaml
 from scissor_cli.experiments.error_budget import ROWS, budget_plan, identical_trials
 from scissor_cli.output.error_budget.results import BudgetCell, budget_rows
 
+from figure_checks import assert_png_drawn
 from helpers import deep_update, example_dict, write_scene
 
 
@@ -94,7 +95,7 @@ def test_the_all_row_is_the_ordinary_trials(budget_run):
         rows = [r for r in a["budget"].attrs["sources"] if r != "all"]
         assert set(rows) == {"camera", "localisation", "E", "nu", "eta", "fiber", "actuator", "none"}
         assert a["budget"].attrs["paper_max_mm"].shape == (2, 2)
-    assert (tmp / "run" / "budget.png").exists()
+    assert_png_drawn(tmp / "run" / "budget.png")
 
 
 def test_rows_the_scene_cannot_have_are_skipped_with_a_note():
@@ -161,7 +162,7 @@ def test_slab_truth_budget_runs_with_its_3d_row(tmp_path):
     with h5py.File(h5) as f:
         rows = set(f["budget"].keys())
         assert {"slab", "camera", "none"} <= rows and "trials" in f  # the all row is the run's own /trials
-    assert (tmp_path / "run" / "budget.png").exists()
+    assert_png_drawn(tmp_path / "run" / "budget.png")
     rep = subprocess.run([sys.executable, "-m", "scissor_cli", "report", str(tmp_path / "run"), "--out",
                           str(tmp_path / "rep")], capture_output=True, text=True, timeout=600)
     assert rep.returncode == 0, rep.stderr

@@ -24,6 +24,8 @@ from scissor_cli.solvers.jacobian import cup_target_jacobian
 from scissor_cli.solvers.newton import solve_newton
 from scissor_cli.solvers.tracking import HISTORY, REACH, Equilibrium
 
+from figure_checks import assert_figure_readable, assert_png_drawn
+
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ("paper_pull", "paper_push", "example")
 SCALES = (1.3, 0.7)
@@ -413,8 +415,8 @@ def test_manipulation_figure(tmp_path):
     drawing = manipulation_figure_inputs(tissue, r, tissue.scene.targets[0].rest, corridor)
     assert drawing.corridor_before.shape == (2, 2) and np.all(np.isfinite(drawing.corridor_after))
     fig = figures.manipulation_figure(drawing)
-    path = figures.save(fig, tmp_path / "manipulation_T1.png")
-    assert path.stat().st_size > 10_000
+    assert_figure_readable(fig)
+    assert_png_drawn(figures.save(fig, tmp_path / "manipulation_T1.png"), min_ink=0.1, min_colour=0.05)
     assert "T1" in fig._suptitle.get_text() and "clearance" in fig._suptitle.get_text()
 
 

@@ -25,6 +25,7 @@ from scissor_cli.layer3d.tissue_models import ControllerModel, ModelData, build_
 from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
 from scissor_cli.mesh.probe import probe_targets, target_positions
 
+from figure_checks import assert_png_drawn
 from helpers import deep_update, example_dict, write_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -203,7 +204,7 @@ def test_surrogate_run_records_the_model_plans_with_it_and_reuses_its_cache(tmp_
         assert abs(plan["model_strokes"][0] - plan["slab_strokes"][0]) <= 0.25  # (the layer asks 1.3 mm less)
         assert 0 <= plan["model_error_mm"] <= 0.05  # the surrogate is the slab at its plan
         first_errors = f["trials/T2/final_error"][()]
-    assert (tmp_path / "runs" / "a" / "controller_model.png").exists()
+    assert_png_drawn(tmp_path / "runs" / "a" / "controller_model.png")
     with h5py.File(tmp_path / "runs" / "a" / "results.h5") as f:
         assert f["controller_model/paths"].attrs["kind"] == "surrogate"  # what report draws beside other models
     second = _cli("simulate", scene_path, "--out", tmp_path / "runs" / "b", "--jobs", "1")
@@ -220,7 +221,7 @@ def test_surrogate_run_records_the_model_plans_with_it_and_reuses_its_cache(tmp_
     assert row["controller"] == "surrogate" and int(row["stroke_limit_stops"]) >= 0
     assert float(row["model_error_mm"]) <= 0.05 and float(row["time_per_iteration_s"]) > 0
     assert 0 <= float(row["plan_model_error_mm"]) <= 0.05
-    assert (tmp_path / "report" / "controller_models.png").exists()
+    assert_png_drawn(tmp_path / "report" / "controller_models.png")
 
 
 @pytest.mark.slow  # (a plan refused before the trials: tests/test_planner.py's infeasible plans are the default's)

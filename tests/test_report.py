@@ -13,6 +13,8 @@ from scissor_cli.experiments.simulate import Execution, run_simulation
 from scissor_cli.output.report import ReportError, report_trials
 from scissor_cli.output.results_sink import RunDirectory
 
+from figure_checks import assert_figure_readable, assert_png_drawn
+
 
 @pytest.fixture(scope="module")
 def two_runs(tmp_path_factory):
@@ -24,7 +26,7 @@ def two_runs(tmp_path_factory):
 
 def test_report_writes_plots_and_tables(two_runs, tmp_path):
     out = report_trials(list(two_runs), tmp_path / "rep")
-    assert (tmp_path / "rep" / "error_boxplots.png").stat().st_size > 10_000
+    assert_png_drawn(tmp_path / "rep" / "error_boxplots.png")
     rows = list(csv.DictReader(open(tmp_path / "rep" / "summary.csv")))
     assert [r["target"] for r in rows] == ["T1", "T2", "T1", "T2"]
     assert "prosthesis" in rows[0]["run"] and "ex_vivo" in rows[2]["run"]
@@ -33,6 +35,22 @@ def test_report_writes_plots_and_tables(two_runs, tmp_path):
     assert float(rows[0]["max_x"]) == pytest.approx(e[:, 0].max(), abs=1e-3)
     assert float(rows[0]["median_y"]) == pytest.approx(np.median(e[:, 1]), abs=1e-3)
     assert "| T2 |" in out.table_markdown
+
+
+def test_report_figures_are_readable(two_runs):
+    """The box plots `report_trials` draws, from the two runs' trials: labelled, titled, with data."""
+    from scissor_cli.output import figures
+    from scissor_cli.output.miss_figures import miss_boxplots
+    from scissor_cli.output.report import load_run
+
+    runs = [load_run(d) for d in two_runs]
+    assert_figure_readable(figures.error_boxplots([(r.label, {t: d.errors for t, d in r.targets.items()})
+                                                   for r in runs]))
+    misses = [(r.label, {t: d.miss for t, d in r.targets.items() if d.miss is not None}) for r in runs]
+    assert all(m for _, m in misses)
+    assert_figure_readable(miss_boxplots(misses))
+    iterations = {t: d.iterations for t, d in runs[0].targets.items()}
+    assert_figure_readable(figures.iterations_histogram(iterations, "control iterations per trial"))
 
 
 def test_report_refuses_incomplete_run_unless_partial(two_runs, tmp_path):

@@ -10,6 +10,8 @@ from scissor_cli.output.workspace_file import plot_workspace, write_workspace_h5
 from scissor_cli.robot.chain import RobotModel
 from scissor_cli.robot.workspace import DEFAULT_BOX_MAX, DEFAULT_BOX_MIN, coverage, reachable_coverage, run_workspace
 
+from figure_checks import assert_png_drawn
+
 PAPER = RobotModel.paper()
 
 
@@ -36,7 +38,7 @@ def test_paper_robot_coverage_and_contract_file(tmp_path):
         assert np.allclose(w.attrs["box_min"], [60, 50, 200]) and np.allclose(w.attrs["box_max"], [210, 380, 300])
         assert 0 < w.attrs["coverage"] <= 1
         assert np.allclose(np.linalg.norm(w["axis"][:100], axis=1), 1)
-    assert (tmp_path / "ws" / "workspace.png").stat().st_size > 20_000
+    assert_png_drawn(tmp_path / "ws" / "workspace.png", min_colour=0.02)
 
 
 def test_same_seed_same_samples():
@@ -80,4 +82,4 @@ def test_h5_round_trip_and_figure(tmp_path):
         assert w.attrs["coverage"] == res.coverage.coverage and w.attrs["samples"] == 5000
         assert "rad" in w["joints"].attrs["units"] and f.attrs["scissor_version"] == "test"
     plot_workspace(res, tmp_path / "ws.png")
-    assert (tmp_path / "ws.png").stat().st_size > 10_000
+    assert_png_drawn(tmp_path / "ws.png", min_colour=0.02)
