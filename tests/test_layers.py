@@ -242,3 +242,19 @@ def test_no_function_takes_more_than_12_parameters():
                 if count > 12:
                     many.append(f"{path.relative_to(PACKAGE)}:{node.lineno} {node.name} ({count})")
     assert not many, many
+
+
+def test_equilibria_outside_solvers_go_through_solvers_equilibrium():
+    """README: "Every equilibrium goes through `solvers.equilibrium`": outside solvers/, no module imports or
+    calls `solve_newton` (the one Newton solve `solve_equilibrium` wraps)."""
+    direct = []
+    for module, path in MODULES.items():
+        if _layer(module) == "solvers":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            named = (isinstance(node, ast.ImportFrom) and any(a.name == "solve_newton" for a in node.names)
+                     or isinstance(node, ast.Attribute) and node.attr == "solve_newton"
+                     or isinstance(node, ast.Name) and node.id == "solve_newton")
+            if named:
+                direct.append(f"{module}:{node.lineno}")
+    assert not direct, f"solve_newton outside solvers/ (call solvers.equilibrium.solve_equilibrium): {direct}"

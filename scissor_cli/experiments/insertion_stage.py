@@ -25,7 +25,6 @@ from scissor_cli.experiments.sink import Insertion, RunSink, product_key
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, needle_path, run_strategies
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.equilibrium import solve_equilibrium
-from scissor_cli.solvers.newton import solve_newton
 
 #: equilibria shown for the manipulation before the insertion in the animation
 RAMP_FRAMES = 6
@@ -50,7 +49,7 @@ def slab_ramp(slab: Tissue, strokes: np.ndarray, frames: int, tol: float) -> lis
     x, s_prev, out = None, None, []
     for k in range(1, frames + 1):
         s = strokes * k / frames
-        x = solve_newton(slab, s, x0=x, strokes0=s_prev, tol=tol).x
+        x = solve_equilibrium(slab, s, start=x, start_strokes=s_prev, tol=tol).x
         s_prev = s
         out.append(x)
     return out

@@ -56,8 +56,8 @@ from scissor_cli.geometry import graded_levels
 from scissor_cli.layer3d.slab import SlabSpec, build_slab, layer_probe, plane_mesh, slab_probe
 from scissor_cli.mechanics.tissue import BoundaryError, Tissue
 from scissor_cli.solvers.common import SolverError
+from scissor_cli.solvers.equilibrium import solve_equilibrium
 from scissor_cli.solvers.linear import factorize_free
-from scissor_cli.solvers.newton import solve_newton
 
 #: rungs of the z ladder, the configured grading included
 RUNGS = 5
@@ -210,7 +210,7 @@ def solve_group(model: Tissue, spec: SlabSpec, surface, points: np.ndarray, k: i
         t0 = time.perf_counter()
         slot: dict = {}
         try:
-            x = solve_newton(slab, strokes, tol=SOLVE_TOL, factors=slot).x
+            x = solve_equilibrium(slab, strokes, tol=SOLVE_TOL, factors=slot).x
         except SolverError as exc:
             answers.append((i, exc))
             continue
