@@ -15,7 +15,8 @@ import yaml
 
 from scissor_cli.config import parse_config
 from scissor_cli.experiments.build import build_model
-from scissor_cli.layer3d.extrude import extrude, graded_levels, volumes
+from scissor_cli.geometry import graded_levels
+from scissor_cli.layer3d.extrude import extrude, volumes
 from scissor_cli.layer3d.slab import SlabSpec, build_slab, slab_probe
 from scissor_cli.mechanics import fem
 from scissor_cli.mesh.probe import probe_targets, target_positions

@@ -160,10 +160,6 @@ class ErrorModel:
     def exact_measurement(self) -> bool:
         return self.profile == "ideal" and self.pixel_noise_px == 0 and self.localisation_error_mm == 0
 
-    @property
-    def truth_is_model(self) -> bool:
-        return not any((self.E_log_sd, self.nu_sd, self.eta_log_sd, self.fiber_angle_sd_deg, self.heterogeneity_log_sd))
-
 
 def error_model(trials: TrialsConfig) -> ErrorModel:
     values = dict(PROFILES[trials.profile])

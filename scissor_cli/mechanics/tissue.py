@@ -27,14 +27,6 @@ from scissor_cli.mesh.mesh import Mesh
 from scissor_cli.scene.scene import Scene
 
 
-class InvertedElementError(RuntimeError):
-    """An element has J = det F <= 0: the energy is undefined there."""
-
-    def __init__(self, element: int, J: float, where: str = ""):
-        self.element, self.J = int(element), float(J)
-        super().__init__(f"element {self.element} is inverted (J = {self.J:.3g}){where}")
-
-
 @dataclass(frozen=True)
 class Tissue:
     scene: Scene
@@ -114,12 +106,6 @@ class Tissue:
         return float(compiled.max_feasible_step_2d(np.ascontiguousarray(x, dtype=np.float64),
                                                    np.ascontiguousarray(dx, dtype=np.float64),
                                                    self.ops.corners, self.ops.grad_rows))
-
-    def check_inversion(self, x: np.ndarray, where: str = "") -> None:
-        J = self.jacobians(x)
-        bad = int(np.argmin(J))
-        if not J[bad] > 0:
-            raise InvertedElementError(bad, J[bad], where)
 
     def energy(self, x: np.ndarray) -> float:
         """Strain energy U (µJ) at positions x (N, 2); +inf if an element is inverted."""
