@@ -34,7 +34,7 @@ tolerance, and declares "stalled" when the error stops improving.
 The part of the driven error no stroke within the limits can remove is
 reported as the uncorrectable error (`control.allocation`).
 
-Both tissues follow their equilibria with `solvers.tracking.Equilibrium`
+Both tissues follow their equilibria with `solvers.tracking.TrackedEquilibrium`
 (tangent predictor, then the one Newton iteration with chord steps; the
 exact tangent at the converged state gives J). Big moves may start from a
 known nearby equilibrium (e.g. the planner's state at the plan's strokes).

@@ -18,7 +18,7 @@ from scissor_cli.control.actuator import Actuator
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import TargetProbe, apply_probe, target_positions
 from scissor_cli.sensing.sensor import TrueState
-from scissor_cli.solvers.tracking import Equilibrium
+from scissor_cli.solvers.tracking import TrackedEquilibrium
 
 
 @dataclass(frozen=True)
@@ -52,7 +52,7 @@ class Plant:
     def __init__(self, tissue: Tissue, actuator: Actuator, probe: TargetProbe, tol: float = 1e-10,
                  view: Optional[TruthView] = None):
         self.tissue, self.actuator, self.probe, self.view = tissue, actuator, probe, view
-        self.eq = Equilibrium(tissue, tol if view is None or view.tol is None else view.tol)
+        self.eq = TrackedEquilibrium(tissue, tol if view is None or view.tol is None else view.tol)
         if view is not None:
             self.eq.guesses.extend(view.guesses)
 
@@ -94,7 +94,7 @@ class Controller:
         self.tissue, self.probe = tissue, probe
         self.lo, self.hi = np.asarray(lo, float), np.asarray(hi, float)
         self.resolution_mm = resolution_mm
-        self.eq = Equilibrium(tissue, tol)
+        self.eq = TrackedEquilibrium(tissue, tol)
         self.eq.move_to(self.eq.strokes, tangent=True)
 
     @property

@@ -33,7 +33,7 @@ from scissor_cli.solvers.common import SolverError, check_finite
 from scissor_cli.solvers.linear import Factorization, factorize_free
 from scissor_cli.solvers.newton import newton_iterations, solve_newton
 
-#: How many of its last equilibria a tracker keeps for the polynomial predictor (`Equilibrium._fitted`).
+#: How many of its last equilibria a tracker keeps for the polynomial predictor (`TrackedEquilibrium._fitted`).
 HISTORY = 28
 #: The predictor's polynomial: degree at most MAX_DEGREE, at most MAX_UNKNOWNS fitted coefficients per dof
 #: (two cups: the truth's position fit of degree 5 needs 27 states, the model's Hermite fit of degree 6 twelve).
@@ -43,7 +43,7 @@ MAX_UNKNOWNS = 25
 REACH = 3.0
 
 
-class Equilibrium:
+class TrackedEquilibrium:
     """The quasi-static equilibrium of one tissue, followed as the strokes change.
 
     x (N, 2) mm: node positions at `strokes` (C,) mm. `response` (2N, C) is
@@ -241,7 +241,7 @@ class Equilibrium:
         self.stats["refactors"] += r.factorizations
         return r.x if r.converged else None
 
-    def adopt(self, other: "Equilibrium") -> None:
+    def adopt(self, other: "TrackedEquilibrium") -> None:
         """Take another tracker's state of the same tissue (same x, strokes and ∂x/∂s)."""
         self.x, self.strokes = other.x, other.strokes.copy()
         self.response, self.tangent_x = other.response, other.tangent_x
@@ -292,3 +292,8 @@ def _taylor(E: np.ndarray, coefficient: np.ndarray, d: np.ndarray, along: Option
     lowered = E.copy()
     lowered[:, along] = np.maximum(lowered[:, along] - 1, 0)  # the terms without this stroke vanish (× e = 0)
     return coefficient * E[:, along] * np.prod(d[:, None, :] ** lowered, axis=2)
+
+
+#: The former name, kept only while benchmarks/bench_slab_truth.py and docs/performance.md (edited on
+#: another branch) still use it; remove it once they say TrackedEquilibrium.
+Equilibrium = TrackedEquilibrium
