@@ -28,10 +28,8 @@ import pytest
 
 from scissor_cli.output import journal
 
+from golden.extract import extract
 from helpers import deep_update, example_dict, write_scene
-
-sys.path.insert(0, str(Path(__file__).parent / "golden"))
-from extract import extract  # noqa: E402
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="process checks read /proc")
 
