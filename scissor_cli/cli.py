@@ -236,7 +236,10 @@ def _configured(options: SimulateOptions) -> tuple[Config, str]:
     if options.seed is not None:
         cfg = cfg.model_copy(update={"seed": options.seed})
     if options.trials is not None:
-        cfg = cfg.model_copy(update={"trials": cfg.trials.model_copy(update={"count": options.trials})})
+        trials = {"count": options.trials}
+        if options.trials == 0 and cfg.trials.budget:  # no trials, no budget: the budget reruns the trials
+            trials["budget"] = False
+        cfg = cfg.model_copy(update={"trials": cfg.trials.model_copy(update=trials)})
     if options.budget:
         if cfg.trials.count == 0:
             _fail(2, f"--budget: the error budget reruns the trials, and {scene} runs none "
@@ -246,6 +249,10 @@ def _configured(options: SimulateOptions) -> tuple[Config, str]:
         from scissor_cli.config import StudyConfig
 
         cfg = cfg.model_copy(update={"study": StudyConfig()})
+    try:  # the options may combine with the scene into something it does not allow: say so now, not in a worker
+        parse_config(resolved_yaml(cfg), f"{scene} with the command's options")
+    except ConfigError as exc:
+        _fail(2, str(exc))
     return cfg, stem
 
 

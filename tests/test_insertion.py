@@ -407,7 +407,8 @@ def test_a_step_on_the_kept_factorisation_matches_newton_passes(model, monkeypat
     monkeypatch.setattr(needle, "EARLY_DECISIONS", False)
     slow = _insert(tissue, params, depth=15.0)
     np.testing.assert_array_equal(fast.stuck, slow.stuck)
-    np.testing.assert_allclose(fast.x, slow.x, atol=1e-6)
+    # each pass converged to PASS_TOL (1e-5 of the force scale) either way: positions agree to about that
+    np.testing.assert_allclose(fast.x, slow.x, atol=1e-5)
     np.testing.assert_allclose(fast.needle_force_mN, slow.needle_force_mN, rtol=1e-6)
 
 
@@ -541,7 +542,7 @@ def test_the_model_jacobian_is_the_model_held_response(model):
     cond = needle_conditions(state, loads)
     # the model state is the model's equilibrium under the needle's hold (nothing moves when solved again)
     again = solve_equilibrium(tissue, s, start=ms.x, start_strokes=s, conditions=cond, tol=1e-10).x
-    assert np.abs(again - ms.x).max() <= 1e-6
+    assert np.abs(again - ms.x).max() <= 1e-5  # (the model state is solved to STEP_TOL, 1e-5 of the force scale)
     delta = 1e-3
     ends = [target_positions(probe, solve_equilibrium(tissue, s + sign * delta, start=ms.x, start_strokes=s,
                                                       conditions=cond, tol=1e-12).x)[0] @ state.across

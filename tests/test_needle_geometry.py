@@ -1,5 +1,6 @@
 """The needle's geometry generic by dimension (docs/model.md §12, §14): transverse basis, capture by the
-distance to the axis (3-D: both transverse components), shares along the axis, the tip zone as a ball."""
+distance to the axis (3-D: both transverse components), shares along the axis
+(the tip zone: tests/test_tip_zone.py)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 
 from scissor_cli.insertion import shaft_lengths
-from scissor_cli.insertion.needle import NeedleState, capture, free_nodes, tip_weights, transverse_basis
+from scissor_cli.insertion.needle import NeedleState, capture, free_nodes, transverse_basis
 from scissor_cli.insertion.run import miss_and_depth_error
 
 from figure_checks import assert_figure_readable
@@ -55,23 +56,6 @@ def test_2d_capture_unchanged():
     state = NeedleState(np.zeros(2), np.array([0.0, 1.0]), depth_mm=5.0)
     x = np.array([[1.9, 3.0], [-2.1, 3.0], [0.0, 5.5], [0.5, 0.0]])
     assert sorted(capture(None, state, x, np.arange(4), 2.0).tolist()) == [0, 3]
-
-
-def test_tip_zone_is_a_ball_in_3d():
-    rng = np.random.default_rng(3)
-    x = rng.uniform(-3, 3, size=(400, 3))
-    tip = np.array([0.5, -0.2, 0.3])
-    nodes, w = tip_weights(x, tip, np.arange(400), 2.0)
-    r = np.linalg.norm(x[nodes] - tip, axis=1)
-    assert np.all(r < 2.0) and np.sum(np.linalg.norm(x - tip, axis=1) < 2.0) == nodes.size
-    assert w.sum() == pytest.approx(1.0) and np.all(w > 0)
-    # weights fall with the distance: (1 − (r/R)²)²
-    order = np.argsort(r)
-    assert np.all(np.diff(w[order]) <= 1e-15)
-    # an empty ball: the nearest node carries it all
-    far = np.array([10.0, 0.0, 0.0])
-    nodes, w = tip_weights(x, far, np.arange(400), 0.5)
-    assert nodes.size == 1 and w[0] == 1.0 and nodes[0] == np.argmin(np.linalg.norm(x - far, axis=1))
 
 
 def test_shares_along_the_axis_sum_to_the_depth_in_3d():
