@@ -7,13 +7,13 @@ import sys
 import h5py
 import numpy as np
 import pytest
-from test_trials import reduced
 
 from scissor_cli.experiments.simulate import Execution, run_simulation
 from scissor_cli.output.report import ReportError, report_trials
 from scissor_cli.output.results_sink import RunDirectory
 
 from figure_checks import assert_figure_readable, assert_png_drawn
+from test_trials import reduced
 
 
 @pytest.fixture(scope="module")
