@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import h5py
-from helpers import example_dict, write_scene
-from test_cli import run_cli
 
 from scissor_cli.config import parse_config
+
+from helpers import example_dict, write_scene
+from test_cli import run_cli
 
 
 def _scene_with_budget(tmp_path):

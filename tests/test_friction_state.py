@@ -13,15 +13,16 @@ from __future__ import annotations
 
 import dataclasses
 
-import friction_reference
 import numpy as np
 import pytest
-from helpers import example_dict, write_scene
 
 from scissor_cli.config import load_config
 from scissor_cli.experiments.build import build_model
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion
 from scissor_cli.insertion.needle import NeedleState, advance, free_nodes
+
+import friction_reference
+from helpers import example_dict, write_scene
 
 FS, FK, TIP = 40.0, 10.0, 100.0
 ENTRY, AXIS, TARGET, DEPTH = np.array([0.0, 32.0]), np.array([1.0, 0.0]), np.array([45.0, 32.0]), 45.0

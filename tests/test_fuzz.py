@@ -30,9 +30,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
-from helpers import EXAMPLE, deep_update, example_dict
 from scissor_cli.cli import app
 from scissor_cli.config.messages import field_type
+
+from helpers import EXAMPLE, deep_update, example_dict
 
 #: seconds one `validate` may take in process (it takes ~0.02 s; the machine is shared)
 VALIDATE_SECONDS = 5.0

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
+from golden.extract import extract
+
 GOLDEN_DIR = Path(__file__).parent / "golden"
-sys.path.insert(0, str(GOLDEN_DIR))
-from extract import extract  # noqa: E402
 
 GOLDEN = GOLDEN_DIR / "example_seed7.npz"
 SCENE = GOLDEN_DIR / "example_scene.yaml"

@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 
 from scissor_cli.insertion import shaft_lengths
-from scissor_cli.insertion.run import miss_and_depth_error
 from scissor_cli.insertion.needle import NeedleState, capture, free_nodes, transverse_basis
+from scissor_cli.insertion.run import miss_and_depth_error
+
+from figure_checks import assert_figure_readable
 
 
 @pytest.mark.parametrize("n", [
@@ -96,3 +98,15 @@ def test_target_path_figure_takes_a_slab_insertion(d):
     fig = target_path_figure("t", [r], target[0])
     line = fig.axes[0].lines[1]
     np.testing.assert_allclose(line.get_xydata(), target[:, :2])
+    assert_figure_readable(fig)
+
+
+def test_needle_force_figure_is_readable():
+    from scissor_cli.output.insertion.figures import needle_force_figure
+
+    depth = np.linspace(0.0, 10.0, 21)
+    runs = [SimpleNamespace(depth_mm=depth, needle_force_mN=f * depth, strategy=s, steps=21)
+            for s, f in (("none", 10.0), ("loop", 12.0))]
+    fig = needle_force_figure("T1: needle force", runs)
+    assert [line.get_label() for line in fig.axes[0].lines] == ["none (21 steps)", "loop (21 steps)"]
+    assert_figure_readable(fig)

@@ -6,13 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import yaml
-from helpers import example_dict
 
 from scissor_cli.config import parse_config
 from scissor_cli.experiments.build import build_model
 from scissor_cli.insertion.needle import free_nodes, transverse_basis
 from scissor_cli.insertion.tip_zone import tip_weights, unit_stencil, zone_mesh
 from scissor_cli.layer3d.slab import SlabSpec, build_slab
+
+from helpers import example_dict
 
 #: the kernel's centroid ahead of the tip, in units of R: ∫ρ^d (1−ρ²)² dρ · E[cos θ] / ∫ρ^(d−1) (1−ρ²)² dρ over
 #: the half-disc (E[cos θ] = 2/π) and the half-ball (1/2)

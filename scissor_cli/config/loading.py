@@ -25,9 +25,9 @@ from typing import Optional
 import yaml
 from pydantic import ValidationError
 
-from scissor_cli.config.element_budget import budget_problems
 from scissor_cli.config.checks import scene_problems
-from scissor_cli.config.messages import located, loc_text, pydantic_problem, show
+from scissor_cli.config.element_budget import budget_problems
+from scissor_cli.config.messages import loc_text, located, pydantic_problem, show
 from scissor_cli.config.sections import Config
 
 #: the largest scene file read, in bytes
@@ -138,7 +138,8 @@ def _nesting_line(text: str) -> Optional[int]:
                     return token.start_mark.line + 1
             elif isinstance(token, _CLOSES):
                 depth -= 1
-    except (yaml.YAMLError, ValueError, OverflowError):  # not valid YAML for another reason: the parser's message stands
+    # not valid YAML for another reason: the parser's message stands
+    except (yaml.YAMLError, ValueError, OverflowError):
         return None
     return None
 
@@ -167,7 +168,8 @@ def _duplicate_key(root: yaml.Node) -> Optional[tuple[tuple, yaml.Node]]:
 
 def _yaml_message(source: str, text: str, exc: yaml.YAMLError) -> str:
     if isinstance(exc, yaml.reader.ReaderError):  # a character YAML does not allow, e.g. NUL
-        before = text.encode("utf-8")[: exc.position] if _CParser is not None else text[: exc.position]  # libyaml counts bytes
+        # libyaml counts bytes
+        before = text.encode("utf-8")[: exc.position] if _CParser is not None else text[: exc.position]
         line = before.count(b"\n" if isinstance(before, bytes) else "\n") + 1
         return (f"{source} (line {line}): not valid YAML: the character {exc.character:#06x} is not allowed "
                 f"(control characters other than tab and newline are not YAML text)")
@@ -198,7 +200,8 @@ def _read_yaml(text: str, source: str) -> tuple[yaml.Node, dict]:
             raise ConfigError(f"{source} (line {deep}): nested more than {MAX_DEPTH} levels deep; "
                               f"a scene nests at most 5") from None
         if isinstance(exc, RecursionError):
-            raise ConfigError(f"{source}: not valid YAML: nested too deeply (a scene nests at most {MAX_DEPTH} levels)") from None
+            raise ConfigError(f"{source}: not valid YAML: nested too deeply "
+                              f"(a scene nests at most {MAX_DEPTH} levels)") from None
         raise ConfigError(_yaml_message(source, text, exc)) from None
     except (ValueError, OverflowError) as exc:  # a lone surrogate in the text; PyYAML's scanner on "\UFFFFFFFF"
         raise ConfigError(f"{source}: not valid YAML: {exc}") from None

@@ -66,7 +66,8 @@ def located(source: str, root: Optional[yaml.Node], loc: tuple, what: str) -> st
     node, exact = node_at(root, loc)
     where = ""
     if node is not None:
-        where = f" (line {node.start_mark.line + 1})" if exact else f" (in the block at line {node.start_mark.line + 1})"
+        line = node.start_mark.line + 1
+        where = f" (line {line})" if exact else f" (in the block at line {line})"
     return f"{source}: {loc_text(loc)}{where}: {what}"
 
 

@@ -36,15 +36,15 @@ from typing import TYPE_CHECKING, Optional, Protocol
 import numpy as np
 
 if TYPE_CHECKING:  # the types the stages produce; annotations only
-    from scissor_cli.layer3d.check import LayerCheckCase
-    from scissor_cli.layer3d.extrude import SlabMesh
-    from scissor_cli.layer3d.resolution import SlabChoice
-    from scissor_cli.layer3d.slab import SlabProbe
     from scissor_cli.control.corridor_check import Corridor
     from scissor_cli.control.result import LoopResult
     from scissor_cli.experiments.selection import Selection
     from scissor_cli.experiments.study import StudyResult
     from scissor_cli.experiments.trials import TrialOutcome
+    from scissor_cli.layer3d.check import LayerCheckCase
+    from scissor_cli.layer3d.extrude import SlabMesh
+    from scissor_cli.layer3d.resolution import SlabChoice
+    from scissor_cli.layer3d.slab import SlabProbe
     from scissor_cli.mechanics.tissue import Tissue
     from scissor_cli.planning.needle_plan import NeedlePlan
     from scissor_cli.scene.scene import Target

@@ -12,8 +12,15 @@ from typing import Sequence
 
 import numpy as np
 
-from scissor_cli.config import (CupConfig, MaterialConfig, ObstacleConfig, TargetConfig, TissueConfig, obstacle_outline,
-                                tissue_outline)
+from scissor_cli.config import (
+    CupConfig,
+    MaterialConfig,
+    ObstacleConfig,
+    TargetConfig,
+    TissueConfig,
+    obstacle_outline,
+    tissue_outline,
+)
 
 
 @dataclass(frozen=True)
@@ -98,7 +105,8 @@ def build_scene(name: str, tissue: TissueConfig, material: MaterialConfig, cups:
             for c in cups
         ),
         targets=tuple(
-            Target(t.name, np.asarray(t.position_mm, float), None if t.desired_mm is None else np.asarray(t.desired_mm, float))
+            Target(t.name, np.asarray(t.position_mm, float),
+                   None if t.desired_mm is None else np.asarray(t.desired_mm, float))
             for t in targets
         ),
         material=Material(

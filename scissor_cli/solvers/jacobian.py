@@ -21,10 +21,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from scissor_cli.mesh.probe import TargetProbe, apply_probe
-from scissor_cli.solvers.linear import Factorization
-from scissor_cli.solvers.common import SolverError
 from scissor_cli.mechanics.tissue import Tissue
+from scissor_cli.mesh.probe import TargetProbe, apply_probe
+from scissor_cli.solvers.common import SolverError
+from scissor_cli.solvers.linear import Factorization
 
 
 def nodal_response(
