@@ -243,10 +243,12 @@ def _features(shape: BodyShape, inclusions: tuple, sizing: BodySizing) -> Featur
     else:
         # the depth matters out to where the skin's term reaches max_edge, and a cell's reach beyond that
         far = t + (sizing.max_edge_mm - skin_edge) / sizing.grading + sizing.max_edge_mm if sizing.grading else t
-        depth = body_geometry.surface_depth(shape.surface_nodes, shape.surface_triangles, far)
+        depth = []  # built on first use: meshing hands gmsh the expression and never calls it
 
         def distance(p: np.ndarray) -> np.ndarray:
-            return depth(p) - t
+            if not depth:
+                depth.append(body_geometry.surface_depth(shape.surface_nodes, shape.surface_triangles, far))
+            return depth[0](p) - t
 
         expression = f"{body_gmsh.SURFACE_DISTANCE}-({t!r})"
     return replace(features, skin_edge=skin_edge, skin_distance=distance, skin_expression=expression, skin_thickness=t)
