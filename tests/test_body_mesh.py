@@ -8,10 +8,10 @@ import sys
 
 import numpy as np
 import pytest
-from scenes.body_surfaces import box, icosphere
+from scenes.body_surfaces import box, icosphere, write_stl
 
 import scissor_cli.mesh.mesh
-from scissor_cli.config.surface_file import checked_surface
+from scissor_cli.config.surface_file import checked_surface, read_surface
 from scissor_cli.mesh import body_geometry, body_gmsh, body_mesh, body_quality
 from scissor_cli.mesh.body_field import Features, density_integral, polyline_distance
 from scissor_cli.mesh.body_mesh import (
@@ -47,8 +47,10 @@ def dome():
 
 
 @pytest.fixture(scope="module")
-def sphere_body():
-    nodes, triangles = checked_surface(*icosphere(30.0, subdivisions=3))
+def sphere_body(tmp_path_factory):
+    # through a binary STL file, as a scan arrives: every corner repeated, float32
+    path = write_stl(tmp_path_factory.mktemp("body") / "sphere.stl", *icosphere(30.0, subdivisions=3))
+    nodes, triangles = read_surface(path)
     shape = BodyShape("surface", surface_nodes=nodes, surface_triangles=triangles, skin_thickness_mm=SKIN)
     inclusions = (Sphere("lesion", np.array([5.0, 5.0, 0.0]), 4.0),
                   Tube("vessel", np.array([[-10.0, -8.0, 0.0], [10.0, -8.0, 3.0], [45.0, -8.0, 6.0]]), 1.5))
@@ -266,3 +268,39 @@ def test_a_tube_turns_along_arcs_tangent_to_its_segments():
         assert np.dot(ends[k + 1] - center, ends[k + 2] - ends[k + 1]) == pytest.approx(0, abs=1e-9)
     with pytest.raises(MeshError, match="too sharply"):
         body_gmsh.tube_path("v", np.array([[0.0, 0, 0], [3, 0, 0], [0.2, 0.1, 0]]), 1.0, 0.5)
+
+
+def test_where_inclusions_overlap_the_first_given_wins():
+    first = Sphere("first", np.array([-10.0, 5.0, 12.0]), 5.0)
+    second = Sphere("second", np.array([-4.0, 5.0, 12.0]), 5.0)
+    lens = np.pi * (4 * 5.0 + 6.0) * (2 * 5.0 - 6.0) ** 2 / 12  # the two balls' common volume, centres 6 mm apart
+    ball = 4 / 3 * np.pi * 5.0**3
+    mesh = body_mesh.body_mesh(BodyShape("dome", A, H), (first, second), BodySizing(1.0, 15.0, 0.8))
+    by_region = np.bincount(mesh.region, weights=_volumes(mesh), minlength=3)
+    assert by_region[1] == pytest.approx(ball, rel=0.05) and by_region[2] == pytest.approx(ball - lens, rel=0.05)
+    # and by centroid, as a surface body's regions are tagged
+    q = np.array([[-7.0, 5.0, 12.0], [-12.0, 5.0, 12.0], [-1.0, 5.0, 12.0], [20.0, 5.0, 12.0]])
+    assert body_geometry.centroid_regions(q, (first, second), None, np.zeros((0, 3)), np.zeros((0, 3), int)).tolist() \
+        == [1, 1, 2, 0]
+
+
+def test_tetrahedra_turned_positive_renumbered_and_bounded():
+    # a unit cube as six tetrahedra around its diagonal 0-7, half of them given inside out, and an unused node 8
+    nodes = np.array([[i, j, k] for k in (0, 1) for j in (0, 1) for i in (0, 1)] + [[5, 5, 5]], float)
+    tets = np.array([[0, 1, 3, 7], [0, 3, 2, 7], [0, 2, 6, 7], [0, 6, 4, 7], [0, 4, 5, 7], [0, 5, 1, 7]])
+    tets[::2] = tets[::2][:, [0, 2, 1, 3]]
+    assert np.sum(body_quality.signed_volumes(nodes, tets) < 0) == 3
+    turned = body_quality.oriented(nodes, tets)
+    assert np.allclose(body_quality.signed_volumes(nodes, turned), 1 / 6)
+    assert np.array_equal(np.sort(turned, axis=1), np.sort(tets, axis=1))
+    kept, renumbered = body_quality.compacted(nodes, turned)
+    assert len(kept) == 8 and np.array_equal(kept[renumbered], nodes[turned])
+    faces = body_quality.boundary_faces(renumbered)
+    p = kept[faces]
+    normals = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    assert len(faces) == 12  # two triangles per side of the cube, each pointing away from its centre
+    assert np.all(np.einsum("ij,ij->i", normals, p.mean(axis=1) - 0.5) > 0)
+    # a right-angled corner of the cube: dihedral angles of 90° at the three edges there
+    angles = body_quality.dihedral_angles_deg(np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]),
+                                              np.array([[0, 1, 2, 3]]))
+    assert np.allclose(np.sort(angles[0]), [np.degrees(np.arccos(1 / np.sqrt(3)))] * 3 + [90.0] * 3)

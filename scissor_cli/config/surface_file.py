@@ -72,9 +72,9 @@ def _read_cells(path: Path, reader: str) -> tuple[np.ndarray, np.ndarray, list[s
             warnings.simplefilter("ignore")
             mesh = getattr(meshio, reader).read(str(path))
     except Exception as exc:  # meshio raises whatever its parser meets (ReadError, UnicodeError, ValueError, ...)
-        kind = "binary" if reader in ("stl", "ply", "vtk", "vtu") else "text"
-        raise SurfaceFileError(f"cannot read {path} as a {reader.upper()} file (text or {kind}): it is damaged or "
-                               f"not in that format ({type(exc).__name__})") from None
+        kind = "text" if reader == "obj" else "text or binary"
+        raise SurfaceFileError(f"cannot read {path} as a {reader.upper()} file ({kind}): it is damaged or not in "
+                               f"that format ({type(exc).__name__})") from None
     triangles = [np.asarray(block.data) for block in mesh.cells if block.type == "triangle"]
     others = sorted({block.type for block in mesh.cells if block.type != "triangle" and len(block.data)})
     faces = [kind for kind in others if kind.startswith(("quad", "polygon"))]

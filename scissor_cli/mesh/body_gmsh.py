@@ -2,10 +2,10 @@
 
 The dome is built with the OpenCASCADE kernel: a half-spheroid (a unit
 upper hemisphere dilated to semi-axes a, a, h), the skin's inner
-half-spheroid and every inclusion (spheres; tubes as cylinders with balls
-at their points, fused), fragmented together so that every region boundary
-is a surface of the mesh (conforming regions). Pieces of an inclusion
-outside the body are removed.
+half-spheroid and every inclusion (spheres; tubes as a disk swept along the
+polyline with rounded bends, capped with half balls), fragmented together
+so that every region boundary is a surface of the mesh (conforming
+regions). Pieces of an inclusion outside the body are removed.
 
 A surface body is a discrete triangulation: gmsh classifies it into
 patches it can reparametrise (t13 of gmsh's tutorials), remeshes them with
@@ -96,37 +96,51 @@ def mesh_dome(radius: float, height: float, skin: float | None, inclusions: tupl
               min_edge: float, max_edge: float) -> GmshMesh:
     """Tetrahedra of the half-spheroid with conforming regions: 0 body, 1 skin (if any), then the inclusions."""
     with session(min_edge, max_edge) as gmsh:
-        occ = gmsh.model.occ
-        gmsh.model.add("dome")
-        dome = _half_spheroid(occ, radius, radius, height)
-        tools, owner = [], []
-        if skin:
-            tools.append((3, _half_spheroid(occ, radius - skin, radius - skin, height - skin)))
-            owner.append("inner")
-        for k, inclusion in enumerate(inclusions):
-            pieces = _inclusion(occ, inclusion, min_edge)
-            tools += pieces
-            owner += [k] * len(pieces)
-        children = occ.fragment([(3, dome)], tools)[1] if tools else [[(3, dome)]]
-        in_body = {tag for _, tag in children[0]}
-        inner = {tag for piece, who in zip(children[1:], owner) if who == "inner" for _, tag in piece}
-        first = 2 if skin else 1
-        region = {}
-        for piece, who in zip(children[1:], owner):
-            for _, tag in piece:
-                if who != "inner" and tag in in_body:
-                    region[tag] = min(region.get(tag, first + who), first + who)
-        for tag in in_body - set(region):
-            region[tag] = 1 if skin and tag not in inner else 0
-        missing = [inc.name for k, inc in enumerate(inclusions) if first + k not in region.values()]
-        if missing:
-            raise MeshError(f"inclusion(s) {', '.join(missing)} lie wholly outside the dome (or inside an "
-                            f"inclusion given before them): nothing of them is left to mesh")
-        outside = sorted({(3, tag) for piece in children[1:] for _, tag in piece} - {(3, t) for t in in_body})
-        if outside:
-            occ.remove(outside, recursive=True)
-        occ.synchronize()
+        try:
+            region = _dome_model(gmsh, radius, height, skin, inclusions, min_edge)
+        except MeshError:
+            raise
+        except Exception as exc:  # gmsh raises Exception with its last error
+            raise MeshError(f"gmsh could not build the dome with its inclusions ({exc}); an inclusion that "
+                            f"nearly touches a surface or another inclusion is the usual cause: move it clear or "
+                            f"let it cross clearly") from None
         return _generate(gmsh, expression, region)
+
+
+def _dome_model(gmsh, radius: float, height: float, skin: float | None, inclusions: tuple,
+                min_edge: float) -> dict[int, int]:
+    """Build and fragment the dome's volumes; the region of every volume left in the body."""
+    occ = gmsh.model.occ
+    gmsh.model.add("dome")
+    dome = _half_spheroid(occ, radius, radius, height)
+    tools, owner = [], []
+    if skin:
+        tools.append((3, _half_spheroid(occ, radius - skin, radius - skin, height - skin)))
+        owner.append("inner")
+    for k, inclusion in enumerate(inclusions):
+        pieces = _inclusion(occ, inclusion, min_edge)
+        tools += pieces
+        owner += [k] * len(pieces)
+    children = occ.fragment([(3, dome)], tools)[1] if tools else [[(3, dome)]]
+    in_body = {tag for _, tag in children[0]}
+    inner = {tag for piece, who in zip(children[1:], owner) if who == "inner" for _, tag in piece}
+    first = 2 if skin else 1
+    region = {}
+    for piece, who in zip(children[1:], owner):
+        for _, tag in piece:
+            if who != "inner" and tag in in_body:
+                region[tag] = min(region.get(tag, first + who), first + who)
+    for tag in in_body - set(region):
+        region[tag] = 1 if skin and tag not in inner else 0
+    missing = [inc.name for k, inc in enumerate(inclusions) if first + k not in region.values()]
+    if missing:
+        raise MeshError(f"inclusion(s) {', '.join(missing)} lie wholly outside the dome (or inside an "
+                        f"inclusion given before them): nothing of them is left to mesh")
+    outside = sorted({(3, tag) for piece in children[1:] for _, tag in piece} - {(3, t) for t in in_body})
+    if outside:
+        occ.remove(outside, recursive=True)
+    occ.synchronize()
+    return region
 
 
 def mesh_surface(nodes: np.ndarray, triangles: np.ndarray, expression: str, min_edge: float,
