@@ -222,6 +222,12 @@ def _configured(options: SimulateOptions) -> tuple[Config, str]:
     """The scene with the command line's overrides; exit 2 on a bad combination."""
     cfg, stem = _load(options.config)
     scene = options.config or DEFAULT_SCENE
+    body = cfg.tissue.shape in ("dome", "surface")
+    if body and options.study:
+        _fail(2, f"--study: the solver study runs on a 2-D layer; {scene} is a 3-D body (tissue.shape "
+                 f"{cfg.tissue.shape})")
+    if body and options.truth is not None:
+        _fail(2, f"--truth: a 3-D scene's trials run against the body itself; {scene} is a 3-D body")
     if options.solver is not None:
         if options.solver not in ("admm", "newton"):
             _fail(2, f"--solver: must be 'admm' or 'newton'; got {options.solver!r}")
@@ -251,8 +257,12 @@ def _configured(options: SimulateOptions) -> tuple[Config, str]:
         cfg = cfg.model_copy(update={"study": StudyConfig()})
     try:  # the options may combine with the scene into something it does not allow: say so now, not in a worker
         parse_config(resolved_yaml(cfg), f"{scene} with the command's options")
+        if body:
+            from scissor_cli.experiments.body_run import refuse_unbuilt
+
+            refuse_unbuilt(cfg)
     except ConfigError as exc:
-        _fail(2, str(exc))
+        _fail(2, f"{scene}: {exc}" if body and not str(exc).startswith(str(scene)) else str(exc))
     return cfg, stem
 
 

@@ -1,6 +1,6 @@
 """The package's layers: data flows one way, and no module imports a later layer or forms a cycle.
 
-Order (docs/architecture.md): the base modules (`geometry`, `runtime`,
+Order (docs/architecture.md): the base modules (`geometry`, `geometry3d`, `runtime`,
 `progress`, `text`, the package root), then config → scene → mesh → mechanics → solvers → robot →
 planning → sensing → control → insertion → layer3d → experiments → output → cli. A
 module may import from its own package and from any earlier layer; the test
@@ -16,11 +16,11 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "scissor_cli"
 LAYERS = [
-    "", "geometry", "runtime", "progress", "text", "config", "scene", "mesh", "mechanics", "solvers", "robot",
-    "planning", "sensing", "control", "insertion", "layer3d", "experiments", "output", "cli", "__main__",
+    "", "geometry", "geometry3d", "runtime", "progress", "text", "config", "scene", "mesh", "mechanics", "solvers",
+    "robot", "planning", "sensing", "control", "insertion", "layer3d", "experiments", "output", "cli", "__main__",
 ]
 RANK = {name: i for i, name in enumerate(LAYERS)}
-BASE = {"", "geometry", "runtime", "progress", "text"}  # importable from everywhere
+BASE = {"", "geometry", "geometry3d", "runtime", "progress", "text"}  # importable from everywhere
 
 
 def _module_name(path: Path) -> str:

@@ -11,13 +11,14 @@ from __future__ import annotations
 
 import time
 from contextlib import closing
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from scissor_cli import control, progress
 from scissor_cli.config import Config, parse_config, resolved_yaml
+from scissor_cli.config.body_sections import BodyConfig
 from scissor_cli.experiments.build import build_model, with_grips  # noqa: F401 - build_model: this module's API too
 from scissor_cli.experiments.controller_model_stage import controller_model_stage, needs_slab, refitted_model
 from scissor_cli.experiments.error_budget import run_budget
@@ -28,6 +29,7 @@ from scissor_cli.experiments.needle_model_stage import needs_needle_models
 from scissor_cli.experiments.pool import deferred_signals
 from scissor_cli.experiments.profiles import CAMERA_SPREADS, IMAGING_SPREADS, INSERTION_SPREADS, error_model
 from scissor_cli.experiments.run_cache import cache_dir
+from scissor_cli.experiments.run_summary import RunSummary
 from scissor_cli.experiments.selection import select
 from scissor_cli.experiments.sink import (  # noqa: F401 - raised through this module's API
     ForwardCase,
@@ -50,22 +52,10 @@ from scissor_cli.planning.needle_plan import NeedlePlan, plan_target, stored_pla
 from scissor_cli.planning.states import StateCache
 from scissor_cli.robot.chain import RobotModel
 from scissor_cli.robot.registration import plan_to_joints
-from scissor_cli.solvers.common import SolverError, SolveResult
+from scissor_cli.solvers.common import SolverError
 from scissor_cli.solvers.equilibrium import EquilibriumSolver
 from scissor_cli.solvers.jacobian import cup_target_jacobian
 from scissor_cli.text import duration, signed
-
-
-@dataclass
-class RunSummary:
-    out_dir: Path
-    n_elements: int
-    forward: dict[str, SolveResult] = field(default_factory=dict)
-    figures: list[Path] = field(default_factory=list)
-    plans: list = field(default_factory=list)
-    trials_run: int = 0
-    status: str = "complete"
-    failure: str = ""
 
 
 class TrialsFailed(RuntimeError):
@@ -90,6 +80,10 @@ def run_simulation(cfg: Config, run: SinkFactory,
     (Fig. 11) and the trials (Fig. 14). Raises SolverError, TrialsFailed or
     NonFiniteError after the sink has kept what was finished, marked failed.
     """
+    if isinstance(cfg, BodyConfig):  # a 3-D scene (docs/model.md §19)
+        from scissor_cli.experiments.body_run import run_body_simulation  # noqa: PLC0415
+
+        return run_body_simulation(cfg, run, execution.jobs)
     selection = None
     if cfg.solver.accuracy_mm is not None:
         selection = select(cfg, cfg.solver.accuracy_mm)
@@ -156,6 +150,10 @@ def resume_simulation(sink: ResumableSink, execution: Execution = Execution()) -
     with sink:
         cfg = parse_config(sink.config_yaml, str(sink.location / "results.h5"))
         done = sink.finished()
+        if isinstance(cfg, BodyConfig):
+            from scissor_cli.experiments.body_run import resume_body  # noqa: PLC0415
+
+            return resume_body(cfg, sink, done)
         tissue = build_model(cfg)[2] if "trials" in done else _build(cfg)
         summary = RunSummary(sink.location, tissue.mesh.n_elements)
         if done:

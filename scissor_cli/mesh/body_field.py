@@ -34,6 +34,10 @@ class Features:
     min_edge: float
     max_edge: float
     grading: float
+    #: each feature's own edge at and inside it (B,), (S,); None: min_edge for all. A small inclusion asks for
+    #: edges below min_edge so that its faceted surface holds its volume (`body_mesh.INCLUSION_EDGE_PER_RADIUS`)
+    ball_edge: np.ndarray | None = None
+    seg_edge: np.ndarray | None = None
     #: the skin term: its edge length, its signed distance (negative in the shell; 1-Lipschitz) in numpy and
     #: as a MathEval expression of x, y, z (and of other fields F<n>)
     skin_edge: float | None = None
@@ -60,23 +64,60 @@ class Features:
             d[lo:lo + 8192] = best
         return d
 
+    @property
+    def edges(self) -> np.ndarray:
+        """Every feature's own edge (B + S,) mm, balls first."""
+        n = len(self.ball_radius) + len(self.seg_radius)
+        if self.ball_edge is None and self.seg_edge is None:
+            return np.full(n, self.min_edge)
+        return np.concatenate([self.ball_edge if self.ball_edge is not None else np.full(len(self.ball_radius),
+                                                                                          self.min_edge),
+                               self.seg_edge if self.seg_edge is not None else np.full(len(self.seg_radius),
+                                                                                        self.min_edge)])
+
+    @property
+    def floor(self) -> float:
+        """The smallest edge the field asks for anywhere (mm)."""
+        return float(min(self.min_edge, np.min(self.edges, initial=self.min_edge)))
+
+    def _feature_distances(self, p: np.ndarray) -> np.ndarray:
+        """Signed distances (K, B + S) from points (K, 3) to every feature, negative inside."""
+        parts = []
+        if len(self.ball_radius):
+            parts.append(np.linalg.norm(p[:, None] - self.ball_center[None], axis=2) - self.ball_radius)
+        if len(self.seg_radius):
+            parts.append(segment_distance(p, self.seg_a, self.seg_b) - self.seg_radius)
+        return np.concatenate(parts, axis=1) if parts else np.zeros((len(p), 0))
+
+    def _features_term(self, p: np.ndarray, shift: float = 0.0) -> np.ndarray:
+        """min over the features of clip(edge_f + grading · max(d_f + shift, 0), floor, max_edge) (K,); without
+        features the field's far size (min_edge everywhere when nothing grows)."""
+        out = np.full(len(p), self.min_edge if self.grading == 0 else self.max_edge)
+        edges = self.edges
+        for lo in range(0, len(p), 8192):  # chunks bound the (K, F) temporaries
+            d = self._feature_distances(p[lo:lo + 8192])
+            if d.shape[1]:
+                out[lo:lo + 8192] = self.graded(edges[None, :], np.maximum(d + shift, 0.0)).min(axis=1)
+        return out
+
     def edge_length(self, p: np.ndarray) -> np.ndarray:
         """The target edge length h (K,) in mm at points (K, 3)."""
         p = np.atleast_2d(p)
-        h = self.graded(self.min_edge, self.distance(p))
+        h = np.minimum(self._features_term(p), self.max_edge)
         if self.skin_edge is not None:
             h = np.minimum(h, self.graded(self.skin_edge, np.maximum(self.skin_distance(p), 0.0)))
         return h
 
-    def graded(self, base: float, d: np.ndarray) -> np.ndarray:
-        """clip(base + grading · d, min_edge, max_edge) for distances d >= 0 (inf: no feature)."""
+    def graded(self, base, d: np.ndarray) -> np.ndarray:
+        """clip(base + grading · d, floor, max_edge) for distances d >= 0 (inf: no feature)."""
         grown = self.grading * np.minimum(d, 1e30) if self.grading > 0 else np.zeros_like(d)
-        return np.clip(base + grown, self.min_edge, self.max_edge)
+        return np.clip(base + grown, self.floor, self.max_edge)
 
     def edge_range(self, p: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
         """Bounds (K,), (K,) of h over the balls of radius `reach` around points p: each term is exact where it
         is flat (inside its feature, or beyond its graded zone) and moves by at most grading · reach elsewhere."""
-        lo, hi = self._term_range(self.min_edge, self.signed_distance(p), reach)
+        lo = np.minimum(self._features_term(p, -reach), self.max_edge)
+        hi = np.minimum(self._features_term(p, reach), self.max_edge)
         if self.skin_edge is not None:
             lo_s, hi_s = self._term_range(self.skin_edge, self.skin_distance(p), reach)
             lo, hi = np.minimum(lo, lo_s), np.minimum(hi, hi_s)
@@ -99,7 +140,13 @@ class Features:
                  f"+(z-{_num(a[2])})*{_num(u[2])})/{_num(float(u @ u))}))")
             gaps = [f"({axis}-{_num(a[k])}-{t}*{_num(u[k])})^2" for k, axis in enumerate("xyz")]
             terms.append(f"Sqrt({'+'.join(gaps)})-{_num(r)}")
-        h = self._graded_expression(self.min_edge, f"Min({','.join(terms)})" if terms else None)
+        edges = self.edges
+        if terms and np.all(edges == edges[0]):  # one edge: grade the nearest feature's distance
+            h = self._graded_expression(float(edges[0]), f"Min({','.join(terms)})")
+        elif terms:
+            h = f"Min({','.join(self._graded_expression(float(e), d) for e, d in zip(edges, terms))})"
+        else:
+            h = self._graded_expression(self.min_edge, None)
         if self.skin_edge is not None:
             h = f"Min({h},{self._graded_expression(self.skin_edge, self.skin_expression)})"
         return h
@@ -108,7 +155,7 @@ class Features:
         if distance is None:  # no feature: the far size, or the base size everywhere when nothing grows
             return _num(base if self.grading == 0 else self.max_edge)
         grown = f"{_num(base)}+{_num(self.grading)}*Max(0,{distance})"
-        return f"Min({_num(self.max_edge)},Max({_num(self.min_edge)},{grown}))"
+        return f"Min({_num(self.max_edge)},Max({_num(self.floor)},{grown}))"
 
 
 def _num(value: float) -> str:
@@ -148,7 +195,7 @@ def density_integral(features: Features, inside, lo: np.ndarray, hi: np.ndarray,
     feature or beyond the graded zone, where h is flat, is not split. Each
     leaf counts its volume at its centre's h if its centre is in the body.
     """
-    g, h_min, h_max = features.grading, features.min_edge, features.max_edge
+    g, h_min, h_max = features.grading, features.floor, features.max_edge
     width = float(np.max(hi - lo))
     cell = min(h_max, width / 24.0)
     n = np.maximum(np.ceil((hi - lo) / cell).astype(int), 1)

@@ -35,7 +35,7 @@ __all__ = ["MESHER_VERSION", "MIN_DIHEDRAL_DEG", "ESTIMATE_FACTOR", "BodyMesh", 
            "Sphere", "Tube", "body_mesh", "estimate_tetrahedra"]
 
 #: part of every cache key: raise it when a change here changes the meshes made from the same inputs
-MESHER_VERSION = 1
+MESHER_VERSION = 2
 
 #: the smallest dihedral angle a mesh may keep after gmsh's optimisation; below it body_mesh raises MeshError.
 #: Measured (benchmarks/bench_body_mesh.py, docs/model.md §19): the example's dome at 10k to 100k tetrahedra
@@ -51,6 +51,12 @@ MIN_DIHEDRAL_DEG = 3.0
 ESTIMATE_FACTOR = 0.46
 #: ... and a skin shell's weight w = max(1, SHELL_FACTOR · h / t) (body_field.density_integral)
 SHELL_FACTOR = 1.6
+
+#: an inclusion's edge at and inside it, per mm of its radius, where that is below min_edge_mm: its faceted
+#: surface then holds its volume to within 10 % (an inscribed polyhedron of edge h on a ball of radius r falls
+#: short by about (h / r)² / 2: the example's 2 mm lesions at 1.5 mm edges were 18 % short;
+#: benchmarks/bench_body_mesh.py)
+INCLUSION_EDGE_PER_RADIUS = 0.4
 
 #: the edge length in a skin shell, per mm of its thickness (clipped to min_edge..max_edge): a shell
 #: two elements across at most, not flat tetrahedra spanning it
@@ -171,9 +177,9 @@ def body_mesh(shape: BodyShape, inclusions: tuple, sizing: BodySizing, cache_dir
     expression = features.gmsh_expression()
     if shape.kind == "dome":
         raw = body_gmsh.mesh_dome(shape.radius_mm, shape.height_mm, shape.skin_thickness_mm, inclusions,
-                                  expression, sizing.min_edge_mm, sizing.max_edge_mm)
+                                  expression, features.floor, sizing.max_edge_mm)
     else:
-        raw = body_gmsh.mesh_surface(shape.surface_nodes, shape.surface_triangles, expression, sizing.min_edge_mm,
+        raw = body_gmsh.mesh_surface(shape.surface_nodes, shape.surface_triangles, expression, features.floor,
                                      sizing.max_edge_mm, shape.skin_thickness_mm)
     mesh = _finished(raw, shape, inclusions, names)
     if path is not None:
@@ -229,11 +235,18 @@ def _features(shape: BodyShape, inclusions: tuple, sizing: BodySizing) -> Featur
     seg_a = [t.points_mm[:-1] for t in tubes]
     seg_b = [t.points_mm[1:] for t in tubes]
     seg_r = [np.full(len(t.points_mm) - 1, t.radius_mm) for t in tubes]
+    small = [min(sizing.min_edge_mm, INCLUSION_EDGE_PER_RADIUS * inc.radius_mm)
+             for inc in inclusions if isinstance(inc, Sphere)]
+    ball_edge = np.array(small + [sizing.min_edge_mm] * len(sizing.refine), float)
+    seg_edge = (np.concatenate([np.full(len(t.points_mm) - 1, min(sizing.min_edge_mm,
+                                                                  INCLUSION_EDGE_PER_RADIUS * t.radius_mm))
+                                for t in tubes]) if tubes else np.zeros(0))
     features = Features(ball_center=np.array(centers, float).reshape(-1, 3), ball_radius=np.array(radii, float),
                         seg_a=np.concatenate(seg_a) if tubes else np.zeros((0, 3)),
                         seg_b=np.concatenate(seg_b) if tubes else np.zeros((0, 3)),
                         seg_radius=np.concatenate(seg_r) if tubes else np.zeros(0),
-                        min_edge=sizing.min_edge_mm, max_edge=sizing.max_edge_mm, grading=sizing.grading)
+                        min_edge=sizing.min_edge_mm, max_edge=sizing.max_edge_mm, grading=sizing.grading,
+                        ball_edge=ball_edge, seg_edge=seg_edge)
     t = shape.skin_thickness_mm
     if not t:
         return features

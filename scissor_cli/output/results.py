@@ -207,8 +207,9 @@ def write_forward(out: ResultsFile, case: str, strokes: dict[str, float], result
 
 
 def write_jacobian(out: ResultsFile, name: str, J: np.ndarray, cup_names: list[str]) -> None:
-    """/jacobian/<target>: (2, C) mm of target motion per mm of stroke, at rest."""
-    out.dataset(f"jacobian/{name}", np.asarray(J, float), "mm/mm", columns=cup_names, rows=["x", "y"])
+    """/jacobian/<target>: (d, C) mm of target motion per mm of stroke, at rest (d = 2, or 3 in a body)."""
+    J = np.asarray(J, float)
+    out.dataset(f"jacobian/{name}", J, "mm/mm", columns=cup_names, rows=["x", "y", "z"][:J.shape[0]])
 
 
 def clearance(value: float) -> float:

@@ -100,7 +100,22 @@ class ResultsSink:
 
     # -- the stages --------------------------------------------------------
     def model(self, tissue) -> None:
-        results.write_model(self.out, tissue)
+        if tissue.dim == 3:
+            from scissor_cli.output.body.results import write_body_model  # noqa: PLC0415
+
+            write_body_model(self.out, tissue)
+        else:
+            results.write_model(self.out, tissue)
+        self.out.flush()
+
+    def target(self, name: str, rest: np.ndarray, desired: np.ndarray, source: str) -> None:
+        results.write_target(self.out, name, rest, desired, source)
+        self.out.flush()
+
+    def body_resolution(self, choice) -> None:
+        from scissor_cli.output.body.results import write_body_resolution  # noqa: PLC0415
+
+        write_body_resolution(self.out, choice)
         self.out.flush()
 
     def selection(self, selection) -> None:
@@ -111,9 +126,15 @@ class ResultsSink:
         results.write_slab_resolution(self.out, choice)
         self.out.flush()
 
-    def forward_case(self, case: ForwardCase) -> Path:
+    def forward_case(self, case: ForwardCase) -> Path | list[Path]:
         results.write_forward(self.out, case.name, case.strokes, case.result, case.rest, case.targets)
         self.out.flush()
+        if case.kind == "body":
+            from scissor_cli.output.body.figures import body_figures  # noqa: PLC0415
+
+            section, view = body_figures(**case.figure)
+            return [figures.save(section, self.location / f"forward_{case.name}.png"),
+                    figures.save(view, self.location / f"forward_{case.name}_3d.png")]
         return figures.save(figures.forward_case_figure(**case.figure), self.location / f"forward_{case.name}.png")
 
     def layer_check_mesh(self, mesh) -> None:
