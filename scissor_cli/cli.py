@@ -79,9 +79,16 @@ def _fail(code: int, message: str) -> None:
 def _load(config: Optional[Path]) -> tuple[Config, str]:
     path = config or DEFAULT_SCENE
     try:
-        return load_config(path), path.stem
+        cfg = load_config(path)
     except ConfigError as exc:
         _fail(2, str(exc))
+    if cfg.tissue.shape in ("dome", "surface"):  # a 3-D scene's element budget: the mesher's estimate
+        from scissor_cli.experiments.body_run import body_budget_problem
+
+        problem = body_budget_problem(cfg)
+        if problem is not None:
+            _fail(2, f"{path}: {problem}")
+    return cfg, path.stem
 
 
 def _out_dir(out: Optional[Path], stem: str, force: bool) -> Path:

@@ -131,3 +131,27 @@ def test_options_that_a_body_does_not_take_exit_2(tmp_path):
         assert "3-D" in r.stderr
     r = run_cli("simulate", scene, "--out", str(tmp_path / "run"))  # 30 trials: the loop in 3-D is not built yet
     assert r.returncode == 2 and "--trials 0" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_a_mesh_over_the_budget_is_refused_before_meshing(tmp_path):
+    data = dome()
+    data["tissue"]["mesh"] = {"min_edge_mm": 0.3, "max_edge_mm": 0.6}
+    r = run_cli("validate", write_scene(tmp_path, data))
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert "tissue.mesh" in r.stderr and "budget" in r.stderr
+
+
+@pytest.mark.parametrize("content, words", [
+    (None, "surface_file"),  # missing
+    (b"\x00\xff garbage", "surface_file"),
+    (b"solid open\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 1 0 0\nvertex 0 1 0\nendloop\nendfacet\n"
+     b"endsolid open\n", "surface_file"),
+])
+def test_a_bad_surface_file_exits_2_naming_the_field(tmp_path, content, words):
+    if content is not None:
+        (tmp_path / "body.stl").write_bytes(content)
+    data = {"tissue": {"shape": "surface", "surface_file": "body.stl",
+                       "fixed": [{"plane": {"point_mm": [0, 0, 0], "normal": [0, 0, 1]}}]}, "trials": {"count": 0}}
+    r = run_cli("validate", write_scene(tmp_path, data))
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert words in r.stderr and "body.stl" in r.stderr

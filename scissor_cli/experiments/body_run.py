@@ -25,7 +25,9 @@ from scissor_cli.experiments.run_summary import RunSummary
 from scissor_cli.experiments.sink import ForwardCase, RunSink, SinkFactory, product_key
 from scissor_cli.mechanics.body_tissue import build_body
 from scissor_cli.mechanics.tissue import Tissue
-from scissor_cli.mesh.body_inputs import mesh_body
+from scissor_cli.config.element_budget import TETRAHEDRA_BUDGET
+from scissor_cli.mesh.body_inputs import body_shape, inclusions, mesh_body, sizing
+from scissor_cli.mesh.body_mesh import estimate_tetrahedra
 from scissor_cli.mesh.probe import probe_points, target_positions
 from scissor_cli.scene.body_scene import BodyScene, build_body_scene
 from scissor_cli.solvers.common import SolverError
@@ -39,6 +41,19 @@ def body_model(cfg: BodyConfig, cache: Path | None = None, scale: float = 1.0,
     scene = build_body_scene(cfg)
     mesh = mesh_body(scene, cfg.tissue.mesh, scale, cache)
     return scene, mesh, build_body(scene, mesh, model=model)
+
+
+def body_budget_problem(cfg: BodyConfig) -> str | None:
+    """Why the scene's mesh may not be made (estimated above `TETRAHEDRA_BUDGET` before meshing), or None."""
+    if cfg.tissue.mesh.file is not None:
+        return None
+    scene = build_body_scene(cfg)
+    n = estimate_tetrahedra(body_shape(scene), inclusions(scene), sizing(scene, cfg.tissue.mesh))
+    if n <= TETRAHEDRA_BUDGET:
+        return None
+    return (f"tissue.mesh: the body's mesh is estimated at {n} tetrahedra, above the budget of {TETRAHEDRA_BUDGET} "
+            f"(the largest mesh whose forward cases solve in the time of a run): use a larger min_edge_mm, "
+            f"max_edge_mm or scale, or a steeper grading")
 
 
 def refuse_unbuilt(cfg: BodyConfig) -> None:
