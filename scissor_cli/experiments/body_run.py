@@ -18,6 +18,7 @@ import numpy as np
 
 from scissor_cli import progress
 from scissor_cli.config.body_sections import BodyConfig
+from scissor_cli.config.element_budget import TETRAHEDRA_BUDGET
 from scissor_cli.config.loading import ConfigError, resolved_yaml
 from scissor_cli.experiments.body_resolution import BodyChoice, choose_body_scale
 from scissor_cli.experiments.run_cache import cache_dir
@@ -25,7 +26,6 @@ from scissor_cli.experiments.run_summary import RunSummary
 from scissor_cli.experiments.sink import ForwardCase, RunSink, SinkFactory, product_key
 from scissor_cli.mechanics.body_tissue import build_body
 from scissor_cli.mechanics.tissue import Tissue
-from scissor_cli.config.element_budget import TETRAHEDRA_BUDGET
 from scissor_cli.mesh.body_inputs import body_shape, inclusions, mesh_body, sizing
 from scissor_cli.mesh.body_mesh import estimate_tetrahedra
 from scissor_cli.mesh.probe import probe_points, target_positions
