@@ -196,6 +196,9 @@ class BodyConfig(_Section):
     solver: SolverConfig = SolverConfig(kind="newton")
     forward: Annotated[list[ForwardCase], Len(0, 64)] = []
     camera: BodyCameraConfig = BodyCameraConfig(position_mm=[0.0, 0.0, 400.0])
+    #: two or more cameras that triangulate the lesion's 3-D position; absent: `camera` alone (it does not see
+    #: depth along its view)
+    cameras: Optional[Annotated[list[BodyCameraConfig], Len(2, 8)]] = None
     robot: RobotConfig = RobotConfig()
     trials: TrialsConfig = TrialsConfig()
 
