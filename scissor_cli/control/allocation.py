@@ -71,7 +71,7 @@ ERROR_MODES = ("miss", "position")
 
 @dataclass(frozen=True)
 class Step:
-    """One step of the law. ds (C,) mm the speed-limited step; correctable, uncorrectable (2,) mm the parts
+    """One step of the law. ds (C,) mm the speed-limited step; correctable, uncorrectable (d,) mm the parts
     of the driven error (e⊥ or e) that strokes within their limits can / cannot remove; along_mm the
     signed along-axis error n·e (0 without an axis); limited: the speed limit cut the step; at_limit: a
     stroke limit keeps the step from the unbounded optimum (part of `uncorrectable` is the limit's)."""
@@ -86,24 +86,24 @@ class Step:
 
 
 def _axis(direction: Optional[np.ndarray], mode: str = "miss") -> Optional[np.ndarray]:
-    """The unit needle axis n (2,) the miss is taken across, or None (use the full error)."""
+    """The unit needle axis n (d,) the miss is taken across (d = 2, or 3 in a body), or None (the full error)."""
     if mode not in ERROR_MODES:
         raise ValueError(f"error mode must be one of {ERROR_MODES}, got {mode!r}")
     if mode == "position" or direction is None:
         return None
     n = np.asarray(direction, float)
-    if n.shape != (2,) or not np.all(np.isfinite(n)) or np.linalg.norm(n) == 0:
+    if n.shape not in ((2,), (3,)) or not np.all(np.isfinite(n)) or np.linalg.norm(n) == 0:
         return None
     return n / np.linalg.norm(n)
 
 
 def projector(direction: Optional[np.ndarray], mode: str = "miss") -> Optional[np.ndarray]:
-    """P = I − n nᵀ (2, 2) for the needle axis `direction` (2,), or None (use the full error).
+    """P = I − n nᵀ (d, d) for the needle axis `direction` (d,), or None (use the full error).
 
     None for `mode` "position" or when there is no finite axis.
     """
     n = _axis(direction, mode)
-    return None if n is None else np.eye(2) - np.outer(n, n)
+    return None if n is None else np.eye(n.size) - np.outer(n, n)
 
 
 def miss_mm(error: np.ndarray, direction: Optional[np.ndarray]) -> float:
@@ -202,24 +202,34 @@ def stroke_step(
     direction: Optional[np.ndarray] = None,
     mode: str = "miss",
     lam: float = REGULARISATION,
+    seen: Optional[np.ndarray] = None,
 ) -> Step:
-    """The law's step for J (2, C) mm/mm, error e = y_d − y (2,) mm at strokes (C,) mm within [lo, hi] (C,).
+    """The law's step for J (d, C) mm/mm, error e = y_d − y (d,) mm at strokes (C,) mm within [lo, hi] (C,);
+    d = 2 in a layer, 3 in a body.
 
     max_step (C,) mm: the most each cup may move in one control period
-    (speed · Δt; None: no speed limit). direction (2,): the needle axis n;
-    with mode "miss" the driven error is P e, else e.
+    (speed · Δt; None: no speed limit). direction (d,): the needle axis n;
+    with mode "miss" the driven error is P e, else e. seen (d, d): the
+    projector onto what the sensor observes (a body seen by one camera: not
+    the depth along its view); the error's unseen components (NaN) count as
+    0, and only the observed part S (P e) is driven.
     """
-    J = np.asarray(J, float).reshape(2, -1)
     e = np.asarray(error, float)
+    d = e.size
+    J = np.asarray(J, float).reshape(d, -1)
+    if seen is not None:
+        e = np.where(np.isfinite(e), e, 0.0)
     n = _axis(direction, mode)
     if n is None:
         A, b, along = J, e, 0.0
     else:
-        P = np.eye(2) - np.outer(n, n)
-        A, b, along = P @ J, P @ e, float(np.dot(n, e))
+        P = np.eye(d) - np.outer(n, n)
+        A, b, along = P @ J, P @ e, float(np.dot(n, e if seen is None else seen @ e))
+    if seen is not None:
+        A, b = seen @ A, seen @ b
     C = J.shape[1]
     if C == 0:
-        return Step(np.zeros(0), np.zeros(2), b.copy(), along, False)
+        return Step(np.zeros(0), np.zeros(d), b.copy(), along, False)
     As, bs = A, b
     if n is not None and C >= 2:  # spare cups: the along-axis error as a secondary objective
         w = np.sqrt(ALONG_WEIGHT)

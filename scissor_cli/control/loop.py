@@ -57,7 +57,7 @@ from scissor_cli.control.law import PID, stalled, traveling
 from scissor_cli.control.plant import Controller, Plant, TruthFactory, TruthPerturbation, true_tissue
 from scissor_cli.control.result import History, LoopResult
 from scissor_cli.mechanics.tissue import Tissue
-from scissor_cli.mesh.probe import probe_targets
+from scissor_cli.mesh.probe import probe_points, probe_targets
 from scissor_cli.sensing.sensor import EXACT, Sensor
 from scissor_cli.solvers.common import SolverError
 
@@ -104,6 +104,7 @@ def run_loop(
     command, sim_t, reason, message = controller.strokes.copy(), 0.0, "", ""
     max_step = plant.actuator.speed_mm_per_s * dt
     correction = BroydenCorrection(sensor.noise_mm) if cfg.jacobian_update == "broyden" else None
+    seen = getattr(sensor, "seen", None)  # a body seen by one camera: what it observes (`stroke_step`)
     for k in range(cfg.max_iterations + 1):
         y = sensor.measure(plant.true_state())
         J = controller.jacobian
@@ -112,12 +113,13 @@ def run_loop(
             y, waited_s = _confirmed(y, sensor, plant, cfg, dt,
                                      lambda y: stroke_step(J if correction is None else correction.jacobian(J),  # noqa: B023
                                                            desired - y, command, controller.lo, controller.hi,  # noqa: B023
-                                                           max_step, direction, cfg.error))
+                                                           max_step, direction, cfg.error, seen=seen))
             sim_t += waited_s
         if correction is not None:  # J learnt from the moves so far (control.broyden)
             correction.observe(J, command, y)
             J = correction.jacobian(J)
-        step = stroke_step(J, desired - y, command, controller.lo, controller.hi, max_step, direction, cfg.error)
+        step = stroke_step(J, desired - y, command, controller.lo, controller.hi, max_step, direction, cfg.error,
+                           seen=seen)
         ds = step.ds
         corr_norms.append(_correctable_norm(step))
         hist.add(sim_t, command, plant.strokes, y, plant.position, corr_norms[-1],
@@ -197,7 +199,9 @@ def open_loop(
     hist = History()
     y = sensor.measure(plant.true_state())
     s0 = controller.strokes.copy()
-    step = stroke_step(controller.jacobian, desired - y, s0, controller.lo, controller.hi, None, direction, mode)
+    seen = getattr(sensor, "seen", None)
+    step = stroke_step(controller.jacobian, desired - y, s0, controller.lo, controller.hi, None, direction, mode,
+                       seen=seen)
     ds = step.ds
     hist.add(0.0, s0, plant.strokes, y, plant.position, np.linalg.norm(step.correctable),
              np.linalg.norm(step.uncorrectable), step.along_mm)
@@ -212,7 +216,7 @@ def open_loop(
         hist.wall.append(time.perf_counter() - tw)
         y = sensor.measure(plant.true_state())
         step = stroke_step(controller.jacobian, desired - y, command, controller.lo, controller.hi, None, direction,
-                           mode)
+                           mode, seen=seen)
         hist.add(max(1.0 / rate_hz, plant.actuator.last_move_s), command, plant.strokes, y, plant.position,
                  np.linalg.norm(step.correctable), np.linalg.norm(step.uncorrectable), step.along_mm)
     return hist.result(plant, controller, desired, target, "open", reason, message, time.perf_counter() - t0, cup_names,
@@ -267,7 +271,10 @@ def run_target(model: Tissue, target_rest: np.ndarray, desired: np.ndarray, cfg:
     if direction is None and run.corridor is not None:
         direction = run.corridor.direction
     scene = model.scene
-    probe = probe_targets(model.mesh, np.asarray(target_rest, float)[None])
+    if model.dim == 3:  # a body: the lesion carried by its rest tetrahedron
+        probe = probe_points(model.mesh.nodes, model.mesh.tetrahedra, np.asarray(target_rest, float)[None])
+    else:
+        probe = probe_targets(model.mesh, np.asarray(target_rest, float)[None])
     actuator = Actuator.from_scene(scene, run.resolution_mm, run.backlash_mm)
     if run.truth_factory is None:
         plant = Plant(true_tissue(model, run.truth), actuator, probe, run.tol)

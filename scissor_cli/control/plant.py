@@ -103,10 +103,10 @@ class Controller:
 
     @property
     def jacobian(self) -> np.ndarray:
-        """J (2, C) mm/mm of the target at the model equilibrium ((2, 0) without cups)."""
+        """J (d, C) mm/mm of the target at the model equilibrium ((d, 0) without cups); d = tissue.dim."""
         if self.tissue.n_cups == 0:
-            return np.zeros((2, 0))
-        return apply_probe(self.probe, self.eq.response)
+            return np.zeros((self.tissue.dim, 0))
+        return apply_probe(self.probe, self.eq.response, self.tissue.dim)
 
     @property
     def strokes(self) -> np.ndarray:

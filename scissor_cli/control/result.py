@@ -94,14 +94,17 @@ class LoopResult:
 
         Columns: time_s, stroke_cmd_<cup>..., stroke_<cup>..., measured_x,
         measured_y, true_x, true_y, error_x, error_y, correctable_mm,
-        uncorrectable_mm, along_mm (all mm except time_s in s).
+        uncorrectable_mm, along_mm (all mm except time_s in s); in a body
+        measured_z, true_z, error_z too (measured NaN where the sensor does
+        not see that axis).
         """
+        axes = "xyz"[:np.asarray(self.final_error).size]  # x, y (and z in a body)
         names = (
             ["time_s"]
             + [f"stroke_cmd_{c}" for c in self.cup_names]
             + [f"stroke_{c}" for c in self.cup_names]
-            + ["measured_x", "measured_y", "true_x", "true_y", "error_x", "error_y",
-               "correctable_mm", "uncorrectable_mm", "along_mm"]
+            + [f"{kind}_{a}" for kind in ("measured", "true", "error") for a in axes]
+            + ["correctable_mm", "uncorrectable_mm", "along_mm"]
         )
         table = np.column_stack(
             [

@@ -64,6 +64,17 @@ def check_finite(where: str, value: Any) -> None:
         raise NonFiniteError(f"refusing to write a non-finite value to {where}: {np.ravel(bad)[0].item()}{count}")
 
 
+def check_history(where: str, table: np.ndarray, columns: list[str]) -> None:
+    """Raise NonFiniteError for a non-finite entry of a history table (K, n), but NaN in its `measured_*`
+    columns: the one NaN a results.h5 holds, a coordinate a 3-D scene's sensor does not see (docs/contract.md)."""
+    table = np.asarray(table, float)
+    unseen_ok = np.array([c.startswith("measured_") for c in columns], bool) if table.ndim == 2 else None
+    if unseen_ok is not None and unseen_ok.size == table.shape[1]:
+        check_finite(where, np.where(np.isnan(table) & unseen_ok[None, :], 0.0, table))
+    else:
+        check_finite(where, table)
+
+
 def filled(value: Any, fill: float = FILL) -> Any:
     """`value` with its non-finite entries replaced by `fill`: for numbers that are absent by definition."""
     a = np.asarray(value, float)
@@ -118,7 +129,10 @@ class ResultsFile:
         os.replace(self.tmp, self.path)
 
     def dataset(self, path: str, data, units: str | None = None, **attrs) -> h5py.Dataset:
-        check_finite(f"/{path}", data)
+        if "columns" in attrs and "/history" in path:  # a history: unseen measured coordinates may be NaN
+            check_history(f"/{path}", data, list(attrs["columns"]))
+        else:
+            check_finite(f"/{path}", data)
         if path in self.h5:
             del self.h5[path]
         ds = self.h5.create_dataset(path, data=data)
@@ -263,12 +277,14 @@ TRIALS_FILL_NOTE = ("not done or crashed (see done, failed): final_error, time_s
                     "is also 0 where undefined (no obstacles, no corridor)")
 
 
-def allocate_trials(out: ResultsFile, names: list[str], count: int, attrs: dict) -> None:
-    """/trials/<target>/...: arrays for `count` trials holding the fill values, filled as trials finish."""
+def allocate_trials(out: ResultsFile, names: list[str], count: int, attrs: dict, dim: int = 2) -> None:
+    """/trials/<target>/...: arrays for `count` trials holding the fill values, filled as trials finish; dim = 3
+    for a 3-D scene's (x, y, z)."""
     out.attrs("trials", attrs | {"fill_values": TRIALS_FILL_NOTE})
     for name in names:
         t = f"trials/{name}"
-        out.dataset(f"{t}/final_error", np.full((count, 2), FILL), "mm", description="true minus desired, x and y")
+        out.dataset(f"{t}/final_error", np.full((count, dim), FILL), "mm",
+                    description="true minus desired, x and y" + (" and z" if dim == 3 else ""))
         out.dataset(f"{t}/iterations", np.full(count, -1, np.int64))
         out.dataset(f"{t}/time_s", np.full(count, FILL), "s", description="wall time of the loop")
         out.dataset(f"{t}/trial_time_s", np.full(count, FILL), "s",
@@ -315,7 +331,7 @@ def trial_record(name: str, o) -> dict:
     ok = bool(o.ok)
     rec = {
         "target": name, "trial": int(o.trial), "ok": ok, "message": str(o.message), "stop_reason": str(o.stop_reason),
-        "final_error": np.asarray(o.final_error, float) if ok else np.zeros(2),
+        "final_error": np.asarray(o.final_error, float) if ok else np.zeros(np.size(o.final_error) or 2),
         "iterations": int(o.iterations) if ok else -1,
         "time_s": float(o.time_s) if np.isfinite(o.time_s) else FILL,
         "trial_time_s": float(o.trial_time_s) if np.isfinite(o.trial_time_s) else FILL,
@@ -337,7 +353,7 @@ def trial_record(name: str, o) -> dict:
     where = f"/trials/{name}/{{}} (trial {rec['trial']})"
     for key in TRIAL_FLOATS:
         check_finite(where.format(key), rec[key])
-    check_finite(where.format(f"history/{rec['trial']}"), rec["history"])
+    check_history(where.format(f"history/{rec['trial']}"), rec["history"], rec["history_columns"])
     for key in ("miss_mm", "depth_error_mm"):
         if key in rec:
             check_finite(where.format(key), rec[key])
