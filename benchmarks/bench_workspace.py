@@ -20,12 +20,15 @@ runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_
 from scissor_cli.robot.chain import RobotModel  # noqa: E402
 from scissor_cli.robot.workspace import run_workspace  # noqa: E402
 
+import results_io  # noqa: E402
+
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--samples", type=int, default=1_000_000)
     ap.add_argument("--repeats", type=int, default=5)
     args = ap.parse_args()
+    res = results_io.Results("bench_workspace", None if args.samples == 1_000_000 else f"samples{args.samples}")
     robot = RobotModel.paper()
     times, result = [], None
     for _ in range(args.repeats):
@@ -38,6 +41,17 @@ def main() -> None:
     print(f"  coverage sampled {100 * c.coverage:.1f}% (>= 3 directions {100 * c.coverage_multi_direction:.1f}%)")
     print(f"  coverage reachable by IK {100 * r.coverage:.1f}% (>= 3 directions {100 * r.coverage_multi_direction:.1f}%)")
     print(f"  {r.summary}")
+    res.figure("samples", args.samples, "samples")
+    res.figure("repeats", args.repeats, "runs")
+    res.figure("median_s", float(np.median(times)), "s", goal="<= 5 s")
+    for k, v in result.timings.items():
+        res.figure(f"stage_{k}_s", v, "s")
+    res.figure("coverage_sampled", 100 * c.coverage, "%")
+    res.figure("coverage_sampled_3dirs", 100 * c.coverage_multi_direction, "%")
+    res.figure("coverage_reachable", 100 * r.coverage, "%")
+    res.figure("coverage_reachable_3dirs", 100 * r.coverage_multi_direction, "%")
+    res.data("summary", r.summary)
+    res.write()
 
 
 if __name__ == "__main__":
