@@ -10,17 +10,17 @@ import argparse
 import sys
 from pathlib import Path
 
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from scissor_cli import runtime  # noqa: E402
-runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
-from scissor_cli.config import load_config  # noqa: E402
-from scissor_cli.experiments.build import build_model
-from scissor_cli.solvers.equilibrium import EquilibriumSolver  # noqa: E402
-from scissor_cli.solvers.common import SolverError  # noqa: E402
 
+runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
 import results_io  # noqa: E402
+
+from scissor_cli.config import load_config  # noqa: E402
+from scissor_cli.experiments.build import build_model  # noqa: E402
+from scissor_cli.solvers.common import SolverError  # noqa: E402
+from scissor_cli.solvers.equilibrium import EquilibriumSolver  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 

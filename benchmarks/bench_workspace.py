@@ -16,11 +16,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from scissor_cli import runtime  # noqa: E402
+
 runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
+import results_io  # noqa: E402
+
 from scissor_cli.robot.chain import RobotModel  # noqa: E402
 from scissor_cli.robot.workspace import run_workspace  # noqa: E402
-
-import results_io  # noqa: E402
 
 
 def main() -> None:
@@ -39,7 +40,8 @@ def main() -> None:
     print(f"samples {args.samples}: median {np.median(times):.3f} s over {args.repeats} repeats (2-core machine)")
     print("  stages (last run): " + ", ".join(f"{k} {v:.3f} s" for k, v in result.timings.items()))
     print(f"  coverage sampled {100 * c.coverage:.1f}% (>= 3 directions {100 * c.coverage_multi_direction:.1f}%)")
-    print(f"  coverage reachable by IK {100 * r.coverage:.1f}% (>= 3 directions {100 * r.coverage_multi_direction:.1f}%)")
+    print(f"  coverage reachable by IK {100 * r.coverage:.1f}% (>= 3 directions "
+          f"{100 * r.coverage_multi_direction:.1f}%)")
     print(f"  {r.summary}")
     res.figure("samples", args.samples, "samples")
     res.figure("repeats", args.repeats, "runs")
