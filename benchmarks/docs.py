@@ -731,6 +731,113 @@ def _needle_3d(r) -> str:
             + "\n\n" + source(*results))
 
 
+@renderer("brief")
+def _brief() -> str:
+    """README's "Results in brief": one headline per section of performance.md, from its result file where there
+    is one, else what the section measures (no number)."""
+    rows = []
+
+    def add(label: str, anchor: str, name: str | None, fn, fallback: str):
+        r = load(name) if name else None
+        text = fallback
+        if r is not None:
+            try:
+                text = fn(r)
+            except (KeyError, IndexError, TypeError, ValueError, StopIteration):
+                text = fallback
+        rows.append([f"[{label}](docs/performance.md#{anchor})", text])
+
+    def mechanics(r):
+        n = next(x for x in rows_of(r, "solves") if x["case"] == "push10" and x["solver"] == "newton")
+        a = next(x for x in rows_of(r, "solves") if x["case"] == "push10" and x["solver"] == "admm"
+                 and x["mode"] == "settled")
+        return (f"the example's 10 mm push: Newton in {n['iterations']} iterations to 1e-10 ({fixed(n['ms'], 0)} ms); "
+                f"ADMM within {num(a['error_rel'], 2)} of it")
+
+    def cups(r):
+        m = [x["miss_median"] for x in rows_of(r, "cups")]
+        t = rows_of(r, "cups")[0]["trials"]
+        return (f"median miss across the needle {fixed(min(m))}–{fixed(max(m))} mm over {t} trials per target, "
+                "either way")
+
+    def grip(r):
+        return (f"{fig(r, 'grip_candidates')} candidate grips scored in {fixed(fig(r, 'grip_search_ms'), 0)} ms by one "
+                "adjoint solve per target component")
+
+    def needle(r):
+        xs = rows_of(r, "insertion")
+        loop = [x["miss_mm"] for x in xs if x["strategy"] == "loop"]
+        none = [x["miss_mm"] for x in xs if x["strategy"] == "none"]
+        return (f"the `loop` strategy ends {fixed(min(loop), 3)}–{fixed(max(loop), 3)} mm from the target "
+                f"(no correction: up to {fixed(max(none))} mm)")
+
+    def layer(r):
+        p = [x["layer_check_in_plane_diff_pct"] for x in rows_of(r, "layer_check")]
+        return f"the 2-D layer overstates the targets' in-plane motion by {fixed(min(p), 0)}–{fixed(max(p), 0)} %"
+
+    def models(r):
+        stops = {}
+        for x in rows_of(r, "summary"):
+            k = x["controller"]
+            a, b = stops.get(k, (0, 0))
+            stops[k] = (a + (x.get("stroke_limit_stops") or 0), b + x["trials"])
+        return "stroke-limit stops: " + ", ".join(f"{k} {a} of {b}" for k, (a, b) in stops.items())
+
+    def trials(r):
+        p, e = rows_of(r, "studies")
+        return (f"max \\|x\\| {fixed(p['max_x_mm'])} / {fixed(e['max_x_mm'])} mm (paper {p['paper_max_x_mm']} / "
+                f"{e['paper_max_x_mm']}), max \\|y\\| {fixed(p['max_y_mm'])} / {fixed(e['max_y_mm'])} mm (paper "
+                f"{p['paper_max_y_mm']} / {e['paper_max_y_mm']})")
+
+    def budget(r):
+        rows = [x for x in r["data"]["budget_example_3d"]["rows"] if x["source"] == "slab"]
+        share = sum(x["mean_square_share"] for x in rows) / len(rows)
+        return f"the 3-D slab alone holds {fixed(100 * share, 0)} % of the slab-truth error's mean square"
+
+    def goals(_):
+        g = _goal_rows()
+        measured = [x for x in g if x[2] != "–"]
+        unmet = [x[0] for x in measured if x[2] != "yes"]
+        return (f"{len(measured) - len(unmet)} of {len(measured)} measured goals met"
+                + (f"; not met: {'; '.join(unmet)}" if unmet else ""))
+
+    def needle3d(r):
+        row = next(x for x in rows_of(r, "runs") if x["run"] == "default-slab")
+        loop = [x for x in rows_of(r, "misses") if x["strategy"] == "loop"]
+        return (f"`layer_check: {{}}` with the needle in the slab: `simulate --jobs 2` in "
+                f"{fixed(row['wall_s'] / 60, 1)} min"
+                + (f"; `loop` miss median {fixed(min(x['median_mm'] for x in loop), 2)}–"
+                   f"{fixed(max(x['median_mm'] for x in loop), 2)} mm" if loop else ""))
+
+    def ultrasound(r):
+        t = {x["measurement"]: x for x in rows_of(r, "timings")}
+        c = [x["envelope_correlation"] for x in rows_of(r, "fast_vs_simus")]
+        return (f"a B-mode frame {fixed(t['fast frame, in-plane']['median_ms'], 0)} ms, its tracking "
+                f"{fixed(t['tracking one frame']['median_ms'], 1)} ms; fast model against SIMUS: envelope correlation "
+                f"{fixed(min(c), 2)}–{fixed(max(c), 2)}")
+
+    add("Mechanics", "mechanics", "bench_forward", mechanics, "Newton and ADMM on the example's forward cases")
+    add("One cup against two", "one-cup-against-two", "docs_scenes", cups,
+        "the miss across the needle with one cup and with two, 30 trials per target")
+    add("Where to grip", "where-to-grip", "bench_control.table", grip,
+        "candidate grips scored by one adjoint solve per target component")
+    add("Needle insertion", "needle-insertion", "docs_scenes", needle, "the miss at the needle per strategy")
+    add("Does one layer suffice?", "the-layer-check", "docs_scenes", layer, "the 2-D layer against the 3-D slab")
+    add("Controller models", "controller-models-15", "compare_controller_models.paper_trials_prosthesis_slab", models,
+        "every controller model against the slab truth: stroke-limit stops, misses, cost per iteration")
+    add("Trials against the paper", "trials", "bench_trials", trials, "the paper's 4 × 30 studies against its maxima")
+    add("Error budget", "error-budget", "bench_needle_3d.full", budget, "what each error source adds to the miss")
+    add("Speed goals", "the-speed-goals", None, goals, "")
+    rows[-1][1] = goals(None)
+    add("The needle in 3-D", "the-needle-that-hits-in-3-d-18", "bench_needle_3d", needle3d,
+        "whole runs with the needle in the slab, end to end")
+    add("Ultrasound in the loop", "ultrasound-in-the-loop", "bench_ultrasound", ultrasound,
+        "B-mode frames, tracking and the fast model against SIMUS")
+    add("Model only what a scene needs", "model-only-what-a-scene-needs", None, None,
+        "`solver.accuracy_mm` and `layer_check.accuracy_mm` pick the cheapest model within a budget")
+    return table(["result", "headline"], rows)
+
+
 # ---------------------------------------------------------------------------------------------------- tables
 
 
