@@ -95,7 +95,7 @@ COMMANDS = {
     "bench_ultrasound": "python3 benchmarks/bench_ultrasound.py",
     "bench_ultrasound_loop": "python3 benchmarks/bench_ultrasound_loop.py",
     "study_ultrasound": "python3 benchmarks/study_ultrasound.py",
-    "compare_controller_models": "python3 benchmarks/compare_controller_models.py",
+    "compare_controller_models.accuracy0.1": "python3 benchmarks/compare_controller_models.py --accuracy-mm 0.1",
     "compare_controller_models.paper_trials_prosthesis_slab":
         "python3 benchmarks/compare_controller_models.py configs/paper_trials_prosthesis_slab.yaml",
     "docs_scenes": "python3 benchmarks/docs.py --images-only",
@@ -549,7 +549,8 @@ def _slab(quick, nopeer) -> str:
     by_tets: dict[int, dict] = {}
     for t in tables_:
         for x in rows_of(t, "sizes"):
-            by_tets.setdefault(x["tets"], {}).update({k: v for k, v in x.items() if v is not None})
+            row = by_tets.setdefault(x["tets"], {})  # a size both runs have: the first run's (its peer's) row
+            row.update({k: v for k, v in x.items() if v is not None and not row})
     out = []
     for tets, x in sorted(by_tets.items()):
         peer = f"{fixed(x['peer_s'], 1)} s ({x['peer_it']})" if "peer_s" in x else "–"
@@ -615,7 +616,7 @@ def _summary_rows(r) -> list[list]:
     return out
 
 
-@renderer("controller_models_example", "compare_controller_models")
+@renderer("controller_models_example", "compare_controller_models.accuracy0.1")
 def _controller_models_example(r) -> str:
     return (table(["scene", "controller", "target", "trials", "miss median / p95 / max (mm)", "stroke-limit stops",
                    "error at the plan (mm)", "s per iteration"], _summary_rows(r)) + "\n\n" + source(r))
@@ -870,7 +871,8 @@ def table_docs() -> list[Path]:
 #: docs/img file → its source: ("results", result file, drawing function name) or ("run", scene key, file in it)
 IMAGES = {
     "budget_slab.png": ("results", "bench_needle_3d.full", "draw_budget_slab"),
-    "controller_models_example_full.png": ("results", "compare_controller_models", "draw_controller_models"),
+    "controller_models_example_full.png": ("results", "compare_controller_models.accuracy0.1",
+                                           "draw_controller_models"),
     "controller_models_paper.png": ("results", "compare_controller_models.paper_trials_prosthesis_slab",
                                     "draw_controller_models"),
     "insertion_force_T1.png": ("run", "example_insertion", "insertion_force_T1.png"),
