@@ -284,7 +284,8 @@ def _goal_rows() -> list[list]:
 
     def surrogate(r):
         row = next(x for x in rows_of(r, "models") if x["model"] == "surrogate")
-        return f"{fixed(row['build_s'], 1)} s" + (" (cached)" if row["cached"] else ""), row["build_s"] <= 60
+        return (f"{fixed(row['build_s'], 1)} s" + (" (cached)" if row["cached"] else "")
+                + f" ({num(r['data']['scene']['tetrahedra'])} tetrahedra)", row["build_s"] <= 60)
 
     add("the surrogate trained ≤ 60 s, 2 cores", "bench_control.models", surrogate)
     add("the controller's side of an iteration ≤ 10 ms (layer, calibrated, surrogate)", "bench_control.models",
