@@ -607,20 +607,39 @@ def _controller_iteration(r) -> str:
               "tetrahedra.\n\n" + source(r))
 
 
+def _grouped(rows: list[dict], key) -> dict:
+    out: dict = {}
+    for x in rows:
+        out.setdefault(key(x), []).append(x)
+    return out
+
+
+def _misses(xs: list[dict], digits: int = 2) -> str:
+    """'T1 a / b / c, T2 …' (median / p95 / max of the miss across the needle) of one run's targets."""
+    return ", ".join(f"{x['target']} " + (f"{fixed(x['miss_median'], digits)} / {fixed(x['miss_p95'], digits)} / "
+                                          f"{fixed(x['miss_max'], digits)}" if x.get("miss_median") is not None
+                                          else "no trials") for x in xs)
+
+
 def _summary_rows(r) -> list[list]:
+    """One row per run (controller), its targets in the cells."""
     out = []
-    for x in rows_of(r, "summary"):
-        out.append([x["run"].split(" (")[0], x["controller"], x["target"], x["trials"],
-                    f"{fixed(x.get('miss_median'))} / {fixed(x.get('miss_p95'))} / {fixed(x.get('miss_max'))}",
-                    x.get("stroke_limit_stops"), num(x.get("plan_model_error_mm"), 2),
-                    num(x.get("time_per_iteration_s"), 2)])
+    for (_, controller), xs in _grouped(rows_of(r, "summary"), lambda x: (x["run"], x["controller"])).items():
+        done = [x for x in xs if x["trials"]]
+        stops = sum(x.get("stroke_limit_stops") or 0 for x in done)
+        plan = ", ".join(num(x.get("plan_model_error_mm"), 2) for x in done)
+        per_it = [x["time_per_iteration_s"] for x in done if x.get("time_per_iteration_s") is not None]
+        out.append([controller, _misses(xs), f"{stops} of {sum(x['trials'] for x in done)}", plan or "–",
+                    "–" if not per_it else f"{num(min(per_it), 2)}–{num(max(per_it), 2)}"])
     return out
 
 
 @renderer("controller_models_example", "compare_controller_models.accuracy0.1")
 def _controller_models_example(r) -> str:
-    return (table(["scene", "controller", "target", "trials", "miss median / p95 / max (mm)", "stroke-limit stops",
-                   "error at the plan (mm)", "s per iteration"], _summary_rows(r)) + "\n\n" + source(r))
+    walls = ", ".join(f"{x['variant']} {fixed(x['wall_s'], 0)} s" for x in rows_of(r, "runs"))
+    return (table(["controller", "miss median / p95 / max per target (mm)", "stroke-limit stops",
+                   "error at the plan (mm)", "s per iteration"], _summary_rows(r))
+            + f"\n\nThe runs (`--jobs 2`): {walls}.\n\n" + source(r))
 
 
 @renderer("controller_models_paper", "compare_controller_models.paper_trials_prosthesis_slab")
@@ -677,11 +696,11 @@ def _ultrasound_loop(r) -> str:
 def _study_ultrasound(r) -> str:
     runs = [[x["study"], x["sensor"], f"{fixed(x['wall_s'] / 60, 1)} min", f"{fixed(x['trials_s'], 0)} s",
              fixed(x["load1"], 1)] for x in rows_of(r, "runs")]
-    out = [[x["run"].split(" (")[0], x.get("sensor", "–"), x["target"],
-            f"{fixed(x.get('miss_median'), 3)} / {fixed(x.get('miss_p95'), 3)} / {fixed(x.get('miss_max'), 3)}"]
-           for x in rows_of(r, "summary")]
+    out = [[run.split(" (")[0], sensor, _misses(xs)]
+           for (run, sensor), xs in _grouped(rows_of(r, "summary"), lambda x: (x["run"], x.get("sensor"))).items()]
     return (table(["study", "sensor", "whole run", "trials", "load"], runs) + "\n\n"
-            + table(["run", "sensor", "target", "manipulation miss median / p95 / max (mm)"], out) + "\n\n" + source(r))
+            + table(["run", "sensor", "manipulation miss median / p95 / max per target (mm)"], out) + "\n\n"
+            + source(r))
 
 
 @renderer("ladder", "bench_slab_ladder")
@@ -723,13 +742,14 @@ def _needle_3d(r) -> str:
             trial = ", ".join(f"{t} {fixed(v, 1)} s" for t, v in x["trial_s"].items())
             runs.append([x["run"], x["config"], "ok" if x["exit"] == 0 else f"exit {x['exit']}",
                          f"{fixed(x['wall_s'] / 60, 1)} min", trial or "–", fixed(x["load1"], 1)])
-        for x in rows_of(res, "misses"):
-            if not any(m[0] == x["run"] and m[1] == x["target"] and m[2] == f"`{x['strategy']}`" for m in misses):
-                misses.append([x["run"], x["target"], f"`{x['strategy']}`", x["trials"],
-                               f"{fixed(x['median_mm'], 3)} / {fixed(x['p95_mm'], 3)} / {fixed(x['max_mm'], 3)}"])
+        for (run, strategy), xs in _grouped(rows_of(res, "misses"), lambda x: (x["run"], x["strategy"])).items():
+            if not any(m[0] == run and m[1] == f"`{strategy}`" for m in misses):
+                misses.append([run, f"`{strategy}`", ", ".join(
+                    f"{x['target']} {fixed(x['median_mm'], 3)} / {fixed(x['p95_mm'], 3)} / {fixed(x['max_mm'], 3)} "
+                    f"({x['trials']})" for x in xs)])
     return (table(["run", "config", "exit", "`simulate --jobs 2` from nothing", "median trial", "load at the end"],
                   runs)
-            + "\n\n" + table(["run", "target", "strategy", "trials", "needle miss median / p95 / max (mm)"], misses)
+            + "\n\n" + table(["run", "strategy", "needle miss median / p95 / max per target, mm (trials)"], misses)
             + "\n\n" + source(*results))
 
 
@@ -975,6 +995,8 @@ def run_scenes(work: Path) -> dict[str, Path]:
     with h5py.File(work / "example_insertion" / "results.h5", "r") as f:
         for target, g in f["insertion"].items():
             for strategy, s in g.items():
+                if not isinstance(s, h5py.Group) or "miss_mm" not in s.attrs:
+                    continue
                 a = s.attrs
                 along = np.asarray(s["target"][()], float)
                 direction = np.asarray(a["direction"], float)[:2]
