@@ -17,7 +17,7 @@ Default CONFIG: configs/example_full.yaml; the paper's scene is
 configs/paper_trials_prosthesis_slab.yaml (its slab grading is chosen by
 accuracy in each variant's run, about 4 min each). `--localisation 0` takes
 the profile's localisation error out (what is left is the loop's own); `--accuracy-mm 0.1` lets a config
-that pins its slab (example_full.yaml) run on the slab its ladder picks. The `slab` rows steer with the
+that pins its slab (`accuracy_mm: null`) run on the slab its ladder picks. The `slab` rows steer with the
 nominal slab itself (the reference: one slab solve per control iteration). A slab-truth trial takes about
 3 s on the paper scene's picked slab (a minute on a pinned 128k one); a surrogate is trained once and cached in
 DIR/.scissor-cache.
