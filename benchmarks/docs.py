@@ -621,16 +621,35 @@ def _misses(xs: list[dict], digits: int = 2) -> str:
                                           else "no trials") for x in xs)
 
 
+def _runs_of(rows: list[dict]) -> list[list[dict]]:
+    """The report's rows (run after run, target after target) split into runs: a run ends where a target repeats
+    (runs of one scene share their label; a refused target's row has no controller)."""
+    runs: list[list[dict]] = []
+    for x in rows:
+        if not runs or any(y["target"] == x["target"] for y in runs[-1]):
+            runs.append([])
+        runs[-1].append(x)
+    return runs
+
+
+def _span(values: list[float], digits: int = 2) -> str:
+    if not values:
+        return "–"
+    lo, hi = num(min(values), digits), num(max(values), digits)
+    return lo if lo == hi else f"{lo}–{hi}"
+
+
 def _summary_rows(r) -> list[list]:
     """One row per run (controller), its targets in the cells."""
     out = []
-    for (_, controller), xs in _grouped(rows_of(r, "summary"), lambda x: (x["run"], x["controller"])).items():
+    for xs in _runs_of(rows_of(r, "summary")):
         done = [x for x in xs if x["trials"]]
+        controller = next((x["controller"] for x in xs if x.get("controller")), "–")
         stops = sum(x.get("stroke_limit_stops") or 0 for x in done)
         plan = ", ".join(num(x.get("plan_model_error_mm"), 2) for x in done)
         per_it = [x["time_per_iteration_s"] for x in done if x.get("time_per_iteration_s") is not None]
-        out.append([controller, _misses(xs), f"{stops} of {sum(x['trials'] for x in done)}", plan or "–",
-                    "–" if not per_it else f"{num(min(per_it), 2)}–{num(max(per_it), 2)}"])
+        misses = _misses(done) + "".join(f", {x['target']} refused" for x in xs if not x["trials"])
+        out.append([controller, misses, f"{stops} of {sum(x['trials'] for x in done)}", plan or "–", _span(per_it)])
     return out
 
 
@@ -696,8 +715,8 @@ def _ultrasound_loop(r) -> str:
 def _study_ultrasound(r) -> str:
     runs = [[x["study"], x["sensor"], f"{fixed(x['wall_s'] / 60, 1)} min", f"{fixed(x['trials_s'], 0)} s",
              fixed(x["load1"], 1)] for x in rows_of(r, "runs")]
-    out = [[run.split(" (")[0], sensor, _misses(xs)]
-           for (run, sensor), xs in _grouped(rows_of(r, "summary"), lambda x: (x["run"], x.get("sensor"))).items()]
+    out = [[xs[0]["run"].split(" (")[0], xs[0].get("sensor", "–"), _misses(xs)]
+           for xs in _runs_of(rows_of(r, "summary"))]
     return (table(["study", "sensor", "whole run", "trials", "load"], runs) + "\n\n"
             + table(["run", "sensor", "manipulation miss median / p95 / max per target (mm)"], out) + "\n\n"
             + source(r))
@@ -800,7 +819,7 @@ def _brief() -> str:
     def models(r):
         stops = {}
         for x in rows_of(r, "summary"):
-            k = x["controller"]
+            k = x.get("controller", "–")
             a, b = stops.get(k, (0, 0))
             stops[k] = (a + (x.get("stroke_limit_stops") or 0), b + x["trials"])
         return "stroke-limit stops: " + ", ".join(f"{k} {a} of {b}" for k, (a, b) in stops.items())
@@ -1023,6 +1042,8 @@ def write_images(only_results: bool = False) -> list[str]:
             if kind == "results":
                 r = load(src)
                 ok = r is not None and globals()[what](r, IMG / name)
+            elif only_results:
+                continue  # a scene run's image: left as it is
             else:
                 path = folders.get(src, Path("/nonexistent")) / what
                 ok = path.is_file()
