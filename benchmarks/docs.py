@@ -382,9 +382,8 @@ def _hard_cases(r) -> str:
             ok = "" if all(x["converged"] for x in xs) else " (not all converged)"
             cells.append(f"{its} it, {ts} s{ok}")
         out.append(cells)
-    forward = " / ".join(dict.fromkeys(x["forward"] for x in rows if x["case"] == rows[0]["case"]))
     return (table(["case (configs/hard/)", "elements", "Newton", "ADMM", "ADMM + Anderson"], out)
-            + f"\n\nEach cell: its forward cases in the config's order (e.g. {forward}), iterations and wall time of "
+            + "\n\nEach cell: the config's forward cases in its order, separated by /; iterations and wall time of "
               "one solve.\n\n" + source(r))
 
 
@@ -426,8 +425,8 @@ def _one_vs_two(r) -> str:
 @renderer("grip", "docs_scenes")
 def _grip(r) -> str:
     g = r["data"]["manipulation_points"]
-    chosen = "; ".join(f"({fixed(c[0], 0)}, {fixed(c[1], 0)}) mm" for c in g["chosen"])
-    axes = "; ".join(f"({fixed(a[0], 0)}, {fixed(a[1], 0)})" for a in g["axes"])
+    chosen = "; ".join(f"({fixed(c[0] + 0.0, 0)}, {fixed(c[1] + 0.0, 0)}) mm" for c in g["chosen"])
+    axes = "; ".join(f"({fixed(round(a[0]) + 0.0, 0)}, {fixed(round(a[1]) + 0.0, 0)})" for a in g["axes"])
     return (table(["scene", "candidates", "search (adjoints, ranking)", "verification", "chosen grip", "push axis"],
                   [[g["config"], g["candidates"], f"{fixed(g['search_s'] * 1e3, 0)} ms",
                     f"{fixed(g['verify_s'] * 1e3, 0)} ms", chosen, axes]]) + "\n\n" + source(r))
