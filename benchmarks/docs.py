@@ -477,7 +477,9 @@ def _budget_slab(r) -> str:
 @renderer("insertion_scene", "docs_scenes")
 def _insertion_scene(r) -> str:
     rows = rows_of(r, "insertion")
-    strategies = list(dict.fromkeys(x["strategy"] for x in rows))
+    order = ["none", "depth", "loop"]
+    strategies = sorted(dict.fromkeys(x["strategy"] for x in rows), key=lambda k: (k not in order, order.index(k)
+                                                                                    if k in order else 0, k))
     out = []
     for target in dict.fromkeys(x["target"] for x in rows):
         xs = {x["strategy"]: x for x in rows if x["target"] == target}
