@@ -677,7 +677,7 @@ def _controller_models_paper(r) -> str:
 @renderer("ultrasound", "bench_ultrasound")
 def _ultrasound(r) -> str:
     out = [[x["measurement"], f"{fixed(x['median_ms'], 2)} ms", f"{fixed(x['p10_ms'], 2)}–{fixed(x['p90_ms'], 2)}",
-            x.get("scatterers", "–")] for x in rows_of(r, "timings")]
+            num(x.get("scatterers"))] for x in rows_of(r, "timings")]
     acc = [[f"shift {x['shift_mm']} mm" + (", strain" if x["strain"] else "") + (f", band ±{x['band_mm']} mm"
                                                                                  if x["band_mm"] else ""),
             fixed(x["envelope_correlation"], 3), f"{fixed(x['tracking_difference_um'], 1)} µm"]
@@ -702,7 +702,7 @@ def _ultrasound(r) -> str:
 
 @renderer("ultrasound_loop", "bench_ultrasound_loop")
 def _ultrasound_loop(r) -> str:
-    out = [[x["measurement"], f"{fixed(x['median_ms'], 2)} ms", x.get("scatterers", "–"),
+    out = [[x["measurement"], f"{fixed(x['median_ms'], 2)} ms", num(x.get("scatterers")),
             "–" if "first_s" not in x else f"{fixed(x['first_s'], 2)} s"] for x in rows_of(r, "measure")]
     track = rows_of(r, "loop_tracking")
     p95 = [x["p95_um"] for x in track]
