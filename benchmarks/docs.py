@@ -3,6 +3,7 @@
     python3 benchmarks/docs.py                 # every generated table, then every image
     python3 benchmarks/docs.py --tables-only   # the tables (reads benchmarks/results/*.json; seconds)
     python3 benchmarks/docs.py --images-only   # the images (runs scissor on shipped configs: minutes)
+    python3 benchmarks/docs.py --result-images # only the images drawn from result files (seconds)
     python3 benchmarks/docs.py --check         # exit 1 when a committed table differs from what this would write,
                                                # or docs/img's file names differ from the images it writes
     python3 benchmarks/docs.py --list          # every file it writes
