@@ -827,11 +827,13 @@ def _brief() -> str:
 
     def models(r):
         stops = {}
-        for x in rows_of(r, "summary"):
-            k = x.get("controller", "–")
-            a, b = stops.get(k, (0, 0))
-            stops[k] = (a + (x.get("stroke_limit_stops") or 0), b + x["trials"])
-        return "stroke-limit stops: " + ", ".join(f"{k} {a} of {b}" for k, (a, b) in stops.items())
+        for xs in _runs_of(rows_of(r, "summary")):
+            done = [x for x in xs if x["trials"]]
+            controller = next((x["controller"] for x in xs if x.get("controller")), "–")
+            stops[controller] = (sum(x.get("stroke_limit_stops") or 0 for x in done), sum(x["trials"] for x in done))
+        (a, b), (c, d) = stops["layer"], stops["surrogate"]
+        return (f"stroke-limit stops on the paper scene: the paper's layer model {a} of {b}, the slab surrogate "
+                f"{c} of {d}")
 
     def trials(r):
         p, e = rows_of(r, "studies")
