@@ -1106,6 +1106,7 @@ def main(argv=None) -> int:
             print(path.relative_to(ROOT))
         for name in IMAGES:
             print(f"docs/img/{name}")
+        print("benchmarks/results/docs_scenes.json")  # the scene runs' figures (--images-only)
         return 0
     if args.check:
         problems = check()
