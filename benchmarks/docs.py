@@ -194,9 +194,12 @@ def render(name: str) -> str:
 
 @renderer("provenance")
 def _provenance() -> str:
-    rows = []
+    rows, other = [], []
     for path in sorted(RESULTS.glob("*.json")):
         r = json.loads(path.read_text())
+        if not {"benchmark", "commit", "machine", "load1_before", "load1_after"} <= set(r):
+            other.append(f"`{path.name}`")  # written by a script that does not use results_io
+            continue
         c = r["commit"]
         rows.append([f"`{path.name}`", r["date"][:16].replace("T", " "), f"{r['machine']['cpu']}, "
                                                                          f"{r['machine']['cores']}",
@@ -205,9 +208,11 @@ def _provenance() -> str:
                      f"{r['versions'].get('python')} / {r['versions'].get('numpy')}"])
     if not rows:
         return "*No result files yet: run the benchmarks (each script's docstring says how long it takes).*"
+    note = "" if not other else (f" Not written through `results_io` (no machine or load recorded): "
+                                 f"{', '.join(other)}.")
     return table(["result file", "date (UTC)", "CPU, cores", "load (1 min) before → after", "wall (s)", "commit",
                   "python / numpy"], rows) + "\n\n" + (
-        "A commit marked + had changes beside it that were not committed (the file lists them).")
+        "A commit marked + had changes beside it that were not committed (the file lists them)." + note)
 
 
 def _goal_rows() -> list[list]:
