@@ -728,13 +728,24 @@ def _ultrasound_loop(r) -> str:
 
 @renderer("study_ultrasound", STUDY)
 def _study_ultrasound(r) -> str:
-    runs = [[x["study"], x["sensor"], f"{fixed(x['wall_s'] / 60, 1)} min", f"{fixed(x['trials_s'], 0)} s",
-             fixed(x["load1"], 1)] for x in rows_of(r, "runs")]
-    out = [[xs[0]["run"].split(" (")[0], xs[0].get("sensor", "–"), _misses(xs)]
-           for xs in _runs_of(rows_of(r, "summary"))]
-    return (table(["study", "sensor", "whole run", "trials", "load"], runs) + "\n\n"
-            + table(["run", "sensor", "manipulation miss median / p95 / max per target (mm)"], out) + "\n\n"
-            + source(r))
+    runs = rows_of(r, "runs")
+    out = []
+    for x, xs in zip(runs, _runs_of(rows_of(r, "summary"))):
+        out.append([x["study"], x["sensor"], f"{fixed(x['wall_s'] / 60, 1)} min", f"{fixed(x['trials_s'], 0)} s",
+                    fixed(x["load1"], 1), _misses(xs)])
+    top = []
+    for run, xs in _grouped([x for x in rows_of(r, "budget") if x["source"] != "all" and x["trials"]],
+                            lambda x: x["run"]).items():
+        best = {}
+        for x in xs:
+            if x["mean_square_share"] > best.get(x["target"], {"mean_square_share": -1})["mean_square_share"]:
+                best[x["target"]] = x
+        top.append(f"{run}: " + ", ".join(f"{t} {b['source']} {fixed(b['mean_square_share'], 2)}"
+                                          for t, b in best.items()))
+    budget = ("" if not top else "\n\nThe source with the largest share of the miss's mean square per target, in "
+              "each budget: " + "; ".join(top) + ".")
+    return (table(["study", "sensor", "whole run", "trials", "load", "manipulation miss median / p95 / max per "
+                   "target (mm)"], out) + budget + "\n\n" + source(r))
 
 
 @renderer("ladder", "bench_slab_ladder")
