@@ -79,9 +79,16 @@ def _fail(code: int, message: str) -> None:
 def _load(config: Optional[Path]) -> tuple[Config, str]:
     path = config or DEFAULT_SCENE
     try:
-        return load_config(path), path.stem
+        cfg = load_config(path)
     except ConfigError as exc:
         _fail(2, str(exc))
+    if cfg.tissue.shape in ("dome", "surface"):  # a 3-D scene's element budget: the mesher's estimate
+        from scissor_cli.experiments.body_run import body_budget_problem
+
+        problem = body_budget_problem(cfg)
+        if problem is not None:
+            _fail(2, f"{path}: {problem}")
+    return cfg, path.stem
 
 
 def _out_dir(out: Optional[Path], stem: str, force: bool) -> Path:
@@ -100,7 +107,8 @@ def _version(value: bool) -> None:
 
 @app.callback()
 def main(
-    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version and exit."),
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
+                                 help="Print the version and exit."),
 ) -> None:
     """scissor: simulate robot-assisted breast intervention from a YAML scene."""
     runtime.configure()
@@ -119,16 +127,22 @@ class SimulateOptions:
 
     config: Optional[Path] = typer.Argument(None, help="Scene YAML file (default: the shipped example scene).")
     out_dir: Optional[Path] = typer.Option(None, "--out", help="Output directory (default runs/<config-stem>-<time>/).")
-    trials: Optional[int] = typer.Option(None, "--trials", min=0, max=10_000, help="Trials per target (0: forward cases and plans only).")
+    trials: Optional[int] = typer.Option(None, "--trials", min=0, max=10_000,
+                                         help="Trials per target (0: forward cases and plans only).")
     seed: Optional[int] = typer.Option(None, "--seed", min=0, max=2**63 - 1, help="Override the config's seed.")
     solver: Optional[str] = typer.Option(None, "--solver", help="Override the config's solver: admm | newton.")
-    truth: Optional[str] = typer.Option(None, "--truth", help="Override trials.truth: layer | slab (the 3-D slab of layer_check).")
-    jobs: Optional[int] = typer.Option(None, "--jobs", min=1, max=MAX_JOBS, help="Worker processes for trials (default: all cores).")
+    truth: Optional[str] = typer.Option(None, "--truth",
+                                        help="Override trials.truth: layer | slab (the 3-D slab of layer_check).")
+    jobs: Optional[int] = typer.Option(None, "--jobs", min=1, max=MAX_JOBS,
+                                       help="Worker processes for trials (default: all cores).")
     executor: str = typer.Option("local", "--executor", help="Where trials run: local | dask.")
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address (with --executor dask).")
-    resume: Optional[Path] = typer.Option(None, "--resume", help="Finish an interrupted run directory: the stages it had not finished, then its trials.")
-    study: bool = typer.Option(False, "--study", help="Also run the solver study (the config's `study` section or its defaults).")
-    budget: bool = typer.Option(False, "--budget", help="Also run the error budget: the trials again with one error source at a time.")
+    resume: Optional[Path] = typer.Option(
+        None, "--resume", help="Finish an interrupted run directory: the stages it had not finished, then its trials.")
+    study: bool = typer.Option(False, "--study",
+                               help="Also run the solver study (the config's `study` section or its defaults).")
+    budget: bool = typer.Option(
+        False, "--budget", help="Also run the error budget: the trials again with one error source at a time.")
     force: bool = typer.Option(False, "--force", help="Write into a non-empty --out directory.")
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress or messages, only the output path.")
 
@@ -149,7 +163,8 @@ def takes_options(options_cls):
             return body(options_cls(**values))
 
         command.__signature__ = inspect.Signature([
-            inspect.Parameter(f.name, inspect.Parameter.POSITIONAL_OR_KEYWORD, default=f.default, annotation=hints[f.name])
+            inspect.Parameter(f.name, inspect.Parameter.POSITIONAL_OR_KEYWORD, default=f.default,
+                              annotation=hints[f.name])
             for f in fields])
         command.__annotations__ = {f.name: hints[f.name] for f in fields}
         command.__name__, command.__doc__ = body.__name__, body.__doc__
@@ -214,6 +229,12 @@ def _configured(options: SimulateOptions) -> tuple[Config, str]:
     """The scene with the command line's overrides; exit 2 on a bad combination."""
     cfg, stem = _load(options.config)
     scene = options.config or DEFAULT_SCENE
+    body = cfg.tissue.shape in ("dome", "surface")
+    if body and options.study:
+        _fail(2, f"--study: the solver study runs on a 2-D layer; {scene} is a 3-D body (tissue.shape "
+                 f"{cfg.tissue.shape})")
+    if body and options.truth is not None:
+        _fail(2, f"--truth: a 3-D scene's trials run against the body itself; {scene} is a 3-D body")
     if options.solver is not None:
         if options.solver not in ("admm", "newton"):
             _fail(2, f"--solver: must be 'admm' or 'newton'; got {options.solver!r}")
@@ -228,7 +249,10 @@ def _configured(options: SimulateOptions) -> tuple[Config, str]:
     if options.seed is not None:
         cfg = cfg.model_copy(update={"seed": options.seed})
     if options.trials is not None:
-        cfg = cfg.model_copy(update={"trials": cfg.trials.model_copy(update={"count": options.trials})})
+        trials = {"count": options.trials}
+        if options.trials == 0 and cfg.trials.budget:  # no trials, no budget: the budget reruns the trials
+            trials["budget"] = False
+        cfg = cfg.model_copy(update={"trials": cfg.trials.model_copy(update=trials)})
     if options.budget:
         if cfg.trials.count == 0:
             _fail(2, f"--budget: the error budget reruns the trials, and {scene} runs none "
@@ -238,6 +262,14 @@ def _configured(options: SimulateOptions) -> tuple[Config, str]:
         from scissor_cli.config import StudyConfig
 
         cfg = cfg.model_copy(update={"study": StudyConfig()})
+    try:  # the options may combine with the scene into something it does not allow: say so now, not in a worker
+        parse_config(resolved_yaml(cfg), f"{scene} with the command's options")
+        if body:
+            from scissor_cli.experiments.body_run import refuse_unbuilt
+
+            refuse_unbuilt(cfg)
+    except ConfigError as exc:
+        _fail(2, f"{scene}: {exc}" if body and not str(exc).startswith(str(scene)) else str(exc))
     return cfg, stem
 
 
@@ -256,13 +288,13 @@ def _new_run(options: SimulateOptions, execution) -> None:
 
 def _run(cfg: Config, directory: Path, execution, scene) -> None:
     """A run of cfg from its first stage into `directory` (claimed); its config recorded first for `--resume`."""
-    from scissor_cli.mesh.mesh import MeshError
     from scissor_cli.experiments.pool import WorkerLost
     from scissor_cli.experiments.simulate import NonFiniteError, TrialsFailed, run_simulation
-    from scissor_cli.output.results_sink import RunDirectory
     from scissor_cli.experiments.study import StudyError
-    from scissor_cli.solvers.common import SolverError
     from scissor_cli.mechanics.tissue import BoundaryError
+    from scissor_cli.mesh.mesh import MeshError
+    from scissor_cli.output.results_sink import RunDirectory
+    from scissor_cli.solvers.common import SolverError
 
     run = RunDirectory(directory)
     run.start(resolved_yaml(cfg))
@@ -292,17 +324,20 @@ def _stopped(exc: KeyboardInterrupt, directory: Path, how: str) -> None:
 
 @app.command()
 def workspace(
-    config: Optional[Path] = typer.Argument(None, help="Scene YAML file for its `robot` section (default: the paper's robot)."),
-    samples: int = typer.Option(1_000_000, "--samples", min=1, max=MAX_SAMPLES, help="Joint-space samples (about 0.5 s and 0.2 GB per million)."),
+    config: Optional[Path] = typer.Argument(
+        None, help="Scene YAML file for its `robot` section (default: the paper's robot)."),
+    samples: int = typer.Option(1_000_000, "--samples", min=1, max=MAX_SAMPLES,
+                                help="Joint-space samples (about 0.5 s and 0.2 GB per million)."),
     out_dir: Optional[Path] = typer.Option(None, "--out", help="Output directory (default runs/workspace-<time>/)."),
-    seed: Optional[int] = typer.Option(None, "--seed", min=0, max=2**63 - 1, help="Sampling seed (default: the config's seed, else 0)."),
+    seed: Optional[int] = typer.Option(None, "--seed", min=0, max=2**63 - 1,
+                                       help="Sampling seed (default: the config's seed, else 0)."),
     grid: bool = typer.Option(False, "--grid", help="Sample a tensor grid instead of uniformly at random."),
     force: bool = typer.Option(False, "--force", help="Write into a non-empty --out directory."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Only the output path."),
 ) -> None:
     """Sample the puncture module's joint space: workspace.h5, the Fig. 8 projections, box coverage."""
-    from scissor_cli.robot.chain import RobotModel
     from scissor_cli.output.workspace_file import plot_workspace, write_workspace_h5
+    from scissor_cli.robot.chain import RobotModel
     from scissor_cli.robot.workspace import run_workspace
 
     if config is not None:

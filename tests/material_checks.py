@@ -171,8 +171,8 @@ def invalid_F(dim):
 def extreme_F(dim):
     """Overflowing, underflowing and tiny stretches and a huge inverted state; in 3-D also NaN,
     inf and a badly conditioned state (2-D meets those in the projected invalid-rows test)."""
-    I = np.eye(dim)
-    F = [I * 1e200, I * 1e-200, I * 1e-7, np.diag([1e300] * (dim - 1) + [-1e300])]
+    eye = np.eye(dim)
+    F = [eye * 1e200, eye * 1e-200, eye * 1e-7, np.diag([1e300] * (dim - 1) + [-1e300])]
     if dim == 3:
         F += [np.full((3, 3), np.nan), np.diag([np.inf, 1.0, 1.0]), np.diag([1e100, 1e-100, 1.0])]
     return np.array(F)

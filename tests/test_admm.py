@@ -2,21 +2,21 @@
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 
-from scissor_cli.solvers.admm import local, solver as admm_solver
+from scissor_cli.config import load_config
+from scissor_cli.experiments.build import scene_of
+from scissor_cli.mechanics.tissue import build_tissue
+from scissor_cli.mesh.mesh import mesh_for_config
+from scissor_cli.solvers.admm import local
+from scissor_cli.solvers.admm import solver as admm_solver
 from scissor_cli.solvers.admm.anderson import Anderson
 from scissor_cli.solvers.admm.euler import implicit_euler
 from scissor_cli.solvers.admm.solver import AdmmSolver, AdmmState
 from scissor_cli.solvers.admm.weights import curvature_boost, rest_weights
-from scissor_cli.config import load_config
-from scissor_cli.mesh.mesh import mesh_for_config
-from scissor_cli.solvers.newton import solve_newton
-from scissor_cli.experiments.build import scene_of
 from scissor_cli.solvers.common import Inertia, SolverError
-from scissor_cli.mechanics.tissue import build_tissue
+from scissor_cli.solvers.newton import solve_newton
 
 CONFIG = "configs/example.yaml"
 

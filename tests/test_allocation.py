@@ -74,11 +74,12 @@ def test_zero_cups_have_nothing_to_correct():
 def test_zero_cup_loop_stops_at_once_and_says_so():
     from dataclasses import replace
 
-    from helpers import ROOT
     from scissor_cli import control as ct
     from scissor_cli.config import load_config
     from scissor_cli.experiments.build import build_model
     from scissor_cli.mechanics.tissue import build_tissue
+
+    from helpers import ROOT
 
     cfg = load_config(ROOT / "configs" / "example.yaml")
     scene, _, tissue = build_model(cfg, mesh_scale=2.0)

@@ -8,7 +8,6 @@ from scissor_cli.control.actuator import Actuator
 from scissor_cli.control.broyden import MAX_CHANGE, MIN_MOVE_MM, NOISE_FACTOR, BroydenCorrection, broyden_update
 from scissor_cli.control.loop import run_loop
 from scissor_cli.mesh.probe import probe_targets
-
 from tests.test_control import scene_setup
 
 

@@ -13,6 +13,8 @@ import yaml
 from scissor_cli.config import parse_config, resolved_yaml
 from scissor_cli.experiments.error_budget import ROWS, budget_plan, identical_trials
 from scissor_cli.output.error_budget.results import BudgetCell, budget_rows
+
+from figure_checks import assert_png_drawn
 from helpers import deep_update, example_dict, write_scene
 
 
@@ -49,8 +51,10 @@ def test_a_row_is_the_trials_of_its_variant_config(budget_run):
     alone = _simulate(path, tmp / "alone")
     with h5py.File(h5_path) as a, h5py.File(alone) as b:
         for target in ("T1", "T2"):
-            assert np.array_equal(a[f"budget/localisation/{target}/final_error"][()], b[f"trials/{target}/final_error"][()])
-            assert np.array_equal(a[f"budget/localisation/{target}/miss_mm"][()], b[f"trials/{target}/manipulation_miss_mm"][()])
+            assert np.array_equal(a[f"budget/localisation/{target}/final_error"][()],
+                                  b[f"trials/{target}/final_error"][()])
+            assert np.array_equal(a[f"budget/localisation/{target}/miss_mm"][()],
+                                  b[f"trials/{target}/manipulation_miss_mm"][()])
 
 
 def test_a_row_that_draws_nothing_runs_once_and_equals_its_variant_run_in_full(budget_run):
@@ -69,7 +73,8 @@ def test_a_row_that_draws_nothing_runs_once_and_equals_its_variant_run_in_full(b
             stored = a[f"budget/none/{target}/final_error"][()]
             assert stored.shape == (cfg.trials.count, 2)
             assert np.array_equal(stored, b[f"trials/{target}/final_error"][()])
-            assert np.array_equal(a[f"budget/none/{target}/miss_mm"][()], b[f"trials/{target}/manipulation_miss_mm"][()])
+            assert np.array_equal(a[f"budget/none/{target}/miss_mm"][()],
+                                  b[f"trials/{target}/manipulation_miss_mm"][()])
 
 
 def test_only_rows_without_a_drawn_source_or_speckle_are_identical():
@@ -90,7 +95,7 @@ def test_the_all_row_is_the_ordinary_trials(budget_run):
         rows = [r for r in a["budget"].attrs["sources"] if r != "all"]
         assert set(rows) == {"camera", "localisation", "E", "nu", "eta", "fiber", "actuator", "none"}
         assert a["budget"].attrs["paper_max_mm"].shape == (2, 2)
-    assert (tmp / "run" / "budget.png").exists()
+    assert_png_drawn(tmp / "run" / "budget.png")
 
 
 def test_rows_the_scene_cannot_have_are_skipped_with_a_note():
@@ -113,7 +118,8 @@ def test_budget_without_trials_is_refused(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "scissor_cli", "validate", str(write_scene(tmp_path, data))],
                           capture_output=True, text=True)
     assert proc.returncode == 2 and "trials.budget" in proc.stderr and "Traceback" not in proc.stderr
-    proc = subprocess.run([sys.executable, "-m", "scissor_cli", "simulate", str(write_scene(tmp_path, _small(), "b.yaml")),
+    proc = subprocess.run([sys.executable, "-m", "scissor_cli", "simulate",
+                           str(write_scene(tmp_path, _small(), "b.yaml")),
                            "--budget", "--trials", "0", "--out", str(tmp_path / "o")], capture_output=True, text=True)
     assert proc.returncode == 2 and "--budget" in proc.stderr and "Traceback" not in proc.stderr
 
@@ -156,7 +162,7 @@ def test_slab_truth_budget_runs_with_its_3d_row(tmp_path):
     with h5py.File(h5) as f:
         rows = set(f["budget"].keys())
         assert {"slab", "camera", "none"} <= rows and "trials" in f  # the all row is the run's own /trials
-    assert (tmp_path / "run" / "budget.png").exists()
+    assert_png_drawn(tmp_path / "run" / "budget.png")
     rep = subprocess.run([sys.executable, "-m", "scissor_cli", "report", str(tmp_path / "run"), "--out",
                           str(tmp_path / "rep")], capture_output=True, text=True, timeout=600)
     assert rep.returncode == 0, rep.stderr

@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scissor_cli.sensing.camera import Camera, intrinsics, looking_down, rigid_transform
 from scissor_cli.config import CameraConfig, load_config
+from scissor_cli.sensing.camera import Camera, intrinsics, looking_down, rigid_transform
 
 ROOT = Path(__file__).resolve().parents[1]
 # configs/ is the documented place; the packaged copy is the fallback.

@@ -8,13 +8,14 @@ to the numpy path, whose policy then holds.
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from scissor_cli.config import parse_config
+from scissor_cli.experiments.build import scene_of
 from scissor_cli.mechanics import compiled, fem, materials
 from scissor_cli.mechanics.tissue import build_tissue
 from scissor_cli.mesh.mesh import mesh_for_config
-from scissor_cli.experiments.build import scene_of
 
 SCENE = """
 tissue: {size_mm: [30, 20], mesh: {max_edge_mm: 4, min_edge_mm: 2}}
@@ -30,7 +31,8 @@ def _tissue(model, tension_only=False):
     return build_tissue(scene, mesh_for_config(scene, cfg.tissue.mesh))
 
 
-@pytest.fixture(scope="module", params=[("neo_hookean", False), ("neo_hookean_fiber", False), ("neo_hookean_fiber", True)],
+@pytest.fixture(scope="module",
+                params=[("neo_hookean", False), ("neo_hookean_fiber", False), ("neo_hookean_fiber", True)],
                 ids=["neo_hookean", "fiber", "fiber_tension_only"])
 def tissue(request):
     t = _tissue(*request.param)
@@ -85,7 +87,8 @@ def test_the_jacobians_are_numpys_bit_for_bit(tissue, A):
 
 @pytest.mark.parametrize("A", DEFORMATIONS)
 def test_one_pass_gradient_and_stiffness_equal_the_separate_loops(tissue, A):
-    """compiled.energy_gradient_stiffness (the tangent predictor's) = energy_gradient + element_stiffness, bit for bit."""
+    """compiled.energy_gradient_stiffness (the tangent predictor's) = energy_gradient + element_stiffness, bit for
+    bit."""
     x = _state(tissue, A, 0.15, 4)
     U, g, Ke = compiled.energy_gradient_stiffness(tissue.ops, tissue.params, x, False)
     U0, g0 = compiled.energy_gradient(tissue.ops, tissue.params, x)
@@ -155,7 +158,8 @@ def test_any_deformation_agrees_with_numpy(entries, seed):
     assert fast[0] == pytest.approx(U0, rel=1e-12, abs=1e-12)
     assert np.allclose(fast[1], g0, rtol=1e-11, atol=1e-11 * np.abs(g0).max())
     K0 = _numpy_stiffness(t, x, True)
-    assert np.allclose(compiled.element_stiffness(t.ops, t.params, x, True), K0, rtol=1e-11, atol=1e-11 * np.abs(K0).max())
+    assert np.allclose(compiled.element_stiffness(t.ops, t.params, x, True), K0, rtol=1e-11,
+                       atol=1e-11 * np.abs(K0).max())
 
 
 _FIBER = _tissue("neo_hookean_fiber", True)

@@ -10,10 +10,9 @@ import pytest
 import yaml
 
 from scissor_cli.config import parse_config
+from scissor_cli.experiments.build import build_model
 from scissor_cli.layer3d.slab import SlabSpec, build_slab
 from scissor_cli.mechanics import compiled3d, fem, materials
-from scissor_cli.experiments.build import build_model
-
 from tests.helpers import example_dict
 
 
@@ -25,7 +24,8 @@ def _slab(model, tension_only=False):
     return build_slab(scene, mesh, SlabSpec(6.0, 3.0, levels_mm=(0.0, 1.5, 3.0, 6.0)))
 
 
-@pytest.fixture(scope="module", params=[("neo_hookean", False), ("neo_hookean_fiber", False), ("neo_hookean_fiber", True)],
+@pytest.fixture(scope="module",
+                params=[("neo_hookean", False), ("neo_hookean_fiber", False), ("neo_hookean_fiber", True)],
                 ids=["neo_hookean", "fiber", "fiber_tension_only"])
 def slab(request):
     s = _slab(*request.param)
@@ -40,7 +40,8 @@ def _state(slab, A, noise, seed):
 
 # stretch (fibers in tension), compression (fibers compressed), shear out of the plane, rest
 DEFORMATIONS = [np.eye(3), [[1.15, 0.0, 0.0], [0.0, 0.9, 0.05], [0.0, 0.0, 0.97]],
-                [[0.8, 0.1, 0.0], [-0.05, 0.85, 0.0], [0.1, 0.0, 1.1]], [[1.0, 0.0, 0.4], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]]
+                [[0.8, 0.1, 0.0], [-0.05, 0.85, 0.0], [0.1, 0.0, 1.1]],
+                [[1.0, 0.0, 0.4], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]]
 
 
 @pytest.mark.parametrize("A", DEFORMATIONS)

@@ -17,16 +17,26 @@ import yaml
 from pydantic import BaseModel
 
 from scissor_cli.config import (
-    ELEMENT_BUDGET, MAX_CONFIG_BYTES, Config, ConfigError, estimate_elements, load_config, parse_config, resolved_yaml,
+    ELEMENT_BUDGET,
+    MAX_CONFIG_BYTES,
+    Config,
+    ConfigError,
+    checks,
+    estimate_elements,
+    load_config,
+    loading,
+    parse_config,
+    resolved_yaml,
 )
-from scissor_cli.config import checks, loading
 from scissor_cli.config import element_budget as budget
 from scissor_cli.config.messages import _unwrap, field_type
-from helpers import EXAMPLE, ROOT, example_dict, write_scene, deep_update
+
+from helpers import EXAMPLE, ROOT, deep_update, example_dict, write_scene
 
 
 def run_cli(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "scissor_cli.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd)
+    return subprocess.run([sys.executable, "-m", "scissor_cli.cli", *map(str, args)], capture_output=True, text=True,
+                          cwd=cwd)
 
 
 def parse(data: dict) -> Config:
@@ -120,7 +130,7 @@ def test_bad_config_exits_2_naming_the_field(tmp_path, field, value, words):
 
 def test_line_number_points_into_the_file(tmp_path):
     text = EXAMPLE.read_text().replace("nu: 0.45", "nu: 0.7")
-    line = next(i + 1 for i, l in enumerate(text.splitlines()) if l.strip().startswith("nu: 0.7"))
+    line = next(i + 1 for i, row in enumerate(text.splitlines()) if row.strip().startswith("nu: 0.7"))
     path = tmp_path / "s.yaml"
     path.write_text(text)
     proc = run_cli("simulate", path, "--trials", "0", "--out", tmp_path / "o")
@@ -153,7 +163,7 @@ LEAVES = list(_numeric_leaves())
 def test_every_number_has_a_finite_range():
     assert len(LEAVES) > 75  # every section is walked (the DH table and the study included)
     unbounded = []
-    for loc, tp, meta in LEAVES:
+    for loc, _, meta in LEAVES:
         lower = [getattr(m, k) for m in meta for k in ("ge", "gt") if getattr(m, k, None) is not None]
         upper = [getattr(m, k) for m in meta for k in ("le", "lt") if getattr(m, k, None) is not None]
         if not (lower and upper and all(np.isfinite(lower + upper))):
@@ -185,7 +195,8 @@ def test_nonsense_numbers_are_refused_everywhere(value):
         deep_update(mutated, ".".join(map(str, path)), value)
         message = refused(mutated)
         dotted = path[0] + "".join(f"[{k}]" if isinstance(k, int) else f".{k}" for k in path[1:])
-        assert message.split(" (line")[0] in (f"scene.yaml: {dotted}", f"scene.yaml: {dotted.rsplit('[', 1)[0]}"), message
+        named = (f"scene.yaml: {dotted}", f"scene.yaml: {dotted.rsplit('[', 1)[0]}")
+        assert message.split(" (line")[0] in named, message
         assert "must be" in message or "must" in message, message
 
 
@@ -276,9 +287,10 @@ def test_odd_keys_and_file_names_are_shown_escaped(tmp_path):
 
 
 def test_polygon_and_ellipse_layers_validate():
-    cfg = parse_config("tissue: {shape: ellipse, size_mm: [80, 50]}\ncups: [{name: c, contact_mm: [40, 50], axis: [0, -1]}]\n")
+    cups = "cups: [{name: c, contact_mm: [40, 50], axis: [0, -1]}]\n"
+    cfg = parse_config("tissue: {shape: ellipse, size_mm: [80, 50]}\n" + cups)
     assert cfg.tissue.shape == "ellipse"
-    poly = "tissue: {shape: polygon, polygon_mm: [[0, 0], [90, 0], [80, 50], [10, 50]]}\ncups: [{name: c, contact_mm: [40, 50], axis: [0, -1]}]\n"
+    poly = "tissue: {shape: polygon, polygon_mm: [[0, 0], [90, 0], [80, 50], [10, 50]]}\n" + cups
     assert parse_config(poly).tissue.polygon_mm[2] == [80.0, 50.0]
 
 
@@ -326,7 +338,8 @@ def test_largest_scene_file_validates_in_seconds():
     outline = np.column_stack([500 + 499 * np.cos(t), 500 + 499 * np.sin(t)]).round(3).tolist()
     s = np.linspace(0, 2 * np.pi, 150, endpoint=False)
     obstacles = [{"name": f"o{k}", "polygon_mm": np.column_stack([
-        250 + 70 * (k % 6) + 20 * np.cos(s), 250 + 70 * (k // 6) + 20 * np.sin(s)]).round(3).tolist()} for k in range(33)]
+        250 + 70 * (k % 6) + 20 * np.cos(s), 250 + 70 * (k // 6) + 20 * np.sin(s)]).round(3).tolist()}
+        for k in range(33)]
     data = {"tissue": {"shape": "polygon", "size_mm": None, "polygon_mm": outline,
                        "mesh": {"min_edge_mm": 20.0, "max_edge_mm": 60.0}},
             "cups": [{"name": "c", "contact_mm": outline[250], "axis": [0.0, -1.0], "radius_mm": 5.0}],
@@ -359,11 +372,12 @@ def test_interleaved_obstacles_validate_in_seconds():
 
 
 def _mesh_count(cfg: Config, scale=None) -> int:
-    from scissor_cli.mesh.mesh import mesh_for_config
     from scissor_cli.experiments.build import scene_of
+    from scissor_cli.mesh.mesh import mesh_for_config
 
     s = cfg.tissue.mesh.scale if scale is None else scale
-    at = cfg.model_copy(update={"tissue": cfg.tissue.model_copy(update={"mesh": cfg.tissue.mesh.model_copy(update={"scale": s})})})
+    mesh = cfg.tissue.mesh.model_copy(update={"scale": s})
+    at = cfg.model_copy(update={"tissue": cfg.tissue.model_copy(update={"mesh": mesh})})
     return mesh_for_config(scene_of(at), at.tissue.mesh).n_elements
 
 
@@ -426,7 +440,8 @@ def test_estimate_of_an_absurd_mesh_is_quick():
     deep_update(data, "tissue.size_mm", [1000.0, 1000.0])
     deep_update(data, "cups.0.contact_mm", [50.0, 1000.0])
     deep_update(data, "tissue.mesh.min_edge_mm", 0.05)
-    data["targets"] = [{"name": f"t{k}", "position_mm": [50.0 + 120 * (k % 8), 50.0 + 120 * (k // 8)]} for k in range(64)]
+    data["targets"] = [{"name": f"t{k}", "position_mm": [50.0 + 120 * (k % 8), 50.0 + 120 * (k // 8)]}
+                       for k in range(64)]
     cfg = Config.model_validate(data)
     t0 = time.perf_counter()
     assert estimate_elements(cfg, graded=False) > 1000 * ELEMENT_BUDGET
@@ -478,3 +493,10 @@ def test_every_shipped_scene_validates(path):
     """What the README and docs tell a user to run must load (configs/, the package's default)."""
     cfg = load_config(path)
     assert cfg.name
+
+
+def test_the_packaged_example_is_configs_example():
+    """`scissor simulate` with no config runs the packaged scene; the docs point at configs/example.yaml;
+    the tests read either: one file, twice."""
+    packaged = ROOT / "scissor_cli" / "scenes" / "example.yaml"
+    assert packaged.read_text() == (ROOT / "configs" / "example.yaml").read_text()

@@ -10,19 +10,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scissor_cli.solvers.tracking import HISTORY, REACH, Equilibrium
 from scissor_cli import control as ct
-from scissor_cli.output.manipulation import manipulation_figure_inputs
-from scissor_cli.output import figures
-from scissor_cli.sensing.camera import Camera, CameraSensor
-from scissor_cli.sensing.sensor import EXACT, TrueState
 from scissor_cli.config import ControllerConfig, load_config
+from scissor_cli.experiments.simulate import build_model, robot_joint_check
 from scissor_cli.mesh.probe import apply_probe, probe_targets, target_positions
-from scissor_cli.solvers.jacobian import cup_target_jacobian
-from scissor_cli.solvers.newton import solve_newton
+from scissor_cli.output import figures
+from scissor_cli.output.manipulation import manipulation_figure_inputs
 from scissor_cli.planning.corridor import corridor_radius
 from scissor_cli.planning.needle_plan import plan_targets
-from scissor_cli.experiments.simulate import build_model, robot_joint_check
+from scissor_cli.sensing.camera import Camera, CameraSensor
+from scissor_cli.sensing.sensor import EXACT, TrueState
+from scissor_cli.solvers.jacobian import cup_target_jacobian
+from scissor_cli.solvers.newton import solve_newton
+from scissor_cli.solvers.tracking import HISTORY, REACH, TrackedEquilibrium
+
+from figure_checks import assert_figure_readable, assert_png_drawn
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ("paper_pull", "paper_push", "example")
@@ -288,7 +290,7 @@ def test_split_error_one_cup():
 def test_equilibrium_tracks_reference_newton():
     _, tissue, _ = scene_setup("paper_push")
     probe = probe_targets(tissue.mesh, np.array([t.rest for t in tissue.scene.targets]))
-    eq = Equilibrium(tissue)
+    eq = TrackedEquilibrium(tissue)
     for s in (9.0, 12.5, 12.4, 3.0, 3.05):
         eq.move_to(np.array([s]), tangent=True)
         ref = solve_newton(tissue, np.array([s]), tol=1e-10)
@@ -296,7 +298,7 @@ def test_equilibrium_tracks_reference_newton():
         J = apply_probe(probe, eq.response)
         np.testing.assert_allclose(J, cup_target_jacobian(tissue, ref.x, probe), rtol=1e-5, atol=1e-8)
     truth = tissue.with_material(1.3, fiber_angle_rad=0.3)
-    eq = Equilibrium(truth)
+    eq = TrackedEquilibrium(truth)
     eq.move_to(np.array([-10.0]), tangent=False)
     eq.move_to(np.array([-9.7]), tangent=False)
     ref = solve_newton(truth, np.array([-9.7]), tol=1e-10)
@@ -308,7 +310,7 @@ def test_the_truth_predictor_is_secant_updated_by_its_moves():
     cup rows, and is nearer the exact tangent at the new state than the one it was factored with (at rest)."""
     _, tissue, _ = scene_setup("paper_push")
     truth = tissue.with_material(1.3, fiber_angle_rad=0.3)
-    eq = Equilibrium(truth)
+    eq = TrackedEquilibrium(truth)
     eq.move_to(np.array([-9.0]), tangent=False)
     at_rest = eq.response
     x0, s0 = eq.x, eq.strokes.copy()
@@ -319,7 +321,7 @@ def test_the_truth_predictor_is_secant_updated_by_its_moves():
     B = np.column_stack([truth.cup_displacement(c) for c in range(truth.n_cups)])
     cups = np.flatnonzero(np.any(B != 0, axis=1))
     np.testing.assert_allclose(eq.response[cups], B[cups], atol=1e-12)
-    exact = Equilibrium(truth)
+    exact = TrackedEquilibrium(truth)
     exact.x, exact.strokes = eq.x, eq.strokes
     exact.refactor(eq.x)
     assert np.linalg.norm(eq.response - exact.response) < 0.2 * np.linalg.norm(at_rest - exact.response)
@@ -331,7 +333,7 @@ def test_the_second_order_predictor_fitted_to_recent_equilibria():
     the reference equilibrium than the tangent predictor, for the controller with one cup, for the
     controller and for a truth with two; none beyond the history's reach."""
     _, tissue, _ = scene_setup("paper_push")
-    eq = Equilibrium(tissue)
+    eq = TrackedEquilibrium(tissue)
     for s in (9.0, 9.3, 9.6):
         eq.move_to(np.array([s]), tangent=True)
     ds = np.array([0.4])
@@ -345,7 +347,7 @@ def test_the_second_order_predictor_fitted_to_recent_equilibria():
 
     cfg = load_config(ROOT / "configs" / "two_cups.yaml")
     two = build_model(cfg, mesh_scale=2.0)[2]
-    eq = Equilibrium(two)
+    eq = TrackedEquilibrium(two)
     for s in ([3.0, -2.0], [3.3, -2.0], [3.3, -1.6], [3.0, -1.9]):
         eq.move_to(np.array(s), tangent=True)
     ds = np.array([0.2, 0.2])
@@ -355,7 +357,7 @@ def test_the_second_order_predictor_fitted_to_recent_equilibria():
     assert np.linalg.norm(fitted - ref) < 0.1 * np.linalg.norm(linear - ref)
 
     truth = two.with_material(1.3, fiber_angle_rad=0.3)
-    eq = Equilibrium(truth)
+    eq = TrackedEquilibrium(truth)
     rng = np.random.default_rng(3)
     s = np.array([3.0, -2.0])
     for _ in range(HISTORY + 2):
@@ -375,7 +377,7 @@ def test_a_guess_from_another_tissue_does_not_change_the_equilibrium():
     _, tissue, _ = scene_setup("paper_pull")
     truth = tissue.with_material(0.8, fiber_angle_rad=0.8)
     model_state = solve_newton(tissue, np.array([-13.0])).x
-    plain, guided = Equilibrium(truth), Equilibrium(truth)
+    plain, guided = TrackedEquilibrium(truth), TrackedEquilibrium(truth)
     guided.guesses.append((np.array([-13.0]), model_state))  # the model's state, not the truth's
     for eq in (plain, guided):
         eq.move_to(np.array([-12.0]), tangent=False)
@@ -413,8 +415,8 @@ def test_manipulation_figure(tmp_path):
     drawing = manipulation_figure_inputs(tissue, r, tissue.scene.targets[0].rest, corridor)
     assert drawing.corridor_before.shape == (2, 2) and np.all(np.isfinite(drawing.corridor_after))
     fig = figures.manipulation_figure(drawing)
-    path = figures.save(fig, tmp_path / "manipulation_T1.png")
-    assert path.stat().st_size > 10_000
+    assert_figure_readable(fig)
+    assert_png_drawn(figures.save(fig, tmp_path / "manipulation_T1.png"), min_ink=0.1, min_colour=0.05)
     assert "T1" in fig._suptitle.get_text() and "clearance" in fig._suptitle.get_text()
 
 
@@ -429,7 +431,7 @@ def test_the_truths_position_fit_takes_the_degree_its_history_supports(monkeypat
     assert tracking._degree(2, False, 2) is None
     cfg = load_config(ROOT / "configs" / "two_cups.yaml")
     truth = build_model(cfg, mesh_scale=2.0)[2].with_material(1.3, fiber_angle_rad=0.3)
-    eq = Equilibrium(truth)
+    eq = TrackedEquilibrium(truth)
     rng = np.random.default_rng(5)
     s = np.array([3.0, -2.0])
     for _ in range(HISTORY + 2):

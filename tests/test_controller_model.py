@@ -13,18 +13,20 @@ import numpy as np
 import pytest
 import yaml
 
-from helpers import deep_update, example_dict, write_scene
 from scissor_cli import progress
 from scissor_cli.config import parse_config, resolved_yaml
 from scissor_cli.control.models import INVERSE_TOL_MM, MapController, strokes_for
+from scissor_cli.experiments.build import build_model
 from scissor_cli.layer3d.calibration import calibration_strokes, fit_transmission
 from scissor_cli.layer3d.check import slab_spec
-from scissor_cli.layer3d.tissue_models import ControllerModel, ModelData, build_model_data, slab_map
 from scissor_cli.layer3d.slab import build_slab, layer_probe, slab_probe
 from scissor_cli.layer3d.surrogate import Surrogate, design, solve_samples
+from scissor_cli.layer3d.tissue_models import ControllerModel, ModelData, build_model_data, slab_map
 from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
-from scissor_cli.experiments.build import build_model
 from scissor_cli.mesh.probe import probe_targets, target_positions
+
+from figure_checks import assert_png_drawn
+from helpers import deep_update, example_dict, write_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -202,7 +204,7 @@ def test_surrogate_run_records_the_model_plans_with_it_and_reuses_its_cache(tmp_
         assert abs(plan["model_strokes"][0] - plan["slab_strokes"][0]) <= 0.25  # (the layer asks 1.3 mm less)
         assert 0 <= plan["model_error_mm"] <= 0.05  # the surrogate is the slab at its plan
         first_errors = f["trials/T2/final_error"][()]
-    assert (tmp_path / "runs" / "a" / "controller_model.png").exists()
+    assert_png_drawn(tmp_path / "runs" / "a" / "controller_model.png")
     with h5py.File(tmp_path / "runs" / "a" / "results.h5") as f:
         assert f["controller_model/paths"].attrs["kind"] == "surrogate"  # what report draws beside other models
     second = _cli("simulate", scene_path, "--out", tmp_path / "runs" / "b", "--jobs", "1")
@@ -219,7 +221,7 @@ def test_surrogate_run_records_the_model_plans_with_it_and_reuses_its_cache(tmp_
     assert row["controller"] == "surrogate" and int(row["stroke_limit_stops"]) >= 0
     assert float(row["model_error_mm"]) <= 0.05 and float(row["time_per_iteration_s"]) > 0
     assert 0 <= float(row["plan_model_error_mm"]) <= 0.05
-    assert (tmp_path / "report" / "controller_models.png").exists()
+    assert_png_drawn(tmp_path / "report" / "controller_models.png")
 
 
 @pytest.mark.slow  # (a plan refused before the trials: tests/test_planner.py's infeasible plans are the default's)
@@ -584,7 +586,9 @@ def test_stored_model_paths_read_back_and_draw_every_model_against_the_slab(tmp_
     grid, dots = np.linspace(-15, 15, 7), np.linspace(-15, 15, 4)
 
     def paths(kind, gain):
-        line = lambda s, g: np.stack([np.stack([g * s, -g * s], axis=1)] * 2, axis=1)  # (G, T=2, 2)
+        def line(s, g):  # (G, T=2, 2)
+            return np.stack([np.stack([g * s, -g * s], axis=1)] * 2, axis=1)
+
         return ModelPaths(kind, ["cup"], ["T1", "T2"], [grid], [line(grid, gain)], [line(grid, 0.3)], [dots],
                           [line(dots, 0.15)], np.zeros((2, 2)))
 

@@ -8,6 +8,7 @@ from scissor_cli.experiments.build import build_model
 from scissor_cli.solvers.common import Conditions, SolverError, relative_residual
 from scissor_cli.solvers.equilibrium import EquilibriumSolver, solve_equilibrium
 from scissor_cli.solvers.linear import Factorization
+
 from helpers import EXAMPLE
 
 
@@ -94,7 +95,8 @@ def test_changing_held_sets_reuse_one_symbolic_factorisation(tissue):
     """Held dofs are identity rows: the pattern, and so the factor object, stays the same."""
     for k, seed in ((3, 4), (5, 5)):
         nodes = _interior_nodes(tissue, k, seed)
-        solve_equilibrium(tissue, np.full(tissue.n_cups, 2.0), conditions=Conditions(held=np.concatenate([2 * nodes, 2 * nodes + 1])))
+        solve_equilibrium(tissue, np.full(tissue.n_cups, 2.0),
+                          conditions=Conditions(held=np.concatenate([2 * nodes, 2 * nodes + 1])))
     first = tissue.factor_cache["free"]
     nodes = _interior_nodes(tissue, 7, 6)
     solve_equilibrium(tissue, np.full(tissue.n_cups, 2.0), conditions=Conditions(held=2 * nodes))

@@ -16,13 +16,13 @@ from pathlib import Path
 from xml.etree import ElementTree as ET
 
 import h5py
+import meshio
 import numpy as np
 import pytest
 
-meshio = pytest.importorskip("meshio")
+from scissor_cli.output.export import ExportError, export_run
 
-from helpers import ROOT  # noqa: E402
-from scissor_cli.output.export import ExportError, export_run  # noqa: E402
+from helpers import ROOT
 
 FORMATS = ["xdmf", "vtu"]
 

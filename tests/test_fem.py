@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from scissor_cli.mechanics import fem
 from scissor_cli.config import parse_config
-from scissor_cli.mesh.mesh import mesh_for_config
 from scissor_cli.experiments.build import scene_of
+from scissor_cli.mechanics import fem
 from scissor_cli.mechanics.tissue import build_tissue
+from scissor_cli.mesh.mesh import mesh_for_config
 
 SCENE = """
 tissue: {size_mm: [30, 20], mesh: {max_edge_mm: 5, min_edge_mm: 2.5}}
@@ -62,7 +62,8 @@ def test_hessian_matches_finite_differences(tissue):
     v = np.zeros(x.size)
     v[free] = rng.standard_normal(len(free))
     h = 1e-6
-    fd = (tissue.energy_gradient(x + h * v.reshape(-1, 2))[1] - tissue.energy_gradient(x - h * v.reshape(-1, 2))[1]) / (2 * h)
+    fd = (tissue.energy_gradient(x + h * v.reshape(-1, 2))[1]
+          - tissue.energy_gradient(x - h * v.reshape(-1, 2))[1]) / (2 * h)
     assert np.allclose(K @ v[free], fd[free], rtol=1e-5, atol=1e-7 * np.abs(fd).max())
     assert np.allclose(tissue.stiffness_times(x, v), fd, rtol=1e-5, atol=1e-7 * np.abs(fd).max())
     assert abs(K - K.T).max() < 1e-10 * abs(K).max()

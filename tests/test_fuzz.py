@@ -30,9 +30,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
-from helpers import EXAMPLE, deep_update, example_dict
 from scissor_cli.cli import app
 from scissor_cli.config.messages import field_type
+
+from helpers import EXAMPLE, deep_update, example_dict
 
 #: seconds one `validate` may take in process (it takes ~0.02 s; the machine is shared)
 VALIDATE_SECONDS = 5.0
@@ -393,3 +394,35 @@ def test_fuzz_simulate_mutated_values(tmp_path_factory, data):
 @given(data=coincident_points())
 def test_fuzz_simulate_coincident_points(tmp_path_factory, data):
     _check_simulate(tmp_path_factory.mktemp("c"), data, codes=(0, 2))
+
+
+# --------------------------------------------------------------------------
+# A 3-D scene (docs/model.md §19): the normative dome's values mutated
+
+
+DOME_DATA = yaml.safe_load((Path(__file__).resolve().parents[1] / "configs" / "example_dome.yaml").read_text())
+DOME_PATHS = _paths(DOME_DATA)
+
+
+@settings(max_examples=120, **QUICK)
+@given(data=mutated_scene(base=DOME_DATA, paths=DOME_PATHS))
+def test_validate_mutated_dome(tmp_path_factory, data):
+    _check_validate(tmp_path_factory.mktemp("d"), _dump(data).encode())
+
+
+def _coarse_dome() -> dict:
+    """The dome at edges 10/4 mm, one lesion, no trials: a simulate in a few seconds."""
+    data = copy.deepcopy(DOME_DATA)
+    data["tissue"]["mesh"] = {"max_edge_mm": 10.0, "min_edge_mm": 4.0}
+    data["trials"] = {"count": 0}
+    return data
+
+
+COARSE_DOME = _coarse_dome()
+COARSE_DOME_PATHS = _paths(COARSE_DOME)
+
+
+@settings(max_examples=8, **QUICK)
+@given(data=mutated_scene(base=COARSE_DOME, paths=COARSE_DOME_PATHS, max_mutations=2))
+def test_simulate_mutated_dome(tmp_path_factory, data):
+    _check_simulate(tmp_path_factory.mktemp("ds"), data)

@@ -7,8 +7,9 @@ import pytest
 
 from scissor_cli.config import load_config
 from scissor_cli.experiments.build import build_model
-from scissor_cli.solvers.equilibrium import EquilibriumSolver
 from scissor_cli.solvers.common import SolverError
+from scissor_cli.solvers.equilibrium import EquilibriumSolver
+
 from helpers import ROOT
 
 HARD = sorted((ROOT / "configs" / "hard").glob("*.yaml"))

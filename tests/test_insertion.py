@@ -6,15 +6,18 @@ import dataclasses
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from typer.testing import CliRunner
 
-from scissor_cli.config import load_config
 from scissor_cli import progress
+from scissor_cli.config import load_config
+from scissor_cli.experiments.build import build_model
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion, shaft_lengths
 from scissor_cli.insertion.needle import NeedleState, advance, free_nodes
-from scissor_cli.experiments.build import build_model
 from scissor_cli.solvers.newton import solve_newton
+
+from figure_checks import assert_png_drawn
 from helpers import example_dict, write_scene
 
 INSERTION = {"step_mm": 1.0, "friction_static_mN_per_mm": 15.0, "friction_kinetic_mN_per_mm": 10.0,
@@ -236,11 +239,13 @@ def test_simulate_and_report_with_insertion(tmp_path):
         assert list(f["trials/T1/miss_mm"].attrs["strategies"]) == ["none", "depth"]
         # the whole trial's wall time holds the insertions beside the loop's own
         assert f["trials/T1/trial_time_s"][0] > f["trials/T1/time_s"][0] > 0.0
-    for name in ("insertion_force_T1.png", "insertion_path_T1.png", "insertion_T1.gif"):
-        assert (out / name).stat().st_size > 1000
+    for name in ("insertion_force_T1.png", "insertion_path_T1.png"):
+        assert_png_drawn(out / name)
+    assert (out / "insertion_T1.gif").stat().st_size > 1000
     rep = CliRunner().invoke(cli.app, ["report", str(out), "--out", str(tmp_path / "rep")])
     assert rep.exit_code == 0, rep.output
-    assert (tmp_path / "rep" / "insertion_boxplots.png").exists()
+    # one trial: each box is its orange median line alone
+    assert_png_drawn(tmp_path / "rep" / "insertion_boxplots.png", min_colour=0.0005)
     assert "miss (depth)" in (tmp_path / "rep" / "insertion_summary.md").read_text()
 
 
@@ -271,7 +276,8 @@ def test_the_chord_holds_residual_is_newtons(model):
     x, hold, loads = _a_hold(tissue, cfg)
     x = hold.place(x) + 0.01 * np.sin(np.arange(x.size)).reshape(x.shape)  # off equilibrium
     _, g = objective_gradient(tissue, x, None, loads)
-    assert hold.residual(tissue, g) == pytest.approx(_Held(tissue, hold.conditions(loads)).residual(tissue, g), rel=1e-12)
+    assert hold.residual(tissue, g) == pytest.approx(_Held(tissue, hold.conditions(loads)).residual(tissue, g),
+                                                     rel=1e-12)
 
 
 def test_a_schur_chord_step_meets_the_hold_and_the_tangent_equations(model):
@@ -385,7 +391,8 @@ def test_the_kept_factorisation_and_a_fresh_newton_reach_the_same_equilibrium(mo
 
 
 def test_a_step_on_the_kept_factorisation_matches_newton_passes(model, monkeypatch):
-    """The same insertion with the chord solver and with every pass solved by Newton: same stick/slip, same positions."""
+    """The same insertion with the chord solver and with every pass solved by Newton: same stick/slip, same
+    positions."""
     from scissor_cli.insertion import chord, needle
     from scissor_cli.insertion.chord import ChordFailed
 
@@ -400,7 +407,8 @@ def test_a_step_on_the_kept_factorisation_matches_newton_passes(model, monkeypat
     monkeypatch.setattr(needle, "EARLY_DECISIONS", False)
     slow = _insert(tissue, params, depth=15.0)
     np.testing.assert_array_equal(fast.stuck, slow.stuck)
-    np.testing.assert_allclose(fast.x, slow.x, atol=1e-6)
+    # each pass converged to PASS_TOL (1e-5 of the force scale) either way: positions agree to about that
+    np.testing.assert_allclose(fast.x, slow.x, atol=1e-5)
     np.testing.assert_allclose(fast.needle_force_mN, slow.needle_force_mN, rtol=1e-6)
 
 
@@ -411,6 +419,7 @@ def test_the_nearly_incompressible_hard_case_decides_as_the_converged_passes(mon
     end), so no decision is taken on a lurch (`needle.LURCH_STEPS`)."""
     from scissor_cli.insertion import needle
     from scissor_cli.planning.needle_plan import plan_target
+
     from helpers import ROOT
 
     cfg = load_config(ROOT / "configs" / "hard" / "nearly_incompressible.yaml")
@@ -533,7 +542,7 @@ def test_the_model_jacobian_is_the_model_held_response(model):
     cond = needle_conditions(state, loads)
     # the model state is the model's equilibrium under the needle's hold (nothing moves when solved again)
     again = solve_equilibrium(tissue, s, start=ms.x, start_strokes=s, conditions=cond, tol=1e-10).x
-    assert np.abs(again - ms.x).max() <= 1e-6
+    assert np.abs(again - ms.x).max() <= 1e-5  # (the model state is solved to STEP_TOL, 1e-5 of the force scale)
     delta = 1e-3
     ends = [target_positions(probe, solve_equilibrium(tissue, s + sign * delta, start=ms.x, start_strokes=s,
                                                       conditions=cond, tol=1e-12).x)[0] @ state.across

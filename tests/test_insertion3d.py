@@ -16,18 +16,20 @@ import scipy.sparse.linalg
 import yaml
 
 from scissor_cli.config import parse_config
+from scissor_cli.experiments.build import build_model
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion
 from scissor_cli.insertion.chord import ChordSolver, Hold
 from scissor_cli.insertion.needle import NeedleState, advance, free_nodes, transverse_basis
 from scissor_cli.layer3d.slab import SlabSpec, build_slab
-from scissor_cli.experiments.build import build_model
 from scissor_cli.solvers.common import Conditions, objective_gradient
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 from scissor_cli.solvers.supernodal import SupernodalFactor
+
 from helpers import example_dict
 
 INSERTION = {"step_mm": 1.0, "friction_static_mN_per_mm": 15.0, "friction_kinetic_mN_per_mm": 10.0,
-             "tip_force_mN": 100.0, "tip_zone_mm": 2.0, "capture_radius_mm": 2.5, "strategies": ["none", "depth", "loop"]}
+             "tip_force_mN": 100.0, "tip_zone_mm": 2.0, "capture_radius_mm": 2.5,
+             "strategies": ["none", "depth", "loop"]}
 LAYER_Z = 4.0
 #: a left entry at T1's height in the layer, straight along +x, 15 mm deep
 ENTRY, AXIS, DEPTH = np.array([0.0, 32.0, LAYER_Z]), np.array([1.0, 0.0, 0.0]), 15.0
@@ -246,7 +248,8 @@ def test_the_chord_solve_and_newtons_3d_conditions_reach_the_same_equilibrium(sl
     chord_x, chord_g, its, verdict = solver.converge(start, g, hold, 1e-10, loads)
     assert verdict is None and its > 0
     zero = np.zeros(slab.n_cups)
-    newton = solve_equilibrium(slab, zero, start=start, start_strokes=zero, conditions=hold.conditions(loads), tol=1e-10)
+    newton = solve_equilibrium(slab, zero, start=start, start_strokes=zero, conditions=hold.conditions(loads),
+                               tol=1e-10)
     np.testing.assert_allclose(chord_x, newton.x, atol=1e-8)
     slip = hold.captured[~hold.stuck]
     g_slip = newton.x[slip] - start[slip]
@@ -289,7 +292,8 @@ def test_in_a_slab_with_its_own_plane_the_target_is_the_slabs_point(slab_model):
 
 
 def test_a_cup_moves_from_the_kept_factors_response_not_from_its_nodes_alone(slab_model):
-    """`moved_start`: the cups at the command, the captured nodes where they were, the rest near the held equilibrium."""
+    """`moved_start`: the cups at the command, the captured nodes where they were, the rest near the held
+    equilibrium."""
     from scissor_cli.insertion.model_state import move_held, moved_start
 
     cfg, slab = slab_model[0], slab_model[3]

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from scissor_cli.config import load_config, parse_config
-from scissor_cli.solvers.jacobian import cup_target_jacobian, nodal_response
-from scissor_cli.mesh.probe import probe_targets, target_positions
-from scissor_cli.mesh.mesh import mesh_for_config
-from scissor_cli.solvers.newton import solve_newton
 from scissor_cli.experiments.build import scene_of
 from scissor_cli.mechanics.tissue import build_tissue
+from scissor_cli.mesh.mesh import mesh_for_config
+from scissor_cli.mesh.probe import probe_targets, target_positions
+from scissor_cli.solvers.jacobian import cup_target_jacobian, nodal_response
+from scissor_cli.solvers.newton import solve_newton
 
 ROOT = Path(__file__).resolve().parents[1]
 # configs/ is the documented place; the packaged copy is the fallback.

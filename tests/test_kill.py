@@ -26,11 +26,10 @@ import h5py
 import numpy as np
 import pytest
 
-from helpers import deep_update, example_dict, write_scene
 from scissor_cli.output import journal
 
-sys.path.insert(0, str(Path(__file__).parent / "golden"))
-from extract import extract  # noqa: E402
+from golden.extract import extract
+from helpers import deep_update, example_dict, write_scene
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="process checks read /proc")
 
@@ -249,7 +248,8 @@ def test_sigkill_damaged_file_and_killed_resume_lose_no_trial(reference, tmp_pat
     assert resumed.returncode == 0, resumed.stderr
     said = " ".join(resumed.stderr.split())
     # the killed rebuild may have left its own file torn too (a kill mid-write): then the journal rebuilds it again
-    assert "resuming from results.h5.tmp" in said or ("cannot be read" in said and "rebuilding results.h5" in said), said
+    assert ("resuming from results.h5.tmp" in said
+            or ("cannot be read" in said and "rebuilding results.h5" in said)), said
     assert ran(resumed) <= 2 * TRIALS - n
     assert_kept(first, out)  # restored from the journal, as first stored
     assert_kept(kept, out)
@@ -317,7 +317,8 @@ def budget_rows_of(results_h5: Path) -> dict[str, np.ndarray]:
     """Every number of /budget: each row's and target's final errors, misses and failed masks."""
     out = {}
     with h5py.File(results_h5, "r") as f:
-        f["budget"].visititems(lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
+        f["budget"].visititems(
+            lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
     return out
 
 

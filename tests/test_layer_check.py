@@ -11,8 +11,9 @@ import yaml
 
 from scissor_cli.config import ConfigError, parse_config
 from scissor_cli.experiments.build import build_model
-
 from tests.helpers import example_dict, write_scene
+
+from figure_checks import assert_png_drawn
 
 #: the slab as set (accuracy_mm null pins it: the tests here are not about its choice)
 SPEC = {"height_mm": 40.0, "layer_z_mm": 20.0, "chest_wall_fixed": True, "cup_holds_z": True, "max_layer_mm": 5.0,
@@ -90,7 +91,7 @@ def test_run_writes_layer_check(tmp_path):
         assert a["in_plane_diff_mm"] >= 0 and a["out_of_plane_mm"] >= 0 and a["iterations"] > 0 and a["time_s"] > 0
         # the 2-D forward case is untouched by the check
         assert f["forward/push4/displacement"].shape[1] == 2
-    assert (out / "layer_check_push4.png").exists()
+    assert_png_drawn(out / "layer_check_push4.png")
     rep = _cli("report", out)
     assert rep.returncode == 0, rep.stderr
     assert "layer check" in rep.stdout.lower()
@@ -154,7 +155,8 @@ def test_slab_truth_inserts_in_the_slab_nominally_and_in_trials(tmp_path):
             assert k > 0 and ins["tip"].shape == (k, 3) and ins["target"].shape == (k, 3)
             assert ins["displacement"].shape == (k, n3, 3) and len(ins.attrs["entry"]) == 3
             assert ins.attrs["completed"]
-    assert (out / "insertion_T1.gif").exists() and (out / "insertion_path_T1.png").exists()
+    assert (out / "insertion_T1.gif").exists()
+    assert_png_drawn(out / "insertion_path_T1.png")
     exported = _cli("export", out, "--out", tmp_path / "export")
     assert exported.returncode == 0, exported.stderr
     assert any("insertion_T1_none" in p.name for p in (tmp_path / "export").iterdir())
@@ -182,9 +184,9 @@ def test_resolution_by_accuracy_goes_coarse_to_fine_and_stops_within_it():
     coarsest having solved only those two, a tight one goes on to the configured grading (error 0); every rung is
     coarser than the one before; the errors are those of every candidate solved against the finest, and an
     accuracy between two of them picks as the full ladder does."""
+    from scissor_cli.experiments.build import build_model
     from scissor_cli.layer3d.check import slab_spec
     from scissor_cli.layer3d.resolution import choose_slab, exhaustive_errors
-    from scissor_cli.experiments.build import build_model
 
     data = example_dict()
     data["layer_check"] = {"height_mm": 12.0, "layer_z_mm": 6.0, "max_layer_mm": 3.0}

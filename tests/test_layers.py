@@ -1,6 +1,6 @@
 """The package's layers: data flows one way, and no module imports a later layer or forms a cycle.
 
-Order (docs/architecture.md): the base modules (`geometry`, `runtime`,
+Order (docs/architecture.md): the base modules (`geometry`, `geometry3d`, `runtime`,
 `progress`, `text`, the package root), then config → scene → mesh → mechanics → solvers → robot →
 planning → sensing → control → insertion → layer3d → experiments → output → cli. A
 module may import from its own package and from any earlier layer; the test
@@ -16,11 +16,11 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "scissor_cli"
 LAYERS = [
-    "", "geometry", "runtime", "progress", "text", "config", "scene", "mesh", "mechanics", "solvers", "robot", "planning",
-    "sensing", "control", "insertion", "layer3d", "experiments", "output", "cli", "__main__",
+    "", "geometry", "geometry3d", "runtime", "progress", "text", "config", "scene", "mesh", "mechanics", "solvers",
+    "robot", "planning", "sensing", "control", "insertion", "layer3d", "experiments", "output", "cli", "__main__",
 ]
 RANK = {name: i for i, name in enumerate(LAYERS)}
-BASE = {"", "geometry", "runtime", "progress", "text"}  # importable from everywhere
+BASE = {"", "geometry", "geometry3d", "runtime", "progress", "text"}  # importable from everywhere
 
 
 def _module_name(path: Path) -> str:
@@ -160,7 +160,8 @@ def test_runtime_configure_gives_cvxopts_blas_the_kernels_numpys_picked():
         "runtime.configure()\n"
         "import numpy, cvxopt\n"
         "from threadpoolctl import threadpool_info\n"
-        "arch = {i['prefix']: i.get('architecture') for i in threadpool_info() if i.get('internal_api') == 'openblas'}\n"
+        "arch = {i['prefix']: i.get('architecture') for i in threadpool_info()\n"
+        "        if i.get('internal_api') == 'openblas'}\n"
         "mine = [a for p, a in arch.items() if 'scipy' not in p]\n"
         "theirs = {a for p, a in arch.items() if 'scipy' in p}\n"
         "core = os.environ.get('OPENBLAS_CORETYPE')\n"
@@ -241,3 +242,19 @@ def test_no_function_takes_more_than_12_parameters():
                 if count > 12:
                     many.append(f"{path.relative_to(PACKAGE)}:{node.lineno} {node.name} ({count})")
     assert not many, many
+
+
+def test_equilibria_outside_solvers_go_through_solvers_equilibrium():
+    """README: "Every equilibrium goes through `solvers.equilibrium`": outside solvers/, no module imports or
+    calls `solve_newton` (the one Newton solve `solve_equilibrium` wraps)."""
+    direct = []
+    for module, path in MODULES.items():
+        if _layer(module) == "solvers":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            named = (isinstance(node, ast.ImportFrom) and any(a.name == "solve_newton" for a in node.names)
+                     or isinstance(node, ast.Attribute) and node.attr == "solve_newton"
+                     or isinstance(node, ast.Name) and node.id == "solve_newton")
+            if named:
+                direct.append(f"{module}:{node.lineno}")
+    assert not direct, f"solve_newton outside solvers/ (call solvers.equilibrium.solve_equilibrium): {direct}"

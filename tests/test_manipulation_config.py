@@ -9,9 +9,11 @@ import pytest
 import yaml
 
 from scissor_cli.config import ConfigError, parse_config
+
 from helpers import ROOT, example_dict
 
-FULL = ROOT.parent / "shared" / "spec" / "example-full.yaml"
+#: the example scene with every optional section
+FULL = ROOT / "configs" / "example_full.yaml"
 
 
 def _text(data: dict) -> str:
@@ -29,7 +31,6 @@ def test_defaults_are_miss_and_no_placement():
     assert cfg.controller.error == "miss" and cfg.manipulation_points is None
 
 
-@pytest.mark.skipif(not FULL.exists(), reason="the shared example-full.yaml is not on this machine")
 def test_full_example_controller_and_manipulation_points_validate():
     data = yaml.safe_load(FULL.read_text())
     data.pop("insertion", None), data.pop("layer_check", None)  # other features' sections

@@ -12,13 +12,15 @@ from scissor_cli.mesh.probe import probe_targets, target_positions
 from scissor_cli.planning import manipulation_points as mp
 from scissor_cli.solvers.common import Conditions
 from scissor_cli.solvers.equilibrium import solve_equilibrium
+
 from helpers import ROOT
 
 
 @lru_cache(maxsize=None)
 def example():
     cfg = load_config(ROOT / "configs" / "example.yaml")
-    cfg = cfg.model_copy(update={"manipulation_points": ManipulationPointsConfig(sides=["top", "right"], spacing_mm=4.0)})
+    points = ManipulationPointsConfig(sides=["top", "right"], spacing_mm=4.0)
+    cfg = cfg.model_copy(update={"manipulation_points": points})
     scene, _, tissue = build_model(cfg, mesh_scale=2.0)
     return cfg, scene, tissue
 

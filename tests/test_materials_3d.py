@@ -9,9 +9,25 @@ import numpy as np
 import pytest
 
 from scissor_cli.mechanics import materials as mat
-from material_checks import (VARIANTS, VARIANT_IDS, NONLINEAR, NONLINEAR_IDS, fiber_I4, assert_close_per_element,
-                             per_element_scale, invalid_F, kron_rotation, project_and_compare, random_F, random_params,
-                             random_rotations, rotation, with_fiber, without_fiber)
+
+from material_checks import (
+    NONLINEAR,
+    NONLINEAR_IDS,
+    VARIANT_IDS,
+    VARIANTS,
+    assert_close_per_element,
+    fiber_I4,
+    invalid_F,
+    kron_rotation,
+    per_element_scale,
+    project_and_compare,
+    random_F,
+    random_params,
+    random_rotations,
+    rotation,
+    with_fiber,
+    without_fiber,
+)
 
 
 def test_material_params_accepts_3d_fibers():

@@ -5,9 +5,10 @@ import pytest
 
 from scissor_cli import geometry
 from scissor_cli.config import load_config, parse_config
-from scissor_cli.mesh.mesh import grip_ends, interpolate, locate, mesh_for_config
 from scissor_cli.experiments.build import scene_of
 from scissor_cli.mechanics.tissue import build_tissue
+from scissor_cli.mesh.mesh import grip_ends, interpolate, locate, mesh_for_config
+
 from helpers import EXAMPLE
 
 
@@ -79,7 +80,8 @@ def test_boundary_conditions(example):
     cfg, scene, mesh = example
     tissue = build_tissue(scene, mesh)
     assert np.allclose(mesh.nodes[tissue.fixed_nodes, 1], 0.0)
-    assert np.isclose(mesh.nodes[tissue.fixed_nodes, 0].min(), 0) and np.isclose(mesh.nodes[tissue.fixed_nodes, 0].max(), 100)
+    assert np.isclose(mesh.nodes[tissue.fixed_nodes, 0].min(), 0)
+    assert np.isclose(mesh.nodes[tissue.fixed_nodes, 0].max(), 100)
     grip = mesh.nodes[tissue.cup_nodes[0]]
     assert np.allclose(grip[:, 1], 60.0)
     # the grip ends are vertices: every mesh grips exactly contact ± radius

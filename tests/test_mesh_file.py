@@ -11,9 +11,9 @@ import pytest
 import yaml
 
 from scissor_cli import geometry
-
 from scissor_cli.config import ConfigError, load_config, parse_config
 from scissor_cli.experiments.build import build_model
+
 from helpers import deep_update, example_dict, write_scene
 
 

@@ -8,6 +8,7 @@ from scissor_cli.config import load_config, resolved_yaml
 from scissor_cli.experiments.simulate import robot_joint_check, trial_tasks
 from scissor_cli.experiments.trials import TrialContext
 from scissor_cli.planning.needle_plan import plan_targets
+
 from helpers import ROOT
 
 

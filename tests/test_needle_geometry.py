@@ -1,5 +1,6 @@
 """The needle's geometry generic by dimension (docs/model.md §12, §14): transverse basis, capture by the
-distance to the axis (3-D: both transverse components), shares along the axis, the tip zone as a ball."""
+distance to the axis (3-D: both transverse components), shares along the axis
+(the tip zone: tests/test_tip_zone.py)."""
 
 from __future__ import annotations
 
@@ -9,8 +10,10 @@ import numpy as np
 import pytest
 
 from scissor_cli.insertion import shaft_lengths
+from scissor_cli.insertion.needle import NeedleState, capture, free_nodes, transverse_basis
 from scissor_cli.insertion.run import miss_and_depth_error
-from scissor_cli.insertion.needle import NeedleState, capture, free_nodes, tip_weights, transverse_basis
+
+from figure_checks import assert_figure_readable
 
 
 @pytest.mark.parametrize("n", [
@@ -55,23 +58,6 @@ def test_2d_capture_unchanged():
     assert sorted(capture(None, state, x, np.arange(4), 2.0).tolist()) == [0, 3]
 
 
-def test_tip_zone_is_a_ball_in_3d():
-    rng = np.random.default_rng(3)
-    x = rng.uniform(-3, 3, size=(400, 3))
-    tip = np.array([0.5, -0.2, 0.3])
-    nodes, w = tip_weights(x, tip, np.arange(400), 2.0)
-    r = np.linalg.norm(x[nodes] - tip, axis=1)
-    assert np.all(r < 2.0) and np.sum(np.linalg.norm(x - tip, axis=1) < 2.0) == nodes.size
-    assert w.sum() == pytest.approx(1.0) and np.all(w > 0)
-    # weights fall with the distance: (1 − (r/R)²)²
-    order = np.argsort(r)
-    assert np.all(np.diff(w[order]) <= 1e-15)
-    # an empty ball: the nearest node carries it all
-    far = np.array([10.0, 0.0, 0.0])
-    nodes, w = tip_weights(x, far, np.arange(400), 0.5)
-    assert nodes.size == 1 and w[0] == 1.0 and nodes[0] == np.argmin(np.linalg.norm(x - far, axis=1))
-
-
 def test_shares_along_the_axis_sum_to_the_depth_in_3d():
     """Shares depend on positions along the axis only: nodes at several heights share like one sorted line."""
     state = NeedleState(np.array([0.0, 0.0, 5.0]), np.array([0.0, 1.0, 0.0]), depth_mm=8.0)
@@ -112,3 +98,15 @@ def test_target_path_figure_takes_a_slab_insertion(d):
     fig = target_path_figure("t", [r], target[0])
     line = fig.axes[0].lines[1]
     np.testing.assert_allclose(line.get_xydata(), target[:, :2])
+    assert_figure_readable(fig)
+
+
+def test_needle_force_figure_is_readable():
+    from scissor_cli.output.insertion.figures import needle_force_figure
+
+    depth = np.linspace(0.0, 10.0, 21)
+    runs = [SimpleNamespace(depth_mm=depth, needle_force_mN=f * depth, strategy=s, steps=21)
+            for s, f in (("none", 10.0), ("loop", 12.0))]
+    fig = needle_force_figure("T1: needle force", runs)
+    assert [line.get_label() for line in fig.axes[0].lines] == ["none (21 steps)", "loop (21 steps)"]
+    assert_figure_readable(fig)

@@ -8,24 +8,31 @@ an exact sensor `loop` lands on the line; a sensor with a known offset shows wha
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 import yaml
 
 from scissor_cli.config import parse_config
 from scissor_cli.experiments.build import build_model
-from scissor_cli.insertion import InsertionOptions, NeedleModel, NeedleParams, needle_path, run_insertion, run_strategies
+from scissor_cli.insertion import (
+    InsertionOptions,
+    NeedleModel,
+    NeedleParams,
+    needle_path,
+    run_insertion,
+    run_strategies,
+)
 from scissor_cli.insertion.model_table import tabulate
 from scissor_cli.insertion.steering import TableSteering
 from scissor_cli.layer3d.slab import SlabSpec, build_slab, slab_probe
 from scissor_cli.sensing.sensor import TrueState
 from scissor_cli.solvers.newton import solve_newton
+
 from helpers import example_dict
 
 INSERTION = {"step_mm": 2.0, "friction_static_mN_per_mm": 15.0, "friction_kinetic_mN_per_mm": 10.0,
-             "tip_force_mN": 100.0, "tip_zone_mm": 2.0, "capture_radius_mm": 2.5, "strategies": ["none", "depth", "loop"]}
+             "tip_force_mN": 100.0, "tip_zone_mm": 2.0, "capture_radius_mm": 2.5,
+             "strategies": ["none", "depth", "loop"]}
 LAYER_Z = 4.0
 TARGET = np.array([48.0, 45.0])  # below the cup
 ENTRY, AXIS, DEPTH = np.array([0.0, 45.0]), np.array([1.0, 0.0]), 48.0

@@ -4,10 +4,11 @@ import numpy as np
 import pytest
 
 from scissor_cli.config import load_config
-from scissor_cli.mesh.mesh import interpolate, locate
-from scissor_cli.solvers.newton import solve_newton
 from scissor_cli.experiments.simulate import build_model
+from scissor_cli.mesh.mesh import interpolate, locate
 from scissor_cli.solvers.common import SolverError
+from scissor_cli.solvers.newton import solve_newton
+
 from helpers import EXAMPLE, rates_above_roundoff
 
 

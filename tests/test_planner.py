@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 
 from scissor_cli import geometry
+from scissor_cli.config import NeedleConfig, load_config, parse_config
+from scissor_cli.experiments.build import scene_of
+from scissor_cli.mechanics.tissue import build_tissue
+from scissor_cli.mesh.mesh import interpolate, locate, mesh_for_config
 from scissor_cli.mesh.outlines import boundary_loop, deformed_outlines, embed_outlines
 from scissor_cli.planning import corridor, states
 from scissor_cli.planning import needle_plan as needle
-from scissor_cli.config import NeedleConfig, load_config, parse_config
-from scissor_cli.mesh.mesh import interpolate, locate, mesh_for_config
 from scissor_cli.solvers.newton import solve_newton
-from scissor_cli.experiments.build import scene_of
-from scissor_cli.mechanics.tissue import build_tissue
 
 RADIUS = 0.6 + 1.0  # 18G needle radius + the default margin, mm
 SQUARE = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]])
@@ -45,7 +45,8 @@ def test_corridor_clearance_past_a_square():
     # A horizontal segment 3 mm above the square's top edge.
     assert corridor.corridor_clearance([-5.0, 13.0], [20.0, 13.0], [SQUARE], RADIUS) == pytest.approx(3.0 - RADIUS)
     # A diagonal segment ending short of the corner (10, 10): distance √8.
-    assert corridor.corridor_clearance([15.0, 15.0], [12.0, 12.0], [SQUARE], RADIUS) == pytest.approx(np.sqrt(8) - RADIUS)
+    assert corridor.corridor_clearance([15.0, 15.0], [12.0, 12.0], [SQUARE], RADIUS) == pytest.approx(
+        np.sqrt(8) - RADIUS)
     # Through the square: distance 0, so the clearance is -radius.
     assert corridor.corridor_clearance([-5.0, 5.0], [20.0, 5.0], [SQUARE], RADIUS) == pytest.approx(-RADIUS)
     # The nearest of two obstacles decides; none at all is +inf.
@@ -165,7 +166,8 @@ def test_paper_scenes_blocked_at_rest_clear_after_manipulation(path, sign):
     cache = states.StateCache(tissue)
     cands = corridor.candidate_directions(cfg.needle, scene)
     for target in scene.targets:
-        rest = corridor.best_insertion(target.rest, [o.outline for o in scene.obstacles], scene.outline, cands, cfg.needle)
+        rest = corridor.best_insertion(target.rest, [o.outline for o in scene.obstacles], scene.outline, cands,
+                                       cfg.needle)
         assert not rest.clear, f"{target.name} should be blocked at rest"
         plan = needle.plan_target(tissue, scene, target, cfg.needle, cache=cache)
         assert plan.feasible and plan.reason == ""

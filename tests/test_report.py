@@ -8,9 +8,11 @@ import h5py
 import numpy as np
 import pytest
 
-from scissor_cli.output.report import ReportError, report_trials
 from scissor_cli.experiments.simulate import Execution, run_simulation
+from scissor_cli.output.report import ReportError, report_trials
 from scissor_cli.output.results_sink import RunDirectory
+
+from figure_checks import assert_figure_readable, assert_png_drawn
 from test_trials import reduced
 
 
@@ -24,7 +26,7 @@ def two_runs(tmp_path_factory):
 
 def test_report_writes_plots_and_tables(two_runs, tmp_path):
     out = report_trials(list(two_runs), tmp_path / "rep")
-    assert (tmp_path / "rep" / "error_boxplots.png").stat().st_size > 10_000
+    assert_png_drawn(tmp_path / "rep" / "error_boxplots.png")
     rows = list(csv.DictReader(open(tmp_path / "rep" / "summary.csv")))
     assert [r["target"] for r in rows] == ["T1", "T2", "T1", "T2"]
     assert "prosthesis" in rows[0]["run"] and "ex_vivo" in rows[2]["run"]
@@ -33,6 +35,22 @@ def test_report_writes_plots_and_tables(two_runs, tmp_path):
     assert float(rows[0]["max_x"]) == pytest.approx(e[:, 0].max(), abs=1e-3)
     assert float(rows[0]["median_y"]) == pytest.approx(np.median(e[:, 1]), abs=1e-3)
     assert "| T2 |" in out.table_markdown
+
+
+def test_report_figures_are_readable(two_runs):
+    """The box plots `report_trials` draws, from the two runs' trials: labelled, titled, with data."""
+    from scissor_cli.output import figures
+    from scissor_cli.output.miss_figures import miss_boxplots
+    from scissor_cli.output.report import load_run
+
+    runs = [load_run(d) for d in two_runs]
+    assert_figure_readable(figures.error_boxplots([(r.label, {t: d.errors for t, d in r.targets.items()})
+                                                   for r in runs]))
+    misses = [(r.label, {t: d.miss for t, d in r.targets.items() if d.miss is not None}) for r in runs]
+    assert all(m for _, m in misses)
+    assert_figure_readable(miss_boxplots(misses))
+    iterations = {t: d.iterations for t, d in runs[0].targets.items()}
+    assert_figure_readable(figures.iterations_histogram(iterations, "control iterations per trial"))
 
 
 def test_report_refuses_incomplete_run_unless_partial(two_runs, tmp_path):
@@ -53,6 +71,7 @@ def test_report_refuses_incomplete_run_unless_partial(two_runs, tmp_path):
 def test_study_report(tmp_path):
     """A small study through simulate and report: the plot, the cheapest-setting table, graded vs uniform."""
     from scissor_cli.config import StudyConfig, load_config
+
     from helpers import ROOT
 
     cfg = load_config(ROOT / "configs" / "example.yaml")
@@ -119,7 +138,8 @@ def test_extra_iterations_count_what_the_loop_took_beyond_the_drives_speed(tmp_p
         g = f.create_group("trials/T1")
         g["iterations"] = np.array([5, 12, 9])
         for k, final in enumerate(([1.0, 0.2], [0.4, -3.2], [0.0, 0.0])):
-            h = g.create_dataset(f"history/{k}", data=np.array([[0, 0, 0, 0, 0, 1.0], [0.1, 9, final[0], 9, final[1], 1.0]]))
+            h = g.create_dataset(f"history/{k}",
+                                 data=np.array([[0, 0, 0, 0, 0, 1.0], [0.1, 9, final[0], 9, final[1], 1.0]]))
             h.attrs["columns"] = columns
         step = np.array([0.5, 0.5])  # 5 mm/s at 10 Hz
         np.testing.assert_array_equal(_extra_iterations(g, np.array([0, 1, 2]), step), [5 - 2, 12 - 7, 9 - 0])

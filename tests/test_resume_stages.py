@@ -27,11 +27,12 @@ import h5py
 import numpy as np
 import pytest
 
-from helpers import example_dict, write_scene
 from scissor_cli.config import load_config
 from scissor_cli.experiments.simulate import Execution, resume_simulation, run_simulation
 from scissor_cli.output import results_sink as sink_module
 from scissor_cli.output.results_sink import RunDirectory, open_for_resume
+
+from helpers import example_dict, write_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 

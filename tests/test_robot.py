@@ -21,7 +21,8 @@ def product_of_six(q):
     T = np.eye(4)
     for alpha, a, theta, d in rows:
         ca, sa, ct, st = np.cos(alpha), np.sin(alpha), np.cos(theta), np.sin(theta)
-        T = T @ np.array([[ct, -st, 0, a], [st * ca, ct * ca, -sa, -d * sa], [st * sa, ct * sa, ca, d * ca], [0, 0, 0, 1]])
+        T = T @ np.array([[ct, -st, 0, a], [st * ca, ct * ca, -sa, -d * sa], [st * sa, ct * sa, ca, d * ca],
+                          [0, 0, 0, 1]])
     return T
 
 
@@ -80,9 +81,11 @@ def test_registration_and_plan_to_joints():
 
 
 def test_custom_dh_table_from_config():
-    rows = [types.SimpleNamespace(alpha_deg=a, a_mm=l, theta_deg=t, d_mm=d, joint=j, limits=lim) for a, l, t, d, j, lim in [
-        (0, 0, 0, 0, "prismatic", (0, 300)), (-90, 50, -90, 0, "prismatic", (0, 100)), (-90, 0, -90, 0, "prismatic", (0, 100)),
-        (-90, 70, 0, 0, "revolute", (-90, 90)), (-90, 0, -90, 0, "prismatic", (0, 50)), (0, 80, 0, 80, "fixed", None)]]
+    table = [(0, 0, 0, 0, "prismatic", (0, 300)), (-90, 50, -90, 0, "prismatic", (0, 100)),
+             (-90, 0, -90, 0, "prismatic", (0, 100)), (-90, 70, 0, 0, "revolute", (-90, 90)),
+             (-90, 0, -90, 0, "prismatic", (0, 50)), (0, 80, 0, 80, "fixed", None)]
+    rows = [types.SimpleNamespace(alpha_deg=a, a_mm=length, theta_deg=t, d_mm=d, joint=j, limits=lim)
+            for a, length, t, d, j, lim in table]
     robot = RobotModel.from_config(types.SimpleNamespace(dh=rows))
     assert robot.has_closed_form and robot.n_joints == 5
     q = sample_joints(robot, 200, seed=2)

@@ -3,12 +3,13 @@
 import numpy as np
 import pytest
 
-from scissor_cli.solvers.admm.solver import AdmmSolver
 from scissor_cli.config import load_config
-from scissor_cli.mesh.probe import probe_targets, target_positions
-from scissor_cli.solvers.newton import solve_newton
 from scissor_cli.experiments.selection import hardest_case, select
 from scissor_cli.experiments.simulate import build_model
+from scissor_cli.mesh.probe import probe_targets, target_positions
+from scissor_cli.solvers.admm.solver import AdmmSolver
+from scissor_cli.solvers.newton import solve_newton
+
 from helpers import ROOT
 
 

@@ -11,17 +11,17 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg  # noqa: F401
+import yaml
 
 from scissor_cli.config import parse_config
-from scissor_cli.layer3d.extrude import extrude, graded_levels, volumes
+from scissor_cli.experiments.build import build_model
+from scissor_cli.geometry import graded_levels
+from scissor_cli.layer3d.extrude import extrude, volumes
 from scissor_cli.layer3d.slab import SlabSpec, build_slab, slab_probe
 from scissor_cli.mechanics import fem
-from scissor_cli.experiments.build import build_model
 from scissor_cli.mesh.probe import probe_targets, target_positions
 from scissor_cli.solvers.equilibrium import solve_equilibrium
-
 from tests.helpers import example_dict
-import yaml
 
 
 def _model(scale=4.0, **material):
@@ -253,7 +253,7 @@ def test_slab_truth_starts_from_the_nominal_slab_at_the_plan(coarse):
     from scissor_cli.control import TruthPerturbation
     from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL, SlabTruth
     from scissor_cli.solvers.newton import solve_newton
-    from scissor_cli.solvers.tracking import Equilibrium
+    from scissor_cli.solvers.tracking import TrackedEquilibrium
 
     scene, mesh, model = coarse
     truth = SlabTruth(model, SlabSpec(10.0, 5.0, max_layer_mm=5.0))
@@ -261,7 +261,7 @@ def test_slab_truth_starts_from_the_nominal_slab_at_the_plan(coarse):
     tissue, view = truth.for_target(scene.targets[0].rest, plan)(TruthPerturbation(E_scale=1.2, nu=0.43))
     assert view.tol == SLAB_TRUTH_TOL and len(view.guesses) == 1
     assert truth.start(plan) is view.guesses[0]  # solved once per process
-    eq = Equilibrium(tissue, view.tol)
+    eq = TrackedEquilibrium(tissue, view.tol)
     eq.guesses.extend(view.guesses)
     eq.move_to(plan, tangent=False)
     assert eq.stats["fallbacks"] == 0
@@ -314,7 +314,12 @@ def test_indefinite_hessian_near_the_solution_is_shifted_not_projected(coarse, m
 
     system = newton._system
     monkeypatch.setattr(newton, "solve_free", refusing)
-    monkeypatch.setattr(newton, "_system", lambda t, x, project, *a, **k: (projected.append(project), system(t, x, project, *a, **k))[1])
+
+    def recording(t, x, project, *a, **k):
+        projected.append(project)
+        return system(t, x, project, *a, **k)
+
+    monkeypatch.setattr(newton, "_system", recording)
     r = newton.newton_iterations(slab, start.x, tol=1e-10, krylov=True)
     assert r.converged and exact_refused and not any(projected)
     assert slab.factor_cache["shift"] in newton.SHIFTS
@@ -328,13 +333,13 @@ def test_a_loop_passing_the_plan_keeps_its_own_fit_not_the_nominal_start(coarse)
     slab: no guess is asked for, and no factorisation is paid for one."""
     from scissor_cli.control import TruthPerturbation
     from scissor_cli.layer3d.truth import SlabTruth
-    from scissor_cli.solvers.tracking import Equilibrium
+    from scissor_cli.solvers.tracking import TrackedEquilibrium
 
     scene, mesh, model = coarse
     truth = SlabTruth(model, SlabSpec(10.0, 5.0, max_layer_mm=5.0))
     plan = np.array([4.0])
     tissue, view = truth.for_target(scene.targets[0].rest, plan)(TruthPerturbation(E_scale=1.2, nu=0.43))
-    eq = Equilibrium(tissue, view.tol)
+    eq = TrackedEquilibrium(tissue, view.tol)
     eq.guesses.extend(view.guesses)
     asked = []
     start = eq._start

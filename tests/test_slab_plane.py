@@ -6,12 +6,11 @@ import pytest
 import yaml
 
 from scissor_cli.config import parse_config
-from scissor_cli.layer3d.check import plane_ladder, plane_spec, slab_spec
-from scissor_cli.layer3d.slab import SlabSpec, build_slab, layer_probe, slab_probe
 from scissor_cli.experiments.build import build_model
+from scissor_cli.layer3d.check import plane_ladder, plane_spec, slab_spec
+from scissor_cli.layer3d.slab import build_slab, layer_probe, slab_probe
 from scissor_cli.mesh.mesh import locate
 from scissor_cli.solvers.equilibrium import solve_equilibrium
-
 from tests.helpers import example_dict
 
 
@@ -94,7 +93,8 @@ def test_plane_ladder_scales_the_layers_mesh():
     ladder = plane_ladder(cfg.layer_check, cfg.tissue.mesh)
     assert [s for s, _ in ladder] == [1.5, 2.25, 3.0, 3.75, 4.5]
     m = cfg.tissue.mesh
-    assert ladder[0][1] == plane_spec(cfg.tissue.mesh, 1.5) and ladder[0][1][:2] == (m.min_edge_mm * 3.0, m.max_edge_mm * 3.0)
+    assert ladder[0][1] == plane_spec(cfg.tissue.mesh, 1.5)
+    assert ladder[0][1][:2] == (m.min_edge_mm * 3.0, m.max_edge_mm * 3.0)
     assert plane_spec(_config(), 1.0) is None
 
 

@@ -8,8 +8,8 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from scissor_cli.solvers.linear import Factorization
 from scissor_cli.solvers.common import SolverError
+from scissor_cli.solvers.linear import Factorization
 
 
 def _spd(n=60, shift=10.0, seed=1):
@@ -52,7 +52,8 @@ def test_definite_request_refuses_an_indefinite_matrix_and_forgets_the_old_facto
 
 
 def test_simplicial_factor_solves_the_same_and_still_refuses_an_indefinite_matrix():
-    """supernodal=False solves with CHOLMOD's simplicial LDLᵀ, which would take an indefinite matrix: the check must not."""
+    """supernodal=False solves with CHOLMOD's simplicial LDLᵀ, which would take an indefinite matrix: the check
+    must not."""
     A = _spd()
     b = np.random.default_rng(2).random((A.shape[0], 2))
     f = Factorization(sp.triu(A).tocsr(), definite=True, upper=True, supernodal=False)
@@ -86,8 +87,8 @@ def test_refactor_with_a_new_pattern_and_unsorted_indices():
 def _laplacian_3d(k=8, shift=0.0):
     """The 7-point Laplacian of a k³ grid (+ shift I): a 3-D mesh's fill pattern."""
     T = sp.diags([-np.ones(k - 1), 2 * np.ones(k), -np.ones(k - 1)], [-1, 0, 1])
-    I = sp.eye(k)
-    A = sp.kron(sp.kron(T, I), I) + sp.kron(sp.kron(I, T), I) + sp.kron(sp.kron(I, I), T)
+    eye = sp.eye(k)
+    A = sp.kron(sp.kron(T, eye), eye) + sp.kron(sp.kron(eye, T), eye) + sp.kron(sp.kron(eye, eye), T)
     return (A + shift * sp.eye(k**3)).tocsr()
 
 
@@ -100,7 +101,8 @@ def test_nested_dissection_is_a_permutation_and_solves_like_amd():
     assert np.array_equal(np.sort(p), np.arange(n))
     grouped = nested_dissection(sp.kron(A, np.ones((3, 3))).tocsr(), np.repeat(np.arange(n), 3))
     assert np.array_equal(np.sort(grouped), np.arange(3 * n))
-    assert np.array_equal(grouped.reshape(-1, 3) // 3, np.repeat(grouped[::3, None] // 3, 3, axis=1))  # node blocks kept
+    # node blocks kept
+    assert np.array_equal(grouped.reshape(-1, 3) // 3, np.repeat(grouped[::3, None] // 3, 3, axis=1))
     b = np.random.default_rng(2).random(n)
     x_nd = Factorization(sp.triu(A).tocsr(), definite=True, upper=True, ordering="nested_dissection").solve(b)
     x_amd = Factorization(A, definite=True).solve(b)
@@ -180,7 +182,8 @@ def test_solve_free_takes_negative_curvature_as_proof_and_keeps_its_factor():
 
 
 def test_large_2d_factors_are_ordered_by_nested_dissection():
-    """In 2-D, METIS's ordering beyond ND_MIN_UNKNOWNS_2D unknowns: never more fill than AMD's (CHOLMOD keeps the sparser)."""
+    """In 2-D, METIS's ordering beyond ND_MIN_UNKNOWNS_2D unknowns: never more fill than AMD's (CHOLMOD keeps the
+    sparser)."""
     from types import SimpleNamespace
 
     from scissor_cli.solvers import linear
@@ -201,7 +204,8 @@ def test_large_2d_factors_are_ordered_by_nested_dissection():
 
 
 def _laplacian_2d_blocks(m: int) -> sp.csr_matrix:
-    """A 2-D grid Laplacian (m², m²) + I, each node carrying 2 unknowns (I ⊗ 2x2 SPD block): a 2-D stiffness's pattern."""
+    """A 2-D grid Laplacian (m², m²) + I, each node carrying 2 unknowns (I ⊗ 2x2 SPD block): a 2-D stiffness's
+    pattern."""
     T = sp.diags([-np.ones(m - 1), 4.2 * np.ones(m), -np.ones(m - 1)], [-1, 0, 1])
     L = (sp.kron(sp.eye(m), T) + sp.kron(sp.diags([np.ones(m - 1), np.ones(m - 1)], [-1, 1]), -sp.eye(m)))
     return sp.kron(L, np.array([[2.0, 0.5], [0.5, 1.0]])).tocsr()

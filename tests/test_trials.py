@@ -10,6 +10,8 @@ from scissor_cli.experiments.profiles import draw_trial, error_model
 from scissor_cli.experiments.simulate import Execution, TrialsFailed, resume_simulation, run_simulation
 from scissor_cli.output.results_sink import RunDirectory, open_for_resume
 from scissor_cli.sensing.sensor import EXACT
+
+from figure_checks import assert_png_drawn
 from helpers import ROOT
 
 
@@ -56,7 +58,7 @@ def test_trials_layout(serial_run):
             m = f[f"manipulation/{t}"].attrs
             assert np.linalg.norm(m["closed_final_error"]) <= 0.1 < np.linalg.norm(m["open_final_error"])
     for png in ("trials_error_boxplot.png", "trials_iterations.png", "manipulation_T1.png"):
-        assert (serial_run / png).stat().st_size > 10_000
+        assert_png_drawn(serial_run / png)
 
 
 def test_trial_draws_depend_only_on_seed_target_and_index():
@@ -79,7 +81,8 @@ def test_two_jobs_are_bit_identical(serial_run, tmp_path):
 def test_dask_local_cluster_is_bit_identical(serial_run, tmp_path):
     distributed = pytest.importorskip("dask.distributed")
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
-        run_simulation(reduced(), RunDirectory(tmp_path), execution=Execution(jobs=2, executor="dask", scheduler=cluster.scheduler_address))
+        run_simulation(reduced(), RunDirectory(tmp_path),
+                       execution=Execution(jobs=2, executor="dask", scheduler=cluster.scheduler_address))
     a, b = final_errors(serial_run / "results.h5"), final_errors(tmp_path / "results.h5")
     assert all(np.array_equal(a[t], b[t]) for t in a)
 
@@ -102,7 +105,8 @@ def test_crashed_trial_is_kept_marked_and_resumed(serial_run, tmp_path, monkeypa
     with h5py.File(tmp_path / "results.h5") as f:
         assert f.attrs["status"] == "failed"
         assert f["trials/T2/failed"][:].sum() == 1 and f["trials/T1/done"][:].all()
-        assert "simulated crash" in "".join(m.decode() if isinstance(m, bytes) else m for m in f["trials/T2/message"][:])
+        messages = "".join(m.decode() if isinstance(m, bytes) else m for m in f["trials/T2/message"][:])
+        assert "simulated crash" in messages
     monkeypatch.setattr(control, "run_target", real)
     assert resume_simulation(open_for_resume(tmp_path), execution=Execution(jobs=1)) == 1
     with h5py.File(tmp_path / "results.h5") as f:

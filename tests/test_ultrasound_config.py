@@ -15,6 +15,7 @@ import yaml
 from scissor_cli.config import ConfigError, parse_config
 from scissor_cli.config.imaging_checks import PROBE_ARRAYS, image_half_width_mm
 from scissor_cli.config.sections import LINEAR_PROBE_NAMES
+
 from helpers import deep_update, example_dict, write_scene
 
 IMAGING = {"probe": "L11-5v", "position_mm": [0.0, 30.0], "axis": [1.0, 0.0], "depth_mm": 70.0,

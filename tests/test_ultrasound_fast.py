@@ -13,8 +13,18 @@ import numpy as np
 import pytest
 
 from scissor_cli.sensing.ultrasound import (
-    PsfModel, SpeckleTracker, block_match, build_psf, draw_scatterers, elevation_width_mm, fast_frame, frame_kernels,
-    image_grid, localise_lesion, log_compress, probe_params,
+    PsfModel,
+    SpeckleTracker,
+    block_match,
+    build_psf,
+    draw_scatterers,
+    elevation_width_mm,
+    fast_frame,
+    frame_kernels,
+    image_grid,
+    localise_lesion,
+    log_compress,
+    probe_params,
 )
 
 DEPTH_MM = 60.0
@@ -147,13 +157,17 @@ def test_rigid_subpixel_shifts_are_tracked(model, shift):
     np.testing.assert_allclose(d, shift, atol=0.02)
 
 
-def _affine(p, t, c=np.array([0.0, 30.0])):
+#: the tracked lesion's rest position (mm), the centre of the deformations below
+LESION_MM = (0.0, 30.0)
+
+
+def _affine(p, t):
     a = np.array([[0.03, 0.02], [-0.01, -0.05]])  # a few % strain and shear
-    return p + t * ((p - c) @ a.T + np.array([3.0, 4.0]))
+    return p + t * ((p - np.array(LESION_MM)) @ a.T + np.array([3.0, 4.0]))
 
 
-def _bump(p, t, c=np.array([0.0, 30.0])):
-    w = np.exp(-np.sum((p - c - np.array([-4.0, 3.0])) ** 2, axis=1) / (2 * 15.0 ** 2))
+def _bump(p, t):
+    w = np.exp(-np.sum((p - np.array(LESION_MM) - np.array([-4.0, 3.0])) ** 2, axis=1) / (2 * 15.0 ** 2))
     return p + t * w[:, None] * np.array([6.0, 4.0])
 
 
@@ -162,7 +176,7 @@ def test_smooth_deformation_sequence_is_tracked(model, field):
     grid = model[2]
     sc = tissue(model, 8)
     rng = np.random.default_rng(2)
-    c = np.array([0.0, 30.0])
+    c = np.array(LESION_MM)
     tracker = SpeckleTracker(image(model, sc, snr_db=30.0, rng=rng), grid, c)
     errors = []
     for k in range(1, 21):

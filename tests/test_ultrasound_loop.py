@@ -24,6 +24,7 @@ from scissor_cli.experiments.build import build_model
 from scissor_cli.experiments.profiles import PROFILES, error_model
 from scissor_cli.experiments.sensor_models import imaging_data, imaging_tables_for, sensor_model
 from scissor_cli.sensing.sensor import TrialDraws, TrueState
+
 from helpers import example_dict
 
 IMAGING = {"probe": "L11-5v", "position_mm": [0.0, 30.0], "axis": [1.0, 0.0], "depth_mm": 70.0}
@@ -62,7 +63,8 @@ def test_the_run_tables_are_cached_and_shared(world, tmp_path):
     again = imaging_data(cfg.imaging, cache)
     assert len(list(cache.glob("ultrasound-psf-*.npz"))) == 1
     read = imaging_data(cfg.imaging, cache)  # from the file, the same arrays
-    assert read["probe"] == again["probe"] and all(np.array_equal(read["psf"][k], again["psf"][k]) for k in again["psf"])
+    assert read["probe"] == again["probe"]
+    assert all(np.array_equal(read["psf"][k], again["psf"][k]) for k in again["psf"])
 
 
 def test_first_frame_localises_the_lesion(world):
@@ -212,8 +214,9 @@ def test_the_camera_without_imaging():
 def test_profiles_and_budget_rows_with_imaging():
     from scissor_cli.experiments.error_budget import budget_plan, identical_trials
 
-    for name, values in PROFILES.items():
-        assert {"sound_speed_sd_m_per_s", "probe_position_sd_mm", "probe_angle_sd_deg", "electronic_noise_scale"} <= set(values)
+    for values in PROFILES.values():
+        assert {"sound_speed_sd_m_per_s", "probe_position_sd_mm", "probe_angle_sd_deg",
+                "electronic_noise_scale"} <= set(values)
     cfg = parse_config(yaml.safe_dump(scene_data(profile="prosthesis", budget=True)), "scene.yaml")
     em = error_model(cfg.trials)
     assert (em.sound_speed_sd_m_per_s, em.probe_position_sd_mm, em.probe_angle_sd_deg) == (10.0, 0.2, 0.5)
@@ -223,7 +226,8 @@ def test_profiles_and_budget_rows_with_imaging():
     assert plan.rows["speckle"].imaging is not None and plan.rows["speckle"].trials.sound_speed_sd_m_per_s == 0
     assert plan.rows["none"].imaging is None and plan.rows["none"].trials.profile == "ideal"
     row = plan.rows["probe_calibration"].trials
-    assert (row.probe_position_sd_mm, row.probe_angle_sd_deg, row.E_log_sd, row.electronic_noise_scale) == (0.2, 0.5, 0, 0)
+    assert (row.probe_position_sd_mm, row.probe_angle_sd_deg, row.E_log_sd,
+            row.electronic_noise_scale) == (0.2, 0.5, 0, 0)
     # the speckle is drawn per trial: only the exact sensor's `none` row has identical trials
     assert [name for name, row in plan.rows.items() if identical_trials(row)] == ["none"]
 

@@ -10,7 +10,13 @@ import numpy as np
 import pytest
 
 from scissor_cli.sensing.ultrasound import (
-    ECHOGENICITY_DB, LINEAR_PROBES, ImageGrid, ProbePose, draw_scatterers, image_grid, probe_params,
+    ECHOGENICITY_DB,
+    LINEAR_PROBES,
+    ImageGrid,
+    ProbePose,
+    draw_scatterers,
+    image_grid,
+    probe_params,
 )
 
 

@@ -14,7 +14,14 @@ import numpy as np
 import pytest
 
 from scissor_cli.sensing.ultrasound import (
-    ImageGrid, build_psf, fast_frame, frame_kernels, image_grid, probe_params, simus_frame, validate_fast,
+    ImageGrid,
+    build_psf,
+    fast_frame,
+    frame_kernels,
+    image_grid,
+    probe_params,
+    simus_frame,
+    validate_fast,
 )
 from scissor_cli.sensing.ultrasound.simus_ref import beamform, receive_fnumber, simus_iq
 

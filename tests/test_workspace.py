@@ -6,16 +6,19 @@ import sys
 import h5py
 import numpy as np
 
+from scissor_cli.output.workspace_file import plot_workspace, write_workspace_h5
 from scissor_cli.robot.chain import RobotModel
 from scissor_cli.robot.workspace import DEFAULT_BOX_MAX, DEFAULT_BOX_MIN, coverage, reachable_coverage, run_workspace
-from scissor_cli.output.workspace_file import plot_workspace, write_workspace_h5
+
+from figure_checks import assert_png_drawn
 
 PAPER = RobotModel.paper()
 
 
 def test_coverage_of_hand_checkable_boxes():
     # tips filling x in [0, 10] of a 20 x 10 x 10 box: exactly half its voxels
-    g = np.stack(np.meshgrid(np.arange(0.5, 10, 1.0), np.arange(0.5, 10, 1.0), np.arange(0.5, 10, 1.0)), -1).reshape(-1, 3)
+    centres = np.arange(0.5, 10, 1.0)
+    g = np.stack(np.meshgrid(centres, centres, centres), -1).reshape(-1, 3)
     axes = np.tile([1.0, 0.0, 0.0], (len(g), 1))
     c = coverage(g, axes, [0, 0, 0], [20, 10, 10], voxel_mm=5.0)
     assert np.isclose(c.coverage, 0.5) and c.coverage_multi_direction == 0.0
@@ -35,7 +38,7 @@ def test_paper_robot_coverage_and_contract_file(tmp_path):
         assert np.allclose(w.attrs["box_min"], [60, 50, 200]) and np.allclose(w.attrs["box_max"], [210, 380, 300])
         assert 0 < w.attrs["coverage"] <= 1
         assert np.allclose(np.linalg.norm(w["axis"][:100], axis=1), 1)
-    assert (tmp_path / "ws" / "workspace.png").stat().st_size > 20_000
+    assert_png_drawn(tmp_path / "ws" / "workspace.png", min_colour=0.02)
 
 
 def test_same_seed_same_samples():
@@ -79,4 +82,4 @@ def test_h5_round_trip_and_figure(tmp_path):
         assert w.attrs["coverage"] == res.coverage.coverage and w.attrs["samples"] == 5000
         assert "rad" in w["joints"].attrs["units"] and f.attrs["scissor_version"] == "test"
     plot_workspace(res, tmp_path / "ws.png")
-    assert (tmp_path / "ws.png").stat().st_size > 10_000
+    assert_png_drawn(tmp_path / "ws.png", min_colour=0.02)

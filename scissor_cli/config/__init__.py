@@ -4,9 +4,16 @@ Everything outside this package imports from here, so the package's inner
 split may change.
 """
 
-from scissor_cli.config.element_budget import ELEMENT_BUDGET, estimate_elements
 from scissor_cli.config.checks import obstacle_outline, scene_problems, tissue_outline
-from scissor_cli.config.loading import MAX_CONFIG_BYTES, ConfigError, load_config, parse_config, read_config_text, resolved_yaml
+from scissor_cli.config.element_budget import ELEMENT_BUDGET, estimate_elements
+from scissor_cli.config.loading import (
+    MAX_CONFIG_BYTES,
+    ConfigError,
+    load_config,
+    parse_config,
+    read_config_text,
+    resolved_yaml,
+)
 from scissor_cli.config.sections import (
     BoxConfig,
     CameraConfig,
@@ -17,8 +24,9 @@ from scissor_cli.config.sections import (
     DHLinkConfig,
     ForwardCase,
     ImagingConfig,
-    ManipulationPointsConfig,
     InsertionConfig,
+    LayerCheckConfig,
+    ManipulationPointsConfig,
     MaterialConfig,
     MeshConfig,
     NeedleConfig,
@@ -26,7 +34,6 @@ from scissor_cli.config.sections import (
     RobotConfig,
     SolverConfig,
     StudyConfig,
-    LayerCheckConfig,
     TargetConfig,
     TissueConfig,
     TrialsConfig,
@@ -35,7 +42,8 @@ from scissor_cli.config.sections import (
 __all__ = [
     "ELEMENT_BUDGET", "MAX_CONFIG_BYTES",
     "BoxConfig", "CameraConfig", "CircleConfig", "Config", "ConfigError", "ControllerConfig", "CupConfig",
-    "DHLinkConfig", "ForwardCase", "ImagingConfig", "InsertionConfig", "LayerCheckConfig", "ManipulationPointsConfig", "MaterialConfig", "MeshConfig",
+    "DHLinkConfig", "ForwardCase", "ImagingConfig", "InsertionConfig", "LayerCheckConfig", "ManipulationPointsConfig",
+    "MaterialConfig", "MeshConfig",
     "NeedleConfig", "ObstacleConfig",
     "RobotConfig", "SolverConfig", "StudyConfig", "TargetConfig", "TissueConfig", "TrialsConfig",
     "estimate_elements", "load_config", "obstacle_outline", "parse_config", "read_config_text", "resolved_yaml",

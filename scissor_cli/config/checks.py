@@ -20,8 +20,14 @@ import numpy as np
 from scissor_cli import geometry
 from scissor_cli.config.imaging_checks import imaging_problems
 from scissor_cli.config.mesh_file import MeshFileError, mesh_file_problem, read_mesh_arrays
-from scissor_cli.config.sections import (MAX_TISSUE_MM, MIN_EDGE_MM, SURROGATE_SAMPLES_PER_CUP, Config, ObstacleConfig,
-                                         TissueConfig)
+from scissor_cli.config.sections import (
+    MAX_TISSUE_MM,
+    MIN_EDGE_MM,
+    SURROGATE_SAMPLES_PER_CUP,
+    Config,
+    ObstacleConfig,
+    TissueConfig,
+)
 
 #: implicit-Euler steps (ramp + settling) one forward case may take with solver.dt_s
 MAX_TIME_STEPS = 10_000
@@ -143,7 +149,8 @@ def _obstacle_problems(cfg: Config, outline: np.ndarray) -> list[Problem]:
             problems.append((("obstacles", i), "give exactly one of 'circle' or 'polygon_mm'"))
             outlines.append(None)
             continue
-        why = None if obs.polygon_mm is None else _polygon_problem(np.asarray(obs.polygon_mm, float), MIN_OBSTACLE_AREA_MM2)
+        why = (None if obs.polygon_mm is None
+               else _polygon_problem(np.asarray(obs.polygon_mm, float), MIN_OBSTACLE_AREA_MM2))
         if why is not None:
             problems.append((("obstacles", i, "polygon_mm"), why))
             outlines.append(None)
@@ -186,7 +193,8 @@ def _outline_gap(p: np.ndarray, q: np.ndarray) -> float:
     """The smallest distance (mm) between two closed outlines' edges (0 where they touch or coincide)."""
     pa, pb = geometry.edges(p)
     qa, qb = geometry.edges(q)
-    return float(min(geometry.point_segment_distance(p, qa, qb).min(), geometry.point_segment_distance(q, pa, pb).min()))
+    return float(min(geometry.point_segment_distance(p, qa, qb).min(),
+                     geometry.point_segment_distance(q, pa, pb).min()))
 
 
 def _cup_and_target_problems(cfg: Config, outline: np.ndarray) -> list[Problem]:
@@ -217,9 +225,11 @@ def _cup_and_target_problems(cfg: Config, outline: np.ndarray) -> list[Problem]:
             problems.append((("cups", i, "stroke_mm"), f"must be [min, max] with min < max; got {cup.stroke_mm}"))
     for i, target in enumerate(cfg.targets):
         if not _inside(target.position_mm, outline, cfg.tissue)[0]:
-            problems.append((("targets", i, "position_mm"), f"must be {_inside_text(cfg.tissue)}; got {target.position_mm}"))
+            problems.append((("targets", i, "position_mm"),
+                             f"must be {_inside_text(cfg.tissue)}; got {target.position_mm}"))
         if target.desired_mm is not None and not _inside(target.desired_mm, outline, cfg.tissue)[0]:
-            problems.append((("targets", i, "desired_mm"), f"must be {_inside_text(cfg.tissue)}; got {target.desired_mm}"))
+            problems.append((("targets", i, "desired_mm"),
+                             f"must be {_inside_text(cfg.tissue)}; got {target.desired_mm}"))
     return problems
 
 
@@ -258,7 +268,8 @@ def _run_problems(cfg: Config) -> list[Problem]:
             if case not in names:
                 problems.append((("study", "cases", i), f"unknown forward case {case!r}; cases are {sorted(names)}"))
     if cfg.solver.accuracy_mm is not None and not cfg.targets:
-        problems.append((("solver", "accuracy_mm"), "the accuracy is measured at the targets: the scene needs at least one"))
+        problems.append((("solver", "accuracy_mm"),
+                         "the accuracy is measured at the targets: the scene needs at least one"))
     return problems
 
 
@@ -267,8 +278,8 @@ def _robot_problems(cfg: Config) -> list[Problem]:
     r = cfg.robot
     lo, hi = np.asarray(r.breast_box_mm.min), np.asarray(r.breast_box_mm.max)
     if not np.all(hi > lo):
-        problems.append((("robot", "breast_box_mm"), f"max must exceed min on every axis; got min {r.breast_box_mm.min}, "
-                                                     f"max {r.breast_box_mm.max}"))
+        problems.append((("robot", "breast_box_mm"), f"max must exceed min on every axis; "
+                                                     f"got min {r.breast_box_mm.min}, max {r.breast_box_mm.max}"))
     else:
         voxels = float(np.prod(np.maximum(1, np.ceil((hi - lo) / r.voxel_mm - 1e-9))))
         if voxels > MAX_VOXELS:
@@ -313,7 +324,8 @@ def _layer_check_problems(cfg: Config) -> list[Problem]:
     lc = cfg.layer_check
     if lc is None:
         if cfg.trials.truth == "slab":
-            problems.append((("trials", "truth"), "truth 'slab' is the 3-D slab of layer_check: add a layer_check section"))
+            problems.append((("trials", "truth"),
+                             "truth 'slab' is the 3-D slab of layer_check: add a layer_check section"))
         if cfg.controller.model != "layer":
             problems.append((("controller", "model"), (
                 f"model {cfg.controller.model!r} is made from the 3-D slab of layer_check: add a layer_check section, "
@@ -322,11 +334,12 @@ def _layer_check_problems(cfg: Config) -> list[Problem]:
     need = SURROGATE_SAMPLES_PER_CUP * len(cfg.cups)
     if cfg.controller.model == "surrogate" and cfg.controller.surrogate.samples < need:
         problems.append((("controller", "surrogate", "samples"), (
-            f"a surrogate of {len(cfg.cups)} cup(s) needs at least {need} samples ({SURROGATE_SAMPLES_PER_CUP} per cup); "
-            f"got {cfg.controller.surrogate.samples}")))
+            f"a surrogate of {len(cfg.cups)} cup(s) needs at least {need} samples "
+            f"({SURROGATE_SAMPLES_PER_CUP} per cup); got {cfg.controller.surrogate.samples}")))
     if lc.layer_z_mm > lc.height_mm:
         problems.append((("layer_check", "layer_z_mm"),
-                         f"the layer must lie inside the slab: 0 <= layer_z_mm <= height_mm {lc.height_mm:g}; got {lc.layer_z_mm:g}"))
+                         f"the layer must lie inside the slab: 0 <= layer_z_mm <= height_mm {lc.height_mm:g}; "
+                         f"got {lc.layer_z_mm:g}"))
     finest = cfg.tissue.mesh.min_edge_mm * cfg.tissue.mesh.scale
     if lc.height_mm < finest:
         problems.append((("layer_check", "height_mm"), (

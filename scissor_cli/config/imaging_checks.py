@@ -47,12 +47,12 @@ def imaging_problems(cfg: Config, outline: np.ndarray, inside) -> list:
             f"{im.position_mm} is {d:.3g} mm from it")))
     elif not inside(pos + FACING_DEPTH_MM * axis, outline)[0]:
         problems.append((("imaging", "axis"), (
-            f"the beam must point into the tissue: {FACING_DEPTH_MM:g} mm along axis {[round(float(v), 4) for v in axis]} "
-            f"from the probe at {im.position_mm} is outside it")))
+            f"the beam must point into the tissue: {FACING_DEPTH_MM:g} mm along axis "
+            f"{[round(float(v), 4) for v in axis]} from the probe at {im.position_mm} is outside it")))
     half = image_half_width_mm(im.probe)
     lateral_unit = np.array([-axis[1], axis[0]])
     scale = im.assumed_sound_speed_m_per_s / im.sound_speed_m_per_s  # apparent / true depth
-    for i, target in enumerate(cfg.targets):
+    for target in cfg.targets:
         q = np.asarray(target.position_mm, float) - pos
         lateral, depth = float(q @ lateral_unit), float(q @ axis)
         if abs(lateral) > half:

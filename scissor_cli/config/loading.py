@@ -25,9 +25,11 @@ from typing import Optional
 import yaml
 from pydantic import ValidationError
 
-from scissor_cli.config.element_budget import budget_problems
+from scissor_cli.config.body_checks import body_problems
+from scissor_cli.config.body_sections import BODY_SHAPES, BodyConfig
 from scissor_cli.config.checks import scene_problems
-from scissor_cli.config.messages import located, loc_text, pydantic_problem, show
+from scissor_cli.config.element_budget import budget_problems
+from scissor_cli.config.messages import loc_text, located, pydantic_problem, show
 from scissor_cli.config.sections import Config
 
 #: the largest scene file read, in bytes
@@ -138,7 +140,8 @@ def _nesting_line(text: str) -> Optional[int]:
                     return token.start_mark.line + 1
             elif isinstance(token, _CLOSES):
                 depth -= 1
-    except (yaml.YAMLError, ValueError, OverflowError):  # not valid YAML for another reason: the parser's message stands
+    # not valid YAML for another reason: the parser's message stands
+    except (yaml.YAMLError, ValueError, OverflowError):
         return None
     return None
 
@@ -167,7 +170,8 @@ def _duplicate_key(root: yaml.Node) -> Optional[tuple[tuple, yaml.Node]]:
 
 def _yaml_message(source: str, text: str, exc: yaml.YAMLError) -> str:
     if isinstance(exc, yaml.reader.ReaderError):  # a character YAML does not allow, e.g. NUL
-        before = text.encode("utf-8")[: exc.position] if _CParser is not None else text[: exc.position]  # libyaml counts bytes
+        # libyaml counts bytes
+        before = text.encode("utf-8")[: exc.position] if _CParser is not None else text[: exc.position]
         line = before.count(b"\n" if isinstance(before, bytes) else "\n") + 1
         return (f"{source} (line {line}): not valid YAML: the character {exc.character:#06x} is not allowed "
                 f"(control characters other than tab and newline are not YAML text)")
@@ -198,7 +202,8 @@ def _read_yaml(text: str, source: str) -> tuple[yaml.Node, dict]:
             raise ConfigError(f"{source} (line {deep}): nested more than {MAX_DEPTH} levels deep; "
                               f"a scene nests at most 5") from None
         if isinstance(exc, RecursionError):
-            raise ConfigError(f"{source}: not valid YAML: nested too deeply (a scene nests at most {MAX_DEPTH} levels)") from None
+            raise ConfigError(f"{source}: not valid YAML: nested too deeply "
+                              f"(a scene nests at most {MAX_DEPTH} levels)") from None
         raise ConfigError(_yaml_message(source, text, exc)) from None
     except (ValueError, OverflowError) as exc:  # a lone surrogate in the text; PyYAML's scanner on "\UFFFFFFFF"
         raise ConfigError(f"{source}: not valid YAML: {exc}") from None
@@ -216,8 +221,9 @@ def _one_message(messages: list[str]) -> str:
     return messages[0] + extra
 
 
-def parse_config(text: str, source: str = "<config>", base_dir: Path | None = None) -> Config:
-    """Validate YAML text into a Config, or raise ConfigError with one clear message.
+def parse_config(text: str, source: str = "<config>", base_dir: Path | None = None) -> Config | BodyConfig:
+    """Validate YAML text into a Config (a 2-D layer) or a BodyConfig (a 3-D body, by its tissue.shape), or raise
+    ConfigError with one clear message.
 
     Relative paths in it (`tissue.mesh.file`) are taken from `base_dir` (the
     config file's folder; the working directory when None) and stored absolute,
@@ -230,24 +236,41 @@ def parse_config(text: str, source: str = "<config>", base_dir: Path | None = No
     if dup is not None:
         loc, node = dup
         raise ConfigError(f"{source}: {loc_text(loc)} (line {node.start_mark.line + 1}): key given twice")
+    body = _is_body(data)
+    model, other = (BodyConfig, Config) if body else (Config, BodyConfig)
     try:
-        cfg = Config.model_validate(data)
+        cfg = model.model_validate(data)
     except ValidationError as exc:
         errors = exc.errors(include_url=False)
-        raise ConfigError(_one_message([located(source, root, *pydantic_problem(e)) for e in errors])) from None
+        raise ConfigError(_one_message([located(source, root, *pydantic_problem(e, model, other))
+                                        for e in errors])) from None
     cfg = _absolute_paths(cfg, base_dir)
-    for check in (scene_problems, budget_problems):
+    for check in ((body_problems,) if body else (scene_problems, budget_problems)):
         problems = check(cfg)
         if problems:
             raise ConfigError(_one_message([located(source, root, loc, what) for loc, what in problems]))
     return cfg
 
 
-def _absolute_paths(cfg: Config, base_dir: Path | None) -> Config:
+def _is_body(data: dict) -> bool:
+    """Whether a scene's data is a 3-D scene's: its tissue's shape is a body's."""
+    tissue = data.get("tissue")
+    return isinstance(tissue, dict) and tissue.get("shape") in BODY_SHAPES
+
+
+def _absolute_paths(cfg, base_dir: Path | None):
+    where = Path(base_dir) if base_dir is not None else Path.cwd()
+    if isinstance(cfg, BodyConfig):
+        tissue = cfg.tissue
+        update = {}
+        if tissue.surface_file is not None and not Path(tissue.surface_file).is_absolute():
+            update["surface_file"] = str((where / tissue.surface_file).absolute())
+        if tissue.mesh.file is not None and not Path(tissue.mesh.file).is_absolute():
+            update["mesh"] = tissue.mesh.model_copy(update={"file": str((where / tissue.mesh.file).absolute())})
+        return cfg.model_copy(update={"tissue": tissue.model_copy(update=update)}) if update else cfg
     mesh = cfg.tissue.mesh
     if mesh.file is None or Path(mesh.file).is_absolute():
         return cfg
-    where = Path(base_dir) if base_dir is not None else Path.cwd()
     mesh = mesh.model_copy(update={"file": str((where / mesh.file).absolute())})
     return cfg.model_copy(update={"tissue": cfg.tissue.model_copy(update={"mesh": mesh})})
 

@@ -34,7 +34,8 @@ def read_mesh_arrays(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """Nodes (N, 2) float64 mm and triangles (M, 3) int64 of a mesh file, checked; MeshFileError otherwise."""
     path = Path(path)
     if path.suffix.lower() not in SUFFIXES:
-        raise MeshFileError(f"a mesh file is .npz (arrays nodes, triangles) or a scissor results .h5; got '{path.suffix}'")
+        raise MeshFileError("a mesh file is .npz (arrays nodes, triangles) or a scissor results .h5; "
+                            f"got '{path.suffix}'")
     try:
         if path.suffix.lower() == ".npz":
             with np.load(path, allow_pickle=False) as data:

@@ -66,7 +66,8 @@ def located(source: str, root: Optional[yaml.Node], loc: tuple, what: str) -> st
     node, exact = node_at(root, loc)
     where = ""
     if node is not None:
-        where = f" (line {node.start_mark.line + 1})" if exact else f" (in the block at line {node.start_mark.line + 1})"
+        line = node.start_mark.line + 1
+        where = f" (line {line})" if exact else f" (in the block at line {line})"
     return f"{source}: {loc_text(loc)}{where}: {what}"
 
 
@@ -92,9 +93,9 @@ def _unwrap(tp: Any) -> tuple[Any, list]:
         return tp, meta
 
 
-def field_type(loc: tuple) -> tuple[Any, list]:
-    """The (type, constraints) a location in the config holds, or (None, []) if unknown."""
-    tp: Any = Config
+def field_type(loc: tuple, root: type = Config) -> tuple[Any, list]:
+    """The (type, constraints) a location in a config model (`Config`, or a 3-D scene's) holds, or (None, [])."""
+    tp: Any = root
     meta: list = []
     for key in loc:
         tp, _ = _unwrap(tp)
@@ -114,9 +115,9 @@ def field_type(loc: tuple) -> tuple[Any, list]:
     return bare, meta + inner
 
 
-def allowed_keys(loc: tuple) -> list[str]:
+def allowed_keys(loc: tuple, root: type = Config) -> list[str]:
     """The keys the section at loc allows (empty if loc is not a section)."""
-    tp, _ = field_type(loc)
+    tp, _ = field_type(loc, root)
     return list(tp.model_fields) if isinstance(tp, type) and issubclass(tp, BaseModel) else []
 
 
@@ -141,9 +142,9 @@ def _bounds(meta: list) -> str:
         f" {'>' if lo_open else '>='} {lo_text}" if lo is not None else f" {'<' if hi_open else '<='} {hi_text}")
 
 
-def allowed(loc: tuple) -> str:
+def allowed(loc: tuple, root: type = Config) -> str:
     """What the field at loc allows, in words ('' when the model says nothing more)."""
-    tp, meta = field_type(loc)
+    tp, meta = field_type(loc, root)
     if tp is float:
         return "a finite number" + _bounds(meta)
     if tp is int:
@@ -171,16 +172,25 @@ def allowed(loc: tuple) -> str:
     return ""
 
 
-def pydantic_problem(err: dict) -> tuple[tuple, str]:
-    """(location, what) of one pydantic error, with what the field allows."""
+def pydantic_problem(err: dict, root: type = Config, other: type | None = None) -> tuple[tuple, str]:
+    """(location, what) of one pydantic error of a `root` model, with what the field allows.
+
+    other: the model of the other dimension (2-D layer or 3-D body): an
+    unknown key that is one of its fields is named as such.
+    """
     loc = tuple(err["loc"])
     kind = err["type"]
     if kind == "extra_forbidden":
-        return loc, f"unknown key {show(loc[-1])}; allowed keys: {', '.join(allowed_keys(loc[:-1]))}"
+        what = f"unknown key {show(loc[-1])}; allowed keys: {', '.join(allowed_keys(loc[:-1], root))}"
+        if other is not None and isinstance(loc[-1], str) and field_type(loc, other)[0] is not None:
+            kinds = ("a 3-D scene's (tissue.shape dome | surface)" if root is Config
+                     else "a 2-D layer's (tissue.shape rectangle | ellipse | polygon)")
+            what = f"{show(loc[-1])} is {kinds} field, not this scene's; {what}"
+        return loc, what
     if kind == "missing":
-        return loc, "required field is missing" + (f"; allowed: {allowed(loc)}" if allowed(loc) else "")
+        return loc, "required field is missing" + (f"; allowed: {allowed(loc, root)}" if allowed(loc, root) else "")
     what = err["msg"]
-    allow = allowed(loc)
+    allow = allowed(loc, root)
     got = err.get("input")
     if allow and kind not in ("value_error", "assertion_error"):
         what = f"must be {allow}"  # says more than pydantic's words: the whole range, the name's characters

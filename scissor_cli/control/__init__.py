@@ -12,6 +12,6 @@ from scissor_cli.control.result import LoopResult
 
 __all__ = [
     "Actuator", "Controller", "Corridor", "LoopResult", "PID", "Plant", "STOP_REASONS",
-    "TargetRun", "TruthPerturbation", "TruthView", "corridor_at", "open_loop", "quantise", "run_loop", "run_target", "split_error",
-    "true_tissue",
+    "TargetRun", "TruthPerturbation", "TruthView", "corridor_at", "open_loop", "quantise", "run_loop", "run_target",
+    "split_error", "true_tissue",
 ]

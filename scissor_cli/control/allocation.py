@@ -1,4 +1,5 @@
-"""The stroke step: the miss across the needle and the bounded, regularised least squares over any number of cups (docs/model.md §6).
+"""The stroke step: the miss across the needle and the bounded, regularised least squares over any number of
+cups (docs/model.md §6).
 
 For one target with needle axis n (unit, (2,)) the miss is
 

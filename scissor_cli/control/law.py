@@ -47,7 +47,8 @@ class PID:
     integral: np.ndarray = None  # type: ignore[assignment]
     previous: Optional[np.ndarray] = None
 
-    def command(self, s: np.ndarray, ds: np.ndarray, lo, hi, resolution_mm: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    def command(self, s: np.ndarray, ds: np.ndarray, lo, hi,
+                resolution_mm: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """The next command (C,) mm from the current one s (C,) and δs* (C,); and which cups saturate (C,) bool."""
         if self.integral is None:
             self.integral = np.zeros_like(ds)

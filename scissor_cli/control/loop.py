@@ -34,7 +34,7 @@ tolerance, and declares "stalled" when the error stops improving.
 The part of the driven error no stroke within the limits can remove is
 reported as the uncorrectable error (`control.allocation`).
 
-Both tissues follow their equilibria with `solvers.tracking.Equilibrium`
+Both tissues follow their equilibria with `solvers.tracking.TrackedEquilibrium`
 (tangent predictor, then the one Newton iteration with chord steps; the
 exact tangent at the converged state gives J). Big moves may start from a
 known nearby equilibrium (e.g. the planner's state at the plan's strokes).
@@ -50,9 +50,9 @@ import numpy as np
 
 from scissor_cli.config import ControllerConfig
 from scissor_cli.control.actuator import Actuator, quantise
-from scissor_cli.control.corridor_check import Corridor, corridor_at
 from scissor_cli.control.allocation import stroke_step
 from scissor_cli.control.broyden import BroydenCorrection
+from scissor_cli.control.corridor_check import Corridor, corridor_at
 from scissor_cli.control.law import PID, stalled, traveling
 from scissor_cli.control.plant import Controller, Plant, TruthFactory, TruthPerturbation, true_tissue
 from scissor_cli.control.result import History, LoopResult
@@ -108,9 +108,10 @@ def run_loop(
         y = sensor.measure(plant.true_state())
         J = controller.jacobian
         if cfg.stop_frames > 1 and controller.n_cups and sensor.noise_mm > 0:  # (noiseless frames agree)
+            # _confirmed calls the step function at once, in this iteration: J and command are this step's
             y, waited_s = _confirmed(y, sensor, plant, cfg, dt,
-                                     lambda y: stroke_step(J if correction is None else correction.jacobian(J),
-                                                           desired - y, command, controller.lo, controller.hi,
+                                     lambda y: stroke_step(J if correction is None else correction.jacobian(J),  # noqa: B023
+                                                           desired - y, command, controller.lo, controller.hi,  # noqa: B023
                                                            max_step, direction, cfg.error))
             sim_t += waited_s
         if correction is not None:  # J learnt from the moves so far (control.broyden)
@@ -151,8 +152,8 @@ def run_loop(
         hist.wall.append(time.perf_counter() - tw)
         sim_t += max(dt, plant.actuator.last_move_s)
         command = new
-    return hist.result(plant, controller, desired, target, "closed", reason, message, time.perf_counter() - t0, cup_names,
-                       direction, cfg.error)
+    return hist.result(plant, controller, desired, target, "closed", reason, message, time.perf_counter() - t0,
+                       cup_names, direction, cfg.error)
 
 
 def _correctable_norm(step) -> float:

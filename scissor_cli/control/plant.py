@@ -18,7 +18,7 @@ from scissor_cli.control.actuator import Actuator
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import TargetProbe, apply_probe, target_positions
 from scissor_cli.sensing.sensor import TrueState
-from scissor_cli.solvers.tracking import Equilibrium
+from scissor_cli.solvers.tracking import TrackedEquilibrium
 
 
 @dataclass(frozen=True)
@@ -52,7 +52,7 @@ class Plant:
     def __init__(self, tissue: Tissue, actuator: Actuator, probe: TargetProbe, tol: float = 1e-10,
                  view: Optional[TruthView] = None):
         self.tissue, self.actuator, self.probe, self.view = tissue, actuator, probe, view
-        self.eq = Equilibrium(tissue, tol if view is None or view.tol is None else view.tol)
+        self.eq = TrackedEquilibrium(tissue, tol if view is None or view.tol is None else view.tol)
         if view is not None:
             self.eq.guesses.extend(view.guesses)
 
@@ -94,7 +94,7 @@ class Controller:
         self.tissue, self.probe = tissue, probe
         self.lo, self.hi = np.asarray(lo, float), np.asarray(hi, float)
         self.resolution_mm = resolution_mm
-        self.eq = Equilibrium(tissue, tol)
+        self.eq = TrackedEquilibrium(tissue, tol)
         self.eq.move_to(self.eq.strokes, tangent=True)
 
     @property
@@ -154,7 +154,10 @@ def true_tissue(model: Tissue, truth: TruthPerturbation) -> Tissue:
     """The trial's true tissue; the model itself when nothing differs (so one solve serves both)."""
     m = model.scene.material
     nu = None if truth.nu is None or truth.nu == m.nu else truth.nu
-    eta = truth.eta_kPa if truth.eta_kPa is not None else (m.eta_kPa * truth.eta_scale if truth.eta_scale != 1 else None)
+    if truth.eta_kPa is not None:
+        eta = truth.eta_kPa
+    else:
+        eta = m.eta_kPa * truth.eta_scale if truth.eta_scale != 1 else None
     eta = None if eta == m.eta_kPa else eta
     E_uniform = np.all(np.asarray(truth.E_scale) == 1.0)
     if E_uniform and truth.fiber_offset_rad == 0 and nu is None and eta is None:

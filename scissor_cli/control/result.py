@@ -100,7 +100,8 @@ class LoopResult:
             ["time_s"]
             + [f"stroke_cmd_{c}" for c in self.cup_names]
             + [f"stroke_{c}" for c in self.cup_names]
-            + ["measured_x", "measured_y", "true_x", "true_y", "error_x", "error_y", "correctable_mm", "uncorrectable_mm", "along_mm"]
+            + ["measured_x", "measured_y", "true_x", "true_y", "error_x", "error_y",
+               "correctable_mm", "uncorrectable_mm", "along_mm"]
         )
         table = np.column_stack(
             [

@@ -28,13 +28,20 @@ import numpy as np
 from scissor_cli import progress
 from scissor_cli.config import Config, resolved_yaml
 from scissor_cli.experiments import run_cache
-from scissor_cli.experiments.pool import run_pool
-from scissor_cli.layer3d.calibration import Calibration
 from scissor_cli.experiments.model_planning import Replan, plan_with_model
 from scissor_cli.experiments.needle_model_stage import needle_models, needs_needle_models
-from scissor_cli.layer3d.tissue_models import (ControllerModel, ModelData, ModelPaths, SceneMap, build_model_data,
-                                               model_solves, slab_map)
+from scissor_cli.experiments.pool import run_pool
+from scissor_cli.layer3d.calibration import Calibration
 from scissor_cli.layer3d.surrogate import SurrogateSamples, solve_samples
+from scissor_cli.layer3d.tissue_models import (
+    ControllerModel,
+    ModelData,
+    ModelPaths,
+    SceneMap,
+    build_model_data,
+    model_solves,
+    slab_map,
+)
 from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.text import vector
@@ -46,7 +53,8 @@ def needs_slab(cfg: Config) -> bool:
 
 
 def cache_key(cfg: Config, plan_strokes: list[np.ndarray]) -> str:
-    """What the fitted model depends on, hashed: the scene, material, cups, targets, slab, design, the code's version."""
+    """What the fitted model depends on, hashed: the scene, material, cups, targets, slab, design, the code's
+    version."""
     kind = cfg.controller.model
     parts = {
         "kind": kind, "tol": SLAB_TRUTH_TOL,
@@ -93,7 +101,8 @@ def load_model_data(path: Path) -> Optional[ModelData]:
     return ModelData(str(a["kind"]), float(a["build_time_s"]), None if np.isnan(error) else error, calibration, samples)
 
 
-def fitted_model(cfg: Config, tissue: Tissue, slab: Optional[Tissue], plans: list, cache_dir: Optional[Path], jobs: int = 1) -> tuple[ModelData, bool]:
+def fitted_model(cfg: Config, tissue: Tissue, slab: Optional[Tissue], plans: list, cache_dir: Optional[Path],
+                 jobs: int = 1) -> tuple[ModelData, bool]:
     """The controller's model data, from the cache when it holds this key; (data, came from the cache).
 
     With jobs ≥ 2 the surrogate's design groups are solved in worker
@@ -136,9 +145,9 @@ def _solve_group(config_yaml: str, index: int, strokes: np.ndarray) -> list[tupl
     """In a worker: the nominal slab's targets and layer at one design group's strokes (`surrogate.solve_samples`)."""
     if config_yaml not in _SLABS:
         from scissor_cli.config import parse_config  # noqa: PLC0415
+        from scissor_cli.experiments.build import build_model  # noqa: PLC0415
         from scissor_cli.layer3d.check import slab_spec  # noqa: PLC0415
         from scissor_cli.layer3d.slab import build_slab, layer_probe, slab_probe  # noqa: PLC0415
-        from scissor_cli.experiments.build import build_model  # noqa: PLC0415
 
         cfg = parse_config(config_yaml, "<run config>")
         scene, mesh, tissue = build_model(cfg)

@@ -34,9 +34,9 @@ from dataclasses import dataclass, field, replace
 from scissor_cli import progress
 from scissor_cli.config import Config, resolved_yaml
 from scissor_cli.experiments.pool import deferred_signals
+from scissor_cli.experiments.profiles import CAMERA_SPREADS, IMAGING_SPREADS, error_model
 from scissor_cli.experiments.sink import product_key
 from scissor_cli.experiments.trials import execute_rows
-from scissor_cli.experiments.profiles import CAMERA_SPREADS, IMAGING_SPREADS, error_model
 
 #: every `trials` field that switches an error source (their values: the profile's, or the config's)
 SOURCE_FIELDS = ("pixel_noise_px", "localisation_error_mm", "E_log_sd", "heterogeneity_log_sd", "nu_sd",

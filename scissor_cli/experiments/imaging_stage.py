@@ -1,4 +1,5 @@
-"""The nominal manipulation seen by ultrasound, every frame kept; the fast model's check against SIMUS (docs/model.md §17).
+"""The nominal manipulation seen by ultrasound, every frame kept; the fast model's check against SIMUS
+(docs/model.md §17).
 
 With `imaging`, the nominal manipulation of each target (`simulate.
 _manipulation_stage`) reads the target through an ultrasound sensor with

@@ -25,14 +25,14 @@ from scissor_cli.experiments.sink import Insertion, RunSink, product_key
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, needle_path, run_strategies
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.equilibrium import solve_equilibrium
-from scissor_cli.solvers.newton import solve_newton
 
 #: equilibria shown for the manipulation before the insertion in the animation
 RAMP_FRAMES = 6
 
 
 def manipulation_ramp(tissue: Tissue, strokes: np.ndarray, frames: int = RAMP_FRAMES) -> list[np.ndarray]:
-    """Equilibria (N, 2) at strokes × k/frames, k = 0..frames, each warm-started from the last; the last is the start."""
+    """Equilibria (N, 2) at strokes × k/frames, k = 0..frames, each warm-started from the last; the last is the
+    start."""
     strokes = np.asarray(strokes, float)
     x, s_prev, out = tissue.rest.copy(), np.zeros_like(strokes), [tissue.rest.copy()]
     for k in range(1, frames + 1):
@@ -49,7 +49,7 @@ def slab_ramp(slab: Tissue, strokes: np.ndarray, frames: int, tol: float) -> lis
     x, s_prev, out = None, None, []
     for k in range(1, frames + 1):
         s = strokes * k / frames
-        x = solve_newton(slab, s, x0=x, strokes0=s_prev, tol=tol).x
+        x = solve_equilibrium(slab, s, start=x, start_strokes=s_prev, tol=tol).x
         s_prev = s
         out.append(x)
     return out

@@ -19,11 +19,11 @@ import numpy as np
 from scissor_cli import progress
 from scissor_cli.config import Config
 from scissor_cli.experiments import run_cache
+from scissor_cli.experiments.build import build_model
 from scissor_cli.experiments.pool import run_pool
 from scissor_cli.experiments.sink import product_key
 from scissor_cli.layer3d.check import build_layer_check, plane_ladder, slab_spec
 from scissor_cli.layer3d.resolution import SlabCandidate, SlabChoice, choose_slab, in_process
-from scissor_cli.experiments.build import build_model
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.equilibrium import EquilibriumSolver
 

@@ -1,4 +1,5 @@
-"""The needle-model stage: each plan's target under the needle, as the controller's 3-D model knows it (docs/model.md §18).
+"""The needle-model stage: each plan's target under the needle, as the controller's 3-D model knows it
+(docs/model.md §18).
 
 With the needle inserted into the slab (`insertion`, `trials.truth: slab`)
 and a 3-D-aware controller model (calibrated, surrogate, slab), every
@@ -29,7 +30,7 @@ from scissor_cli.insertion.steering import NeedleModel
 from scissor_cli.layer3d.slab import slab_probe
 from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
 from scissor_cli.mechanics.tissue import Tissue
-from scissor_cli.solvers.newton import solve_newton
+from scissor_cli.solvers.equilibrium import solve_equilibrium
 
 
 def needs_needle_models(cfg: Config) -> bool:
@@ -63,7 +64,7 @@ def needle_models(cfg: Config, tissue: Tissue, slab: Tissue, plans: list, cache:
         if model is None:
             t0 = time.perf_counter()
             strokes = np.asarray(plan.strokes, float)
-            x0 = solve_newton(slab, strokes, tol=SLAB_TRUTH_TOL).x
+            x0 = solve_equilibrium(slab, strokes, tol=SLAB_TRUTH_TOL).x
             height = float(slab_probe(slab, np.asarray(target.rest, float)[None]).positions(x0)[0, 2])
             needle = NeedlePath(np.append(plan.entry, height), np.append(plan.direction, 0.0), float(plan.depth_mm),
                                 np.asarray(target.rest, float), target.name)

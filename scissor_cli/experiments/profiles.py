@@ -160,10 +160,6 @@ class ErrorModel:
     def exact_measurement(self) -> bool:
         return self.profile == "ideal" and self.pixel_noise_px == 0 and self.localisation_error_mm == 0
 
-    @property
-    def truth_is_model(self) -> bool:
-        return not any((self.E_log_sd, self.nu_sd, self.eta_log_sd, self.fiber_angle_sd_deg, self.heterogeneity_log_sd))
-
 
 def error_model(trials: TrialsConfig) -> ErrorModel:
     values = dict(PROFILES[trials.profile])
@@ -203,7 +199,8 @@ def smooth_field(centroids: np.ndarray, length_mm: float, rng: np.random.Generat
     return np.sqrt(2.0 / N_FEATURES) * np.cos(centroids @ omega.T + phase).sum(axis=1)
 
 
-def draw_trial(model: ErrorModel, nu_model: float, centroids: np.ndarray, seed: int, target_index: int, trial: int) -> TrialDraw:
+def draw_trial(model: ErrorModel, nu_model: float, centroids: np.ndarray, seed: int, target_index: int,
+               trial: int) -> TrialDraw:
     """Draw one trial's error sources; the same arguments give the same draw."""
     rng = trial_rng(seed, target_index, trial)
     # Every draw is made whatever its σ, so changing one σ does not shift the others.

@@ -25,18 +25,19 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import Optional
 
 import numpy as np
 
 from scissor_cli import progress
 from scissor_cli.config import Config
-from scissor_cli.mesh.probe import probe_targets, target_positions
-from scissor_cli.mesh.mesh import mesh_for_config
-from scissor_cli.solvers.common import SolverError
-from scissor_cli.solvers.equilibrium import solve_equilibrium
 from scissor_cli.experiments.build import scene_of
 from scissor_cli.mechanics.tissue import build_tissue
+from scissor_cli.mesh.mesh import mesh_for_config
+from scissor_cli.mesh.probe import probe_targets, target_positions
+from scissor_cli.solvers.common import SolverError
+from scissor_cli.solvers.equilibrium import solve_equilibrium
 
 SAFETY = 0.7
 CALIBRATION_LEVELS = (4.0, 2.0, 1.0)
@@ -76,10 +77,12 @@ class Selection:
                 + (f" (tol {p.tolerance:g})" if p.solver == "admm" else "")
                 + f", {p.model}, mesh level {p.level:g} ({p.n_elements} elements); predicted error "
                 f"{p.predicted_error_mm:.3g} mm = mesh {self.discretisation_mm[p.level]:.3g} + model "
-                f"{self.model_mm[p.model]:.3g}" + (f" + solver {self.solver_mm[p.tolerance]:.3g}" if p.solver == "admm" else "")
+                f"{self.model_mm[p.model]:.3g}"
+                + (f" + solver {self.solver_mm[p.tolerance]:.3g}" if p.solver == "admm" else "")
                 + f", predicted {p.predicted_time_s * 1e3:.0f} ms per solve")
         why = (f"; the cheapest of {len(self.candidates)} settings within {SAFETY:g} x the budget "
-               f"(calibrated on case {self.case!r} in {self.calibration_s:.1f} s, observed mesh order {self.order:.2f})")
+               f"(calibrated on case {self.case!r} in {self.calibration_s:.1f} s, "
+               f"observed mesh order {self.order:.2f})")
         if not self.meets_budget:
             why = f"; NO setting is predicted to meet the budget: this is the most accurate one{why}"
         return head + why
@@ -92,7 +95,8 @@ class Selection:
     def apply(self, cfg: Config) -> Config:
         """The config that runs with the picked mesh level, model and solver."""
         p = self.pick
-        solver = cfg.solver.model_copy(update={"kind": p.solver, "tolerance": p.tolerance if p.solver == "admm" else cfg.solver.tolerance})
+        tolerance = p.tolerance if p.solver == "admm" else cfg.solver.tolerance
+        solver = cfg.solver.model_copy(update={"kind": p.solver, "tolerance": tolerance})
         return _at_level(cfg, p.level).model_copy(update={
             "material": cfg.material.model_copy(update={"model": p.model}),
             "solver": solver,
@@ -129,6 +133,14 @@ def _timed(fn, repeats: int = 1):
     return out, best
 
 
+def _admm_or_unconverged(tissue, strokes: np.ndarray, tol: float):
+    """ADMM's equilibrium at tolerance tol; not converged (this tolerance is out of reach), its last iterate."""
+    try:
+        return solve_equilibrium(tissue, strokes, method="admm", tol=tol, max_iter=5000)
+    except SolverError as exc:
+        return exc.result
+
+
 def select(cfg: Config, accuracy_mm: float) -> Selection:
     """Calibrate on the scene and pick the cheapest setting predicted to meet accuracy_mm."""
     t_start = time.perf_counter()
@@ -145,7 +157,7 @@ def select(cfg: Config, accuracy_mm: float) -> Selection:
     positions, newton_time = {}, {}
     for L in CALIBRATION_LEVELS:
         tissue = build_tissue(scenes[L], meshes[L], model="neo_hookean_fiber")
-        r, t = _timed(lambda: solve_equilibrium(tissue, strokes), repeats=2)
+        r, t = _timed(partial(solve_equilibrium, tissue, strokes), repeats=2)
         positions[L], newton_time[L] = target_positions(probe_targets(meshes[L], rest), r.x), t
     d1 = float(np.linalg.norm(positions[4.0] - positions[2.0], axis=1).max())
     d2 = float(np.linalg.norm(positions[2.0] - positions[1.0], axis=1).max())
@@ -156,20 +168,16 @@ def select(cfg: Config, accuracy_mm: float) -> Selection:
     model_err, model_time = {}, {}
     for model in MODELS:
         tissue = build_tissue(scenes[2.0], meshes[2.0], model=model)
-        r, t = _timed(lambda: solve_equilibrium(tissue, strokes), repeats=2)
+        r, t = _timed(partial(solve_equilibrium, tissue, strokes), repeats=2)
         model_err[model] = float(np.linalg.norm(target_positions(probe2, r.x) - positions[2.0], axis=1).max())
         model_time[model] = t / newton_time[2.0]  # relative cost of the model
     tissue2 = build_tissue(scenes[2.0], meshes[2.0], model="neo_hookean_fiber")
     solver_err, admm_time = {}, {}
     for tol in ADMM_TOLERANCES:
-        def run():
-            try:
-                return solve_equilibrium(tissue2, strokes, method="admm", tol=tol, max_iter=5000)
-            except SolverError as exc:  # not converged: this tolerance is out of reach
-                return exc.result
-        r, t = _timed(run)
+        r, t = _timed(partial(_admm_or_unconverged, tissue2, strokes, tol))
         ok = r is not None and r.converged
-        solver_err[tol] = float(np.linalg.norm(target_positions(probe2, r.x) - positions[2.0], axis=1).max()) if ok else np.inf
+        solver_err[tol] = (float(np.linalg.norm(target_positions(probe2, r.x) - positions[2.0], axis=1).max())
+                           if ok else np.inf)
         admm_time[tol] = t / newton_time[2.0]  # relative to Newton at the same level
 
     # cost of Newton in elements: a power law through the calibration levels
@@ -190,7 +198,8 @@ def select(cfg: Config, accuracy_mm: float) -> Selection:
                 candidates.append(Candidate(L, model, "admm", tol, n[L], disc[L] + model_err[model] + solver_err[tol],
                                             base_t * admm_time[tol]))
     pick, meets = choose(candidates, accuracy_mm)
-    sel = Selection(accuracy_mm, pick, meets, q, disc, model_err, solver_err, time.perf_counter() - t_start, case, candidates)
+    sel = Selection(accuracy_mm, pick, meets, q, disc, model_err, solver_err, time.perf_counter() - t_start, case,
+                    candidates)
     progress.info(sel.explain())
     return sel
 

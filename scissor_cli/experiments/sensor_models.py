@@ -45,7 +45,10 @@ def sensor_model(cfg: Config, scene, errors: ErrorModel, imaging: Optional[dict]
         return CameraModel(Camera.from_config(cfg.camera), errors.pixel_noise_px, errors.localisation_error_mm,
                            ideal=errors.exact_measurement)
     from scissor_cli.sensing.ultrasound import (  # noqa: PLC0415
-        ImagingErrors, ProbePose, UltrasoundModel, obstacle_echogenicity,
+        ImagingErrors,
+        ProbePose,
+        UltrasoundModel,
+        obstacle_echogenicity,
     )
 
     im = cfg.imaging
@@ -89,7 +92,8 @@ def imaging_data(im: ImagingConfig, cache_dir: Optional[Path] = None) -> dict:
     t0 = time.perf_counter()
     probe = probe_params(im.probe)
     psf = build_psf(probe, im.assumed_sound_speed_m_per_s, im.depth_mm)
-    progress.info(f"imaging: {probe.name}'s PSF measured on SIMUS to {im.depth_mm:g} mm in {time.perf_counter() - t0:.1f} s")
+    progress.info(f"imaging: {probe.name}'s PSF measured on SIMUS to {im.depth_mm:g} mm "
+                  f"in {time.perf_counter() - t0:.1f} s")
     data = {"probe": asdict(probe), "psf": psf.to_arrays()}
     if path is not None:
         flat = {**data["psf"], **{f"probe/{k}": np.asarray(v) for k, v in data["probe"].items()}}

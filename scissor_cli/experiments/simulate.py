@@ -11,54 +11,51 @@ from __future__ import annotations
 
 import time
 from contextlib import closing
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-
 from scissor_cli import control, progress
-from scissor_cli.text import duration, signed
 from scissor_cli.config import Config, parse_config, resolved_yaml
-from scissor_cli.solvers.jacobian import cup_target_jacobian
-from scissor_cli.mesh.probe import probe_targets, target_positions
-from scissor_cli.solvers.equilibrium import EquilibriumSolver
-from scissor_cli.mesh.outlines import boundary_loop, deformed_outlines, embed_outlines
-from scissor_cli.planning.corridor import corridor_radius
-from scissor_cli.planning.needle_plan import NeedlePlan, plan_target, stored_plan
-from scissor_cli.planning.states import StateCache
-from scissor_cli.experiments.pool import deferred_signals
-from scissor_cli.experiments.profiles import CAMERA_SPREADS, IMAGING_SPREADS, INSERTION_SPREADS, error_model
-from scissor_cli.experiments.sink import ForwardCase, Manipulation, ResumableSink, RunSink, SinkFactory, product_key
-from scissor_cli.experiments.sink import NonFiniteError, ResumeError  # noqa: F401 - raised through this module's API
-from scissor_cli.robot.chain import RobotModel
-from scissor_cli.robot.registration import plan_to_joints
-from scissor_cli.experiments.insertion_stage import insertion_stage
+from scissor_cli.config.body_sections import BodyConfig
+from scissor_cli.experiments.build import build_model, with_grips  # noqa: F401 - build_model: this module's API too
+from scissor_cli.experiments.controller_model_stage import controller_model_stage, needs_slab, refitted_model
 from scissor_cli.experiments.error_budget import run_budget
 from scissor_cli.experiments.imaging_stage import prepare_imaging
-from scissor_cli.experiments.controller_model_stage import controller_model_stage, needs_slab, refitted_model
+from scissor_cli.experiments.insertion_stage import insertion_stage
 from scissor_cli.experiments.model_planning import reserved_scene
 from scissor_cli.experiments.needle_model_stage import needs_needle_models
+from scissor_cli.experiments.pool import deferred_signals
+from scissor_cli.experiments.profiles import CAMERA_SPREADS, IMAGING_SPREADS, INSERTION_SPREADS, error_model
 from scissor_cli.experiments.run_cache import cache_dir
+from scissor_cli.experiments.run_summary import RunSummary
 from scissor_cli.experiments.selection import select
+from scissor_cli.experiments.sink import (  # noqa: F401 - raised through this module's API
+    ForwardCase,
+    Manipulation,
+    NonFiniteError,
+    ResumableSink,
+    ResumeError,
+    RunSink,
+    SinkFactory,
+    product_key,
+)
 from scissor_cli.experiments.slab_starts import with_slab_starts
 from scissor_cli.experiments.study import run_study
 from scissor_cli.experiments.trials import TargetTask, execute
-from scissor_cli.solvers.common import SolveResult, SolverError
-from scissor_cli.experiments.build import build_model, with_grips  # noqa: F401 - build_model: this module's API too
 from scissor_cli.mechanics.tissue import Tissue
-
-
-@dataclass
-class RunSummary:
-    out_dir: Path
-    n_elements: int
-    forward: dict[str, SolveResult] = field(default_factory=dict)
-    figures: list[Path] = field(default_factory=list)
-    plans: list = field(default_factory=list)
-    trials_run: int = 0
-    status: str = "complete"
-    failure: str = ""
+from scissor_cli.mesh.outlines import boundary_loop, deformed_outlines, embed_outlines
+from scissor_cli.mesh.probe import probe_targets, target_positions
+from scissor_cli.planning.corridor import corridor_radius
+from scissor_cli.planning.needle_plan import NeedlePlan, plan_target, stored_plan
+from scissor_cli.planning.states import StateCache
+from scissor_cli.robot.chain import RobotModel
+from scissor_cli.robot.registration import plan_to_joints
+from scissor_cli.solvers.common import SolverError
+from scissor_cli.solvers.equilibrium import EquilibriumSolver
+from scissor_cli.solvers.jacobian import cup_target_jacobian
+from scissor_cli.text import duration, signed
 
 
 class TrialsFailed(RuntimeError):
@@ -83,6 +80,10 @@ def run_simulation(cfg: Config, run: SinkFactory,
     (Fig. 11) and the trials (Fig. 14). Raises SolverError, TrialsFailed or
     NonFiniteError after the sink has kept what was finished, marked failed.
     """
+    if isinstance(cfg, BodyConfig):  # a 3-D scene (docs/model.md §19)
+        from scissor_cli.experiments.body_run import run_body_simulation  # noqa: PLC0415
+
+        return run_body_simulation(cfg, run, execution.jobs)
     selection = None
     if cfg.solver.accuracy_mm is not None:
         selection = select(cfg, cfg.solver.accuracy_mm)
@@ -149,6 +150,10 @@ def resume_simulation(sink: ResumableSink, execution: Execution = Execution()) -
     with sink:
         cfg = parse_config(sink.config_yaml, str(sink.location / "results.h5"))
         done = sink.finished()
+        if isinstance(cfg, BodyConfig):
+            from scissor_cli.experiments.body_run import resume_body  # noqa: PLC0415
+
+            return resume_body(cfg, sink, done)
         tissue = build_model(cfg)[2] if "trials" in done else _build(cfg)
         summary = RunSummary(sink.location, tissue.mesh.n_elements)
         if done:
@@ -163,7 +168,8 @@ def _build(cfg: Config) -> Tissue:
     angles = mesh.angles_deg()
     progress.info(
         f"mesh: {mesh.n_elements} triangles, {mesh.n_nodes} nodes, min angle {angles.min():.1f}°, "
-        f"edges {mesh.edge_lengths().min():.2f}–{mesh.edge_lengths().max():.2f} mm ({time.perf_counter() - t_mesh:.2f} s)"
+        f"edges {mesh.edge_lengths().min():.2f}–{mesh.edge_lengths().max():.2f} mm "
+        f"({time.perf_counter() - t_mesh:.2f} s)"
     )
     return tissue
 
@@ -230,7 +236,8 @@ def _study_stage(cfg: Config, sink: RunSink) -> None:
     sink.study(study, seconds)
     for note in study.notes:
         progress.info(f"study: {note}")
-    progress.info(f"study: {len(study.rows)} combinations in {seconds:.1f} s (speed vs error: scissor report {sink.location})")
+    progress.info(f"study: {len(study.rows)} combinations in {seconds:.1f} s "
+                  f"(speed vs error: scissor report {sink.location})")
 
 
 def trial_tasks(tissue: Tissue, plans: list[NeedlePlan], model_data=None) -> list[TargetTask]:
@@ -262,8 +269,8 @@ def allocate_trial_arrays(sink: RunSink, cfg: Config, tasks: list[TargetTask], p
     sink.allocate_trials([p.target for p in plans], cfg.trials.count, attrs, without_plan)
 
 
-def _manipulation_stage(cfg: Config, tissue: Tissue, plans: list[NeedlePlan], sink: RunSink, done: frozenset[str] = frozenset(),
-                        imaging=None) -> list[Path]:
+def _manipulation_stage(cfg: Config, tissue: Tissue, plans: list[NeedlePlan], sink: RunSink,
+                        done: frozenset[str] = frozenset(), imaging=None) -> list[Path]:
     """The nominal manipulation of each planned target (truth = model, exact camera): Fig. 11.
 
     The open-loop baseline (one Jacobian step from rest) is kept beside it.
@@ -420,8 +427,9 @@ def _plan_stage(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary,
         if plan.feasible and not plan.robot_ok:
             how += f"; ROBOT: {plan.robot_note}"
         progress.info(
-            f"plan {target.name}: " + (f"{plan.side} entry, {_clearance_text(plan.clearance_mm)}, {how} ({plan.time_s:.1f} s)"
-                                       if plan.feasible else f"infeasible: {plan.reason}")
+            f"plan {target.name}: "
+            + (f"{plan.side} entry, {_clearance_text(plan.clearance_mm)}, {how} ({plan.time_s:.1f} s)"
+               if plan.feasible else f"infeasible: {plan.reason}")
         )
     return plans, model_data
 
@@ -461,7 +469,8 @@ def _forward_figure_inputs(name, tissue, case, strokes, result, targets_now: dic
     loop = boundary_loop(mesh)
     obstacles = embed_outlines(mesh, [o.outline for o in scene.obstacles])
     return dict(
-        title=f"{name} — forward case {case}: " + ", ".join(f"{c.name} {s:+.1f} mm" for c, s in zip(scene.cups, strokes)),
+        title=f"{name} — forward case {case}: "
+        + ", ".join(f"{c.name} {s:+.1f} mm" for c, s in zip(scene.cups, strokes)),
         rest=mesh.nodes,
         deformed=result.x,
         triangles=mesh.triangles,

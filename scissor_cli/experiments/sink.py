@@ -36,15 +36,15 @@ from typing import TYPE_CHECKING, Optional, Protocol
 import numpy as np
 
 if TYPE_CHECKING:  # the types the stages produce; annotations only
-    from scissor_cli.layer3d.check import LayerCheckCase
-    from scissor_cli.layer3d.extrude import SlabMesh
-    from scissor_cli.layer3d.resolution import SlabChoice
-    from scissor_cli.layer3d.slab import SlabProbe
     from scissor_cli.control.corridor_check import Corridor
     from scissor_cli.control.result import LoopResult
     from scissor_cli.experiments.selection import Selection
     from scissor_cli.experiments.study import StudyResult
     from scissor_cli.experiments.trials import TrialOutcome
+    from scissor_cli.layer3d.check import LayerCheckCase
+    from scissor_cli.layer3d.extrude import SlabMesh
+    from scissor_cli.layer3d.resolution import SlabChoice
+    from scissor_cli.layer3d.slab import SlabProbe
     from scissor_cli.mechanics.tissue import Tissue
     from scissor_cli.planning.needle_plan import NeedlePlan
     from scissor_cli.scene.scene import Target
@@ -76,10 +76,13 @@ class ForwardCase:
 
     name: str
     strokes: dict[str, float]  # mm per cup
-    result: "SolveResult"  # x (N, 2) mm, the solver's report
-    rest: np.ndarray  # (N, 2) mm
-    targets: dict[str, np.ndarray]  # deformed target positions (2,) mm
-    figure: dict  # keyword arguments of `output.figures.forward_case_figure`
+    result: "SolveResult"  # x (N, d) mm, the solver's report
+    rest: np.ndarray  # (N, d) mm
+    targets: dict[str, np.ndarray]  # deformed target positions (d,) mm
+    #: keyword arguments of the figure: `output.figures.forward_case_figure` (kind "layer") or
+    #: `output.body.figures.body_figures` (kind "body")
+    figure: dict
+    kind: str = "layer"
 
 
 @dataclass(frozen=True)
@@ -180,8 +183,14 @@ class RunSink(Protocol):
     def slab_resolution(self, choice: "SlabChoice") -> None:
         """What `layer_check.accuracy_mm` picked (docs/model.md §13)."""
 
-    def forward_case(self, case: ForwardCase) -> Optional[Path]:
-        """One forward case and its figure; returns the figure's path."""
+    def target(self, name: str, rest: np.ndarray, desired: np.ndarray, source: str) -> None:
+        """A target's definition without a plan (a 3-D scene's lesions): rest and desired (d,) mm."""
+
+    def body_resolution(self, choice) -> None:
+        """What `tissue.accuracy_mm` picked for a 3-D scene's mesh (docs/model.md §19)."""
+
+    def forward_case(self, case: ForwardCase) -> Optional[Path] | list[Path]:
+        """One forward case and its figure(s); returns the figures' paths."""
 
     def layer_check_mesh(self, mesh: "SlabMesh") -> None:
         """The slab of the layer check (docs/model.md §13), once before its cases."""
@@ -190,7 +199,7 @@ class RunSink(Protocol):
         """One forward case's layer check and its figure (`output.layer_check.layer_check_figure` kwargs)."""
 
     def jacobian(self, target: str, J: np.ndarray, cup_names: list[str]) -> None:
-        """J (2, C) mm/mm of one target at rest (docs/model.md §5)."""
+        """J (d, C) mm/mm of one target at rest (docs/model.md §5), d = 2 or 3."""
 
     def study(self, study: "StudyResult", seconds: float) -> None:
         """The solver study's rows (docs/model.md §9)."""

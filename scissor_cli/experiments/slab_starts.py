@@ -48,7 +48,8 @@ def with_slab_starts(cfg: Config, config_yaml: str, tasks: list[TargetTask], cac
     """
     if cfg.trials.truth != "slab" or cfg.layer_check is None:
         return tasks
-    wanted = {start_key(cfg, t.plan_strokes): np.asarray(t.plan_strokes, float) for t in tasks if np.any(t.plan_strokes)}
+    wanted = {start_key(cfg, t.plan_strokes): np.asarray(t.plan_strokes, float)
+              for t in tasks if np.any(t.plan_strokes)}
     states: dict[str, np.ndarray] = {}
     for key in wanted:
         state = _read(cache_dir, key)

@@ -23,13 +23,13 @@ import numpy as np
 
 from scissor_cli import progress
 from scissor_cli.config import Config, StudyConfig, estimate_elements
-from scissor_cli.mesh.probe import probe_targets, target_positions
-from scissor_cli.mesh.mesh import Mesh, mesh_for_config
-from scissor_cli.solvers.equilibrium import EquilibriumSolver, solve_equilibrium
 from scissor_cli.experiments.build import scene_of
+from scissor_cli.mechanics.tissue import build_tissue
+from scissor_cli.mesh.mesh import Mesh, mesh_for_config
+from scissor_cli.mesh.probe import probe_targets, target_positions
 from scissor_cli.scene.scene import Scene
 from scissor_cli.solvers.common import SolverError
-from scissor_cli.mechanics.tissue import build_tissue
+from scissor_cli.solvers.equilibrium import EquilibriumSolver, solve_equilibrium
 
 RICHEST = "neo_hookean_fiber"
 
@@ -171,7 +171,8 @@ def _admm_rows(tissue, strokes, probe, exact, case, level, kind, model, memory, 
             break
     for j, (tol, _, used, ok, x, message) in enumerate(runs[0]):
         t = float(np.median([run[j][1] for run in runs if len(run) > j]))
-        row = StudyRow(case, level, kind, model, name, tol, tissue.mesh.n_elements, t, used, ok, note="" if ok else message)
+        row = StudyRow(case, level, kind, model, name, tol, tissue.mesh.n_elements, t, used, ok,
+                       note="" if ok else message)
         if x is not None:
             positions = target_positions(probe, x)
             row.error_discrete_mm = float(np.linalg.norm(positions - exact, axis=1).max())

@@ -18,16 +18,16 @@ from typing import Iterator, Optional
 import numpy as np
 
 from scissor_cli import control, runtime
-from scissor_cli.control.allocation import along_mm, miss_mm
-from scissor_cli.sensing.sensor import Sensor, SensorModel, TrialDraws
 from scissor_cli.config import parse_config
-from scissor_cli.solvers.equilibrium import solve_equilibrium
-from scissor_cli.planning.corridor import corridor_radius
+from scissor_cli.control.allocation import along_mm, miss_mm
+from scissor_cli.experiments.build import build_model
 from scissor_cli.experiments.pool import run_pool
 from scissor_cli.experiments.profiles import ErrorModel, draw_insertion, draw_trial, error_model
 from scissor_cli.experiments.sensor_models import sensor_model
 from scissor_cli.insertion import InsertionOptions, NeedleParams, needle_path, run_strategies
-from scissor_cli.experiments.build import build_model
+from scissor_cli.planning.corridor import corridor_radius
+from scissor_cli.sensing.sensor import Sensor, SensorModel, TrialDraws
+from scissor_cli.solvers.equilibrium import solve_equilibrium
 
 
 @dataclass(frozen=True)
@@ -188,7 +188,8 @@ class TrialContext:
         )
 
     def insert(self, task: TargetTask, trial: int, truth, sensor: Sensor, loop) -> tuple[np.ndarray, np.ndarray]:
-        """With `insertion:`, each strategy from the loop's final true state (docs/model.md §12): miss, depth error (S,).
+        """With `insertion:`, each strategy from the loop's final true state (docs/model.md §12): miss, depth
+        error (S,).
 
         The truth tissue carries the trial's drawn friction and tip force;
         the plan's entry and direction are the ones the robot was given; the
@@ -232,8 +233,9 @@ class TrialContext:
         if tissue is not self.tissue and "loop" in ins.strategies and needle is None:
             s0, x0 = model_start if model_start is not None else (None, None)
             model_x0 = solve_equilibrium(self.tissue, loop.final_strokes, start=x0, start_strokes=s0).x
-        options = {strategy: InsertionOptions(strategy, self.cfg.controller, sensor.reseeded(rng), self.tissue, model_x0,
-                                              needle, keep_displacement=False) for strategy in ins.strategies}
+        options = {strategy: InsertionOptions(strategy, self.cfg.controller, sensor.reseeded(rng), self.tissue,
+                                              model_x0, needle, keep_displacement=False)
+                   for strategy in ins.strategies}
         paths = {strategy: needle_path(tissue, task.entry, task.direction, task.depth_mm, task.rest, task.name,
                                        None if needle is None else needle.height_for(strategy))
                  for strategy in ins.strategies}

@@ -312,7 +312,8 @@ class ChordSolver:
         return x, g, its, None
 
     def _trial(self, x: np.ndarray, step: np.ndarray, hold: "Hold", loads: np.ndarray):
-        """x moved by step (Nf,) on the free dofs, its objective gradient (dN,) and held residual (inf, None if inverted)."""
+        """x moved by step (Nf,) on the free dofs, its objective gradient (dN,) and held residual (inf, None if
+        inverted)."""
         trial, finite = kernels.moved(x, self.tissue.free_dofs, step)
         if not finite:
             raise SolverError("the needle's chord step became non-finite (NaN or inf)")
@@ -341,7 +342,8 @@ class _Anderson:
         self._dd: list[np.ndarray] = []
 
     def step(self, x_free: np.ndarray, d: np.ndarray) -> np.ndarray | None:
-        """The accelerated step (Nf,) from the iterate x_free (Nf,) with chord step d (Nf,), or None (no history yet)."""
+        """The accelerated step (Nf,) from the iterate x_free (Nf,) with chord step d (Nf,), or None (no history
+        yet)."""
         if self.memory == 0:
             return None
         if self._last is not None:
@@ -389,7 +391,8 @@ class Hold:
         self.t = np.atleast_2d(np.asarray(t, float))
         d = self.n.size
         self.d = d
-        #: (d, d) the unit vectors (t₁ … t_{d−1}, n) as columns: a captured node's position → (across…, along) is v @ frame
+        #: (d, d) the unit vectors (t₁ … t_{d−1}, n) as columns: a captured node's position → (across…, along)
+        #: is v @ frame
         self.frame = np.ascontiguousarray(np.vstack([self.t, self.n]).T)
         #: each constraint row's coordinate in the captured nodes' frame [t₀ … n₀ t₁ … n₁ …]: every node's
         #: d − 1 across ones, then the stuck nodes' n's
@@ -412,7 +415,8 @@ class Hold:
         return self.schur
 
     def directions(self) -> np.ndarray:
-        """D (dP, m): each constraint row's unit direction on its node's dofs; the across rows for every captured node, then n rows for the stuck.
+        """D (dP, m): each constraint row's unit direction on its node's dofs; the across rows for every captured
+        node, then n rows for the stuck.
 
         The explicit C = DᵀEᵀ. The solver works with the rows' coordinates in
         the (t₁ … n) frame (`rows`) instead; the tests check the two agree.

@@ -46,8 +46,15 @@ from __future__ import annotations
 import numpy as np
 
 from scissor_cli.insertion.chord import ChordFailed, ChordSolver, Hold
-from scissor_cli.insertion.needle import (STEP_TOL, STEP_TOL_3D, NeedleParams, NeedleState, advance, free_nodes,
-                                         needle_conditions)
+from scissor_cli.insertion.needle import (
+    STEP_TOL,
+    STEP_TOL_3D,
+    NeedleParams,
+    NeedleState,
+    advance,
+    free_nodes,
+    needle_conditions,
+)
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import TargetProbe, probe_targets, target_positions
 from scissor_cli.solvers.common import SolverError, objective_gradient
@@ -185,7 +192,8 @@ class ModelInsertion:
         self._shared = ModelState(model, model, self.x, self.x, self.strokes)
 
     def follow(self, state: NeedleState, x_plant: np.ndarray, strokes: np.ndarray, loads: np.ndarray) -> None:
-        """Move the model to the commanded strokes (C,) under its own needle, then advance that needle to the plant's depth."""
+        """Move the model to the commanded strokes (C,) under its own needle, then advance that needle to the
+        plant's depth."""
         strokes = np.asarray(strokes, float)
         if self.state.solver is not None and not np.array_equal(strokes, self.strokes):
             self.x = move_held(self.tissue, self.state, self.x, self.strokes, strokes, self._loads, self._responses)
@@ -196,7 +204,8 @@ class ModelInsertion:
             self.x, self._loads = out.x, out.loads
         self._shared.follow(self.state, self.x, self.strokes, self._loads)
 
-    def jacobian(self, state: NeedleState, probe=None, kept: ChordSolver | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def jacobian(self, state: NeedleState, probe=None,
+                 kept: ChordSolver | None = None) -> tuple[np.ndarray, np.ndarray]:
         """J (1, C) of the model's own insertion (its target, its needle), and its node responses (C, N, 2)."""
         J, self._responses = self._shared.jacobian(self.state, self.probe, self.state.solver)
         return J, self._responses

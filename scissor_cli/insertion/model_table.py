@@ -1,4 +1,5 @@
-"""The controller's 3-D model of a target under the needle, tabulated from the nominal slab's insertion (docs/model.md §18).
+"""The controller's 3-D model of a target under the needle, tabulated from the nominal slab's insertion
+(docs/model.md §18).
 
 `tabulate` inserts the needle into the nominal slab (the controller's
 knowledge, no trial's perturbation) from its equilibrium at the plan's
@@ -22,7 +23,6 @@ from dataclasses import replace
 import numpy as np
 
 from scissor_cli.config import ControllerConfig
-
 from scissor_cli.insertion.model_state import ModelState
 from scissor_cli.insertion.needle import NeedleParams, NeedleState
 from scissor_cli.insertion.run import InsertionOptions, NeedlePath, layer_points, run_insertion

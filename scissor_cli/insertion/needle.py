@@ -8,26 +8,26 @@ p0 + d n. A step advances it by Δd and finds the tissue's equilibrium with
   *stick* (they move axially with the needle);
 * *slipping* captured nodes pulled along the axis by the kinetic friction
   f_k l_i, l_i their share of the inserted shaft;
-* the tip force F_tip along n spread over the uncaptured nodes within
-  `tip_zone_mm` of the tip with the weights (1 − (r/R)²)², normalised to
-  sum to F_tip (the nearest uncaptured node when the disc holds none).
+* the tip force F_tip along n on the tissue just ahead of the tip
+  (`tip_zone`: the kernel (1 − (r/R)²)² over the half-disc or half-ball
+  of radius R = `tip_zone_mm`, as consistent nodal loads).
 
 The same code serves the layer (d = 2 dofs per node) and the slab (d = 3,
 `tissue.dim`): across the axis means the d − 1 unit vectors of
-`transverse_basis`, the tip zone is a disc or a ball.
+`transverse_basis`, the tip zone is a half-disc or a half-ball.
 
-Stick or slip is an active set: every captured node starts stuck (riding
-Δd with the needle; a node captured in this step from where the tip passed
-it); those whose axial reaction exceeds f_s l_i in magnitude are released,
-with the kinetic friction in the reaction's direction, and the step is
-solved again, until no node changes. A slipping node that ends up moving
-against its friction (ahead of the needle while pulled forward, or behind
-it while held back: possible once its neighbours slipped too) has its
-friction reversed; if it moves against that too, its true state is stuck
-(the reaction then lies within ±f_k l_i) and it stays stuck for the rest
-of the step. So the loop ends within 3P + 1 passes (the last one allowed
-is always solved to the tolerance, so an unsettled step still returns an
-equilibrium).
+Stick or slip is an active set with state (Karnopp's law, docs/model.md §12):
+each captured node starts a step in the state the last step left it in (a
+node captured in this step starts stuck, riding from where the tip passed
+it). A stuck node whose axial reaction exceeds f_s l_i in magnitude is
+released, with the kinetic friction in the reaction's direction; a slipping
+node that would catch up with the needle (move along the axis at least as
+far as the needle in the step: its slip would reverse) sticks again and is
+tested against f_s from then on. The step is solved again until no node
+changes. A node that catches up RESTICKS times in one step stays stuck for
+the rest of it, so the loop ends; a step still changing after
+MAX_ACTIVE_SET passes is reported as unsettled (the last pass allowed is
+always solved to the tolerance, so it still returns an equilibrium).
 
 Every pass is solved on one kept factorisation (`chord.ChordSolver`: the
 hold as Schur-complement rows, chord steps to Newton's residual and
@@ -52,6 +52,7 @@ import numpy as np
 from scissor_cli.config import InsertionConfig, MeshConfig, NeedleConfig
 from scissor_cli.insertion import kernels
 from scissor_cli.insertion.chord import ChordFailed, ChordSolver, Hold, hold_conditions
+from scissor_cli.insertion.tip_zone import ZoneMesh, tip_weights, zone_mesh
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.common import Conditions, SolverError
 from scissor_cli.solvers.equilibrium import solve_equilibrium
@@ -97,6 +98,8 @@ GUARD_POSITION_3D = 1.5
 LURCH_STEPS = 2.0
 #: active-set passes per step before the step is reported as unsettled
 MAX_ACTIVE_SET = 50
+#: a node that catches up with the needle this many times in one step stays stuck for the rest of the step
+RESTICKS = 2
 #: halvings of a step whose start would invert an element (a 0.5 mm step
 #: on 1 mm elements never needs one; 10× friction or a coarse mesh may)
 MAX_SPLITS = 6
@@ -129,7 +132,10 @@ class NeedleParams:
 
     @classmethod
     def from_config(cls, ins: InsertionConfig, needle: NeedleConfig, mesh: MeshConfig) -> "NeedleParams":
-        """From the `insertion`, `needle` and `tissue.mesh` sections (capture radius default: half the coarsest edge)."""
+        """From the `insertion`, `needle` and `tissue.mesh` sections.
+
+        The capture radius defaults to half the coarsest edge.
+        """
         capture = ins.capture_radius_mm
         if capture is None:
             capture = 0.5 * mesh.max_edge_mm * mesh.scale
@@ -162,6 +168,8 @@ class NeedleState:
     solver: ChordSolver | None = field(default=None, repr=False)
     #: (x, ∇U at x) of the last step's equilibrium: the next step, if it starts there, need not evaluate it again
     equilibrium: tuple | None = field(default=None, repr=False)
+    #: the tissue's `tip_zone.ZoneMesh`, made at the first step
+    zone: ZoneMesh | None = field(default=None, repr=False)
 
     @property
     def across(self) -> np.ndarray:
@@ -263,20 +271,6 @@ def _marks(n_nodes: int, nodes: np.ndarray) -> np.ndarray:
     return marked
 
 
-def tip_weights(x: np.ndarray, tip: np.ndarray, candidates: np.ndarray, zone_mm: float) -> tuple[np.ndarray, np.ndarray]:
-    """Nodes (Z,) and weights (Z,) summing to 1 of the tip zone; the nearest free node if it holds none.
-
-    x (N, d), tip (d,): the zone is a disc in 2-D and a ball in 3-D.
-    """
-    r = np.linalg.norm(x[candidates] - tip, axis=1)
-    inside = r < zone_mm
-    if not np.any(inside):
-        k = int(np.argmin(r))
-        return candidates[k:k + 1], np.ones(1)
-    w = (1.0 - (r[inside] / zone_mm) ** 2) ** 2
-    return candidates[inside], w / w.sum()
-
-
 def advance(
     tissue: Tissue, state: NeedleState, x: np.ndarray, strokes: np.ndarray, step_mm: float, params: NeedleParams,
     candidates: np.ndarray,
@@ -303,7 +297,8 @@ def advance(
                 setattr(state, f.name, getattr(saved, f.name))
             parts *= 2
             if parts > 2 ** MAX_SPLITS:
-                raise SolverError(f"the needle step inverts an element even when split into {parts // 2} parts") from None
+                raise SolverError(
+                    f"the needle step inverts an element even when split into {parts // 2} parts") from None
 
 
 class _Infeasible(Exception):
@@ -332,30 +327,33 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
               else np.concatenate([state.offset.reshape(-1, d - 1), offset_new]))
     rel = x[captured] - state.entry
     lengths = shaft_lengths(rel @ n, state.depth_mm)
-    uncut = candidates[~_marks(x.shape[0], captured)[candidates]]  # the shaft's nodes are not being cut
-    tip_nodes, w = tip_weights(x, state.tip, uncut if uncut.size else candidates, params.tip_zone_mm)
+    if state.zone is None:
+        state.zone = zone_mesh(tissue)
+    tip_nodes, w = tip_weights(tissue, x, state.tip, np.vstack([n, t]), params.tip_zone_mm, candidates, state.zone)
     base = np.zeros(x.size)
     base.reshape(-1, d)[tip_nodes] += (params.tip_force_mN * w)[:, None] * n  # the zone's nodes are distinct
-    # The start: stuck nodes (all, at first) ride along; a node captured in this
-    # step rides along from where the tip passed it (d − s_i of the step).
-    start = x.copy()
+    # Each node starts in the state the last step left it in (Karnopp: friction has
+    # state); a node captured in this step starts stuck. A stuck node rides Δd with
+    # the needle, a node captured in this step from where the tip passed it (d − s_i).
+    stuck = np.concatenate([state.stuck, np.ones(new.size, bool)])
+    sign = np.concatenate([np.where(state.stuck, 1.0, state.sign), np.ones(new.size)])
     ride = np.concatenate([np.full(old.size, step_mm),
                            np.clip(state.depth_mm - (x[new] - state.entry) @ n, 0.0, step_mm)])
+    start = x.copy()
     if state.rate is not None:  # the tissue keeps moving as in the last step (unless that inverts an element)
         start += state.rate * step_mm
-    start[captured] = x[captured] + ride[:, None] * n
+    start = _placed(start, x, captured, stuck, ride, n)
     J_now = tissue.jacobians(x)
     if _flattens(tissue, start, J_now):
-        start = x.copy()
-        start[captured] = x[captured] + ride[:, None] * n
+        start = _placed(x.copy(), x, captured, stuck, ride, n)
         _check_start(tissue, start, J_now)
-    stuck = np.ones(captured.size, bool)
-    sign = np.ones(captured.size)
     fs, fk = params.friction_static_mN_per_mm, params.friction_kinetic_mN_per_mm
     limit = fs * lengths * (1.0 + 1e-9)  # f_s l_i, with round-off: a rule adds 1e-9 of the force scale
-    # A node slipping against its friction has its friction reversed once; if
-    # it slips against that too, it is stuck again and stays stuck in this step.
-    flipped = np.zeros(captured.size, bool)
+    # A slipping node that catches up with the needle sticks again and is tested
+    # against f_s from then on. A node that sticks again for the RESTICKS-th time in
+    # one step (its neighbours' releases pushing it back and forth) stays stuck for
+    # the rest of the step: that bounds the loop.
+    resticks = np.zeros(captured.size, np.int64)
     locked = np.zeros(captured.size, bool)
     if state.solver is None:
         state.solver = ChordSolver(tissue)
@@ -415,13 +413,12 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
         else:
             release, against, axial = verdict
         sign[release] = np.sign(axial[release])
-        flip, restick = against & ~flipped, against & flipped
-        sign[flip] = -sign[flip]
-        flipped |= flip
+        restick = against
+        resticks += restick
+        locked |= resticks >= RESTICKS
         stuck = (stuck & ~release) | restick
-        locked |= restick
         start = r_x
-        if restick.any():
+        if restick.any():  # a node that catches up sticks where the needle has carried it in this step
             start = r_x.copy()
             start[captured[restick]] = x[captured[restick]] + ride[restick, None] * n
             _check_start(tissue, start, J_now)
@@ -436,8 +433,18 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
                        solver.factorizations - n_factor)
 
 
+def _placed(start: np.ndarray, x: np.ndarray, captured: np.ndarray, stuck: np.ndarray, ride: np.ndarray,
+            n: np.ndarray) -> np.ndarray:
+    """start (N, d) with the captured nodes on the needle's hold: the stuck ones ridden along from x by ride (P,)
+    mm, the slipping ones at their position in x plus the start's advance along the axis n (d,) (across it they
+    keep their offset)."""
+    along = np.where(stuck, ride, (start[captured] - x[captured]) @ n)
+    start[captured] = x[captured] + along[:, None] * n
+    return start
+
+
 class _Rule:
-    """The active-set rule of one pass: which stuck nodes are released, which slipping ones move against their friction.
+    """The active-set rule of one pass: which stuck nodes are released, which slipping ones catch up with the needle.
 
     limit (P,) mN: f_s l_i (and round-off); stuck, locked (P,) bool; sign
     (P,) the kinetic friction's direction; lag_tol mm.
@@ -458,6 +465,10 @@ class _Rule:
         release, against = np.empty(axial.size, bool), np.empty(axial.size, bool)
         changed = kernels.friction_rule(axial, lag, self.limit, self.free, self.slip, self.sign, self.lag_tol,
                                         force_error, position_error, release, against)
+        if changed > 0 and release.any():
+            # Releases first: a node held beyond f_s drags its neighbours along, so a slipping one may seem to
+            # catch up only because of it. Catching up is judged once every stuck node is within f_s.
+            against[:] = False
         return release, against, changed
 
 
@@ -473,7 +484,8 @@ def _solve_pass(tissue, solver, strokes, x, g, hold, loads, tol, decide, start):
         return solver.converge(x, g, hold, tol, loads, decide)
     except ChordFailed:
         pass
-    r = solve_equilibrium(tissue, strokes, start=start, start_strokes=strokes, conditions=hold.conditions(loads), tol=tol)
+    r = solve_equilibrium(tissue, strokes, start=start, start_strokes=strokes, conditions=hold.conditions(loads),
+                          tol=tol)
     _, grad = tissue.energy_gradient(r.x)
     return r.x, grad - loads, r.iterations, None
 

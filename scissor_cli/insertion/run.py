@@ -95,7 +95,8 @@ class InsertionResult:
         return self.stop_reason in ("depth reached", "target reached")
 
 
-def miss_and_depth_error(target: np.ndarray, entry: np.ndarray, direction: np.ndarray, depth_mm: float) -> tuple[float, float]:
+def miss_and_depth_error(target: np.ndarray, entry: np.ndarray, direction: np.ndarray,
+                         depth_mm: float) -> tuple[float, float]:
     """Distance (mm) from the target (d,) to the needle line, and tip minus target along the axis (mm); d = 2 or 3."""
     rel = np.asarray(target, float) - entry
     if rel.size == 2:
@@ -438,7 +439,8 @@ def _move_plant(tissue, state, x, s, command, loads, responses) -> np.ndarray:
 
 
 def _clearance(embedding, x, p0, tip, radius_mm) -> float:
-    """Shaft (p0 → tip (2,), radius) to the nearest deformed obstacle in the layer's plane (mm); +inf without obstacles."""
+    """Shaft (p0 → tip (2,), radius) to the nearest deformed obstacle in the layer's plane (mm); +inf without
+    obstacles."""
     outlines = deformed_outlines(embedding, x)
     if not outlines:
         return float("inf")
@@ -450,7 +452,10 @@ def _result(tissue, path: NeedlePath, strategy, trace: _Trace, keep, x, y, state
     rows = trace.rows
     k = len(rows)
     p0, n = np.asarray(path.entry, float), np.asarray(path.direction, float) / np.linalg.norm(path.direction)
-    col = (lambda i, shape=(): np.array([r[i] for r in rows], float).reshape((k,) + shape))
+
+    def col(i, shape=()):
+        return np.array([r[i] for r in rows], float).reshape((k,) + shape)
+
     clearance = col(6)
     miss, depth_error = miss_and_depth_error(y, p0, n, state.depth_mm)
     touched = bool(has_obstacles and k and np.min(clearance) <= 0.0)

@@ -27,7 +27,7 @@ from scissor_cli.layer3d.slab import SlabProbe
 from scissor_cli.layer3d.surrogate import solve_samples
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import TargetProbe, target_positions
-from scissor_cli.solvers.tracking import Equilibrium
+from scissor_cli.solvers.tracking import TrackedEquilibrium
 
 #: the range searched for a transmission: from a cup that barely moves the tissue to one that moves it 1.5×
 TRANSMISSION_RANGE = (0.02, 1.5)
@@ -69,7 +69,7 @@ def fit_transmission(layer: Tissue, probe: TargetProbe, slab: Tissue, slab_targe
     for c, v in enumerate(values):
         want = answers[row:row + v.size, :, :2]  # (V, T, 2): what the camera sees
         row += v.size
-        eq = Equilibrium(layer)
+        eq = TrackedEquilibrium(layer)
         largest: dict[float, float] = {}  # per τ tried: the largest in-plane distance (mm), for the error
 
         def misfit(t, v=v, want=want, c=c, eq=eq, largest=largest):

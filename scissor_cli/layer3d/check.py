@@ -160,6 +160,7 @@ def build_layer_check(tissue: Tissue, spec: SlabSpec) -> LayerCheck:
         names = []
         n = mesh.n_nodes
         tri = np.zeros(n, np.int64)
-        probe_2d = TargetProbe(tri, np.column_stack([np.arange(n)] * 3), np.column_stack([np.ones(n), np.zeros(n), np.zeros(n)]))
+        probe_2d = TargetProbe(tri, np.column_stack([np.arange(n)] * 3),
+                               np.column_stack([np.ones(n), np.zeros(n), np.zeros(n)]))
         probe, probe_stress = layer_probe(slab, mesh), layer_probe(stress, mesh)
     return LayerCheck(tissue, slab, stress, probe, probe_stress, probe_2d, names, layer_probe(slab, mesh))

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scissor_cli.geometry import LEVEL_GROWTH as GROWTH, graded_levels  # noqa: F401 (shared with config's budget)
+from scissor_cli.geometry import LEVEL_GROWTH as GROWTH  # noqa: F401 (shared with config's budget)
 
 
 @dataclass(frozen=True)
@@ -69,11 +69,6 @@ class SlabMesh:
         """3-D nodes (K·L,) of 2-D vertices (K,) at every level."""
         vertex = np.asarray(vertex).ravel()
         return (np.arange(len(self.levels_mm))[:, None] * self.n_nodes_2d + vertex[None]).ravel()
-
-
-def count_levels(height_mm: float, layer_z_mm: float, first_mm: float, max_layer_mm: float) -> int:
-    """The number of prism layers `graded_levels` makes (L − 1): the tetrahedra are 3·M2 times that."""
-    return len(graded_levels(height_mm, layer_z_mm, first_mm, max_layer_mm)[0]) - 1
 
 
 def prism_tetrahedra(triangles: np.ndarray, n_nodes_2d: int, n_layers: int) -> tuple[np.ndarray, np.ndarray]:

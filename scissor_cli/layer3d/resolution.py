@@ -56,8 +56,8 @@ from scissor_cli.geometry import graded_levels
 from scissor_cli.layer3d.slab import SlabSpec, build_slab, layer_probe, plane_mesh, slab_probe
 from scissor_cli.mechanics.tissue import BoundaryError, Tissue
 from scissor_cli.solvers.common import SolverError
+from scissor_cli.solvers.equilibrium import solve_equilibrium
 from scissor_cli.solvers.linear import factorize_free
-from scissor_cli.solvers.newton import solve_newton
 
 #: rungs of the z ladder, the configured grading included
 RUNGS = 5
@@ -158,7 +158,8 @@ class _Ladder:
             levels = graded_levels(spec.height_mm, spec.layer_z_mm, first, largest)[0].size
             self.candidates.append(SlabCandidate(scale, first, largest, int(levels),
                                                  3 * surface.n_elements * (int(levels) - 1)))
-        self.solved: dict[int, dict[int, object]] = {}  # k -> case -> (positions (P, 3), solve_s, factor_s, tets) or the error
+        # k -> case -> (positions (P, 3), solve_s, factor_s, tets) or the error
+        self.solved: dict[int, dict[int, object]] = {}
 
     def task(self, k: int, cases: list[int]) -> tuple:
         """`solve_group`'s arguments for candidate k's forward cases `cases` (indices)."""
@@ -209,7 +210,7 @@ def solve_group(model: Tissue, spec: SlabSpec, surface, points: np.ndarray, k: i
         t0 = time.perf_counter()
         slot: dict = {}
         try:
-            x = solve_newton(slab, strokes, tol=SOLVE_TOL, factors=slot).x
+            x = solve_equilibrium(slab, strokes, tol=SOLVE_TOL, factors=slot).x
         except SolverError as exc:
             answers.append((i, exc))
             continue

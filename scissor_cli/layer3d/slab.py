@@ -31,7 +31,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from scissor_cli.layer3d.extrude import SlabMesh, extrude, graded_levels
+from scissor_cli.geometry import graded_levels
+from scissor_cli.layer3d.extrude import SlabMesh, extrude
 from scissor_cli.mechanics import fem
 from scissor_cli.mechanics.tissue import BoundaryError, Tissue, scene_material, tissue_from_boundary
 from scissor_cli.mesh.mesh import Mesh, build_mesh

@@ -1,4 +1,5 @@
-"""The controller's surrogate: the targets' positions over the strokes, learned from nominal slab equilibria (docs/model.md §15).
+"""The controller's surrogate: the targets' positions over the strokes, learned from nominal slab equilibria
+(docs/model.md §15).
 
 Training: the nominal slab (no trial perturbation) is solved at a
 space-filling design of strokes within the cups' limits — the 2^C corners
@@ -6,7 +7,7 @@ of the stroke box (when there are at most half as many corners as samples)
 and scrambled Halton points for the rest — and at a quarter as many other
 Halton points (at least 4) kept out of the fit to measure its error. They
 are split into two groups by the sign of the first cup's stroke (`groups`);
-in each, one tracked slab (`solvers.tracking.Equilibrium`) visits them in
+in each, one tracked slab (`solvers.tracking.TrackedEquilibrium`) visits them in
 a nearest-neighbour chain from rest, so each solve starts from a close
 equilibrium. The groups are independent: with `--jobs 2` they are solved
 in two worker processes, with the same numbers as one after the other. One
@@ -39,7 +40,7 @@ import numpy as np
 
 from scissor_cli.layer3d.slab import SlabProbe
 from scissor_cli.mechanics.tissue import Tissue
-from scissor_cli.solvers.tracking import Equilibrium
+from scissor_cli.solvers.tracking import TrackedEquilibrium
 
 #: the Halton design's scrambling seed: the design is part of the model, not of a trial's draw
 DESIGN_SEED = 20240906
@@ -104,7 +105,7 @@ def solve_samples(slab: Tissue, probe: SlabProbe, strokes: np.ndarray, tol: floa
     """The targets (P, T, 3) mm and the layer in-plane (P, N2, 2) mm (`layer`: the layer's nodes in the slab,
     `slab.layer_probe`; none: N2 = 0) of the nominal slab at each stroke vector (P, C), solved along `chain`
     from rest."""
-    eq = Equilibrium(slab, tol)
+    eq = TrackedEquilibrium(slab, tol)
     targets = np.empty((len(strokes), len(probe.nodes), 3))
     layer_xy = np.empty((len(strokes), 0 if layer is None else len(layer.nodes), 2))
     for k in chain(strokes):

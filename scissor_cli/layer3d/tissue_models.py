@@ -34,7 +34,7 @@ from scissor_cli.layer3d.surrogate import GroupSolver, Surrogate, SurrogateSampl
 from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import apply_probe, probe_targets, target_positions
-from scissor_cli.solvers.tracking import Equilibrium
+from scissor_cli.solvers.tracking import TrackedEquilibrium
 
 KINDS = ("layer", "calibrated", "surrogate", "slab")
 #: strokes (C,) mm → targets' in-plane positions (T, 2) mm and J (T, 2, C) mm/mm
@@ -94,7 +94,8 @@ def model_solves(kind: str, layer: Tissue, plan_strokes: list[np.ndarray], sampl
 
 
 def _limits(tissue: Tissue) -> tuple[np.ndarray, np.ndarray]:
-    return (np.array([c.stroke_min_mm for c in tissue.scene.cups]), np.array([c.stroke_max_mm for c in tissue.scene.cups]))
+    cups = tissue.scene.cups
+    return np.array([c.stroke_min_mm for c in cups]), np.array([c.stroke_max_mm for c in cups])
 
 
 class ControllerModel:
@@ -139,7 +140,7 @@ class ControllerModel:
         if self.kind == "slab":
             return SlabMap(self.slab, self.layer, self._rests).layer_at
         if self.kind == "calibrated":
-            eq, tau = Equilibrium(self.layer), self.transmission
+            eq, tau = TrackedEquilibrium(self.layer), self.transmission
 
             def calibrated_layer(strokes):
                 eq.move_to(tau * np.asarray(strokes, float), tangent=False)
@@ -173,7 +174,7 @@ class ControllerModel:
 def layer_map(layer: Tissue, rests: np.ndarray) -> SceneMap:
     """The 2-D layer's `SceneMap`: one tracked equilibrium with its exact tangent."""
     probe = probe_targets(layer.mesh, rests)
-    eq = Equilibrium(layer)
+    eq = TrackedEquilibrium(layer)
 
     def answer(strokes):
         eq.move_to(np.asarray(strokes, float), tangent=True)
@@ -191,7 +192,7 @@ class SlabMap:
     def __init__(self, slab: Tissue, layer: Tissue, rests: np.ndarray):
         self.layer = layer
         self.probe = slab_probe(slab, rests)
-        self.eq = Equilibrium(slab, SLAB_TRUTH_TOL)
+        self.eq = TrackedEquilibrium(slab, SLAB_TRUTH_TOL)
         self._layer = layer_probe(slab, layer.mesh)
 
     def __call__(self, strokes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -25,7 +25,7 @@ from scissor_cli.control.plant import TruthPerturbation, TruthView, true_tissue
 from scissor_cli.layer3d.slab import SlabSpec, build_slab, layer_probe, slab_probe
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.mesh import locate
-from scissor_cli.solvers.newton import solve_newton
+from scissor_cli.solvers.equilibrium import solve_equilibrium
 
 #: The slab truth's relative residual. The loop reads the target to a camera's noise (σ ≈ 0.15 mm at the
 #: default camera); over a loop's moves on the paper's prosthesis slab the target is within 8e-7 mm of its
@@ -52,7 +52,7 @@ class SlabTruth:
         strokes = np.asarray(strokes, float)
         key = tuple(strokes)
         if key not in self._starts:
-            self._starts[key] = (strokes, solve_newton(self.slab, strokes, tol=SLAB_TRUTH_TOL).x)
+            self._starts[key] = (strokes, solve_equilibrium(self.slab, strokes, tol=SLAB_TRUTH_TOL).x)
         return self._starts[key]
 
     def remember(self, strokes: np.ndarray, x: np.ndarray) -> None:

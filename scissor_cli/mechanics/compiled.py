@@ -34,6 +34,7 @@ from numba import njit
 
 from scissor_cli.mechanics.materials.params import J_FLOOR
 from scissor_cli.mechanics.materials.plane_strain_projection import _TINY
+
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 
@@ -52,7 +53,8 @@ def _deformation(x, corners, grad_rows, e):
 
 @njit(**_JIT)
 def _stress(f0, f1, f2, f3, mu, kappa, eta, a, b, tension_only):
-    """Ψ (kPa), P (4 components, row-major, kPa) and the shared terms (α, s, 1/J, v0, v1, I4−1, η_eff) of one element."""
+    """Ψ (kPa), P (4 components, row-major, kPa) and the shared terms (α, s, 1/J, v0, v1, I4−1, η_eff) of one
+    element."""
     J = f0 * f3 - f1 * f2
     I1 = f0 * f0 + f1 * f1 + f2 * f2 + f3 * f3 + 1.0
     iJ = 1.0 / max(J, J_FLOOR)
@@ -213,7 +215,8 @@ def _tangent(H, F, kappa, terms, fiber, project):
 
 @njit(**_JIT)
 def element_stiffness_2d(x, corners, grad_rows, volume, material, tension_only, project, Ke, grad):
-    """Packed element Hessians into Ke (21, M), mN/mm (`fem.element_matrices` order); (-1, U), or (the first element it cannot take, nan).
+    """Packed element Hessians into Ke (21, M), mN/mm (`fem.element_matrices` order); (-1, U), or (the first
+    element it cannot take, nan).
 
     material: as `energy_gradient_2d`'s.
 
@@ -343,7 +346,8 @@ def jacobians_2d(x, corners, grad_rows):
 
 @njit(**_JIT)
 def packed_times_2d(Ke, corners, v, out):
-    """out = Σ_e K_e v_e (2N,) for packed element matrices Ke (21, M) and v (2N,) (`fem.packed_times`), out zeroed first.
+    """out = Σ_e K_e v_e (2N,) for packed element matrices Ke (21, M) and v (2N,) (`fem.packed_times`), out
+    zeroed first.
 
     One pass over the elements instead of numpy's 36 whole-array products
     and a bincount (the tangent predictor's K_fd δ_d; benchmarks/bench_forward.py).
@@ -367,7 +371,8 @@ def packed_times_2d(Ke, corners, v, out):
 
 @njit(**_JIT)
 def max_feasible_step_2d(x, dx, corners, grad_rows):
-    """The largest α ≥ 0 (inf if unbounded) keeping every det(F + α dF) > 0, x and dx (N, 2) (`Tissue.max_feasible_step`).
+    """The largest α ≥ 0 (inf if unbounded) keeping every det(F + α dF) > 0, x and dx (N, 2)
+    (`Tissue.max_feasible_step`).
 
     det(F + α dF) = J + α b + α² a per element, its first positive root in
     the cancellation-free form.

@@ -28,7 +28,7 @@ _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 
 def _det_hessian_table() -> tuple[np.ndarray, np.ndarray]:
-    """d²J/dF_ij dF_kl = Σ_mn ε_ikm ε_jln F_mn: for each (3i+j, 3k+l) the one index 3m+n (or -1) and its sign."""
+    """d²J/dF_ij dF_pq = Σ_mn ε_ipm ε_jqn F_mn: for each (3i+j, 3p+q) the one index 3m+n (or -1) and its sign."""
     levi = np.zeros((3, 3, 3))
     levi[0, 1, 2] = levi[1, 2, 0] = levi[2, 0, 1] = 1.0
     levi[0, 2, 1] = levi[2, 1, 0] = levi[1, 0, 2] = -1.0
@@ -36,13 +36,13 @@ def _det_hessian_table() -> tuple[np.ndarray, np.ndarray]:
     sign = np.zeros((9, 9))
     for i in range(3):
         for j in range(3):
-            for k in range(3):
-                for l in range(3):
+            for p in range(3):
+                for q in range(3):
                     for m in range(3):
                         for n in range(3):
-                            v = levi[i, k, m] * levi[j, l, n]
+                            v = levi[i, p, m] * levi[j, q, n]
                             if v != 0.0:
-                                index[3 * i + j, 3 * k + l], sign[3 * i + j, 3 * k + l] = 3 * m + n, v
+                                index[3 * i + j, 3 * p + q], sign[3 * i + j, 3 * p + q] = 3 * m + n, v
     return index, sign
 
 

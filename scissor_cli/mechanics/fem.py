@@ -51,7 +51,8 @@ class FEOperators:
 
     @cached_property
     def volume(self) -> np.ndarray:
-        """Element volumes (M,) in mm³ (h·A_e in 2-D): energy density × volume = µJ; made once (every gradient reads it)."""
+        """Element volumes (M,) in mm³ (h·A_e in 2-D): energy density × volume = µJ; made once (every gradient
+        reads it)."""
         return self.thickness_mm * self.area
 
 
@@ -177,15 +178,15 @@ def element_matrices(ops: FEOperators, C: np.ndarray, scale: np.ndarray | None =
     d = g.shape[1]
     dd = d * d
     rows = np.ascontiguousarray(C.reshape(M, dd * dd).T)  # rows[d²r + c] = C[:, r, c]
-    # T[r, b, k] = Σ_l C[r, dk+l] ∂N_b/∂X_l
+    # T[r, b, k] = Σ_j C[r, dk+j] ∂N_b/∂X_j
     T = np.empty((dd, d + 1, d, M))
     tmp = np.empty(M)
     for r in range(dd):
         for k in range(d):
             for b in range(d + 1):
                 np.multiply(rows[dd * r + d * k], g[b, 0], out=T[r, b, k])
-                for l in range(1, d):
-                    np.multiply(rows[dd * r + d * k + l], g[b, l], out=tmp)
+                for j in range(1, d):
+                    np.multiply(rows[dd * r + d * k + j], g[b, j], out=tmp)
                     T[r, b, k] += tmp
     gs = g * (ops.volume if scale is None else scale)
     pairs = pairs_for(d)
@@ -238,7 +239,8 @@ def reduction_matrix(ops: FEOperators) -> sp.csr_matrix:
     dd, n = d * d, d * (d + 1)
     rows = np.repeat(np.arange(dd * M).reshape(M, dd), n, axis=1)
     cols = np.broadcast_to(ops.elem_dofs[:, None, :], (M, dd, n)).reshape(M, dd * n)
-    return sp.csr_matrix((ops.G.reshape(M, dd * n).ravel(), (rows.ravel(), cols.ravel())), shape=(dd * M, d * ops.n_nodes))
+    return sp.csr_matrix((ops.G.reshape(M, dd * n).ravel(), (rows.ravel(), cols.ravel())),
+                         shape=(dd * M, d * ops.n_nodes))
 
 
 @dataclass(frozen=True)

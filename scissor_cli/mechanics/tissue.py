@@ -16,25 +16,15 @@ The same class holds the 3-D slab of docs/model.md §13 (`layer3d`): then
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
 
-from scissor_cli.mechanics import compiled, compiled3d, fem
-from scissor_cli.mechanics import materials
+from scissor_cli.mechanics import compiled, compiled3d, fem, materials
 from scissor_cli.mesh.mesh import Mesh
 from scissor_cli.scene.scene import Scene
-
-
-class InvertedElementError(RuntimeError):
-    """An element has J = det F <= 0: the energy is undefined there."""
-
-    def __init__(self, element: int, J: float, where: str = ""):
-        self.element, self.J = int(element), float(J)
-        super().__init__(f"element {self.element} is inverted (J = {self.J:.3g}){where}")
 
 
 @dataclass(frozen=True)
@@ -117,12 +107,6 @@ class Tissue:
                                                    np.ascontiguousarray(dx, dtype=np.float64),
                                                    self.ops.corners, self.ops.grad_rows))
 
-    def check_inversion(self, x: np.ndarray, where: str = "") -> None:
-        J = self.jacobians(x)
-        bad = int(np.argmin(J))
-        if not J[bad] > 0:
-            raise InvertedElementError(bad, J[bad], where)
-
     def energy(self, x: np.ndarray) -> float:
         """Strain energy U (µJ) at positions x (N, 2); +inf if an element is inverted."""
         psi, _, _ = materials.evaluate(fem.deformation_gradients(self.ops, x), self.params, order=0)
@@ -158,7 +142,8 @@ class Tissue:
         return U, grad, self.element_stiffness(x)
 
     def element_stiffness(self, x: np.ndarray, project: bool = False) -> np.ndarray:
-        """Element Hessians, packed (21, M) in 2-D, (78, M) in 3-D (`fem.element_matrices`), in mN/mm; PSD-projected if asked.
+        """Element Hessians, packed (21, M) in 2-D, (78, M) in 3-D (`fem.element_matrices`), in mN/mm;
+        PSD-projected if asked.
 
         In 2-D the projection clamps each energy term's closed-form
         eigenvalues (`materials.evaluate_projected`): far cheaper than
@@ -211,7 +196,8 @@ class Tissue:
 
     @cached_property
     def compiled(self) -> bool:
-        """Whether gradient and stiffness run in compiled loops: `mechanics.compiled` (2-D) or `compiled3d`, neo-Hookean."""
+        """Whether gradient and stiffness run in compiled loops: `mechanics.compiled` (2-D) or `compiled3d`,
+        neo-Hookean."""
         return self._kernels is not None
 
     @cached_property
@@ -289,10 +275,12 @@ def build_tissue(scene: Scene, mesh: Mesh, model: str | None = None) -> Tissue:
     for cup in scene.cups:
         nodes = mesh.boundary_nodes_near(cup.contact, cup.radius_mm)
         if len(nodes) == 0:
-            raise BoundaryError(f"cup {cup.name!r} grips no boundary node within {cup.radius_mm} mm of {cup.contact.tolist()}")
+            raise BoundaryError(f"cup {cup.name!r} grips no boundary node within {cup.radius_mm} mm "
+                                f"of {cup.contact.tolist()}")
         clash = np.intersect1d(nodes, fixed)
         if len(clash):
-            raise BoundaryError(f"cup {cup.name!r} grips {len(clash)} node(s) of a fixed side; move it or shrink radius_mm")
+            raise BoundaryError(f"cup {cup.name!r} grips {len(clash)} node(s) of a fixed side; "
+                                "move it or shrink radius_mm")
         for other, prev in zip(scene.cups, cup_nodes):
             if len(np.intersect1d(nodes, prev)):
                 raise BoundaryError(f"cups {other.name!r} and {cup.name!r} grip the same nodes")

@@ -208,7 +208,8 @@ def build_mesh(
         nodes, tris = tri["vertices"], tri["triangles"]
         centroid = nodes[tris].mean(axis=1)
         allowed = np.sqrt(3) / 4 * h(centroid) ** 2
-        area = 0.5 * np.abs(geometry.cross2(nodes[tris[:, 1]] - nodes[tris[:, 0]], nodes[tris[:, 2]] - nodes[tris[:, 0]]))
+        area = 0.5 * np.abs(geometry.cross2(nodes[tris[:, 1]] - nodes[tris[:, 0]],
+                                            nodes[tris[:, 2]] - nodes[tris[:, 0]]))
         if np.all(area <= 1.5 * allowed):
             break
         tri = triangle.triangulate(

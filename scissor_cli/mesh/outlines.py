@@ -65,4 +65,4 @@ def boundary_loop(mesh: Mesh) -> np.ndarray:
             n = nxt[n]
         loops.append(np.array(loop))
     # Boundary edges keep the domain on their left, so the outer loop has the largest positive area.
-    return max(loops, key=lambda l: geometry.signed_area(mesh.nodes[l]))
+    return max(loops, key=lambda loop: geometry.signed_area(mesh.nodes[loop]))

@@ -19,8 +19,9 @@ from scissor_cli.mesh.mesh import Mesh, locate
 class TargetProbe:
     """K points carried by their rest triangles (docs/model.md §1).
 
-    nodes (K, 3) int: the containing triangle's vertices; bary (K, 3): the
-    barycentric weights at rest (rows sum to 1); tri_idx (K,) for reference.
+    nodes (K, d + 1) int: the containing triangle's (tetrahedron's)
+    vertices; bary (K, d + 1): the barycentric weights at rest (rows sum to
+    1); tri_idx (K,) the element, for reference.
     """
 
     tri_idx: np.ndarray
@@ -39,11 +40,42 @@ def probe_targets(mesh: Mesh, points: np.ndarray) -> TargetProbe:
 
 
 def target_positions(probe: TargetProbe, x: np.ndarray) -> np.ndarray:
-    """Deformed target positions (K, 2) mm for node positions x (N, 2) mm."""
+    """Deformed target positions (K, d) mm for node positions x (N, d) mm."""
     return np.einsum("kj,kjd->kd", probe.bary, np.asarray(x, float)[probe.nodes])
 
 
-def apply_probe(probe: TargetProbe, D: np.ndarray) -> np.ndarray:
-    """S_t D: nodal vectors D (2N, C) → target vectors (2K, C), rows [t0x, t0y, t1x, ...]."""
-    D3 = D.reshape(-1, 2, D.shape[1])  # (N, 2, C)
-    return np.einsum("kj,kjdc->kdc", probe.bary, D3[probe.nodes]).reshape(2 * probe.n_targets, D.shape[1])
+def apply_probe(probe: TargetProbe, D: np.ndarray, d: int = 2) -> np.ndarray:
+    """S_t D: nodal vectors D (dN, C) → target vectors (dK, C), rows [t0x, t0y, (t0z,) t1x, ...]; d = 2 or 3."""
+    D3 = D.reshape(-1, d, D.shape[1])  # (N, d, C)
+    return np.einsum("kj,kjdc->kdc", probe.bary, D3[probe.nodes]).reshape(d * probe.n_targets, D.shape[1])
+
+
+def locate_in_simplices(nodes: np.ndarray, cells: np.ndarray, points: np.ndarray,
+                        tol: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
+    """Containing cell (K,) and barycentric coordinates (K, d + 1) of points (K, d) in simplices (M, d + 1) of
+    nodes (N, d), any d; ValueError naming the first point outside. Every cell is tried for every point (targets
+    and markers: a few dozen points)."""
+    points = np.atleast_2d(np.asarray(points, float))
+    X = nodes[cells]  # (M, d + 1, d)
+    inv = np.linalg.inv(np.transpose(X[:, 1:] - X[:, :1], (0, 2, 1)))  # (M, d, d): Dm⁻¹, edges as columns
+    cell = np.empty(len(points), np.int64)
+    bary = np.empty((len(points), cells.shape[1]))
+    for lo in range(0, len(points), 64):  # chunks bound the (k, M, d) temporaries
+        rel = points[lo:lo + 64, None, :] - X[None, :, 0, :]
+        lam = np.einsum("mij,kmj->kmi", inv, rel)
+        full = np.concatenate([1.0 - lam.sum(axis=2, keepdims=True), lam], axis=2)  # (k, M, d + 1)
+        worst = full.min(axis=2)
+        best = np.argmax(worst, axis=1)
+        rows = np.arange(len(best))
+        if np.any(worst[rows, best] < -tol):
+            bad = lo + int(np.flatnonzero(worst[rows, best] < -tol)[0])
+            raise ValueError(f"point {np.round(points[bad], 6).tolist()} mm is outside the mesh")
+        cell[lo:lo + 64] = best
+        bary[lo:lo + 64] = full[rows, best]
+    return cell, bary
+
+
+def probe_points(nodes: np.ndarray, cells: np.ndarray, points: np.ndarray) -> TargetProbe:
+    """The probe of rest points (K, d) mm carried by the simplices (M, d + 1) of nodes (N, d) holding them."""
+    cell, bary = locate_in_simplices(nodes, cells, points)
+    return TargetProbe(tri_idx=cell, nodes=cells[cell], bary=bary)

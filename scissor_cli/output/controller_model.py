@@ -1,4 +1,5 @@
-"""/controller_model in results.h5 and its figure: the model's predicted target path against the slab's (docs/model.md §15)."""
+"""/controller_model in results.h5 and its figure: the model's predicted target path against the slab's
+(docs/model.md §15)."""
 
 from __future__ import annotations
 
@@ -10,8 +11,8 @@ import numpy as np
 
 from scissor_cli.insertion.steering import NeedleModel
 from scissor_cli.layer3d.calibration import Calibration
-from scissor_cli.layer3d.tissue_models import ModelData, ModelPaths
 from scissor_cli.layer3d.surrogate import SurrogateSamples
+from scissor_cli.layer3d.tissue_models import ModelData, ModelPaths
 
 GROUP = "controller_model"
 
@@ -98,8 +99,9 @@ def read_controller_model(h5, target_names: list[str]) -> Optional[ModelData]:
     elif "samples" in g:
         strokes, targets = samples("samples")
         held_strokes, held_targets = samples("held_out")
-        surrogate = SurrogateSamples(strokes, targets, held_strokes, held_targets, np.asarray(a["stroke_min_mm"], float),
-                                     np.asarray(a["stroke_max_mm"], float), float(a["build_time_s"]))
+        surrogate = SurrogateSamples(strokes, targets, held_strokes, held_targets,
+                                     np.asarray(a["stroke_min_mm"], float), np.asarray(a["stroke_max_mm"], float),
+                                     float(a["build_time_s"]))
     needle = None
     if "needle" in g:
         needle = {t: NeedleModel(n["depth_mm"][()], n["target"][()], n["jacobian"][()],

@@ -4,7 +4,8 @@ What is written, and the file names, are in docs/contract.md#export:
 
 * `mesh`: the 2-D rest mesh, nodes lifted to z = 0, with the node markers
   (`fixed`, `cup_<cup>`) as point data and `fiber`, `E_kPa` (and `obstacle`)
-  as cell data;
+  as cell data; a 3-D scene's body: its tetrahedra, with `region` (the
+  index into /mesh's `regions`) as cell data too;
 * `forward_<case>`: the same mesh with the case's `displacement` (N, 3) mm,
   z = 0, for Warp By Vector;
 * `insertion_<target>_<strategy>`: a time series over the insertion steps
@@ -67,11 +68,11 @@ class LayerCheck:
 class RunData:
     """What export reads from results.h5 (docs/contract.md#contract-paths)."""
 
-    nodes: np.ndarray  # (N, 2) mm
-    triangles: np.ndarray  # (M, 3)
+    nodes: np.ndarray  # (N, d) mm: d = 2 (a layer) or 3 (a body)
+    triangles: np.ndarray  # (M, 3) triangles, or in a body (M, 4) tetrahedra
     point_data: dict[str, np.ndarray]  # markers, (N,)
     cell_data: dict[str, np.ndarray]  # (M,) or (M, 3)
-    forward: dict[str, np.ndarray] = field(default_factory=dict)  # case -> (N, 2) mm
+    forward: dict[str, np.ndarray] = field(default_factory=dict)  # case -> (N, d) mm
     unconverged: set[str] = field(default_factory=set)  # forward cases whose solve did not converge
     insertion: list[Insertion] = field(default_factory=list)
     layer_check: LayerCheck | None = None
@@ -125,12 +126,14 @@ def _array(f: h5py.File, name: str, shape: tuple, path: Path, dtype=np.float64) 
 
 
 def _read(f: h5py.File, path: Path) -> RunData:
-    nodes = _array(f, "mesh/nodes", (None, 2), path)
+    d = 3 if "mesh/tetrahedra" in f else 2  # a 3-D scene's body, or a 2-D layer
+    nodes = _array(f, "mesh/nodes", (None, d), path)
     n = len(nodes)
-    triangles = _array(f, "mesh/triangles", (None, 3), path, np.int64)
+    cells_name = "mesh/tetrahedra" if d == 3 else "mesh/triangles"
+    triangles = _array(f, cells_name, (None, d + 1), path, np.int64)
     m = len(triangles)
     if m and (triangles.min() < 0 or triangles.max() >= n):
-        raise ExportError(f"{path}: /mesh/triangles index a node outside 0..{n - 1}")
+        raise ExportError(f"{path}: /{cells_name} index a node outside 0..{n - 1}")
     fixed = np.zeros(n, np.int32)
     if "mesh/fixed_nodes" in f:
         fixed[_array(f, "mesh/fixed_nodes", (None,), path, np.int64)] = 1
@@ -141,14 +144,17 @@ def _read(f: h5py.File, path: Path) -> RunData:
         point_data[f"cup_{cup}"] = marker
     cell_data = {}
     if "mesh/fiber" in f:
-        cell_data["fiber"] = _lift(_array(f, "mesh/fiber", (m, 2), path))
+        fiber = _array(f, "mesh/fiber", (m, d), path)
+        cell_data["fiber"] = fiber if d == 3 else _lift(fiber)
+    if "mesh/region" in f:
+        cell_data["region"] = _array(f, "mesh/region", (m,), path, np.int32)
     if "mesh/element_E_kPa" in f:
         cell_data["E_kPa"] = _array(f, "mesh/element_E_kPa", (m,), path)
     if "mesh/element_obstacle" in f:
         cell_data["obstacle"] = _array(f, "mesh/element_obstacle", (m,), path, np.int32)
     data = RunData(nodes, triangles, point_data, cell_data)
     for case in f.get("forward", {}):
-        data.forward[case] = _array(f, f"forward/{case}/displacement", (n, 2), path)
+        data.forward[case] = _array(f, f"forward/{case}/displacement", (n, d), path)
         if not f[f"forward/{case}"].attrs.get("converged", True):
             data.unconverged.add(case)
     if "layer_check" in f:
@@ -221,14 +227,16 @@ def export_run(run_dir: Path, out_dir: Path, fmt: str = "xdmf", partial: bool = 
 
 
 def _write(data: RunData, writer: "_Writer") -> None:
-    points = _lift(data.nodes)
-    cells = [("triangle", data.triangles)]
+    body = data.nodes.shape[1] == 3
+    points = data.nodes if body else _lift(data.nodes)
+    cells = [("tetra" if body else "triangle", data.triangles)]
     nn, ne = len(data.nodes), len(data.triangles)
     writer.mesh("mesh", points, cells, data.point_data, data.cell_data,
-                f"2-D rest mesh, {nn} nodes, {ne} triangles; point data {', '.join(data.point_data)}; "
-                f"cell data {', '.join(data.cell_data) or 'none'}")
+                f"{'3-D body' if body else '2-D'} rest mesh, {nn} nodes, {ne} {'tetrahedra' if body else 'triangles'};"
+                f" point data {', '.join(data.point_data)}; cell data {', '.join(data.cell_data) or 'none'}")
     for case, u in data.forward.items():
-        writer.mesh(f"forward_{case}", points, cells, {"displacement": _lift(u), **data.point_data}, data.cell_data,
+        writer.mesh(f"forward_{case}", points, cells, {"displacement": u if body else _lift(u), **data.point_data},
+                    data.cell_data,
                     f"forward case {case}: displacement (max |u| {_max_norm(u):.3g} mm)"
                     + (" -- NOT CONVERGED" if case in data.unconverged else ""))
     for ins in data.insertion:

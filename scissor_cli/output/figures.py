@@ -8,7 +8,6 @@ processes.
 from __future__ import annotations
 
 from dataclasses import dataclass
-
 from pathlib import Path
 
 import numpy as np
@@ -161,7 +160,8 @@ def manipulation_figure(d: ManipulationDrawing) -> Figure:
                  label="obstacle at rest" if k == 0 else None)
     ax_after.plot(*np.asarray(d.desired, float), "o", mfc="none", mec="k", ms=10, mew=1.2, zorder=5, label="desired")
     ax_after.plot(*np.asarray(d.target_rest, float), "o", color="red", ms=3, alpha=0.6, zorder=5)
-    ax_after.annotate("", d.target_reached, d.target_rest, arrowprops={"arrowstyle": "->", "color": "k", "lw": 0.7}, zorder=5)
+    ax_after.annotate("", d.target_reached, d.target_rest, arrowprops={"arrowstyle": "->", "color": "k", "lw": 0.7},
+                      zorder=5)
     for ax, sub in zip(axes, d.subtitles):
         ax.set_aspect("equal")
         ax.autoscale_view()

@@ -19,7 +19,8 @@ def miss_boxplots(runs: list[tuple[str, dict[str, np.ndarray]]], tolerance_mm: f
         data = [(label, d[t]) for label, d in runs if t in d and len(d[t])]
         if data:
             # a run's label is "name (profile), N cup(s)": one line each, so long names stay inside the panel
-            ax.boxplot([v for _, v in data], tick_labels=[lab.replace(" (", "\n(").replace(", ", "\n") for lab, _ in data])
+            ax.boxplot([v for _, v in data],
+                       tick_labels=[lab.replace(" (", "\n(").replace(", ", "\n") for lab, _ in data])
         ax.axhline(tolerance_mm, color="tab:red", ls="--", lw=1, label=f"{tolerance_mm:g} mm")
         ax.set_title(f"{t}: miss across the needle")
         ax.set_ylabel("miss (mm)")

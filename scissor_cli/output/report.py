@@ -15,10 +15,10 @@ import h5py
 import numpy as np
 
 from scissor_cli.config import ConfigError, parse_config
-from scissor_cli.output import figures, layer_check, tables
 from scissor_cli.experiments import study as study_mod
-from scissor_cli.output.error_budget.report import report_budget
+from scissor_cli.output import figures, layer_check, tables
 from scissor_cli.output.controller_model import report_models_figure
+from scissor_cli.output.error_budget.report import report_budget
 from scissor_cli.output.imaging.report import report_sensors
 from scissor_cli.output.imaging.results import sensor_of
 from scissor_cli.output.insertion.report import report_insertion
@@ -111,7 +111,8 @@ def _extra_iterations(g, trials: np.ndarray, step_mm: Optional[np.ndarray]) -> O
 
 
 def _controller(f) -> tuple[str, float, float]:
-    """(kind[+broyden], build time s, error mm) of a run's controller model; a run without /controller_model: the layer."""
+    """(kind[+broyden], build time s, error mm) of a run's controller model; a run without /controller_model: the
+    layer."""
     if "controller_model" in f:
         a = f["controller_model"].attrs
         update = str(a.get("jacobian_update", "none"))
@@ -217,9 +218,11 @@ def make_report(run_dirs: list[Path], out_dir: Path, partial: bool = False) -> R
             if "trials" in f:
                 with_trials.append(d)
             if "study" in f:
-                with_study.append((d, study_mod.rows_from_columns(read_study(f)), _config_name(f.attrs.get("config_yaml", ""))))
+                with_study.append((d, study_mod.rows_from_columns(read_study(f)),
+                                   _config_name(f.attrs.get("config_yaml", ""))))
     if not with_trials and not with_study and not checks:
-        raise ReportError("none of the runs has trials, a study or a layer check (run simulate with --trials N or --study)")
+        raise ReportError("none of the runs has trials, a study or a layer check "
+                          "(run simulate with --trials N or --study)")
     out_dir.mkdir(parents=True, exist_ok=True)
     files, text = [], ""
     if with_trials:

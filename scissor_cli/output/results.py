@@ -170,7 +170,8 @@ def write_model(out: ResultsFile, tissue) -> None:
     out.dataset("mesh/fiber", tissue.fiber, "1")
     out.dataset("mesh/fixed_nodes", tissue.fixed_nodes.astype(np.int64))
     out.dataset("mesh/element_E_kPa", tissue.element_E_kPa, "kPa")
-    out.dataset("mesh/element_obstacle", mesh.element_obstacle.astype(np.int64), description="obstacle index, -1 tissue")
+    out.dataset("mesh/element_obstacle", mesh.element_obstacle.astype(np.int64),
+                description="obstacle index, -1 tissue")
     angles = mesh.angles_deg()
     out.attrs("mesh", {"n_nodes": mesh.n_nodes, "n_elements": mesh.n_elements, "min_angle_deg": float(angles.min())})
     m = tissue.scene.material
@@ -206,8 +207,9 @@ def write_forward(out: ResultsFile, case: str, strokes: dict[str, float], result
 
 
 def write_jacobian(out: ResultsFile, name: str, J: np.ndarray, cup_names: list[str]) -> None:
-    """/jacobian/<target>: (2, C) mm of target motion per mm of stroke, at rest."""
-    out.dataset(f"jacobian/{name}", np.asarray(J, float), "mm/mm", columns=cup_names, rows=["x", "y"])
+    """/jacobian/<target>: (d, C) mm of target motion per mm of stroke, at rest (d = 2, or 3 in a body)."""
+    J = np.asarray(J, float)
+    out.dataset(f"jacobian/{name}", J, "mm/mm", columns=cup_names, rows=["x", "y", "z"][:J.shape[0]])
 
 
 def clearance(value: float) -> float:
@@ -235,8 +237,9 @@ def write_plan(out: ResultsFile, plan, joints_note: str, robot_reachable: bool) 
         "strokes": np.asarray(plan.strokes, float),
         "side": plan.side,
         "desired_error_mm": float(plan.desired_error_mm),
-        **{name: np.asarray(value, float) for name, value in (("model_strokes", plan.model_strokes),
-                                                              ("slab_strokes", plan.slab_strokes)) if value is not None},
+        **{name: np.asarray(value, float)
+           for name, value in (("model_strokes", plan.model_strokes), ("slab_strokes", plan.slab_strokes))
+           if value is not None},
         **({} if plan.model_error_mm is None else {"model_error_mm": float(plan.model_error_mm)}),
     })
 
@@ -255,9 +258,9 @@ def write_manipulation(out: ResultsFile, target: str, closed, opened) -> None:
     out.dataset(f"manipulation/{target}/history", table, "mm (time_s: s)", columns=names)
 
 
-TRIALS_FILL_NOTE = ("not done or crashed (see done, failed): final_error, time_s, trial_time_s, clearance_mm, correctable_mm, "
-                    "uncorrectable_mm, manipulation_miss_mm, along_mm 0, iterations -1; clearance_mm is also 0 where undefined (no obstacles, "
-                    "no corridor)")
+TRIALS_FILL_NOTE = ("not done or crashed (see done, failed): final_error, time_s, trial_time_s, clearance_mm, "
+                    "correctable_mm, uncorrectable_mm, manipulation_miss_mm, along_mm 0, iterations -1; clearance_mm "
+                    "is also 0 where undefined (no obstacles, no corridor)")
 
 
 def allocate_trials(out: ResultsFile, names: list[str], count: int, attrs: dict) -> None:
@@ -377,7 +380,8 @@ def pending_trials(h5: h5py.File) -> dict[str, np.ndarray]:
     return {name: np.flatnonzero(~g["done"][:] | g["failed"][:]) for name, g in h5["trials"].items()}
 
 
-def write_study(out: ResultsFile, columns: dict[str, np.ndarray], reference: dict, notes: list[str], seconds: float) -> None:
+def write_study(out: ResultsFile, columns: dict[str, np.ndarray], reference: dict, notes: list[str],
+                seconds: float) -> None:
     """/study: one row per (case, mesh level, kind, model, solver, tolerance), as column datasets.
 
     A number that was not measured (NaN in the rows) is stored as `MISSING`.
@@ -418,7 +422,8 @@ def write_selection(out: ResultsFile, sel) -> None:
         "observed_order": sel.order, "calibration_case": sel.case, "calibration_s": sel.calibration_s,
     })
     levels = sorted(sel.discretisation_mm)
-    out.dataset("selection/discretisation_mm", np.array([sel.discretisation_mm[L] for L in levels]), "mm", levels=levels)
+    out.dataset("selection/discretisation_mm", np.array([sel.discretisation_mm[L] for L in levels]), "mm",
+                levels=levels)
     out.dataset("selection/model_mm", np.array(list(sel.model_mm.values())), "mm", models=list(sel.model_mm))
     tols = sorted(sel.solver_mm)
     out.dataset("selection/admm_mm", filled([sel.solver_mm[t] for t in tols], MISSING), "mm", tolerances=tols,
@@ -438,5 +443,6 @@ def write_slab_resolution(out: ResultsFile, choice) -> None:
     })
     rows = choice.candidates
     for name, unit in (("in_plane_scale", "1"), ("first_layer_mm", "mm"), ("max_layer_mm", "mm"), ("levels", "1"),
-                       ("n_tetrahedra", "1"), ("error_mm", "mm"), ("factor_s", "s"), ("solve_s", "s"), ("reference", "1")):
+                       ("n_tetrahedra", "1"), ("error_mm", "mm"), ("factor_s", "s"), ("solve_s", "s"),
+                       ("reference", "1")):
         out.dataset(f"layer_check_resolution/{name}", np.array([getattr(r, name) for r in rows]), unit)

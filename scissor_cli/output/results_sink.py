@@ -35,15 +35,15 @@ import numpy as np
 from scissor_cli.experiments import run_cache
 from scissor_cli.experiments.sink import ForwardCase, Manipulation, ResumeError, product_key
 from scissor_cli.experiments.study import rows_as_columns
-from scissor_cli.output.manipulation import manipulation_figure_inputs
 from scissor_cli.output import figures, journal, layer_check, results
 from scissor_cli.output.error_budget import results as budget_results
 from scissor_cli.output.error_budget.figures import budget_figure
+from scissor_cli.output.insertion.results import write_insertion
+from scissor_cli.output.manipulation import manipulation_figure_inputs
 from scissor_cli.output.results import ResultsFile, temporary
 
 #: root attribute: the `product_key`s of what the run stored whole (docs/contract.md#resume)
 FINISHED = "finished"
-from scissor_cli.output.insertion.results import write_insertion
 
 
 class ResultsSink:
@@ -100,7 +100,22 @@ class ResultsSink:
 
     # -- the stages --------------------------------------------------------
     def model(self, tissue) -> None:
-        results.write_model(self.out, tissue)
+        if tissue.dim == 3:
+            from scissor_cli.output.body.results import write_body_model  # noqa: PLC0415
+
+            write_body_model(self.out, tissue)
+        else:
+            results.write_model(self.out, tissue)
+        self.out.flush()
+
+    def target(self, name: str, rest: np.ndarray, desired: np.ndarray, source: str) -> None:
+        results.write_target(self.out, name, rest, desired, source)
+        self.out.flush()
+
+    def body_resolution(self, choice) -> None:
+        from scissor_cli.output.body.results import write_body_resolution  # noqa: PLC0415
+
+        write_body_resolution(self.out, choice)
         self.out.flush()
 
     def selection(self, selection) -> None:
@@ -111,9 +126,15 @@ class ResultsSink:
         results.write_slab_resolution(self.out, choice)
         self.out.flush()
 
-    def forward_case(self, case: ForwardCase) -> Path:
+    def forward_case(self, case: ForwardCase) -> Path | list[Path]:
         results.write_forward(self.out, case.name, case.strokes, case.result, case.rest, case.targets)
         self.out.flush()
+        if case.kind == "body":
+            from scissor_cli.output.body.figures import body_figures  # noqa: PLC0415
+
+            section, view = body_figures(**case.figure)
+            return [figures.save(section, self.location / f"forward_{case.name}.png"),
+                    figures.save(view, self.location / f"forward_{case.name}_3d.png")]
         return figures.save(figures.forward_case_figure(**case.figure), self.location / f"forward_{case.name}.png")
 
     def layer_check_mesh(self, mesh) -> None:
@@ -140,8 +161,11 @@ class ResultsSink:
     def controller_model(self, data, target_names: list[str], paths, jacobian_update: str, title: str
                          ) -> Optional[Path]:
         """The controller's model (docs/model.md §15): /controller_model and its path figure (when drawn)."""
-        from scissor_cli.output.controller_model import (save_controller_model_figure, write_controller_model,  # noqa: PLC0415
-                                                         write_paths)
+        from scissor_cli.output.controller_model import (  # noqa: PLC0415
+            save_controller_model_figure,
+            write_controller_model,
+            write_paths,
+        )
 
         write_controller_model(self.out.h5, data, target_names, jacobian_update)
         if paths is not None:
@@ -207,7 +231,8 @@ class ResultsSink:
                 restored.add((rec["target"], rec["trial"]))
                 pending[rec["target"]].discard(rec["trial"])
         if restored:
-            self._notes.append(f"restored {len(restored)} finished trial(s) from {journal.journal_path(self.out.path).name}")
+            self._notes.append(f"restored {len(restored)} finished trial(s) "
+                               f"from {journal.journal_path(self.out.path).name}")
         self._replay = []
 
     def pending_trials(self) -> dict[str, np.ndarray]:
@@ -257,7 +282,8 @@ class RunDirectory:
 
     def start(self, config_yaml: str) -> None:
         """Record the run's config (STARTED) before its first stage, whole or not at all."""
-        run_cache.write_whole(self.location / STARTED, lambda partial: partial.write_text(config_yaml, encoding="utf-8"))
+        run_cache.write_whole(self.location / STARTED,
+                              lambda partial: partial.write_text(config_yaml, encoding="utf-8"))
 
     def open(self, config_yaml: str, seed: int) -> ResultsSink:
         self.location.mkdir(parents=True, exist_ok=True)

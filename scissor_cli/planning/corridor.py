@@ -125,7 +125,8 @@ def corridor_clearance(entry, target, obstacle_outlines: Sequence[np.ndarray], r
     return d - radius
 
 
-def corridor_clearances(entries: np.ndarray, target, obstacle_outlines: Sequence[np.ndarray], radius: float) -> np.ndarray:
+def corridor_clearances(entries: np.ndarray, target, obstacle_outlines: Sequence[np.ndarray],
+                        radius: float) -> np.ndarray:
     """`corridor_clearance` for many entries (K, 2) to one target (2,): (K,) mm, NaN for NaN entries.
 
     Same definition as the scalar version, vectorised over the candidates

@@ -315,7 +315,8 @@ def plan_target(
 
     inside = [o.name for o in scene.obstacles if geometry.points_in_polygon(target.rest[None], o.outline)[0]]
     if inside:
-        reason = f"target {target.name!r} lies inside obstacle {inside[0]!r}: no corridor can reach it without crossing it"
+        reason = (f"target {target.name!r} lies inside obstacle {inside[0]!r}: "
+                  "no corridor can reach it without crossing it")
         return done(_plan(target, False, reason, target.rest, zero, rest.any_insertion), [])
 
     if target.desired is None and rest.clearance > 0:
@@ -385,7 +386,8 @@ def plan_targets(
 ) -> list[NeedlePlan]:
     """`plan_target` for every target of the scene, sharing one `StateCache`."""
     cache = kwargs.pop("cache", None) or StateCache(tissue)
-    return [plan_target(tissue, scene, t, needle_cfg, robot_check=robot_check, cache=cache, **kwargs) for t in scene.targets]
+    return [plan_target(tissue, scene, t, needle_cfg, robot_check=robot_check, cache=cache, **kwargs)
+            for t in scene.targets]
 
 
 def stored_plan(name: str, a: dict, has_obstacles: bool) -> NeedlePlan:

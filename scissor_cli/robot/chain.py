@@ -222,7 +222,7 @@ class RobotModel:
 
     @property
     def actuated(self) -> tuple[DHLink, ...]:
-        return tuple(l for l in self.links if l.joint != "fixed")
+        return tuple(link for link in self.links if link.joint != "fixed")
 
     @property
     def n_joints(self) -> int:
@@ -230,22 +230,22 @@ class RobotModel:
 
     @property
     def joint_names(self) -> tuple[str, ...]:
-        return tuple(l.name for l in self.actuated)
+        return tuple(link.name for link in self.actuated)
 
     @property
     def revolute_mask(self) -> np.ndarray:
         """(n,) bool: True where the joint value is an angle (rad)."""
-        return np.array([l.joint == "revolute" for l in self.actuated])
+        return np.array([link.joint == "revolute" for link in self.actuated])
 
     @property
     def lower(self) -> np.ndarray:
         """(n,) lower joint limits, mm or rad."""
-        return np.array([l.lower for l in self.actuated], dtype=float)
+        return np.array([link.lower for link in self.actuated], dtype=float)
 
     @property
     def upper(self) -> np.ndarray:
         """(n,) upper joint limits, mm or rad."""
-        return np.array([l.upper for l in self.actuated], dtype=float)
+        return np.array([link.upper for link in self.actuated], dtype=float)
 
     @property
     def has_closed_form(self) -> bool:
@@ -314,7 +314,7 @@ class RobotModel:
     def _detect_closed_form(self) -> Optional[ClosedForm]:
         # The closed form is trusted only where it reproduces the product.
         L = self.links
-        if len(L) != 6 or tuple(l.joint for l in L) != _PAPER_KINDS:
+        if len(L) != 6 or tuple(link.joint for link in L) != _PAPER_KINDS:
             return None
         cf = ClosedForm(a1=L[1].a_mm, a3=L[3].a_mm, a5=L[5].a_mm, d6=L[5].d_mm,
                          offsets=np.array([L[0].d_mm, L[1].d_mm, L[2].d_mm, L[3].theta_rad, L[4].d_mm]))
@@ -324,6 +324,7 @@ class RobotModel:
         T = self.fk(q)
         tip, axis = _closed_tip_axis(q, cf)
         scale = 1.0 + np.abs(T[:, :3, 3]).max()
-        if np.allclose(tip, T[:, :3, 3], rtol=0, atol=1e-9 * scale) and np.allclose(axis, T[:, :3, 2], rtol=0, atol=1e-12):
+        if (np.allclose(tip, T[:, :3, 3], rtol=0, atol=1e-9 * scale)
+                and np.allclose(axis, T[:, :3, 2], rtol=0, atol=1e-12)):
             return cf
         return None

@@ -12,8 +12,15 @@ from typing import Sequence
 
 import numpy as np
 
-from scissor_cli.config import (CupConfig, MaterialConfig, ObstacleConfig, TargetConfig, TissueConfig, obstacle_outline,
-                                tissue_outline)
+from scissor_cli.config import (
+    CupConfig,
+    MaterialConfig,
+    ObstacleConfig,
+    TargetConfig,
+    TissueConfig,
+    obstacle_outline,
+    tissue_outline,
+)
 
 
 @dataclass(frozen=True)
@@ -75,7 +82,6 @@ class Scene:
 def build_scene(name: str, tissue: TissueConfig, material: MaterialConfig, cups: Sequence[CupConfig],
                 targets: Sequence[TargetConfig], obstacles: Sequence[ObstacleConfig]) -> Scene:
     """The scene of the config's scene sections, as plain arrays in mm (degrees become radians)."""
-    m = material
     return Scene(
         name=name,
         outline=tissue_outline(tissue, n_curve=_curve_points(tissue)),
@@ -98,19 +104,18 @@ def build_scene(name: str, tissue: TissueConfig, material: MaterialConfig, cups:
             for c in cups
         ),
         targets=tuple(
-            Target(t.name, np.asarray(t.position_mm, float), None if t.desired_mm is None else np.asarray(t.desired_mm, float))
+            Target(t.name, np.asarray(t.position_mm, float),
+                   None if t.desired_mm is None else np.asarray(t.desired_mm, float))
             for t in targets
         ),
-        material=Material(
-            m.model,
-            m.E_kPa,
-            m.nu,
-            m.eta_kPa if m.model == "neo_hookean_fiber" else 0.0,
-            np.deg2rad(m.fiber_angle_deg),
-            m.fiber_tension_only,
-            m.density_kg_per_mm3,
-        ),
+        material=material_of(material),
     )
+
+
+def material_of(m: MaterialConfig) -> Material:
+    """The `material` section as plain numbers (the fiber angle in radians; η only for the fiber model)."""
+    return Material(m.model, m.E_kPa, m.nu, m.eta_kPa if m.model == "neo_hookean_fiber" else 0.0,
+                    np.deg2rad(m.fiber_angle_deg), m.fiber_tension_only, m.density_kg_per_mm3)
 
 
 def _curve_points(tissue: TissueConfig) -> int:

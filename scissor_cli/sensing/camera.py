@@ -162,7 +162,8 @@ class CameraSensor:
 
     @property
     def noise_mm(self) -> float:
-        """σ (mm) of one reading's random part at the layer: pixel noise and rounding (σ² + 1/12 px²); 0 without a camera."""
+        """σ (mm) of one reading's random part at the layer: pixel noise and rounding (σ² + 1/12 px²); 0 without a
+        camera."""
         if self.camera is None:
             return 0.0
         px = self.camera.pixel_noise_px if self.noise_px is None else self.noise_px

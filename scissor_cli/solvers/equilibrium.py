@@ -22,7 +22,7 @@ import numpy as np
 
 from scissor_cli.config import SolverConfig
 from scissor_cli.mechanics.tissue import Tissue
-from scissor_cli.solvers.common import NO_CONDITIONS, Conditions, Inertia, SolveResult, SolverError
+from scissor_cli.solvers.common import NO_CONDITIONS, Conditions, Inertia, SolverError, SolveResult
 from scissor_cli.solvers.newton import solve_newton
 
 METHODS = ("newton", "admm")
@@ -87,6 +87,7 @@ class EquilibriumSolver:
         conditions: Conditions = NO_CONDITIONS,
         inertia: Inertia | None = None,
         continue_previous: bool = False,
+        factors: dict | None = None,
     ) -> SolveResult:
         """The equilibrium (or one implicit-Euler step) for cup strokes (C,) mm.
 
@@ -94,21 +95,26 @@ class EquilibriumSolver:
         the rest state, or — if start_strokes is None too — any guess, which
         Newton replaces by rest when it is inverted). continue_previous: ADMM
         goes on from the last solve's full state (its z and u, not only x),
-        so a tighter tolerance continues the same iteration. Raises
-        SolverError when the method does not converge (with the partial result).
+        so a tighter tolerance continues the same iteration. factors: Newton's
+        factorisation slot (a dict the solve keeps its factors in; None: the
+        tissue's own cache). Raises SolverError when the method does not
+        converge (with the partial result).
         """
         strokes = np.asarray(strokes, float)
         if self.method == "newton":
             return solve_newton(self.tissue, strokes, x0=start, strokes0=start_strokes, inertia=inertia,
-                                tol=self.tol, max_iter=self.max_iter, conditions=conditions)
+                                tol=self.tol, max_iter=self.max_iter, conditions=conditions, factors=factors)
         if not conditions.trivial:
             raise ValueError("the ADMM solver takes no external loads or held dofs: use method 'newton'")
+        if factors is not None:
+            raise ValueError("a factorisation slot is Newton's: the ADMM solver keeps its own factor")
         solver = self._admm_for(inertia)
         if continue_previous and self._admm_state is not None:
             state = self._admm_state
         else:
             state = None if start is None else solver.state_from_positions(start)
-        result, self._admm_state = solver.solve(strokes, state=state, inertia=inertia, tol=self.tol, max_iter=self.max_iter)
+        result, self._admm_state = solver.solve(strokes, state=state, inertia=inertia, tol=self.tol,
+                                                max_iter=self.max_iter)
         if not result.converged:
             raise SolverError(f"ADMM did not converge: {result.message}", result)
         return result
@@ -159,6 +165,7 @@ def solve_equilibrium(
     tol: float | None = None,
     max_iter: int | None = None,
     anderson_memory: int = 0,
+    factors: dict | None = None,
 ) -> SolveResult:
     """The tissue's equilibrium for cup strokes (C,) mm: positions (N, 2) mm and how it was solved.
 
@@ -167,7 +174,7 @@ def solve_equilibrium(
     tissue repeatedly with ADMM.
     """
     solver = EquilibriumSolver(tissue, method, tol, max_iter, anderson_memory)
-    return solver.solve(strokes, start, start_strokes, conditions, inertia)
+    return solver.solve(strokes, start, start_strokes, conditions, inertia, factors=factors)
 
 
 def mirrored_start(tissue: Tissue) -> np.ndarray:

@@ -9,7 +9,7 @@ and the targets follow their rest triangles, δx_t = S_t δx. Hence
 
     J = S_t [ B ; −K_ff⁻¹ K_fc B ]    (2K × C, mm/mm),
 
-which is −S_t K_ff⁻¹ K_fc B when no target triangle touches a gripped node
+which is −S_t K_ff⁻¹ K_fc B when no target's element touches a gripped node
 and, when one does, also carries the gripped node's own motion B δs.
 
 K is the exact Hessian of the strain energy, not the PSD-projected one used
@@ -21,16 +21,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from scissor_cli.mesh.probe import TargetProbe, apply_probe
-from scissor_cli.solvers.linear import Factorization
-from scissor_cli.solvers.common import SolverError
 from scissor_cli.mechanics.tissue import Tissue
+from scissor_cli.mesh.probe import TargetProbe, apply_probe
+from scissor_cli.solvers.common import SolverError
+from scissor_cli.solvers.linear import Factorization
 
 
 def nodal_response(
     tissue: Tissue, x: np.ndarray, factor: Factorization | None = None
 ) -> tuple[np.ndarray, Factorization]:
-    """∂x/∂s (2N, C) in mm/mm at the equilibrium x (N, 2), and the factorisation of K_ff.
+    """∂x/∂s (dN, C) in mm/mm at the equilibrium x (N, d), d = 2 or 3, and the factorisation of K_ff.
 
     Column c is the first-order displacement of every dof for a unit stroke of
     cup c: the cup's axis on its gripped nodes, zero on fixed ones and
@@ -43,7 +43,7 @@ def nodal_response(
     K = tissue.stiffness_free(x, project=False)
     factor = Factorization(K) if factor is None else factor.refactor(K)
     free = tissue.free_dofs
-    D = np.zeros((2 * tissue.mesh.n_nodes, tissue.n_cups))
+    D = np.zeros((tissue.dim * tissue.mesh.n_nodes, tissue.n_cups))
     for c in range(tissue.n_cups):
         b = tissue.cup_displacement(c)  # zero on free and fixed dofs
         # K b restricted to free rows is K_fc B e_c: b vanishes outside the cup's dofs.
@@ -58,11 +58,11 @@ def nodal_response(
 def cup_target_jacobian(
     tissue: Tissue, x: np.ndarray, probe: TargetProbe, factor: Factorization | None = None
 ) -> np.ndarray:
-    """J = ∂x_t/∂s (2K, C) in mm/mm at the equilibrium x (N, 2).
+    """J = ∂x_t/∂s (dK, C) in mm/mm at the equilibrium x (N, d), d = 2 or 3.
 
-    Rows are [t0x, t0y, t1x, t1y, ...], columns the cups in scene order.
+    Rows are [t0x, t0y, (t0z,) t1x, ...], columns the cups in scene order.
     Pass an existing `factor` (e.g. from `nodal_response`) to reuse its
     symbolic analysis across control steps; it is refactored in place.
     """
     D, _ = nodal_response(tissue, x, factor)
-    return apply_probe(probe, D)
+    return apply_probe(probe, D, tissue.dim)

@@ -11,11 +11,11 @@ from __future__ import annotations
 import math
 from typing import Callable
 
-import numpy as np
-import scipy.sparse as sp
 import cvxopt
+import numpy as np
 import pymetis
 import qdldl
+import scipy.sparse as sp
 from cvxopt import cholmod
 
 from scissor_cli.solvers.common import SolverError
@@ -159,7 +159,8 @@ class Factorization:
         return math.log(rtol) / math.log(self.cg_rate)
 
     def matches(self, A: sp.spmatrix) -> bool:
-        """Whether A (as given to `refactor`) has the pattern's size and entry count, so the factor can precondition it."""
+        """Whether A (as given to `refactor`) has the pattern's size and entry count, so the factor can
+        precondition it."""
         return self._pattern is not None and (A.nnz, A.shape[0]) == self._pattern
 
     @property
@@ -177,7 +178,8 @@ class Factorization:
         return len(cholmod.getfactor(copy).V)
 
     def _symbolic(self, A: sp.csr_matrix, supernodal: bool = True):
-        """CHOLMOD's symbolic analysis of the pattern, with this factor's ordering: a supernodal LLᵀ or a simplicial LDLᵀ."""
+        """CHOLMOD's symbolic analysis of the pattern, with this factor's ordering: a supernodal LLᵀ or a
+        simplicial LDLᵀ."""
         self._pattern_csr = A
         saved = cholmod.options.get("supernodal", 2)
         cholmod.options["supernodal"] = 2 if supernodal else 0  # read by the analysis only

@@ -26,12 +26,18 @@ import time
 import numpy as np
 import scipy.sparse as sp
 
-from scissor_cli.solvers.linear import KRYLOV_MAX_ITER, NotPositiveDefinite, factorize_free, solve_free
+from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.common import (
-    NO_CONDITIONS, Conditions, Inertia, SolveResult, SolverError, check_finite, objective_gradient,
+    NO_CONDITIONS,
+    Conditions,
+    Inertia,
+    SolverError,
+    SolveResult,
+    check_finite,
+    objective_gradient,
 )
 from scissor_cli.solvers.held import Held as _Held
-from scissor_cli.mechanics.tissue import Tissue
+from scissor_cli.solvers.linear import KRYLOV_MAX_ITER, NotPositiveDefinite, factorize_free, solve_free
 
 ARMIJO = 1e-4
 #: a full step whose Φ decrease reaches this fraction of the linear prediction
@@ -114,7 +120,8 @@ def tangent_predictor(
         if np.all(np.isfinite(dx)):
             break
     if dx is None or not np.all(np.isfinite(dx)):
-        raise SolverError("the tangent predictor found no positive definite stiffness (is a part of the layer unconstrained?)")
+        raise SolverError("the tangent predictor found no positive definite stiffness "
+                          "(is a part of the layer unconstrained?)")
     flat = x_new.ravel().copy()
     flat[tissue.free_dofs] += dx
     return flat.reshape(x_new.shape)
@@ -227,7 +234,8 @@ def newton_iterations(
                 d, factored = solve_free(tissue, K, g, factors, rtol, cg_iter)
             except NotPositiveDefinite as exc:  # an indefinite exact Hessian: shifted (3-D), then the projected one
                 n_factor += exc.factored
-                shifted = _shifted_solve(tissue, K, g, factors) if krylov and not project and res < SHIFT_BELOW else None
+                shifted = (_shifted_solve(tissue, K, g, factors) if krylov and not project and res < SHIFT_BELOW
+                           else None)
                 if shifted is None:
                     continue
                 d, factored = shifted  # (factored: the factorisations the shifts took)
@@ -239,7 +247,8 @@ def newton_iterations(
         if step is None:
             raise SolverError(
                 f"Newton found no descent direction at iteration {it} (residual {res:.3g})",
-                SolveResult(x, False, it, res, time.perf_counter() - t0, "newton", "no descent direction", history, n_factor),
+                SolveResult(x, False, it, res, time.perf_counter() - t0, "newton", "no descent direction", history,
+                            n_factor),
             )
         x, phi, grad, alpha = _line_search(tissue, x, phi, grad, step, inertia, res, conditions.loads, held)
         full_step = alpha == 1.0
@@ -381,7 +390,8 @@ def solve_newton(
         fraction = 1.0 if final else STEP_FRACTION * alpha
         if fraction < 1e-6:
             raise SolverError(
-                note + f"every load step inverts an element: at most {alpha:.2g} of the remaining stroke increment is feasible",
+                note + f"every load step inverts an element: at most {alpha:.2g} of the remaining stroke increment "
+                "is feasible",
                 SolveResult(x, False, iterations, np.nan, time.perf_counter() - t0, "newton", "inversion"),
             )
         s_next = s_done + fraction * (strokes - s_done)

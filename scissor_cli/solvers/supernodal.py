@@ -1,4 +1,5 @@
-"""A Cholesky factor kept in single precision, solved in compiled loops with BLAS (docs/model.md §12, "The chord step's arithmetic").
+"""A Cholesky factor kept in single precision, solved in compiled loops with BLAS (docs/model.md §12, "The
+chord step's arithmetic").
 
 The needle's chord solver (`insertion.chord`) solves with one kept factor of
 the slab's K_ff a thousand times or more before it refactors. CHOLMOD's
@@ -38,7 +39,8 @@ _sgemv = types.ExternalFunction("scissor_blas_sgemv", types.void(*[types.intp] *
 
 @functools.cache
 def _link_blas() -> None:
-    """Point the symbol names `_strsv`, `_sgemv` call at scipy's own BLAS in this process (once, before the first solve).
+    """Point the symbol names `_strsv`, `_sgemv` call at scipy's own BLAS in this process (once, before the
+    first solve).
 
     By name, not by address: the compiled solve then refers to a symbol,
     so numba can cache it on disk and a new process only links the name

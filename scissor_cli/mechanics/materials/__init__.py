@@ -77,7 +77,6 @@ from scissor_cli.mechanics.materials.evaluation import (
 )
 from scissor_cli.mechanics.materials.params import J_FLOOR, MODELS, MaterialParams, material_params
 from scissor_cli.mechanics.materials.plane_strain import release_workspace
-from scissor_cli.mechanics.materials.plane_strain_projection import _eigensystem, _evaluate_projected
 from scissor_cli.mechanics.materials.psd import project_psd
 
 __all__ = [

@@ -33,8 +33,7 @@ from matplotlib.figure import Figure
 from scissor_cli.experiments.sink import ImagingRecord
 from scissor_cli.mesh.outlines import boundary_loop, deformed_outlines, embed_outlines
 from scissor_cli.output.figures import OBSTACLE, TISSUE, save
-from scissor_cli.output.insertion.figures import mesh_edges
-from scissor_cli.output.insertion.figures import pick_frames
+from scissor_cli.output.insertion.figures import mesh_edges, pick_frames
 from scissor_cli.sensing.ultrasound import ProbePose, log_compress
 
 #: the displayed dynamic range (dB) unless the record's attrs give `dynamic_range_db`
@@ -256,6 +255,6 @@ def imaging_outputs(record: ImagingRecord, tissue, layer_frames: list, out_dir: 
     name = tissue.scene.name
     png = save(bmode_figure(record, f"{name} — {record.target}: B-mode before and after the manipulation "
                                     f"({probe}{model}{K} frames)"), Path(out_dir) / f"imaging_{record.target}.png")
-    gif = imaging_animation(Path(out_dir) / f"imaging_{record.target}.gif", record, tissue, layer_frames,
-                            f"{name} — {record.target}: the manipulation in B-mode ({probe.rstrip(', ') or 'ultrasound'})")
+    title = f"{name} — {record.target}: the manipulation in B-mode ({probe.rstrip(', ') or 'ultrasound'})"
+    gif = imaging_animation(Path(out_dir) / f"imaging_{record.target}.gif", record, tissue, layer_frames, title)
     return [png, gif]

@@ -129,7 +129,8 @@ def _write_shared(out: ResultsFile, record: ImagingRecord) -> None:
     out.dataset(f"{GROUP}/{GRID[0]}", grid[GRID[0]], "mm",
                 description="pixel centres across the beam: along the probe's axis turned +90 degrees")
     out.dataset(f"{GROUP}/{GRID[1]}", grid[GRID[1]], "mm",
-                description="pixel centres along the beam: the scanner's apparent depth (echo time x assumed speed / 2)")
+                description="pixel centres along the beam: the scanner's apparent depth "
+                            "(echo time x assumed speed / 2)")
     out.attrs(GROUP, attrs)
 
 
@@ -164,8 +165,8 @@ def write_imaging(out: ResultsFile, record: ImagingRecord, cup_names: list[str] 
                 description="the lesion's position the tracking reports per frame, in the layer's frame")
     out.dataset(f"{base}/true", paths["true"], "mm", columns=["x", "y"],
                 description="the true target per frame, in the layer's frame (in-plane)")
-    strokes_attrs = {"columns": list(cup_names)} if cup_names is not None and len(cup_names) == paths["strokes"].shape[1] \
-        else {}
+    named = cup_names is not None and len(cup_names) == paths["strokes"].shape[1]
+    strokes_attrs = {"columns": list(cup_names)} if named else {}
     out.dataset(f"{base}/strokes", paths["strokes"], "mm", description="cup strokes per frame", **strokes_attrs)
     out.attrs(base, line | {"frames": K, "units": "mm"})
 

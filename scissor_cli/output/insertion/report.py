@@ -1,4 +1,5 @@
-"""`scissor report` for runs with insertion (docs/contract.md): the final miss per strategy beside the manipulation error.
+"""`scissor report` for runs with insertion (docs/contract.md): the final miss per strategy beside the
+manipulation error.
 
 For every run and target with `/trials/<target>/miss_mm`: box plots of the
 manipulation error (|true − desired| at the end of the cup loop, the
@@ -14,13 +15,14 @@ import h5py
 import numpy as np
 from matplotlib.figure import Figure
 
-from scissor_cli.text import cell
 from scissor_cli.output.figures import save
 from scissor_cli.output.results import finished_trials
+from scissor_cli.text import cell
 
 
 def load_insertion_trials(path: Path) -> dict[str, dict]:
-    """{target: {"manipulation": (T,), "miss": {strategy: (T,)}, "depth_error": {strategy: (T,)}}} of finished trials."""
+    """{target: {"manipulation": (T,), "miss": {strategy: (T,)}, "depth_error": {strategy: (T,)}}} of finished
+    trials."""
     out: dict[str, dict] = {}
     with h5py.File(path, "r") as f:
         if "trials" not in f:

@@ -9,7 +9,11 @@ import numpy as np
 from scissor_cli.mesh.outlines import deformed_outlines, embed_outlines
 from scissor_cli.mesh.probe import probe_targets, target_positions
 from scissor_cli.output.insertion.figures import (
-    insertion_animation, needle_force_figure, pick_frames, save, target_path_figure,
+    insertion_animation,
+    needle_force_figure,
+    pick_frames,
+    save,
+    target_path_figure,
 )
 
 

@@ -13,19 +13,33 @@ As the loop's sensor (`imaging_sensor`): `imaging_tables` per run,
 """
 
 from scissor_cli.sensing.ultrasound.fast import FrameKernels, fast_frame, frame_kernels, log_compress
-from scissor_cli.sensing.ultrasound.transducer import (
-    LINEAR_PROBES, ImageGrid, ProbeParams, ProbePose, image_grid, probe_params,
+from scissor_cli.sensing.ultrasound.imaging_sensor import (
+    ImagingErrors,
+    ImagingTables,
+    UltrasoundModel,
+    UltrasoundSensor,
+    imaging_tables,
+    obstacle_echogenicity,
 )
 from scissor_cli.sensing.ultrasound.psf import PsfModel, build_psf, elevation_width_mm
 from scissor_cli.sensing.ultrasound.scatterers import ECHOGENICITY_DB, Scatterers, draw_scatterers
 from scissor_cli.sensing.ultrasound.simus_ref import simus_frame
 from scissor_cli.sensing.ultrasound.speckle_tracking import (
-    SpeckleTracker, TrackingParams, TrackState, block_match, localise_lesion,
+    SpeckleTracker,
+    TrackingParams,
+    TrackState,
+    block_match,
+    localise_lesion,
+)
+from scissor_cli.sensing.ultrasound.transducer import (
+    LINEAR_PROBES,
+    ImageGrid,
+    ProbeParams,
+    ProbePose,
+    image_grid,
+    probe_params,
 )
 from scissor_cli.sensing.ultrasound.validation import FastValidation, validate_fast
-from scissor_cli.sensing.ultrasound.imaging_sensor import (
-    ImagingErrors, ImagingTables, UltrasoundModel, UltrasoundSensor, imaging_tables, obstacle_echogenicity,
-)
 
 __all__ = [
     "ECHOGENICITY_DB", "FastValidation", "FrameKernels", "ImageGrid", "ImagingErrors", "ImagingTables", "LINEAR_PROBES",

@@ -40,8 +40,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from scissor_cli.sensing.ultrasound import fast_compiled as kn
-from scissor_cli.sensing.ultrasound.transducer import ImageGrid, check_sound_speed
 from scissor_cli.sensing.ultrasound.psf import PsfModel
+from scissor_cli.sensing.ultrasound.transducer import ImageGrid, check_sound_speed
 
 _NEPER_DB = 20.0 / math.log(10.0)
 

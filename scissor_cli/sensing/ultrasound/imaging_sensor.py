@@ -1,4 +1,5 @@
-"""Ultrasound as the loop's sensor: the run's `UltrasoundModel` and each trial's `UltrasoundSensor` (docs/ultrasound.md §6).
+"""Ultrasound as the loop's sensor: the run's `UltrasoundModel` and each trial's `UltrasoundSensor`
+(docs/ultrasound.md §6).
 
 The closed loop, the insertion and the trials read it through the
 `sensing.sensor` interface, as they read the camera: a `TrueState` in,

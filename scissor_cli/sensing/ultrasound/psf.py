@@ -32,8 +32,8 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from scissor_cli.sensing.ultrasound.transducer import ProbeParams, check_sound_speed, probe_params
 from scissor_cli.sensing.ultrasound.simus_ref import beamform, receive_fnumber, simus_iq
+from scissor_cli.sensing.ultrasound.transducer import ProbeParams, check_sound_speed, probe_params
 
 # the PSF's shape changes fastest around the elevation focus; linear interpolation needs this step there
 DEPTH_STEP_MM = 2.5

@@ -16,10 +16,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from scissor_cli.sensing.ultrasound.fast import FrameKernels, fast_frame
-from scissor_cli.sensing.ultrasound.transducer import ImageGrid, ProbeParams
 from scissor_cli.sensing.ultrasound.psf import PsfModel
 from scissor_cli.sensing.ultrasound.simus_ref import simus_frame
 from scissor_cli.sensing.ultrasound.speckle_tracking import TrackingParams, block_match
+from scissor_cli.sensing.ultrasound.transducer import ImageGrid, ProbeParams
 
 
 @dataclass(frozen=True)

@@ -1,1 +1,2 @@
-"""ADMM-PD (docs/model.md §4): the solver, its per-element weights, local step, Anderson acceleration and implicit Euler."""
+"""ADMM-PD (docs/model.md §4): the solver, its per-element weights, local step, Anderson acceleration and
+implicit Euler."""

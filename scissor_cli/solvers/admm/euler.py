@@ -12,7 +12,7 @@ import numpy as np
 
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.admm.solver import AdmmSolver, AdmmState
-from scissor_cli.solvers.common import Inertia, SolveResult, SolverError
+from scissor_cli.solvers.common import Inertia, SolverError, SolveResult
 
 
 @dataclass
@@ -38,7 +38,8 @@ def implicit_euler(
     tol: float = 1e-4,
     max_iter: int = 2000,
 ) -> list[EulerStep]:
-    """Step docs/model.md §4 with ADMM along strokes_path (S, C) mm: S steps of dt_s (s) from x0 (N, 2) mm, v0 (N, 2) mm/s.
+    """Step docs/model.md §4 with ADMM along strokes_path (S, C) mm: S steps of dt_s (s) from x0 (N, 2) mm,
+    v0 (N, 2) mm/s.
 
     x̃ = x_n + Δt v_n + Δt² M⁻¹ f_ext (f_ext (2N,) mN, default none);
     v_{n+1} = (x_{n+1} − x_n)/Δt. Each step warm-starts from the previous

@@ -156,7 +156,8 @@ def local_gradient(cache: LocalCache, v: np.ndarray, k: np.ndarray) -> np.ndarra
     return cache.P + k[:, None] * (cache.z - v)
 
 
-def local_newton(cache: LocalCache, v: np.ndarray, k: np.ndarray, params, steps: int = 1) -> tuple[LocalCache, np.ndarray]:
+def local_newton(cache: LocalCache, v: np.ndarray, k: np.ndarray, params,
+                 steps: int = 1) -> tuple[LocalCache, np.ndarray]:
     """`steps` safeguarded Newton steps on min_z Ψ(z) + k/2 ‖z − v‖², all elements at once.
 
     cache: the start z (M, 4) (every det > 0) with its Ψ, P, C; v (M, 4);

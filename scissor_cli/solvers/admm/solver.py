@@ -91,7 +91,7 @@ from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.admm.anderson import Anderson
 from scissor_cli.solvers.admm.local import IDENTITY, LocalCache, closest_rotation, det4, evaluate_local, local_newton
 from scissor_cli.solvers.admm.weights import curvature_boost, rest_weights
-from scissor_cli.solvers.common import Inertia, SolveResult, SolverError, objective_gradient, relative_residual
+from scissor_cli.solvers.common import Inertia, SolverError, SolveResult, objective_gradient, relative_residual
 from scissor_cli.solvers.linear import Factorization
 
 STRAIN_FLOOR = 1e-9  # primal scale floor (strain), × ‖W I‖: defines "relative" at rest
@@ -157,7 +157,8 @@ class AdmmSolver:
         self.D_d = D[:, tissue.dirichlet_dofs].tocsr()
         self.D_dT = self.D_d.T.tocsr()
         # G_eᵀ G_e packed (21, M) in 1/mm²: the element matrices of C = I, unscaled
-        self._GtG = fem.element_matrices(ops, np.broadcast_to(np.eye(4), (len(ops.area), 4, 4)), scale=np.ones(len(ops.area)))
+        self._GtG = fem.element_matrices(ops, np.broadcast_to(np.eye(4), (len(ops.area), 4, 4)),
+                                         scale=np.ones(len(ops.area)))
         self._mass_w = None if dt_s is None else tissue.mass[tissue.free_dofs] / dt_s**2
         self.n_factorizations = 0
         self._factor: Factorization | None = None

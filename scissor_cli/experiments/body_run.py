@@ -1,0 +1,151 @@
+"""`scissor simulate` on a 3-D scene: the body meshed, solved over its forward cases, its Jacobian (docs/model.md §19).
+
+The stages of a 2-D run that a body has today: the model (the mesh, its
+regions and materials), every forward case (Newton on the 3-D tissue with
+its kept factor, `solvers.equilibrium`), each lesion's position under it,
+and the cups-to-lesions Jacobian at rest (3 × cups per lesion). With
+`tissue.accuracy_mm` the mesh is picked first (`body_resolution`). Each
+product goes to the run's sink as a 2-D run's does, and is marked finished
+for `--resume`.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from scissor_cli import progress
+from scissor_cli.config.body_sections import BodyConfig
+from scissor_cli.config.element_budget import TETRAHEDRA_BUDGET
+from scissor_cli.config.loading import ConfigError, resolved_yaml
+from scissor_cli.experiments.body_resolution import BodyChoice, choose_body_scale
+from scissor_cli.experiments.run_cache import cache_dir
+from scissor_cli.experiments.run_summary import RunSummary
+from scissor_cli.experiments.sink import ForwardCase, RunSink, SinkFactory, product_key
+from scissor_cli.mechanics.body_tissue import build_body
+from scissor_cli.mechanics.tissue import Tissue
+from scissor_cli.mesh.body_inputs import body_shape, inclusions, mesh_body, sizing
+from scissor_cli.mesh.body_mesh import estimate_tetrahedra
+from scissor_cli.mesh.probe import probe_points, target_positions
+from scissor_cli.scene.body_scene import BodyScene, build_body_scene
+from scissor_cli.solvers.common import SolverError
+from scissor_cli.solvers.equilibrium import EquilibriumSolver
+from scissor_cli.solvers.jacobian import cup_target_jacobian
+
+
+def body_model(cfg: BodyConfig, cache: Path | None = None, scale: float = 1.0,
+               model: str | None = None) -> tuple[BodyScene, object, Tissue]:
+    """Scene, mesh (`mesh.body_mesh.BodyMesh`) and tissue of a validated 3-D config at a mesh scale."""
+    scene = build_body_scene(cfg)
+    mesh = mesh_body(scene, cfg.tissue.mesh, scale, cache)
+    return scene, mesh, build_body(scene, mesh, model=model)
+
+
+def body_budget_problem(cfg: BodyConfig) -> str | None:
+    """Why the scene's mesh may not be made (estimated above `TETRAHEDRA_BUDGET` before meshing), or None."""
+    if cfg.tissue.mesh.file is not None:
+        return None
+    scene = build_body_scene(cfg)
+    n = estimate_tetrahedra(body_shape(scene), inclusions(scene), sizing(scene, cfg.tissue.mesh))
+    if n <= TETRAHEDRA_BUDGET:
+        return None
+    return (f"tissue.mesh: the body's mesh is estimated at {n} tetrahedra, above the budget of {TETRAHEDRA_BUDGET} "
+            f"(the largest mesh whose forward cases solve in the time of a run): use a larger min_edge_mm, "
+            f"max_edge_mm or scale, or a steeper grading")
+
+
+def refuse_unbuilt(cfg: BodyConfig) -> None:
+    """ConfigError for what a 3-D scene may describe but a run cannot do yet: trials (the closed loop in 3-D)."""
+    if cfg.trials.count > 0:
+        raise ConfigError(f"trials.count: {cfg.trials.count} trials of a 3-D scene need the closed loop in 3-D "
+                          f"(plan, cameras, control), which this version does not have yet; run the forward cases "
+                          f"with --trials 0 (docs/model.md §19)")
+
+
+def run_body_simulation(cfg: BodyConfig, run: SinkFactory, jobs: int = 1) -> RunSummary:
+    """Everything `scissor simulate` does for a 3-D scene, into the sink `run` opens; returns the run's summary."""
+    refuse_unbuilt(cfg)
+    cache = cache_dir(run.location)
+    choice = None
+    if cfg.tissue.accuracy_mm is not None:
+        choice = choose_body_scale(cfg, cache)
+        progress.info(f"mesh by accuracy: {choice.explain()}")
+        tissue_cfg = cfg.tissue.model_copy(update={
+            "accuracy_mm": None, "mesh": cfg.tissue.mesh.model_copy(update={"scale": choice.chosen_scale(cfg)})})
+        cfg = cfg.model_copy(update={"tissue": tissue_cfg})
+    tissue = _build(cfg, cache)
+    summary = RunSummary(run.location, tissue.mesh.n_elements)
+    with run.open(resolved_yaml(cfg), cfg.seed) as sink:
+        body_stages(cfg, tissue, sink, summary, choice=choice)
+    return summary
+
+
+def _build(cfg: BodyConfig, cache: Path | None) -> Tissue:
+    t0 = time.perf_counter()
+    _, mesh, tissue = body_model(cfg, cache)
+    progress.info(f"mesh: {mesh.n_elements} tetrahedra, {mesh.n_nodes} nodes, min dihedral "
+                  f"{mesh.min_dihedral_deg:.1f}°, regions {', '.join(mesh.region_names)} "
+                  f"({time.perf_counter() - t0:.2f} s)")
+    return tissue
+
+
+def body_stages(cfg: BodyConfig, tissue: Tissue, sink: RunSink, summary, done: frozenset[str] = frozenset(),
+                choice: BodyChoice | None = None) -> None:
+    """The stages after the body is built: model, forward cases, targets, Jacobian at rest."""
+    scene = tissue.scene
+    if "model" not in done:
+        sink.model(tissue)
+        if choice is not None:
+            sink.body_resolution(choice)
+        for t in scene.targets:
+            sink.target(t.name, t.rest, t.rest if t.desired is None else t.desired,
+                        "rest" if t.desired is None else "config")
+        sink.mark_finished("model")
+    probe = probe_points(tissue.mesh.nodes, tissue.mesh.tetrahedra,
+                         np.array([t.rest for t in scene.targets]).reshape(-1, 3))
+    _forward_stage(cfg, tissue, probe, sink, summary, done)
+    if len(scene.targets) and "jacobian" not in done:
+        J = cup_target_jacobian(tissue, tissue.rest, probe)
+        for k, target in enumerate(scene.targets):
+            sink.jacobian(target.name, J[3 * k:3 * k + 3], scene.cup_names)
+        sink.mark_finished("jacobian")
+
+
+def _forward_stage(cfg: BodyConfig, tissue: Tissue, probe, sink: RunSink, summary, done: frozenset[str]) -> None:
+    scene = tissue.scene
+    solver = EquilibriumSolver.from_config(tissue, cfg.solver)
+    cases = [case for case in cfg.forward if product_key("forward", case.name) not in done]
+    advance = progress.bar("forward cases", len(cases))
+    for case in cases:
+        strokes = scene.strokes_vector(case.strokes)
+        try:
+            result = solver.solve_case(strokes)
+        except SolverError as exc:
+            summary.status, summary.failure = "failed", f"forward case {case.name!r}: {exc}"
+            raise SolverError(summary.failure, exc.result) from None
+        summary.forward[case.name] = result
+        targets = {t.name: p for t, p in zip(scene.targets, target_positions(probe, result.x))}
+        figure = dict(title=f"{cfg.name}: forward case {case.name}", tissue=tissue, x=result.x,
+                      strokes=dict(zip(scene.cup_names, strokes)), targets=targets,
+                      needle_direction=np.asarray(cfg.needle.direction, float))
+        paths = sink.forward_case(ForwardCase(case.name, {c.name: float(s) for c, s in zip(scene.cups, strokes)},
+                                              result, tissue.mesh.nodes, targets, figure, kind="body"))
+        sink.mark_finished(product_key("forward", case.name))
+        summary.figures += [p for p in np.atleast_1d(paths) if p is not None]
+        moved = "; ".join(f"{n} moved {np.linalg.norm(p - t.rest):.3f} mm" for (n, p), t in
+                          zip(targets.items(), scene.targets))
+        progress.info(f"forward {case.name}: {result.solver} {result.iterations} iterations, residual "
+                      f"{result.residual:.2e}, {result.time_s:.2f} s" + (f"; {moved}" if moved else ""))
+        advance(1)
+
+
+def resume_body(cfg: BodyConfig, sink, done: frozenset[str]) -> int:
+    """`--resume` of a 3-D run: the stages not marked finished, into its sink (the config it recorded has the mesh
+    that ran: its accuracy choice already applied). Returns 0: a 3-D run has no trials yet."""
+    tissue = _build(cfg, cache_dir(sink.location))
+    if done:
+        progress.info(f"resume: {len(done)} finished stage product(s) kept")
+    body_stages(cfg, tissue, sink, RunSummary(sink.location, tissue.mesh.n_elements), done=done)
+    return 0
