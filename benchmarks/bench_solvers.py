@@ -85,6 +85,7 @@ sys.path.insert(0, ROOT)
 from scissor_cli import runtime  # noqa: E402
 
 runtime.match_blas_kernels()  # before scissor's modules load cvxopt; threads are set in __main__
+sys.path.append(os.path.dirname(os.path.abspath(__file__)))  # results_io, also when tests/ loads this file
 import results_io  # noqa: E402
 
 from scissor_cli.config import load_config  # noqa: E402
