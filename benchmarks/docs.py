@@ -104,6 +104,8 @@ COMMANDS = {
     "compare_controller_models.paper_trials_prosthesis_slab":
         "python3 benchmarks/compare_controller_models.py configs/paper_trials_prosthesis_slab.yaml",
     "docs_scenes": "python3 benchmarks/docs.py --images-only",
+    "friction_law_before": "python3 benchmarks/bench_friction_law.py --label before (on the earlier law's checkout)",
+    "friction_law_after": "python3 benchmarks/bench_friction_law.py --label after",
 }
 
 
@@ -194,25 +196,34 @@ def render(name: str) -> str:
 
 @renderer("provenance")
 def _provenance() -> str:
-    rows, other = [], []
+    """The machines the result files were measured on: one row per CPU, cores and versions, with the files' dates
+    and loads; each table's own source line names its file's."""
+    groups: dict[tuple, list[dict]] = {}
+    other = []
     for path in sorted(RESULTS.glob("*.json")):
         r = json.loads(path.read_text())
         if not {"benchmark", "commit", "machine", "load1_before", "load1_after"} <= set(r):
             other.append(f"`{path.name}`")  # written by a script that does not use results_io
             continue
-        c = r["commit"]
-        rows.append([f"`{path.name}`", r["date"][:16].replace("T", " "), f"{r['machine']['cpu']}, "
-                                                                         f"{r['machine']['cores']}",
-                     f"{r['load1_before']:.2f} → {r['load1_after']:.2f}", num(r.get("wall_s"), 3),
-                     (c.get("head") or "?")[:7] + (" +" if c.get("dirty") else ""),
-                     f"{r['versions'].get('python')} / {r['versions'].get('numpy')}"])
-    if not rows:
+        key = (r["machine"]["cpu"], r["machine"]["cores"], r["machine"].get("system", ""),
+               r["versions"].get("python"), r["versions"].get("numpy"))
+        groups.setdefault(key, []).append(r)
+    if not groups:
         return "*No result files yet: run the benchmarks (each script's docstring says how long it takes).*"
+    rows = []
+    for (cpu, cores, system, python, numpy_), rs in groups.items():
+        dates = sorted(r["date"][:16].replace("T", " ") for r in rs)
+        loads = [x for r in rs for x in (r["load1_before"], r["load1_after"])]
+        dirty = sum(1 for r in rs if r["commit"].get("dirty"))
+        rows.append([f"{cpu}, {cores} cores, {system}", f"{python} / {numpy_}", len(rs),
+                     f"{dates[0]} – {dates[-1]}", f"{min(loads):.2f}–{max(loads):.2f}",
+                     f"{dirty} of {len(rs)}" if dirty else "none"])
     note = "" if not other else (f" Not written through `results_io` (no machine or load recorded): "
                                  f"{', '.join(other)}.")
-    return table(["result file", "date (UTC)", "CPU, cores", "load (1 min) before → after", "wall (s)", "commit",
-                  "python / numpy"], rows) + "\n\n" + (
-        "A commit marked + had changes beside it that were not committed (the file lists them)." + note)
+    return table(["machine", "python / numpy", "result files", "dates (UTC)", "load (1 min) at start and end",
+                  "with uncommitted changes"], rows) + "\n\n" + (
+        "Each table's source line gives its file's command, date, load before and after, wall time and commit."
+        + note)
 
 
 def _goal_rows() -> list[list]:
@@ -497,6 +508,23 @@ def _insertion_scene(r) -> str:
     return (table(["target"] + [f"`{s}`: miss (depth error), mm" for s in strategies]
                   + ["peak needle force", "largest drag along the needle"], out)
             + f"\n\nThe scene: {r['data']['insertion_config']}, its nominal insertion of each target.\n\n" + source(r))
+
+
+@renderer("friction_law", "friction_law_before", "friction_law_after")
+def _friction_law(before, after) -> str:
+    """benchmarks/bench_friction_law.py's two results (its own format, not results_io's): the step refinement."""
+    rows = []
+    for a, b in zip(before["steps"], after["steps"]):
+        rows.append([num(a["step_mm"], 5)] + [
+            f"{num(x.get('to_half_step_mm'), 2)} mm, {fixed(x['force_mN'], 1)} mN, {x['steps_with_stuck']}"
+            if x.get("to_half_step_mm") is not None else f"–, {fixed(x['force_mN'], 1)} mN, {x['steps_with_stuck']}"
+            for x in (a, b)])
+    src = "; ".join(f"`benchmarks/results/friction_law_{r['label']}.json`: `python3 benchmarks/bench_friction_law.py "
+                    f"--label {r['label']}`, the package at {r['package_commit'][:7]}, load {r['load_before']:.2f} → "
+                    f"{r['load_after']:.2f}, {num(r['wall_s'], 3)} s (no date or machine recorded)"
+                    for r in (before, after))
+    return (table(["step (mm)", "before: end's distance from the half step's, force at the end, steps with a stuck "
+                   "node", "after (friction with state): the same"], rows) + "\n\nSource: " + src + ".")
 
 
 @renderer("insertion_speed", "bench_insertion")
