@@ -863,8 +863,9 @@ def _brief() -> str:
         xs = rows_of(r, "insertion")
         loop = [x["miss_mm"] for x in xs if x["strategy"] == "loop"]
         none = [x["miss_mm"] for x in xs if x["strategy"] == "none"]
-        return (f"the `loop` strategy ends {fixed(min(loop), 3)}–{fixed(max(loop), 3)} mm from the target "
-                f"(no correction: up to {fixed(max(none))} mm)")
+        span = fixed(min(loop), 3) if fixed(min(loop), 3) == fixed(max(loop), 3) else \
+            f"{fixed(min(loop), 3)}–{fixed(max(loop), 3)}"
+        return f"the `loop` strategy ends {span} mm from the target (no correction: up to {fixed(max(none))} mm)"
 
     def layer(r):
         p = [x["layer_check_in_plane_diff_pct"] for x in rows_of(r, "layer_check")]
@@ -902,12 +903,13 @@ def _brief() -> str:
                 + (f"; not met: {'; '.join(unmet)}" if unmet else ""))
 
     def needle3d(r):
-        row = next(x for x in rows_of(r, "runs") if x["run"] == "default-slab")
-        loop = [x for x in rows_of(r, "misses") if x["strategy"] == "loop"]
-        return (f"`layer_check: {{}}` with the needle in the slab: `simulate --jobs 2` in "
-                f"{fixed(row['wall_s'] / 60, 1)} min"
-                + (f"; `loop` miss median {fixed(min(x['median_mm'] for x in loop), 2)}–"
-                   f"{fixed(max(x['median_mm'] for x in loop), 2)} mm" if loop else ""))
+        run = "example_3d" if r.get("variant") == "full" else "default-slab"
+        row = next(x for x in rows_of(r, "runs") if x["run"] == run)
+        loop = [x for x in rows_of(r, "misses") if x["strategy"] == "loop" and x["run"] == run]
+        what = "`configs/example_3d.yaml`" if run == "example_3d" else "`layer_check: {}` with the needle in the slab"
+        return (f"{what}: `simulate --jobs 2` in {fixed(row['wall_s'] / 60, 1)} min from nothing"
+                + "".join(f"; {x['target']}'s `loop` miss median / p95 {fixed(x['median_mm'], 2)} / "
+                          f"{fixed(x['p95_mm'], 2)} mm ({x['trials']} trials)" for x in loop))
 
     def ultrasound(r):
         t = {x["measurement"]: x for x in rows_of(r, "timings")}
@@ -929,7 +931,7 @@ def _brief() -> str:
     add("Error budget", "error-budget", "bench_needle_3d.full", budget, "what each error source adds to the miss")
     add("Speed goals", "the-speed-goals", None, goals, "")
     rows[-1][1] = goals(None)
-    add("The needle in 3-D", "the-needle-that-hits-in-3-d-18", "bench_needle_3d", needle3d,
+    add("The needle in 3-D", "the-needle-that-hits-in-3-d-18", "bench_needle_3d.full|bench_needle_3d", needle3d,
         "whole runs with the needle in the slab, end to end")
     add("Ultrasound in the loop", "ultrasound-in-the-loop", "bench_ultrasound", ultrasound,
         "B-mode frames, tracking and the fast model against SIMUS")
