@@ -40,6 +40,8 @@ import numpy as np
 from scissor_cli import runtime
 
 runtime.configure()  # before scissor's modules load cvxopt (runtime.match_blas_kernels)
+import results_io  # noqa: E402
+
 import scissor_cli.experiments.trials as trials_module  # noqa: E402
 import scissor_cli.solvers.linear as linear  # noqa: E402
 import scissor_cli.solvers.supernodal as supernodal  # noqa: E402
@@ -124,11 +126,13 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=3)
     args = ap.parse_args()
     settings = dict(parse_setting(s) for s in args.settings)
+    res = results_io.Results("ab_trials", ".".join([args.config.stem, *settings]))
     defaults = {key: getattr(*key) for s in settings.values() for key in s}
     t0 = time.perf_counter()
     work = record_trials(args.config, args.truth, args.count)
     print(f"{args.config}: {len(work)} trials recorded in {time.perf_counter() - t0:.0f} s "
-          f"(truth {args.truth or 'as configured'}); {args.rounds} rounds, settings in turn; load average {os.getloadavg()[0]:.2f}")
+          f"(truth {args.truth or 'as configured'}); {args.rounds} rounds, settings in turn; load average "
+          f"{os.getloadavg()[0]:.2f}")
     counts = Counts()
     cpu = {name: [] for name in settings}
     seen, misses = {}, {}
@@ -146,6 +150,7 @@ def main() -> None:
             if failed:
                 raise SystemExit(f"setting {name}: a trial failed: {failed[0]}")
     reference = next(iter(settings))
+    rows = []
     for name in settings:
         c = np.array(cpu[name])
         apart = np.max(np.abs(misses[name] - misses[reference]), initial=0.0)
@@ -153,7 +158,16 @@ def main() -> None:
               f"{np.median(c) / np.median(cpu[reference]):.3f}× {reference}; "
               + ", ".join(f"{k} {v}" for k, v in sorted(seen[name].items()))
               + f"; insertion misses within {apart:.1e} mm of {reference}'s")
+        rows.append({"setting": name, "values": {f"{mod.__name__}.{attr}": repr(v) for (mod, attr), v in
+                                                 settings[name].items()},
+                     "cpu_median_s": np.median(c), "cpu_min_s": c.min(), "cpu_max_s": c.max(), "rounds": c.size,
+                     "over_reference": np.median(c) / np.median(cpu[reference]), **seen[name],
+                     "misses_apart_mm": apart})
     print(f"load average now {os.getloadavg()[0]:.2f}")
+    res.table("settings", rows, {"cpu_median_s": "s (CPU)", "cpu_min_s": "s (CPU)", "cpu_max_s": "s (CPU)",
+                                 "misses_apart_mm": "mm"})
+    res.figure("trials", len(work), "trials")
+    res.write()
 
 
 if __name__ == "__main__":

@@ -29,10 +29,13 @@ import yaml
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from scissor_cli import runtime  # noqa: E402
+
 runtime.configure()  # before scissor's modules load cvxopt (the workers inherit its OPENBLAS_CORETYPE)
+import results_io  # noqa: E402
+
 from scissor_cli.config import load_config, resolved_yaml  # noqa: E402
-from scissor_cli.experiments.run_cache import CACHE_DIR  # noqa: E402
 from scissor_cli.experiments.layer_check_stage import slab_resolution_stage  # noqa: E402
+from scissor_cli.experiments.run_cache import CACHE_DIR  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -54,7 +57,7 @@ def scene_for(config: Path, trials: int, out: Path) -> Path:
 
 def run(scene: Path, out: Path, extra: list[str]) -> tuple[float, dict]:
     r = subprocess.run([sys.executable, "-m", "scissor_cli", "simulate", str(scene), "--out", str(out), "--force",
-                        *extra], capture_output=True, text=True)
+                        *extra], capture_output=True, text=True, env=results_io.subprocess_env())
     if r.returncode != 0:
         sys.exit(f"{out.name}: exit {r.returncode}\n{r.stderr[-2000:]}")
     seconds = float(re.search(r"trials done in ([0-9.]+) s", r.stdout + r.stderr).group(1))
@@ -70,6 +73,10 @@ def main() -> None:
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2, 4])
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench-dask-slab"))
     args = ap.parse_args()
+    stem = Path(args.config).stem
+    res = results_io.Results("bench_dask_slab", ".".join(p for p in (
+        None if stem == "paper_trials_prosthesis_slab" else stem, None if args.trials == 8 else f"trials{args.trials}",
+        None if args.workers == [1, 2, 4] else "workers" + "-".join(map(str, args.workers))) if p) or None)
     from dask.distributed import LocalCluster  # noqa: PLC0415 - the cluster extra: pip install -e '.[cluster]'
 
     out = Path(args.out)
@@ -84,14 +91,20 @@ def main() -> None:
                                                              cluster.scheduler_address])
         reference = finals if reference is None else reference
         same = all(np.array_equal(reference[t], finals[t]) for t in reference)
-        rows.append((f"Dask, {n} worker(s)", seconds, same))
+        rows.append((f"Dask, {n} worker(s)", seconds, same, results_io.load1()))
         print(f"  {rows[-1][0]}: trials {seconds:.1f} s, identical {same}, load {os.getloadavg()[0]:.2f}", flush=True)
     seconds, finals = run(scene, out / "local-2", ["--jobs", "2"])
-    rows.append(("local pool, --jobs 2", seconds, all(np.array_equal(reference[t], finals[t]) for t in reference)))
+    rows.append(("local pool, --jobs 2", seconds, all(np.array_equal(reference[t], finals[t]) for t in reference),
+                 results_io.load1()))
     base = rows[0][1]
     print("\n| executor | trial stage | speed-up against 1 worker | final errors identical |\n|---|---|---|---|")
-    for name, s, same in rows:
+    for name, s, same, _ in rows:
         print(f"| {name} | {s:.1f} s | {base / s:.2f}× | {'yes' if same else 'NO'} |")
+    res.table("executors", [{"executor": name, "trials_s": s, "speedup": base / s, "identical": bool(same),
+                             "load1": load} for name, s, same, load in rows],
+              {"trials_s": "s (the run's trial stage)", "speedup": "against 1 worker"})
+    res.figure("trials", args.trials, "slab-truth trials")
+    res.write()
 
 
 if __name__ == "__main__":

@@ -40,14 +40,17 @@ from pathlib import Path
 import numpy as np
 
 from scissor_cli import runtime
+
 runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
-from scissor_cli.config import load_config
-from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion
-from scissor_cli.insertion import needle as needle_module
-from scissor_cli.insertion.needle import NeedleState, advance, free_nodes
-from scissor_cli.experiments.build import build_model
-from scissor_cli.planning.needle_plan import plan_target
-from scissor_cli.solvers.equilibrium import solve_equilibrium
+import results_io  # noqa: E402
+
+from scissor_cli.config import load_config  # noqa: E402
+from scissor_cli.experiments.build import build_model  # noqa: E402
+from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion  # noqa: E402
+from scissor_cli.insertion import needle as needle_module  # noqa: E402
+from scissor_cli.insertion.needle import NeedleState, advance, free_nodes  # noqa: E402
+from scissor_cli.planning.needle_plan import plan_target  # noqa: E402
+from scissor_cli.solvers.equilibrium import solve_equilibrium  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -60,6 +63,11 @@ def main() -> None:
     ap.add_argument("--decisions", action="store_true", help="compare with early decisions off")
     ap.add_argument("--insertion-from", help="a config whose insertion section to use")
     args = ap.parse_args()
+    stem = Path(args.config).stem
+    res = results_io.Results("bench_insertion", ".".join(p for p in (
+        None if stem == "example_insertion" else stem, None if args.depth == 50.0 else f"depth{args.depth:g}",
+        None if args.repeats == 3 else f"repeats{args.repeats}", "decisions" if args.decisions else None,
+        None if not args.insertion_from else "insertion-" + Path(args.insertion_from).stem) if p) or None)
     cfg = load_config(args.config)
     insertion = load_config(args.insertion_from).insertion if args.insertion_from else cfg.insertion
     if insertion is None:
@@ -69,7 +77,8 @@ def main() -> None:
     plan, target = first_plan(tissue, scene, cfg.needle)
     x0 = solve_equilibrium(tissue, plan.strokes).x
     print(f"{cfg.name}: {mesh.n_nodes} nodes, {mesh.n_elements} elements; target {target.name}, "
-          f"{plan.side} entry, f_s {params.friction_static_mN_per_mm:g}, f_k {params.friction_kinetic_mN_per_mm:g} mN/mm, "
+          f"{plan.side} entry, f_s {params.friction_static_mN_per_mm:g}, f_k "
+          f"{params.friction_kinetic_mN_per_mm:g} mN/mm, "
           f"F_tip {params.tip_force_mN:g} mN")
 
     print(f"load average {_load()}")
@@ -88,6 +97,15 @@ def main() -> None:
     print(f"per step: {f.mean():.2f} factorisations ({f.sum()} in all), {p.mean():.1f} active-set passes, "
           f"{k.mean():.1f} chord steps (each one gradient and one triangular solve)")
     print(f"load average {_load()}")
+    res.data("scene", {"config": cfg.name, "nodes": mesh.n_nodes, "elements": mesh.n_elements, "target": target.name,
+                       "entry": plan.side, "depth_mm": args.depth, "repeats": args.repeats})
+    res.figure("step_median_ms", np.median(t), "ms", goal="<= 10 ms")
+    res.figure("step_cpu_median_ms", 1e3 * np.median(cpu), "ms")
+    res.figure("insertion_s", np.median(totals), "s", goal="<= 1 s")
+    res.figure("insertion_cpu_s", sum(cpu) / args.repeats, "s")
+    res.figure("factorisations_per_step", f.mean(), "per step")
+    res.figure("passes_per_step", p.mean(), "per step")
+    res.figure("chord_steps_per_step", k.mean(), "per step")
     if args.decisions:
         needle_module.EARLY_DECISIONS = False
         t0 = time.perf_counter()
@@ -96,6 +114,8 @@ def main() -> None:
         print(f"early decisions off: {time.perf_counter() - t0:.2f} s, {np.mean([c[2] for c in counts_off]):.1f} chord "
               f"steps a step; steps with another stuck set: {int(np.sum(np.array(stuck) != np.array(stuck_off)))} "
               f"of {len(stuck)}; final nodes {np.abs(x - x_off).max():.2e} mm apart")
+        res.figure("decisions_off_other_stuck_steps", int(np.sum(np.array(stuck) != np.array(stuck_off))), "steps")
+        res.figure("decisions_off_final_nodes_apart_mm", np.abs(x - x_off).max(), "mm")
 
     # cost and error against step size. Stick–slip makes the tissue's state a
     # saw-tooth in depth (a node sticks, is dragged, lets go), and which side
@@ -111,16 +131,26 @@ def main() -> None:
         r = run_insertion(tissue, x0, plan.strokes, NeedlePath(plan.entry, plan.direction, args.depth, target.rest), p,
                           InsertionOptions("none", keep_displacement=False))
         rows.append((step, r, time.perf_counter() - t0))
-    ref = rows[-1][1]
+    ref, table = rows[-1][1], []
     common = np.arange(2.0, args.depth + 1e-9, 2.0)
-    at = (lambda r: r.target[np.searchsorted(np.round(r.depth_mm, 9), np.round(common, 9))])
+
+    def at(r):
+        return r.target[np.searchsorted(np.round(r.depth_mm, 9), np.round(common, 9))]
+
     for step, r, wall in rows:
         y = r.target[-1]
         diff = np.linalg.norm(at(r) - at(ref), axis=1)
         print(f"{step:9.2f}  {r.steps:5d}  {wall:8.2f}  {1e3 * wall / r.steps:7.1f}  ({y[0]:.3f}, {y[1]:.3f})"
               f"  {r.stuck[-1]:5d}  {r.needle_force_mN[-1]:10.1f}  {np.linalg.norm(y - ref.target[-1]):21.4f}"
               f"  {np.median(diff):6.4f}  {diff.max():8.4f}")
+        table.append({"step_mm": step, "steps": r.steps, "time_s": wall, "ms_per_step": 1e3 * wall / r.steps,
+                      "final_stuck": int(r.stuck[-1]), "force_mN": r.needle_force_mN[-1],
+                      "final_diff_mm": np.linalg.norm(y - ref.target[-1]), "median_diff_mm": np.median(diff),
+                      "max_diff_mm": diff.max()})
     print(f"load average {_load()}")
+    res.table("step_size", table, {"step_mm": "mm", "time_s": "s", "ms_per_step": "ms", "force_mN": "mN",
+                                   "final_diff_mm": "mm", "median_diff_mm": "mm", "max_diff_mm": "mm"})
+    res.write()
 
 
 def _insert_half_mm(tissue, plan, x0, params, depth_mm, cpu):

@@ -1,4 +1,6 @@
-"""Speed of the needle insertion in the 3-D slab (docs/model.md §14; figures in docs/performance.md, "Needle in the slab (§14)"); not a timed test.
+"""Speed of the needle insertion in the 3-D slab (docs/model.md §14; docs/performance.md, "Needle in the slab (§14)").
+
+Not a timed test.
 
 The scene's `layer_check` slab (default: configs/example_full.yaml's,
 ≈ 129k tetrahedra). For the first target with a plan, from the nominal
@@ -46,29 +48,34 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import h5py
-
 import numpy as np
+from bench_insertion import (  # the layer's benchmark's load line and plan (this directory is on sys.path)
+    _load,
+    first_plan,
+)
 
-from bench_insertion import _load, first_plan  # the layer's benchmark's load line and plan (this directory is on sys.path)
 from scissor_cli import runtime
+
 runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
-from scissor_cli.config import load_config, parse_config
-from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, miss_and_depth_error, run_insertion
-from scissor_cli.insertion import run as insertion_run
-from scissor_cli.insertion.model_table import tabulate
-from scissor_cli.insertion.steering import NeedleModel
-from scissor_cli.insertion.needle import NeedleState, advance, free_nodes
-from scissor_cli.layer3d.check import slab_spec
-from scissor_cli.layer3d.slab import build_slab, slab_probe
-from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL
-from scissor_cli.experiments.build import build_model
-from scissor_cli.experiments.layer_check_stage import slab_resolution_stage
-from scissor_cli.experiments.run_cache import CACHE_DIR
-from scissor_cli.insertion.chord import ChordSolver
-from scissor_cli.mechanics.tissue import Tissue
-from scissor_cli.solvers.linear import Factorization, factorize_free
-from scissor_cli.solvers.supernodal import SupernodalFactor
-from scissor_cli.solvers.newton import solve_newton
+import results_io  # noqa: E402
+
+from scissor_cli.config import load_config, parse_config  # noqa: E402
+from scissor_cli.experiments.build import build_model  # noqa: E402
+from scissor_cli.experiments.layer_check_stage import slab_resolution_stage  # noqa: E402
+from scissor_cli.experiments.run_cache import CACHE_DIR  # noqa: E402
+from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, miss_and_depth_error, run_insertion  # noqa: E402
+from scissor_cli.insertion import run as insertion_run  # noqa: E402
+from scissor_cli.insertion.chord import ChordSolver  # noqa: E402
+from scissor_cli.insertion.model_table import tabulate  # noqa: E402
+from scissor_cli.insertion.needle import NeedleState, advance, free_nodes  # noqa: E402
+from scissor_cli.insertion.steering import NeedleModel  # noqa: E402
+from scissor_cli.layer3d.check import slab_spec  # noqa: E402
+from scissor_cli.layer3d.slab import build_slab, slab_probe  # noqa: E402
+from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL  # noqa: E402
+from scissor_cli.mechanics.tissue import Tissue  # noqa: E402
+from scissor_cli.solvers.linear import Factorization, factorize_free  # noqa: E402
+from scissor_cli.solvers.newton import solve_newton  # noqa: E402
+from scissor_cli.solvers.supernodal import SupernodalFactor  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -87,6 +94,12 @@ def main() -> None:
     ap.add_argument("--loop", action="store_true", help="the loop strategy, against the cup moves' old start")
     ap.add_argument("--run", type=Path, help="with --loop: the plan and needle model of this run directory")
     args = ap.parse_args()
+    stem = Path(args.config).stem
+    res = results_io.Results("bench_insertion3d", ".".join(p for p in (
+        None if stem == "example_full" or args.run else stem, None if args.depth == 50.0 else f"depth{args.depth:g}",
+        None if args.step == 0.5 else f"step{args.step:g}", None if args.repeats == 3 else f"repeats{args.repeats}",
+        "configured" if args.configured else None, "loop" if args.loop else None,
+        f"run-{args.run.name}" if args.run else None) if p) or None)
     cfg = load_config(args.config) if args.run is None else _run_config(args.run)
     if cfg.layer_check is not None and cfg.layer_check.accuracy_mm is not None and not args.configured:
         cfg = slab_resolution_stage(cfg, ROOT / "runs" / CACHE_DIR)[0]
@@ -114,8 +127,14 @@ def main() -> None:
           f"f_k {params.friction_kinetic_mN_per_mm:g} mN/mm, F_tip {params.tip_force_mN:g} mN, "
           f"capture radius {params.capture_radius_mm:g} mm")
     print(f"load average {_load()}")
+    res.data("scene", {"config": cfg.name, "nodes": slab.mesh.n_nodes, "tetrahedra": slab.mesh.n_elements,
+                       "free_dofs": int(slab.free_dofs.size), "build_s": build_s, "nominal_equilibrium_s": settle_s,
+                       "target": target.name, "entry": plan.side, "depth_mm": args.depth, "step_mm": args.step,
+                       "repeats": args.repeats})
     if args.loop:
-        _loop_runs(cfg, slab, x0, plan, target, params, entry, axis, table)
+        res.table("loop", _loop_runs(cfg, slab, x0, plan, target, params, entry, axis, table),
+                  {"wall_s": "s", "miss_mm": "mm", "moved_s": "s", "unmoved_s": "s"})
+        res.write()
         return
     runs = {precision: {"totals": [], "times": [], "cpu": [], "counts": []} for precision in PRECISIONS}
     for _ in range(args.repeats):
@@ -142,15 +161,22 @@ def main() -> None:
             print(f"  one run, {precision} factor: {r['totals'][-1]:.1f} s, {len(step_times)} steps, load {_load()}",
                   flush=True)
     kernels = _kernel_times(slab, x0)
-    for precision, r in runs.items():
-        _report(args, precision, r, probe, entry, axis, kernels)
+    res.table("precisions", [_report(args, precision, r, probe, entry, axis, kernels) for precision, r in runs.items()],
+              {"step_median_ms": "ms", "step_mean_ms": "ms", "insertion_s": "s", "insertion_cpu_s": "s",
+               "force_mN": "mN", "miss_mm": "mm", "depth_error_mm": "mm", "gradient_ms": "ms", "solve_ms": "ms",
+               "refactorisation_ms": "ms", "floor_ms": "ms", "per_step": "factorisations, passes, chord steps"})
     a, b = (runs[p]["x"] for p in PRECISIONS)
+    res.figure("float32_float64_nodes_apart_mm", np.abs(a - b).max(), "mm")
+    res.figure("float32_over_float64", np.median(runs['float32']['totals']) / np.median(runs['float64']['totals']),
+               "ratio of the whole insertion's time")
     print(f"float32 against float64 factor: the nodes' final positions differ by at most {np.abs(a - b).max():.2e} mm; "
-          f"whole insertion {np.median(runs['float32']['totals']) / np.median(runs['float64']['totals']):.2f}× the time")
+          f"whole insertion "
+          f"{np.median(runs['float32']['totals']) / np.median(runs['float64']['totals']):.2f}× the time")
     print(f"load average {_load()}")
+    res.write()
 
 
-def _report(args, precision, r, probe, entry, axis, kernels) -> None:
+def _report(args, precision, r, probe, entry, axis, kernels) -> dict:
     """One precision's insertion: a step's time, the whole, the counts, the miss, and the step against its floor."""
     t = np.array(r["times"]) * 1e3
     f, p, k = np.array(r["counts"]).T
@@ -180,6 +206,12 @@ def _report(args, precision, r, probe, entry, axis, kernels) -> None:
           f"{solve_time:.2f} s ({solve_time / max(solve_calls, 1) * 1e3:.1f} ms each, the captured nodes' "
           f"responses among them), the rest {rest:.2f} s ({rest / steps * 1e3:.0f} ms a step: capture, shares, the "
           f"hold's Schur complement, the active-set rule, refactorisations)")
+    return {"precision": precision, "step_median_ms": np.median(t), "step_mean_ms": np.mean(t),
+            "insertion_s": np.median(totals), "insertion_cpu_s": np.median(r["cpu"]),
+            "factorisations_per_step": f.mean(), "passes_per_step": p.mean(), "chord_steps_per_step": k.mean(),
+            "captured": int(state.captured.size), "stuck": int(state.stuck.sum()), "force_mN": out.force_mN,
+            "miss_mm": miss, "depth_error_mm": depth_error, "gradient_ms": grad_s * 1e3, "solve_ms": solve_s * 1e3,
+            "refactorisation_ms": factor_s[precision] * 1e3, "floor_ms": floor}
 
 
 @contextlib.contextmanager
@@ -232,8 +264,9 @@ def _from_run(run: Path, scene):
     raise SystemExit(f"{run}: no feasible plan with a needle model")
 
 
-def _loop_runs(cfg, slab, x0, plan, target, params, entry, axis, table=None) -> None:
-    """`loop` on the target's NeedleModel, with the cup moves' start as shipped and with the cups' nodes placed alone."""
+def _loop_runs(cfg, slab, x0, plan, target, params, entry, axis, table=None) -> list[dict]:
+    """`loop` on the target's NeedleModel, with the cup moves' start as shipped and with the cups' nodes placed
+    alone."""
     if table is None:
         t0 = time.perf_counter()
         height = float(slab_probe(slab, target.rest[None]).positions(x0)[0, 2])  # aimed as the needle-model stage
@@ -243,8 +276,10 @@ def _loop_runs(cfg, slab, x0, plan, target, params, entry, axis, table=None) -> 
     aimed = NeedlePath(np.append(entry[:2], table.height_for("loop")), axis, float(plan.depth_mm), target.rest,
                        target.name)
     shipped = insertion_run.moved_start
+    out = []
     for name, start in (("held response (shipped)", shipped),
-                        ("cups' nodes placed alone", lambda tissue, state, x, command: tissue.apply_strokes(x, command))):
+                        ("cups' nodes placed alone",
+                         lambda tissue, state, x, command: tissue.apply_strokes(x, command))):
         insertion_run.moved_start = start
         rows = []
 
@@ -266,8 +301,14 @@ def _loop_runs(cfg, slab, x0, plan, target, params, entry, axis, table=None) -> 
         print(f"loop, cup moves from the {name}: {wall:.1f} s, {r.steps} steps, miss {r.miss_mm:.3f} mm "
               f"({r.stop_reason}); load {_load()}")
         for label, m in (("with a cup move", moved), ("without", ~moved)):
-            print(f"  steps {label}: {int(m.sum())}, {t[m].sum():.1f} s ({1e3 * np.median(t[m]) if m.any() else 0:.0f} ms "
+            print(f"  steps {label}: {int(m.sum())}, {t[m].sum():.1f} s "
+                  f"({1e3 * np.median(t[m]) if m.any() else 0:.0f} ms "
                   f"median), {int(factored[m].sum())} refactorisations of the kept factor")
+        out.append({"start": name, "wall_s": wall, "steps": r.steps, "miss_mm": r.miss_mm, "stop": str(r.stop_reason),
+                    "moved_steps": int(moved.sum()), "moved_s": t[moved].sum(),
+                    "moved_refactorisations": int(factored[moved].sum()), "unmoved_steps": int((~moved).sum()),
+                    "unmoved_s": t[~moved].sum(), "unmoved_refactorisations": int(factored[~moved].sum())})
+    return out
 
 
 def _kernel_times(slab, x) -> tuple[float, dict, dict]:

@@ -31,10 +31,13 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 from scissor_cli import runtime  # noqa: E402
+
 runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
+import results_io  # noqa: E402
+
 from scissor_cli.config import load_config  # noqa: E402
+from scissor_cli.experiments.build import build_model  # noqa: E402
 from scissor_cli.layer3d.slab import SlabSpec, build_slab, slab_probe  # noqa: E402
-from scissor_cli.experiments.build import build_model
 from scissor_cli.mechanics.tissue import Tissue  # noqa: E402
 from scissor_cli.solvers.equilibrium import solve_equilibrium  # noqa: E402
 
@@ -150,6 +153,8 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="only the 37.8k and 53.0k slabs")
     ap.add_argument("--no-peer", action="store_true", help="scissor only")
     args = ap.parse_args()
+    res = results_io.Results("bench_slab", ".".join(p for p in ("quick" if args.quick else None,
+                                                                 "no-peer" if args.no_peer else None) if p) or None)
     cfg = load_config(CONFIG)
     print(f"bench_slab: example scene, slab {SPEC.height_mm:g} mm, layer at {SPEC.layer_z_mm:g} mm, "
           f"{STROKE[0]:g} mm push, both Newton to relative residual {TOL:g}; machine: {os.cpu_count()} cores, "
@@ -173,7 +178,8 @@ def main() -> None:
                     "diff_mm": float(np.abs(probe.positions(xp) - probe.positions(r.x)).max())}
         row["load"] = os.getloadavg()[0]
         rows.append(row)
-        print("  " + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()), flush=True)
+        print("  " + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()),
+              flush=True)
     print("\n tetrahedra |   free dofs |  build s | scissor s (it, factorisations, CG) | nnz(L) |  peer s (it) "
           "| peer/scissor | target diff mm | load")
     for row in rows:
@@ -181,10 +187,17 @@ def main() -> None:
         ratio = f"{row['peer_s'] / row['scissor_s']:11.1f}x" if "peer_s" in row else "           -"
         diff = f"{row['diff_mm']:.1e}" if "diff_mm" in row else "-"
         print(f" {row['tets']:10d} | {row['dofs']:11d} | {row['build_s']:8.1f} | {row['scissor_s']:9.1f} "
-              f"({row['scissor_it']:2d}, {row['factor']:2d}, {row['cg']:3d})           | {row['nnz_L_M']:5.1f}M | {peer} "
+              f"({row['scissor_it']:2d}, {row['factor']:2d}, {row['cg']:3d})           | {row['nnz_L_M']:5.1f}M | "
+              f"{peer} "
               f"| {ratio} | {diff:>14} | {row['load']:.2f}")
     print(f"goals (docs/model.md §13): peer/scissor ≥ 5x at ~50k, scissor ≤ 10 s at 100k; load average "
           f"{os.getloadavg()[0]:.2f}")
+    for row in rows:
+        if "peer_s" in row:
+            row["peer_over_scissor"] = row["peer_s"] / row["scissor_s"]
+    res.table("sizes", rows, {"build_s": "s", "scissor_s": "s", "peer_s": "s", "nnz_L_M": "million nonzeros",
+                              "diff_mm": "mm", "load": "1-minute load average", "peer_over_scissor": "ratio"})
+    res.write()
 
 
 if __name__ == "__main__":

@@ -28,12 +28,14 @@ import sys
 import time
 from pathlib import Path
 
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from scissor_cli import runtime  # noqa: E402
+
 runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
+import results_io  # noqa: E402
+
 from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.experiments.build import build_model  # noqa: E402
 from scissor_cli.experiments.layer_check_stage import ladder_cases, ladder_runner  # noqa: E402
@@ -52,6 +54,12 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=2, help="worker processes, as `simulate --jobs` (default 2)")
     ap.add_argument("--finest", type=int, metavar="CASE", help="instead: the finest slab's forward case CASE alone")
     args = ap.parse_args()
+    default = [Path(p).resolve() for p in args.configs] == DEFAULT_CONFIGS
+    res = results_io.Results("bench_slab_ladder", ".".join(p for p in (
+        None if default else "-".join(Path(p).stem for p in args.configs),
+        None if args.jobs == 2 else f"jobs{args.jobs}", "exhaustive" if args.exhaustive else None,
+        None if args.finest is None else f"finest{args.finest}") if p) or None)
+    picks = []
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"load {os.getloadavg()[0]:.2f}")
     for path in args.configs:
@@ -62,18 +70,27 @@ def main() -> None:
         spec, planes = slab_spec(lc, cfg.tissue.mesh), plane_ladder(lc, cfg.tissue.mesh)
         cases = ladder_cases(cfg, model.scene)
         if args.finest is not None:
-            finest_case(path.name, model, spec, planes, cases, args.finest)
+            picks.append(finest_case(path.name, model, spec, planes, cases, args.finest))
             continue
         t0 = time.perf_counter()
         choice = choose_slab(model, spec, cases, accuracy, planes, ladder_runner(args.jobs), args.jobs)
         wall = time.perf_counter() - t0
-        print(f"\n{path.name}: accuracy {accuracy:g} mm, {len(cases)} case(s), --jobs {args.jobs}: picked in {wall:.1f} s, "
+        print(f"\n{path.name}: accuracy {accuracy:g} mm, {len(cases)} case(s), --jobs {args.jobs}: picked in "
+              f"{wall:.1f} s, "
               f"{choice.solved} of {len(choice.candidates)} candidates solved; {choice.explain()}")
         print("| in-plane scale | levels | tetrahedra | error (mm) | forward solves (s) |")
         print("|---|---|---|---|---|")
         for c in choice.candidates:
             if c.solved:
                 print(f"| {c.in_plane_scale:g} | {c.levels} | {c.n_tetrahedra} | {c.error_mm:.4f} | {c.solve_s:.1f} |")
+        picked = choice.candidates[choice.pick]
+        picks.append({"config": path.name, "accuracy_mm": accuracy, "cases": len(cases), "jobs": args.jobs,
+                      "wall_s": wall, "solved": choice.solved, "candidates": len(choice.candidates),
+                      "pick_tetrahedra": picked.n_tetrahedra, "pick_in_plane_scale": picked.in_plane_scale,
+                      "pick_levels": picked.levels, "pick_error_mm": picked.error_mm, "load1": results_io.load1(),
+                      "solved_candidates": [{"in_plane_scale": c.in_plane_scale, "levels": c.levels,
+                                             "tetrahedra": c.n_tetrahedra, "error_mm": c.error_mm,
+                                             "solve_s": c.solve_s} for c in choice.candidates if c.solved]})
         if not args.exhaustive:
             continue
         t0 = time.perf_counter()
@@ -83,10 +100,15 @@ def main() -> None:
         best = min(within, key=lambda k: candidates[k].n_tetrahedra)
         print(f"the full ladder's pick: {candidates[best].n_tetrahedra} tetrahedra, error {true[best]:.4f} mm "
               f"({'the same' if best == choice.pick else 'NOT the same'})")
+        picks[-1].update({"full_ladder_tetrahedra": candidates[best].n_tetrahedra,
+                          "full_ladder_error_mm": true[best], "same_pick": bool(best == choice.pick)})
     print(f"\nload {os.getloadavg()[0]:.2f}")
+    res.table("ladders", picks, {"accuracy_mm": "mm", "wall_s": "s", "pick_error_mm": "mm",
+                                 "full_ladder_error_mm": "mm", "build_s": "s", "solve_s": "s"})
+    res.write()
 
 
-def finest_case(name: str, model, spec, planes, cases, case: int) -> None:
+def finest_case(name: str, model, spec, planes, cases, case: int) -> dict:
     """The finest slab (the ladder's candidate 0) built and solved at one forward case, as `solve_group` does."""
     if not 0 <= case < len(cases):
         raise SystemExit(f"--finest: the scene has forward cases 0..{len(cases) - 1}, not {case}")
@@ -98,6 +120,9 @@ def finest_case(name: str, model, spec, planes, cases, case: int) -> None:
     print(f"\n{name}: the finest slab ({slab.ops.corners.shape[1]} tetrahedra), case {case} (strokes "
           f"{cases[case].tolist()} mm): built in {built:.1f} s, solved in {r.time_s:.1f} s: {r.message}, "
           f"{r.iterations} Newton iterations, {r.factorizations} factorisations")
+    return {"config": name, "tetrahedra": slab.ops.corners.shape[1], "case": case, "build_s": built,
+            "solve_s": r.time_s, "message": r.message, "iterations": r.iterations,
+            "factorisations": r.factorizations}
 
 
 if __name__ == "__main__":

@@ -83,15 +83,19 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 from scissor_cli import runtime  # noqa: E402
+
 runtime.match_blas_kernels()  # before scissor's modules load cvxopt; threads are set in __main__
-from scissor_cli.solvers.admm.solver import AdmmSolver  # noqa: E402
+sys.path.append(os.path.dirname(os.path.abspath(__file__)))  # results_io, also when tests/ loads this file
+import results_io  # noqa: E402
+
 from scissor_cli.config import load_config  # noqa: E402
-from scissor_cli.mesh.probe import probe_targets, target_positions  # noqa: E402
-from scissor_cli.solvers.newton import solve_newton  # noqa: E402
 from scissor_cli.experiments.simulate import build_model  # noqa: E402
-from scissor_cli.solvers.common import SolverError  # noqa: E402
 from scissor_cli.experiments.study import timed  # noqa: E402
 from scissor_cli.mechanics.tissue import Tissue  # noqa: E402
+from scissor_cli.mesh.probe import probe_targets, target_positions  # noqa: E402
+from scissor_cli.solvers.admm.solver import AdmmSolver  # noqa: E402
+from scissor_cli.solvers.common import SolverError  # noqa: E402
+from scissor_cli.solvers.newton import solve_newton  # noqa: E402
 
 CONFIG = os.path.join(ROOT, "configs", "example.yaml")
 #: mesh_scale → elements of the example's graded mesh (1050 / 4016 / 15708 / 62k)
@@ -316,6 +320,7 @@ class Row:
     peer_full_time: float = np.nan
     peer_full_iters: int = 0
     peer_full_error: float = np.nan
+    load1: float = np.nan
 
 
 SOLVERS = ("newton", "admm", "admm+AA5", "peer")
@@ -451,12 +456,16 @@ def main(argv=None) -> int:
         print("scikit-fem is not installed (pip install scikit-fem); the peer cannot run", file=sys.stderr)
         return 2
     t_start = time.perf_counter()
+    variant = ".".join(p for p in ("quick" if args.quick else None, "profile" if args.profile else None,
+                                   None if args.blas_threads is None else f"blas{args.blas_threads}") if p)
+    res = results_io.Results("bench_solvers", variant or None)
     cfg = load_config(CONFIG)
     print(f"bench_solvers: {cfg.name!r}, quasi-static {STROKE[0]:g} mm push, model {cfg.material.model}; "
           f"time to relative target error ≤ {TARGET_ERROR:g} vs Newton at {REFERENCE_TOL:g}")
     print(f"machine: {machine()}")
     print(f"BLAS threads: OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}; "
-          f"load average before: {_loadavg()} (other processes on the cores slow every solver, OpenBLAS-threaded code most)")
+          f"load average before: {_loadavg()} (other processes on the cores slow every solver, OpenBLAS-threaded "
+          "code most)")
     rows = []
     scales = SCALES[:3] if args.quick else SCALES
     for scale in scales:
@@ -464,9 +473,11 @@ def main(argv=None) -> int:
         row = bench_mesh(cfg, scale, lambda s: print(s, flush=True), profile=args.profile and scale == scales[-1])
         rows.append(row)
         print(f"  load average: {_loadavg()}", flush=True)
+        row.load1 = results_io.load1()
 
     print("\nTime to relative target error ≤ 1e-3 (s, median of 5 repeats; 3 on the 64k mesh), iterations in ()")
-    head = f"{'elements':>9} | {'newton':>14} | {'admm':>14} | {'admm+AA5':>14} | {'peer (skfem)':>14} | {'peer/best':>9} | {'best':>8} | {'peer→1e-10':>14}"
+    head = (f"{'elements':>9} | {'newton':>14} | {'admm':>14} | {'admm+AA5':>14} | {'peer (skfem)':>14} | "
+            f"{'peer/best':>9} | {'best':>8} | {'peer→1e-10':>14}")
     print(head)
     print("-" * len(head))
     for r in rows:
@@ -486,7 +497,8 @@ def main(argv=None) -> int:
             + f", peer e {r.errors['peer']:.1e}; scissor Newton to 1e-10: {r.ref_time:.3f} s ({r.ref_iters} it); "
             f"peer at 1e-10 vs scissor reference: e {r.peer_full_error:.1e}")
     elements = [r.elements for r in rows]
-    print(f"\nGrowth exponent of time with elements (least-squares slope of log t vs log M over {len(rows)} sizes; goal ≤ 1.3):")
+    print(f"\nGrowth exponent of time with elements (least-squares slope of log t vs log M over {len(rows)} "
+          "sizes; goal ≤ 1.3):")
     series = {s: [r.times.get(s, np.nan) for r in rows] for s in SOLVERS}
     series["newton→1e-10"] = [r.ref_time for r in rows]
     series["peer→1e-10"] = [r.peer_full_time for r in rows]
@@ -498,8 +510,30 @@ def main(argv=None) -> int:
         print(f"  {s:13s} {growth_exponent(elements, t):5.2f} " + " ".join(f"{v:10.2f}" for v in local))
     r16 = min(rows, key=lambda r: abs(r.elements - 16_000))
     sc = min(r16.times[s] for s in SOLVERS[:3] if np.isfinite(r16.times.get(s, np.nan)))
-    print(f"\nAt {r16.elements} elements: peer / best scissor = {r16.times['peer'] / sc:.1f}x (goal ≥ 10x, docs/performance.md)")
+    print(f"\nAt {r16.elements} elements: peer / best scissor = {r16.times['peer'] / sc:.1f}x (goal ≥ 10x, "
+          "docs/performance.md)")
     print(f"total {time.perf_counter() - t_start:.0f} s; load average after: {_loadavg()}")
+    table = []
+    for r in rows:
+        ours = {s: r.times[s] for s in SOLVERS[:3] if np.isfinite(r.times.get(s, np.nan))}
+        best = min(ours, key=ours.get)
+        out = {"elements": r.elements, "nodes": r.nodes, "best": best, "peer_over_best": r.times["peer"] / ours[best],
+               "newton_1e10_s": r.ref_time, "newton_1e10_iterations": r.ref_iters,
+               "peer_1e10_s": r.peer_full_time, "peer_1e10_iterations": r.peer_full_iters,
+               "peer_1e10_error": r.peer_full_error, "load1": r.load1}
+        for s in SOLVERS:
+            out[f"{s}_s"] = r.times.get(s, np.nan)
+            out[f"{s}_iterations"] = r.iters.get(s)
+            out[f"{s}_tol"] = r.tols.get(s)
+            out[f"{s}_error"] = r.errors.get(s)
+        table.append(out)
+    res.table("sizes", table, {**{f"{s}_s": "s (to target error 1e-3)" for s in SOLVERS},
+                               "newton_1e10_s": "s", "peer_1e10_s": "s", "peer_over_best": "ratio"})
+    res.table("growth", [{"solver": s, "exponent": growth_exponent(elements, t)} for s, t in series.items()],
+              {"exponent": "slope of log t vs log elements"})
+    res.figure("peer_over_best_16k", r16.times["peer"] / sc, "ratio", elements=r16.elements, goal=">= 10")
+    res.figure("total_s", time.perf_counter() - t_start, "s")
+    res.write()
     return 0
 
 

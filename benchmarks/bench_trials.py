@@ -18,7 +18,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from scissor_cli import runtime  # noqa: E402
+
 runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
+import results_io  # noqa: E402
+
 from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.experiments.simulate import Execution, run_simulation  # noqa: E402
 from scissor_cli.output.results_sink import RunDirectory  # noqa: E402
@@ -31,6 +34,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--jobs", type=int, default=2)
     args = ap.parse_args()
+    res = results_io.Results("bench_trials", None if args.jobs == 2 else f"jobs{args.jobs}")
+    rows = []
     for profile in ("prosthesis", "ex_vivo"):
         cfg = load_config(ROOT / "configs" / f"paper_trials_{profile}.yaml")
         with tempfile.TemporaryDirectory() as tmp:
@@ -48,7 +53,18 @@ def main() -> None:
               f"95th percentile {np.percentile(a[:, 0], 95):.2f}")
         print(f"  |y| error: max {a[:, 1].max():.2f} mm (paper {py}), median {np.median(a[:, 1]):.2f}, "
               f"95th percentile {np.percentile(a[:, 1], 95):.2f}")
-        print(f"  control iterations: mean {it.mean():.1f}, max {it.max()}; corridor clear in {100 * clear.mean():.0f}% of trials")
+        print(f"  control iterations: mean {it.mean():.1f}, max {it.max()}; corridor clear in "
+              f"{100 * clear.mean():.0f}% of trials")
+        rows.append({"profile": profile, "trials": len(e), "wall_s": wall, "jobs": args.jobs,
+                     "load1": results_io.load1(),
+                     "max_x_mm": a[:, 0].max(), "paper_max_x_mm": px, "median_x_mm": np.median(a[:, 0]),
+                     "p95_x_mm": np.percentile(a[:, 0], 95), "max_y_mm": a[:, 1].max(), "paper_max_y_mm": py,
+                     "median_y_mm": np.median(a[:, 1]), "p95_y_mm": np.percentile(a[:, 1], 95),
+                     "iterations_mean": it.mean(), "iterations_max": int(it.max()),
+                     "corridor_clear_pct": 100 * clear.mean()})
+    res.table("studies", rows, {"wall_s": "s", **{k: "mm" for k in rows[0] if k.endswith("_mm")},
+                                "corridor_clear_pct": "%"})
+    res.write()
 
 
 if __name__ == "__main__":

@@ -28,12 +28,21 @@ import os
 import time
 
 import numpy as np
+import results_io
 
 from scissor_cli import runtime
+
 runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
 
 DEPTH_MM = 70.0
 LESION = np.array([0.0, 30.0])
+
+
+def stats(times) -> dict:
+    """median, p10, p90 (ms) and count of times (s), as `median_ms` prints them."""
+    t = np.asarray(times) * 1e3
+    p10, p50, p90 = np.percentile(t, [10, 50, 90])
+    return {"median_ms": p50, "p10_ms": p10, "p90_ms": p90, "n": len(t)}
 
 
 def median_ms(times) -> str:
@@ -48,6 +57,11 @@ def main() -> None:
     ap.add_argument("--simus-repeats", type=int, default=2)
     ap.add_argument("--skip-accuracy", action="store_true")
     args = ap.parse_args()
+    res = results_io.Results("bench_ultrasound", ".".join(p for p in (
+        None if args.repeats == 30 else f"repeats{args.repeats}",
+        None if args.simus_repeats == 2 else f"simus{args.simus_repeats}",
+        "skip-accuracy" if args.skip_accuracy else None) if p) or None)
+    timings = []
     print(f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}")
 
     t0 = time.perf_counter()
@@ -67,6 +81,10 @@ def main() -> None:
     lat, ax = psf.resolution_cell_mm()
     print(f"PSF build (SIMUS + fits)      : {t_psf:.2f} s;  frame tables: {t_k:.2f} s;  grid {grid.shape}, "
           f"pixels {grid.dx_mm:.3f} x {grid.dz_mm:.4f} mm; cell {lat:.3f} x {ax:.3f} mm, f-number {psf.fnumber:.2f}")
+    res.figure("psf_build_s", t_psf, "s")
+    res.figure("frame_tables_s", t_k, "s")
+    res.data("grid", {"shape": list(grid.shape), "dx_mm": grid.dx_mm, "dz_mm": grid.dz_mm, "cell_mm": [lat, ax],
+                      "fnumber": psf.fnumber, "probe": "L11-5v", "depth_mm": DEPTH_MM})
 
     region = np.array([[grid.lateral_mm[0] - 1.5, -1.0], [grid.lateral_mm[-1] + 1.5, DEPTH_MM + 1.0]])
 
@@ -89,6 +107,7 @@ def main() -> None:
             frame(sc, rng=rng)
             times.append(time.perf_counter() - t0)
         print(f"fast frame, {label:21s} : {median_ms(times)}   S = {len(sc)} scatterers, SNR 30 dB")
+        timings.append(dict(measurement=f"fast frame, {label}", scatterers=len(sc), **stats(times)))
 
     sc = draw(2)
     rng = np.random.default_rng(1)
@@ -104,12 +123,14 @@ def main() -> None:
         tracker.update(f)
         times.append(time.perf_counter() - t0)
     print(f"tracking one frame            : {median_ms(times)}")
+    timings.append(dict(measurement="tracking one frame", **stats(times)))
     times = []
     for _ in range(max(5, args.repeats // 3)):
         t0 = time.perf_counter()
         us.localise_lesion(first, grid, LESION + 0.7, 2.0)
         times.append(time.perf_counter() - t0)
     print(f"first-frame localisation      : {median_ms(times)}")
+    timings.append(dict(measurement="first-frame localisation", **stats(times)))
 
     # SIMUS on the validation patch's scatterers (the cost grows with their number)
     rng = np.random.default_rng(7)
@@ -126,16 +147,21 @@ def main() -> None:
     per = np.median(times) / n
     print(f"SIMUS frame, {n} scatterers  : {median_ms(times)}  ({per * 1e3:.2f} ms per scatterer: "
           f"a whole {len(sc)}-scatterer frame would take about {per * len(sc) / 60:.0f} min)")
-    if args.skip_accuracy:
-        return
-    accuracy(us, probe, psf, kernels, grid, draw, frame)
-    print(f"load average now {os.getloadavg()[0]:.2f}")
+    timings.append(dict(measurement=f"SIMUS, {n} scatterers", scatterers=n, **stats(times)))
+    res.figure("simus_per_scatterer_ms", per * 1e3, "ms")
+    res.figure("simus_whole_frame_min", per * len(sc) / 60, "min", scatterers=len(sc))
+    res.table("timings", timings, {"median_ms": "ms", "p10_ms": "ms", "p90_ms": "ms"})
+    if not args.skip_accuracy:
+        accuracy(us, probe, psf, kernels, grid, draw, frame, res)
+        print(f"load average now {os.getloadavg()[0]:.2f}")
+    res.write()
 
 
-def accuracy(us, probe, psf, kernels, grid, draw, frame) -> None:
+def accuracy(us, probe, psf, kernels, grid, draw, frame, res) -> None:
     """The model's and the tracker's agreement numbers (module docstring)."""
     from scissor_cli.sensing.ultrasound.simus_ref import simus_frame
 
+    rows = []
     for shift, strain, band in (((0.23, 0.17), None, 0.0), ((0.3, -0.25), np.array([[0.02, 0.01], [0.0, -0.03]]), 0.0),
                                 ((-0.15, 0.12), None, 0.5)):
         t0 = time.perf_counter()
@@ -145,6 +171,10 @@ def accuracy(us, probe, psf, kernels, grid, draw, frame) -> None:
               f"envelope correlation {v.envelope_correlation:.3f}, tracked fast {np.round(v.tracked_fast_mm, 4)} "
               f"SIMUS {np.round(v.tracked_simus_mm, 4)} -> difference {v.tracking_difference_mm * 1e3:.1f} um "
               f"({v.scatterer_count} scatterers, {time.perf_counter() - t0:.1f} s)")
+        rows.append({"shift_mm": list(shift), "strain": strain is not None, "band_mm": band,
+                     "envelope_correlation": v.envelope_correlation,
+                     "tracking_difference_um": v.tracking_difference_mm * 1e3, "scatterers": v.scatterer_count})
+    res.table("fast_vs_simus", rows, {"shift_mm": "mm", "band_mm": "mm", "tracking_difference_um": "µm"})
 
     rows = (grid.depth_mm > 15) & (grid.depth_mm < 55)
     cols = np.abs(grid.lateral_mm) < 12
@@ -156,6 +186,8 @@ def accuracy(us, probe, psf, kernels, grid, draw, frame) -> None:
             r.append(e.mean() / e.std())
         print(f"envelope mean/std, {per_cell:2d} scatterers per cell: {np.mean(r):.3f} "
               f"(Rayleigh {math.sqrt(math.pi / (4 - math.pi)):.3f})")
+        res.figure(f"envelope_mean_over_std_{per_cell}", np.mean(r), "ratio", scatterers_per_cell=per_cell,
+                   rayleigh=math.sqrt(math.pi / (4 - math.pi)))
 
     for c_t in (1450.0, 1540.0):
         env = us.fast_frame(kernels, np.zeros(1), np.array([50.0]), np.zeros(1), np.ones(1), c_t)
@@ -163,6 +195,8 @@ def accuracy(us, probe, psf, kernels, grid, draw, frame) -> None:
         ref = simus_frame(probe, sub, np.zeros(1), np.array([50.0]), np.zeros(1), np.ones(1), c_t, 1540.0)
         print(f"time of flight, tissue {c_t:.0f} m/s, point at 50 mm: expected {50 * 1540 / c_t:.3f} mm, "
               f"fast {_peak(env, grid.depth_mm):.3f} mm, SIMUS {_peak(ref, sub.depth_mm):.3f} mm")
+        res.figure(f"time_of_flight_{c_t:.0f}", _peak(env, grid.depth_mm), "mm", expected=50 * 1540 / c_t,
+                   simus=_peak(ref, sub.depth_mm))
 
     sc = draw(20)
     rng = np.random.default_rng(3)
@@ -172,6 +206,7 @@ def accuracy(us, probe, psf, kernels, grid, draw, frame) -> None:
         d, _ = us.block_match(ref, frame(sc, sc.positions_mm + shift, rng), grid, LESION)
         errs.append(np.hypot(*(d - shift)))
     print(f"rigid sub-pixel shifts: tracking error max {max(errs) * 1e3:.1f} um over 5 directions")
+    res.figure("rigid_tracking_error_max_um", max(errs) * 1e3, "µm")
     c = LESION
 
     def affine(p, t):
@@ -192,6 +227,7 @@ def accuracy(us, probe, psf, kernels, grid, draw, frame) -> None:
             p95.append(np.percentile(e, 95))
         print(f"20-frame {name} sequence (lesion moves {np.hypot(*(field(c[None], 1.0)[0] - c)):.1f} mm): "
               f"accumulated error p95 {np.round(np.array(p95) * 1e3, 1)} um (3 seeds)")
+        res.figure(f"sequence_{name.split()[-1].lower()}_p95_um", np.array(p95) * 1e3, "µm (per seed)")
 
     errs = []
     for seed in range(12):
@@ -201,6 +237,8 @@ def accuracy(us, probe, psf, kernels, grid, draw, frame) -> None:
         errs.append(np.hypot(*(us.localise_lesion(env, grid, true + rr.uniform(-1.5, 1.5, 2), 2.0) - true)))
     print(f"localisation, -10 dB lesion of 2 mm, 12 draws: rms {np.sqrt(np.mean(np.square(errs))) * 1e3:.0f} um, "
           f"max {max(errs) * 1e3:.0f} um")
+    res.figure("localisation_rms_um", np.sqrt(np.mean(np.square(errs))) * 1e3, "µm")
+    res.figure("localisation_max_um", max(errs) * 1e3, "µm")
 
 
 def _peak(env: np.ndarray, depth_mm: np.ndarray) -> float:

@@ -17,7 +17,7 @@ Default CONFIG: configs/example_full.yaml; the paper's scene is
 configs/paper_trials_prosthesis_slab.yaml (its slab grading is chosen by
 accuracy in each variant's run, about 4 min each). `--localisation 0` takes
 the profile's localisation error out (what is left is the loop's own); `--accuracy-mm 0.1` lets a config
-that pins its slab (example_full.yaml) run on the slab its ladder picks. The `slab` rows steer with the
+that pins its slab (`accuracy_mm: null`) run on the slab its ladder picks. The `slab` rows steer with the
 nominal slab itself (the reference: one slab solve per control iteration). A slab-truth trial takes about
 3 s on the paper scene's picked slab (a minute on a pinned 128k one); a surrogate is trained once and cached in
 DIR/.scissor-cache.
@@ -31,6 +31,7 @@ import sys
 import time
 from pathlib import Path
 
+import results_io
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -74,6 +75,15 @@ def main() -> None:
     ap.add_argument("--profile", default=None, help="override trials.profile")
     ap.add_argument("--out", default=str(ROOT / "runs" / "controller-models"))
     args = ap.parse_args()
+    stem = Path(args.config).stem
+    res = results_io.Results("compare_controller_models", ".".join(p for p in (
+        None if stem == "example_full" else stem, None if args.trials == 6 else f"trials{args.trials}",
+        "reachable" if args.reachable else None, "only-" + "-".join(args.only) if args.only else None,
+        None if args.localisation is None else f"localisation{args.localisation:g}",
+        None if args.accuracy_mm is None else f"accuracy{args.accuracy_mm:g}",
+        None if args.stop_frames is None else f"stop{args.stop_frames}", "needle" if args.needle else None,
+        None if args.profile is None else args.profile) if p) or None)
+    walls = {}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     scene = yaml.safe_load(Path(args.config).read_text())
@@ -86,11 +96,46 @@ def main() -> None:
         path.write_text(yaml.safe_dump(variant(scene, model, update, args), sort_keys=False))
         t0 = time.perf_counter()
         r = subprocess.run([sys.executable, "-m", "scissor_cli", "simulate", str(path), "--trials", str(args.trials),
-                            "--jobs", str(args.jobs), "--out", str(out / name), "--force"])
+                            "--jobs", str(args.jobs), "--out", str(out / name), "--force"],
+                           env=results_io.subprocess_env())
         print(f"{name}: exit {r.returncode} in {time.perf_counter() - t0:.0f} s", flush=True)
+        walls[name] = {"variant": name, "exit": r.returncode, "wall_s": time.perf_counter() - t0,
+                       "load1": results_io.load1()}
         if r.returncode == 0:
             runs.append(str(out / name))
-    subprocess.run([sys.executable, "-m", "scissor_cli", "report", *runs, "--out", str(out / "report")], check=False)
+    subprocess.run([sys.executable, "-m", "scissor_cli", "report", *runs, "--out", str(out / "report")], check=False,
+                   env=results_io.subprocess_env())
+    record(res, runs, list(walls.values()))
+    res.write()
+
+
+def record(res: results_io.Results, runs: list[str], walls: list[dict]) -> None:
+    """The report's summary rows (per run and target), the runs' wall times and, per model kind, the target paths
+    that `controller_models.png` draws (what docs/img/controller_models_*.png are drawn from)."""
+    import h5py  # noqa: PLC0415
+
+    sys.path.insert(0, str(ROOT))
+    from scissor_cli.output.controller_model import read_paths  # noqa: PLC0415
+    from scissor_cli.output.report import load_run, summary_rows  # noqa: PLC0415
+
+    res.table("runs", walls, {"wall_s": "s"})
+    rows = summary_rows([load_run(Path(r), True) for r in runs])
+    res.table("summary", rows, {"time_per_iteration_s": "s", "model_build_s": "s", "time_s_mean": "s",
+                                "corridor_clear_pct": "%", **{k: "mm" for k in (
+                                    "mean_x", "median_x", "max_x", "p95_x", "mean_y", "median_y", "max_y", "p95_y",
+                                    "miss_median", "miss_p95", "miss_max", "along_median_abs", "model_error_mm",
+                                    "plan_model_error_mm")}})
+    paths, scene = {}, ""
+    for r in runs:
+        with h5py.File(Path(r) / "results.h5", "r") as f:
+            p = read_paths(f)
+            scene = str(f.attrs.get("config_yaml", ""))
+        if p is not None and p.kind not in paths:
+            paths[p.kind] = {"kind": p.kind, "cup_names": list(p.cup_names), "target_names": list(p.target_names),
+                             "strokes": p.strokes, "model": p.model, "layer": p.layer, "slab_strokes": p.slab_strokes,
+                             "slab": p.slab, "rest": p.rest}
+    title = next((line.split(":", 1)[1].strip() for line in scene.splitlines() if line.startswith("name:")), "scene")
+    res.data("model_paths", {"title": title, "paths": list(paths.values())})
 
 
 if __name__ == "__main__":

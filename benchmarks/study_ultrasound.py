@@ -28,6 +28,7 @@ import sys
 import time
 from pathlib import Path
 
+import results_io
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -35,7 +36,8 @@ CONFIGS = ROOT / "configs"
 
 
 def pairs(out: Path, budget: bool) -> dict[str, tuple[Path, Path, list[str]]]:
-    """{study: (camera config, ultrasound config, extra options)}; the example's pair with its budget only if `budget`."""
+    """{study: (camera config, ultrasound config, extra options)}; the example's pair with its budget only if
+    `budget`."""
     example = yaml.safe_load((CONFIGS / "example_ultrasound.yaml").read_text())
     example["trials"]["budget"] = budget  # (the shipped file asks for it: its rows rerun every slab trial)
     ultrasound_twin = out / "example_ultrasound.yaml"
@@ -57,7 +59,8 @@ def run(config: Path, out: Path, trials: int, extra: list[str]) -> tuple[float, 
     """(wall time s, the trials' time s from the run's own message)."""
     t0 = time.perf_counter()
     r = subprocess.run([sys.executable, "-m", "scissor_cli", "simulate", str(config), "--jobs", "2", "--trials",
-                        str(trials), "--out", str(out), "--force", *extra], capture_output=True, text=True)
+                        str(trials), "--out", str(out), "--force", *extra], capture_output=True, text=True,
+                       env=results_io.subprocess_env())
     wall = time.perf_counter() - t0
     if r.returncode != 0:
         print(r.stderr[-3000:])
@@ -73,6 +76,10 @@ def main() -> None:
     ap.add_argument("--budget", action="store_true", help="the example's pair with its budget too")
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "study-ultrasound")
     args = ap.parse_args()
+    res = results_io.Results("study_ultrasound", ".".join(p for p in (
+        None if args.trials == 30 else f"trials{args.trials}", "only-" + "-".join(args.only) if args.only else None,
+        "budget" if args.budget else None) if p) or None)
+    timings = []
     args.out.mkdir(parents=True, exist_ok=True)
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"load {os.getloadavg()[0]:.2f}", flush=True)
@@ -87,11 +94,38 @@ def main() -> None:
             dirs.append(str(out))
             print(f"{name} {sensor}: {times[sensor][0] / 60:.1f} min in all, trials {times[sensor][1]:.0f} s "
                   f"(load {os.getloadavg()[0]:.2f})", flush=True)
+            timings.append({"study": name, "sensor": sensor, "config": config.name, "wall_s": times[sensor][0],
+                            "trials_s": times[sensor][1], "load1": results_io.load1(), "run": out.name})
         print(f"{name}: ultrasound / camera = {times['ultrasound'][0] / times['camera'][0]:.2f} in all, "
               f"{times['ultrasound'][1] / times['camera'][1]:.2f} for the trials", flush=True)
     r = subprocess.run([sys.executable, "-m", "scissor_cli", "report", *dirs, "--out", str(args.out / "report")],
                        capture_output=True, text=True)
     print(r.stdout[-6000:])
+    record(res, dirs, timings)
+    res.write()
+
+
+def record(res: results_io.Results, dirs: list[str], timings: list[dict]) -> None:
+    """Each run's times, the report's summary and sensor rows, and each budget's rows."""
+    import h5py  # noqa: PLC0415
+
+    sys.path.insert(0, str(ROOT))
+    from scissor_cli.output.error_budget import results as budget_results  # noqa: PLC0415
+    from scissor_cli.output.imaging.report import sensor_rows  # noqa: PLC0415
+    from scissor_cli.output.report import load_run, summary_rows  # noqa: PLC0415
+
+    res.table("runs", timings, {"wall_s": "s", "trials_s": "s"})
+    res.table("summary", summary_rows([load_run(Path(d), True) for d in dirs]),
+              {k: "mm" for k in ("median_x", "max_x", "p95_x", "median_y", "max_y", "p95_y", "miss_median",
+                                 "miss_p95", "miss_max")})
+    res.table("sensors", [dict(row, run=Path(d).name) for d in dirs for row in sensor_rows(Path(d).name,
+                                                                                         Path(d) / "results.h5")])
+    budgets = []
+    for d in dirs:
+        with h5py.File(Path(d) / "results.h5", "r") as f:
+            rows = budget_results.budget_rows(budget_results.read_budget(f))
+            budgets += [dict(row, run=Path(d).name) for row in rows]
+    res.table("budget", budgets, {k: "mm" for k in budgets[0] if k.endswith("_mm")} if budgets else {})
 
 
 if __name__ == "__main__":

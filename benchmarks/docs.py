@@ -1,0 +1,1188 @@
+"""Regenerate docs/performance.md's tables and docs/img's images from the benchmarks' results (issue 54).
+
+    python3 benchmarks/docs.py                 # every generated table, then every image
+    python3 benchmarks/docs.py --tables-only   # the tables (reads benchmarks/results/*.json; seconds)
+    python3 benchmarks/docs.py --images-only   # the images (runs scissor on shipped configs: minutes)
+    python3 benchmarks/docs.py --result-images # only the images drawn from result files (seconds)
+    python3 benchmarks/docs.py --check         # exit 1 when a committed table differs from what this would write,
+                                               # or docs/img's file names differ from the images it writes
+    python3 benchmarks/docs.py --list          # every file it writes
+
+Tables. A doc (docs/*.md, README.md) holds
+
+    <!-- generated: NAME -->
+    ...
+    <!-- end generated -->
+
+and NAME is a renderer below (`@renderer("NAME", "result", ...)`), which reads the result files
+benchmarks/results/<result>.json that the benchmarks write (benchmarks/results_io.py) and returns the Markdown
+between the markers: the table and a line naming its source (file, command, date, machine, load). A result
+file that is missing renders as a sentence naming the command that writes it, never as a number.
+
+Images. Each file of docs/img comes from one source in IMAGES: either drawn by scissor's own figure function
+from a result file's data (the benchmarks that take too long to run here: the controller models' target paths,
+the slab-truth budget), or copied from a `scissor simulate` / `scissor report` run of a shipped config in a
+temporary folder (`--images-only` runs them; their figures are also saved as benchmarks/results/docs_scenes.json,
+which the tables of those scenes read). `--check` never runs a simulation: it compares the tables as text and the
+images by name only (a PNG differs between machines).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import results_io
+
+ROOT = results_io.ROOT
+DOCS = ROOT / "docs"
+IMG = DOCS / "img"
+RESULTS = results_io.RESULTS_DIR
+#: the docs scanned for generated blocks
+DOC_FILES = [ROOT / "README.md", *sorted(DOCS.glob("*.md"))]
+BEGIN = re.compile(r"<!-- generated: ([a-z0-9_]+) -->\n")
+END = "<!-- end generated -->"
+
+# ---------------------------------------------------------------------------------------------------- helpers
+
+
+def load(name: str) -> dict | None:
+    """benchmarks/results/<name>.json; NAME may list alternatives, 'a|b': the first that exists."""
+    for one in name.split("|"):
+        path = RESULTS / f"{one}.json"
+        if path.is_file():
+            return json.loads(path.read_text())
+    return None
+
+
+class Missing(Exception):
+    """A result file a renderer needs is not there (the benchmark has not been run)."""
+
+    def __init__(self, name: str):
+        super().__init__(name)
+        self.name = name
+
+
+def need(name: str) -> dict:
+    r = load(name)
+    if r is None:
+        raise Missing(name.split("|")[0])
+    return r
+
+
+#: the command that writes each result file (what a missing one's sentence names)
+COMMANDS = {
+    "bench_forward": "python3 benchmarks/bench_forward.py",
+    "bench_hard_cases": "python3 benchmarks/bench_hard_cases.py",
+    "bench_control": "python3 benchmarks/bench_control.py",
+    "bench_control.table": "python3 benchmarks/bench_control.py --table",
+    "bench_control.models": "python3 benchmarks/bench_control.py configs/example_full.yaml --models",
+    "bench_workspace": "python3 benchmarks/bench_workspace.py",
+    "bench_solvers": "python3 benchmarks/bench_solvers.py",
+    "bench_trials": "python3 benchmarks/bench_trials.py",
+    "bench_insertion": "python3 benchmarks/bench_insertion.py",
+    "bench_insertion3d": "python3 benchmarks/bench_insertion3d.py",
+    "bench_needle_3d": "python3 benchmarks/bench_needle_3d.py",
+    "bench_needle_3d.full": "python3 benchmarks/bench_needle_3d.py --full",
+    "bench_slab": "python3 benchmarks/bench_slab.py",
+    "bench_slab.quick": "python3 benchmarks/bench_slab.py --quick",
+    "bench_slab.no-peer": "python3 benchmarks/bench_slab.py --no-peer",
+    "bench_slab_ladder": "python3 benchmarks/bench_slab_ladder.py",
+    "bench_slab_truth.trial": "python3 benchmarks/bench_slab_truth.py --trial",
+    "bench_dask_slab": "python3 benchmarks/bench_dask_slab.py",
+    "bench_ultrasound": "python3 benchmarks/bench_ultrasound.py",
+    "bench_ultrasound_loop": "python3 benchmarks/bench_ultrasound_loop.py",
+    "study_ultrasound": "python3 benchmarks/study_ultrasound.py",
+    "compare_controller_models.accuracy0.1": "python3 benchmarks/compare_controller_models.py --accuracy-mm 0.1",
+    "compare_controller_models.paper_trials_prosthesis_slab":
+        "python3 benchmarks/compare_controller_models.py configs/paper_trials_prosthesis_slab.yaml",
+    "docs_scenes": "python3 benchmarks/docs.py --images-only",
+    "friction_law_before": "python3 benchmarks/bench_friction_law.py --label before (on the earlier law's checkout)",
+    "friction_law_after": "python3 benchmarks/bench_friction_law.py --label after",
+}
+
+
+def command(name: str) -> str:
+    return COMMANDS.get(name, f"python3 benchmarks/{name.split('.')[0]}.py")
+
+
+def missing_text(name: str) -> str:
+    return (f"*Not measured yet: `PYTHONPATH=. {command(name)}` writes `benchmarks/results/{name}.json`; "
+            f"then `python3 benchmarks/docs.py --tables-only`.*")
+
+
+def num(v, digits: int = 2) -> str:
+    """A number with `digits` significant digits at most, plain notation where it reads well; '–' for None."""
+    if v is None:
+        return "–"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, int):
+        return f"{v:,}".replace(",", " ") if abs(v) >= 10_000 else str(v)
+    v = float(v)
+    if v == 0:
+        return "0"
+    if abs(v) < 1e-3 or abs(v) >= 1e6:
+        return f"{v:.{max(digits - 1, 0)}e}"
+    text = f"{v:.{digits}g}"
+    if "e" in text:  # e.g. 1.2e+02 at 2 digits: write it out
+        text = f"{v:.0f}"
+    return text
+
+
+def fixed(v, decimals: int = 2) -> str:
+    return "–" if v is None else f"{float(v):.{decimals}f}"
+
+
+def table(header: list[str], rows: list[list]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def source(*results: dict) -> str:
+    """The line under a table: which file, command, when, on what, under which load."""
+    parts = []
+    for r in results:
+        name = r["benchmark"] + (f".{r['variant']}" if r.get("variant") else "")
+        c = r["commit"]
+        commit = (c.get("head") or "?")[:7] + (" + changes" if c.get("dirty") else "")
+        m = r["machine"]
+        parts.append(f"`benchmarks/results/{name}.json`: `{r['command']}`, {r['date'][:16].replace('T', ' ')} UTC, "
+                     f"{m['cpu']} ({m['cores']} cores), load {r['load1_before']:.2f} → {r['load1_after']:.2f}, "
+                     f"{num(r.get('wall_s'), 3)} s, commit {commit}")
+    return "Source: " + "; ".join(parts) + "."
+
+
+def fig(r: dict, key: str):
+    f = r["figures"].get(key)
+    return None if f is None else f["value"]
+
+
+def rows_of(r: dict, key: str) -> list[dict]:
+    return r["tables"].get(key, {}).get("rows", [])
+
+
+RENDERERS: dict[str, tuple] = {}
+#: the ultrasound study: the whole one, else the paper scene's two pairs (`--only paper-layer paper-slab`)
+STUDY = "study_ultrasound|study_ultrasound.only-paper-layer-paper-slab"
+
+
+def renderer(name: str, *results: str):
+    """Register fn(*result dicts) -> Markdown as the renderer NAME reading the named result files."""
+    def wrap(fn):
+        RENDERERS[name] = (fn, results)
+        return fn
+    return wrap
+
+
+def render(name: str) -> str:
+    fn, results = RENDERERS[name]
+    try:
+        return fn(*[need(r) for r in results]).strip("\n")
+    except Missing as exc:
+        return missing_text(exc.name)
+
+
+# ---------------------------------------------------------------------------------------------------- renderers
+
+
+@renderer("provenance")
+def _provenance() -> str:
+    """The machines the result files were measured on: one row per CPU, cores and versions, with the files' dates
+    and loads; each table's own source line names its file's."""
+    groups: dict[tuple, list[dict]] = {}
+    other = []
+    for path in sorted(RESULTS.glob("*.json")):
+        r = json.loads(path.read_text())
+        if not {"benchmark", "commit", "machine", "load1_before", "load1_after"} <= set(r):
+            other.append(f"`{path.name}`")  # written by a script that does not use results_io
+            continue
+        key = (r["machine"]["cpu"], r["machine"]["cores"], r["machine"].get("system", ""),
+               r["versions"].get("python"), r["versions"].get("numpy"))
+        groups.setdefault(key, []).append(r)
+    if not groups:
+        return "*No result files yet: run the benchmarks (each script's docstring says how long it takes).*"
+    rows = []
+    for (cpu, cores, system, python, numpy_), rs in groups.items():
+        dates = sorted(r["date"][:16].replace("T", " ") for r in rs)
+        loads = [x for r in rs for x in (r["load1_before"], r["load1_after"])]
+        dirty = sum(1 for r in rs if r["commit"].get("dirty"))
+        rows.append([f"{cpu}, {cores} cores, {system}", f"{python} / {numpy_}", len(rs),
+                     f"{dates[0]} – {dates[-1]}", f"{min(loads):.2f}–{max(loads):.2f}",
+                     f"{dirty} of {len(rs)}" if dirty else "none"])
+    note = "" if not other else (f" Not written through `results_io` (no machine or load recorded): "
+                                 f"{', '.join(other)}.")
+    return table(["machine", "python / numpy", "result files", "dates (UTC)", "load (1 min) at start and end",
+                  "with uncommitted changes"], rows) + "\n\n" + (
+        "Each table's source line gives its file's command, date, load before and after, wall time and commit."
+        + note)
+
+
+def _goal_rows() -> list[list]:
+    """(goal, now, met, result file) for every speed goal whose benchmark has a result."""
+    out = []
+
+    def add(goal: str, name: str, fn):
+        r = load(name)
+        if r is None:
+            out.append([goal, "not measured yet", "–", f"`{name.split('|')[0]}`"])
+            return
+        try:
+            now, met = fn(r)
+        except (KeyError, IndexError, TypeError, ValueError, StopIteration):
+            now, met = "not in the result", None
+        which = r["benchmark"] + (f".{r['variant']}" if r.get("variant") else "")
+        out.append([goal, now, "–" if met is None else ("yes" if met else "**no**"), f"`{which}`"])
+
+    def control(scene):
+        def fn(r):
+            row = next(x for x in rows_of(r, "corrective_iteration") if x["scene"] == scene)
+            return f"{fixed(row['iteration_ms'], 1)} ms", row["iteration_ms"] <= 10
+        return fn
+
+    add("corrective control iteration, truth ≠ model, 1 cup ≤ 10 ms", "bench_control.table", control("example"))
+    add("the same, 2 cups ≤ 10 ms", "bench_control.table", control("two_cups"))
+    add("manipulation-point search ≤ 0.5 s", "bench_control.table",
+        lambda r: (f"{num(fig(r, 'grip_search_ms'), 2)} ms ({fig(r, 'grip_candidates')} candidates)",
+                   fig(r, "grip_search_ms") <= 500))
+
+    def newton_push10(r):
+        row = next(x for x in rows_of(r, "solves") if x["case"] == "push10" and x["solver"] == "newton")
+        return f"{fixed(row['ms'], 0)} ms", row["ms"] <= 100
+
+    def admm_per_element(r):
+        v = max(x["us_per_element_iteration"] for x in rows_of(r, "solves") if x["mode"] == "settled")
+        return f"≤ {fixed(v, 2)} µs", v <= 5
+
+    add("Newton on `push10` ≤ 0.1 s", "bench_forward", newton_push10)
+    add("an ADMM iteration ≤ 5 µs per element", "bench_forward", admm_per_element)
+    add("one insertion step (0.5 mm) ≤ 10 ms", "bench_insertion",
+        lambda r: (f"{fixed(fig(r, 'step_median_ms'), 1)} ms", fig(r, "step_median_ms") <= 10))
+    add("50 mm insertion in 0.5 mm steps ≤ 1 s", "bench_insertion",
+        lambda r: (f"{fixed(fig(r, 'insertion_s'), 2)} s", fig(r, "insertion_s") <= 1))
+    add("2-D Newton ≥ 10× scikit-fem at 16k elements", "bench_solvers",
+        lambda r: (f"{fixed(fig(r, 'peer_over_best_16k'), 1)}×", fig(r, "peer_over_best_16k") >= 10))
+    add("time ∝ elements^p, p ≤ 1.3 (Newton)", "bench_solvers",
+        lambda r: (fixed(next(x["exponent"] for x in rows_of(r, "growth") if x["solver"] == "newton"), 2),
+                   next(x["exponent"] for x in rows_of(r, "growth") if x["solver"] == "newton") <= 1.3))
+
+    def slab_ratio(r):
+        row = min(rows_of(r, "sizes"), key=lambda x: abs(x["tets"] - 50_000))
+        return f"{fixed(row['peer_over_scissor'], 1)}× ({num(row['tets'])} tetrahedra)", row["peer_over_scissor"] >= 5
+
+    def slab_100k(r):
+        row = min(rows_of(r, "sizes"), key=lambda x: abs(x["tets"] - 100_000))
+        return f"{fixed(row['scissor_s'], 1)} s ({num(row['tets'])} tetrahedra)", row["scissor_s"] <= 10
+
+    add("3-D Newton ≥ 5× scikit-fem at ~50k tetrahedra", "bench_slab.quick", slab_ratio)
+    add("3-D Newton ≤ 10 s at 100k tetrahedra", "bench_slab.no-peer", slab_100k)
+    add("one slab-truth settle ≤ 0.3 s (median of a replayed loop)", "bench_slab_truth.trial",
+        lambda r: (f"{fixed(fig(r, 'settle_median_s'), 2)} s", fig(r, "settle_median_s") <= 0.3))
+    add("one slab-truth trial ≤ 10 s", "bench_slab_truth.trial",
+        lambda r: (f"{fixed(fig(r, 'trial_s'), 1)} s", fig(r, "trial_s") <= 10))
+
+    def dask(r):
+        rows = rows_of(r, "executors")
+        dask_rows = [x for x in rows if x["executor"].startswith("Dask")]
+        falls = dask_rows[1]["trials_s"] < dask_rows[0]["trials_s"]
+        same = all(x["identical"] for x in rows)
+        return (" / ".join(fixed(x["trials_s"], 1) for x in dask_rows) + " s, " +
+                ("bit-identical" if same else "NOT identical")), falls and same
+
+    add("slab-truth trials on Dask (1 / 2 / 4 workers): time falls, results bit-identical", "bench_dask_slab", dask)
+
+    def insertion3d(r):
+        row = next(x for x in rows_of(r, "precisions") if x["precision"] == "float32")
+        return f"{fixed(row['insertion_s'], 1)} s ({num(r['data']['scene']['tetrahedra'])} tetrahedra)", \
+            row["insertion_s"] <= 30
+
+    add("50 mm insertion in 0.5 mm steps in the slab ≤ 30 s", "bench_insertion3d", insertion3d)
+
+    def surrogate(r):
+        row = next(x for x in rows_of(r, "models") if x["model"] == "surrogate")
+        return (f"{fixed(row['build_s'], 1)} s" + (" (cached)" if row["cached"] else "")
+                + f" ({num(r['data']['scene']['tetrahedra'])} tetrahedra)", row["build_s"] <= 60)
+
+    add("the surrogate trained ≤ 60 s, 2 cores", "bench_control.models", surrogate)
+    add("the controller's side of an iteration ≤ 10 ms (layer, calibrated, surrogate)", "bench_control.models",
+        lambda r: (" / ".join(f"{fixed(x['iteration_ms'], 2)}" for x in rows_of(r, "models") if x["model"] != "slab")
+                   + " ms", all(x["iteration_ms"] <= 10 for x in rows_of(r, "models") if x["model"] != "slab")))
+    add("the slab's ladder ≤ 60 s on the paper scenes, `--jobs 2`", "bench_slab_ladder",
+        lambda r: (", ".join(f"{x['config'].removesuffix('.yaml')} {fixed(x['wall_s'], 1)} s"
+                             for x in rows_of(r, "ladders")), all(x["wall_s"] <= 60 for x in rows_of(r, "ladders"))))
+    add("a 4 × 30 layer study ≤ 60 s", "bench_trials",
+        lambda r: (" / ".join(f"{x['profile']} {fixed(x['wall_s'], 1)} s" for x in rows_of(r, "studies")),
+                   all(x["wall_s"] <= 60 for x in rows_of(r, "studies"))))
+    add("the workspace, 10⁶ samples ≤ 5 s", "bench_workspace",
+        lambda r: (f"{fixed(fig(r, 'median_s'), 2)} s", fig(r, "median_s") <= 5))
+
+    def needle_run(run, goal_s):
+        def fn(r):
+            row = next(x for x in rows_of(r, "runs") if x["run"] == run)
+            return f"{fixed(row['wall_s'] / 60, 1)} min", row["exit"] == 0 and row["wall_s"] <= goal_s
+        return fn
+
+    add("`layer_check: {}`, slab truth, the needle, 2 trials per target: `simulate --jobs 2` ≤ 10 min",
+        "bench_needle_3d", needle_run("default-slab", 600))
+    add("`configs/example_3d.yaml` end to end ≤ 10 min", "bench_needle_3d.full", needle_run("example_3d", 600))
+
+    def us(measurement, goal_ms):
+        def fn(r):
+            row = next(x for x in rows_of(r, "timings") if x["measurement"].startswith(measurement))
+            return f"{fixed(row['median_ms'], 2)} ms", row["median_ms"] <= goal_ms
+        return fn
+
+    add("one ultrasound frame (L11-5v, 70 mm, in the plane) ≤ 20 ms", "bench_ultrasound", us("fast frame, in-plane",
+                                                                                             20))
+    add("the same with a ±1 mm elevation band ≤ 20 ms", "bench_ultrasound", us("fast frame, elevation", 20))
+    add("its tracking ≤ 5 ms", "bench_ultrasound", us("tracking one frame", 5))
+
+    def study(r):
+        runs = {(x["study"], x["sensor"]): x for x in rows_of(r, "runs")}
+        ratio = runs[("paper-slab", "ultrasound")]["trials_s"] / runs[("paper-slab", "camera")]["trials_s"]
+        return f"{fixed(ratio, 2)}× (trials)", ratio <= 2
+
+    add("a 4 × 30 slab-truth study with ultrasound ≤ 2× the camera's", STUDY, study)
+    return out
+
+
+@renderer("goals")
+def _goals() -> str:
+    return table(["goal", "now", "met", "result file"], _goal_rows()) + "\n\n" + (
+        "Each row's file in `benchmarks/results/` has the command, date, machine and load "
+        "([How these were measured](#how-these-were-measured)).")
+
+
+@renderer("forward", "bench_forward")
+def _forward(r) -> str:
+    rows = rows_of(r, "solves")
+    out = []
+    for case in dict.fromkeys(x["case"] for x in rows):
+        def get(solver, mode, case=case):
+            return next((x for x in rows if x["case"] == case and x["solver"] == solver and x["mode"] == mode), None)
+        n = get("newton", "cold")
+        a, aa = get("admm", "settled"), get("admm+AA(5)", "settled")
+        ac = get("admm", "cold")
+        w = get("admm", "warm+0.05")
+        out.append([case, f"{n['iterations']} it, {fixed(n['ms'], 0)} ms",
+                    f"{a['iterations']} it, {fixed(a['ms'], 0)} ms ({fixed(a['us_per_element_iteration'], 2)} "
+                    "µs/element/it)",
+                    f"{aa['iterations']} it, {fixed(aa['ms'], 0)} ms",
+                    f"{ac['iterations']} it, {fixed(ac['ms'], 0)} ms",
+                    f"{w['iterations']} it (from scratch {w['iterations_from_scratch']})", num(a["error_rel"], 2)])
+    s = r["data"]["scene"]
+    return (table(["case", "Newton (tol 1e-10)", f"ADMM settled (tol {num(s['admm_tol'])})", "ADMM + Anderson(5) "
+                                                                                             "settled",
+                   "ADMM cold (with its weight boosts)", "ADMM warm, 0.05 mm on", "ADMM vs Newton (rel. L2)"], out)
+            + f"\n\nThe scene: {num(s['elements'])} triangles, {num(s['nodes'])} nodes, model `{s['model']}`; "
+              f"median of {s['repeats']} repeats.\n\n" + source(r))
+
+
+@renderer("hard_cases", "bench_hard_cases")
+def _hard_cases(r) -> str:
+    rows = rows_of(r, "solves")
+    out = []
+    for case in dict.fromkeys(x["case"] for x in rows):
+        cells = [case.replace("_", " "), num(rows[[x["case"] for x in rows].index(case)]["elements"])]
+        for solver in ("newton", "admm", "admm+anderson"):
+            xs = [x for x in rows if x["case"] == case and x["solver"] == solver]
+            its = " / ".join("–" if x["iterations"] is None else str(x["iterations"]) for x in xs)
+            ts = " / ".join("–" if x["time_s"] is None else fixed(x["time_s"], 2) for x in xs)
+            ok = "" if all(x["converged"] for x in xs) else " (not all converged)"
+            cells.append(f"{its} it, {ts} s{ok}")
+        out.append(cells)
+    return (table(["case (configs/hard/)", "elements", "Newton", "ADMM", "ADMM + Anderson"], out)
+            + "\n\nEach cell: the config's forward cases in its order, separated by /; iterations and wall time of "
+              "one solve.\n\n" + source(r))
+
+
+@renderer("control", "bench_control.table")
+def _control(r) -> str:
+    out = [[x["scene"], x["cups"], f"{fixed(x['iteration_ms'], 1)} ms",
+            f"{fixed(x['truth_steps'], 2)} + {fixed(x['model_steps'], 2)}",
+            f"{fixed(x['truth_factorisations'], 2)} + {fixed(x['model_factorisations'], 2)}"]
+           for x in rows_of(r, "corrective_iteration")]
+    return (table(["scene", "cups", "corrective iteration (median)", "chord/Newton steps, truth + model",
+                   "factorisations, truth + model"], out)
+            + f"\n\nThe manipulation-point search: {fig(r, 'grip_candidates')} candidates in "
+              f"{fixed(fig(r, 'grip_search_ms'), 0)} ms (adjoints and ranking); its verification "
+              f"(3 re-meshed full solves) {fixed(fig(r, 'grip_verify_ms'), 0)} ms.\n\n" + source(r))
+
+
+@renderer("control_loop", "bench_control")
+def _control_loop(r) -> str:
+    out = []
+    for x in rows_of(r, "iterations"):
+        its = x.get("iterations_per_run")
+        out.append([x["measurement"], f"{fixed(x['median_ms'], 1)} ms",
+                    f"{fixed(x['p10_ms'], 1)}–{fixed(x['p90_ms'], 1)}",
+                    x["n"], "–" if not its else f"{its[0]}–{its[1]}"])
+    s = r["data"]["scene"]
+    return (table(["measurement", "median", "p10–p90 (ms)", "iterations timed", "iterations per run"], out)
+            + f"\n\nThe scene: {s['config']}, {num(s['elements'])} triangles.\n\n" + source(r))
+
+
+@renderer("one_vs_two", "docs_scenes")
+def _one_vs_two(r) -> str:
+    out = [[x["cups"], x["target"], x["trials"], fixed(x["miss_median"], 3), fixed(x["miss_p95"], 3),
+            fixed(x["along_median_abs"], 3), fixed(x["iterations_mean"], 1)]
+           for x in rows_of(r, "cups")]
+    return (table(["cups", "target", "trials", "median miss (mm)", "p95 miss (mm)", "median \\|along\\| (mm)",
+                   "mean iterations"], out) + "\n\n" + source(r))
+
+
+@renderer("grip", "docs_scenes")
+def _grip(r) -> str:
+    g = r["data"]["manipulation_points"]
+    chosen = "; ".join(f"({fixed(c[0] + 0.0, 0)}, {fixed(c[1] + 0.0, 0)}) mm" for c in g["chosen"])
+    axes = "; ".join(f"({fixed(round(a[0]) + 0.0, 0)}, {fixed(round(a[1]) + 0.0, 0)})" for a in g["axes"])
+    return (table(["scene", "candidates", "search (adjoints, ranking)", "verification", "chosen grip", "push axis"],
+                  [[g["config"], g["candidates"], f"{fixed(g['search_s'] * 1e3, 0)} ms",
+                    f"{fixed(g['verify_s'] * 1e3, 0)} ms", chosen, axes]]) + "\n\n" + source(r))
+
+
+@renderer("trials", "bench_trials")
+def _trials(r) -> str:
+    out = [[x["profile"].replace("_", " "), x["trials"], f"{fixed(x['wall_s'], 1)} s",
+            f"{fixed(x['max_x_mm'])} ({x['paper_max_x_mm']})", f"{fixed(x['max_y_mm'])} ({x['paper_max_y_mm']})",
+            f"{fixed(x['median_x_mm'])} / {fixed(x['median_y_mm'])}",
+            f"{fixed(x['p95_x_mm'])} / {fixed(x['p95_y_mm'])}",
+            f"{fixed(x['iterations_mean'], 1)} / {x['iterations_max']}"] for x in rows_of(r, "studies")]
+    return (table(["profile", "trials", "wall (`--jobs 2`)", "max \\|x\\| mm (paper)", "max \\|y\\| mm (paper)",
+                   "median \\|x\\| / \\|y\\| mm", "p95 \\|x\\| / \\|y\\| mm", "iterations mean / max"], out)
+            + "\n\n" + source(r))
+
+
+def _budget_table(rows: list[dict]) -> str:
+    rows = [x for x in rows if x.get("trials", 1)]  # a target refused up front has no trials in any row
+    targets = list(dict.fromkeys(x["target"] for x in rows))
+    out = []
+    for src in dict.fromkeys(x["source"] for x in rows):
+        xs = {x["target"]: x for x in rows if x["source"] == src}
+        mx = max(x["x_max_mm"] for x in xs.values())
+        my = max(x["y_max_mm"] for x in xs.values())
+        p95 = " / ".join(fixed(xs[t]["miss_p95_mm"]) if t in xs else "–" for t in targets)
+        ms = " / ".join(fixed(xs[t].get("mean_square_share"), 2) if t in xs else "–" for t in targets)
+        out.append([src, f"{fixed(mx)} / {fixed(my)}", p95, ms])
+    t = "–".join([targets[0], targets[-1]]) if len(targets) > 1 else targets[0]
+    return table(["source", "max \\|x\\| / \\|y\\| (mm)", f"p95 miss, {t} (mm)", f"mean-square share, {t}"], out)
+
+
+@renderer("budget_layer", STUDY)
+def _budget_layer(r) -> str:
+    rows = [x for x in rows_of(r, "budget") if x["run"] == "paper-layer-camera"]
+    if not rows:
+        return missing_text("study_ultrasound")
+    return _budget_table(rows) + "\n\n" + source(r)
+
+
+@renderer("budget_slab", "bench_needle_3d.full")
+def _budget_slab(r) -> str:
+    b = r["data"].get("budget_example_3d")
+    if not b:
+        return missing_text("bench_needle_3d.full")
+    return _budget_table(b["rows"]) + f"\n\nThe scene: `{b['title']}` ({b['profile']} profile).\n\n" + source(r)
+
+
+@renderer("insertion_scene", "docs_scenes")
+def _insertion_scene(r) -> str:
+    rows = rows_of(r, "insertion")
+    order = ["none", "depth", "loop"]
+    strategies = sorted(dict.fromkeys(x["strategy"] for x in rows), key=lambda k: (k not in order, order.index(k)
+                                                                                    if k in order else 0, k))
+    out = []
+    for target in dict.fromkeys(x["target"] for x in rows):
+        xs = {x["strategy"]: x for x in rows if x["target"] == target}
+        out.append([target] + [f"{fixed(xs[s]['miss_mm'], 3)} ({xs[s]['depth_error_mm']:+.2f})" if s in xs else "–"
+                               for s in strategies]
+                   + [f"{fixed(max(x['peak_force_mN'] for x in xs.values()) / 1e3, 2)} N",
+                      f"{fixed(max(x['drag_mm'] for x in xs.values()), 2)} mm"])
+    return (table(["target"] + [f"`{s}`: miss (depth error), mm" for s in strategies]
+                  + ["peak needle force", "largest drag along the needle"], out)
+            + f"\n\nThe scene: {r['data']['insertion_config']}, its nominal insertion of each target.\n\n" + source(r))
+
+
+@renderer("friction_law", "friction_law_before", "friction_law_after")
+def _friction_law(before, after) -> str:
+    """benchmarks/bench_friction_law.py's two results (its own format, not results_io's): the step refinement."""
+    rows = []
+    for a, b in zip(before["steps"], after["steps"]):
+        rows.append([num(a["step_mm"], 5)] + [
+            f"{num(x.get('to_half_step_mm'), 2)} mm, {fixed(x['force_mN'], 1)} mN, {x['steps_with_stuck']}"
+            if x.get("to_half_step_mm") is not None else f"–, {fixed(x['force_mN'], 1)} mN, {x['steps_with_stuck']}"
+            for x in (a, b)])
+    src = "; ".join(f"`benchmarks/results/friction_law_{r['label']}.json`: `python3 benchmarks/bench_friction_law.py "
+                    f"--label {r['label']}`, the package at {r['package_commit'][:7]}, load {r['load_before']:.2f} → "
+                    f"{r['load_after']:.2f}, {num(r['wall_s'], 3)} s (no date or machine recorded)"
+                    for r in (before, after))
+    return (table(["step (mm)", "before: end's distance from the half step's, force at the end, steps with a stuck "
+                   "node", "after (friction with state): the same"], rows) + "\n\nSource: " + src + ".")
+
+
+@renderer("insertion_speed", "bench_insertion")
+def _insertion_speed(r) -> str:
+    s = r["data"]["scene"]
+    out = [["one step (0.5 mm), median", f"{fixed(fig(r, 'step_median_ms'), 1)} ms",
+            f"CPU {fixed(fig(r, 'step_cpu_median_ms'), 1)} ms"],
+           [f"{num(s['depth_mm'])} mm in 0.5 mm steps, median of {s['repeats']}",
+            f"{fixed(fig(r, 'insertion_s'), 2)} s",
+            f"CPU {fixed(fig(r, 'insertion_cpu_s'), 2)} s"],
+           ["per step: factorisations, active-set passes, chord steps",
+            f"{fixed(fig(r, 'factorisations_per_step'), 2)}, {fixed(fig(r, 'passes_per_step'), 1)}, "
+            f"{fixed(fig(r, 'chord_steps_per_step'), 1)}", "the counts a busy machine does not change"]]
+    steps = [[num(x["step_mm"]), x["steps"], fixed(x["ms_per_step"], 1), x["final_stuck"], fixed(x["force_mN"], 1),
+              fixed(x["final_diff_mm"], 3), fixed(x["median_diff_mm"], 3), fixed(x["max_diff_mm"], 3)]
+             for x in rows_of(r, "step_size")]
+    return (table(["measurement", "value", "note"], out)
+            + f"\n\nThe scene: {s['config']}, {num(s['nodes'])} nodes, target {s['target']} from the plan's state, "
+              "strategy `none`. Step size against the 0.25 mm run (\\|Δ\\|: the target's distance from it at the "
+              "end, and the median and largest over every depth all four reach):\n\n"
+            + table(["step (mm)", "steps", "ms a step", "final stuck", "force at the end (mN)", "\\|Δ\\| final (mm)",
+                     "median \\|Δ\\| (mm)", "largest (mm)"], steps) + "\n\n" + source(r))
+
+
+@renderer("layer_check", "docs_scenes")
+def _layer_check(r) -> str:
+    out = [[x["case"], num(x["slab_tetrahedra"]), f"{fixed(x['layer_check_in_plane_diff_mm'])} mm "
+            f"({fixed(x['layer_check_in_plane_diff_pct'], 0)} %)", f"{fixed(x['out_of_plane_mm'])} mm",
+            x["closer_to"].replace("_", " "), f"{fixed(x['time_s'], 1)} s ({x['iterations']} it)"]
+           for x in rows_of(r, "layer_check")]
+    return (table(["case", "slab tetrahedra", "layer overstates the in-plane motion by", "out of the plane",
+                   "closer to", "slab solve"], out)
+            + f"\n\nThe scene: {r['data']['layer_check_config']}.\n\n" + source(r))
+
+
+@renderer("workspace", "bench_workspace")
+def _workspace(r) -> str:
+    out = [["10⁶ samples: kinematics and coverage (median)", f"{fixed(fig(r, 'median_s'), 2)} s"],
+           ["coverage of the box reached by IK", f"{fixed(fig(r, 'coverage_reachable'), 1)} %"],
+           ["… from ≥ 3 insertion directions", f"{fixed(fig(r, 'coverage_reachable_3dirs'), 1)} %"],
+           ["coverage of the samples alone", f"{fixed(fig(r, 'coverage_sampled'), 1)} %"]]
+    return table(["measurement", "value"], out) + f"\n\nWhat is missed: {r['data']['summary']}.\n\n" + source(r)
+
+
+@renderer("peer", "bench_solvers")
+def _peer(r) -> str:
+    out = []
+    for x in rows_of(r, "sizes"):
+        cells = [num(x["elements"])]
+        for s in ("newton", "admm", "admm+AA5", "peer"):
+            cells.append(f"{num(x[f'{s}_s'], 2)} s ({x[f'{s}_iterations']})")
+        cells += [f"{fixed(x['peer_over_best'], 1)}×", f"{num(x['peer_1e10_s'], 2)} s / {num(x['newton_1e10_s'], 2)} s",
+                  fixed(x["load1"], 2)]
+        out.append(cells)
+    growth = ", ".join(f"{g['solver']} {fixed(g['exponent'], 2)}" for g in rows_of(r, "growth"))
+    return (table(["elements", "scissor Newton (it)", "ADMM", "ADMM + Anderson", "scikit-fem", "peer / best scissor",
+                   "to 1e-10: peer / Newton", "load"], out)
+            + f"\n\nTimes to a relative target error of 1e-3, medians. Growth exponents (time ∝ elements^p): "
+              f"{growth}.\n\n" + source(r))
+
+
+@renderer("slab", "bench_slab.quick", "bench_slab.no-peer")
+def _slab(quick, nopeer) -> str:
+    full = load("bench_slab")
+    tables_ = [full] if full else [quick, nopeer]
+    by_tets: dict[int, dict] = {}
+    for t in tables_:
+        for x in rows_of(t, "sizes"):
+            row = by_tets.setdefault(x["tets"], {})  # a size both runs have: the first run's (its peer's) row
+            row.update({k: v for k, v in x.items() if v is not None and not row})
+    out = []
+    for tets, x in sorted(by_tets.items()):
+        peer = f"{fixed(x['peer_s'], 1)} s ({x['peer_it']})" if "peer_s" in x else "–"
+        ratio = f"{fixed(x['peer_s'] / x['scissor_s'], 1)}×" if "peer_s" in x else "–"
+        out.append([num(tets), num(x["dofs"]), f"{fixed(x['scissor_s'], 1)} s ({x['scissor_it']}, {x['factor']}, "
+                                               f"{x['cg']})",
+                    f"{fixed(x['nnz_L_M'], 1)}M", peer, ratio, "–" if "diff_mm" not in x else num(x["diff_mm"], 1),
+                    fixed(x["load"], 1)])
+    return (table(["tetrahedra", "free dofs", "scissor (it, factorisations, CG it)", "nnz(L)", "scikit-fem (it)",
+                   "peer / scissor", "target diff (mm)", "load"], out) + "\n\n" + source(*tables_))
+
+
+@renderer("slab_truth", "bench_slab_truth.trial")
+def _slab_truth(r) -> str:
+    out = [["the slab", f"{num(fig(r, 'tetrahedra'))} tetrahedra, {num(fig(r, 'free_dofs'))} unknowns"],
+           ["worker context (layer model + slab)", f"{fixed(fig(r, 'worker_context_s'), 1)} s"],
+           ["gradient: numpy → compiled", f"{num(fig(r, 'gradient_numpy_s') * 1e3, 2)} → "
+                                          f"{num(fig(r, 'gradient_compiled_s') * 1e3, 2)} ms"],
+           ["element stiffness: numpy → compiled", f"{num(fig(r, 'stiffness_numpy_s') * 1e3, 2)} → "
+                                                   f"{num(fig(r, 'stiffness_compiled_s') * 1e3, 2)} ms"],
+           ["K_ff assembled", f"{num(fig(r, 'kff_assembled_s') * 1e3, 2)} ms"],
+           ["CHOLMOD refactorisation; one solve", f"{num(fig(r, 'refactorisation_s') * 1e3, 2)} ms; "
+                                                  f"{num(fig(r, 'solve_s') * 1e3, 2)} ms"],
+           ["the nominal slab at the first target's plan", f"{fixed(fig(r, 'nominal_start_s'), 1)} s"],
+           [f"replay of {fig(r, 'replay_settles')} settles: median (max)",
+            f"{fixed(fig(r, 'settle_median_s'), 2)} s ({fixed(fig(r, 'settle_max_s'), 2)} s); "
+            f"{fig(r, 'replay_factorisations')} factorisations, "
+            f"{fig(r, 'replay_newton_iterations')} Newton iterations"],
+           ["one slab-truth trial (first target, trial 0)",
+            f"{fixed(fig(r, 'trial_s'), 1)} s, {fig(r, 'trial_iterations')} iterations, stop "
+            f"`{r['data']['trial_stop']}`"]]
+    return table(["measurement", "value"], out) + "\n\n" + source(r)
+
+
+@renderer("dask", "bench_dask_slab")
+def _dask(r) -> str:
+    out = [[x["executor"], f"{fixed(x['trials_s'], 1)} s", f"{fixed(x['speedup'], 2)}×",
+            "yes" if x["identical"] else "**no**",
+            fixed(x["load1"], 1)] for x in rows_of(r, "executors")]
+    return (table(["executor", "trial stage", "against 1 worker", "final errors identical", "load"], out)
+            + f"\n\n{fig(r, 'trials')} slab-truth trials of the paper prosthesis scene's first target.\n\n" + source(r))
+
+
+@renderer("controller_iteration", "bench_control.models")
+def _controller_iteration(r) -> str:
+    out = [[x["model"],
+            "–" if x["build_s"] is None else f"{fixed(x['build_s'], 1)} s" + (" (cached)" if x["cached"] else ""),
+            "–" if x["error_mm"] is None else f"{num(x['error_mm'], 2)} mm", f"{num(x['iteration_ms'], 3)} ms"]
+           for x in rows_of(r, "models")]
+    s = r["data"]["scene"]
+    return (table(["model", "build", "its error against the slab", "controller side of one iteration (median)"], out)
+            + f"\n\nThe scene: {s['config']}, {num(s['triangles'])} triangles, its slab {num(s['tetrahedra'])} "
+              "tetrahedra.\n\n" + source(r))
+
+
+def _grouped(rows: list[dict], key) -> dict:
+    out: dict = {}
+    for x in rows:
+        out.setdefault(key(x), []).append(x)
+    return out
+
+
+def _misses(xs: list[dict], digits: int = 2) -> str:
+    """'T1 a / b / c, T2 …' (median / p95 / max of the miss across the needle) of one run's targets."""
+    return ", ".join(f"{x['target']} " + (f"{fixed(x['miss_median'], digits)} / {fixed(x['miss_p95'], digits)} / "
+                                          f"{fixed(x['miss_max'], digits)}" if x.get("miss_median") is not None
+                                          else "no trials") for x in xs)
+
+
+def _runs_of(rows: list[dict]) -> list[list[dict]]:
+    """The report's rows (run after run, target after target) split into runs: a run ends where a target repeats
+    (runs of one scene share their label; a refused target's row has no controller)."""
+    runs: list[list[dict]] = []
+    for x in rows:
+        if not runs or any(y["target"] == x["target"] for y in runs[-1]):
+            runs.append([])
+        runs[-1].append(x)
+    return runs
+
+
+def _span(values: list[float], digits: int = 2) -> str:
+    if not values:
+        return "–"
+    lo, hi = num(min(values), digits), num(max(values), digits)
+    return lo if lo == hi else f"{lo}–{hi}"
+
+
+def _summary_rows(r) -> list[list]:
+    """One row per run (controller), its targets in the cells."""
+    out = []
+    for xs in _runs_of(rows_of(r, "summary")):
+        done = [x for x in xs if x["trials"]]
+        controller = next((x["controller"] for x in xs if x.get("controller")), "–")
+        stops = sum(x.get("stroke_limit_stops") or 0 for x in done)
+        plan = ", ".join(num(x.get("plan_model_error_mm"), 2) for x in done)
+        per_it = [x["time_per_iteration_s"] for x in done if x.get("time_per_iteration_s") is not None]
+        misses = _misses(done) + "".join(f", {x['target']} refused" for x in xs if not x["trials"])
+        out.append([controller, misses, f"{stops} of {sum(x['trials'] for x in done)}", plan or "–", _span(per_it)])
+    return out
+
+
+@renderer("controller_models_example", "compare_controller_models.accuracy0.1")
+def _controller_models_example(r) -> str:
+    walls = ", ".join(f"{x['variant']} {fixed(x['wall_s'], 0)} s" for x in rows_of(r, "runs"))
+    return (table(["controller", "miss median / p95 / max per target (mm)", "stroke-limit stops",
+                   "error at the plan (mm)", "s per iteration"], _summary_rows(r))
+            + f"\n\nThe runs (`--jobs 2`): {walls}.\n\n" + source(r))
+
+
+@renderer("controller_models_paper", "compare_controller_models.paper_trials_prosthesis_slab")
+def _controller_models_paper(r) -> str:
+    return _controller_models_example(r)
+
+
+@renderer("ultrasound", "bench_ultrasound")
+def _ultrasound(r) -> str:
+    out = [[x["measurement"], f"{fixed(x['median_ms'], 2)} ms", f"{fixed(x['p10_ms'], 2)}–{fixed(x['p90_ms'], 2)}",
+            num(x.get("scatterers"))] for x in rows_of(r, "timings")]
+    acc = [[f"shift {x['shift_mm']} mm" + (", strain" if x["strain"] else "") + (f", band ±{x['band_mm']} mm"
+                                                                                 if x["band_mm"] else ""),
+            fixed(x["envelope_correlation"], 3), f"{fixed(x['tracking_difference_um'], 1)} µm"]
+           for x in rows_of(r, "fast_vs_simus")]
+    extra = ""
+    if acc:
+        tof = [f"tissue {k.split('_')[-1]} m/s: fast {fixed(fig(r, k), 3)} mm, SIMUS "
+               f"{fixed(r['figures'][k]['simus'], 3)} mm, the law {fixed(r['figures'][k]['expected'], 3)} mm"
+               for k in r["figures"] if k.startswith("time_of_flight_")]
+        env = ", ".join(f"{r['figures'][k]['scatterers_per_cell']}: {fixed(fig(r, k), 3)}"
+                        for k in r["figures"] if k.startswith("envelope_mean_over_std_"))
+        extra = ("\n\nThe fast model against SIMUS on the same scatterers:\n\n"
+                 + table(["case", "envelope correlation", "tracked displacements apart"], acc)
+                 + f"\n\nEnvelope mean/std in speckle (scatterers per resolution cell: value; Rayleigh 1.913): {env}. "
+                 + "Time of flight of a point at 50 mm: " + "; ".join(tof) + ". Tracking: rigid sub-pixel shifts "
+                 f"within {fixed(fig(r, 'rigid_tracking_error_max_um'), 1)} µm; first-frame localisation rms "
+                 f"{fixed(fig(r, 'localisation_rms_um'), 0)} µm, max {fixed(fig(r, 'localisation_max_um'), 0)} µm.")
+    return (table(["measurement", "median", "p10–p90 (ms)", "scatterers"], out)
+            + f"\n\nSIMUS: {fixed(fig(r, 'simus_per_scatterer_ms'), 2)} ms per scatterer (a whole frame about "
+              f"{fixed(fig(r, 'simus_whole_frame_min'), 0)} min)." + extra + "\n\n" + source(r))
+
+
+@renderer("ultrasound_loop", "bench_ultrasound_loop")
+def _ultrasound_loop(r) -> str:
+    out = [[x["measurement"], f"{fixed(x['median_ms'], 2)} ms", num(x.get("scatterers")),
+            "–" if "first_s" not in x else f"{fixed(x['first_s'], 2)} s"] for x in rows_of(r, "measure")]
+    track = rows_of(r, "loop_tracking")
+    p95 = [x["p95_um"] for x in track]
+    return (table(["measurement", "median", "scatterers", "first call"], out)
+            + f"\n\nThe fast model's validation against SIMUS in this run: envelope correlation "
+              f"{fixed(fig(r, 'validation_envelope_correlation'), 3)}, tracked displacements "
+              f"{fixed(fig(r, 'validation_tracking_difference_um'), 1)} µm apart. First-frame localisation at rest: "
+              f"layer rms {fixed(fig(r, 'localisation_rest_layer_rms_um'), 0)} µm, slab rms "
+              f"{fixed(fig(r, 'localisation_rest_slab_rms_um'), 0)} µm. Closed loops moving each target 2 mm "
+              f"({len(track)} runs): tracking error of the displacement p95 "
+              f"{fixed(min(p95), 0)}–{fixed(max(p95), 0)} µm, "
+              f"{sum(x['lost'] for x in track)} frames lost; frame-to-frame jitter "
+              f"{fixed(fig(r, 'jitter_std_um'), 1)} µm "
+              f"per axis.\n\n" + source(r))
+
+
+@renderer("study_ultrasound", STUDY)
+def _study_ultrasound(r) -> str:
+    runs = rows_of(r, "runs")
+    out = []
+    for x, xs in zip(runs, _runs_of(rows_of(r, "summary"))):
+        out.append([x["study"], x["sensor"], f"{fixed(x['wall_s'] / 60, 1)} min", f"{fixed(x['trials_s'], 0)} s",
+                    fixed(x["load1"], 1), _misses(xs)])
+    top = []
+    for run, xs in _grouped([x for x in rows_of(r, "budget") if x["source"] != "all" and x["trials"]],
+                            lambda x: x["run"]).items():
+        best = {}
+        for x in xs:
+            if x["mean_square_share"] > best.get(x["target"], {"mean_square_share": -1})["mean_square_share"]:
+                best[x["target"]] = x
+        top.append(f"{run}: " + ", ".join(f"{t} {b['source']} {fixed(b['mean_square_share'], 2)}"
+                                          for t, b in best.items()))
+    budget = ("" if not top else "\n\nThe source with the largest share of the miss's mean square per target, in "
+              "each budget: " + "; ".join(top) + ".")
+    return (table(["study", "sensor", "whole run", "trials", "load", "manipulation miss median / p95 / max per "
+                   "target (mm)"], out) + budget + "\n\n" + source(r))
+
+
+@renderer("ladder", "bench_slab_ladder")
+def _ladder(r) -> str:
+    out = [[x["config"], num(x["accuracy_mm"]), f"{fixed(x['wall_s'], 1)} s", f"{x['solved']} of {x['candidates']}",
+            f"{num(x['pick_tetrahedra'])} (scale {num(x['pick_in_plane_scale'])}, {x['pick_levels']} levels)",
+            f"{fixed(x['pick_error_mm'], 3)} mm", fixed(x["load1"], 1)] for x in rows_of(r, "ladders")]
+    return (table(["scene", "accuracy (mm)", "choice (`--jobs 2`)", "candidates solved", "pick: tetrahedra",
+                   "its distance from the finest", "load"], out) + "\n\n" + source(r))
+
+
+@renderer("insertion3d", "bench_insertion3d")
+def _insertion3d(r) -> str:
+    s = r["data"]["scene"]
+    out = [[x["precision"], f"{fixed(x['insertion_s'], 1)} s", f"{fixed(x['step_median_ms'], 0)} ms",
+            f"{fixed(x['factorisations_per_step'], 2)}, {fixed(x['passes_per_step'], 1)}, "
+            f"{fixed(x['chord_steps_per_step'], 1)}",
+            f"{fixed(x['gradient_ms'], 1)} + {fixed(x['solve_ms'], 1)} ms; {fixed(x['floor_ms'], 0)} ms",
+            f"{x['captured']} ({x['stuck']} stuck), {fixed(x['force_mN'], 0)} mN", f"{fixed(x['miss_mm'], 3)} mm"]
+           for x in rows_of(r, "precisions")]
+    return (table(["kept factor", f"{num(s['depth_mm'])} mm, median of {s['repeats']}", "a step (median)",
+                   "per step: factorisations, passes, chord steps", "gradient + solve; a step's floor",
+                   "captured at the end, force", "miss"], out)
+            + f"\n\nThe slab: {s['config']}'s, {num(s['tetrahedra'])} tetrahedra, {num(s['free_dofs'])} free dofs; "
+              f"target {s['target']}, strategy `none`. The float32 and float64 factors' final nodes "
+              f"{num(fig(r, 'float32_float64_nodes_apart_mm'), 2)} mm apart; float32 takes "
+              f"{fixed(fig(r, 'float32_over_float64'), 2)}× the time.\n\n" + source(r))
+
+
+@renderer("needle_3d", "bench_needle_3d")
+def _needle_3d(r) -> str:
+    full = load("bench_needle_3d.full")
+    results = [r] + ([full] if full else [])
+    runs, misses = [], []
+    for res in results:
+        for x in rows_of(res, "runs"):
+            if any(x["run"] == row[0] for row in runs):
+                continue
+            trial = ", ".join(f"{t} {fixed(v, 1)} s" for t, v in x["trial_s"].items())
+            runs.append([x["run"], x["config"], "ok" if x["exit"] == 0 else f"exit {x['exit']}",
+                         f"{fixed(x['wall_s'] / 60, 1)} min", trial or "–", fixed(x["load1"], 1)])
+        for (run, strategy), xs in _grouped(rows_of(res, "misses"), lambda x: (x["run"], x["strategy"])).items():
+            if not any(m[0] == run and m[1] == f"`{strategy}`" for m in misses):
+                misses.append([run, f"`{strategy}`", ", ".join(
+                    f"{x['target']} {fixed(x['median_mm'], 3)} / {fixed(x['p95_mm'], 3)} / {fixed(x['max_mm'], 3)} "
+                    f"({x['trials']})" for x in xs)])
+    return (table(["run", "config", "exit", "`simulate --jobs 2` from nothing", "median trial", "load at the end"],
+                  runs)
+            + "\n\n" + table(["run", "strategy", "needle miss median / p95 / max per target, mm (trials)"], misses)
+            + "\n\n" + source(*results))
+
+
+@renderer("brief")
+def _brief() -> str:
+    """README's "Results in brief": one headline per section of performance.md, from its result file where there
+    is one, else what the section measures (no number)."""
+    rows = []
+
+    def add(label: str, anchor: str, name: str | None, fn, fallback: str):
+        r = load(name) if name else None
+        text = fallback
+        if r is not None:
+            try:
+                text = fn(r)
+            except (KeyError, IndexError, TypeError, ValueError, StopIteration):
+                text = fallback
+        rows.append([f"[{label}](docs/performance.md#{anchor})", text])
+
+    def mechanics(r):
+        n = next(x for x in rows_of(r, "solves") if x["case"] == "push10" and x["solver"] == "newton")
+        a = next(x for x in rows_of(r, "solves") if x["case"] == "push10" and x["solver"] == "admm"
+                 and x["mode"] == "settled")
+        return (f"the example's 10 mm push: Newton in {n['iterations']} iterations to 1e-10 ({fixed(n['ms'], 0)} ms); "
+                f"ADMM within {num(a['error_rel'], 2)} of it")
+
+    def cups(r):
+        m = [x["miss_median"] for x in rows_of(r, "cups")]
+        t = rows_of(r, "cups")[0]["trials"]
+        return (f"median miss across the needle {fixed(min(m))}–{fixed(max(m))} mm over {t} trials per target, "
+                "either way")
+
+    def grip(r):
+        return (f"{fig(r, 'grip_candidates')} candidate grips scored in {fixed(fig(r, 'grip_search_ms'), 0)} ms by one "
+                "adjoint solve per target component")
+
+    def needle(r):
+        xs = rows_of(r, "insertion")
+        loop = [x["miss_mm"] for x in xs if x["strategy"] == "loop"]
+        none = [x["miss_mm"] for x in xs if x["strategy"] == "none"]
+        span = fixed(min(loop), 3) if fixed(min(loop), 3) == fixed(max(loop), 3) else \
+            f"{fixed(min(loop), 3)}–{fixed(max(loop), 3)}"
+        return f"the `loop` strategy ends {span} mm from the target (no correction: up to {fixed(max(none))} mm)"
+
+    def layer(r):
+        p = [x["layer_check_in_plane_diff_pct"] for x in rows_of(r, "layer_check")]
+        return f"the 2-D layer overstates the targets' in-plane motion by {fixed(min(p), 0)}–{fixed(max(p), 0)} %"
+
+    def models(r):
+        stops = {}
+        for xs in _runs_of(rows_of(r, "summary")):
+            done = [x for x in xs if x["trials"]]
+            controller = next((x["controller"] for x in xs if x.get("controller")), "–")
+            stops[controller] = (sum(x.get("stroke_limit_stops") or 0 for x in done), sum(x["trials"] for x in done))
+        (a, b), (c, d) = stops["layer"], stops["surrogate"]
+        return (f"stroke-limit stops on the paper scene: the paper's layer model {a} of {b}, the slab surrogate "
+                f"{c} of {d}")
+
+    def trials(r):
+        p, e = rows_of(r, "studies")
+        return (f"max \\|x\\| {fixed(p['max_x_mm'])} / {fixed(e['max_x_mm'])} mm (paper {p['paper_max_x_mm']} / "
+                f"{e['paper_max_x_mm']}), max \\|y\\| {fixed(p['max_y_mm'])} / {fixed(e['max_y_mm'])} mm (paper "
+                f"{p['paper_max_y_mm']} / {e['paper_max_y_mm']})")
+
+    def budget(r):
+        rows = [x for x in r["data"]["budget_example_3d"]["rows"] if x["trials"] and x["source"] != "all"]
+        top = max(rows, key=lambda x: x["mean_square_share"])
+        slab = next(x for x in rows if x["source"] == "slab")
+        return (f"slab truth, the surrogate steering (example_3d): {top['source']} holds "
+                f"{fixed(100 * top['mean_square_share'], 0)} % of the miss's mean square, the 3-D slab alone "
+                f"{fixed(100 * slab['mean_square_share'], 0)} %")
+
+    def goals(_):
+        g = _goal_rows()
+        measured = [x for x in g if x[2] != "–"]
+        unmet = [x[0] for x in measured if x[2] != "yes"]
+        return (f"{len(measured) - len(unmet)} of {len(measured)} measured goals met"
+                + (f"; not met: {'; '.join(unmet)}" if unmet else ""))
+
+    def needle3d(r):
+        run = "example_3d" if r.get("variant") == "full" else "default-slab"
+        row = next(x for x in rows_of(r, "runs") if x["run"] == run)
+        loop = [x for x in rows_of(r, "misses") if x["strategy"] == "loop" and x["run"] == run]
+        what = "`configs/example_3d.yaml`" if run == "example_3d" else "`layer_check: {}` with the needle in the slab"
+        return (f"{what}: `simulate --jobs 2` in {fixed(row['wall_s'] / 60, 1)} min from nothing"
+                + "".join(f"; {x['target']}'s `loop` miss median / p95 {fixed(x['median_mm'], 2)} / "
+                          f"{fixed(x['p95_mm'], 2)} mm ({x['trials']} trials)" for x in loop))
+
+    def ultrasound(r):
+        t = {x["measurement"]: x for x in rows_of(r, "timings")}
+        c = [x["envelope_correlation"] for x in rows_of(r, "fast_vs_simus")]
+        return (f"a B-mode frame {fixed(t['fast frame, in-plane']['median_ms'], 0)} ms, its tracking "
+                f"{fixed(t['tracking one frame']['median_ms'], 1)} ms; fast model against SIMUS: envelope correlation "
+                f"{fixed(min(c), 2)}–{fixed(max(c), 2)}")
+
+    add("Mechanics", "mechanics", "bench_forward", mechanics, "Newton and ADMM on the example's forward cases")
+    add("One cup against two", "one-cup-against-two", "docs_scenes", cups,
+        "the miss across the needle with one cup and with two, 30 trials per target")
+    add("Where to grip", "where-to-grip", "bench_control.table", grip,
+        "candidate grips scored by one adjoint solve per target component")
+    add("Needle insertion", "needle-insertion", "docs_scenes", needle, "the miss at the needle per strategy")
+    add("Does one layer suffice?", "the-layer-check", "docs_scenes", layer, "the 2-D layer against the 3-D slab")
+    add("Controller models", "controller-models-15", "compare_controller_models.paper_trials_prosthesis_slab", models,
+        "every controller model against the slab truth: stroke-limit stops, misses, cost per iteration")
+    add("Trials against the paper", "trials", "bench_trials", trials, "the paper's 4 × 30 studies against its maxima")
+    add("Error budget", "error-budget", "bench_needle_3d.full", budget, "what each error source adds to the miss")
+    add("Speed goals", "the-speed-goals", None, goals, "")
+    rows[-1][1] = goals(None)
+    add("The needle in 3-D", "the-needle-that-hits-in-3-d-18", "bench_needle_3d.full|bench_needle_3d", needle3d,
+        "whole runs with the needle in the slab, end to end")
+    add("Ultrasound in the loop", "ultrasound-in-the-loop", "bench_ultrasound", ultrasound,
+        "B-mode frames, tracking and the fast model against SIMUS")
+    add("Model only what a scene needs", "model-only-what-a-scene-needs", None, None,
+        "`solver.accuracy_mm` and `layer_check.accuracy_mm` pick the cheapest model within a budget")
+    return table(["result", "headline"], rows)
+
+
+# ---------------------------------------------------------------------------------------------------- tables
+
+
+def blocks(text: str):
+    """(name, start of its body, end of its body) of every generated block of a doc."""
+    for m in BEGIN.finditer(text):
+        end = text.find(END, m.end())
+        if end < 0:
+            raise SystemExit(f"<!-- generated: {m.group(1)} --> without {END}")
+        yield m.group(1), m.end(), end
+
+
+def regenerate(text: str) -> str:
+    out, at = [], 0
+    for name, start, end in blocks(text):
+        if name not in RENDERERS:
+            raise SystemExit(f"<!-- generated: {name} -->: no such renderer (benchmarks/docs.py: {sorted(RENDERERS)})")
+        out += [text[at:start], render(name), "\n"]
+        at = end
+    out.append(text[at:])
+    return "".join(out)
+
+
+def table_docs() -> list[Path]:
+    return [p for p in DOC_FILES if p.is_file() and BEGIN.search(p.read_text())]
+
+
+# ---------------------------------------------------------------------------------------------------- images
+
+#: docs/img file → its source: ("results", result file, drawing function name) or ("run", scene key, file in it)
+IMAGES = {
+    "budget_slab.png": ("results", "bench_needle_3d.full", "draw_budget_slab"),
+    "controller_models_example_full.png": ("results", "compare_controller_models.accuracy0.1",
+                                           "draw_controller_models"),
+    "controller_models_paper.png": ("results", "compare_controller_models.paper_trials_prosthesis_slab",
+                                    "draw_controller_models"),
+    "insertion_force_T1.png": ("run", "example_insertion", "insertion_force_T1.png"),
+    "insertion_path_T2.png": ("run", "example_insertion", "insertion_path_T2.png"),
+    "layer_check_push10.png": ("run", "example_full", "layer_check_push10.png"),
+    "manipulation_points.png": ("run", "example_full", "manipulation_points.png"),
+    "miss_one_vs_two_cups.png": ("run", "cups_report", "miss_boxplots.png"),
+    "ultrasound_bmode_T1.png": ("run", "ultrasound", "imaging_T1.png"),
+}
+
+#: the runs the images (and benchmarks/results/docs_scenes.json) come from: key → (config, simulate options)
+SCENES = {
+    "example_full": ("configs/example_full.yaml", ["--trials", "0"]),
+    "example_insertion": ("configs/example_insertion.yaml", ["--trials", "0"]),
+    # the B-mode figure comes from the nominal manipulation, which a run makes only with trials
+    "ultrasound": ("configs/paper_trials_prosthesis_slab_ultrasound.yaml", ["--trials", "1"]),
+    "one_cup": ("configs/example.yaml", []),
+    "two_cups": ("configs/two_cups.yaml", []),
+}
+
+
+def draw_budget_slab(r: dict, path: Path) -> bool:
+    from scissor_cli.output.error_budget.figures import budget_figure  # noqa: PLC0415
+    from scissor_cli.output.figures import save  # noqa: PLC0415
+
+    b = r["data"].get("budget_example_3d")
+    if not b:
+        return False
+    save(budget_figure(b["title"], b["rows"], b["profile"]), path)
+    return True
+
+
+def draw_controller_models(r: dict, path: Path) -> bool:
+    import numpy as np  # noqa: PLC0415
+
+    from scissor_cli.layer3d.tissue_models import ModelPaths  # noqa: PLC0415
+    from scissor_cli.output.controller_model import controller_models_figure  # noqa: PLC0415
+    from scissor_cli.output.figures import save  # noqa: PLC0415
+
+    data = r["data"].get("model_paths")
+    if not data or not data["paths"]:
+        return False
+    paths = []
+    for p in data["paths"]:
+        lines = {k: [np.asarray(v, float) for v in p[k]] for k in ("strokes", "model", "layer", "slab_strokes", "slab")}
+        rest = None if p["rest"] is None else np.asarray(p["rest"], float)
+        paths.append(ModelPaths(p["kind"], p["cup_names"], p["target_names"], lines["strokes"], lines["model"],
+                                lines["layer"], lines["slab_strokes"], lines["slab"], rest))
+    save(controller_models_figure(paths, data["title"]), path)
+    return True
+
+
+def simulate(config: str, out: Path, options: list[str]) -> None:
+    cmd = [sys.executable, "-m", "scissor_cli", "simulate", str(ROOT / config), "--jobs", "2", "--out", str(out),
+           "--force", *options]
+    print("  " + " ".join(cmd[1:]), flush=True)
+    r = subprocess.run(cmd, capture_output=True, text=True, env=results_io.subprocess_env(), cwd=ROOT)
+    if r.returncode != 0:
+        raise SystemExit(f"{config}: exit {r.returncode}\n{r.stderr[-3000:]}")
+
+
+def run_scenes(work: Path) -> dict[str, Path]:
+    """Run every scene of SCENES into work/<key> (and the cups' report), save docs_scenes.json; {key: folder}."""
+    import h5py  # noqa: PLC0415
+    import numpy as np  # noqa: PLC0415
+
+    sys.path.insert(0, str(ROOT))
+    from scissor_cli.output.layer_check import layer_check_rows  # noqa: PLC0415
+    from scissor_cli.output.report import load_run, summary_rows  # noqa: PLC0415
+
+    res = results_io.Results("docs_scenes")
+    folders = {}
+    for key, (config, options) in SCENES.items():
+        t0 = time.perf_counter()
+        simulate(config, work / key, options)
+        folders[key] = work / key
+        res.figure(f"{key}_run_s", time.perf_counter() - t0, "s", config=config, options=" ".join(options),
+                   load=results_io.load1())
+    folders["cups_report"] = work / "cups_report"
+    r = subprocess.run([sys.executable, "-m", "scissor_cli", "report", str(work / "one_cup"), str(work / "two_cups"),
+                        "--out", str(folders["cups_report"])], capture_output=True, text=True,
+                       env=results_io.subprocess_env(), cwd=ROOT)
+    if r.returncode != 0:
+        raise SystemExit(f"report: exit {r.returncode}\n{r.stderr[-3000:]}")
+    rows = summary_rows([load_run(work / "one_cup"), load_run(work / "two_cups")])
+    res.table("cups", [{k: x.get(k) for k in ("run", "cups", "target", "trials", "miss_median", "miss_p95", "miss_max",
+                                              "along_median_abs", "iterations_mean")} for x in rows],
+              {"miss_median": "mm", "miss_p95": "mm", "miss_max": "mm", "along_median_abs": "mm"})
+    with h5py.File(work / "example_full" / "results.h5", "r") as f:
+        res.table("layer_check", layer_check_rows("example_full", f),
+                  {"layer_check_in_plane_diff_mm": "mm", "layer_check_in_plane_diff_pct": "%", "out_of_plane_mm": "mm",
+                   "time_s": "s"})
+        a = dict(f["manipulation_points"].attrs)
+        res.data("manipulation_points", {"config": "configs/example_full.yaml", "candidates": int(a["candidates"]),
+                                         "search_s": float(a["search_s"]), "verify_s": float(a["verify_s"]),
+                                         "chosen": np.asarray(a["chosen"], float), "axes": np.asarray(a["axes"],
+                                                                                                      float)})
+    res.data("layer_check_config", "configs/example_full.yaml, on the slab its `layer_check.accuracy_mm` (0.1 mm by "
+                                   "default) picks")
+    ins = []
+    with h5py.File(work / "example_insertion" / "results.h5", "r") as f:
+        for target, g in f["insertion"].items():
+            for strategy, s in g.items():
+                if not isinstance(s, h5py.Group) or "miss_mm" not in s.attrs:
+                    continue
+                a = s.attrs
+                along = np.asarray(s["target"][()], float)
+                direction = np.asarray(a["direction"], float)[:2]
+                drag = np.abs((along[:, :2] - along[0, :2]) @ direction).max()
+                ins.append({"target": target, "strategy": strategy, "miss_mm": float(a["miss_mm"]),
+                            "depth_error_mm": float(a["depth_error_mm"]),
+                            "peak_force_mN": float(np.max(s["needle_force_mN"][()])), "drag_mm": float(drag),
+                            "steps": int(a["steps"])})
+    res.table("insertion", ins, {"miss_mm": "mm", "depth_error_mm": "mm", "peak_force_mN": "mN", "drag_mm": "mm"})
+    res.data("insertion_config", "configs/example_insertion.yaml")
+    res.write()
+    return folders
+
+
+def write_images(only_results: bool = False) -> list[str]:
+    """Every image of IMAGES into docs/img; the names it could not make (a result file missing)."""
+    failed = []
+    work = Path(tempfile.mkdtemp(prefix="scissor-docs-"))
+    try:
+        folders = {} if only_results else run_scenes(work)
+        for name, (kind, src, what) in IMAGES.items():
+            if kind == "results":
+                r = load(src)
+                ok = r is not None and globals()[what](r, IMG / name)
+            elif only_results:
+                continue  # a scene run's image: left as it is
+            else:
+                path = folders.get(src, Path("/nonexistent")) / what
+                ok = path.is_file()
+                if ok:
+                    shutil.copyfile(path, IMG / name)
+            print(f"{'wrote' if ok else 'NOT written'}: docs/img/{name}"
+                  + ("" if ok else f" (needs {src}: {command(src) if kind == 'results' else 'the scene run'})"))
+            if not ok:
+                failed.append(name)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    return failed
+
+
+# ---------------------------------------------------------------------------------------------------- main
+
+
+def check() -> list[str]:
+    problems = []
+    for path in table_docs():
+        text = path.read_text()
+        if regenerate(text) != text:
+            problems.append(f"{path.relative_to(ROOT)}: a generated table differs from benchmarks/results "
+                            "(python3 benchmarks/docs.py --tables-only)")
+    have = {p.name for p in IMG.iterdir() if p.is_file()}
+    for name in sorted(set(IMAGES) - have):
+        problems.append(f"docs/img/{name}: missing (python3 benchmarks/docs.py --images-only)")
+    for name in sorted(have - set(IMAGES)):
+        problems.append(f"docs/img/{name}: no source in benchmarks/docs.py IMAGES")
+    for name, (kind, src, _) in IMAGES.items():
+        if kind == "results" and load(src) is None:
+            print(f"note: docs/img/{name} is drawn from benchmarks/results/{src}.json, which is not there yet "
+                  f"({command(src)})", file=sys.stderr)
+    return problems
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    mode = ap.add_mutually_exclusive_group()
+    mode.add_argument("--check", action="store_true", help="exit 1 if the committed docs differ (no simulation)")
+    mode.add_argument("--list", action="store_true", help="print every file this writes")
+    mode.add_argument("--tables-only", action="store_true")
+    mode.add_argument("--images-only", action="store_true")
+    mode.add_argument("--result-images", action="store_true",
+                      help="only the images drawn from result files (no scene runs)")
+    args = ap.parse_args(argv)
+    if args.list:
+        for path in table_docs():
+            print(path.relative_to(ROOT))
+        for name in IMAGES:
+            print(f"docs/img/{name}")
+        print("benchmarks/results/docs_scenes.json")  # the scene runs' figures (--images-only)
+        return 0
+    if args.check:
+        problems = check()
+        for p in problems:
+            print(p)
+        return 1 if problems else 0
+    if not args.images_only and not args.result_images:
+        for path in table_docs():
+            text = path.read_text()
+            new = regenerate(text)
+            if new != text:
+                path.write_text(new)
+                print(f"wrote: {path.relative_to(ROOT)}")
+    if args.tables_only:
+        return 0
+    failed = write_images(only_results=args.result_images)
+    if not args.result_images and not args.images_only:
+        # the scene runs rewrote docs_scenes.json: the tables that read it again
+        for path in table_docs():
+            text = path.read_text()
+            new = regenerate(text)
+            if new != text:
+                path.write_text(new)
+                print(f"wrote: {path.relative_to(ROOT)}")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
