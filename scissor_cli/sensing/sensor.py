@@ -22,7 +22,8 @@ class TrueState:
     """What a sensor may look at: the true tissue as it stands.
 
     target_mm (d,): the true target (d = 2 in the layer, 3 in the slab,
-    the layer's plane at the slab's layer height); nodes_mm (N, d): the true
+    the layer's plane at the slab's layer height, 3 in a body: the lesion's
+    centre in the body frame); nodes_mm (N, d): the true
     tissue's node positions, and mesh the mesh they belong to (None when
     the caller has only the target: a sensor that needs the tissue says so).
     """
@@ -40,7 +41,7 @@ class Sensor(Protocol):
         """σ (mm) of one reading's random part at the layer (0: repeated readings agree)."""
 
     def measure(self, state: TrueState) -> np.ndarray:
-        """The measured target (2,) mm in the layer's plane."""
+        """The measured target (2,) mm in the layer's plane; in a body (3,), NaN in the coordinates not seen."""
 
     def reseeded(self, rng: np.random.Generator) -> "Sensor":
         """The same sensor (bias, calibration, what it tracks) drawing its frame noise from rng."""
@@ -56,7 +57,10 @@ class TrialDraws:
     further draw a sensor makes on a stream of its own
     (`np.random.default_rng(key + (tag,))`); goal_mm (2,): where the trial
     is to move the target, when known (a sensor may aim at it: an
-    ultrasound images a window around the target's way; None: unknown).
+    ultrasound images a window around the target's way, a single 3-D
+    camera reads on the plane through it; (3,) in a body; None: unknown).
+    A 3-D camera sensor takes its localisation normals beyond these two
+    from the key's stream (`sensing.camera3d_sensor.BodyCameraModel.biases`).
     """
 
     localisation_z: np.ndarray
