@@ -19,6 +19,7 @@ import dataclasses
 import numpy as np
 import pytest
 import yaml
+from scenes.body_surfaces import box
 
 from scissor_cli import geometry3d as g3
 from scissor_cli.config import parse_config
@@ -250,6 +251,21 @@ def test_a_vessel_that_leaves_the_body_is_judged_only_inside_it(cyst):
     np.testing.assert_allclose(q0[0], [0.0, 0.0, 10.0], atol=1e-9)
     assert g3.spheroid_cap_nearest(q1, R, H)[1][0] <= _chord_error(mesh)
     assert 0.9 * R * np.sqrt(1 - (10 / H) ** 2) < q1[0, 0] <= R * np.sqrt(1 - (10 / H) ** 2) + 1e-9
+
+
+def test_a_line_that_would_pierce_a_fold_of_the_body_before_its_entry_is_refused():
+    # two boxes as one boundary (a body folded over itself); the centre in the first, its bottom face held
+    va, fa = box((0.0, 0.0, 0.0), (10.0, 10.0, 10.0))
+    vb, fb = box((20.0, 0.0, 0.0), (30.0, 10.0, 10.0))
+    nodes, tris = np.vstack([va, vb]), np.vstack([fa, fb + 8])
+    base = np.all(nodes[tris][:, :, 2] == 0.0, axis=1)
+    dirs = np.array([[-1.0, 0, 0], [1.0, 0, 0], [0, 0, 1.0], [0, 0, -1.0]])
+    entry, depth, code = body_lines.skin_entries(nodes, tris, base, np.array([5.0, 5.0, 4.0]), dirs)
+    # travelling −x enters at x = 10 with the second box beyond it; +x at x = 0; up through the base; down on top
+    np.testing.assert_array_equal(code, [body_lines.RECROSSES, body_lines.LINE_OK, body_lines.THROUGH_BASE,
+                                         body_lines.LINE_OK])
+    np.testing.assert_allclose(depth, [5.0, 5.0, 4.0, 6.0])
+    np.testing.assert_allclose(entry[1], [0.0, 5.0, 4.0])
 
 
 def test_a_cyst_whose_centre_lies_outside_follows_the_nearest_tetrahedron(cyst):
