@@ -1,4 +1,5 @@
-"""Space geometry on arrays: distances to triangles and segments, inside a closed surface, the dome's surface.
+"""Space geometry on arrays: distances to triangles and segments, lines through triangles, inside a closed surface,
+the dome's surface.
 
 The one definition of "inside the body", "distance to the skin" and
 "nearest skin point" that the 3-D scene's checks (config), its build
@@ -123,6 +124,33 @@ def segment_segment_distance(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1:
     s = np.where(a <= eps, 0.0, s)
     t = np.where((a <= eps) & (e <= eps), 0.0, t)
     return np.linalg.norm(r + s[..., None] * d1 - t[..., None] * d2, axis=-1)
+
+
+def ray_triangle_hits(origins: np.ndarray, directions: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray,
+                      tol: float = 1e-9) -> np.ndarray:
+    """Ray parameters t (K, T) at which the lines origin + t·direction (K, 3 each) cross triangles (a, b, c each
+    (T, 3)), +inf where a line misses one or runs parallel to it (Möller–Trumbore). t may be negative (behind the
+    origin): the caller keeps the side it wants. A crossing within tol (barycentric) of a triangle's edge counts,
+    so a line through an edge or a corner hits at least one of the triangles that share it."""
+    origins, directions = np.atleast_2d(origins), np.atleast_2d(directions)
+    e1, e2 = b - a, c - a
+    scale = np.linalg.norm(np.cross(e1, e2), axis=1)  # (T,): |det| below 1e-12 of this × |d| is parallel
+    out = np.empty((origins.shape[0], a.shape[0]))
+    step = _step(len(a))
+    for lo in range(0, origins.shape[0], step):
+        d = directions[lo:lo + step, None, :]
+        pvec = np.cross(d, e2)  # (k, T, 3)
+        det = np.sum(e1 * pvec, -1)
+        ok = np.abs(det) > 1e-12 * scale * np.linalg.norm(d, axis=-1)
+        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        tvec = origins[lo:lo + step, None, :] - a
+        u = np.sum(tvec * pvec, -1) * inv
+        qvec = np.cross(tvec, e1)
+        v = np.sum(d * qvec, -1) * inv
+        t = np.sum(e2 * qvec, -1) * inv
+        hit = ok & (u >= -tol) & (v >= -tol) & (u + v <= 1.0 + tol)
+        out[lo:lo + step] = np.where(hit, t, np.inf)
+    return out
 
 
 def spheroid_cap_surface(radius_mm: float, height_mm: float, spacing_mm: float) -> tuple[np.ndarray, np.ndarray]:

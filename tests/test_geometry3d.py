@@ -83,3 +83,34 @@ def test_segment_distances_against_a_dense_sample_degenerate_segments_included()
             Q = q0[j] + u[:, None] * (q1[j] - q0[j])
             ref = np.min(np.linalg.norm(P[:, None] - Q[None], axis=-1))
             assert d[i, j] <= ref + 1e-12 and d[i, j] >= ref - 0.01
+
+
+def test_lines_through_triangles_cross_where_a_linear_solve_puts_them():
+    rng = np.random.default_rng(4)
+    tri = rng.normal(size=(30, 3, 3))
+    origins = rng.normal(scale=3.0, size=(40, 3))
+    # half the lines aimed at a point inside a triangle, so that there are hits as well as misses
+    u, v = rng.uniform(0.05, 0.45, size=(2, 20))
+    aim = tri[:20, 0] + u[:, None] * (tri[:20, 1] - tri[:20, 0]) + v[:, None] * (tri[:20, 2] - tri[:20, 0])
+    directions = np.concatenate([aim - origins[:20], rng.normal(size=(20, 3))])
+    t = g3.ray_triangle_hits(origins, directions, tri[:, 0], tri[:, 1], tri[:, 2])
+    np.testing.assert_allclose(np.diag(t)[:20], 1.0, atol=1e-9)
+    # independently: o + t d = a + u (b − a) + w (c − a) solved as a 3 × 3 system for every pair
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    A = np.stack(np.broadcast_arrays(e1[None], e2[None], -directions[:, None]), axis=-1)  # (40, 30, 3, 3)
+    uwt = np.linalg.solve(A, (origins[:, None] - tri[None, :, 0])[..., None])[..., 0]
+    inside = (uwt[..., 0] >= 0) & (uwt[..., 1] >= 0) & (uwt[..., 0] + uwt[..., 1] <= 1)
+    clear = np.min(np.stack([uwt[..., 0], uwt[..., 1], 1 - uwt[..., 0] - uwt[..., 1]]), axis=0)
+    decided = np.abs(clear) > 1e-6  # not within round-off of an edge
+    assert inside[decided].sum() > 25 and (~inside[decided]).sum() > 500
+    np.testing.assert_array_equal(np.isfinite(t)[decided], inside[decided])
+    np.testing.assert_allclose(t[decided & inside], uwt[..., 2][decided & inside], rtol=1e-9, atol=1e-9)
+
+
+def test_a_line_through_an_edge_hits_a_triangle_that_shares_it_and_parallel_lines_miss():
+    a, b, c, d = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]])
+    t = g3.ray_triangle_hits(np.array([[0.5, 0.5, 2.0]]), np.array([[0.0, 0, -1]]), np.array([a, b]),
+                             np.array([b, d]), np.array([c, c]))
+    assert np.all(t == pytest.approx(2.0))  # through the shared edge b–c: both count
+    t = g3.ray_triangle_hits(np.array([[0.2, 0.2, 1.0]]), np.array([[1.0, 0, 0]]), a[None], b[None], c[None])
+    assert np.isinf(t).all()

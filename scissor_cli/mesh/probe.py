@@ -51,10 +51,11 @@ def apply_probe(probe: TargetProbe, D: np.ndarray, d: int = 2) -> np.ndarray:
 
 
 def locate_in_simplices(nodes: np.ndarray, cells: np.ndarray, points: np.ndarray,
-                        tol: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
+                        tol: float = 1e-9, extrapolate: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Containing cell (K,) and barycentric coordinates (K, d + 1) of points (K, d) in simplices (M, d + 1) of
-    nodes (N, d), any d; ValueError naming the first point outside. Every cell is tried for every point (targets
-    and markers: a few dozen points)."""
+    nodes (N, d), any d; ValueError naming the first point outside, or with `extrapolate` the cell whose smallest
+    coordinate is largest and its coordinates (some negative: the point follows that cell's affine map). Every
+    cell is tried for every point (targets and markers: a few dozen points)."""
     points = np.atleast_2d(np.asarray(points, float))
     X = nodes[cells]  # (M, d + 1, d)
     inv = np.linalg.inv(np.transpose(X[:, 1:] - X[:, :1], (0, 2, 1)))  # (M, d, d): Dm⁻¹, edges as columns
@@ -67,7 +68,7 @@ def locate_in_simplices(nodes: np.ndarray, cells: np.ndarray, points: np.ndarray
         worst = full.min(axis=2)
         best = np.argmax(worst, axis=1)
         rows = np.arange(len(best))
-        if np.any(worst[rows, best] < -tol):
+        if not extrapolate and np.any(worst[rows, best] < -tol):
             bad = lo + int(np.flatnonzero(worst[rows, best] < -tol)[0])
             raise ValueError(f"point {np.round(points[bad], 6).tolist()} mm is outside the mesh")
         cell[lo:lo + 64] = best
@@ -75,7 +76,9 @@ def locate_in_simplices(nodes: np.ndarray, cells: np.ndarray, points: np.ndarray
     return cell, bary
 
 
-def probe_points(nodes: np.ndarray, cells: np.ndarray, points: np.ndarray) -> TargetProbe:
-    """The probe of rest points (K, d) mm carried by the simplices (M, d + 1) of nodes (N, d) holding them."""
-    cell, bary = locate_in_simplices(nodes, cells, points)
+def probe_points(nodes: np.ndarray, cells: np.ndarray, points: np.ndarray, extrapolate: bool = False) -> TargetProbe:
+    """The probe of rest points (K, d) mm carried by the simplices (M, d + 1) of nodes (N, d) holding them (a point
+    outside the mesh: ValueError, or with `extrapolate` carried by the affine map of the cell whose smallest
+    barycentric coordinate is largest there)."""
+    cell, bary = locate_in_simplices(nodes, cells, points, extrapolate=extrapolate)
     return TargetProbe(tri_idx=cell, nodes=cells[cell], bary=bary)

@@ -80,12 +80,16 @@ def _wrap_into(angle: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return cands[np.arange(angle.size), np.argmin(dist, axis=1)]
 
 
+#: the largest vertical component of a unit approach the horizontal needle is taken to have
+HORIZONTAL_TOL = 1e-6
+
+
 def _normalised_horizontal(approach: np.ndarray) -> np.ndarray:
     norm = np.linalg.norm(approach, axis=1)
     if np.any(norm < 1e-12):
         raise ValueError("approach direction has zero length")
     u = approach / norm[:, None]
-    if np.any(np.abs(u[:, 2]) > 1e-6):
+    if np.any(np.abs(u[:, 2]) > HORIZONTAL_TOL):
         raise ValueError(
             "approach must be horizontal (z component 0): this robot keeps the needle "
             f"in a horizontal plane; got z = {u[np.argmax(np.abs(u[:, 2])), 2]:.3g} after normalising"
