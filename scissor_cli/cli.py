@@ -82,12 +82,13 @@ def _load(config: Optional[Path]) -> tuple[Config, str]:
         cfg = load_config(path)
     except ConfigError as exc:
         _fail(2, str(exc))
-    if cfg.tissue.shape in ("dome", "surface"):  # a 3-D scene's element budget: the mesher's estimate
-        from scissor_cli.experiments.body_run import body_budget_problem
+    if cfg.tissue.shape in ("dome", "surface"):  # a 3-D scene's element budget and cameras
+        from scissor_cli.experiments.body_run import body_scene_problems
 
-        problem = body_budget_problem(cfg)
-        if problem is not None:
-            _fail(2, f"{path}: {problem}")
+        problems = body_scene_problems(cfg)
+        if problems:
+            _fail(2, f"{path}: {problems[0]}" + (f"\n  (and {len(problems) - 1} more problem(s))"
+                                                 if len(problems) > 1 else ""))
     return cfg, path.stem
 
 
@@ -264,12 +265,8 @@ def _configured(options: SimulateOptions) -> tuple[Config, str]:
         cfg = cfg.model_copy(update={"study": StudyConfig()})
     try:  # the options may combine with the scene into something it does not allow: say so now, not in a worker
         parse_config(resolved_yaml(cfg), f"{scene} with the command's options")
-        if body:
-            from scissor_cli.experiments.body_run import refuse_unbuilt
-
-            refuse_unbuilt(cfg)
     except ConfigError as exc:
-        _fail(2, f"{scene}: {exc}" if body and not str(exc).startswith(str(scene)) else str(exc))
+        _fail(2, str(exc))
     return cfg, stem
 
 

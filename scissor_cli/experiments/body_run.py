@@ -19,11 +19,12 @@ import numpy as np
 from scissor_cli import progress
 from scissor_cli.config.body_sections import BodyConfig
 from scissor_cli.config.element_budget import TETRAHEDRA_BUDGET
-from scissor_cli.config.loading import ConfigError, resolved_yaml
+from scissor_cli.config.loading import resolved_yaml
 from scissor_cli.experiments.body_resolution import BodyChoice, choose_body_scale
 from scissor_cli.experiments.run_cache import cache_dir
 from scissor_cli.experiments.run_summary import RunSummary
 from scissor_cli.experiments.sink import ForwardCase, RunSink, SinkFactory, product_key
+from scissor_cli.experiments.trial_stage import Execution
 from scissor_cli.mechanics.body_tissue import build_body
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.body_inputs import body_shape, inclusions, mesh_body, sizing
@@ -43,6 +44,23 @@ def body_model(cfg: BodyConfig, cache: Path | None = None, scale: float = 1.0,
     return scene, mesh, build_body(scene, mesh, model=model)
 
 
+def body_scene_problems(cfg: BodyConfig) -> list[str]:
+    """What a 3-D scene asks that its layers refuse, checked before any run (exit 2; the CLI's `validate` and
+    `simulate`): the mesh over the element budget, cameras that cannot see or cannot triangulate its lesions."""
+    from scissor_cli.sensing.camera3d import camera_problems  # noqa: PLC0415 (a later layer than the config's)
+
+    problems = []
+    budget = body_budget_problem(cfg)
+    if budget is not None:
+        problems.append(budget)
+    points = [t.position_mm for t in cfg.targets] + [t.desired_mm for t in cfg.targets if t.desired_mm is not None]
+    found = camera_problems(cfg.cameras if cfg.cameras else [cfg.camera], np.array(points, float) if points else None)
+    if not cfg.cameras:  # the scene's one `camera`
+        found = [p.replace("cameras[0]", "camera") for p in found]
+    field = "cameras" if cfg.cameras else "camera"
+    return problems + [p if p.startswith("camera") else f"{field}: {p}" for p in found]
+
+
 def body_budget_problem(cfg: BodyConfig) -> str | None:
     """Why the scene's mesh may not be made (estimated above `TETRAHEDRA_BUDGET` before meshing), or None."""
     if cfg.tissue.mesh.file is not None:
@@ -56,17 +74,8 @@ def body_budget_problem(cfg: BodyConfig) -> str | None:
             f"max_edge_mm or scale, or a steeper grading")
 
 
-def refuse_unbuilt(cfg: BodyConfig) -> None:
-    """ConfigError for what a 3-D scene may describe but a run cannot do yet: trials (the closed loop in 3-D)."""
-    if cfg.trials.count > 0:
-        raise ConfigError(f"trials.count: {cfg.trials.count} trials of a 3-D scene need the closed loop in 3-D "
-                          f"(plan, cameras, control), which this version does not have yet; run the forward cases "
-                          f"with --trials 0 (docs/model.md §19)")
-
-
-def run_body_simulation(cfg: BodyConfig, run: SinkFactory, jobs: int = 1) -> RunSummary:
+def run_body_simulation(cfg: BodyConfig, run: SinkFactory, execution: Execution) -> RunSummary:
     """Everything `scissor simulate` does for a 3-D scene, into the sink `run` opens; returns the run's summary."""
-    refuse_unbuilt(cfg)
     cache = cache_dir(run.location)
     choice = None
     if cfg.tissue.accuracy_mm is not None:
@@ -78,7 +87,7 @@ def run_body_simulation(cfg: BodyConfig, run: SinkFactory, jobs: int = 1) -> Run
     tissue = _build(cfg, cache)
     summary = RunSummary(run.location, tissue.mesh.n_elements)
     with run.open(resolved_yaml(cfg), cfg.seed) as sink:
-        body_stages(cfg, tissue, sink, summary, choice=choice)
+        body_stages(cfg, tissue, sink, summary, choice=choice, execution=execution)
     return summary
 
 
@@ -92,8 +101,9 @@ def _build(cfg: BodyConfig, cache: Path | None) -> Tissue:
 
 
 def body_stages(cfg: BodyConfig, tissue: Tissue, sink: RunSink, summary, done: frozenset[str] = frozenset(),
-                choice: BodyChoice | None = None) -> None:
-    """The stages after the body is built: model, forward cases, targets, Jacobian at rest."""
+                choice: BodyChoice | None = None, execution: Execution | None = None) -> None:
+    """The stages after the body is built: model, forward cases, targets, Jacobian at rest; the plans, and with
+    trials the nominal manipulation of each planned lesion and the trials (`body_closed_loop`)."""
     scene = tissue.scene
     if "model" not in done:
         sink.model(tissue)
@@ -111,6 +121,10 @@ def body_stages(cfg: BodyConfig, tissue: Tissue, sink: RunSink, summary, done: f
         for k, target in enumerate(scene.targets):
             sink.jacobian(target.name, J[3 * k:3 * k + 3], scene.cup_names)
         sink.mark_finished("jacobian")
+    if scene.targets:
+        from scissor_cli.experiments.body_closed_loop import body_loop_stages  # noqa: PLC0415
+
+        body_loop_stages(cfg, tissue, sink, summary, done, execution or Execution())
 
 
 def _forward_stage(cfg: BodyConfig, tissue: Tissue, probe, sink: RunSink, summary, done: frozenset[str]) -> None:
@@ -141,11 +155,12 @@ def _forward_stage(cfg: BodyConfig, tissue: Tissue, probe, sink: RunSink, summar
         advance(1)
 
 
-def resume_body(cfg: BodyConfig, sink, done: frozenset[str]) -> int:
+def resume_body(cfg: BodyConfig, sink, done: frozenset[str], execution: Execution | None = None) -> int:
     """`--resume` of a 3-D run: the stages not marked finished, into its sink (the config it recorded has the mesh
-    that ran: its accuracy choice already applied). Returns 0: a 3-D run has no trials yet."""
+    that ran: its accuracy choice already applied). Returns how many trials ran."""
     tissue = _build(cfg, cache_dir(sink.location))
     if done:
         progress.info(f"resume: {len(done)} finished stage product(s) kept")
-    body_stages(cfg, tissue, sink, RunSummary(sink.location, tissue.mesh.n_elements), done=done)
-    return 0
+    summary = RunSummary(sink.location, tissue.mesh.n_elements)
+    body_stages(cfg, tissue, sink, summary, done=done, execution=execution)
+    return summary.trials_run

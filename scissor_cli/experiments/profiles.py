@@ -193,8 +193,9 @@ def trial_rng(seed: int, target_index: int, trial: int) -> np.random.Generator:
 
 
 def smooth_field(centroids: np.ndarray, length_mm: float, rng: np.random.Generator) -> np.ndarray:
-    """A zero-mean, unit-variance random field (M,) at centroids (M, 2), correlation length in mm."""
-    omega = rng.standard_normal((N_FEATURES, 2)) / length_mm
+    """A zero-mean, unit-variance random field (M,) at centroids (M, d) (d = 2, or 3 in a body), correlation length
+    in mm."""
+    omega = rng.standard_normal((N_FEATURES, centroids.shape[1])) / length_mm
     phase = rng.uniform(0.0, 2.0 * np.pi, N_FEATURES)
     return np.sqrt(2.0 / N_FEATURES) * np.cos(centroids @ omega.T + phase).sum(axis=1)
 

@@ -10,8 +10,7 @@ go to `scissor_cli.progress`, where the CLI decides what a terminal shows.
 from __future__ import annotations
 
 import time
-from contextlib import closing
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +25,6 @@ from scissor_cli.experiments.imaging_stage import prepare_imaging
 from scissor_cli.experiments.insertion_stage import insertion_stage
 from scissor_cli.experiments.model_planning import reserved_scene
 from scissor_cli.experiments.needle_model_stage import needs_needle_models
-from scissor_cli.experiments.pool import deferred_signals
 from scissor_cli.experiments.profiles import CAMERA_SPREADS, IMAGING_SPREADS, INSERTION_SPREADS, error_model
 from scissor_cli.experiments.run_cache import cache_dir
 from scissor_cli.experiments.run_summary import RunSummary
@@ -43,7 +41,8 @@ from scissor_cli.experiments.sink import (  # noqa: F401 - raised through this m
 )
 from scissor_cli.experiments.slab_starts import with_slab_starts
 from scissor_cli.experiments.study import run_study
-from scissor_cli.experiments.trials import TargetTask, execute
+from scissor_cli.experiments.trial_stage import Execution, TrialsFailed, expected_duration, run_trial_stage  # noqa: F401 (this module's API)
+from scissor_cli.experiments.trials import TargetTask
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.outlines import boundary_loop, deformed_outlines, embed_outlines
 from scissor_cli.mesh.probe import probe_targets, target_positions
@@ -55,20 +54,7 @@ from scissor_cli.robot.registration import plan_to_joints
 from scissor_cli.solvers.common import SolverError
 from scissor_cli.solvers.equilibrium import EquilibriumSolver
 from scissor_cli.solvers.jacobian import cup_target_jacobian
-from scissor_cli.text import duration, signed
-
-
-class TrialsFailed(RuntimeError):
-    """Some trials crashed; the others are stored and `--resume` re-runs the crashed ones."""
-
-
-@dataclass(frozen=True)
-class Execution:
-    """How trials run: worker processes, or a Dask cluster at `scheduler`."""
-
-    jobs: int = 1
-    executor: str = "local"  # "local" | "dask"
-    scheduler: str | None = None
+from scissor_cli.text import signed
 
 
 def run_simulation(cfg: Config, run: SinkFactory,
@@ -83,7 +69,7 @@ def run_simulation(cfg: Config, run: SinkFactory,
     if isinstance(cfg, BodyConfig):  # a 3-D scene (docs/model.md §19)
         from scissor_cli.experiments.body_run import run_body_simulation  # noqa: PLC0415
 
-        return run_body_simulation(cfg, run, execution.jobs)
+        return run_body_simulation(cfg, run, execution)
     selection = None
     if cfg.solver.accuracy_mm is not None:
         selection = select(cfg, cfg.solver.accuracy_mm)
@@ -153,7 +139,7 @@ def resume_simulation(sink: ResumableSink, execution: Execution = Execution()) -
         if isinstance(cfg, BodyConfig):
             from scissor_cli.experiments.body_run import resume_body  # noqa: PLC0415
 
-            return resume_body(cfg, sink, done)
+            return resume_body(cfg, sink, done, execution)
         tissue = build_model(cfg)[2] if "trials" in done else _build(cfg)
         summary = RunSummary(sink.location, tissue.mesh.n_elements)
         if done:
@@ -224,7 +210,7 @@ def _stages(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary,
             sink.mark_finished("trials")
         if cfg.trials.truth == "slab" and (cfg.trials.budget or any(len(ks) for ks in sink.pending_trials().values())):
             tasks = with_slab_starts(cfg, sink.config_yaml, tasks, cache_dir(sink.location), execution.jobs)
-        summary.trials_run = _trial_stage(sink, cfg, tasks, execution)
+        summary.trials_run = run_trial_stage(sink, cfg, tasks, execution)
         if cfg.trials.budget:
             summary.figures += run_budget(cfg, tasks, sink, execution, done)
 
@@ -302,64 +288,6 @@ def _manipulation_stage(cfg: Config, tissue: Tissue, plans: list[NeedlePlan], si
             f"corridor {'clear' if closed.corridor_clear else 'BLOCKED'}"
         )
     return paths
-
-
-def _trial_stage(sink: RunSink, cfg: Config, tasks: list[TargetTask],
-                 execution: Execution) -> int:
-    """Run every pending trial of the sink and store each as it finishes; returns how many ran.
-
-    Storing a trial is not cut short by a stop signal (`deferred_signals`);
-    leaving the loop for any reason stops the workers at once.
-    """
-    pending = sink.pending_trials()
-    by_name = {t.name: t for t in tasks}
-    by_index = {t.index: t for t in tasks}
-    work = [(by_name[name], int(k)) for name, ks in pending.items() if name in by_name for k in ks]
-    if work:
-        progress.info(f"trials: {len(work)} to run ({cfg.trials.profile} profile, {execution.jobs} job(s), "
-                      f"{execution.executor} executor)")
-    advance = progress.bar("trials", len(work))
-    t0, failed, finished, lost = time.perf_counter(), 0, 0, []
-    with closing(execute(sink.config_yaml, work, execution.jobs, execution.executor, execution.scheduler)) as outcomes:
-        for outcome in outcomes:
-            with deferred_signals():
-                sink.trial(by_index[outcome.target_index].name, outcome)
-            failed += not outcome.ok
-            if outcome.lost_frames:
-                lost.append(f"{by_index[outcome.target_index].name}#{outcome.trial}: {outcome.lost_frames}")
-            finished += 1
-            if finished == 1 and len(work) > 1:
-                progress.info(expected_duration(outcome.trial_time_s, len(work), execution, loop_s=outcome.time_s))
-            advance(1)
-    if work:
-        progress.info(f"trials done in {time.perf_counter() - t0:.1f} s")
-    if lost:  # with imaging: frames on which the tracking lost the lesion (the last position held)
-        progress.info(f"imaging: the lesion was lost on some frames of {len(lost)} trial(s) ({', '.join(lost[:10])}"
-                      f"{', …' if len(lost) > 10 else ''})")
-    sink.trial_figures(cfg.name)
-    if failed:
-        raise TrialsFailed(f"{failed} trial(s) crashed (see /trials/<target>/message); re-run them with --resume")
-    return len(work)
-
-
-def expected_duration(first_s: float, n_trials: int, execution: Execution, loop_s: float | None = None) -> str:
-    """The line a run prints when its first trial is in: how long all of them should take.
-
-    first_s: the first trial's own time, its loop and, with insertion, every
-    strategy's insertion (`TrialOutcome.trial_time_s`; outcomes arrive in
-    batches, so the wall time until the first arrives can hold several
-    trials), times the trials per worker; building each worker's model
-    comes on top. loop_s: the loop's part of it, named when the rest (the
-    insertion) is a noticeable share. A Dask cluster's size is not known
-    here: there it is per job asked for.
-    """
-    workers = max(1, min(execution.jobs, n_trials))
-    total = first_s * -(-n_trials // workers)
-    split = ""
-    if loop_s is not None and first_s - loop_s > 0.1 * first_s:
-        split = f" (the loop {duration(loop_s)}, the needle's insertion {duration(first_s - loop_s)})"
-    return (f"trials: the first took {duration(first_s)}{split}; all {n_trials} should take about "
-            f"{duration(total)} with {workers} worker(s), plus building each worker's model")
 
 
 def _forward_stage(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary,

@@ -12,76 +12,24 @@ from __future__ import annotations
 
 import hashlib
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from typing import Iterator, Optional
 
 import numpy as np
 
 from scissor_cli import control, runtime
 from scissor_cli.config import parse_config
+from scissor_cli.config.body_sections import BodyConfig
 from scissor_cli.control.allocation import along_mm, miss_mm
 from scissor_cli.experiments.build import build_model
 from scissor_cli.experiments.pool import run_pool
 from scissor_cli.experiments.profiles import ErrorModel, draw_insertion, draw_trial, error_model
 from scissor_cli.experiments.sensor_models import sensor_model
+from scissor_cli.experiments.trial_types import TargetTask, TrialOutcome
 from scissor_cli.insertion import InsertionOptions, NeedleParams, needle_path, run_strategies
 from scissor_cli.planning.corridor import corridor_radius
 from scissor_cli.sensing.sensor import Sensor, SensorModel, TrialDraws
 from scissor_cli.solvers.equilibrium import solve_equilibrium
-
-
-@dataclass(frozen=True)
-class TargetTask:
-    """What a worker needs to know of one target's plan, as plain data (mm)."""
-
-    index: int
-    name: str
-    rest: np.ndarray  # (2,)
-    desired: np.ndarray  # (2,)
-    plan_strokes: np.ndarray  # (C,) where the planner found the desired position
-    side: str  # corridor entry side, "" when there is no corridor
-    direction: np.ndarray  # (2,) corridor direction, NaN when none
-    entry: Optional[np.ndarray] = None  # (2,) the plan's needle entry (insertion)
-    depth_mm: float = 0.0  # the plan's depth (insertion)
-    #: the controller's model when it is not the layer (`layer3d.controller_model.ModelData`, docs/model.md §15)
-    controller_model: Optional[object] = None
-    #: slab truth: the nominal slab's (strokes (C,), x (N3, 3)) mm at the plan, solved once per run
-    #: (`experiments.slab_starts`); None: the worker solves it
-    slab_start: Optional[tuple] = None
-    #: with `imaging`: the probe and its PSF as plain data (`sensor_models.imaging_data`), made once per run;
-    #: None: the worker makes them
-    imaging: Optional[dict] = None
-
-
-@dataclass
-class TrialOutcome:
-    """One finished trial. A crashed one (`ok` False) carries the finite fill values of
-    docs/contract.md#resultsh5: zeros, `iterations` −1 and no history."""
-
-    target_index: int
-    trial: int
-    ok: bool
-    message: str
-    final_error: np.ndarray  # (2,) true − desired, mm
-    iterations: int
-    time_s: float  # wall clock of the loop
-    corridor_clear: bool
-    clearance_mm: float
-    stop_reason: str
-    correctable_mm: float
-    uncorrectable_mm: float
-    history_columns: list[str]
-    history: np.ndarray  # (K, n)
-    miss_mm: float = 0.0  # across the plan's needle axis after the loop (docs/model.md §6)
-    along_mm: float = 0.0  # desired − true along the axis, for the depth
-    #: with insertion: the final miss and depth error (mm) per strategy (S,), in the config's order
-    insertion_miss_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    insertion_depth_error_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    #: wall clock of the whole trial: the loop and, with insertion, every strategy's insertion (s)
-    trial_time_s: float = 0.0
-    #: with `imaging`: frames on which the tracking lost the lesion (the loop's and the insertions'), and all frames
-    lost_frames: int = 0
-    frames: int = 0
 
 
 class TrialContext:
@@ -248,12 +196,17 @@ class TrialContext:
 _CONTEXTS: dict[str, TrialContext] = {}
 
 
-def trial_context(config_yaml: str) -> TrialContext:
+def trial_context(config_yaml: str):
     """This process's context of the run with this config (built on first use; one run at a time)."""
     key = hashlib.sha256(config_yaml.encode()).hexdigest()
     if key not in _CONTEXTS:
         _CONTEXTS.clear()  # one run at a time per process
-        _CONTEXTS[key] = TrialContext(config_yaml)
+        if isinstance(parse_config(config_yaml, "<run config>"), BodyConfig):  # a 3-D scene's trials
+            from scissor_cli.experiments.body_trials import BodyTrialContext  # noqa: PLC0415
+
+            _CONTEXTS[key] = BodyTrialContext(config_yaml)
+        else:
+            _CONTEXTS[key] = TrialContext(config_yaml)
     return _CONTEXTS[key]
 
 

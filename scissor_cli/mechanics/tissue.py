@@ -226,10 +226,16 @@ class Tissue:
         """The same mesh and boundary with other material constants (the trials' "true" tissue).
 
         E_scale multiplies the per-element E (scalar or (M,) for heterogeneity).
+        fiber_angle_rad: the fibers' angle in the plane (a body's 3-D field is
+        turned about z by its difference from the scene's angle).
         """
         m = self.scene.material
         fiber = self.fiber
-        if fiber_angle_rad is not None:
+        if fiber_angle_rad is not None and fiber.shape[1] == 3:  # a body's field (uniform or radial): turned about z
+            turn = fiber_angle_rad - m.fiber_angle_rad
+            c, s = np.cos(turn), np.sin(turn)
+            fiber = np.column_stack([c * fiber[:, 0] - s * fiber[:, 1], s * fiber[:, 0] + c * fiber[:, 1], fiber[:, 2]])
+        elif fiber_angle_rad is not None:
             fiber = np.tile([np.cos(fiber_angle_rad), np.sin(fiber_angle_rad)], (self.mesh.n_elements, 1))
         E = self.element_E_kPa * E_scale
         params = materials.material_params(

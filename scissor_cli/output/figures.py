@@ -180,17 +180,19 @@ def manipulation_figure(d: ManipulationDrawing) -> Figure:
 
 
 def error_boxplots(panels: list[tuple[str, dict[str, np.ndarray]]]) -> Figure:
-    """Box plots of the final error in x and y per target, like the paper's Fig. 14.
+    """Box plots of the final error in x and y (and z in a body) per target, like the paper's Fig. 14.
 
-    panels: [(title, {target: errors (T, 2) mm})], one row of x|y axes per
+    panels: [(title, {target: errors (T, d) mm})], one row of x|y(|z) axes per
     panel (e.g. prosthesis, ex vivo). Box 25–75 %, black median line, solid
     triangle at the mean, whiskers at the minimum and maximum.
     """
-    fig = Figure(figsize=(9, 3.4 * len(panels)))
+    width = max((np.asarray(e).shape[1] for _, errors in panels for e in errors.values()), default=2)
+    axes = "xyz"[:width]  # x, y (and z in a body)
+    fig = Figure(figsize=(4.5 * width, 3.4 * len(panels)))
     for row, (title, errors) in enumerate(panels):
         names = list(errors)
-        for col, axis in enumerate("xy"):
-            ax = fig.add_subplot(len(panels), 2, 2 * row + col + 1)
+        for col, axis in enumerate(axes):
+            ax = fig.add_subplot(len(panels), width, width * row + col + 1)
             data = [np.asarray(errors[n])[:, col] for n in names]
             data = [d[np.isfinite(d)] for d in data]
             ax.boxplot(
@@ -213,7 +215,7 @@ def iterations_histogram(iterations: dict[str, np.ndarray], title: str) -> Figur
     ax = fig.add_subplot(1, 1, 1)
     values = [np.asarray(v)[np.asarray(v) >= 0] for v in iterations.values()]
     top = max((int(v.max()) for v in values if len(v)), default=1)
-    ax.hist(values, bins=np.arange(0.5, top + 1.5), stacked=True, label=list(iterations), edgecolor="k", lw=0.4)
+    ax.hist(values, bins=np.arange(-0.5, top + 1.5), stacked=True, label=list(iterations), edgecolor="k", lw=0.4)
     ax.set_xlabel("control iterations")
     ax.set_ylabel("trials")
     ax.set_title(title, fontsize=10)

@@ -187,11 +187,24 @@ class ResultsSink:
         self.out.flush()
         return save_grip_figure(plan, scene, self.location)
 
-    def manipulation(self, m: Manipulation) -> Path:
+    def manipulation(self, m: Manipulation) -> Path | list[Path]:
         results.write_manipulation(self.out, m.target, m.closed, m.opened)
         self.out.flush()
+        if m.tissue.dim == 3:  # a body: its section and 3-D view after the closed loop (docs/model.md §19)
+            from scissor_cli.output.body.figures import manipulation_figures  # noqa: PLC0415
+
+            section, view = manipulation_figures(m)
+            return [figures.save(section, self.location / f"manipulation_{m.target}.png"),
+                    figures.save(view, self.location / f"manipulation_{m.target}_3d.png")]
         inputs = manipulation_figure_inputs(m.tissue, m.closed, m.target_rest, m.corridor)
         return figures.save(figures.manipulation_figure(inputs), self.location / f"manipulation_{m.target}.png")
+
+    def body_plan(self, plan) -> None:
+        """A 3-D lesion's needle plan (docs/model.md §19): /plan/<target> and its /targets attributes."""
+        from scissor_cli.output.body.results import write_body_plan  # noqa: PLC0415
+
+        write_body_plan(self.out, plan)
+        self.out.flush()
 
     def imaging(self, record, tissue, layer_frames: list) -> list[Path]:
         """/imaging/<target> (docs/contract.md), flushed, then imaging_<target>.png and .gif; returns their paths."""
@@ -211,8 +224,9 @@ class ResultsSink:
         return insertion_outputs(ins, self.location)
 
     # -- the trials --------------------------------------------------------
-    def allocate_trials(self, targets: list[str], count: int, attrs: dict, without_plan: dict[str, str]) -> None:
-        results.allocate_trials(self.out, targets, count, attrs)
+    def allocate_trials(self, targets: list[str], count: int, attrs: dict, without_plan: dict[str, str],
+                        dim: int = 2) -> None:
+        results.allocate_trials(self.out, targets, count, attrs, dim)
         for name, reason in without_plan.items():
             results.mark_without_plan(self.out, name, reason)
         self.out.flush()

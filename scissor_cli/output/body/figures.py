@@ -27,10 +27,15 @@ SKIN = "#d9a68c"
 LESION = "#c0392b"
 
 
-def section_plane(tissue, needle_direction: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The section's origin (3,) mm and in-plane unit vectors (2, 3): (u, v) = (cup axis, needle or vertical)."""
+def section_plane(tissue, needle_direction: np.ndarray | None = None,
+                  through: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The section's origin (3,) mm and in-plane unit vectors (2, 3): (u, v) = (cup axis, needle or vertical); the
+    plane goes through `through` (default the first lesion's rest centre)."""
     scene = tissue.scene
-    origin = scene.targets[0].rest if scene.targets else tissue.mesh.nodes.mean(axis=0)
+    if through is not None:
+        origin = np.asarray(through, float)
+    else:
+        origin = scene.targets[0].rest if scene.targets else tissue.mesh.nodes.mean(axis=0)
     u = scene.cups[0].axis if scene.cups else np.array([1.0, 0.0, 0.0])
     u = u / np.linalg.norm(u)
     for v in (needle_direction, np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])):
@@ -89,10 +94,12 @@ def _region_colours(names: tuple, tissue) -> list[str]:
 
 
 def section_figure(title: str, tissue, x: np.ndarray, targets: dict[str, np.ndarray],
-                   needle_direction: np.ndarray | None = None) -> Figure:
-    """The section through the first lesion at rest and deformed (mm in the plane's coordinates)."""
+                   needle_direction: np.ndarray | None = None, through: str | None = None) -> Figure:
+    """The section through a lesion (`through`, default the first) at rest and deformed (mm in the plane's
+    coordinates)."""
     mesh = tissue.mesh
-    origin, (u, v) = section_plane(tissue, needle_direction)
+    lesion = next((t for t in tissue.scene.targets if t.name == through), None)
+    origin, (u, v) = section_plane(tissue, needle_direction, None if lesion is None else lesion.rest)
     normal = np.cross(u, v)
     a, b, t, hit = cut(mesh.nodes, mesh.tetrahedra, origin, normal)
     colours = np.array(_region_colours(mesh.region_names, tissue))[mesh.region[hit]]
@@ -116,7 +123,8 @@ def section_figure(title: str, tissue, x: np.ndarray, targets: dict[str, np.ndar
         ax.set_ylabel("across, in the section (mm)")
         ax.set_title(label)
         ax.legend(loc="best", fontsize=7)
-    fig.suptitle(f"{title}\nsection through {tissue.scene.targets[0].name if tissue.scene.targets else 'the body'}"
+    named = lesion.name if lesion is not None else (tissue.scene.targets[0].name if tissue.scene.targets else None)
+    fig.suptitle(f"{title}\nsection through {named or 'the body'}"
                  f" (regions: {', '.join(mesh.region_names)})", fontsize=10)
     return fig
 
@@ -158,8 +166,29 @@ def view_figure(title: str, tissue, x: np.ndarray, targets: dict[str, np.ndarray
 
 
 def body_figures(title: str, tissue, x: np.ndarray, strokes: dict[str, float], targets: dict[str, np.ndarray],
-                 needle_direction: np.ndarray | None = None) -> list[Figure]:
-    """A forward case's figures: [the section, the 3-D view]."""
+                 needle_direction: np.ndarray | None = None, through: str | None = None) -> list[Figure]:
+    """A forward case's (or a manipulation's) figures: [the section through a lesion, the 3-D view]."""
     moved = ", ".join(f"{k} {v:+g} mm" for k, v in strokes.items())
     head = f"{title} ({moved})" if moved else title
-    return [section_figure(head, tissue, x, targets, needle_direction), view_figure(head, tissue, x, targets)]
+    return [section_figure(head, tissue, x, targets, needle_direction, through), view_figure(head, tissue, x, targets)]
+
+
+def manipulation_figures(m) -> list[Figure]:
+    """A lesion's nominal closed loop (an `experiments.sink.Manipulation` of a body): the section through the lesion
+    and the 3-D view, at rest and where the loop left the body, the desired point drawn."""
+    closed = m.closed
+    x = closed.final_x if closed.final_x is not None else m.tissue.mesh.nodes
+    title = (f"{m.tissue.scene.name}: {m.target} moved by the closed loop ({closed.iterations} moves, "
+             f"{closed.stop_reason}; miss {closed.miss_mm:.3f} mm)")
+    targets = {t.name: (closed.final_position if t.name == m.target else t.rest) for t in m.tissue.scene.targets}
+    direction = closed.corridor_direction if np.all(np.isfinite(closed.corridor_direction)) else None
+    figs = body_figures(title, m.tissue, x, dict(zip(closed.cup_names, closed.final_strokes)), targets, direction,
+                        m.target)
+    origin, (u, v) = section_plane(m.tissue, direction, m.target_rest)
+    for ax in figs[0].axes[1:]:
+        ax.plot((closed.desired - origin) @ u, (closed.desired - origin) @ v, "x", color="k", ms=9, label="desired")
+        if np.all(np.isfinite(closed.corridor_entry)):  # the planned needle, entry to the desired point
+            line = np.stack([closed.corridor_entry, closed.desired]) - origin
+            ax.plot(line @ u, line @ v, "-", color="#2a7f2a", lw=1.6, label="needle (planned)")
+        ax.legend(loc="best", fontsize=7)
+    return figs

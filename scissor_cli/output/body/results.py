@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from scissor_cli.output.results import ResultsFile
+from scissor_cli.output.results import ResultsFile, filled
 
 
 def write_body_model(out: ResultsFile, tissue) -> None:
@@ -50,3 +50,17 @@ def write_body_resolution(out: ResultsFile, choice) -> None:
     out.dataset("mesh_resolution/time_s", np.array([max(c.mesh_s, 0) + max(c.solve_s, 0) for c in rows]), "s")
     out.attrs("mesh_resolution", {"accuracy_mm": choice.accuracy_mm, "pick": int(choice.pick),
                                   "chosen_scale": float(rows[choice.pick].scale)})
+
+
+def write_body_plan(out: ResultsFile, plan) -> None:
+    """/plan/<target> of a 3-D lesion (a `planning.body_plan.BodyNeedlePlan`) and its /targets attributes: entry,
+    direction (3,), depth, clearance (0 without obstacles: the +inf of no obstacle, filled), the joints (filled
+    where the robot cannot reach), desired (3,), strokes (C,)."""
+    joints = np.zeros(5) if plan.joints is None else np.asarray(plan.joints, float)
+    out.attrs(f"plan/{plan.target}", {
+        "entry": filled(plan.entry), "direction": filled(plan.direction), "depth_mm": float(filled(plan.depth_mm)),
+        "clearance_mm": float(filled(plan.clearance_mm)), "joints": filled(joints),
+        "joints_units": "d1, d2, d3 mm; theta4 rad; d5 mm", "joints_note": plan.robot_note,
+        "robot_reachable": bool(plan.robot_ok), "feasible": bool(plan.feasible), "reason": plan.reason,
+        "desired": np.asarray(plan.desired, float), "strokes": np.asarray(plan.strokes, float),
+    })

@@ -1,0 +1,134 @@
+"""A 3-D scene's plans, nominal manipulations and trials (docs/model.md §19, "Plan", "Control", "Trials").
+
+After the forward cases and the Jacobian (`experiments.body_run`):
+
+* **plans**: every lesion's straight needle (`planning.body_plan`), the
+  stroke search solving the body with warm starts, the robot's inverse
+  kinematics on the body registered in its base frame;
+* with trials, each planned lesion's **nominal manipulation**: the closed
+  loop and the open-loop baseline on the body itself, seen by the scene's
+  camera(s) without error (one camera still does not see its depth);
+* the **trials**: the profile's draws against the body
+  (`experiments.body_trials`), run and stored as a layer's are.
+
+Each product goes to the sink and is marked finished for `--resume`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from scissor_cli import control, progress
+from scissor_cli.config.body_sections import BodyConfig
+from scissor_cli.experiments.body_trials import body_sensor_model
+from scissor_cli.experiments.profiles import IMAGING_SPREADS, INSERTION_SPREADS, error_model
+from scissor_cli.experiments.sink import Manipulation, RunSink, product_key
+from scissor_cli.experiments.trial_stage import Execution, run_trial_stage
+from scissor_cli.experiments.trial_types import TargetTask
+from scissor_cli.mechanics.tissue import Tissue
+from scissor_cli.planning.body_plan import BodyNeedlePlan, body_robot_check, plan_body_targets
+from scissor_cli.robot.chain import RobotModel
+from scissor_cli.solvers.tracking import TrackedEquilibrium
+
+
+def body_loop_stages(cfg: BodyConfig, tissue: Tissue, sink: RunSink, summary, done: frozenset[str],
+                     execution: Execution) -> None:
+    """Plans; with trials, the nominal manipulations and the trials."""
+    plans = _stored(sink, [t.name for t in tissue.scene.targets]) if "plan" in done else None
+    if plans is None:
+        plans = _plan_stage(cfg, tissue, sink)
+        sink.mark_finished("plan")
+    summary.plans = plans
+    if cfg.trials.count == 0:
+        return
+    summary.figures += _manipulation_stage(cfg, tissue, plans, sink, done)
+    tasks = [TargetTask(k, p.target, tissue.scene.targets[k].rest, np.asarray(p.desired, float),
+                        np.asarray(p.strokes, float), "", np.asarray(p.direction, float),
+                        np.asarray(p.entry, float), float(p.depth_mm))
+             for k, p in enumerate(plans) if p.feasible]
+    if "trials" not in done:
+        em = error_model(cfg.trials)
+        attrs = {"count": cfg.trials.count, "profile": cfg.trials.profile, "seed": cfg.seed, "sensor": "camera",
+                 "cameras": len(cfg.cameras) if cfg.cameras else 1,
+                 **{k: getattr(em, k) for k in em.__dataclass_fields__
+                    if k not in ("profile",) + INSERTION_SPREADS + IMAGING_SPREADS}}
+        planned = {t.name for t in tasks}
+        sink.allocate_trials([p.target for p in plans], cfg.trials.count, attrs,
+                             {p.target: p.reason for p in plans if p.target not in planned}, dim=3)
+        sink.mark_finished("trials")
+    summary.trials_run = run_trial_stage(sink, cfg, tasks, execution)
+
+
+def _plan_stage(cfg: BodyConfig, tissue: Tissue, sink: RunSink) -> list[BodyNeedlePlan]:
+    robot = RobotModel.from_config(cfg.robot)
+    check = body_robot_check(robot, np.asarray(cfg.robot.layer_origin_mm, float),
+                             float(np.deg2rad(cfg.robot.layer_yaw_deg)))
+    tracker = TrackedEquilibrium(tissue, 1e-8)
+
+    def solve(strokes: np.ndarray) -> np.ndarray:
+        tracker.move_to(np.asarray(strokes, float))
+        return tracker.x.copy()
+
+    plans = plan_body_targets(tissue, tissue.scene, cfg.needle, robot_check=check, solve=solve)
+    for plan in plans:
+        sink.body_plan(plan)
+        where = (f"entry {np.round(plan.entry, 1).tolist()} along {np.round(plan.direction, 3).tolist()}, "
+                 f"depth {plan.depth_mm:.1f} mm, " + ("no obstacles" if np.isinf(plan.clearance_mm) else
+                                                      f"clearance {plan.clearance_mm:.2f} mm")
+                 + (f", strokes {np.round(plan.strokes, 2).tolist()} mm" if np.any(plan.strokes) else ""))
+        progress.info(f"plan {plan.target}: " + (where if plan.feasible else f"none: {plan.reason}")
+                      + ("" if plan.robot_ok or not plan.feasible else f"; ROBOT: {plan.robot_note}"))
+    return plans
+
+
+def _manipulation_stage(cfg: BodyConfig, tissue: Tissue, plans: list, sink: RunSink, done: frozenset[str]) -> list:
+    """Each planned lesion's closed loop and open-loop baseline on the body itself, seen without error."""
+    sensors = body_sensor_model(cfg, error_model(cfg.trials))
+    paths = []
+    for plan, target in zip(plans, tissue.scene.targets):
+        if not plan.feasible or product_key("manipulation", target.name) in done:
+            continue
+        desired = np.asarray(plan.desired, float)
+        run = control.TargetRun(sensor=sensors.nominal(desired), target=target.name,
+                                direction=np.asarray(plan.direction, float))
+        closed = control.run_target(tissue, target.rest, desired, cfg.controller, run)
+        opened = control.run_target(tissue, target.rest, desired, cfg.controller, replace(run, mode="open"))
+        for r in (closed, opened):  # the plan's needle, for the figure (no corridor is checked in a body yet)
+            r.corridor_direction = np.asarray(plan.direction, float)
+            r.corridor_entry = np.asarray(plan.entry, float)
+        out = sink.manipulation(Manipulation(target.name, closed, opened, tissue, target.rest, None))
+        sink.mark_finished(product_key("manipulation", target.name))
+        paths += [p for p in np.atleast_1d(out) if p is not None]
+        true_miss = float(np.linalg.norm((np.eye(3) - np.outer(plan.direction, plan.direction)) @ closed.final_error))
+        progress.info(f"manipulation {target.name}: closed loop {closed.iterations} iterations ({closed.stop_reason}),"
+                      f" true miss across the needle {true_miss:.3f} mm vs open loop {opened.miss_mm:.3f} mm")
+    return paths
+
+
+@dataclass(frozen=True)
+class _StoredPlan:
+    """A plan as a resumed run reads it back from /plan/<target>."""
+
+    target: str
+    feasible: bool
+    reason: str
+    desired: np.ndarray
+    strokes: np.ndarray
+    entry: np.ndarray
+    direction: np.ndarray
+    depth_mm: float
+    clearance_mm: float
+
+
+def _stored(sink: RunSink, names: list[str]) -> list | None:
+    """The plans a resumed run stored, in the scene's order of its lesions."""
+    stored = sink.plans()
+    if stored is None:
+        return None
+    return [_StoredPlan(name, bool(a["feasible"]), str(a["reason"]), np.asarray(a["desired"], float),
+                        np.asarray(a["strokes"], float), np.asarray(a["entry"], float),
+                        np.asarray(a["direction"], float), float(a["depth_mm"]), float(a["clearance_mm"]))
+            for name, a in ((n, stored[n]) for n in names)]
+

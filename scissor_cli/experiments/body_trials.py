@@ -1,0 +1,80 @@
+"""A 3-D scene's trial as a pure function of (config text, target, trial) (docs/model.md §19, "Trials").
+
+The trial of a layer (`experiments.trials`) with a body: the controller's
+model is the body (`controller.model: body`), the truth the same mesh with
+the profile's draws (E and its heterogeneity field over the tetrahedra'
+centroids, ν, η, the fiber field turned about z), the cups' actuator with
+the profile's resolution and backlash, and the scene's camera — or cameras,
+which triangulate — with the profile's pixel noise and a localisation bias
+per camera (`sensing.camera3d_sensor`). One camera does not see the depth
+along its view: the loop drives the miss it sees (the seen part of P e) and
+the outcome keeps the true 3-D miss across the needle. `trials.trial_context`
+hands a body's config to `BodyTrialContext`; the executors (local pool,
+Dask) run its `run` exactly as a layer's.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from scissor_cli import control
+from scissor_cli.config.loading import parse_config
+from scissor_cli.control.allocation import along_mm, miss_mm
+from scissor_cli.experiments.body_run import body_model
+from scissor_cli.experiments.profiles import ErrorModel, draw_trial, error_model
+from scissor_cli.experiments.trial_types import TrialOutcome
+from scissor_cli.sensing.camera3d_sensor import BodyCameraModel
+from scissor_cli.sensing.sensor import TrialDraws
+from scissor_cli.solvers.equilibrium import solve_equilibrium
+
+
+def body_sensor_model(cfg, errors: ErrorModel) -> BodyCameraModel:
+    """The run's 3-D camera model: `cameras` (triangulating) or `camera`, the profile's pixel noise and bias."""
+    return BodyCameraModel.from_config(cfg.cameras if cfg.cameras else cfg.camera,
+                                       pixel_noise_px=errors.pixel_noise_px,
+                                       localisation_error_mm=errors.localisation_error_mm,
+                                       ideal=errors.exact_measurement)
+
+
+class BodyTrialContext:
+    """What the trials of one 3-D run share in one process: the body, its sensor model, the error model."""
+
+    def __init__(self, config_yaml: str):
+        self.cfg = parse_config(config_yaml, "<run config>")
+        self.scene, self.mesh, self.tissue = body_model(self.cfg)
+        self.errors: ErrorModel = error_model(self.cfg.trials)
+        self.sensors = body_sensor_model(self.cfg, self.errors)
+        self.centroids = self.mesh.nodes[self.mesh.tetrahedra].mean(axis=1)
+        self._guesses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def guess(self, task) -> tuple[np.ndarray, np.ndarray] | None:
+        """The model's equilibrium at the plan's strokes: a warm start for the loop's first big move."""
+        if not np.any(task.plan_strokes):
+            return None
+        if task.index not in self._guesses:
+            self._guesses[task.index] = (task.plan_strokes, solve_equilibrium(self.tissue, task.plan_strokes).x)
+        return self._guesses[task.index]
+
+    def run(self, task, trial: int):
+        t0 = time.perf_counter()
+        draw = draw_trial(self.errors, self.scene.material.nu, self.centroids, self.cfg.seed, task.index, trial)
+        truth = control.TruthPerturbation(E_scale=draw.E_field, fiber_offset_rad=draw.fiber_offset_rad, nu=draw.nu,
+                                          eta_scale=draw.eta_scale)
+        desired = np.asarray(task.desired, float)
+        sensor = self.sensors.for_trial(TrialDraws(draw.localisation_z, draw.rng,
+                                                   (int(self.cfg.seed), task.index, trial), goal_mm=desired))
+        r = control.run_target(self.tissue, task.rest, desired, self.cfg.controller, control.TargetRun(
+            truth=truth, sensor=sensor, resolution_mm=self.errors.actuator_resolution_mm,
+            backlash_mm=self.errors.backlash_mm, target=task.name, guess=self.guess(task),
+            direction=np.asarray(task.direction, float)))
+        columns, table = r.history_table()
+        final = np.asarray(r.final_error, float)
+        return TrialOutcome(
+            target_index=task.index, trial=trial, ok=True, message=r.message, final_error=final,
+            iterations=int(r.iterations), time_s=float(r.time_s), corridor_clear=False, clearance_mm=float("nan"),
+            stop_reason=r.stop_reason, correctable_mm=float(r.correctable_error_mm),
+            uncorrectable_mm=float(r.uncorrectable_error_mm), history_columns=list(columns), history=table,
+            miss_mm=miss_mm(final, task.direction), along_mm=along_mm(-final, task.direction),
+            trial_time_s=time.perf_counter() - t0)

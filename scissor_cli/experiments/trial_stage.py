@@ -1,0 +1,91 @@
+"""The trials stage of `scissor simulate`: every pending trial run and stored as it finishes (docs/contract.md).
+
+Shared by a layer's run (`experiments.simulate`) and a body's
+(`experiments.body_closed_loop`): the trials run in local worker processes
+or on a Dask cluster (`Execution`), each stored the moment it is in; the
+trial figures drawn at the end; crashed trials reported for `--resume`.
+"""
+
+from __future__ import annotations
+
+import time
+from contextlib import closing
+from dataclasses import dataclass
+
+from scissor_cli import progress
+from scissor_cli.experiments.pool import deferred_signals
+from scissor_cli.experiments.sink import RunSink
+from scissor_cli.experiments.trial_types import TargetTask
+from scissor_cli.experiments.trials import execute
+from scissor_cli.text import duration
+
+
+class TrialsFailed(RuntimeError):
+    """Some trials crashed; the others are stored and `--resume` re-runs the crashed ones."""
+
+
+@dataclass(frozen=True)
+class Execution:
+    """How trials run: worker processes, or a Dask cluster at `scheduler`."""
+
+    jobs: int = 1
+    executor: str = "local"  # "local" | "dask"
+    scheduler: str | None = None
+
+
+def run_trial_stage(sink: RunSink, cfg, tasks: list[TargetTask], execution: Execution) -> int:
+    """Run every pending trial of the sink and store each as it finishes; returns how many ran.
+
+    Storing a trial is not cut short by a stop signal (`deferred_signals`);
+    leaving the loop for any reason stops the workers at once.
+    """
+    pending = sink.pending_trials()
+    by_name = {t.name: t for t in tasks}
+    by_index = {t.index: t for t in tasks}
+    work = [(by_name[name], int(k)) for name, ks in pending.items() if name in by_name for k in ks]
+    if work:
+        progress.info(f"trials: {len(work)} to run ({cfg.trials.profile} profile, {execution.jobs} job(s), "
+                      f"{execution.executor} executor)")
+    advance = progress.bar("trials", len(work))
+    t0, failed, finished, lost = time.perf_counter(), 0, 0, []
+    with closing(execute(sink.config_yaml, work, execution.jobs, execution.executor, execution.scheduler)) as outcomes:
+        for outcome in outcomes:
+            with deferred_signals():
+                sink.trial(by_index[outcome.target_index].name, outcome)
+            failed += not outcome.ok
+            if outcome.lost_frames:
+                lost.append(f"{by_index[outcome.target_index].name}#{outcome.trial}: {outcome.lost_frames}")
+            finished += 1
+            if finished == 1 and len(work) > 1:
+                loop_s = outcome.time_s if getattr(cfg, "insertion", None) is not None else None  # the rest: the needle
+                progress.info(expected_duration(outcome.trial_time_s, len(work), execution, loop_s=loop_s))
+            advance(1)
+    if work:
+        progress.info(f"trials done in {time.perf_counter() - t0:.1f} s")
+    if lost:  # with imaging: frames on which the tracking lost the lesion (the last position held)
+        progress.info(f"imaging: the lesion was lost on some frames of {len(lost)} trial(s) ({', '.join(lost[:10])}"
+                      f"{', …' if len(lost) > 10 else ''})")
+    sink.trial_figures(cfg.name)
+    if failed:
+        raise TrialsFailed(f"{failed} trial(s) crashed (see /trials/<target>/message); re-run them with --resume")
+    return len(work)
+
+
+def expected_duration(first_s: float, n_trials: int, execution: Execution, loop_s: float | None = None) -> str:
+    """The line a run prints when its first trial is in: how long all of them should take.
+
+    first_s: the first trial's own time, its loop and, with insertion, every
+    strategy's insertion (`TrialOutcome.trial_time_s`; outcomes arrive in
+    batches, so the wall time until the first arrives can hold several
+    trials), times the trials per worker; building each worker's model
+    comes on top. loop_s: the loop's part of it, named when the rest (the
+    insertion) is a noticeable share. A Dask cluster's size is not known
+    here: there it is per job asked for.
+    """
+    workers = max(1, min(execution.jobs, n_trials))
+    total = first_s * -(-n_trials // workers)
+    split = ""
+    if loop_s is not None and first_s - loop_s > 0.1 * first_s:
+        split = f" (the loop {duration(loop_s)}, the needle's insertion {duration(first_s - loop_s)})"
+    return (f"trials: the first took {duration(first_s)}{split}; all {n_trials} should take about "
+            f"{duration(total)} with {workers} worker(s), plus building each worker's model")
