@@ -26,8 +26,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 import results_io
+
 from scissor_cli import runtime
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -81,7 +81,8 @@ def main() -> None:
         at11 = solve_equilibrium(tissue, push + 1.0, start=at10.x, start_strokes=push, tol=1e-8)
         move_times.append(time.perf_counter() - t0)
     print(f"push10 from rest: {np.median(rest_times):.2f} s median ({at10.iterations} Newton iterations, "
-          f"{at10.message}); 10 -> 11 mm warm: {np.median(move_times):.2f} s ({at11.iterations} iterations)", flush=True)
+          f"{at10.message}); 10 -> 11 mm warm: {np.median(move_times):.2f} s ({at11.iterations} iterations)",
+          flush=True)
     res.figure("from_rest_s", float(np.median(rest_times)), "s")
     res.figure("from_rest_iterations", at10.iterations, "1")
     res.figure("move_s", float(np.median(move_times)), "s")

@@ -12,6 +12,7 @@ from __future__ import annotations
 import h5py
 import numpy as np
 import pytest
+
 from helpers import write_scene
 from test_cli import run_cli
 
