@@ -45,7 +45,7 @@ from scissor_cli.experiments.trials import TrialContext  # noqa: E402
 from scissor_cli.mechanics import compiled3d, fem, materials  # noqa: E402
 from scissor_cli.planning.needle_plan import plan_targets  # noqa: E402
 from scissor_cli.solvers.linear import factorize_free  # noqa: E402
-from scissor_cli.solvers.tracking import Equilibrium  # noqa: E402
+from scissor_cli.solvers.tracking import TrackedEquilibrium  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -145,7 +145,7 @@ def main() -> None:
     limit = np.where(task.plan_strokes >= 0, hi, lo)
     k = np.arange(1, args.moves + 1)[:, None]
     sequence = [task.plan_strokes] + list(task.plan_strokes + (limit - task.plan_strokes) * (1 - 0.7 ** k))
-    eq = Equilibrium(tissue, view.tol)
+    eq = TrackedEquilibrium(tissue, view.tol)
     eq.guesses.extend(view.guesses)
     times = []
     for s in sequence:

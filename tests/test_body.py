@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from scissor_cli.config import parse_config
-from scissor_cli.experiments.body_run import body_model
+from scissor_cli.experiments.build import body_model
 from scissor_cli.mesh.probe import probe_points, target_positions
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 from scissor_cli.solvers.jacobian import cup_target_jacobian
@@ -43,6 +43,7 @@ SCENE = {
     ],
     "needle": {"direction": [-1.0, 0.0, 0.0]},
     "solver": {"kind": "newton"},
+    "robot": {"layer_origin_mm": [100.0, 215.0, 200.0]},
     "forward": [{"name": "push", "strokes": {"side": 6.0}}, {"name": "both", "strokes": {"side": -4.0, "front": 5.0}}],
     "trials": {"count": 0},
 }

@@ -123,14 +123,16 @@ def test_bad_3d_input_exits_2_through_the_cli(tmp_path):
         assert "Traceback" not in r.stderr and "targets[0].position_mm" in r.stderr
 
 
-def test_options_that_a_body_does_not_take_exit_2(tmp_path):
+def test_options_and_models_that_a_body_does_not_take_exit_2(tmp_path):
     scene = write_scene(tmp_path, dome())
     for option in (["--study"], ["--truth", "slab"]):
         r = run_cli("simulate", scene, "--trials", "0", *option, "--out", str(tmp_path / "run"))
         assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
         assert "3-D" in r.stderr
-    r = run_cli("simulate", scene, "--out", str(tmp_path / "run"))  # 30 trials: the loop in 3-D is not built yet
-    assert r.returncode == 2 and "--trials 0" in r.stderr and "Traceback" not in r.stderr
+    data = dome()
+    data["controller"]["model"] = "layer"  # the paper's section as the controller's model: not built yet
+    r = run_cli("validate", write_scene(tmp_path, data))
+    assert r.returncode == 2 and "controller.model" in r.stderr and "Traceback" not in r.stderr
 
 
 def test_a_mesh_over_the_budget_is_refused_before_meshing(tmp_path):

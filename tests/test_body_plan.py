@@ -23,7 +23,7 @@ from scenes.body_surfaces import box
 
 from scissor_cli import geometry3d as g3
 from scissor_cli.config import parse_config
-from scissor_cli.experiments.body_run import body_model
+from scissor_cli.experiments.build import body_model
 from scissor_cli.mesh.probe import probe_points, target_positions
 from scissor_cli.planning import body_lines
 from scissor_cli.planning import body_plan as bp

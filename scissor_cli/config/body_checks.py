@@ -103,6 +103,13 @@ def body_problems(cfg: BodyConfig) -> list[Problem]:
     problems += _unique(cfg.forward, "forward") + _reserved_names(cfg)
     problems += _lesion_problems(cfg, surface) + _obstacle_problems(cfg, surface)
     problems += _cup_problems(cfg, surface) + _forward_problems(cfg)
+    if cfg.controller.model != "body":
+        problems.append((("controller", "model"), (
+            f"{cfg.controller.model!r}: this version's 3-D controller runs on the body itself (`body`); the "
+            f"surrogate and the paper's layer section are not built yet")))
+    if cfg.controller.jacobian_update != "none":
+        problems.append((("controller", "jacobian_update"), "Broyden's update is a layer's (docs/model.md §15); "
+                         "a 3-D scene's controller uses the body's Jacobian: leave it none"))
     if cfg.trials.truth != "layer":
         problems.append((("trials", "truth"), "a 3-D scene's trials run against the body itself: leave trials.truth "
                          "out (the slab is the 2-D layer's 3-D check)"))

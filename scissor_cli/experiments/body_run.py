@@ -21,27 +21,19 @@ from scissor_cli.config.body_sections import BodyConfig
 from scissor_cli.config.element_budget import TETRAHEDRA_BUDGET
 from scissor_cli.config.loading import resolved_yaml
 from scissor_cli.experiments.body_resolution import BodyChoice, choose_body_scale
+from scissor_cli.experiments.build import body_model
 from scissor_cli.experiments.run_cache import cache_dir
 from scissor_cli.experiments.run_summary import RunSummary
 from scissor_cli.experiments.sink import ForwardCase, RunSink, SinkFactory, product_key
 from scissor_cli.experiments.trial_stage import Execution
-from scissor_cli.mechanics.body_tissue import build_body
 from scissor_cli.mechanics.tissue import Tissue
-from scissor_cli.mesh.body_inputs import body_shape, inclusions, mesh_body, sizing
+from scissor_cli.mesh.body_inputs import body_shape, inclusions, sizing
 from scissor_cli.mesh.body_mesh import estimate_tetrahedra
 from scissor_cli.mesh.probe import probe_points, target_positions
-from scissor_cli.scene.body_scene import BodyScene, build_body_scene
+from scissor_cli.scene.body_scene import build_body_scene
 from scissor_cli.solvers.common import SolverError
 from scissor_cli.solvers.equilibrium import EquilibriumSolver
 from scissor_cli.solvers.jacobian import cup_target_jacobian
-
-
-def body_model(cfg: BodyConfig, cache: Path | None = None, scale: float = 1.0,
-               model: str | None = None) -> tuple[BodyScene, object, Tissue]:
-    """Scene, mesh (`mesh.body_mesh.BodyMesh`) and tissue of a validated 3-D config at a mesh scale."""
-    scene = build_body_scene(cfg)
-    mesh = mesh_body(scene, cfg.tissue.mesh, scale, cache)
-    return scene, mesh, build_body(scene, mesh, model=model)
 
 
 def body_scene_problems(cfg: BodyConfig) -> list[str]:

@@ -22,7 +22,7 @@ import numpy as np
 from scissor_cli import control
 from scissor_cli.config.loading import parse_config
 from scissor_cli.control.allocation import along_mm, miss_mm
-from scissor_cli.experiments.body_run import body_model
+from scissor_cli.experiments.build import body_model
 from scissor_cli.experiments.profiles import ErrorModel, draw_trial, error_model
 from scissor_cli.experiments.trial_types import TrialOutcome
 from scissor_cli.sensing.camera3d_sensor import BodyCameraModel

@@ -6,11 +6,17 @@ planner are given their sections (or the plain data made from them).
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from scissor_cli.config import Config
+from scissor_cli.config.body_sections import BodyConfig
+from scissor_cli.mechanics.body_tissue import build_body
 from scissor_cli.mechanics.tissue import Tissue, build_tissue
+from scissor_cli.mesh.body_inputs import mesh_body
 from scissor_cli.mesh.mesh import Mesh, mesh_for_config
+from scissor_cli.scene.body_scene import BodyScene, build_body_scene
 from scissor_cli.scene.scene import Scene, build_scene
 
 
@@ -34,3 +40,11 @@ def with_grips(cfg: Config, contacts: np.ndarray, axes: np.ndarray) -> Config:
         cups[i] = cups[i].model_copy(update={"contact_mm": [float(p[0]), float(p[1])],
                                              "axis": [float(a[0]) + 0.0, float(a[1]) + 0.0]})
     return cfg.model_copy(update={"cups": cups})
+
+
+def body_model(cfg: BodyConfig, cache: Path | None = None, scale: float = 1.0,
+               model: str | None = None) -> tuple[BodyScene, object, Tissue]:
+    """Scene, mesh (`mesh.body_mesh.BodyMesh`) and tissue of a validated 3-D config at a mesh scale."""
+    scene = build_body_scene(cfg)
+    mesh = mesh_body(scene, cfg.tissue.mesh, scale, cache)
+    return scene, mesh, build_body(scene, mesh, model=model)

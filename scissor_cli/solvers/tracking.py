@@ -292,8 +292,3 @@ def _taylor(E: np.ndarray, coefficient: np.ndarray, d: np.ndarray, along: Option
     lowered = E.copy()
     lowered[:, along] = np.maximum(lowered[:, along] - 1, 0)  # the terms without this stroke vanish (× e = 0)
     return coefficient * E[:, along] * np.prod(d[:, None, :] ** lowered, axis=2)
-
-
-#: The former name, kept only while benchmarks/bench_slab_truth.py and docs/performance.md (edited on
-#: another branch) still use it; remove it once they say TrackedEquilibrium.
-Equilibrium = TrackedEquilibrium
