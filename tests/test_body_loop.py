@@ -86,3 +86,43 @@ def test_prosthesis_trials_run_on_two_workers_none_failed(tmp_path):
     with _run(tmp_path, data, "--jobs", "2") as f:
         for t in ("T1", "T2"):
             assert f[f"trials/{t}/done"][()].all() and not f[f"trials/{t}/failed"][()].any()
+
+
+def test_a_run_stopped_in_its_manipulations_resumes_to_the_uninterrupted_run(tmp_path, monkeypatch):
+    """Ctrl-C while T2's nominal manipulation is stored: `--resume` keeps the forward cases, the plans and T1's
+    manipulation as stored and completes the run to the numbers of one that was never stopped."""
+    from scissor_cli.config import load_config
+    from scissor_cli.experiments.simulate import Execution, resume_simulation, run_simulation
+    from scissor_cli.output import results_sink as sink_module
+    from scissor_cli.output.results_sink import RunDirectory, open_for_resume
+    from test_resume_stages import assert_same_run, wall_times
+
+    cfg = load_config(write_scene(tmp_path, {**SCENE, "forward": [{"name": "push3", "strokes": {"side": 3.0}}]}))
+    run_simulation(cfg, RunDirectory(tmp_path / "ref"), execution=Execution(jobs=1))
+    real = sink_module.ResultsSink.manipulation
+
+    def stopped(self, product, *args):
+        if product.target == "T2":
+            raise KeyboardInterrupt("SIGINT")
+        return real(self, product, *args)
+
+    monkeypatch.setattr(sink_module.ResultsSink, "manipulation", stopped)
+    run = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        run_simulation(cfg, RunDirectory(run), execution=Execution(jobs=1))
+    monkeypatch.undo()
+    with h5py.File(run / "results.h5", "r") as h5:
+        finished = set(h5.attrs["finished"].astype(str))
+    assert {"forward/push3", "jacobian", "plan", "manipulation/T1"} <= finished
+    assert "manipulation/T2" not in finished and "trials" not in finished
+    kept = wall_times(run / "results.h5", ["forward/push3"])
+    with h5py.File(run / "results.h5", "r") as h5:
+        plans_before = {k: dict(h5[f"plan/{k}"].attrs) for k in ("T1", "T2")}
+
+    assert resume_simulation(open_for_resume(run), execution=Execution(jobs=1)) == 2  # 1 trial x 2 lesions
+    assert wall_times(run / "results.h5", ["forward/push3"]) == kept
+    with h5py.File(run / "results.h5", "r") as h5:
+        assert h5.attrs["status"] == "complete"
+        for k, attrs in plans_before.items():
+            assert all(np.array_equal(np.asarray(h5[f"plan/{k}"].attrs[a]), np.asarray(v)) for a, v in attrs.items())
+    assert_same_run(tmp_path / "ref" / "results.h5", run / "results.h5")

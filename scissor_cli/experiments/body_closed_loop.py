@@ -16,7 +16,7 @@ Each product goes to the sink and is marked finished for `--resume`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 
@@ -28,7 +28,7 @@ from scissor_cli.experiments.sink import Manipulation, RunSink, product_key
 from scissor_cli.experiments.trial_stage import Execution, run_trial_stage
 from scissor_cli.experiments.trial_types import TargetTask
 from scissor_cli.mechanics.tissue import Tissue
-from scissor_cli.planning.body_plan import BodyNeedlePlan, body_robot_check, plan_body_targets
+from scissor_cli.planning.body_plan import BodyNeedlePlan, body_robot_check, plan_body_targets, stored_body_plan
 from scissor_cli.robot.chain import RobotModel
 from scissor_cli.solvers.tracking import TrackedEquilibrium
 
@@ -36,7 +36,7 @@ from scissor_cli.solvers.tracking import TrackedEquilibrium
 def body_loop_stages(cfg: BodyConfig, tissue: Tissue, sink: RunSink, summary, done: frozenset[str],
                      execution: Execution) -> None:
     """Plans; with trials, the nominal manipulations and the trials."""
-    plans = _stored(sink, [t.name for t in tissue.scene.targets]) if "plan" in done else None
+    plans = _stored(sink, tissue.scene) if "plan" in done else None
     if plans is None:
         plans = _plan_stage(cfg, tissue, sink)
         sink.mark_finished("plan")
@@ -107,28 +107,10 @@ def _manipulation_stage(cfg: BodyConfig, tissue: Tissue, plans: list, sink: RunS
     return paths
 
 
-@dataclass(frozen=True)
-class _StoredPlan:
-    """A plan as a resumed run reads it back from /plan/<target>."""
-
-    target: str
-    feasible: bool
-    reason: str
-    desired: np.ndarray
-    strokes: np.ndarray
-    entry: np.ndarray
-    direction: np.ndarray
-    depth_mm: float
-    clearance_mm: float
-
-
-def _stored(sink: RunSink, names: list[str]) -> list | None:
+def _stored(sink: RunSink, scene) -> list | None:
     """The plans a resumed run stored, in the scene's order of its lesions."""
     stored = sink.plans()
     if stored is None:
         return None
-    return [_StoredPlan(name, bool(a["feasible"]), str(a["reason"]), np.asarray(a["desired"], float),
-                        np.asarray(a["strokes"], float), np.asarray(a["entry"], float),
-                        np.asarray(a["direction"], float), float(a["depth_mm"]), float(a["clearance_mm"]))
-            for name, a in ((n, stored[n]) for n in names)]
+    return [stored_body_plan(t.name, stored[t.name], bool(scene.obstacles)) for t in scene.targets]
 

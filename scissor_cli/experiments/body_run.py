@@ -22,17 +22,16 @@ from scissor_cli.config.element_budget import TETRAHEDRA_BUDGET
 from scissor_cli.config.loading import resolved_yaml
 from scissor_cli.experiments.body_resolution import BodyChoice, choose_body_scale
 from scissor_cli.experiments.build import body_model
+from scissor_cli.experiments.forward_stage import forward_stage
 from scissor_cli.experiments.run_cache import cache_dir
 from scissor_cli.experiments.run_summary import RunSummary
-from scissor_cli.experiments.sink import ForwardCase, RunSink, SinkFactory, product_key
+from scissor_cli.experiments.sink import RunSink, SinkFactory
 from scissor_cli.experiments.trial_stage import Execution
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.body_inputs import body_shape, inclusions, sizing
 from scissor_cli.mesh.body_mesh import estimate_tetrahedra
-from scissor_cli.mesh.probe import probe_points, target_positions
+from scissor_cli.mesh.probe import probe_points
 from scissor_cli.scene.body_scene import build_body_scene
-from scissor_cli.solvers.common import SolverError
-from scissor_cli.solvers.equilibrium import EquilibriumSolver
 from scissor_cli.solvers.jacobian import cup_target_jacobian
 
 
@@ -107,7 +106,12 @@ def body_stages(cfg: BodyConfig, tissue: Tissue, sink: RunSink, summary, done: f
         sink.mark_finished("model")
     probe = probe_points(tissue.mesh.nodes, tissue.mesh.tetrahedra,
                          np.array([t.rest for t in scene.targets]).reshape(-1, 3))
-    _forward_stage(cfg, tissue, probe, sink, summary, done)
+    forward_stage(cfg.forward, cfg.solver, tissue, probe, sink, summary,
+                  lambda case, strokes, result, targets: dict(
+                      title=f"{cfg.name}: forward case {case}", tissue=tissue, x=result.x,
+                      strokes=dict(zip(scene.cup_names, strokes)), targets=targets,
+                      needle_direction=np.asarray(cfg.needle.direction, float)),
+                  kind="body", done=done)
     if len(scene.targets) and "jacobian" not in done:
         J = cup_target_jacobian(tissue, tissue.rest, probe)
         for k, target in enumerate(scene.targets):
@@ -117,34 +121,6 @@ def body_stages(cfg: BodyConfig, tissue: Tissue, sink: RunSink, summary, done: f
         from scissor_cli.experiments.body_closed_loop import body_loop_stages  # noqa: PLC0415
 
         body_loop_stages(cfg, tissue, sink, summary, done, execution or Execution())
-
-
-def _forward_stage(cfg: BodyConfig, tissue: Tissue, probe, sink: RunSink, summary, done: frozenset[str]) -> None:
-    scene = tissue.scene
-    solver = EquilibriumSolver.from_config(tissue, cfg.solver)
-    cases = [case for case in cfg.forward if product_key("forward", case.name) not in done]
-    advance = progress.bar("forward cases", len(cases))
-    for case in cases:
-        strokes = scene.strokes_vector(case.strokes)
-        try:
-            result = solver.solve_case(strokes)
-        except SolverError as exc:
-            summary.status, summary.failure = "failed", f"forward case {case.name!r}: {exc}"
-            raise SolverError(summary.failure, exc.result) from None
-        summary.forward[case.name] = result
-        targets = {t.name: p for t, p in zip(scene.targets, target_positions(probe, result.x))}
-        figure = dict(title=f"{cfg.name}: forward case {case.name}", tissue=tissue, x=result.x,
-                      strokes=dict(zip(scene.cup_names, strokes)), targets=targets,
-                      needle_direction=np.asarray(cfg.needle.direction, float))
-        paths = sink.forward_case(ForwardCase(case.name, {c.name: float(s) for c, s in zip(scene.cups, strokes)},
-                                              result, tissue.mesh.nodes, targets, figure, kind="body"))
-        sink.mark_finished(product_key("forward", case.name))
-        summary.figures += [p for p in np.atleast_1d(paths) if p is not None]
-        moved = "; ".join(f"{n} moved {np.linalg.norm(p - t.rest):.3f} mm" for (n, p), t in
-                          zip(targets.items(), scene.targets))
-        progress.info(f"forward {case.name}: {result.solver} {result.iterations} iterations, residual "
-                      f"{result.residual:.2e}, {result.time_s:.2f} s" + (f"; {moved}" if moved else ""))
-        advance(1)
 
 
 def resume_body(cfg: BodyConfig, sink, done: frozenset[str], execution: Execution | None = None) -> int:

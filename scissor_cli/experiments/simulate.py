@@ -21,6 +21,7 @@ from scissor_cli.config.body_sections import BodyConfig
 from scissor_cli.experiments.build import build_model, with_grips  # noqa: F401 - build_model: this module's API too
 from scissor_cli.experiments.controller_model_stage import controller_model_stage, needs_slab, refitted_model
 from scissor_cli.experiments.error_budget import run_budget
+from scissor_cli.experiments.forward_stage import forward_stage
 from scissor_cli.experiments.imaging_stage import prepare_imaging
 from scissor_cli.experiments.insertion_stage import insertion_stage
 from scissor_cli.experiments.model_planning import reserved_scene
@@ -45,14 +46,12 @@ from scissor_cli.experiments.trial_stage import Execution, TrialsFailed, expecte
 from scissor_cli.experiments.trials import TargetTask
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.outlines import boundary_loop, deformed_outlines, embed_outlines
-from scissor_cli.mesh.probe import probe_targets, target_positions
+from scissor_cli.mesh.probe import probe_targets
 from scissor_cli.planning.corridor import corridor_radius
 from scissor_cli.planning.needle_plan import NeedlePlan, plan_target, stored_plan
 from scissor_cli.planning.states import StateCache
 from scissor_cli.robot.chain import RobotModel
 from scissor_cli.robot.registration import plan_to_joints
-from scissor_cli.solvers.common import SolverError
-from scissor_cli.solvers.equilibrium import EquilibriumSolver
 from scissor_cli.solvers.jacobian import cup_target_jacobian
 from scissor_cli.text import signed
 
@@ -173,7 +172,10 @@ def _stages(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary,
         if selection is not None:
             sink.selection(selection)
         sink.mark_finished("model")
-    _forward_stage(cfg, tissue, sink, summary, done)
+    probe = probe_targets(mesh, np.array([t.rest for t in scene.targets]).reshape(-1, 2))
+    forward_stage(cfg.forward, cfg.solver, tissue, probe, sink, summary,
+                  lambda case, strokes, result, targets: _forward_figure_inputs(cfg.name, tissue, case, strokes,
+                                                                                result, targets), done=done)
     if cfg.layer_check is not None and cfg.forward:
         from scissor_cli.experiments.layer_check_stage import run_layer_check
 
@@ -288,37 +290,6 @@ def _manipulation_stage(cfg: Config, tissue: Tissue, plans: list[NeedlePlan], si
             f"corridor {'clear' if closed.corridor_clear else 'BLOCKED'}"
         )
     return paths
-
-
-def _forward_stage(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary,
-                   done: frozenset[str] = frozenset()) -> None:
-    scene, mesh = tissue.scene, tissue.mesh
-    probe = probe_targets(mesh, np.array([t.rest for t in scene.targets]).reshape(-1, 2))
-    solver = EquilibriumSolver.from_config(tissue, cfg.solver)
-    cases = [case for case in cfg.forward if product_key("forward", case.name) not in done]
-    advance = progress.bar("forward cases", len(cases))
-    for case in cases:
-        strokes = scene.strokes_vector(case.strokes)
-        try:
-            result = solver.solve_case(strokes)
-        except SolverError as exc:
-            summary.status, summary.failure = "failed", f"forward case {case.name!r}: {exc}"
-            raise SolverError(summary.failure, exc.result) from None
-        summary.forward[case.name] = result
-        targets_now = target_positions(probe, result.x)
-        targets = {t.name: p for t, p in zip(scene.targets, targets_now)}
-        figure = _forward_figure_inputs(cfg.name, tissue, case.name, strokes, result, targets)
-        path = sink.forward_case(ForwardCase(case.name, {c.name: float(s) for c, s in zip(scene.cups, strokes)},
-                                             result, mesh.nodes, targets, figure))
-        sink.mark_finished(product_key("forward", case.name))
-        note = "" if result.message.startswith("converged") else f" ({result.message})"
-        progress.info(
-            f"forward {case.name}: {result.solver} {result.iterations} iterations, "
-            f"residual {result.residual:.2e}, {result.time_s * 1e3:.1f} ms{note}"
-        )
-        if path is not None:
-            summary.figures.append(path)
-        advance(1)
 
 
 def _plan_stage(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary, jobs: int = 1):

@@ -341,3 +341,14 @@ def body_robot_check(robot: RobotModel, origin, yaw_rad: float) -> BodyRobotChec
 
 __all__ = ["BISECT_STEPS", "CLEAR_RESERVE_MM", "MAX_SOLVES", "BodyNeedlePlan", "BodyRobotCheck", "BodySolve",
            "body_robot_check", "plan_body_target", "plan_body_targets", "stroke_grid"]
+
+
+def stored_body_plan(name: str, a: dict, has_obstacles: bool) -> BodyNeedlePlan:
+    """A lesion's plan from its stored /plan/<target> attributes (`output.body.results.write_body_plan`), as the
+    planner gave it: no joints where the robot cannot reach, an infinite clearance without obstacles."""
+    reachable = bool(a["robot_reachable"])
+    return BodyNeedlePlan(
+        name, bool(a["feasible"]), str(a["reason"]), np.asarray(a["desired"], float),
+        np.asarray(a["strokes"], float), np.asarray(a["entry"], float), np.asarray(a["direction"], float),
+        float(a["depth_mm"]), float(a["clearance_mm"]) if has_obstacles else float("inf"),
+        np.asarray(a["joints"], float) if reachable else None, reachable, str(a["joints_note"]))
