@@ -20,8 +20,9 @@ def _step(n_triangles: int) -> int:
 
 
 def closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Closest points (K, T, 3) on triangles (a, b, c each (T, 3)) to points p (K, 3) (Ericson's regions)."""
-    p = p[:, None, :]
+    """Closest points (..., 3) on triangles a-b-c to points p (Ericson's Voronoi regions); p, a, b, c (..., 3)
+    broadcast against each other: p[:, None] against (T, 3) corners gives every pair (K, T, 3), equal shapes one
+    triangle per point."""
     ab, ac, ap = b - a, c - a, p - a
     d1, d2 = np.sum(ab * ap, -1), np.sum(ac * ap, -1)
     bp = p - b
@@ -61,7 +62,7 @@ def nearest_on_surface(points: np.ndarray, nodes: np.ndarray, triangles: np.ndar
     step = _step(len(triangles))
     for lo in range(0, points.shape[0], step):
         chunk = points[lo:lo + step]
-        q = closest_on_triangles(chunk, a, b, c)  # (k, T, 3)
+        q = closest_on_triangles(chunk[:, None, :], a, b, c)  # (k, T, 3)
         d2 = np.sum((q - chunk[:, None, :]) ** 2, -1)
         k = np.argmin(d2, axis=1)
         rows = np.arange(chunk.shape[0])

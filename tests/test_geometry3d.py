@@ -20,7 +20,7 @@ def test_closest_points_on_triangles_are_the_nearest_of_a_dense_sample():
     rng = np.random.default_rng(1)
     tri = rng.normal(size=(10, 3, 3))
     p = rng.normal(scale=2.0, size=(8, 3))
-    q = g3.closest_on_triangles(p, tri[:, 0], tri[:, 1], tri[:, 2])
+    q = g3.closest_on_triangles(p[:, None, :], tri[:, 0], tri[:, 1], tri[:, 2])
     for i in range(len(p)):
         for t in range(len(tri)):
             ref = _brute_closest(p[i], *tri[t])
@@ -114,3 +114,12 @@ def test_a_line_through_an_edge_hits_a_triangle_that_shares_it_and_parallel_line
     assert np.all(t == pytest.approx(2.0))  # through the shared edge b–c: both count
     t = g3.ray_triangle_hits(np.array([[0.2, 0.2, 1.0]]), np.array([[1.0, 0, 0]]), a[None], b[None], c[None])
     assert np.isinf(t).all()
+
+
+def test_one_triangle_per_point_is_the_diagonal_of_every_pair():
+    rng = np.random.default_rng(4)
+    tri = rng.normal(size=(12, 3, 3))
+    p = rng.normal(scale=2.0, size=(12, 3))
+    every = g3.closest_on_triangles(p[:, None, :], tri[:, 0], tri[:, 1], tri[:, 2])
+    paired = g3.closest_on_triangles(p, tri[:, 0], tri[:, 1], tri[:, 2])
+    np.testing.assert_allclose(paired, every[np.arange(12), np.arange(12)], atol=1e-12)

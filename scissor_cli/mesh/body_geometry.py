@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from scissor_cli.config.surface_file import overlapping_boxes
+from scissor_cli.geometry3d import closest_on_triangles
 from scissor_cli.mesh.body_field import polyline_distance
 
 #: points per batch in the surface queries (bounds the pair arrays)
@@ -74,37 +75,6 @@ def _cross2(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
 
 
-def point_triangle_distance(q: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Distance (K,) from points q (K, 3) to triangles a-b-c (each (K, 3)): the closest point's Voronoi region."""
-    ab, ac = b - a, c - a
-
-    def dot(u, v):
-        return np.einsum("ij,ij->i", u, v)
-
-    ap, bp, cp = q - a, q - b, q - c
-    d1, d2 = dot(ab, ap), dot(ac, ap)
-    d3, d4 = dot(ab, bp), dot(ac, bp)
-    d5, d6 = dot(ab, cp), dot(ac, cp)
-    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-
-    def ratio(num, den):
-        return num / np.where(den != 0, den, 1.0)
-
-    denom = va + vb + vc
-    face = a + ratio(vb, denom)[:, None] * ab + ratio(vc, denom)[:, None] * ac
-    on_ab = a + ratio(d1, d1 - d3)[:, None] * ab
-    on_ac = a + ratio(d2, d2 - d6)[:, None] * ac
-    on_bc = b + ratio(d4 - d3, (d4 - d3) + (d5 - d6))[:, None] * (c - b)
-    # the regions in the order that decides them: corners, then edges, then the face
-    conditions = [(d1 <= 0) & (d2 <= 0), (d3 >= 0) & (d4 <= d3), (vc <= 0) & (d1 >= 0) & (d3 <= 0),
-                  (d6 >= 0) & (d5 <= d6), (vb <= 0) & (d2 >= 0) & (d6 <= 0),
-                  (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)]
-    closest = face
-    for condition, point in reversed(list(zip(conditions, [a, b, on_ab, c, on_ac, on_bc]))):
-        closest = np.where(condition[:, None], point, closest)
-    return np.linalg.norm(q - closest, axis=1)
-
-
 def surface_depth(nodes: np.ndarray, triangles: np.ndarray, cap: float):
     """depth(points (K, 3)) -> (K,): the distance to the triangulated surface, at most `cap`.
 
@@ -144,7 +114,7 @@ def _near_distance(nodes: np.ndarray, triangles: np.ndarray, band: float):
             chunk = q[start:start + _BATCH]
             # points against the triangles' boxes grown by the band: a point falls in one grid cell only
             i, j = overlapping_boxes(chunk, chunk, lo_t - band, hi_t + band, cell=cell)
-            d = point_triangle_distance(chunk[i], p[j, 0], p[j, 1], p[j, 2])
+            d = np.linalg.norm(chunk[i] - closest_on_triangles(chunk[i], p[j, 0], p[j, 1], p[j, 2]), axis=1)
             np.minimum.at(out, start + i[d <= band], d[d <= band])
         return out
 

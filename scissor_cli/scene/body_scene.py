@@ -124,7 +124,7 @@ def skin_normals(surface: DomeSurface | MeshSurface, points: np.ndarray) -> np.n
     tris = surface.triangles[~surface.held]
     a, b, c = (surface.nodes[tris[:, i]] for i in range(3))
     area_normal = 0.5 * np.cross(b - a, c - a)  # (S, 3)
-    q = g3.closest_on_triangles(points, a, b, c)  # (K, S, 3)
+    q = g3.closest_on_triangles(points[:, None, :], a, b, c)  # (K, S, 3)
     near = np.linalg.norm(q - points[:, None, :], axis=-1)
     weights = np.where(near <= 2.0, 1.0, 0.0)
     weights[np.arange(len(points)), np.argmin(near, axis=1)] = 1.0
