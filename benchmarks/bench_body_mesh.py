@@ -18,23 +18,18 @@ time of the same call served from the cache. Goal: <= 5 s at ~30k.
   min_edge_mm 0.3 to 0.7 of the smallest radius): the distribution of their
   smallest dihedral angles, what MIN_DIHEDRAL_DEG is chosen from.
 
-    PYTHONPATH=. python3 benchmarks/bench_body_mesh.py [--repeat 3] [--fit] [--random 30] [--out FILE]
+    PYTHONPATH=. python3 benchmarks/bench_body_mesh.py [--repeat 3] [--fit] [--random 30]
 
-Writes benchmarks/results/body_mesh.json: figures with units, the machine
-(lscpu's model, cores), the load average, date, commit and the command.
+Writes benchmarks/results/bench_body_mesh.json (with --fit or --random: a variant of its own) through
+results_io: the figures, the machine, the load, date, commit and the command.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
-import subprocess
 import sys
 import tempfile
 import time
-from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
+import results_io  # noqa: E402
 from scenes.body_surfaces import box, icosphere  # noqa: E402
 
 from scissor_cli.config.surface_file import checked_surface  # noqa: E402
@@ -250,46 +246,33 @@ def random_domes(n: int, seed: int = 1) -> dict:
     return summary
 
 
-def machine() -> dict:
-    try:
-        lscpu = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
-        model = next(line.split(":", 1)[1].strip() for line in lscpu.splitlines() if line.startswith("Model name"))
-    except (OSError, subprocess.CalledProcessError, StopIteration):
-        model = platform.processor() or platform.machine()
-    import gmsh
-
-    return {"cpu": model, "cores": os.cpu_count(), "python": platform.python_version(), "gmsh": gmsh.__version__,
-            "numpy": np.__version__}
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3, help="meshing runs per sizing (the median is reported)")
     ap.add_argument("--targets", type=int, nargs="*", default=[10_000, 30_000, 100_000])
     ap.add_argument("--fit", action="store_true", help="also mesh the estimate's fit set and fit its factors")
     ap.add_argument("--random", type=int, default=0, metavar="N", help="also mesh N random domes (dihedral angles)")
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "body_mesh.json")
     args = ap.parse_args()
-    info = machine()
-    load_before = os.getloadavg()
-    print(f"machine: {info['cpu']}, {info['cores']} cores; load {load_before[0]:.2f} {load_before[1]:.2f} "
-          f"{load_before[2]:.2f}", flush=True)
-    result = {"command": "PYTHONPATH=. python3 benchmarks/bench_body_mesh.py " + " ".join(sys.argv[1:]),
-              "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-              "commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                       cwd=ROOT).stdout.strip(),
-              "machine": info, "load_before": [round(x, 2) for x in load_before],
-              "units": {"times": "s (wall clock)", "volumes": "mm^3", "angles": "degrees"},
-              "example": bench_example(args.targets, args.repeat)}
-    if args.fit:
-        result["estimate_fit"] = fit_estimate()
-    if args.random:
-        result["random_domes"] = random_domes(args.random)
-    result["load_after"] = [round(x, 2) for x in os.getloadavg()]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1) + "\n")
-    print(f"load after {result['load_after'][0]:.2f}; written to {args.out}")
+    import gmsh
 
+    variant = "+".join(v for v, on in (("fit", args.fit), (f"random{args.random}", args.random)) if on) or None
+    res = results_io.Results("bench_body_mesh", variant)
+    print(f"machine: {res.record['machine']['cpu']}, {res.record['machine']['cores']} cores; load "
+          f"{res.record['load1_before']:.2f}; gmsh {gmsh.__version__}", flush=True)
+    rows = bench_example(args.targets, args.repeat)
+    res.table("example", [{k: v for k, v in r.items() if k not in ("dihedral", "regions", "mesh_s_all")}
+                          | {"min_dihedral_deg": r["dihedral"]["min_deg"],
+                             "worst_region_error_percent": max(abs(v["error_percent"]) for v in r["regions"].values())}
+                          for r in rows],
+              units={"min_edge_mm": "mm", "max_edge_mm": "mm", "mesh_s_median": "s", "cached_s_median": "s",
+                     "estimate_s": "s", "min_dihedral_deg": "deg", "worst_region_error_percent": "%"})
+    res.data("example", {"rows": rows, "gmsh": gmsh.__version__})
+    if args.fit:
+        res.data("estimate_fit", fit_estimate())
+    if args.random:
+        res.data("random_domes", random_domes(args.random))
+    res.write()
+    print(f"written to {res.path}")
 
 if __name__ == "__main__":
     main()

@@ -1,7 +1,8 @@
 """What the needle's friction law gives (docs/model.md §12): the shipped insertion scenes, and step refinement.
 
 Run once with the package as it is and once with an earlier commit's on PYTHONPATH, each with its own
---label; docs/performance.md sets the two results side by side ("Friction with state"). It uses only
+--label (results/bench_friction_law.<label>.json, the package's commit in its data); docs/performance.md
+sets the two results side by side ("Friction with state"). It uses only
 what every version of the package has (configs, `scissor simulate`, `run_insertion`).
 
 * `scenes`: `scissor simulate CONFIG --trials 0` on each shipped config with an `insertion:` section
@@ -21,8 +22,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
-import os
 import subprocess
 import sys
 import tempfile
@@ -31,6 +30,7 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+import results_io
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -97,28 +97,26 @@ def steps(step_sizes: list[float]) -> list[dict]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--label", required=True, help="the result's name: results/friction_law_<label>.json")
+    ap.add_argument("--label", required=True, help="the result's variant: results/bench_friction_law.<label>.json")
     ap.add_argument("--slab", action="store_true", help="configs/example_3d.yaml too (minutes)")
     ap.add_argument("--fine", action="store_true", help="steps of 0.0625 and 0.03125 mm too")
     ap.add_argument("--out", help="where the runs go (default: a temporary folder)")
     args = ap.parse_args()
     import scissor_cli
 
-    load = os.getloadavg()[0]
-    t0 = time.perf_counter()
+    res = results_io.Results("bench_friction_law", args.label)
     step_rows = steps([0.5, 0.25, 0.125] + ([0.0625, 0.03125] if args.fine else []))
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(args.out) if args.out else Path(tmp)
         scene_rows = scenes(SCENES + (["example_3d"] if args.slab else []), out)
-    commit = subprocess.run(["git", "-C", str(Path(scissor_cli.__file__).parent), "rev-parse", "HEAD"],
-                            capture_output=True, text=True).stdout.strip()
-    result = dict(label=args.label, package=str(Path(scissor_cli.__file__).parent), package_commit=commit,
-                  steps=step_rows, scenes=scene_rows, wall_s=time.perf_counter() - t0,
-                  load_before=load, load_after=os.getloadavg()[0])
-    path = ROOT / "benchmarks" / "results" / f"friction_law_{args.label}.json"
-    path.parent.mkdir(exist_ok=True)
-    path.write_text(json.dumps(result, indent=1))
-    print(f"wrote {path}")
+    package = Path(scissor_cli.__file__).parent
+    commit = subprocess.run(["git", "-C", str(package), "rev-parse", "HEAD"], capture_output=True, text=True).stdout
+    res.data("package", {"path": str(package), "commit": commit.strip()})
+    res.table("steps", step_rows, units={"step_mm": "mm", "target_end_mm": "mm", "force_mN": "mN",
+                                         "to_half_step_mm": "mm", "time_s": "s"})
+    res.table("scenes", scene_rows, units={"miss_mm": "mm", "depth_error_mm": "mm", "force_mN": "mN"})
+    res.write()
+    print(f"wrote {res.path}")
 
 
 if __name__ == "__main__":
