@@ -351,6 +351,25 @@ def _goal_rows() -> list[list]:
         return f"{fixed(ratio, 2)}× (trials)", ratio <= 2
 
     add("a 4 × 30 slab-truth study with ultrasound ≤ 2× the camera's", STUDY, study)
+
+    def body_mesh(r):
+        row = min(rows_of(r, "example"), key=lambda x: abs(x["tetrahedra"] - 30_000))
+        return (f"{fixed(row['mesh_s_median'], 2)} s ({num(row['tetrahedra'])} tetrahedra)",
+                row["mesh_s_median"] <= 5)
+
+    add("the 3-D body's mesh ≤ 5 s at ~30k tetrahedra", "bench_body_mesh", body_mesh)
+    add("one equilibrium of the 3-D body ≤ 1 s at ~30k tetrahedra (from rest)", "bench_body",
+        lambda r: (f"{fixed(fig(r, 'from_rest_s'), 2)} s ({num(fig(r, 'tetrahedra'))} tetrahedra; a warm control move "
+                   f"{fixed(fig(r, 'move_s'), 2)} s)", fig(r, "from_rest_s") <= 1))
+    add("`configs/example_dome.yaml`, `simulate --trials 0` from nothing ≤ 30 s", "bench_body",
+        lambda r: (f"{fixed(fig(r, 'forward_run_s'), 1)} s", fig(r, "forward_run_s") <= 30))
+    add("the paper's dome study (4 × 30) from nothing ≤ 10 min, 2 cores", "bench_dome_study",
+        lambda r: (f"{fixed(fig(r, 'wall_s') / 60, 1)} min", fig(r, "wall_s") <= 600))
+    add("a dome trial ≤ 10 s (the slowest target's median)", "bench_dome_study",
+        lambda r: (f"{fixed(max(x['trial_s_median'] for x in rows_of(r, 'targets')), 1)} s",
+                   max(x["trial_s_median"] for x in rows_of(r, "targets")) <= 10))
+    add("`configs/example_dome.yaml` end to end ≤ 2 min", "bench_dome_study.example",
+        lambda r: (f"{fixed(fig(r, 'wall_s') / 60, 1)} min", fig(r, "wall_s") <= 120))
     return out
 
 
@@ -510,21 +529,89 @@ def _insertion_scene(r) -> str:
             + f"\n\nThe scene: {r['data']['insertion_config']}, its nominal insertion of each target.\n\n" + source(r))
 
 
-@renderer("friction_law", "friction_law_before", "friction_law_after")
+@renderer("friction_law", "bench_friction_law.before", "bench_friction_law.after")
 def _friction_law(before, after) -> str:
-    """benchmarks/bench_friction_law.py's two results (its own format, not results_io's): the step refinement."""
+    """benchmarks/bench_friction_law.py's two results: the step refinement, before and after."""
     rows = []
-    for a, b in zip(before["steps"], after["steps"]):
+    for a, b in zip(rows_of(before, "steps"), rows_of(after, "steps")):
         rows.append([num(a["step_mm"], 5)] + [
             f"{num(x.get('to_half_step_mm'), 2)} mm, {fixed(x['force_mN'], 1)} mN, {x['steps_with_stuck']}"
             if x.get("to_half_step_mm") is not None else f"–, {fixed(x['force_mN'], 1)} mN, {x['steps_with_stuck']}"
             for x in (a, b)])
-    src = "; ".join(f"`benchmarks/results/friction_law_{r['label']}.json`: `python3 benchmarks/bench_friction_law.py "
-                    f"--label {r['label']}`, the package at {r['package_commit'][:7]}, load {r['load_before']:.2f} → "
-                    f"{r['load_after']:.2f}, {num(r['wall_s'], 3)} s (no date or machine recorded)"
-                    for r in (before, after))
     return (table(["step (mm)", "before: end's distance from the half step's, force at the end, steps with a stuck "
-                   "node", "after (friction with state): the same"], rows) + "\n\nSource: " + src + ".")
+                   "node", "after (friction with state): the same"], rows) + "\n\n" + _law_source(before, after))
+
+
+def _law_source(before, after) -> str:
+    packages = ", ".join(f"{r['variant']}: the package at {r['data']['package']['commit'][:7]}"
+                         for r in (before, after))
+    return source(before, after) + f" ({packages})"
+
+
+@renderer("friction_law_scenes", "bench_friction_law.before", "bench_friction_law.after")
+def _friction_law_scenes(before, after) -> str:
+    """The shipped insertion scenes' nominal insertions (`--trials 0`) under the law before and after."""
+    rows = []
+    for a, b in zip(rows_of(before, "scenes"), rows_of(after, "scenes")):
+        rows.append([a["scene"], a["target"], a["strategy"],
+                     f"{fixed(a['miss_mm'], 3)} → {fixed(b['miss_mm'], 3)}",
+                     f"{fixed(a['depth_error_mm'], 3)} → {fixed(b['depth_error_mm'], 3)}",
+                     f"{fixed(a['force_mN'], 0)} → {fixed(b['force_mN'], 0)}",
+                     f"{a['stuck']}/{a['slipping']} → {b['stuck']}/{b['slipping']}"])
+    return (table(["scene", "target", "strategy", "miss (mm)", "depth error (mm)", "force at the end (mN)",
+                   "stuck/slipping at the end"], rows) + "\n\nSource: the same files as the table above.")
+
+
+@renderer("body_mesh", "bench_body_mesh")
+def _body_mesh(r) -> str:
+    """benchmarks/bench_body_mesh.py: the example dome meshed at ~10k, 30k and 100k tetrahedra."""
+    rows = [[num(x["target_tetrahedra"]), f"{fixed(x['min_edge_mm'], 2)} / {fixed(x['max_edge_mm'], 1)}",
+             num(x["tetrahedra"]), num(x["nodes"]), f"{fixed(x['mesh_s_median'], 2)} s",
+             f"{fixed(1e3 * x['cached_s_median'], 1)} ms", f"{fixed(x['min_dihedral_deg'], 1)}°",
+             f"{fixed(x['worst_region_error_percent'], 1)} %", fixed(x["real_over_estimate"], 2)]
+            for x in rows_of(r, "example")]
+    return (table(["estimate", "min / max edge (mm)", "tetrahedra", "nodes", "mesh (median)", "from the cache",
+                   "smallest dihedral", "worst region's volume error", "real / estimate"], rows)
+            + "\n\n" + source(r))
+
+
+@renderer("dome_study", "bench_dome_study", "bench_dome_study.example")
+def _dome_study(study, example) -> str:
+    """benchmarks/bench_dome_study.py: the paper's dome study (4 × 30) and the example dome, end to end."""
+    paper = study["data"]["paper_max_mm"]
+    rows = [[x["target"], x["trials"], fixed(x["max_x_mm"], 2), fixed(x["max_y_mm"], 2), fixed(x["max_z_mm"], 2),
+             f"{fixed(x['miss_median_mm'], 2)} / {fixed(x['miss_p95_mm'], 2)}", x["at_stroke_limit"],
+             f"{fixed(x['trial_s_median'], 1)} s"] for x in rows_of(study, "targets")]
+    targets = rows_of(study, "targets")
+    rows.append(["all", sum(x["trials"] for x in targets), fixed(max(x["max_x_mm"] for x in targets), 2),
+                 fixed(max(x["max_y_mm"] for x in targets), 2), fixed(max(x["max_z_mm"] for x in targets), 2),
+                 "", sum(x["at_stroke_limit"] for x in targets), ""])
+    rows.append(["the paper (Fig. 14)", 30, num(paper["x"]), num(paper["y"]), "not reported", "", "", ""])
+    runs = [["`configs/paper_trials_prosthesis_dome.yaml`, 4 × 30 trials (≤ 10 min)",
+             f"{fixed(fig(study, 'wall_s') / 60, 1)} min", f"{num(fig(study, 'cpu_s'), 3)} CPU-s"],
+            ["`configs/example_dome.yaml`, 2 × 30 trials (≤ 2 min)",
+             f"{fixed(fig(example, 'wall_s') / 60, 1)} min", f"{num(fig(example, 'cpu_s'), 3)} CPU-s"]]
+    return (table(["target", "trials", "max \\|x\\| (mm)", "max \\|y\\| (mm)", "max \\|z\\| (mm)",
+                   "true miss median / p95 (mm)", "at the stroke limit", "a trial (median)"], rows)
+            + "\n\n" + table(["run, `--jobs 2`, from nothing", "wall", "CPU"], runs) + "\n\n" + source(study, example))
+
+
+@renderer("body", "bench_body")
+def _body(r) -> str:
+    """benchmarks/bench_body.py: the example dome's mesh, one equilibrium, its forward run."""
+    rows = [
+        ["the mesh, from nothing", f"{fixed(fig(r, 'mesh_s'), 2)} s",
+         f"{num(fig(r, 'tetrahedra'))} tetrahedra, {num(fig(r, 'nodes'))} nodes, smallest dihedral "
+         f"{fixed(fig(r, 'min_dihedral_deg'), 1)}°; ≤ 5 s at ~30k"],
+        ["the mesh, from the cache", f"{fixed(1e3 * fig(r, 'mesh_cached_s'), 1)} ms", ""],
+        ["push10 from rest", f"{fixed(fig(r, 'from_rest_s'), 2)} s",
+         f"{fig(r, 'from_rest_iterations')} Newton iterations (the tangent predictor, load steps)"],
+        ["one control move, 10 → 11 mm warm", f"{fixed(fig(r, 'move_s'), 2)} s",
+         f"{fig(r, 'move_iterations')} Newton iterations; one equilibrium ≤ 1 s at 30k"],
+        ["the Jacobian at rest", f"{fixed(fig(r, 'jacobian_s'), 2)} s", ""],
+        ["`simulate --trials 0` from nothing", f"{fixed(fig(r, 'forward_run_s'), 1)} s", "≤ 30 s"],
+    ]
+    return table(["measurement", "value", "note"], rows) + "\n\n" + source(r)
 
 
 @renderer("insertion_speed", "bench_insertion")
@@ -933,6 +1020,16 @@ def _brief() -> str:
     rows[-1][1] = goals(None)
     add("The needle in 3-D", "the-needle-that-hits-in-3-d-18", "bench_needle_3d.full|bench_needle_3d", needle3d,
         "whole runs with the needle in the slab, end to end")
+    def dome(r):
+        xs = rows_of(r, "targets")
+        paper = r["data"]["paper_max_mm"]
+        return (f"the paper's bench as a dome, 4 × 30 trials in {fixed(fig(r, 'wall_s') / 60, 1)} min: max \\|x\\| "
+                f"{fixed(max(x['max_x_mm'] for x in xs))}, \\|y\\| {fixed(max(x['max_y_mm'] for x in xs))} mm "
+                f"(paper {num(paper['x'])} / {num(paper['y'])}); the vertical \\|z\\| the paper could not see "
+                f"{fixed(max(x['max_z_mm'] for x in xs))} mm")
+
+    add("The breast in 3-D", "the-breast-in-3-d", "bench_dome_study", dome,
+        "the breast as a 3-D dome: meshed, solved, planned and moved in 3-D")
     add("Ultrasound in the loop", "ultrasound-in-the-loop", "bench_ultrasound", ultrasound,
         "B-mode frames, tracking and the fast model against SIMUS")
     add("Model only what a scene needs", "model-only-what-a-scene-needs", None, None,
