@@ -95,6 +95,7 @@ def test_a_run_stopped_in_its_manipulations_resumes_to_the_uninterrupted_run(tmp
     from scissor_cli.experiments.simulate import Execution, resume_simulation, run_simulation
     from scissor_cli.output import results_sink as sink_module
     from scissor_cli.output.results_sink import RunDirectory, open_for_resume
+
     from test_resume_stages import assert_same_run, wall_times
 
     cfg = load_config(write_scene(tmp_path, {**SCENE, "forward": [{"name": "push3", "strokes": {"side": 3.0}}]}))
