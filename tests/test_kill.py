@@ -370,29 +370,48 @@ def test_a_budget_run_sigkilled_between_rows_keeps_them_and_resumes_to_the_same_
     assert not [k for k in reference if not np.array_equal(now[k], reference[k])]
 
 
-def _sleep_then_nothing(seconds: float) -> list:
+LOST_STOP_RUN = """
+import signal, sys, time
+
+from scissor_cli.experiments import pool
+
+
+def sleep_then_nothing(seconds):
     time.sleep(seconds)
     return []
 
 
-def test_a_stop_whose_exception_was_lost_still_stops_the_pool():
+if __name__ == "__main__":
+    pool._state.update(defer=0, pending=None, signum=None)
+    try:
+        pool._on_signal(signal.SIGTERM, None)
+    except pool.Interrupted:
+        pass  # (lost, as in a finaliser)
+    t0 = time.perf_counter()
+    try:
+        list(pool.run_pool(sleep_then_nothing, [(30.0,), (30.0,)], 2))
+    except pool.Interrupted as stop:
+        print(f"stopped {time.perf_counter() - t0:.2f}", flush=True)
+        sys.exit(stop.exit_code)
+    sys.exit(0)
+"""
+
+
+def test_a_stop_whose_exception_was_lost_still_stops_the_pool(tmp_path):
     """A handler's exception raised inside a finaliser is dropped by Python ("Exception ignored in"); the run then
     ignored later signals as its own clean-up's and went on (seen: a SIGTERM'd slab-truth budget ran on). The pool's
-    wait raises the stop again within STOP_POLL_S and its workers go."""
-    from scissor_cli.experiments import pool
-
-    saved = dict(pool._state)
+    wait raises the stop again within STOP_POLL_S and its workers go. (A process of its own, as a run is: a pool
+    forked from the test runner's worker shares that worker's pipes and signals.)"""
+    script = tmp_path / "lost_stop.py"
+    script.write_text(LOST_STOP_RUN)
+    proc = subprocess.Popen([sys.executable, str(script)], env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
     try:
-        pool._state.update(defer=0, pending=None, signum=None)
-        try:
-            pool._on_signal(signal.SIGTERM, None)
-        except pool.Interrupted:
-            pass  # (lost, as in a finaliser)
-        t0 = time.perf_counter()
-        with pytest.raises(pool.Interrupted) as raised:
-            list(pool.run_pool(_sleep_then_nothing, [(30.0,), (30.0,)], 2))
-        assert raised.value.exit_code == 128 + signal.SIGTERM
-        assert time.perf_counter() - t0 < 15.0  # (the workers' start-up and one poll, not their 30 s)
+        out, err = proc.communicate(timeout=60)
     finally:
-        pool._state.clear()
-        pool._state.update(saved)
+        for pid in group_members(proc.pid):
+            os.kill(pid, signal.SIGKILL)
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    seconds = float(re.search(r"stopped ([0-9.]+)", out).group(1))
+    assert seconds < 15.0  # (the workers' start-up and one poll, not their 30 s)
+    assert not group_members(proc.pid), "a worker outlived the stopped run"
