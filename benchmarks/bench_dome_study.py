@@ -4,9 +4,12 @@ Runs `scissor simulate configs/paper_trials_prosthesis_dome.yaml --jobs 2` from 
 (goal: ≤ 10 min on 2 cores) and reports, per target and over all, the maxima of |x| (across the push) and
 |y| (along it) of the final error beside the paper's Fig. 14 (prosthesis: 0.7 / 1.7 mm), the vertical |z| the
 camera above does not see, and the true miss across the needle (median, p95). With --example it times
-configs/example_dome.yaml end to end instead (goal: ≤ 2 min).
+configs/example_dome.yaml end to end instead (goal: ≤ 2 min). With --model layer the controller's model is the
+paper's layer on each lesion's section (docs/model.md §19, "Control"), holding the sides --section-fixed names
+(the reduction's assumption; default bottom, the side opposite the cup); --trials overrides the 30 per target.
 
     PYTHONPATH=. python3 benchmarks/bench_dome_study.py [--example]
+    PYTHONPATH=. python3 benchmarks/bench_dome_study.py --model layer [--section-fixed bottom,left,right]
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import results_io
+import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the paper's Fig. 14 maxima, prosthesis (mm): X across the push, Y along it
@@ -31,14 +35,29 @@ PAPER_MAX_MM = {"x": 0.7, "y": 1.7}
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--example", action="store_true", help="configs/example_dome.yaml end to end instead")
+    ap.add_argument("--model", choices=("body", "layer"), default="body", help="the controller's model")
+    ap.add_argument("--section-fixed", default="bottom", help="--model layer: the section's held sides, a,b,...")
+    ap.add_argument("--trials", type=int, default=None, help="trials per target (default: the config's)")
     args = ap.parse_args()
     config = ROOT / "configs" / ("example_dome.yaml" if args.example else "paper_trials_prosthesis_dome.yaml")
-    res = results_io.Results("bench_dome_study", "example" if args.example else None)
+    sides = args.section_fixed.split(",")
+    variant = "example" if args.example else None
+    if args.model == "layer":
+        variant = "layer" + ("" if sides == ["bottom"] else "." + "-".join(sides))
+    res = results_io.Results("bench_dome_study", variant)
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "run"
+        scene = yaml.safe_load(config.read_text())
+        scene["controller"]["model"] = args.model
+        if args.model == "layer":
+            scene["controller"]["section_fixed"] = sides
+        if args.trials is not None:
+            scene["trials"]["count"] = args.trials
+        config_run = Path(tmp) / config.name
+        config_run.write_text(yaml.safe_dump(scene, sort_keys=False))
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.perf_counter()
-        r = subprocess.run([sys.executable, "-m", "scissor_cli", "simulate", str(config), "--jobs", "2", "--out",
+        r = subprocess.run([sys.executable, "-m", "scissor_cli", "simulate", str(config_run), "--jobs", "2", "--out",
                             str(out), "--quiet"], capture_output=True, text=True, cwd=tmp,
                            env=results_io.subprocess_env())
         wall = time.perf_counter() - t0
@@ -62,6 +81,8 @@ def main() -> None:
                                                          "miss_p95_mm")} | {"trial_s_median": "s"})
     res.data("paper_max_mm", PAPER_MAX_MM)
     res.data("config", str(config.relative_to(ROOT)))
+    res.data("model", args.model)
+    res.data("section_fixed", sides if args.model == "layer" else None)
     for row in rows:
         print(f"{row['target']}: max |x| {row['max_x_mm']:.2f}, |y| {row['max_y_mm']:.2f}, |z| {row['max_z_mm']:.2f} "
               f"mm; miss median {row['miss_median_mm']:.2f}, p95 {row['miss_p95_mm']:.2f} mm", flush=True)

@@ -66,14 +66,27 @@ def points_in_polygon(points: np.ndarray, poly: np.ndarray) -> np.ndarray:
     return np.count_nonzero(straddles & (px < x_cross), axis=1) % 2 == 1
 
 
-def point_segment_distance(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Distance (K, S) in mm from each point (K, 2) to each segment a→b (S, 2)."""
+def closest_on_segments(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The closest points (K, S, 2) in mm on each segment a→b (S, 2) to each point (K, 2)."""
     p = np.atleast_2d(np.asarray(points, dtype=float))[:, None, :]
     a, b = np.atleast_2d(a)[None], np.atleast_2d(b)[None]
     ab = b - a
     len2 = np.maximum(np.sum(ab * ab, axis=-1), 1e-300)
     t = np.clip(np.sum((p - a) * ab, axis=-1) / len2, 0.0, 1.0)
-    return np.linalg.norm(p - (a + t[..., None] * ab), axis=-1)
+    return a + t[..., None] * ab
+
+
+def point_segment_distance(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance (K, S) in mm from each point (K, 2) to each segment a→b (S, 2)."""
+    p = np.atleast_2d(np.asarray(points, dtype=float))[:, None, :]
+    return np.linalg.norm(p - closest_on_segments(points, a, b), axis=-1)
+
+
+def nearest_on_boundary(points: np.ndarray, poly: np.ndarray) -> np.ndarray:
+    """The nearest points (K, 2) in mm on the polygon outline to points (K, 2)."""
+    q = closest_on_segments(points, *edges(np.asarray(poly, dtype=float)))
+    d = np.linalg.norm(q - np.atleast_2d(np.asarray(points, dtype=float))[:, None, :], axis=-1)
+    return q[np.arange(len(q)), np.argmin(d, axis=1)]
 
 
 def distance_to_boundary(points: np.ndarray, poly: np.ndarray) -> np.ndarray:

@@ -130,7 +130,7 @@ def test_options_and_models_that_a_body_does_not_take_exit_2(tmp_path):
         assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
         assert "3-D" in r.stderr
     data = dome()
-    data["controller"]["model"] = "layer"  # the paper's section as the controller's model: not built yet
+    data["controller"]["model"] = "surrogate"  # a surrogate learned from the body: not built yet
     r = run_cli("validate", write_scene(tmp_path, data))
     assert r.returncode == 2 and "controller.model" in r.stderr and "Traceback" not in r.stderr
 

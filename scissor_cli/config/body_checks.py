@@ -89,6 +89,31 @@ def body_surface(cfg: BodyConfig) -> DomeSurface | MeshSurface:
     return MeshSurface(nodes, triangles, held)
 
 
+def body_apex(surface: DomeSurface | MeshSurface) -> np.ndarray:
+    """(3,) mm: the body's top (the dome's apex; a surface body's highest vertex), where radial fibers point."""
+    if isinstance(surface, DomeSurface):
+        return np.array([0.0, 0.0, surface.height_mm])
+    return surface.nodes[int(np.argmax(surface.nodes[:, 2]))].copy()
+
+
+def skin_normals(surface: DomeSurface | MeshSurface, points: np.ndarray) -> np.ndarray:
+    """Outward unit normals (K, 3) of the skin at points (K, 3) on it: the spheroid's exactly; on a triangulation
+    the area-weighted normal of the skin faces within 2 mm (the face holding the point when none is that near)."""
+    if len(points) == 0:
+        return np.zeros((0, 3))
+    if isinstance(surface, DomeSurface):
+        return g3.spheroid_cap_normal(points, surface.radius_mm, surface.height_mm)
+    tris = surface.triangles[~surface.held]
+    a, b, c = (surface.nodes[tris[:, i]] for i in range(3))
+    area_normal = 0.5 * np.cross(b - a, c - a)  # (S, 3)
+    q = g3.closest_on_triangles(points[:, None, :], a, b, c)  # (K, S, 3)
+    near = np.linalg.norm(q - points[:, None, :], axis=-1)
+    weights = np.where(near <= 2.0, 1.0, 0.0)
+    weights[np.arange(len(points)), np.argmin(near, axis=1)] = 1.0
+    n = weights @ area_normal
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
 def body_problems(cfg: BodyConfig) -> list[Problem]:
     """Cross-field checks of a 3-D scene: [(location, message)]."""
     problems = _shape_problems(cfg)
@@ -103,10 +128,10 @@ def body_problems(cfg: BodyConfig) -> list[Problem]:
     problems += _unique(cfg.forward, "forward") + _reserved_names(cfg)
     problems += _lesion_problems(cfg, surface) + _obstacle_problems(cfg, surface)
     problems += _cup_problems(cfg, surface) + _forward_problems(cfg)
-    if cfg.controller.model != "body":
+    if cfg.controller.model == "surrogate":
         problems.append((("controller", "model"), (
-            f"{cfg.controller.model!r}: this version's 3-D controller runs on the body itself (`body`); the "
-            f"surrogate and the paper's layer section are not built yet")))
+            "'surrogate': a 3-D scene's controller runs on the body itself (`body`) or on the paper's section "
+            "(`layer`); a surrogate learned from the body is not built yet")))
     if cfg.controller.jacobian_update != "none":
         problems.append((("controller", "jacobian_update"), "Broyden's update is a layer's (docs/model.md §15); "
                          "a 3-D scene's controller uses the body's Jacobian: leave it none"))

@@ -29,6 +29,7 @@ from scissor_cli.config.sections import (
     Name,
     Num,
     RobotConfig,
+    Side,
     SolverConfig,
     TrialsConfig,
     Vec3,
@@ -176,6 +177,9 @@ class BodyControllerConfig(ControllerConfig):
     #: the controller's model of the body (docs/model.md §19): body — the body at a coarser accuracy; surrogate —
     #: learned from it; layer — the paper's 2-D section through the lesion
     model: Literal["body", "surrogate", "layer"] = "body"
+    #: model layer: the sides of the section the layer holds, in the section's frame (the cup at the top, pushing
+    #: down; `config.body_section`); absent: [bottom], the side opposite the cup, as the paper's rectangle was held
+    section_fixed: Optional[Annotated[list[Side], Len(1, 4)]] = None
 
 
 class BodyCameraConfig(CameraConfig):

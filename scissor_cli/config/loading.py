@@ -26,6 +26,7 @@ import yaml
 from pydantic import ValidationError
 
 from scissor_cli.config.body_checks import body_problems
+from scissor_cli.config.body_section import section_problems
 from scissor_cli.config.body_sections import BODY_SHAPES, BodyConfig
 from scissor_cli.config.checks import scene_problems
 from scissor_cli.config.element_budget import budget_problems
@@ -245,7 +246,7 @@ def parse_config(text: str, source: str = "<config>", base_dir: Path | None = No
         raise ConfigError(_one_message([located(source, root, *pydantic_problem(e, model, other))
                                         for e in errors])) from None
     cfg = _absolute_paths(cfg, base_dir)
-    for check in ((body_problems,) if body else (scene_problems, budget_problems)):
+    for check in ((body_problems, section_problems) if body else (scene_problems, budget_problems)):
         problems = check(cfg)
         if problems:
             raise ConfigError(_one_message([located(source, root, loc, what) for loc, what in problems]))

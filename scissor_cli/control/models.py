@@ -12,7 +12,9 @@ strokes it commanded, J (2, C) there, its stroke limits and resolution,
 * `MapController`: a smooth map strokes → target (2,) with its J, such as
   the surrogate learned from slab equilibria (`layer3d.surrogate`);
 * `SlabController`: the nominal 3-D slab, tracked like the layer; J the
-  in-plane rows of the slab's tangent response at the target.
+  in-plane rows of the slab's tangent response at the target;
+* `SectionController`: a layer that is a body's section (the paper's
+  reduction of a 3-D scene): its in-plane J carried into the body's frame.
 """
 
 from __future__ import annotations
@@ -92,6 +94,24 @@ class SlabController(Controller):
         if self.tissue.n_cups == 0:
             return np.zeros((2, 0))
         return self.probe.response(self.eq.response)[0, :2]
+
+
+class SectionController(Controller):
+    """A 2-D layer lying in a plane of a body as the controller's model (the paper's reduction, docs/model.md §19).
+
+    basis (3, 2): the plane's orthonormal axes in the body's frame (`config.body_section.SectionPlane`); the
+    layer's target moves in that plane, so its J (2, C) is J (3, C) = basis J in the body's frame.
+    """
+
+    def __init__(self, tissue: Tissue, probe: TargetProbe, basis, lo, hi, resolution_mm: float = 0.0,
+                 tol: float = 1e-10):
+        super().__init__(tissue, probe, lo, hi, resolution_mm, tol)
+        self.basis = np.asarray(basis, float)
+
+    @property
+    def jacobian(self) -> np.ndarray:
+        """J (3, C) mm/mm: the layer's in-plane J carried into the body's frame."""
+        return self.basis @ super().jacobian
 
 
 #: the inverse stops once the driven error is this small (mm), far below a camera's noise

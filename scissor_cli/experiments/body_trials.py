@@ -1,7 +1,8 @@
 """A 3-D scene's trial as a pure function of (config text, target, trial) (docs/model.md §19, "Trials").
 
 The trial of a layer (`experiments.trials`) with a body: the controller's
-model is the body (`controller.model: body`), the truth the same mesh with
+model is the body (`controller.model: body`) or the paper's layer on the
+lesion's section (`layer`, `section_controllers`), the truth the mesh with
 the profile's draws (E and its heterogeneity field over the tetrahedra'
 centroids, ν, η, the fiber field turned about z), the cups' actuator with
 the profile's resolution and backlash, and the scene's camera — or cameras,
@@ -16,18 +17,38 @@ Dask) run its `run` exactly as a layer's.
 from __future__ import annotations
 
 import time
+from typing import Callable, Optional
 
 import numpy as np
 
 from scissor_cli import control
 from scissor_cli.config.loading import parse_config
 from scissor_cli.control.allocation import along_mm, miss_mm
-from scissor_cli.experiments.build import body_model
+from scissor_cli.control.models import SectionController
+from scissor_cli.experiments.build import body_model, section_model
 from scissor_cli.experiments.profiles import ErrorModel, draw_trial, error_model
 from scissor_cli.experiments.trial_types import TrialOutcome
 from scissor_cli.sensing.camera3d_sensor import BodyCameraModel
 from scissor_cli.sensing.sensor import TrialDraws
 from scissor_cli.solvers.equilibrium import solve_equilibrium
+
+
+def section_controllers(cfg) -> Callable[[int], Optional[Callable]]:
+    """Target index → the loop's `controller_factory` for a 3-D run: None (the controller's model is the body
+    itself) or, with controller.model layer, (lo, hi, resolution_mm, tol) → a `SectionController` on that
+    target's section, each section built once."""
+    sections: dict[int, tuple] = {}
+
+    def factory_for(index: int) -> Optional[Callable]:
+        if cfg.controller.model != "layer":
+            return None
+        if index not in sections:
+            sections[index] = section_model(cfg, index)
+        tissue, probe, plane = sections[index]
+        return lambda lo, hi, resolution_mm, tol: SectionController(tissue, probe, plane.basis, lo, hi,
+                                                                    resolution_mm, tol)
+
+    return factory_for
 
 
 def body_sensor_model(cfg, errors: ErrorModel) -> BodyCameraModel:
@@ -48,6 +69,7 @@ class BodyTrialContext:
         self.sensors = body_sensor_model(self.cfg, self.errors)
         self.centroids = self.mesh.nodes[self.mesh.tetrahedra].mean(axis=1)
         self._guesses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.controllers = section_controllers(self.cfg)
 
     def guess(self, task) -> tuple[np.ndarray, np.ndarray] | None:
         """The model's equilibrium at the plan's strokes: a warm start for the loop's first big move."""
@@ -68,7 +90,7 @@ class BodyTrialContext:
         r = control.run_target(self.tissue, task.rest, desired, self.cfg.controller, control.TargetRun(
             truth=truth, sensor=sensor, resolution_mm=self.errors.actuator_resolution_mm,
             backlash_mm=self.errors.backlash_mm, target=task.name, guess=self.guess(task),
-            direction=np.asarray(task.direction, float)))
+            direction=np.asarray(task.direction, float), controller_factory=self.controllers(task.index)))
         columns, table = r.history_table()
         final = np.asarray(r.final_error, float)
         return TrialOutcome(

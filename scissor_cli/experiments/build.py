@@ -11,11 +11,13 @@ from pathlib import Path
 import numpy as np
 
 from scissor_cli.config import Config
+from scissor_cli.config.body_section import SectionPlane, section_config
 from scissor_cli.config.body_sections import BodyConfig
 from scissor_cli.mechanics.body_tissue import build_body
 from scissor_cli.mechanics.tissue import Tissue, build_tissue
 from scissor_cli.mesh.body_inputs import mesh_body
 from scissor_cli.mesh.mesh import Mesh, mesh_for_config
+from scissor_cli.mesh.probe import TargetProbe, probe_targets
 from scissor_cli.scene.body_scene import BodyScene, build_body_scene
 from scissor_cli.scene.scene import Scene, build_scene
 
@@ -48,3 +50,11 @@ def body_model(cfg: BodyConfig, cache: Path | None = None, scale: float = 1.0,
     scene = build_body_scene(cfg)
     mesh = mesh_body(scene, cfg.tissue.mesh, scale, cache)
     return scene, mesh, build_body(scene, mesh, model=model)
+
+
+def section_model(cfg: BodyConfig, index: int) -> tuple[Tissue, TargetProbe, SectionPlane]:
+    """The paper's layer on a 3-D scene's section through target `index` (`config.body_section`): its tissue,
+    the probe of its one target and the section's plane."""
+    layer, plane = section_config(cfg, index)
+    _, mesh, tissue = build_model(layer)
+    return tissue, probe_targets(mesh, np.asarray(layer.targets[0].position_mm, float)[None]), plane

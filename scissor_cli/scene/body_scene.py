@@ -13,8 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scissor_cli import geometry3d as g3
-from scissor_cli.config.body_checks import DomeSurface, MeshSurface, body_surface
+from scissor_cli.config.body_checks import DomeSurface, MeshSurface, body_apex, body_surface, skin_normals
 from scissor_cli.config.body_sections import BodyConfig
 from scissor_cli.scene.scene import Material, material_of
 
@@ -81,10 +80,8 @@ class BodyScene:
 
     @property
     def apex(self) -> np.ndarray:
-        """(3,) mm: the body's top (the dome's apex; a surface body's highest vertex), where radial fibers point."""
-        if isinstance(self.surface, DomeSurface):
-            return np.array([0.0, 0.0, self.surface.height_mm])
-        return self.surface.nodes[int(np.argmax(self.surface.nodes[:, 2]))].copy()
+        """(3,) mm: the body's top (`body_checks.body_apex`), where radial fibers point."""
+        return body_apex(self.surface)
 
 
 def build_body_scene(cfg: BodyConfig) -> BodyScene:
@@ -112,21 +109,3 @@ def build_body_scene(cfg: BodyConfig) -> BodyScene:
                         Inclusion(o.name, "tube", np.array(o.tube.points_mm, float), o.tube.radius_mm,
                                   o.stiffness_factor) for o in cfg.obstacles),
         cups=cups, material=material_of(cfg.material))
-
-
-def skin_normals(surface: DomeSurface | MeshSurface, points: np.ndarray) -> np.ndarray:
-    """Outward unit normals (K, 3) of the skin at points (K, 3) on it: the spheroid's exactly; on a triangulation
-    the area-weighted normal of the skin faces within 2 mm (the face holding the point when none is that near)."""
-    if len(points) == 0:
-        return np.zeros((0, 3))
-    if isinstance(surface, DomeSurface):
-        return g3.spheroid_cap_normal(points, surface.radius_mm, surface.height_mm)
-    tris = surface.triangles[~surface.held]
-    a, b, c = (surface.nodes[tris[:, i]] for i in range(3))
-    area_normal = 0.5 * np.cross(b - a, c - a)  # (S, 3)
-    q = g3.closest_on_triangles(points[:, None, :], a, b, c)  # (K, S, 3)
-    near = np.linalg.norm(q - points[:, None, :], axis=-1)
-    weights = np.where(near <= 2.0, 1.0, 0.0)
-    weights[np.arange(len(points)), np.argmin(near, axis=1)] = 1.0
-    n = weights @ area_normal
-    return n / np.linalg.norm(n, axis=1, keepdims=True)
