@@ -32,28 +32,12 @@ ROOT = Path(__file__).resolve().parents[1]
 PAPER_MAX_MM = {"x": 0.7, "y": 1.7}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--example", action="store_true", help="configs/example_dome.yaml end to end instead")
-    ap.add_argument("--model", choices=("body", "layer"), default="body", help="the controller's model")
-    ap.add_argument("--section-fixed", default="bottom", help="--model layer: the section's held sides, a,b,...")
-    ap.add_argument("--trials", type=int, default=None, help="trials per target (default: the config's)")
-    args = ap.parse_args()
-    config = ROOT / "configs" / ("example_dome.yaml" if args.example else "paper_trials_prosthesis_dome.yaml")
-    sides = args.section_fixed.split(",")
-    variant = "example" if args.example else None
-    if args.model == "layer":
-        variant = "layer" + ("" if sides == ["bottom"] else "." + "-".join(sides))
-    res = results_io.Results("bench_dome_study", variant)
+def simulate_scene(scene: dict, name: str) -> tuple[list[dict], float, float]:
+    """`scissor simulate` of a scene's data with --jobs 2 from an empty folder and cache: per-target rows of the
+    final errors (a target without a plan has 0 trials and no maxima), the wall and the CPU seconds."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "run"
-        scene = yaml.safe_load(config.read_text())
-        scene["controller"]["model"] = args.model
-        if args.model == "layer":
-            scene["controller"]["section_fixed"] = sides
-        if args.trials is not None:
-            scene["trials"]["count"] = args.trials
-        config_run = Path(tmp) / config.name
+        config_run = Path(tmp) / name
         config_run.write_text(yaml.safe_dump(scene, sort_keys=False))
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.perf_counter()
@@ -69,12 +53,38 @@ def main() -> None:
             for t in f["trials"]:
                 g = f["trials"][t]
                 e, miss = g["final_error"][()], g["manipulation_miss_mm"][()]
+                if len(e) == 0:
+                    rows.append({"target": t, "trials": 0})
+                    continue
                 rows.append({"target": t, "trials": int(len(e)), "max_x_mm": float(np.abs(e[:, 0]).max()),
                              "max_y_mm": float(np.abs(e[:, 1]).max()), "max_z_mm": float(np.abs(e[:, 2]).max()),
                              "miss_median_mm": float(np.median(miss)), "miss_p95_mm": float(np.percentile(miss, 95)),
                              "at_stroke_limit": int(np.sum(g["stop_reason"][()] == b"stroke_limit")),
-                             "trial_s_median": float(np.median(g["trial_time_s"][()]))})
-    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+                             "trial_s_median": float(np.median(g["trial_time_s"][()])),
+                             "iterations_median": float(np.median(g["iterations"][()]))})
+    return rows, wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--example", action="store_true", help="configs/example_dome.yaml end to end instead")
+    ap.add_argument("--model", choices=("body", "layer"), default="body", help="the controller's model")
+    ap.add_argument("--section-fixed", default="bottom", help="--model layer: the section's held sides, a,b,...")
+    ap.add_argument("--trials", type=int, default=None, help="trials per target (default: the config's)")
+    args = ap.parse_args()
+    config = ROOT / "configs" / ("example_dome.yaml" if args.example else "paper_trials_prosthesis_dome.yaml")
+    sides = args.section_fixed.split(",")
+    variant = "example" if args.example else None
+    if args.model == "layer":
+        variant = "layer" + ("" if sides == ["bottom"] else "." + "-".join(sides))
+    res = results_io.Results("bench_dome_study", variant)
+    scene = yaml.safe_load(config.read_text())
+    scene["controller"]["model"] = args.model
+    if args.model == "layer":
+        scene["controller"]["section_fixed"] = sides
+    if args.trials is not None:
+        scene["trials"]["count"] = args.trials
+    rows, wall, cpu = simulate_scene(scene, config.name)
     res.figure("wall_s", wall, "s")
     res.figure("cpu_s", cpu, "s")
     res.table("targets", rows, units={k: "mm" for k in ("max_x_mm", "max_y_mm", "max_z_mm", "miss_median_mm",

@@ -104,6 +104,12 @@ COMMANDS = {
     "compare_controller_models.paper_trials_prosthesis_slab":
         "python3 benchmarks/compare_controller_models.py configs/paper_trials_prosthesis_slab.yaml",
     "docs_scenes": "python3 benchmarks/docs.py --images-only",
+    "bench_dome_study.example": "python3 benchmarks/bench_dome_study.py --example",
+    "bench_dome_study.layer": "python3 benchmarks/bench_dome_study.py --model layer",
+    "bench_dome_study.layer.bottom-left-right":
+        "python3 benchmarks/bench_dome_study.py --model layer --section-fixed bottom,left,right",
+    "bench_dome_study.layer.left-right":
+        "python3 benchmarks/bench_dome_study.py --model layer --section-fixed left,right",
     "friction_law_before": "python3 benchmarks/bench_friction_law.py --label before (on the earlier law's checkout)",
     "friction_law_after": "python3 benchmarks/bench_friction_law.py --label after",
 }
@@ -596,6 +602,52 @@ def _dome_study(study, example) -> str:
             + "\n\n" + table(["run, `--jobs 2`, from nothing", "wall", "CPU"], runs) + "\n\n" + source(study, example))
 
 
+@renderer("dome_reduction", "bench_dome_study", "bench_dome_study.layer", "bench_dome_study.layer.bottom-left-right",
+          "bench_dome_study.layer.left-right", "compare_controller_models.paper_trials_prosthesis_slab")
+def _dome_reduction(body, *layers_and_slab) -> str:
+    """benchmarks/bench_dome_study.py --model layer: the paper's reduction driving the dome, per held sides."""
+    *layers, slab = layers_and_slab
+    rows = []
+    for r in (body, *layers):
+        t = rows_of(r, "targets")
+        held = "" if r["data"].get("model", "body") == "body" else ", ".join(r["data"]["section_fixed"])
+        rows.append(["the body" if not held else "the layer on the section", held or "(the base)",
+                     sum(x["trials"] for x in t), fixed(max(x["max_x_mm"] for x in t), 2),
+                     fixed(max(x["max_y_mm"] for x in t), 2), fixed(max(x["max_z_mm"] for x in t), 2),
+                     fixed(max(x["miss_p95_mm"] for x in t), 2), sum(x["at_stroke_limit"] for x in t),
+                     num(max((x["iterations_median"] for x in t if "iterations_median" in x), default=None)),
+                     f"{fixed(max(x['trial_s_median'] for x in t), 1)} s", f"{fixed(fig(r, 'wall_s') / 60, 1)} min"])
+    st = [x for x in rows_of(slab, "summary") if x["controller"] == "layer"]
+    rows.append(["the layer (the slab as the truth)", "bottom", sum(x["trials"] for x in st),
+                 fixed(max(x["max_x"] for x in st), 2), fixed(max(x["max_y"] for x in st), 2), "", "",
+                 sum(x["stroke_limit_stops"] for x in st), "", "", ""])
+    paper = body["data"]["paper_max_mm"]
+    rows.append(["the paper (Fig. 14), its layer on the prosthesis", "the side opposite the cup", 30,
+                 num(paper["x"]), num(paper["y"]), "not reported", "", "", "", "", ""])
+    return (table(["the controller's model", "held", "trials", "max \\|x\\| (mm)", "max \\|y\\| (mm)",
+                   "max \\|z\\| (mm)", "true miss p95, worst target (mm)", "at the stroke limit",
+                   "iterations (slowest target's median)", "a trial (slowest target's median)",
+                   "run (`--jobs 2`)"], rows) + "\n\n" + source(body, *layers, slab))
+
+
+@renderer("dome_family", "bench_dome_family")
+def _dome_family(r) -> str:
+    """benchmarks/bench_dome_family.py: the dome study with one assumption the paper leaves open changed at a time."""
+    names = {"baseline": "the baseline (radius 60, height 35, targets and cup at 15, patch 5 mm)",
+             "radius_mm": "the dome's radius", "height_mm": "the dome's height", "target_height_mm":
+             "the targets' (and the cup's) height", "cup_radius_mm": "the cup's patch radius"}
+    rows = [[names.get(x["assumption"], x["assumption"]), "" if x["value"] is None else f"{num(x['value'])} mm",
+             x["model"], f"{x['planned']} of {x['targets']}", x["trials"], fixed(x["max_x_mm"], 2),
+             fixed(x["max_y_mm"], 2), fixed(x["max_z_mm"], 2), x["at_stroke_limit"], num(x.get("iterations_median")),
+             f"{fixed(x['wall_s'], 0)} s"] for x in rows_of(r, "setups")]
+    paper = r["data"]["paper_max_mm"]
+    return (table(["assumption", "value", "the controller's model", "targets planned", "trials", "max \\|x\\| (mm)",
+                   "max \\|y\\| (mm)", "max \\|z\\| (mm)", "at the stroke limit", "iterations (median)",
+                   "run"], rows)
+            + f"\n\nThe paper (Fig. 14, prosthesis): max \\|x\\| {num(paper['x'])}, \\|y\\| {num(paper['y'])} mm; "
+              f"{r['data']['trials_per_target']} trials per planned target here.\n\n" + source(r))
+
+
 @renderer("body", "bench_body")
 def _body(r) -> str:
     """benchmarks/bench_body.py: the example dome's mesh, one equilibrium, its forward run."""
@@ -1030,6 +1082,16 @@ def _brief() -> str:
 
     add("The breast in 3-D", "the-breast-in-3-d", "bench_dome_study", dome,
         "the breast as a 3-D dome: meshed, solved, planned and moved in 3-D")
+
+    def reduction(r):
+        xs = rows_of(r, "targets")
+        return (f"the paper's layer on each target's section driving the dome (held opposite the cup), 4 × 30 "
+                f"trials: max \\|x\\| {fixed(max(x['max_x_mm'] for x in xs))}, \\|y\\| "
+                f"{fixed(max(x['max_y_mm'] for x in xs))}, \\|z\\| {fixed(max(x['max_z_mm'] for x in xs))} mm, "
+                f"{sum(x['at_stroke_limit'] for x in xs)} at the stroke limit")
+
+    add("The paper's reduction on the dome", "the-papers-bench-as-a-dome", "bench_dome_study.layer", reduction,
+        "the paper's 2-D layer as the controller's model of the dome")
     add("Ultrasound in the loop", "ultrasound-in-the-loop", "bench_ultrasound", ultrasound,
         "B-mode frames, tracking and the fast model against SIMUS")
     add("Model only what a scene needs", "model-only-what-a-scene-needs", None, None,

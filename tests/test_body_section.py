@@ -15,6 +15,7 @@ import h5py
 import numpy as np
 import pytest
 import yaml
+from scenes.body_surfaces import box, write_stl
 
 from scissor_cli import geometry
 from scissor_cli.config import Config, ConfigError, parse_config
@@ -136,3 +137,41 @@ def test_a_refused_section_exits_2_through_the_cli(tmp_path):
     data["cups"][0]["contact_mm"] = [0.0, 30.0, 16.5]
     r = run_cli("validate", write_scene(tmp_path, data))
     assert r.returncode == 2 and "controller.model" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_the_section_of_a_box_is_the_paper_s_rectangle_held_opposite_the_cup(tmp_path):
+    """A surface body: a 40 × 30 × 20 mm box held on its base, the cup on its face y = 0 (its inward normal +y).
+    The section at the lesion's height is the rectangle, corners kept; the layer on it moves its target as the
+    rectangle layer of §1–5 built by hand does (the paper's: the cup on one side, the opposite side held)."""
+    write_stl(tmp_path / "box.stl", *box(hi=(40.0, 30.0, 20.0)))
+    data = {"name": "box", "tissue": {"shape": "surface", "surface_file": str(tmp_path / "box.stl"),
+                                      "fixed": [{"plane": {"point_mm": [0, 0, 0], "normal": [0, 0, 1]}}],
+                                      "mesh": {"max_edge_mm": 2.5, "min_edge_mm": 1.25}},
+            "material": dict(SCENE["material"], fiber_angle_deg=0.0),
+            "cups": [{"name": "cup", "contact_mm": [20.0, 0.0, 10.0], "radius_mm": 5.0, "stroke_mm": [-8.0, 8.0]}],
+            "targets": [{"name": "T", "position_mm": [20.0, 15.0, 10.0], "radius_mm": 3.0}],
+            "needle": {"direction": [1.0, 0.0, 0.0]}, "controller": {"model": "layer"}}
+    cfg = _cfg(data)
+    layer, plane = section_config(cfg, 0)
+    # the cup's axis +y, the needle +x: the layer's x is the body's x, its y the body's −y (the cup on top)
+    assert np.allclose(plane.basis, [[1, 0], [0, -1], [0, 0]])
+    outline = np.asarray(layer.tissue.polygon_mm)
+    corners = np.array([[0.0, 0.0], [40.0, 0.0], [40.0, -30.0], [0.0, -30.0]])
+    assert np.max(np.min(np.linalg.norm(outline[:, None] - corners[None], axis=2), axis=0)) < 0.5
+    assert np.allclose(layer.cups[0].contact_mm, [20.0, 0.0], atol=0.05) and np.allclose(layer.cups[0].axis, [0, -1])
+    by_hand = Config.model_validate({
+        "name": "rectangle", "tissue": {"shape": "rectangle", "size_mm": [40.0, 30.0], "fixed": ["bottom"],
+                                        "mesh": {"max_edge_mm": 2.5, "min_edge_mm": 1.25}},
+        "material": data["material"],
+        "cups": [{"name": "cup", "contact_mm": [20.0, 30.0], "axis": [0.0, -1.0], "radius_mm": 5.0,
+                  "stroke_mm": [-8.0, 8.0]}],
+        "targets": [{"name": "T", "position_mm": [20.0, 15.0]}], "solver": {"kind": "newton"}})
+    _, mesh, tissue = build_model(by_hand)
+    section_tissue, section_probe, _ = section_model(cfg, 0)
+    ours, J_ours = _moved(section_tissue, section_probe, 4.0)
+    theirs, J_theirs = _moved(tissue, probe_targets(mesh, np.array([[20.0, 15.0]])), 4.0)
+    theirs = theirs - [0.0, 30.0]  # (the rectangle spans [0, 30] in y, the section [−30, 0])
+    moved = np.linalg.norm(theirs - [20.0, -15.0])
+    assert moved > 0.5
+    assert np.linalg.norm(ours - theirs) <= 0.02 * moved
+    assert np.linalg.norm(J_ours - J_theirs) <= 0.03 * np.linalg.norm(J_theirs)

@@ -13,7 +13,8 @@ the 2-D layer of §1–5 on the body's section through the lesion.
   the layer's (x, y) are the body's.
 * **The outline** is the zero level of the body's signed depth sampled on
   the plane (scikit-image's marching squares), the loop around the lesion,
-  resampled at equal steps of about the body's finest edge.
+  simplified to within 1/50 of the grid's step (Douglas–Peucker), so a
+  face's edge stays straight and keeps its corners.
 * **The layer** has the body's material with the fiber direction projected
   into the plane, and nothing else: lesions and obstacles are not in it (the
   paper's layer had none). It is meshed at the body's edge lengths, and has
@@ -32,7 +33,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from skimage.measure import find_contours
+from skimage.measure import approximate_polygon, find_contours
 
 from scissor_cli import geometry
 from scissor_cli.config.body_checks import DomeSurface, Problem, body_apex, body_surface, skin_normals
@@ -99,18 +100,21 @@ def body_box(surface) -> tuple[np.ndarray, np.ndarray]:
     return surface.nodes.min(axis=0), surface.nodes.max(axis=0)
 
 
-def section_outline(surface, plane: SectionPlane, inside: np.ndarray, spacing_mm: float) -> np.ndarray:
+def section_outline(surface, plane: SectionPlane, inside: np.ndarray) -> np.ndarray:
     """The section's outline around the plane point `inside` (2,): a counter-clockwise polygon (P, 2) mm.
 
     The zero level of the surface's signed depth on a grid over the body's
-    box, the closed loop that holds `inside` (the smallest, when loops nest),
-    resampled at equal steps of about spacing_mm (at most MAX_OUTLINE_POINTS).
+    box (step h: GRID_POINTS across it), the closed loop that holds `inside`
+    (the smallest, when loops nest), simplified (Douglas–Peucker) to within
+    h/50 of it: a face's edge becomes one straight edge between its corners,
+    a curve keeps its vertices dense (a cup's grip on a coarse polygon would
+    not be symmetric about its contact). The mesher places its own boundary
+    points along the edges.
     """
     lo, hi = body_box(surface)
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
     c2 = plane.to_plane(corners)
-    extent = float(np.max(c2.max(axis=0) - c2.min(axis=0)))
-    h = max(extent / GRID_POINTS, 1e-3 * extent)
+    h = float(np.max(c2.max(axis=0) - c2.min(axis=0))) / GRID_POINTS
     a = np.arange(c2[:, 0].min() - 2 * h, c2[:, 0].max() + 3 * h, h)
     b = np.arange(c2[:, 1].min() - 2 * h, c2[:, 1].max() + 3 * h, h)
     grid = np.stack(np.meshgrid(a, b, indexing="ij"), axis=-1).reshape(-1, 2)
@@ -119,17 +123,18 @@ def section_outline(surface, plane: SectionPlane, inside: np.ndarray, spacing_mm
     for c in find_contours(depth, 0.0):
         if len(c) < 4 or np.linalg.norm(c[0] - c[-1]) > 1e-9:
             continue  # (open: the grid's padding is outside the body, so only a degenerate loop is)
-        poly = np.column_stack([a[0] + c[:-1, 0] * h, b[0] + c[:-1, 1] * h])
-        if geometry.points_in_polygon(np.asarray(inside, float)[None], poly)[0]:
+        poly = np.column_stack([a[0] + c[:, 0] * h, b[0] + c[:, 1] * h])
+        if geometry.points_in_polygon(np.asarray(inside, float)[None], poly[:-1])[0]:
             loops.append(poly)
     if not loops:
         raise SectionError("the section does not hold the lesion: no outline loop surrounds it")
-    poly = min(loops, key=lambda p: abs(geometry.signed_area(p)))
-    closed = np.vstack([poly, poly[:1]])
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(closed, axis=0), axis=1))])
-    count = int(np.clip(np.ceil(s[-1] / spacing_mm), 12, MAX_OUTLINE_POINTS))
-    at = np.arange(count) * (s[-1] / count)
-    return geometry.ccw(np.column_stack([np.interp(at, s, closed[:, 0]), np.interp(at, s, closed[:, 1])]))
+    closed = min(loops, key=lambda p: abs(geometry.signed_area(p[:-1])))
+    tolerance = h / 50
+    while True:
+        poly = approximate_polygon(closed, tolerance)[:-1]
+        if len(poly) <= MAX_OUTLINE_POINTS:
+            return geometry.ccw(poly)
+        tolerance *= 2
 
 
 def section_config(cfg: BodyConfig, index: int, surface=None) -> tuple[Config, SectionPlane]:
@@ -147,7 +152,7 @@ def section_config(cfg: BodyConfig, index: int, surface=None) -> tuple[Config, S
     axes = np.array([-normals[i] if c.axis is None else np.asarray(c.axis, float) for i, c in enumerate(cfg.cups)])
     rest = np.asarray(lesion.position_mm, float)
     plane = section_plane(rest, axes[0], np.asarray(cfg.needle.direction, float))
-    outline = section_outline(surface, plane, plane.to_plane(rest)[0], cfg.tissue.mesh.min_edge_mm)
+    outline = section_outline(surface, plane, plane.to_plane(rest)[0])
     cups = []
     for i, c in enumerate(cfg.cups):
         off = float(abs((contacts[i] - plane.origin) @ plane.normal))
