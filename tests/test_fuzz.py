@@ -410,6 +410,20 @@ def test_validate_mutated_dome(tmp_path_factory, data):
     _check_validate(tmp_path_factory.mktemp("d"), _dump(data).encode())
 
 
+#: the paper's dome with the paper's layer as the controller's model (`config.body_section`): each target's section
+LAYER_DOME_DATA = yaml.safe_load((Path(__file__).resolve().parents[1] / "configs" /
+                                  "paper_trials_prosthesis_dome.yaml").read_text())
+LAYER_DOME_DATA["controller"]["model"] = "layer"
+LAYER_DOME_DATA["controller"]["section_fixed"] = ["bottom"]
+LAYER_DOME_PATHS = _paths(LAYER_DOME_DATA)
+
+
+@settings(max_examples=40, **QUICK)
+@given(data=mutated_scene(base=LAYER_DOME_DATA, paths=LAYER_DOME_PATHS))
+def test_validate_mutated_layer_dome(tmp_path_factory, data):
+    _check_validate(tmp_path_factory.mktemp("ld"), _dump(data).encode())
+
+
 def _coarse_dome() -> dict:
     """The dome at edges 10/4 mm, one lesion, no trials: a simulate in a few seconds."""
     data = copy.deepcopy(DOME_DATA)

@@ -33,6 +33,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from pydantic import ValidationError
 from skimage.measure import approximate_polygon, find_contours
 
 from scissor_cli import geometry
@@ -167,7 +168,7 @@ def section_config(cfg: BodyConfig, index: int, surface=None) -> tuple[Config, S
         contact2 = geometry.nearest_on_boundary(plane.to_plane(contacts[i]), outline)[0]
         cups.append({"name": c.name, "contact_mm": contact2.tolist(), "axis": (axis2 / np.linalg.norm(axis2)).tolist(),
                      "radius_mm": c.radius_mm, "stroke_mm": list(c.stroke_mm), "speed_mm_per_s": c.speed_mm_per_s})
-    layer = Config.model_validate({
+    layer_data = {
         "name": cfg.name, "seed": cfg.seed,
         "tissue": {"shape": "polygon", "polygon_mm": outline.tolist(), "thickness_mm": SECTION_THICKNESS_MM,
                    "fixed": list(cfg.controller.section_fixed or DEFAULT_SECTION_FIXED),
@@ -177,7 +178,13 @@ def section_config(cfg: BodyConfig, index: int, surface=None) -> tuple[Config, S
         "targets": [{"name": lesion.name, "position_mm": plane.to_plane(rest)[0].tolist()}],
         "controller": cfg.controller.model_dump(exclude={"model", "section_fixed"}),
         "solver": cfg.solver.model_dump(),
-    })
+    }
+    try:
+        layer = Config.model_validate(layer_data)
+    except ValidationError as exc:
+        first = exc.errors(include_url=False)[0]
+        raise SectionError(f"its layer is not a valid scene: {'.'.join(map(str, first['loc']))}: {first['msg']}") \
+            from None
     problems = scene_problems(layer)
     if problems:
         (where, what), *_ = problems
