@@ -71,6 +71,7 @@ def _with(path: str, value) -> dict:
     ("trials", {"count": 0, "truth": "slab"}, ["trials.truth", "body itself"]),
     ("targets.0.position_mm", [0.0, float("nan"), 10.0], ["targets[0].position_mm"]),
     ("needle.cone_deg", 90.0, ["needle.cone_deg", "89"]),
+    ("solver.kind", "admm", ["solver.kind", "newton"]),
 ])
 def test_bad_3d_input_is_one_message_naming_the_field(path, value, words):
     refused(_with(path, value), *words)
@@ -125,7 +126,7 @@ def test_bad_3d_input_exits_2_through_the_cli(tmp_path):
 
 def test_options_and_models_that_a_body_does_not_take_exit_2(tmp_path):
     scene = write_scene(tmp_path, dome())
-    for option in (["--study"], ["--truth", "slab"]):
+    for option in (["--study"], ["--truth", "slab"], ["--solver", "admm"]):
         r = run_cli("simulate", scene, "--trials", "0", *option, "--out", str(tmp_path / "run"))
         assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
         assert "3-D" in r.stderr

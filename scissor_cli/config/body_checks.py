@@ -132,6 +132,9 @@ def body_problems(cfg: BodyConfig) -> list[Problem]:
         problems.append((("controller", "model"), (
             "'surrogate': a 3-D scene's controller runs on the body itself (`body`) or on the paper's section "
             "(`layer`); a surrogate learned from the body is not built yet")))
+    if cfg.solver.kind != "newton":
+        problems.append((("solver", "kind"), f"{cfg.solver.kind!r}: a 3-D body is solved by Newton with its kept "
+                         "factor (docs/model.md §19); ADMM is a layer's solver: leave solver.kind newton"))
     if cfg.controller.jacobian_update != "none":
         problems.append((("controller", "jacobian_update"), "Broyden's update is a layer's (docs/model.md §15); "
                          "a 3-D scene's controller uses the body's Jacobian: leave it none"))
