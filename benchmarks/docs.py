@@ -617,7 +617,7 @@ def _dome_reduction(body, *layers_and_slab) -> str:
                      fixed(max(x["miss_p95_mm"] for x in t), 2), sum(x["at_stroke_limit"] for x in t),
                      num(max((x["iterations_median"] for x in t if "iterations_median" in x), default=None)),
                      f"{fixed(max(x['trial_s_median'] for x in t), 1)} s", f"{fixed(fig(r, 'wall_s') / 60, 1)} min"])
-    st = [x for x in rows_of(slab, "summary") if x["controller"] == "layer"]
+    st = [x for x in rows_of(slab, "summary") if x.get("controller") == "layer"]
     rows.append(["the layer (the slab as the truth)", "bottom", sum(x["trials"] for x in st),
                  fixed(max(x["max_x"] for x in st), 2), fixed(max(x["max_y"] for x in st), 2), "", "",
                  sum(x["stroke_limit_stops"] for x in st), "", "", ""])
