@@ -51,6 +51,12 @@ def test_the_pinned_mesh_is_the_recorded_one():
     assert np.array_equal(mesh["triangles"], golden["mesh/triangles"])
 
 
+def _effort(key: str) -> bool:
+    """How hard Newton worked on a forward case, not what it found: one iteration more or less and a residual
+    further below the tolerance come with another BLAS's round-off (seen: the lowest allowed versions)."""
+    return key.startswith("forward/") and key.endswith(("@iterations", "@residual"))
+
+
 DOME_GOLDEN = GOLDEN_DIR / "dome_golden.npz"
 DOME_SCENE = GOLDEN_DIR / "dome_scene.yaml"
 
@@ -65,7 +71,12 @@ def test_the_3d_dome_reproduces_its_golden_numbers(tmp_path):
     now = extract(out / "results.h5")
     golden = dict(np.load(DOME_GOLDEN))
     assert sorted(now) == sorted(golden)
-    worst = {k: float(np.max(np.abs(now[k] - golden[k]), initial=0.0)) for k in golden}
+    worst = {k: float(np.max(np.abs(now[k] - golden[k]), initial=0.0)) for k in golden if not _effort(k)}
     bad = {k: v for k, v in worst.items() if not v <= 1e-7}
     assert not bad, f"changed beyond 1e-7: {bad}"
+    for k in golden:
+        if k.endswith("@iterations") and k.startswith("forward/"):  # converged, with about the recorded effort
+            assert now[k.replace("@iterations", "@converged")] == 1 and abs(now[k] - golden[k]) <= 2, k
+        if k.endswith("@residual") and k.startswith("forward/"):
+            assert now[k] <= 1e-9, k  # (converged far below the numbers bound; recorded: 2e-11 and 3e-14)
     assert golden["forward/push/displacement"].shape[1] == 3 and "mesh/tetrahedra" in golden
