@@ -141,8 +141,9 @@ def body_problems(cfg: BodyConfig) -> list[Problem]:
     if cfg.trials.truth != "layer":
         problems.append((("trials", "truth"), "a 3-D scene's trials run against the body itself: leave trials.truth "
                          "out (the slab is the 2-D layer's 3-D check)"))
-    if cfg.trials.budget and cfg.trials.count == 0:
-        problems.append((("trials", "budget"), "the error budget reruns the trials: it needs trials.count >= 1"))
+    if cfg.trials.budget:
+        problems.append((("trials", "budget"), "the error budget of a 3-D scene (its 3-D sources, docs/model.md §20) "
+                         "is not built yet: leave trials.budget false (the trials themselves run)"))
     if cfg.tissue.accuracy_mm is not None and not (cfg.forward and cfg.targets):
         problems.append((("tissue", "accuracy_mm"), "the mesh is picked by the lesions' positions under the forward "
                          "cases: the scene needs at least one target and one forward case"))
