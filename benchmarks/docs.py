@@ -1333,24 +1333,23 @@ def main(argv=None) -> int:
             print(p)
         return 1 if problems else 0
     if not args.images_only and not args.result_images:
-        for path in table_docs():
-            text = path.read_text()
-            new = regenerate(text)
-            if new != text:
-                path.write_text(new)
-                print(f"wrote: {path.relative_to(ROOT)}")
+        write_tables()
     if args.tables_only:
         return 0
     failed = write_images(only_results=args.result_images)
     if not args.result_images and not args.images_only:
-        # the scene runs rewrote docs_scenes.json: the tables that read it again
-        for path in table_docs():
-            text = path.read_text()
-            new = regenerate(text)
-            if new != text:
-                path.write_text(new)
-                print(f"wrote: {path.relative_to(ROOT)}")
+        write_tables()  # the scene runs rewrote docs_scenes.json: the tables that read it again
     return 1 if failed else 0
+
+
+def write_tables() -> None:
+    """Regenerate every generated table of the docs that read them, writing the files that change."""
+    for path in table_docs():
+        text = path.read_text()
+        new = regenerate(text)
+        if new != text:
+            path.write_text(new)
+            print(f"wrote: {path.relative_to(ROOT)}")
 
 
 if __name__ == "__main__":
