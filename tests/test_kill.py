@@ -189,21 +189,24 @@ def test_a_second_run_into_a_running_runs_directory_is_refused_and_the_first_fin
     out, config = tmp_path / "run", scene(tmp_path)
     proc = start(config, "--jobs", "2", "--out", out, "--quiet")
     try:
-        # as soon as the run's file is there (not after some trials: the trials are the run's last seconds, and a
-        # loaded machine let the first run finish before the second had started)
         t0 = time.monotonic()
         while not (out / "results.h5.tmp").exists():
             assert proc.poll() is None and time.monotonic() - t0 < 120, proc.communicate()
             time.sleep(0.02)
-        # both at once: one after the other they outlasted the first run on a loaded machine
-        seconds = [subprocess.Popen([sys.executable, "-m", "scissor_cli", "simulate", *map(str, args)], env=env(),
-                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-                   for args in ((config, "--force", "--out", out, "--trials", "2"), ("--resume", out))]
-        for second in seconds:
-            _, stderr = second.communicate(timeout=240)
-            said = " ".join(stderr.split())
-            assert second.returncode == 2, said
-            assert f"another scissor run (pid {proc.pid}) is writing there" in said and "Traceback" not in said
+        # the first run paused (SIGSTOP to its group) while the others try: still running and holding its lock, it
+        # cannot finish before they start, as it did on a loaded machine (the resume then found a finished run)
+        os.killpg(proc.pid, signal.SIGSTOP)
+        try:
+            seconds = [subprocess.Popen([sys.executable, "-m", "scissor_cli", "simulate", *map(str, args)],
+                                        env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                       for args in ((config, "--force", "--out", out, "--trials", "2"), ("--resume", out))]
+            for second in seconds:
+                _, stderr = second.communicate(timeout=240)
+                said = " ".join(stderr.split())
+                assert second.returncode == 2, said
+                assert f"another scissor run (pid {proc.pid}) is writing there" in said and "Traceback" not in said
+        finally:
+            os.killpg(proc.pid, signal.SIGCONT)
     except BaseException:
         os.killpg(proc.pid, signal.SIGKILL)
         raise
