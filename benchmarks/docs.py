@@ -236,6 +236,13 @@ def _goal_rows() -> list[list]:
     """(goal, now, met, result file) for every speed goal whose benchmark has a result."""
     out = []
 
+    def at_most(key: str, bound: float, digits: int, unit: str):
+        """A goal on one figure of the result: (the figure with its unit, figure <= bound)."""
+        return lambda r: (f"{fixed(fig(r, key), digits)}{unit}", fig(r, key) <= bound)
+
+    def at_least(key: str, bound: float, digits: int, unit: str):
+        return lambda r: (f"{fixed(fig(r, key), digits)}{unit}", fig(r, key) >= bound)
+
     def add(goal: str, name: str, fn):
         r = load(name)
         if r is None:
@@ -271,11 +278,11 @@ def _goal_rows() -> list[list]:
     add("Newton on `push10` ≤ 0.1 s", "bench_forward", newton_push10)
     add("an ADMM iteration ≤ 5 µs per element", "bench_forward", admm_per_element)
     add("one insertion step (0.5 mm) ≤ 10 ms", "bench_insertion",
-        lambda r: (f"{fixed(fig(r, 'step_median_ms'), 1)} ms", fig(r, "step_median_ms") <= 10))
+        at_most("step_median_ms", 10, 1, " ms"))
     add("50 mm insertion in 0.5 mm steps ≤ 1 s", "bench_insertion",
-        lambda r: (f"{fixed(fig(r, 'insertion_s'), 2)} s", fig(r, "insertion_s") <= 1))
+        at_most("insertion_s", 1, 2, " s"))
     add("2-D Newton ≥ 10× scikit-fem at 16k elements", "bench_solvers",
-        lambda r: (f"{fixed(fig(r, 'peer_over_best_16k'), 1)}×", fig(r, "peer_over_best_16k") >= 10))
+        at_least("peer_over_best_16k", 10, 1, "×"))
     add("time ∝ elements^p, p ≤ 1.3 (Newton)", "bench_solvers",
         lambda r: (fixed(next(x["exponent"] for x in rows_of(r, "growth") if x["solver"] == "newton"), 2),
                    next(x["exponent"] for x in rows_of(r, "growth") if x["solver"] == "newton") <= 1.3))
@@ -291,9 +298,9 @@ def _goal_rows() -> list[list]:
     add("3-D Newton ≥ 5× scikit-fem at ~50k tetrahedra", "bench_slab.quick", slab_ratio)
     add("3-D Newton ≤ 10 s at 100k tetrahedra", "bench_slab.no-peer", slab_100k)
     add("one slab-truth settle ≤ 0.3 s (median of a replayed loop)", "bench_slab_truth.trial",
-        lambda r: (f"{fixed(fig(r, 'settle_median_s'), 2)} s", fig(r, "settle_median_s") <= 0.3))
+        at_most("settle_median_s", 0.3, 2, " s"))
     add("one slab-truth trial ≤ 10 s", "bench_slab_truth.trial",
-        lambda r: (f"{fixed(fig(r, 'trial_s'), 1)} s", fig(r, "trial_s") <= 10))
+        at_most("trial_s", 10, 1, " s"))
 
     def dask(r):
         rows = rows_of(r, "executors")
@@ -328,7 +335,7 @@ def _goal_rows() -> list[list]:
         lambda r: (" / ".join(f"{x['profile']} {fixed(x['wall_s'], 1)} s" for x in rows_of(r, "studies")),
                    all(x["wall_s"] <= 60 for x in rows_of(r, "studies"))))
     add("the workspace, 10⁶ samples ≤ 5 s", "bench_workspace",
-        lambda r: (f"{fixed(fig(r, 'median_s'), 2)} s", fig(r, "median_s") <= 5))
+        at_most("median_s", 5, 2, " s"))
 
     def needle_run(run, goal_s):
         def fn(r):
@@ -368,7 +375,7 @@ def _goal_rows() -> list[list]:
         lambda r: (f"{fixed(fig(r, 'from_rest_s'), 3)} s ({num(fig(r, 'tetrahedra'))} tetrahedra; a warm control move "
                    f"{fixed(fig(r, 'move_s'), 2)} s)", fig(r, "from_rest_s") <= 1))
     add("`configs/example_dome.yaml`, `simulate --trials 0` from nothing ≤ 30 s", "bench_body",
-        lambda r: (f"{fixed(fig(r, 'forward_run_s'), 1)} s", fig(r, "forward_run_s") <= 30))
+        at_most("forward_run_s", 30, 1, " s"))
     add("the paper's dome study (4 × 30) from nothing ≤ 10 min, 2 cores", "bench_dome_study",
         lambda r: (f"{fixed(fig(r, 'wall_s') / 60, 1)} min", fig(r, "wall_s") <= 600))
     add("a dome trial ≤ 10 s (the slowest target's median)", "bench_dome_study",
