@@ -418,3 +418,40 @@ def test_a_stop_whose_exception_was_lost_still_stops_the_pool(tmp_path):
     seconds = float(re.search(r"stopped ([0-9.]+)", out).group(1))
     assert seconds < 15.0  # (the workers' start-up and one poll, not their 30 s)
     assert not group_members(proc.pid), "a worker outlived the stopped run"
+
+
+DYING_WORKER_RUN = """
+import os, sys
+
+from scissor_cli.experiments import pool
+
+
+def die(k):
+    os._exit(1)
+
+
+if __name__ == "__main__":
+    try:
+        list(pool.run_pool(die, [(0,), (1,)], 2))
+    except pool.WorkerLost as lost:
+        print(f"lost: {lost}", flush=True)
+        sys.exit(1)
+    sys.exit(0)
+"""
+
+
+def test_a_worker_that_dies_is_a_clear_error(tmp_path):
+    """A worker that dies is `WorkerLost` naming --resume, and the run's other workers go with it. (A process of its
+    own, as a run is: a pool forked from the test runner's worker once took that worker down with it in CI.)"""
+    script = tmp_path / "dying_worker.py"
+    script.write_text(DYING_WORKER_RUN)
+    proc = subprocess.Popen([sys.executable, str(script)], env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    try:
+        out, err = proc.communicate(timeout=60)
+    finally:
+        for pid in group_members(proc.pid):
+            os.kill(pid, signal.SIGKILL)
+    assert proc.returncode == 1, err
+    assert "worker process died" in out and "--resume" in out, out
+    assert not group_members(proc.pid), "a worker outlived the run"

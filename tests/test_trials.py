@@ -265,19 +265,6 @@ def test_journal_ignores_a_torn_last_record(tmp_path):
     assert journal.read(path)[1] == []
 
 
-def test_a_worker_that_dies_is_a_clear_error():
-    from scissor_cli.experiments.pool import WorkerLost, run_pool
-
-    with pytest.raises(WorkerLost, match="worker process died"):
-        list(run_pool(_die, [(0,), (1,)], jobs=2))
-
-
-def _die(k):
-    import os
-
-    os._exit(1)
-
-
 def test_expected_duration_counts_trials_per_worker():
     from scissor_cli.experiments.simulate import Execution, expected_duration
 
