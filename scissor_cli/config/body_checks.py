@@ -167,6 +167,9 @@ def _mesh_file_problems(cfg: BodyConfig) -> list[Problem]:
         return [(where, "a mesh file pins the mesh, tissue.accuracy_mm chooses one: give one of the two")]
     if m.scale != 1.0:
         return [(where, f"a mesh file is used as it is: tissue.mesh.scale must be 1 with it; got {m.scale:g}")]
+    if cfg.controller.mesh_scale != 1.0:
+        return [(("controller", "mesh_scale"), f"a mesh file pins the body: the model's body cannot be meshed "
+                 f"coarser; leave controller.mesh_scale 1 (got {cfg.controller.mesh_scale:g})")]
     try:
         _, _, _, names = read_body_mesh_arrays(m.file)
     except MeshFileError as exc:

@@ -176,7 +176,7 @@ def section_config(cfg: BodyConfig, index: int, surface=None) -> tuple[Config, S
         "material": cfg.material.model_dump() | {"fiber_angle_deg": _fiber_angle_deg(cfg, surface, plane, rest)},
         "cups": cups,
         "targets": [{"name": lesion.name, "position_mm": plane.to_plane(rest)[0].tolist()}],
-        "controller": cfg.controller.model_dump(exclude={"model", "section_fixed"}),
+        "controller": cfg.controller.model_dump(exclude={"model", "section_fixed", "mesh_scale"}),
         "solver": cfg.solver.model_dump(),
     }
     try:

@@ -6,8 +6,9 @@ After the forward cases and the Jacobian (`experiments.body_run`):
   stroke search solving the body with warm starts, the robot's inverse
   kinematics on the body registered in its base frame;
 * with trials, each planned lesion's **nominal manipulation**: the closed
-  loop and the open-loop baseline on the body itself (the controller's
-  model the body or, with `layer`, the lesion's section), seen by the scene's
+  loop and the open-loop baseline on the body itself (the configured mesh;
+  the controller's model the body at `controller.mesh_scale` or, with
+  `layer`, the lesion's section), seen by the scene's
   camera(s) without error (one camera still does not see its depth);
 * the **trials**: the profile's draws against the body
   (`experiments.body_trials`), run and stored as a layer's are.
@@ -23,7 +24,7 @@ import numpy as np
 
 from scissor_cli import control, progress
 from scissor_cli.config.body_sections import BodyConfig
-from scissor_cli.experiments.body_trials import body_sensor_model, section_controllers
+from scissor_cli.experiments.body_trials import BodyTruth, body_sensor_model, section_controllers
 from scissor_cli.experiments.profiles import IMAGING_SPREADS, INSERTION_SPREADS, error_model
 from scissor_cli.experiments.sink import Manipulation, RunSink, product_key
 from scissor_cli.experiments.trial_stage import Execution, run_trial_stage
@@ -88,19 +89,22 @@ def _manipulation_stage(cfg: BodyConfig, tissue: Tissue, plans: list, sink: RunS
     """Each planned lesion's closed loop and open-loop baseline on the body itself, seen without error."""
     sensors = body_sensor_model(cfg, error_model(cfg.trials))
     controllers = section_controllers(cfg)
+    truth = BodyTruth(cfg, tissue)
     paths = []
     for k, (plan, target) in enumerate(zip(plans, tissue.scene.targets)):
         if not plan.feasible or product_key("manipulation", target.name) in done:
             continue
         desired = np.asarray(plan.desired, float)
         run = control.TargetRun(sensor=sensors.nominal(desired), target=target.name,
-                                direction=np.asarray(plan.direction, float), controller_factory=controllers(k))
+                                direction=np.asarray(plan.direction, float), controller_factory=controllers(k),
+                                truth_factory=truth.factory(target.rest))
         closed = control.run_target(tissue, target.rest, desired, cfg.controller, run)
         opened = control.run_target(tissue, target.rest, desired, cfg.controller, replace(run, mode="open"))
         for r in (closed, opened):  # the plan's needle, for the figure (no corridor is checked in a body yet)
             r.corridor_direction = np.asarray(plan.direction, float)
             r.corridor_entry = np.asarray(plan.entry, float)
-        out = sink.manipulation(Manipulation(target.name, closed, opened, tissue, target.rest, None))
+        # drawn on the truth's mesh: the nodes the loop ends with are its
+        out = sink.manipulation(Manipulation(target.name, closed, opened, truth.tissue, target.rest, None))
         sink.mark_finished(product_key("manipulation", target.name))
         paths += [p for p in np.atleast_1d(out) if p is not None]
         true_miss = float(np.linalg.norm((np.eye(3) - np.outer(plan.direction, plan.direction)) @ closed.final_error))

@@ -62,10 +62,6 @@ class BodyChoice:
     def chosen(self) -> BodyCandidate:
         return self.candidates[self.pick]
 
-    def chosen_scale(self, cfg: BodyConfig) -> float:
-        """The picked `tissue.mesh.scale` (the configured one times the candidate's)."""
-        return cfg.tissue.mesh.scale * self.chosen.scale
-
     def explain(self) -> str:
         c, finest = self.chosen, self.candidates[0]
         return (f"edges × {c.scale:g} ({c.n_tetrahedra} tetrahedra, {finest.n_tetrahedra / c.n_tetrahedra:.1f}x "

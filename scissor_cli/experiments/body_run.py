@@ -4,7 +4,9 @@ The stages of a 2-D run that a body has today: the model (the mesh, its
 regions and materials), every forward case (Newton on the 3-D tissue with
 its kept factor, `solvers.equilibrium`), each lesion's position under it,
 and the cups-to-lesions Jacobian at rest (3 × cups per lesion). With
-`tissue.accuracy_mm` the mesh is picked first (`body_resolution`). Each
+`tissue.accuracy_mm` the model's mesh is picked first (`body_resolution`;
+the run's body is meshed at `controller.mesh_scale`, the trials' truth at
+the configured mesh). Each
 product goes to the run's sink as a 2-D run's does, and is marked finished
 for `--resume`.
 """
@@ -72,9 +74,10 @@ def run_body_simulation(cfg: BodyConfig, run: SinkFactory, execution: Execution)
     if cfg.tissue.accuracy_mm is not None:
         choice = choose_body_scale(cfg, cache)
         progress.info(f"mesh by accuracy: {choice.explain()}")
-        tissue_cfg = cfg.tissue.model_copy(update={
-            "accuracy_mm": None, "mesh": cfg.tissue.mesh.model_copy(update={"scale": choice.chosen_scale(cfg)})})
-        cfg = cfg.model_copy(update={"tissue": tissue_cfg})
+        # the pick is the model's body; the trials' truth stays the configured mesh (docs/model.md §19, "Control")
+        cfg = cfg.model_copy(update={
+            "tissue": cfg.tissue.model_copy(update={"accuracy_mm": None}),
+            "controller": cfg.controller.model_copy(update={"mesh_scale": choice.chosen.scale})})
     tissue = _build(cfg, cache)
     summary = RunSummary(run.location, tissue.mesh.n_elements)
     with run.open(resolved_yaml(cfg), cfg.seed) as sink:
@@ -84,7 +87,7 @@ def run_body_simulation(cfg: BodyConfig, run: SinkFactory, execution: Execution)
 
 def _build(cfg: BodyConfig, cache: Path | None) -> Tissue:
     t0 = time.perf_counter()
-    _, mesh, tissue = body_model(cfg, cache)
+    _, mesh, tissue = body_model(cfg, cache, scale=cfg.controller.mesh_scale)
     progress.info(f"mesh: {mesh.n_elements} tetrahedra, {mesh.n_nodes} nodes, min dihedral "
                   f"{mesh.min_dihedral_deg:.1f}°, regions {', '.join(mesh.region_names)} "
                   f"({time.perf_counter() - t0:.2f} s)")

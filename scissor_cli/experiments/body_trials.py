@@ -1,9 +1,10 @@
 """A 3-D scene's trial as a pure function of (config text, target, trial) (docs/model.md §19, "Trials").
 
 The trial of a layer (`experiments.trials`) with a body: the controller's
-model is the body (`controller.model: body`) or the paper's layer on the
-lesion's section (`layer`, `section_controllers`), the truth the mesh with
-the profile's draws (E and its heterogeneity field over the tetrahedra'
+model is the body (`controller.model: body`, meshed at `controller.mesh_scale`)
+or the paper's layer on the lesion's section (`layer`, `section_controllers`),
+the truth the configured mesh (`BodyTruth`: the model's own when mesh_scale
+is 1) with the profile's draws (E and its heterogeneity field over the tetrahedra'
 centroids, ν, η, the fiber field turned about z), the cups' actuator with
 the profile's resolution and backlash, and the scene's camera — or cameras,
 which triangulate — with the profile's pixel noise and a localisation bias
@@ -25,9 +26,12 @@ from scissor_cli import control
 from scissor_cli.config.loading import parse_config
 from scissor_cli.control.allocation import along_mm, miss_mm
 from scissor_cli.control.models import SectionController
+from scissor_cli.control.plant import TruthView, true_tissue
 from scissor_cli.experiments.build import body_model, section_model
 from scissor_cli.experiments.profiles import ErrorModel, draw_trial, error_model
 from scissor_cli.experiments.trial_types import TrialOutcome
+from scissor_cli.mechanics.tissue import Tissue
+from scissor_cli.mesh.probe import probe_points, target_positions
 from scissor_cli.sensing.camera3d_sensor import BodyCameraModel
 from scissor_cli.sensing.sensor import TrialDraws
 from scissor_cli.solvers.equilibrium import solve_equilibrium
@@ -51,6 +55,31 @@ def section_controllers(cfg) -> Callable[[int], Optional[Callable]]:
     return factory_for
 
 
+class BodyTruth:
+    """The trials' true body: the configured mesh, when the model's body is coarser (`controller.mesh_scale` > 1).
+
+    `factory` is the loop's `TruthFactory` (the perturbed fine body and its view: each lesion probed in the fine
+    tetrahedra) or None when the truth is the model's own mesh; `centroids` (M, 3) mm: the truth's tetrahedra, where
+    a trial's E field is drawn.
+    """
+
+    def __init__(self, cfg, model: Tissue):
+        self.tissue, self.centroids = model, model.mesh.nodes[model.mesh.tetrahedra].mean(axis=1)
+        self.finer = cfg.controller.mesh_scale != 1.0
+        if self.finer:
+            _, mesh, self.tissue = body_model(cfg)
+            self.centroids = mesh.nodes[mesh.tetrahedra].mean(axis=1)
+
+    def factory(self, target_rest: np.ndarray) -> Optional[Callable]:
+        """The `TargetRun.truth_factory` of the lesion at target_rest (3,) mm, or None (the truth is the model)."""
+        if not self.finer:
+            return None
+        fine, mesh = self.tissue, self.tissue.mesh
+        probe = probe_points(mesh.nodes, mesh.tetrahedra, np.asarray(target_rest, float)[None])
+        view = TruthView(target=lambda x: target_positions(probe, x)[0], layer=lambda x: x)
+        return lambda perturbation: (true_tissue(fine, perturbation), view)
+
+
 def body_sensor_model(cfg, errors: ErrorModel) -> BodyCameraModel:
     """The run's 3-D camera model: `cameras` (triangulating) or `camera`, the profile's pixel noise and bias."""
     return BodyCameraModel.from_config(cfg.cameras if cfg.cameras else cfg.camera,
@@ -64,10 +93,10 @@ class BodyTrialContext:
 
     def __init__(self, config_yaml: str):
         self.cfg = parse_config(config_yaml, "<run config>")
-        self.scene, self.mesh, self.tissue = body_model(self.cfg)
+        self.scene, self.mesh, self.tissue = body_model(self.cfg, scale=self.cfg.controller.mesh_scale)
+        self.truth = BodyTruth(self.cfg, self.tissue)
         self.errors: ErrorModel = error_model(self.cfg.trials)
         self.sensors = body_sensor_model(self.cfg, self.errors)
-        self.centroids = self.mesh.nodes[self.mesh.tetrahedra].mean(axis=1)
         self._guesses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.controllers = section_controllers(self.cfg)
 
@@ -81,7 +110,7 @@ class BodyTrialContext:
 
     def run(self, task, trial: int):
         t0 = time.perf_counter()
-        draw = draw_trial(self.errors, self.scene.material.nu, self.centroids, self.cfg.seed, task.index, trial)
+        draw = draw_trial(self.errors, self.scene.material.nu, self.truth.centroids, self.cfg.seed, task.index, trial)
         truth = control.TruthPerturbation(E_scale=draw.E_field, fiber_offset_rad=draw.fiber_offset_rad, nu=draw.nu,
                                           eta_scale=draw.eta_scale)
         desired = np.asarray(task.desired, float)
@@ -90,7 +119,8 @@ class BodyTrialContext:
         r = control.run_target(self.tissue, task.rest, desired, self.cfg.controller, control.TargetRun(
             truth=truth, sensor=sensor, resolution_mm=self.errors.actuator_resolution_mm,
             backlash_mm=self.errors.backlash_mm, target=task.name, guess=self.guess(task),
-            direction=np.asarray(task.direction, float), controller_factory=self.controllers(task.index)))
+            direction=np.asarray(task.direction, float), controller_factory=self.controllers(task.index),
+            truth_factory=self.truth.factory(task.rest)))
         columns, table = r.history_table()
         final = np.asarray(r.final_error, float)
         return TrialOutcome(

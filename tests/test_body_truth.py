@@ -1,0 +1,78 @@
+"""A controller that knows a coarser body than the one it moves (docs/model.md §19, "Control and trials"): the model's
+body at `controller.mesh_scale` (set by `tissue.accuracy_mm`), the trials' truth the configured mesh."""
+
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import yaml
+
+from scissor_cli.config.loading import parse_config
+from scissor_cli.control.plant import TruthPerturbation
+from scissor_cli.experiments.body_trials import BodyTruth
+from scissor_cli.experiments.build import body_model
+
+from helpers import write_scene
+from test_body_loop import SCENE, _true_miss
+from test_cli import run_cli
+
+
+def _scene(**controller) -> dict:
+    return dict(SCENE, controller={"model": "body", **controller})
+
+
+def test_the_truth_is_the_configured_mesh_and_the_model_is_coarser():
+    cfg = parse_config(yaml.safe_dump(_scene(mesh_scale=2.0)), "<test>")
+    _, model_mesh, model = body_model(cfg, scale=cfg.controller.mesh_scale)
+    truth = BodyTruth(cfg, model)
+    _, fine_mesh, _ = body_model(cfg)
+    assert truth.tissue.mesh.n_elements == fine_mesh.n_elements > model_mesh.n_elements
+    assert truth.centroids.shape == (fine_mesh.n_elements, 3)
+    rest = np.asarray(SCENE["targets"][0]["position_mm"], float)
+    tissue, view = truth.factory(rest)(TruthPerturbation())
+    assert tissue is truth.tissue  # nothing drawn: the fine body itself
+    assert np.allclose(view.target(tissue.rest), rest, atol=1e-9)  # the lesion probed in the fine tetrahedra
+    same = parse_config(yaml.safe_dump(_scene()), "<test>")
+    _, _, same_model = body_model(same)
+    assert BodyTruth(same, same_model).factory(rest) is None  # mesh_scale 1: the truth is the model's mesh
+
+
+def test_a_coarser_model_still_puts_every_lesion_on_the_finer_truths_needle(tmp_path):
+    r = run_cli("simulate", write_scene(tmp_path, _scene(mesh_scale=2.0)), "--out", tmp_path / "run", "--quiet")
+    assert r.returncode == 0, r.stderr
+    with h5py.File(tmp_path / "run" / "results.h5", "r") as f:
+        for t in ("T1", "T2"):
+            direction = f[f"plan/{t}"].attrs["direction"]
+            assert f[f"trials/{t}/manipulation_miss_mm"][0] <= 0.1
+            assert _true_miss(f[f"trials/{t}/final_error"][()], direction).max() <= 0.1
+        assert f["/"].attrs["status"] == "complete"
+
+
+def test_accuracy_picks_the_models_body_and_leaves_the_truth_configured(tmp_path):
+    data = dict(_scene(), tissue=dict(SCENE["tissue"], accuracy_mm=0.5), trials={"count": 0})
+    data["forward"] = [{"name": "push", "strokes": {"side": 4.0}}]
+    r = run_cli("simulate", write_scene(tmp_path, data), "--out", tmp_path / "run", "--quiet")
+    assert r.returncode == 0, r.stderr
+    with h5py.File(tmp_path / "run" / "results.h5", "r") as f:
+        resolution = f["mesh_resolution"]
+        pick = int(resolution.attrs["pick"])
+        errors = resolution["error_mm"][()]
+        assert errors[pick] <= 0.5 and resolution.attrs["chosen_scale"] == resolution["scale"][pick]
+        assert len(f["mesh/tetrahedra"]) == resolution["n_tetrahedra"][pick]  # the run's body is the pick
+        recorded = yaml.safe_load(f.attrs["config_yaml"])
+    assert recorded["tissue"]["accuracy_mm"] is None and recorded["tissue"]["mesh"]["scale"] == 1.0
+    assert recorded["controller"]["mesh_scale"] == resolution_scale(tmp_path)
+
+
+def resolution_scale(tmp_path) -> float:
+    with h5py.File(tmp_path / "run" / "results.h5", "r") as f:
+        return float(f["mesh_resolution"].attrs["chosen_scale"])
+
+
+def test_a_mesh_file_pins_the_models_body_too(tmp_path):
+    mesh = tmp_path / "body.npz"
+    _, m, _ = body_model(parse_config(yaml.safe_dump(_scene()), "<test>"))
+    np.savez(mesh, nodes=m.nodes, tetrahedra=m.tetrahedra, region=m.region, region_names=np.array(m.region_names))
+    data = dict(_scene(mesh_scale=2.0), tissue=dict(SCENE["tissue"], mesh={"file": str(mesh)}))
+    r = run_cli("validate", write_scene(tmp_path, data))
+    assert r.returncode == 2 and "controller.mesh_scale" in r.stderr
