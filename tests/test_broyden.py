@@ -37,6 +37,26 @@ def test_learns_only_the_excited_direction():
     np.testing.assert_array_equal(J[:, 1], J0[:, 1])
 
 
+def test_on_a_body_the_rows_a_camera_sees_are_learnt_and_the_unseen_depth_row_is_kept():
+    """J (3, C) with one camera above: the measured z is NaN; the x, y rows converge to the plant's, z stays."""
+    rng = np.random.default_rng(1)
+    A = np.array([[0.2, -0.6], [0.9, 0.3], [0.4, 0.1]])
+    J0 = np.array([[0.5, -0.1], [0.4, 0.8], [-0.3, 0.2]])
+    J = J0
+    for _ in range(30):
+        ds = rng.standard_normal(2)
+        dy = A @ ds
+        dy[2] = np.nan
+        J = broyden_update(J, ds, dy)
+        assert np.all(np.isfinite(J))
+    np.testing.assert_allclose(J[:2], A[:2], atol=1e-8)
+    np.testing.assert_array_equal(J[2], J0[2])
+    c = BroydenCorrection()
+    c.observe(J0, np.zeros(2), np.array([0.0, 0.0, np.nan]))
+    c.observe(J0, np.array([1.0, 0.0]), np.array([0.2, 0.9, np.nan]))  # the move A's first column makes in x, y
+    assert c.updates == 1 and np.all(np.isfinite(c.D)) and not np.any(c.D[2])
+
+
 def test_guard_waits_for_motion_above_noise_and_bounds_the_correction():
     J_model = np.array([[0.1], [0.5]])
     c = BroydenCorrection(noise_mm=0.1)

@@ -135,9 +135,6 @@ def body_problems(cfg: BodyConfig) -> list[Problem]:
     if cfg.solver.kind != "newton":
         problems.append((("solver", "kind"), f"{cfg.solver.kind!r}: a 3-D body is solved by Newton with its kept "
                          "factor (docs/model.md §19); ADMM is a layer's solver: leave solver.kind newton"))
-    if cfg.controller.jacobian_update != "none":
-        problems.append((("controller", "jacobian_update"), "Broyden's update is a layer's (docs/model.md §15); "
-                         "a 3-D scene's controller uses the body's Jacobian: leave it none"))
     if cfg.trials.truth != "layer":
         problems.append((("trials", "truth"), "a 3-D scene's trials run against the body itself: leave trials.truth "
                          "out (the slab is the 2-D layer's 3-D check)"))

@@ -1,10 +1,11 @@
 """Broyden's online correction of the controller's Jacobian from observed moves (docs/model.md §15).
 
 `controller.jacobian_update: broyden`: the loop steers with J = J_model + D,
-where J_model is the controller's model Jacobian at its current state and D
-a correction learnt from the moves made so far (uncalibrated visual
+where J_model is the controller's model Jacobian at its current state (2 × C
+in a layer, 3 × C on a body) and D a correction learnt from the moves made so far (uncalibrated visual
 servoing: Hosoda & Asada 1994, Jägersand 1997). After each move Δs (the
-commanded strokes, C) the camera sees the target move Δy (2,); the
+commanded strokes, C) the camera sees the target move Δy (2,; on a body (3,),
+NaN where one camera does not see the depth, whose row is then kept); the
 secant (Broyden's "good") update
 
     D ← D + (Δy − J Δs) Δsᵀ / (Δsᵀ Δs),   J = J_model + D the Jacobian used,
@@ -42,14 +43,19 @@ MAX_CHANGE = 0.5
 
 
 def broyden_update(J: np.ndarray, ds: np.ndarray, dy: np.ndarray) -> np.ndarray:
-    """Broyden's secant update of J (2, C) from a move ds (C,) mm → dy (2,) mm: J + (dy − J ds) dsᵀ / dsᵀds."""
+    """Broyden's secant update of J (d, C) from a move ds (C,) mm → dy (d,) mm: J + (dy − J ds) dsᵀ / dsᵀds.
+
+    The update is row by row, so a component the sensor does not see (NaN in
+    dy: a body's depth along one camera's view) keeps its row of J.
+    """
     ds, dy = np.asarray(ds, float), np.asarray(dy, float)
-    return J + np.outer(dy - J @ ds, ds) / float(ds @ ds)
+    residual = np.where(np.isfinite(dy), dy - J @ ds, 0.0)
+    return J + np.outer(residual, ds) / float(ds @ ds)
 
 
 @dataclass
 class BroydenCorrection:
-    """The correction D (2, C) the loop adds to its model's J; `noise_mm` the measurement's σ (mm).
+    """The correction D (d, C) the loop adds to its model's J; `noise_mm` the measurement's σ (mm).
 
     `observe` after each move; `updates` counts the secants taken, `skipped`
     the moves that waited for more motion.
@@ -62,7 +68,7 @@ class BroydenCorrection:
     _anchor: Optional[tuple] = None  # (strokes, measured y, the model's J) where the current secant starts
 
     def jacobian(self, J_model: np.ndarray) -> np.ndarray:
-        """The Jacobian to steer with (2, C): the model's plus the correction."""
+        """The Jacobian to steer with (d, C): the model's plus the correction."""
         return J_model if self.D is None else J_model + self.D
 
     @property
@@ -70,7 +76,7 @@ class BroydenCorrection:
         return max(MIN_MOVE_MM, NOISE_FACTOR * self.noise_mm)
 
     def observe(self, J_model: np.ndarray, strokes: np.ndarray, y: np.ndarray) -> None:
-        """A measurement y (2,) mm at commanded strokes (C,) mm, with the model's J (2, C) there."""
+        """A measurement y (d,) mm (d = 2, or 3 on a body) at commanded strokes (C,) mm; the model's J (d, C)."""
         strokes, y = np.array(strokes, float), np.asarray(y, float)
         if self._anchor is None:
             self._anchor = (strokes, y, J_model)
@@ -78,7 +84,8 @@ class BroydenCorrection:
         s0, y0, J0 = self._anchor
         ds, dy = strokes - s0, y - y0
         J = self.jacobian(J0)
-        if not np.any(ds) or max(np.linalg.norm(J @ ds), np.linalg.norm(dy)) < self.threshold_mm:
+        seen = np.isfinite(dy)  # (a body seen by one camera: its depth is not)
+        if not np.any(ds) or max(np.linalg.norm((J @ ds)[seen]), np.linalg.norm(dy[seen])) < self.threshold_mm:
             self.skipped += 1
             return
         D = broyden_update(J, ds, dy) - J0
