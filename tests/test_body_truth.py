@@ -94,3 +94,29 @@ def test_broyden_under_one_camera_keeps_the_unseen_depth_and_ends_on_the_seen_li
         assert np.all(np.isnan(table[:, columns.index("measured_z")]))
         assert np.all(np.isfinite(table[:, [columns.index(c) for c in ("true_x", "true_y", "true_z")]]))
         assert np.all(np.isfinite(f["trials/T2/final_error"][()]))
+
+
+def test_a_surrogate_learned_from_the_body_puts_every_lesion_on_its_needle(tmp_path):
+    """controller.model surrogate: §15's interpolant of the body's lesions over the strokes, checked against
+    held-out body solves; the loop on it ends on the (configured mesh's) needle line, and the cache serves a rerun."""
+    data = _scene(model="surrogate", surrogate={"samples": 16})
+    path = write_scene(tmp_path, data)
+    r = run_cli("simulate", path, "--out", tmp_path / "run", "--quiet")
+    assert r.returncode == 0, r.stderr
+    with h5py.File(tmp_path / "run" / "results.h5", "r") as f:
+        attrs = f["trials"].attrs
+        assert attrs["controller_model"] == "surrogate" and 0.0 <= attrs["surrogate_error_mm"] < 0.05
+        for t in ("T1", "T2"):
+            direction = f[f"plan/{t}"].attrs["direction"]
+            assert f[f"trials/{t}/manipulation_miss_mm"][0] <= 0.1
+            assert _true_miss(f[f"trials/{t}/final_error"][()], direction).max() <= 0.1
+        first = f["trials/T1/final_error"][()]
+    again = run_cli("simulate", path, "--out", tmp_path / "again")
+    assert again.returncode == 0 and "from the cache" in again.stderr, again.stderr
+    with h5py.File(tmp_path / "again" / "results.h5", "r") as f:
+        np.testing.assert_array_equal(f["trials/T1/final_error"][()], first)
+
+
+def test_a_surrogate_with_too_few_samples_for_its_cups_exits_2(tmp_path):
+    r = run_cli("validate", write_scene(tmp_path, _scene(model="surrogate", surrogate={"samples": 8})))
+    assert r.returncode == 2 and "controller.surrogate.samples" in r.stderr

@@ -20,7 +20,7 @@ import numpy as np
 from scissor_cli import geometry3d as g3
 from scissor_cli.config.body_mesh_file import read_body_mesh_arrays
 from scissor_cli.config.body_sections import BodyConfig
-from scissor_cli.config.checks import Problem, _forward_problems, _unique
+from scissor_cli.config.checks import Problem, _forward_problems, _unique, surrogate_samples_problems
 from scissor_cli.config.mesh_file import MeshFileError
 from scissor_cli.config.surface_file import SurfaceFileError, read_surface
 
@@ -128,10 +128,7 @@ def body_problems(cfg: BodyConfig) -> list[Problem]:
     problems += _unique(cfg.forward, "forward") + _reserved_names(cfg)
     problems += _lesion_problems(cfg, surface) + _obstacle_problems(cfg, surface)
     problems += _cup_problems(cfg, surface) + _forward_problems(cfg)
-    if cfg.controller.model == "surrogate":
-        problems.append((("controller", "model"), (
-            "'surrogate': a 3-D scene's controller runs on the body itself (`body`) or on the paper's section "
-            "(`layer`); a surrogate learned from the body is not built yet")))
+    problems += surrogate_samples_problems(cfg.controller, len(cfg.cups))
     if cfg.solver.kind != "newton":
         problems.append((("solver", "kind"), f"{cfg.solver.kind!r}: a 3-D body is solved by Newton with its kept "
                          "factor (docs/model.md §19); ADMM is a layer's solver: leave solver.kind newton"))

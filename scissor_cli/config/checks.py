@@ -233,6 +233,16 @@ def _cup_and_target_problems(cfg: Config, outline: np.ndarray) -> list[Problem]:
     return problems
 
 
+def surrogate_samples_problems(controller, n_cups: int) -> list[Problem]:
+    """A surrogate's design must have SURROGATE_SAMPLES_PER_CUP samples per cup (a layer's or a body's)."""
+    need = SURROGATE_SAMPLES_PER_CUP * n_cups
+    if controller.model != "surrogate" or controller.surrogate.samples >= need:
+        return []
+    return [(("controller", "surrogate", "samples"), (
+        f"a surrogate of {n_cups} cup(s) needs at least {need} samples "
+        f"({SURROGATE_SAMPLES_PER_CUP} per cup); got {controller.surrogate.samples}"))]
+
+
 def _forward_problems(cfg: Config) -> list[Problem]:
     problems: list[Problem] = []
     cups = {c.name: c for c in cfg.cups}
@@ -331,11 +341,7 @@ def _layer_check_problems(cfg: Config) -> list[Problem]:
                 f"model {cfg.controller.model!r} is made from the 3-D slab of layer_check: add a layer_check section, "
                 f"or use model 'layer'")))
         return problems
-    need = SURROGATE_SAMPLES_PER_CUP * len(cfg.cups)
-    if cfg.controller.model == "surrogate" and cfg.controller.surrogate.samples < need:
-        problems.append((("controller", "surrogate", "samples"), (
-            f"a surrogate of {len(cfg.cups)} cup(s) needs at least {need} samples "
-            f"({SURROGATE_SAMPLES_PER_CUP} per cup); got {cfg.controller.surrogate.samples}")))
+    problems += surrogate_samples_problems(cfg.controller, len(cfg.cups))
     if lc.layer_z_mm > lc.height_mm:
         problems.append((("layer_check", "layer_z_mm"),
                          f"the layer must lie inside the slab: 0 <= layer_z_mm <= height_mm {lc.height_mm:g}; "

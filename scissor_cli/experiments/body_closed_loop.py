@@ -24,8 +24,10 @@ import numpy as np
 
 from scissor_cli import control, progress
 from scissor_cli.config.body_sections import BodyConfig
-from scissor_cli.experiments.body_trials import BodyTruth, body_sensor_model, section_controllers
+from scissor_cli.experiments.body_surrogate import body_surrogate_data
+from scissor_cli.experiments.body_trials import BodyTruth, body_sensor_model, model_controllers
 from scissor_cli.experiments.profiles import IMAGING_SPREADS, INSERTION_SPREADS, error_model
+from scissor_cli.experiments.run_cache import cache_dir
 from scissor_cli.experiments.sink import Manipulation, RunSink, product_key
 from scissor_cli.experiments.trial_stage import Execution, run_trial_stage
 from scissor_cli.experiments.trial_types import TargetTask
@@ -45,15 +47,19 @@ def body_loop_stages(cfg: BodyConfig, tissue: Tissue, sink: RunSink, summary, do
     summary.plans = plans
     if cfg.trials.count == 0:
         return
-    summary.figures += _manipulation_stage(cfg, tissue, plans, sink, done)
+    model_data = None
+    if cfg.controller.model == "surrogate":
+        model_data = body_surrogate_data(cfg, tissue, cache_dir(sink.location))
+    summary.figures += _manipulation_stage(cfg, tissue, plans, sink, done, model_data)
     tasks = [TargetTask(k, p.target, tissue.scene.targets[k].rest, np.asarray(p.desired, float),
                         np.asarray(p.strokes, float), "", np.asarray(p.direction, float),
-                        np.asarray(p.entry, float), float(p.depth_mm))
+                        np.asarray(p.entry, float), float(p.depth_mm), controller_model=model_data)
              for k, p in enumerate(plans) if p.feasible]
     if "trials" not in done:
         em = error_model(cfg.trials)
         attrs = {"count": cfg.trials.count, "profile": cfg.trials.profile, "seed": cfg.seed, "sensor": "camera",
-                 "cameras": len(cfg.cameras) if cfg.cameras else 1,
+                 "cameras": len(cfg.cameras) if cfg.cameras else 1, "controller_model": cfg.controller.model,
+                 **({} if model_data is None else {"surrogate_error_mm": model_data.validation_error_mm}),
                  **{k: getattr(em, k) for k in em.__dataclass_fields__
                     if k not in ("profile",) + INSERTION_SPREADS + IMAGING_SPREADS}}
         planned = {t.name for t in tasks}
@@ -85,10 +91,11 @@ def _plan_stage(cfg: BodyConfig, tissue: Tissue, sink: RunSink) -> list[BodyNeed
     return plans
 
 
-def _manipulation_stage(cfg: BodyConfig, tissue: Tissue, plans: list, sink: RunSink, done: frozenset[str]) -> list:
+def _manipulation_stage(cfg: BodyConfig, tissue: Tissue, plans: list, sink: RunSink, done: frozenset[str],
+                        model_data=None) -> list:
     """Each planned lesion's closed loop and open-loop baseline on the body itself, seen without error."""
     sensors = body_sensor_model(cfg, error_model(cfg.trials))
-    controllers = section_controllers(cfg)
+    controllers = model_controllers(cfg, model_data)
     truth = BodyTruth(cfg, tissue)
     paths = []
     for k, (plan, target) in enumerate(zip(plans, tissue.scene.targets)):

@@ -1,8 +1,9 @@
 """A 3-D scene's trial as a pure function of (config text, target, trial) (docs/model.md §19, "Trials").
 
 The trial of a layer (`experiments.trials`) with a body: the controller's
-model is the body (`controller.model: body`, meshed at `controller.mesh_scale`)
-or the paper's layer on the lesion's section (`layer`, `section_controllers`),
+model is the body (`controller.model: body`, meshed at `controller.mesh_scale`),
+a surrogate learned from it (`surrogate`, `experiments.body_surrogate`) or
+the paper's layer on the lesion's section (`layer`; `model_controllers`),
 the truth the configured mesh (`BodyTruth`: the model's own when mesh_scale
 is 1) with the profile's draws (E and its heterogeneity field over the tetrahedra'
 centroids, ν, η, the fiber field turned about z), the cups' actuator with
@@ -25,11 +26,12 @@ import numpy as np
 from scissor_cli import control
 from scissor_cli.config.loading import parse_config
 from scissor_cli.control.allocation import along_mm, miss_mm
-from scissor_cli.control.models import SectionController
+from scissor_cli.control.models import MapController, SectionController
 from scissor_cli.control.plant import TruthView, true_tissue
 from scissor_cli.experiments.build import body_model, section_model
 from scissor_cli.experiments.profiles import ErrorModel, draw_trial, error_model
 from scissor_cli.experiments.trial_types import TrialOutcome
+from scissor_cli.layer3d.surrogate import Surrogate
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import probe_points, target_positions
 from scissor_cli.sensing.camera3d_sensor import BodyCameraModel
@@ -37,11 +39,18 @@ from scissor_cli.sensing.sensor import TrialDraws
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 
 
-def section_controllers(cfg) -> Callable[[int], Optional[Callable]]:
+def model_controllers(cfg, model_data=None) -> Callable[[int], Optional[Callable]]:
     """Target index → the loop's `controller_factory` for a 3-D run: None (the controller's model is the body
-    itself) or, with controller.model layer, (lo, hi, resolution_mm, tol) → a `SectionController` on that
-    target's section, each section built once."""
+    itself); with controller.model layer, (lo, hi, resolution_mm, tol) → a `SectionController` on that target's
+    section, each section built once; with surrogate, a `MapController` on the surrogate of `model_data`
+    (`experiments.body_surrogate`)."""
     sections: dict[int, tuple] = {}
+    if cfg.controller.model == "surrogate":
+        if model_data is None or model_data.samples is None:
+            raise ValueError("controller.model surrogate: the run's surrogate samples are needed (model_data)")
+        surrogate = Surrogate(model_data.samples, components=3)
+        return lambda index: (lambda lo, hi, resolution_mm, tol: MapController(
+            surrogate.target_map(index), len(lo), lo, hi, resolution_mm))
 
     def factory_for(index: int) -> Optional[Callable]:
         if cfg.controller.model != "layer":
@@ -98,7 +107,7 @@ class BodyTrialContext:
         self.errors: ErrorModel = error_model(self.cfg.trials)
         self.sensors = body_sensor_model(self.cfg, self.errors)
         self._guesses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        self.controllers = section_controllers(self.cfg)
+        self.controllers: Optional[Callable] = None  # from the first task (a surrogate's samples come in it)
 
     def guess(self, task) -> tuple[np.ndarray, np.ndarray] | None:
         """The model's equilibrium at the plan's strokes: a warm start for the loop's first big move."""
@@ -110,6 +119,8 @@ class BodyTrialContext:
 
     def run(self, task, trial: int):
         t0 = time.perf_counter()
+        if self.controllers is None:
+            self.controllers = model_controllers(self.cfg, task.controller_model)
         draw = draw_trial(self.errors, self.scene.material.nu, self.truth.centroids, self.cfg.seed, task.index, trial)
         truth = control.TruthPerturbation(E_scale=draw.E_field, fiber_offset_rad=draw.fiber_offset_rad, nu=draw.nu,
                                           eta_scale=draw.eta_scale)

@@ -122,10 +122,13 @@ def solve_samples(slab: Tissue, probe: SlabProbe, strokes: np.ndarray, tol: floa
 GroupSolver = Callable[[list[np.ndarray]], list[tuple[np.ndarray, np.ndarray]]]
 
 
-def train(slab: Tissue, probe: SlabProbe, layer: SlabProbe, lo, hi, samples: int, tol: float,
+def train(slab: Tissue, probe: SlabProbe, layer: SlabProbe | None, lo, hi, samples: int, tol: float,
           advance: Callable[[int], None] = lambda n: None, solve_groups: GroupSolver | None = None
           ) -> SurrogateSamples:
     """Solve the design (`design`) on the nominal slab, in its `groups`: the training set and the held-out set.
+
+    `probe` is anything with `nodes` (T rows) and `positions(x)` → (T, 3) mm;
+    `layer` None learns no layer (a body's surrogate, docs/model.md §19).
 
     solve_groups: how the groups are solved (default: one after the other
     here, each by `solve_samples`); the numbers do not depend on it.
@@ -138,18 +141,23 @@ def train(slab: Tissue, probe: SlabProbe, layer: SlabProbe, lo, hi, samples: int
         def solve_groups(chunks):
             return [solve_samples(slab, probe, chunk, tol, advance, layer) for chunk in chunks]
     answers = np.empty((len(points), len(probe.nodes), 3))
-    layer_xy = np.empty((len(points), len(layer.nodes), 2))
+    layer_xy = np.empty((len(points), 0 if layer is None else len(layer.nodes), 2))
     for part, (solved, solved_layer) in zip(parts, solve_groups([points[g] for g in parts])):
         answers[part], layer_xy[part] = solved, solved_layer
+    learnt = (None, None) if layer is None else (layer_xy[:samples], layer_xy[samples:])
     return SurrogateSamples(strokes, answers[:samples], held, answers[samples:], np.asarray(lo, float),
-                            np.asarray(hi, float), time.perf_counter() - t0, layer_xy[:samples], layer_xy[samples:])
+                            np.asarray(hi, float), time.perf_counter() - t0, *learnt)
 
 
 class Surrogate:
-    """The interpolant of `SurrogateSamples`: predict(strokes (C,)) → targets (T, 3) mm, and J."""
+    """The interpolant of `SurrogateSamples`: predict(strokes (C,)) → targets (T, 3) mm, and J.
 
-    def __init__(self, data: SurrogateSamples):
-        self.data = data
+    components: what the controller steers and the error is measured on —
+    2, the slab's in-plane part; 3, a body's whole position.
+    """
+
+    def __init__(self, data: SurrogateSamples, components: int = 2):
+        self.data, self.components = data, components
         self._centre = 0.5 * (data.lo + data.hi)
         self._half = np.maximum(0.5 * (data.hi - data.lo), 1e-12)
         from scipy.interpolate import RBFInterpolator  # noqa: PLC0415 - as scipy.stats above
@@ -180,11 +188,12 @@ class Surrogate:
         return values[0], np.moveaxis(J, 0, 2)
 
     def validation_error_mm(self) -> float:
-        """The largest in-plane distance (mm) between the prediction and the slab at the held-out strokes."""
-        d = self.data
+        """The largest distance (mm; its `components`) between the prediction and the solves at the held-out
+        strokes."""
+        d, k = self.data, self.components
         if not len(d.held_strokes):
             return float("nan")
-        return float(np.max(np.linalg.norm((self.predict(d.held_strokes) - d.held_targets)[:, :, :2], axis=2)))
+        return float(np.max(np.linalg.norm((self.predict(d.held_strokes) - d.held_targets)[:, :, :k], axis=2)))
 
     @property
     def knows_layer(self) -> bool:
@@ -203,10 +212,11 @@ class Surrogate:
         return float(np.max(np.linalg.norm(predicted - d.held_layer, axis=2)))
 
     def target_map(self, target: int):
-        """The `control.models.TargetMap` of one target: strokes → (in-plane position (2,), J (2, C))."""
+        """The `control.models.TargetMap` of one target: strokes → (position (k,), J (k, C)), k = `components`."""
+        k = self.components
 
         def answer(strokes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             y, J = self.answer(strokes)
-            return y[target, :2], J[target, :2]
+            return y[target, :k], J[target, :k]
 
         return answer
