@@ -20,7 +20,13 @@ import numpy as np
 from scissor_cli import geometry3d as g3
 from scissor_cli.config.body_mesh_file import read_body_mesh_arrays
 from scissor_cli.config.body_sections import BodyConfig
-from scissor_cli.config.checks import Problem, _forward_problems, _unique, surrogate_samples_problems
+from scissor_cli.config.checks import (
+    Problem,
+    _forward_problems,
+    _unique,
+    insertion_problems,
+    surrogate_samples_problems,
+)
 from scissor_cli.config.mesh_file import MeshFileError
 from scissor_cli.config.surface_file import SurfaceFileError, read_surface
 
@@ -114,6 +120,14 @@ def skin_normals(surface: DomeSurface | MeshSurface, points: np.ndarray) -> np.n
     return n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
+def body_box(surface) -> tuple[np.ndarray, np.ndarray]:
+    """The body's bounding box: lo (3,), hi (3,) mm."""
+    if isinstance(surface, DomeSurface):
+        r = surface.radius_mm
+        return np.array([-r, -r, 0.0]), np.array([r, r, surface.height_mm])
+    return surface.nodes.min(axis=0), surface.nodes.max(axis=0)
+
+
 def body_problems(cfg: BodyConfig) -> list[Problem]:
     """Cross-field checks of a 3-D scene: [(location, message)]."""
     problems = _shape_problems(cfg)
@@ -128,6 +142,8 @@ def body_problems(cfg: BodyConfig) -> list[Problem]:
     problems += _unique(cfg.forward, "forward") + _reserved_names(cfg)
     problems += _lesion_problems(cfg, surface) + _obstacle_problems(cfg, surface)
     problems += _cup_problems(cfg, surface) + _forward_problems(cfg)
+    lo, hi = body_box(surface)
+    problems += insertion_problems(cfg.insertion, float(np.max(hi - lo)))
     problems += surrogate_samples_problems(cfg.controller, len(cfg.cups))
     if cfg.solver.kind != "newton":
         problems.append((("solver", "kind"), f"{cfg.solver.kind!r}: a 3-D body is solved by Newton with its kept "

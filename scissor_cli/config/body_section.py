@@ -37,7 +37,7 @@ from pydantic import ValidationError
 from skimage.measure import approximate_polygon, find_contours
 
 from scissor_cli import geometry
-from scissor_cli.config.body_checks import DomeSurface, Problem, body_apex, body_surface, skin_normals
+from scissor_cli.config.body_checks import Problem, body_apex, body_box, body_surface, skin_normals
 from scissor_cli.config.body_sections import BodyConfig
 from scissor_cli.config.checks import scene_problems
 from scissor_cli.config.sections import Config
@@ -91,14 +91,6 @@ def section_plane(through: np.ndarray, cup_axis: np.ndarray, needle_direction: n
     e2 = -u
     e1 = np.cross(e2, m)  # = n − (n·u) u, normalised
     return SectionPlane(np.dot(through, m) * m, np.column_stack([e1, e2]))
-
-
-def body_box(surface) -> tuple[np.ndarray, np.ndarray]:
-    """The body's bounding box: lo (3,), hi (3,) mm."""
-    if isinstance(surface, DomeSurface):
-        r = surface.radius_mm
-        return np.array([-r, -r, 0.0]), np.array([r, r, surface.height_mm])
-    return surface.nodes.min(axis=0), surface.nodes.max(axis=0)
 
 
 def section_outline(surface, plane: SectionPlane, inside: np.ndarray) -> np.ndarray:

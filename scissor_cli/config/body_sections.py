@@ -24,6 +24,7 @@ from scissor_cli.config.sections import (
     CameraConfig,
     ControllerConfig,
     ForwardCase,
+    InsertionConfig,
     Int,
     MaterialConfig,
     Name,
@@ -210,6 +211,8 @@ class BodyConfig(_Section):
     cameras: Optional[Annotated[list[BodyCameraConfig], Len(2, 8)]] = None
     robot: RobotConfig = RobotConfig()
     trials: TrialsConfig = TrialsConfig()
+    #: the needle inserted along each lesion's plan after its manipulation (docs/model.md §20, §12)
+    insertion: Optional[InsertionConfig] = None
 
     @property
     def dim(self) -> int:

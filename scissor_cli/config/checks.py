@@ -378,7 +378,7 @@ def scene_problems(cfg: Config) -> list[Problem]:
         problems.append((("camera", "position_mm"), "the camera must be above the layer (z > 0)"))
     problems += _robot_problems(cfg)
     problems += _manipulation_point_problems(cfg)
-    problems += _insertion_problems(cfg, outline)
+    problems += insertion_problems(cfg.insertion, float(np.max(outline.max(axis=0) - outline.min(axis=0))))
     problems += _layer_check_problems(cfg)
     problems += imaging_problems(cfg, outline, lambda p, o: _inside(p, o, cfg.tissue))
     problems += _point_spacing_problems(cfg)
@@ -421,9 +421,9 @@ def _mesh_file_problems(cfg: Config, outline: np.ndarray) -> list[Problem]:
     return [] if why is None else [(where, f"{m.file}: {why}")]
 
 
-def _insertion_problems(cfg: Config, outline: np.ndarray) -> list[Problem]:
-    """Kinetic friction at most static, a step shorter than the tissue, strategies once each (docs/model.md §12)."""
-    ins = cfg.insertion
+def insertion_problems(ins, extent_mm: float) -> list[Problem]:
+    """Kinetic friction at most static, a step shorter than the tissue (`extent_mm` across), strategies once each
+    (docs/model.md §12); a layer's or a body's `insertion` section, or None."""
     if ins is None:
         return []
     problems: list[Problem] = []
@@ -431,10 +431,9 @@ def _insertion_problems(cfg: Config, outline: np.ndarray) -> list[Problem]:
         problems.append((("insertion", "friction_kinetic_mN_per_mm"), (
             f"kinetic friction {ins.friction_kinetic_mN_per_mm:g} mN/mm exceeds the static friction "
             f"{ins.friction_static_mN_per_mm:g} mN/mm; it must be at most the static one")))
-    extent = float(np.max(outline.max(axis=0) - outline.min(axis=0)))
-    if ins.step_mm > extent:
+    if ins.step_mm > extent_mm:
         problems.append((("insertion", "step_mm"),
-                         f"a step of {ins.step_mm:g} mm is longer than the tissue ({extent:g} mm across)"))
+                         f"a step of {ins.step_mm:g} mm is longer than the tissue ({extent_mm:g} mm across)"))
     if len(set(ins.strategies)) != len(ins.strategies):
         problems.append((("insertion", "strategies"), f"each strategy at most once; got {ins.strategies}"))
     return problems

@@ -10,6 +10,8 @@ After the forward cases and the Jacobian (`experiments.body_run`):
   the controller's model the body at `controller.mesh_scale` or, with
   `layer`, the lesion's section), seen by the scene's
   camera(s) without error (one camera still does not see its depth);
+* with `insertion`, every planned lesion's **nominal insertion** under
+  every strategy (`body_insertion`);
 * the **trials**: the profile's draws against the body
   (`experiments.body_trials`), run and stored as a layer's are.
 
@@ -24,6 +26,7 @@ import numpy as np
 
 from scissor_cli import control, progress
 from scissor_cli.config.body_sections import BodyConfig
+from scissor_cli.experiments.body_insertion import body_insertion_stage
 from scissor_cli.experiments.body_surrogate import body_surrogate_data
 from scissor_cli.experiments.body_trials import BodyTruth, body_sensor_model, model_controllers
 from scissor_cli.experiments.profiles import IMAGING_SPREADS, INSERTION_SPREADS, error_model
@@ -45,12 +48,15 @@ def body_loop_stages(cfg: BodyConfig, tissue: Tissue, sink: RunSink, summary, do
         plans = _plan_stage(cfg, tissue, sink)
         sink.mark_finished("plan")
     summary.plans = plans
+    truth = BodyTruth(cfg, tissue) if cfg.trials.count or cfg.insertion is not None else None
+    if cfg.insertion is not None:
+        summary.figures += body_insertion_stage(cfg, truth.tissue, plans, sink, done)
     if cfg.trials.count == 0:
         return
     model_data = None
     if cfg.controller.model == "surrogate":
         model_data = body_surrogate_data(cfg, tissue, cache_dir(sink.location))
-    summary.figures += _manipulation_stage(cfg, tissue, plans, sink, done, model_data)
+    summary.figures += _manipulation_stage(cfg, tissue, truth, plans, sink, done, model_data)
     tasks = [TargetTask(k, p.target, tissue.scene.targets[k].rest, np.asarray(p.desired, float),
                         np.asarray(p.strokes, float), "", np.asarray(p.direction, float),
                         np.asarray(p.entry, float), float(p.depth_mm), controller_model=model_data)
@@ -91,12 +97,11 @@ def _plan_stage(cfg: BodyConfig, tissue: Tissue, sink: RunSink) -> list[BodyNeed
     return plans
 
 
-def _manipulation_stage(cfg: BodyConfig, tissue: Tissue, plans: list, sink: RunSink, done: frozenset[str],
-                        model_data=None) -> list:
+def _manipulation_stage(cfg: BodyConfig, tissue: Tissue, truth: BodyTruth, plans: list, sink: RunSink,
+                        done: frozenset[str], model_data=None) -> list:
     """Each planned lesion's closed loop and open-loop baseline on the body itself, seen without error."""
     sensors = body_sensor_model(cfg, error_model(cfg.trials))
     controllers = model_controllers(cfg, model_data)
-    truth = BodyTruth(cfg, tissue)
     paths = []
     for k, (plan, target) in enumerate(zip(plans, tissue.scene.targets)):
         if not plan.feasible or product_key("manipulation", target.name) in done:

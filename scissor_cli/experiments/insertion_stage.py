@@ -55,7 +55,7 @@ def slab_ramp(slab: Tissue, strokes: np.ndarray, frames: int, tol: float) -> lis
     return out
 
 
-class _StepBar:
+class StepBar:
     """The progress of one target's insertions: a bar over their planned steps, advanced after each step.
 
     `none` and `depth` share their steps (`run_strategies`), so their needle
@@ -79,11 +79,25 @@ class _StepBar:
         self.left = 0
 
 
+def report_insertions(target: str, results: list) -> None:
+    """Print one target's miss per strategy, and what did not go as planned."""
+    parts = ", ".join(f"{r.strategy} {r.miss_mm:.3f} mm (depth error {r.depth_error_mm:+.3f} mm)" for r in results)
+    progress.info(f"insertion {target}: miss {parts}")
+    for r in results:
+        if not r.completed:
+            progress.info(f"insertion {target} ({r.strategy}): {r.stop_reason}")
+        if r.obstacle_touched:
+            progress.info(f"insertion {target} ({r.strategy}): the shaft touched an obstacle")
+        if r.unsettled:
+            progress.info(f"insertion {target} ({r.strategy}): the stick-slip set did not settle in "
+                          f"{r.unsettled} step(s)")
+
+
 def _insert(tissue: Tissue, x0: np.ndarray, strokes: np.ndarray, paths: dict, params: NeedleParams,
             options: dict) -> list:
     """`run_strategies` ({strategy: path}, {strategy: options}) with one progress bar over the steps."""
     first = next(iter(paths.values()))
-    bar = _StepBar(first.target_name, first.depth_mm, params, list(paths))
+    bar = StepBar(first.target_name, first.depth_mm, params, list(paths))
     try:
         return run_strategies(tissue, x0, strokes, paths, params,
                               {k: replace(o, on_step=bar) for k, o in options.items()})
@@ -152,14 +166,5 @@ def insertion_stage(cfg: Config, tissue: Tissue, plans: list, sink: RunSink,
         paths += sink.insertion(Insertion(target.name, results, tissue, np.asarray(target.rest, float),
                                           np.asarray(plan.desired, float), frames, animate, layer))
         sink.mark_finished(product_key("insertion", target.name))
-        parts = ", ".join(f"{r.strategy} {r.miss_mm:.3f} mm (depth error {r.depth_error_mm:+.3f} mm)" for r in results)
-        progress.info(f"insertion {target.name}: miss {parts}")
-        for r in results:
-            if not r.completed:
-                progress.info(f"insertion {target.name} ({r.strategy}): {r.stop_reason}")
-            if r.obstacle_touched:
-                progress.info(f"insertion {target.name} ({r.strategy}): the shaft touched an obstacle")
-            if r.unsettled:
-                progress.info(f"insertion {target.name} ({r.strategy}): the stick-slip set did not settle in "
-                              f"{r.unsettled} step(s)")
+        report_insertions(target.name, results)
     return paths

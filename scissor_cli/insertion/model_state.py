@@ -27,7 +27,14 @@ rows (`ChordSolver.step`), and K v products from the exact element
 Hessians at the state. A kept factorisation is close to the current
 tangent, so a few iterations reach PCG_TOL; no factorisation is made unless
 they do not (then the kept one is refreshed at the state, where one
-iteration suffices). No residual enters J: it is the pure linear response.
+iteration suffices). No residual enters J: it is the pure linear response. A body compressed
+ahead of the tip can have a tangent that is not positive definite; the
+kept factor is then of its elements' positive semi-definite projection and
+PCG on the exact tangent does not converge even on a fresh one. From then
+on J is the kept factor's own answer (`direct`; the factor is refreshed
+by the needle's steps as they need): the response of a nearby tangent, or
+of its projection — a feedback gain the loop corrects, not an equilibrium
+(refreshing it at every J costs every captured row's Schur column again).
 
 When the plant is the 3-D slab and the model the 2-D layer (`trials.truth:
 slab`, docs/model.md §14), the plant's hold cannot be carried over node by
@@ -90,6 +97,9 @@ class ModelState:
         #: PCG iterations and factorisations of the last `jacobian` (the benchmark's evidence)
         self.last_iterations = 0
         self.last_factorizations = 0
+        #: once PCG has failed on a fresh factor (a tangent that is not positive definite), each J is one solve
+        #: on the kept factor (`_held_response`)
+        self.direct = False
 
     def follow(self, state: NeedleState, x_plant: np.ndarray, strokes: np.ndarray, loads: np.ndarray) -> None:
         """Move to the model's equilibrium at strokes (C,) under the needle's hold and loads (2N,) as they stand.
@@ -118,18 +128,19 @@ class ModelState:
             x = r.x
         self.x, self._x_plant, self.strokes = x, x_plant.copy(), strokes.copy()
 
-    def jacobian(self, state: NeedleState, probe: TargetProbe,
-                 kept: ChordSolver | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """J (1, C): the target's across-needle response to a unit stroke of each cup, the needle's hold kept.
+    def jacobian(self, state: NeedleState, probe: TargetProbe, kept: ChordSolver | None = None,
+                 rows: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """J (rows, C): the target's across-needle response to a unit stroke of each cup, the needle's hold kept.
 
         Also the model's node responses (C, N, d) per unit stroke (the
         plant's solve starts from them). kept: the plant's chord solver,
         whose factorisation preconditions the solve in the nominal run
-        (ignored when the model has its own). In 3-D across means the
-        in-plane normal (t, 0): the cups move the target in the layer.
+        (ignored when the model has its own). rows 1: along the first
+        transverse axis — in the slab the in-plane normal (t, 0), the cups
+        moving the target in the layer; rows 2: both (a body's miss).
         """
         R, responses = self.target_response(state, probe, kept)
-        J = (state.transverse[0] @ R)[None, :]
+        J = state.transverse[:rows] @ R
         if not np.all(np.isfinite(J)):
             raise SolverError("the loop's Jacobian is not finite")
         return J, responses
@@ -157,7 +168,8 @@ class ModelState:
         its = 0
         for c in range(model.n_cups):
             b = -model.stiffness_times(x, model.cup_displacement(c), Ke)
-            d, k = _held_response(model, solver, hold, x, Ke, b, free, tol)
+            d, k, direct = _held_response(model, solver, hold, x, Ke, b, free, tol, self.direct)
+            self.direct = self.direct or direct
             its += k
             responses[c] = held_zero.place(d.reshape(x.shape))
             responses[c].ravel()[model.dirichlet_dofs] = model.cup_displacement(c)[model.dirichlet_dofs]
@@ -275,13 +287,15 @@ def hold_at(state: NeedleState, x: np.ndarray) -> Hold:
                 state.transverse)
 
 
-def _held_response(model, solver, hold, x, Ke, b, free, tol=PCG_TOL):
-    """d (2N,) with K d = b on the hold's null space (C d = 0), K the exact tangent at x; and the PCG iterations.
+def _held_response(model, solver, hold, x, Ke, b, free, tol=PCG_TOL, direct=False):
+    """d (2N,) with K d = b on the hold's null space (C d = 0), K the exact tangent at x; the PCG iterations; and
+    whether d is the factor's own answer (see below).
 
     b (2N,) is read on the free dofs. `linear.conjugate_gradients`, started
     from the preconditioner's answer, the preconditioner the solver's
     factorisation with the hold's Schur rows; if PCG_MAX iterations do not
-    reach tol it is refreshed at x and the solve starts again.
+    reach tol it is refreshed at x and the solve starts again. direct: d is
+    the kept factor's answer, no PCG.
     """
     its = 0
     mask = np.zeros(x.size, bool)
@@ -291,19 +305,31 @@ def _held_response(model, solver, hold, x, Ke, b, free, tol=PCG_TOL):
     def K(v):
         return np.where(mask, model.stiffness_times(x, v, Ke), 0.0)
 
-    for attempt in range(2):
-        def precondition(r):
-            g = np.zeros(x.size)
-            g[free] = -r[free]
-            return solver.step(g, hold, x)[0].ravel()
+    def precondition(r):
+        g = np.zeros(x.size)
+        g[free] = -r[free]
+        return solver.step(g, hold, x)[0].ravel()
 
+    if direct:
+        d = precondition(rhs)
+        if not np.all(np.isfinite(d)):
+            raise SolverError("the loop's Jacobian is not finite")
+        return d, 0, True
+    for attempt in range(2):
         d, k, why = conjugate_gradients(K, precondition, rhs, tol, PCG_MAX, x0=precondition(rhs),
                                         relative_to="solution")
         its += k
         if d is not None:
-            return d, its
+            return d, its, False
         if why == "curvature":
             raise SolverError("the model's tangent with the needle's hold is not positive definite")
         if attempt == 0:
             solver.refactor(x)
+    if why == "iterations":
+        # The fresh factor is of the elements' positive semi-definite projection when the exact tangent is not
+        # positive definite (a body compressed ahead of the tip): the response on that tangent, one solve on the
+        # fresh factor with the hold's rows, is then the loop's J — a feedback gain, not an equilibrium
+        d = precondition(rhs)
+        if np.all(np.isfinite(d)):
+            return d, its, True
     raise SolverError(f"the loop's Jacobian did not converge in {PCG_MAX} iterations on a fresh factorisation ({why})")

@@ -25,7 +25,8 @@ import numpy as np
 from scissor_cli.config import ControllerConfig
 from scissor_cli.insertion.model_state import ModelState
 from scissor_cli.insertion.needle import NeedleParams, NeedleState
-from scissor_cli.insertion.run import InsertionOptions, NeedlePath, layer_points, run_insertion
+from scissor_cli.insertion.points import layer_points
+from scissor_cli.insertion.run import InsertionOptions, NeedlePath, run_insertion
 from scissor_cli.insertion.steering import NeedleModel
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import target_positions

@@ -380,7 +380,7 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
         if hold is None or (hold.stuck is not stuck and not np.array_equal(hold.stuck, stuck)):  # kept while the set is
             hold = Hold(captured, base_x, stuck, ride, n, t)
         scale = tissue.force_scale(grad_u)
-        rule = _Rule(limit + 1e-9 * scale, stuck, locked, sign, 1e-9 * step_mm)
+        rule = _Rule(limit, stuck, locked, sign, 1e-9 * step_mm, 1e-9 * scale)
 
         def early(xc, d_captured, mu, res, rule=rule, scale=scale):
             # the converged state's reactions and lags, predicted by this chord step (its Schur forces)
@@ -401,8 +401,8 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
             axial = g.reshape(-1, d)[captured] @ n  # what the needle must supply
             # Kinetic friction opposes the slip: a node pulled forward (+n) must lag the needle, and the reverse.
             lag = (r_x[captured] - x[captured]) @ n - ride
-            release, against, _ = _Rule(limit + 1e-9 * tissue.force_scale(grad_u), stuck, locked, sign,
-                                        1e-9 * step_mm).apply(axial, lag)
+            release, against, _ = _Rule(limit, stuck, locked, sign, 1e-9 * step_mm,
+                                        1e-9 * tissue.force_scale(grad_u)).apply(axial, lag)
             if not (release.any() or against.any()):  # (the exact rule: no error, nothing unclear)
                 if tol <= step_tol:
                     settled = True
@@ -450,10 +450,12 @@ class _Rule:
     (P,) the kinetic friction's direction; lag_tol mm.
     """
 
-    def __init__(self, limit, stuck, locked, sign, lag_tol):
-        self.limit, self.stuck, self.sign, self.lag_tol = limit, stuck, sign, lag_tol
+    def __init__(self, limit, stuck, locked, sign, lag_tol, floor=0.0):
+        self.limit, self.stuck, self.sign, self.lag_tol = limit + floor, stuck, sign, lag_tol
         self.free = stuck & ~locked  # a locked node stays stuck for the rest of the step
-        self.slip = ~stuck
+        # a node whose static limit f_s l_i is zero holds nothing: it never sticks again (else at f_s = 0, or at a
+        # share l_i of 0, it caught up, stuck, was released, ... until locked stuck holding a force beyond its limit)
+        self.slip = ~stuck & (limit > 0.0)
 
     def apply(self, axial, lag, force_error=0.0, position_error=0.0):
         """release, against (P,) bool from the axial reactions (P,) mN and lags (P,) mm; and how many nodes change.

@@ -34,13 +34,12 @@ import numpy as np
 
 from scissor_cli.config import ControllerConfig
 from scissor_cli.control.law import PID, split_error
-from scissor_cli.geometry import segment_polygon_distance
 from scissor_cli.insertion.model_state import ModelInsertion, ModelState, move_held, moved_start
 from scissor_cli.insertion.needle import NeedleParams, NeedleState, advance, free_nodes, transverse_basis
+from scissor_cli.insertion.points import is_body, needle_points
 from scissor_cli.insertion.steering import NeedleModel, TableSteering
 from scissor_cli.mechanics.tissue import Tissue
-from scissor_cli.mesh.outlines import deformed_outlines, embed_outlines
-from scissor_cli.mesh.probe import TargetProbe, probe_targets, target_positions
+from scissor_cli.mesh.probe import target_positions
 from scissor_cli.sensing.sensor import EXACT, Sensor, TrueState
 from scissor_cli.solvers.common import SolverError
 from scissor_cli.solvers.equilibrium import solve_equilibrium
@@ -183,10 +182,11 @@ class _Needle:
         self.tissue, self.path, self.params, self.options = tissue, path, params, options
         self.n = np.asarray(path.direction, float) / np.linalg.norm(path.direction)
         self.p0 = np.asarray(path.entry, float)
-        if self.n.size == 3 and abs(self.n[2]) > 1e-12:
+        if self.n.size == 3 and abs(self.n[2]) > 1e-12 and not is_body(tissue):
             raise ValueError("in the slab the needle's axis lies in the layer (direction z = 0)")
-        self.probe, self.embedding = layer_points(tissue, np.asarray(path.target_rest, float),
-                                                  [o.outline for o in tissue.scene.obstacles])
+        self.body = is_body(tissue)
+        self.points = needle_points(tissue, np.asarray(path.target_rest, float))
+        self.probe = self.points.probe
         self.state = NeedleState(self.p0, self.n)
         self.candidates = free_nodes(tissue)
         self.x, self.s = np.array(x0, float), np.array(strokes, float)
@@ -198,7 +198,10 @@ class _Needle:
         return target_positions(self.probe, self.x)[0]
 
     def seen(self) -> np.ndarray:
-        """The sensor's reading of the target (2,) mm."""
+        """The sensor's reading of the target: (2,) mm in the layer and the slab, (3,) on a body (NaN where its
+        cameras do not see; the exact sensor's reading is the whole target)."""
+        if self.options.sensor is EXACT and self.body:
+            return self.target()
         return self.options.sensor.measure(TrueState(self.target(), self.x, self.tissue.mesh))
 
     def step(self, step_mm: float):
@@ -216,7 +219,7 @@ class _Needle:
         t, state, x = self.trace, self.state, self.x
         t.unsettled += not out.settled
         t.rows.append((state.depth_mm, state.tip, self.target(), out.force_mN, out.stuck, out.slipping,
-                       _clearance(self.embedding, x, self.p0[:2], state.tip[:2], self.params.radius_mm),
+                       self.points.clearance(x, self.p0, state.tip, self.params.radius_mm),
                        self.s.copy()))
         if self.options.keep_displacement:
             t.frames.append(x - self.tissue.rest)
@@ -244,14 +247,16 @@ class _Needle:
 
     def result(self, strategy: str, reason: str, wall_s: float) -> InsertionResult:
         return _result(self.tissue, self.path, strategy, self.trace, self.options.keep_displacement, self.x,
-                       self.target(), self.state, bool(self.embedding.splits), reason, wall_s)
+                       self.target(), self.state, self.points.has_obstacles, reason, wall_s)
 
 
 def _goal(needle: _Needle, strategy: str) -> float:
     """How deep (mm) the strategy wants the tip now: the plan's depth, or the measured target along the axis."""
     if strategy == "none":
         return needle.path.depth_mm
-    return float((needle.seen() - needle.p0[:2]) @ needle.n[:2])
+    seen = needle.seen()
+    k = seen.size  # in the layer and the slab the in-plane reading; on a body 3-D, NaN where no camera sees
+    return float(np.nansum((seen - needle.p0[:k]) * needle.n[:k]))
 
 
 def run_insertion(tissue: Tissue, x0: np.ndarray, strokes: np.ndarray, path: NeedlePath, params: NeedleParams,
@@ -359,24 +364,6 @@ def _steering(needle: _Needle, options: InsertionOptions, params: NeedleParams):
                         np.asarray(needle.path.target_rest, float), params)
 
 
-def layer_points(tissue: Tissue, target_rest: np.ndarray, obstacles: list):
-    """The target's probe and the obstacles' embedding on the plant's nodes.
-
-    In the layer, on its own mesh; in the slab, the 2-D ones on the slab's
-    plane (the 2-D mesh it extruded: the layer's or its own coarser one)
-    carried to the slab's nodes at the layer's level (its triangles are
-    faces of the slab's tetrahedra there, so the weights are exact).
-    """
-    if tissue.dim == 2:
-        return probe_targets(tissue.mesh, target_rest[None]), embed_outlines(tissue.mesh, obstacles)
-    plane = tissue.mesh.plane
-    offset = tissue.mesh.node(tissue.mesh.layer_level, 0)
-    p = probe_targets(plane, target_rest[None])
-    e = embed_outlines(plane, obstacles)
-    return (TargetProbe(p.tri_idx, p.nodes + offset, p.bary),
-            dataclasses.replace(e, triangles=e.triangles + offset))
-
-
 def _model_state(plant, model, x0, model_x0, strokes, p0, n, target_rest, params):
     """The controller's model at the start: the plant itself, its own equilibrium at the strokes, or (a 2-D
     model of the slab) its own insertion (`ModelInsertion`)."""
@@ -404,7 +391,10 @@ def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID) -> None:
     """
     state, x, s = needle.state, needle.x, needle.s
     seen = needle.seen()
-    e = np.array([-(seen - needle.p0[:2]) @ state.transverse[0][:2]])
+    body = needle.body
+    across = state.transverse if body else state.transverse[:1, :2]  # a body's miss has two components
+    e = -(across @ (seen - needle.p0[:seen.size]))
+    seen_rows = np.isfinite(e)  # (a body's component along one camera's view is not seen: not driven)
     if isinstance(steering, TableSteering):
         J, responses = steering.jacobian(state.depth_mm, s, seen), None
         e = np.array([-steering.offset(state.depth_mm, s, -e[0], J[0])])
@@ -412,16 +402,21 @@ def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID) -> None:
             return
     else:
         steering.follow(state, x, s, loads)
-        J, responses = steering.jacobian(state, needle.probe, state.solver)
+        if body:
+            J, responses = steering.jacobian(state, needle.probe, state.solver, rows=2)
+        else:
+            J, responses = steering.jacobian(state, needle.probe, state.solver)
         if responses.shape[1:] != x.shape:
             # a 2-D model's responses are no start for the slab (its levels near the fixed chest wall do not
             # move as the layer does): the strokes placed only
             responses = None
-    ds, _, _ = split_error(J, e)
+    if not np.any(seen_rows):
+        return
+    ds, _, _ = split_error(J[seen_rows], e[seen_rows])
     tissue = needle.tissue
     lo = np.array([c.stroke_min_mm for c in tissue.scene.cups])
     hi = np.array([c.stroke_max_mm for c in tissue.scene.cups])
-    if isinstance(steering, TableSteering):  # the drives' speed over one control period, as in the manipulation
+    if isinstance(steering, TableSteering) or needle.body:  # the drives' speed over a control period, as in §6
         reach = np.array([c.speed_mm_per_s for c in tissue.scene.cups]) * pid.dt
         ds = np.clip(ds, -reach, reach)
     command, _ = pid.command(s, ds, lo, hi)
@@ -436,15 +431,6 @@ def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID) -> None:
 def _move_plant(tissue, state, x, s, command, loads, responses) -> np.ndarray:
     """The plant's equilibrium (N, d) at the command (C,) with the needle's hold and loads (`model_state.move_held`)."""
     return move_held(tissue, state, x, s, command, loads, responses)
-
-
-def _clearance(embedding, x, p0, tip, radius_mm) -> float:
-    """Shaft (p0 → tip (2,), radius) to the nearest deformed obstacle in the layer's plane (mm); +inf without
-    obstacles."""
-    outlines = deformed_outlines(embedding, x)
-    if not outlines:
-        return float("inf")
-    return min(segment_polygon_distance(p0, tip, poly[:, :2]) for poly in outlines) - radius_mm
 
 
 def _result(tissue, path: NeedlePath, strategy, trace: _Trace, keep, x, y, state, has_obstacles, reason,

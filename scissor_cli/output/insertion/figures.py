@@ -36,12 +36,16 @@ def needle_force_figure(title: str, results: list) -> Figure:
     return fig
 
 
-def target_path_figure(title: str, results: list, desired: np.ndarray) -> Figure:
+def target_path_figure(title: str, results: list, desired: np.ndarray, across: bool = False) -> Figure:
     """The true target's path during the insertion per strategy, with the needle line and the planned position.
 
     Drawn in the layer's plane: an insertion in the slab (target (K, 3))
-    shows its in-plane part.
+    shows its in-plane part. across: a body's insertion, drawn in the plane
+    across the needle through the planned position (the needle seen end-on
+    at the origin: the distance from it is the miss).
     """
+    if across and results:
+        return _across_figure(title, results, desired)
     fig = Figure(figsize=(7, 4.6))
     ax = fig.add_subplot(1, 1, 1)
     desired = np.asarray(desired, float)[:2]
@@ -67,6 +71,32 @@ def target_path_figure(title: str, results: list, desired: np.ndarray) -> Figure
     ax.set_aspect("equal")
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
+    ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=7, loc="best")
+    return fig
+
+
+def _across_figure(title: str, results: list, desired: np.ndarray) -> Figure:
+    """`target_path_figure` of a body: the target in the plane across the needle, its axes `transverse_basis`."""
+    from scissor_cli.insertion.needle import transverse_basis  # noqa: PLC0415
+
+    fig = Figure(figsize=(6, 5.4))
+    ax = fig.add_subplot(1, 1, 1)
+    r0 = results[0]
+    T = transverse_basis(np.asarray(r0.direction, float))
+    line = np.asarray(r0.entry, float)
+    origin = line + ((np.asarray(desired, float) - line) @ r0.direction) * np.asarray(r0.direction, float)
+    ax.plot(0.0, 0.0, "x", color="0.4", ms=9, label="needle line (end-on)")
+    for r in results:
+        if not r.steps:
+            continue
+        q = (np.asarray(r.target, float) - origin) @ T.T
+        ax.plot(q[:, 0], q[:, 1], "-", color=COLORS.get(r.strategy), lw=1.3,
+                label=f"{r.strategy}: miss {r.miss_mm:.2f} mm, depth error {r.depth_error_mm:+.2f} mm")
+        ax.plot(*q[-1], "o", color=COLORS.get(r.strategy), ms=5)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel(f"across the needle, along {np.round(T[0], 2).tolist()} (mm)")
+    ax.set_ylabel(f"across, along {np.round(T[1], 2).tolist()} (mm)")
     ax.set_title(title, fontsize=10)
     ax.legend(fontsize=7, loc="best")
     return fig

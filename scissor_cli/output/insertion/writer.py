@@ -24,7 +24,8 @@ def insertion_outputs(ins, out_dir: Path) -> list[Path]:
     paths = [
         save(needle_force_figure(f"{name} — {ins.target}: axial needle force", done),
              out_dir / f"insertion_force_{ins.target}.png"),
-        save(target_path_figure(f"{name} — {ins.target}: target during insertion", done, ins.desired),
+        save(target_path_figure(f"{name} — {ins.target}: target during insertion", done, ins.desired,
+                                across=ins.tissue.dim == 3 and ins.layer is None),  # a body's: across its needle
              out_dir / f"insertion_path_{ins.target}.png"),
     ]
     if ins.animate and done:
