@@ -6,10 +6,13 @@ Runs `scissor simulate configs/paper_trials_prosthesis_dome.yaml --jobs 2` from 
 camera above does not see, and the true miss across the needle (median, p95). With --example it times
 configs/example_dome.yaml end to end instead (goal: ≤ 2 min). With --model layer the controller's model is the
 paper's layer on each lesion's section (docs/model.md §19, "Control"), holding the sides --section-fixed names
-(the reduction's assumption; default bottom, the side opposite the cup); --trials overrides the 30 per target.
+(the reduction's assumption; default bottom, the side opposite the cup); --model surrogate, the surrogate
+learned from the body; --mesh-scale the controller's body that much coarser than the truth's
+(`controller.mesh_scale`); --trials overrides the 30 per target.
 
     PYTHONPATH=. python3 benchmarks/bench_dome_study.py [--example]
     PYTHONPATH=. python3 benchmarks/bench_dome_study.py --model layer [--section-fixed bottom,left,right]
+    PYTHONPATH=. python3 benchmarks/bench_dome_study.py --model surrogate | --mesh-scale 2
 """
 
 from __future__ import annotations
@@ -68,7 +71,8 @@ def simulate_scene(scene: dict, name: str) -> tuple[list[dict], float, float]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--example", action="store_true", help="configs/example_dome.yaml end to end instead")
-    ap.add_argument("--model", choices=("body", "layer"), default="body", help="the controller's model")
+    ap.add_argument("--model", choices=("body", "layer", "surrogate"), default="body", help="the controller's model")
+    ap.add_argument("--mesh-scale", type=float, default=1.0, help="controller.mesh_scale (the model's body coarser)")
     ap.add_argument("--section-fixed", default="bottom", help="--model layer: the section's held sides, a,b,...")
     ap.add_argument("--trials", type=int, default=None, help="trials per target (default: the config's)")
     args = ap.parse_args()
@@ -77,9 +81,14 @@ def main() -> None:
     variant = "example" if args.example else None
     if args.model == "layer":
         variant = "layer" + ("" if sides == ["bottom"] else "." + "-".join(sides))
+    elif args.model == "surrogate":
+        variant = "surrogate"
+    if args.mesh_scale != 1.0:
+        variant = (variant + "." if variant else "") + f"mesh-scale-{args.mesh_scale:g}"
     res = results_io.Results("bench_dome_study", variant)
     scene = yaml.safe_load(config.read_text())
     scene["controller"]["model"] = args.model
+    scene["controller"]["mesh_scale"] = args.mesh_scale
     if args.model == "layer":
         scene["controller"]["section_fixed"] = sides
     if args.trials is not None:
@@ -93,6 +102,7 @@ def main() -> None:
     res.data("config", str(config.relative_to(ROOT)))
     res.data("model", args.model)
     res.data("section_fixed", sides if args.model == "layer" else None)
+    res.data("mesh_scale", args.mesh_scale)
     for row in rows:
         print(f"{row['target']}: max |x| {row['max_x_mm']:.2f}, |y| {row['max_y_mm']:.2f}, |z| {row['max_z_mm']:.2f} "
               f"mm; miss median {row['miss_median_mm']:.2f}, p95 {row['miss_p95_mm']:.2f} mm", flush=True)

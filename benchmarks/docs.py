@@ -376,6 +376,13 @@ def _goal_rows() -> list[list]:
                    f"{fixed(fig(r, 'move_s'), 2)} s)", fig(r, "from_rest_s") <= 1))
     add("`configs/example_dome.yaml`, `simulate --trials 0` from nothing ≤ 30 s", "bench_body",
         at_most("forward_run_s", 30, 1, " s"))
+    def body_insertion(r):
+        none = next(x for x in rows_of(r, "strategies") if x["strategy"] == "none")
+        return (f"{fixed(none['wall_s'], 1)} s ({num(fig(r, 'tetrahedra'))} tetrahedra, `none`)",
+                none["wall_s"] <= 5)
+
+    add("a 50 mm insertion in the body in 0.5 mm steps ≤ 5 s at 30k tetrahedra", "bench_body_insertion",
+        body_insertion)
     add("the paper's dome study (4 × 30) from nothing ≤ 10 min, 2 cores", "bench_dome_study",
         lambda r: (f"{fixed(fig(r, 'wall_s') / 60, 1)} min", fig(r, "wall_s") <= 600))
     add("a dome trial ≤ 10 s (the slowest target's median)", "bench_dome_study",
@@ -681,6 +688,17 @@ def _body(r) -> str:
         ["`simulate --trials 0` from nothing", f"{fixed(fig(r, 'forward_run_s'), 1)} s", "≤ 30 s"],
     ]
     return table(["measurement", "value", "note"], rows) + "\n\n" + source(r)
+
+
+@renderer("body_insertion", "bench_body_insertion")
+def _body_insertion(r) -> str:
+    """benchmarks/bench_body_insertion.py: one insertion per strategy in the example dome's body."""
+    rows = [[x["strategy"], x["steps"], fixed(x["depth_mm"], 1), fixed(x["wall_s"], 1),
+             fixed(1e3 * x["wall_s"] / max(x["steps"], 1), 0), fixed(x["miss_mm"], 3), fixed(x["force_mN"], 0),
+             x["unsettled"], x["stop"]] for x in rows_of(r, "strategies")]
+    return (table(["strategy", "steps", "depth (mm)", "wall (s)", "ms a step", "miss (mm)", "force (mN)",
+                   "unsettled steps", "stop"], rows)
+            + f"\n\n{num(fig(r, 'tetrahedra'))} tetrahedra. " + source(r))
 
 
 @renderer("insertion_speed", "bench_insertion")
