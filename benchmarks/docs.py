@@ -616,16 +616,28 @@ def _dome_study(study, example) -> str:
             + "\n\n" + table(["run, `--jobs 2`, from nothing", "wall", "CPU"], runs) + "\n\n" + source(study, example))
 
 
+def _study_model(r) -> tuple[str, str]:
+    """A dome study's (controller's model, held) cells."""
+    d = r["data"]
+    if d.get("model") == "layer":
+        return "the layer on the section", ", ".join(d["section_fixed"])
+    scale = d.get("mesh_scale", 1.0)
+    name = "the surrogate of the body" if d.get("model") == "surrogate" else "the body"
+    return (name + (f", edges ×{num(scale)} the truth's" if scale != 1.0 else "")), "(the base)"
+
+
 @renderer("dome_reduction", "bench_dome_study", "bench_dome_study.layer", "bench_dome_study.layer.bottom-left-right",
-          "bench_dome_study.layer.left-right", "compare_controller_models.paper_trials_prosthesis_slab")
-def _dome_reduction(body, *layers_and_slab) -> str:
-    """benchmarks/bench_dome_study.py --model layer: the paper's reduction driving the dome, per held sides."""
-    *layers, slab = layers_and_slab
+          "bench_dome_study.layer.left-right", "bench_dome_study.surrogate", "bench_dome_study.mesh-scale-2",
+          "compare_controller_models.paper_trials_prosthesis_slab")
+def _dome_reduction(body, *studies_and_slab) -> str:
+    """benchmarks/bench_dome_study.py --model layer | surrogate, --mesh-scale: the controller's models driving the
+    dome, the layer per held sides."""
+    *studies, slab = studies_and_slab
     rows = []
-    for r in (body, *layers):
+    for r in (body, *studies):
         t = rows_of(r, "targets")
-        held = "" if r["data"].get("model", "body") == "body" else ", ".join(r["data"]["section_fixed"])
-        rows.append(["the body" if not held else "the layer on the section", held or "(the base)",
+        model, held = _study_model(r)
+        rows.append([model, held,
                      sum(x["trials"] for x in t), fixed(max(x["max_x_mm"] for x in t), 2),
                      fixed(max(x["max_y_mm"] for x in t), 2), fixed(max(x["max_z_mm"] for x in t), 2),
                      fixed(max(x["miss_p95_mm"] for x in t), 2), sum(x["at_stroke_limit"] for x in t),
@@ -641,7 +653,7 @@ def _dome_reduction(body, *layers_and_slab) -> str:
     return (table(["the controller's model", "held", "trials", "max \\|x\\| (mm)", "max \\|y\\| (mm)",
                    "max \\|z\\| (mm)", "true miss p95, worst target (mm)", "at the stroke limit",
                    "iterations (slowest target's median)", "a trial (slowest target's median)",
-                   "run (`--jobs 2`)"], rows) + "\n\n" + source(body, *layers, slab))
+                   "run (`--jobs 2`)"], rows) + "\n\n" + source(body, *studies, slab))
 
 
 @renderer("dome_family", "bench_dome_family")

@@ -83,10 +83,13 @@ def test_any_axis_reaches_the_lesion_and_the_tip_is_on_the_needle(body, directio
     assert np.isfinite(r.miss_mm) and r.miss_mm < 2.0
 
 
-def test_the_run_inserts_every_planned_lesion_along_its_plan(tmp_path):
+def test_the_run_inserts_every_planned_lesion_along_its_plan_and_so_do_its_trials(tmp_path):
     """`simulate` with `insertion` on a body: each plan's needle, the results in 3-D, the shaft clear of the vessel,
-    `depth` stopping at the lesion as the cameras see it. (`loop` in a run: benchmarks/bench_body_insertion.py.)"""
-    data = dict(COARSE, targets=COARSE["targets"][:1], insertion={"step_mm": 1.0, "strategies": ["none", "depth"]})
+    `depth` stopping at the lesion as the cameras see it; each trial inserts every strategy from where its loop
+    left the body, the miss and depth error per strategy stored (T, S). (`loop` in a run:
+    benchmarks/bench_body_insertion.py.)"""
+    data = dict(COARSE, targets=COARSE["targets"][:1], trials={"count": 1, "profile": "ideal"},
+                insertion={"step_mm": 1.0, "strategies": ["none", "depth"]})
     r = run_cli("simulate", write_scene(tmp_path, data), "--out", tmp_path / "run", "--quiet")
     assert r.returncode == 0, r.stderr
     with h5py.File(tmp_path / "run" / "results.h5", "r") as f:
@@ -97,6 +100,10 @@ def test_the_run_inserts_every_planned_lesion_along_its_plan(tmp_path):
         np.testing.assert_allclose(depth.attrs["direction"], plan["direction"])
         assert depth.attrs["has_obstacles"] and np.all(depth["min_clearance_mm"][()] > 0.0)  # the vessel beside it
         assert abs(depth.attrs["depth_error_mm"]) <= 0.05 < abs(f["insertion/T1/none"].attrs["depth_error_mm"])
+        miss, depth_error = f["trials/T1/miss_mm"][()], f["trials/T1/depth_error_mm"][()]
+        assert list(f["trials/T1/miss_mm"].attrs["strategies"]) == ["none", "depth"]
+    assert miss.shape == (1, 2) and np.all(np.isfinite(miss)) and np.all(miss < 2.0)
+    assert abs(depth_error[0, 1]) <= 0.05 < abs(depth_error[0, 0])
     assert_png_drawn(tmp_path / "run" / "insertion_path_T1.png")
 
 
@@ -116,3 +123,4 @@ def test_a_bad_insertion_section_of_a_body_exits_2(tmp_path):
     data = dict(COARSE, insertion={"friction_static_mN_per_mm": 5.0, "friction_kinetic_mN_per_mm": 10.0})
     r = run_cli("validate", write_scene(tmp_path, data))
     assert r.returncode == 2 and "insertion.friction_kinetic_mN_per_mm" in r.stderr and "Traceback" not in r.stderr
+

@@ -63,11 +63,13 @@ def body_loop_stages(cfg: BodyConfig, tissue: Tissue, sink: RunSink, summary, do
              for k, p in enumerate(plans) if p.feasible]
     if "trials" not in done:
         em = error_model(cfg.trials)
+        skipped = IMAGING_SPREADS + (INSERTION_SPREADS if cfg.insertion is None else ())
         attrs = {"count": cfg.trials.count, "profile": cfg.trials.profile, "seed": cfg.seed, "sensor": "camera",
                  "cameras": len(cfg.cameras) if cfg.cameras else 1, "controller_model": cfg.controller.model,
                  **({} if model_data is None else {"surrogate_error_mm": model_data.validation_error_mm}),
                  **{k: getattr(em, k) for k in em.__dataclass_fields__
-                    if k not in ("profile",) + INSERTION_SPREADS + IMAGING_SPREADS}}
+                    if k not in ("profile",) + skipped},
+                 **({} if cfg.insertion is None else {"insertion_strategies": list(cfg.insertion.strategies)})}
         planned = {t.name for t in tasks}
         sink.allocate_trials([p.target for p in plans], cfg.trials.count, attrs,
                              {p.target: p.reason for p in plans if p.target not in planned}, dim=3)

@@ -19,6 +19,7 @@ Dask) run its `run` exactly as a layer's.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import Callable, Optional
 
 import numpy as np
@@ -29,8 +30,9 @@ from scissor_cli.control.allocation import along_mm, miss_mm
 from scissor_cli.control.models import MapController, SectionController
 from scissor_cli.control.plant import TruthView, true_tissue
 from scissor_cli.experiments.build import body_model, section_model
-from scissor_cli.experiments.profiles import ErrorModel, draw_trial, error_model
+from scissor_cli.experiments.profiles import ErrorModel, draw_insertion, draw_trial, error_model
 from scissor_cli.experiments.trial_types import TrialOutcome
+from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_strategies
 from scissor_cli.layer3d.surrogate import Surrogate
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import probe_points, target_positions
@@ -132,6 +134,7 @@ class BodyTrialContext:
             backlash_mm=self.errors.backlash_mm, target=task.name, guess=self.guess(task),
             direction=np.asarray(task.direction, float), controller_factory=self.controllers(task.index),
             truth_factory=self.truth.factory(task.rest)))
+        miss, depth_error = self.insert(task, trial, truth, sensor, r)
         columns, table = r.history_table()
         final = np.asarray(r.final_error, float)
         return TrialOutcome(
@@ -140,4 +143,36 @@ class BodyTrialContext:
             stop_reason=r.stop_reason, correctable_mm=float(r.correctable_error_mm),
             uncorrectable_mm=float(r.uncorrectable_error_mm), history_columns=list(columns), history=table,
             miss_mm=miss_mm(final, task.direction), along_mm=along_mm(-final, task.direction),
-            trial_time_s=time.perf_counter() - t0)
+            insertion_miss_mm=miss, insertion_depth_error_mm=depth_error, trial_time_s=time.perf_counter() - t0)
+
+    def insert(self, task, trial: int, truth, sensor, loop) -> tuple[np.ndarray, np.ndarray]:
+        """With `insertion`: each strategy's needle in the trial's true body from the loop's end, (miss, depth
+        error) (S,) mm; else two empty arrays.
+
+        As a layer's trial inserts (`trials.TrialContext.insert`): the profile's factors on the friction and
+        the tip force, the trial's camera(s) going on from the loop's on a stream of their own, the plan's
+        entry and axis. `loop`'s model under the needle is the undrawn body on the truth's mesh (its held J
+        needs the truth's captured nodes; docs/model.md §20), whatever model steered the manipulation.
+        """
+        ins = self.cfg.insertion
+        if ins is None or loop.final_x is None:
+            return np.zeros(0), np.zeros(0)
+        f_scale, tip_scale = draw_insertion(self.errors, self.cfg.seed, task.index, trial)
+        base = NeedleParams.from_config(ins, self.cfg.needle, self.cfg.tissue.mesh)
+        params = replace(base, friction_static_mN_per_mm=base.friction_static_mN_per_mm * f_scale,
+                         friction_kinetic_mN_per_mm=base.friction_kinetic_mN_per_mm * f_scale,
+                         tip_force_mN=base.tip_force_mN * tip_scale)
+        rng = np.random.default_rng([int(self.cfg.seed), task.index, trial, 13])
+        nominal = self.truth.tissue
+        plant = control.true_tissue(nominal, truth)
+        model_x0 = None
+        if plant is not nominal and "loop" in ins.strategies:
+            model_x0 = solve_equilibrium(nominal, loop.final_strokes, start=loop.final_x,
+                                         start_strokes=loop.final_strokes).x
+        path = NeedlePath(np.asarray(task.entry, float), np.asarray(task.direction, float), float(task.depth_mm),
+                          np.asarray(task.rest, float), task.name)
+        options = {k: InsertionOptions(k, self.cfg.controller, sensor.reseeded(rng), nominal, model_x0,
+                                       keep_displacement=False) for k in ins.strategies}
+        results = run_strategies(plant, loop.final_x, loop.final_strokes, dict.fromkeys(ins.strategies, path),
+                                 params, options)
+        return np.array([x.miss_mm for x in results]), np.array([x.depth_error_mm for x in results])
