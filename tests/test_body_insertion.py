@@ -89,7 +89,7 @@ def test_the_run_inserts_every_planned_lesion_along_its_plan_and_so_do_its_trial
     left the body, the miss and depth error per strategy stored (T, S). (`loop` in a run:
     benchmarks/bench_body_insertion.py.)"""
     data = dict(COARSE, targets=COARSE["targets"][:1], trials={"count": 1, "profile": "ideal"},
-                insertion={"step_mm": 1.0, "strategies": ["none", "depth"]})
+                insertion={"step_mm": 1.0, "capture_radius_mm": 2.5, "strategies": ["none", "depth"]})
     r = run_cli("simulate", write_scene(tmp_path, data), "--out", tmp_path / "run", "--quiet")
     assert r.returncode == 0, r.stderr
     with h5py.File(tmp_path / "run" / "results.h5", "r") as f:
