@@ -373,6 +373,20 @@ def test_a_budget_run_sigkilled_between_rows_keeps_them_and_resumes_to_the_same_
     assert not [k for k in reference if not np.array_equal(now[k], reference[k])]
 
 
+def run_pool_script(script: Path, text: str) -> tuple[subprocess.Popen, str, str]:
+    """Run a pool script in a session of its own (as a run is: a pool forked from the test runner's worker shares,
+    and once took down, that worker); (process, stdout, stderr), nothing of its group left alive."""
+    script.write_text(text)
+    proc = subprocess.Popen([sys.executable, str(script)], env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    try:
+        out, err = proc.communicate(timeout=60)
+    finally:
+        for pid in group_members(proc.pid):
+            os.kill(pid, signal.SIGKILL)
+    return proc, out, err
+
+
 LOST_STOP_RUN = """
 import signal, sys, time
 
@@ -405,15 +419,7 @@ def test_a_stop_whose_exception_was_lost_still_stops_the_pool(tmp_path):
     ignored later signals as its own clean-up's and went on (seen: a SIGTERM'd slab-truth budget ran on). The pool's
     wait raises the stop again within STOP_POLL_S and its workers go. (A process of its own, as a run is: a pool
     forked from the test runner's worker shares that worker's pipes and signals.)"""
-    script = tmp_path / "lost_stop.py"
-    script.write_text(LOST_STOP_RUN)
-    proc = subprocess.Popen([sys.executable, str(script)], env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, start_new_session=True)
-    try:
-        out, err = proc.communicate(timeout=60)
-    finally:
-        for pid in group_members(proc.pid):
-            os.kill(pid, signal.SIGKILL)
+    proc, out, err = run_pool_script(tmp_path / "lost_stop.py", LOST_STOP_RUN)
     assert proc.returncode == 128 + signal.SIGTERM, err
     seconds = float(re.search(r"stopped ([0-9.]+)", out).group(1))
     assert seconds < 15.0  # (the workers' start-up and one poll, not their 30 s)
@@ -443,15 +449,7 @@ if __name__ == "__main__":
 def test_a_worker_that_dies_is_a_clear_error(tmp_path):
     """A worker that dies is `WorkerLost` naming --resume, and the run's other workers go with it. (A process of its
     own, as a run is: a pool forked from the test runner's worker once took that worker down with it in CI.)"""
-    script = tmp_path / "dying_worker.py"
-    script.write_text(DYING_WORKER_RUN)
-    proc = subprocess.Popen([sys.executable, str(script)], env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, start_new_session=True)
-    try:
-        out, err = proc.communicate(timeout=60)
-    finally:
-        for pid in group_members(proc.pid):
-            os.kill(pid, signal.SIGKILL)
+    proc, out, err = run_pool_script(tmp_path / "dying_worker.py", DYING_WORKER_RUN)
     assert proc.returncode == 1, err
     assert "worker process died" in out and "--resume" in out, out
     assert not group_members(proc.pid), "a worker outlived the run"

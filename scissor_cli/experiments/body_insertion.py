@@ -22,10 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from scissor_cli import progress
 from scissor_cli.config.body_sections import BodyConfig
 from scissor_cli.experiments.body_trials import body_sensor_model
-from scissor_cli.experiments.insertion_stage import StepBar, report_insertions
+from scissor_cli.experiments.insertion_stage import StepBar, report_insertions, to_insert
 from scissor_cli.experiments.profiles import error_model
 from scissor_cli.experiments.sink import Insertion, RunSink, product_key
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_strategies
@@ -41,12 +40,7 @@ def body_insertion_stage(cfg: BodyConfig, truth: Tissue, plans: list, sink: RunS
     strategies = list(cfg.insertion.strategies)
     sensors = body_sensor_model(cfg, error_model(cfg.trials))
     paths: list[Path] = []
-    for target, plan in zip(truth.scene.targets, plans):
-        if product_key("insertion", target.name) in done:
-            continue
-        if not plan.feasible:
-            progress.info(f"insertion {target.name}: skipped, no plan ({plan.reason})")
-            continue
+    for target, plan in to_insert(truth.scene.targets, plans, done):
         strokes = np.asarray(plan.strokes, float)
         x0 = solve_equilibrium(truth, strokes).x
         path = NeedlePath(np.asarray(plan.entry, float), np.asarray(plan.direction, float), float(plan.depth_mm),

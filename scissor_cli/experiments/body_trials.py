@@ -19,7 +19,6 @@ Dask) run its `run` exactly as a layer's.
 from __future__ import annotations
 
 import time
-from dataclasses import replace
 from typing import Callable, Optional
 
 import numpy as np
@@ -30,7 +29,7 @@ from scissor_cli.control.allocation import along_mm, miss_mm
 from scissor_cli.control.models import MapController, SectionController
 from scissor_cli.control.plant import TruthView, true_tissue
 from scissor_cli.experiments.build import body_model, section_model
-from scissor_cli.experiments.profiles import ErrorModel, draw_insertion, draw_trial, error_model
+from scissor_cli.experiments.profiles import ErrorModel, draw_trial, error_model, trial_needle
 from scissor_cli.experiments.trial_types import TrialOutcome
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_strategies
 from scissor_cli.layer3d.surrogate import Surrogate
@@ -157,11 +156,8 @@ class BodyTrialContext:
         ins = self.cfg.insertion
         if ins is None or loop.final_x is None:
             return np.zeros(0), np.zeros(0)
-        f_scale, tip_scale = draw_insertion(self.errors, self.cfg.seed, task.index, trial)
-        base = NeedleParams.from_config(ins, self.cfg.needle, self.cfg.tissue.mesh)
-        params = replace(base, friction_static_mN_per_mm=base.friction_static_mN_per_mm * f_scale,
-                         friction_kinetic_mN_per_mm=base.friction_kinetic_mN_per_mm * f_scale,
-                         tip_force_mN=base.tip_force_mN * tip_scale)
+        params = trial_needle(NeedleParams.from_config(ins, self.cfg.needle, self.cfg.tissue.mesh), self.errors,
+                              self.cfg.seed, task.index, trial)
         rng = np.random.default_rng([int(self.cfg.seed), task.index, trial, 13])
         nominal = self.truth.tissue
         plant = control.true_tissue(nominal, truth)

@@ -79,6 +79,17 @@ class StepBar:
         self.left = 0
 
 
+def to_insert(targets, plans: list, done: frozenset[str]):
+    """(target, plan) of every target to insert: not in `done`, with a plan (a skipped one is said)."""
+    for target, plan in zip(targets, plans):
+        if product_key("insertion", target.name) in done:
+            continue
+        if not plan.feasible:
+            progress.info(f"insertion {target.name}: skipped, no plan ({plan.reason})")
+            continue
+        yield target, plan
+
+
 def report_insertions(target: str, results: list) -> None:
     """Print one target's miss per strategy, and what did not go as planned."""
     parts = ", ".join(f"{r.strategy} {r.miss_mm:.3f} mm (depth error {r.depth_error_mm:+.3f} mm)" for r in results)
@@ -146,12 +157,7 @@ def insertion_stage(cfg: Config, tissue: Tissue, plans: list, sink: RunSink,
         truth = SlabTruth(tissue, slab_spec(cfg.layer_check, cfg.tissue.mesh))
     paths: list[Path] = []
     first = next((t.name for t, p in zip(tissue.scene.targets, plans) if p.feasible), None)
-    for target, plan in zip(tissue.scene.targets, plans):
-        if product_key("insertion", target.name) in done:
-            continue
-        if not plan.feasible:
-            progress.info(f"insertion {target.name}: skipped, no plan ({plan.reason})")
-            continue
+    for target, plan in to_insert(tissue.scene.targets, plans, done):
         animate = target.name == first
         layer = None
         if truth is None:

@@ -100,7 +100,7 @@ compares the simulated errors with the paper's without it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -227,6 +227,14 @@ INSERTION_STREAM = 12
 #: the ErrorModel fields that only a scene with imaging uses (and stores); the camera's it then does not
 IMAGING_SPREADS = ("sound_speed_sd_m_per_s", "probe_position_sd_mm", "probe_angle_sd_deg", "electronic_noise_scale")
 CAMERA_SPREADS = ("pixel_noise_px", "localisation_error_mm")
+
+
+def trial_needle(base, model: ErrorModel, seed: int, target_index: int, trial: int):
+    """The config's `insertion.NeedleParams` with trial k's factors (`draw_insertion`) on its friction and tip force."""
+    f_scale, tip_scale = draw_insertion(model, seed, target_index, trial)
+    return replace(base, friction_static_mN_per_mm=base.friction_static_mN_per_mm * f_scale,
+                   friction_kinetic_mN_per_mm=base.friction_kinetic_mN_per_mm * f_scale,
+                   tip_force_mN=base.tip_force_mN * tip_scale)
 
 
 def draw_insertion(model: ErrorModel, seed: int, target_index: int, trial: int) -> tuple[float, float]:

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import hashlib
 import time
-from dataclasses import replace
 from typing import Iterator, Optional
 
 import numpy as np
@@ -23,7 +22,7 @@ from scissor_cli.config.body_sections import BodyConfig
 from scissor_cli.control.allocation import along_mm, miss_mm
 from scissor_cli.experiments.build import build_model
 from scissor_cli.experiments.pool import run_pool
-from scissor_cli.experiments.profiles import ErrorModel, draw_insertion, draw_trial, error_model
+from scissor_cli.experiments.profiles import ErrorModel, draw_trial, error_model, trial_needle
 from scissor_cli.experiments.sensor_models import sensor_model
 from scissor_cli.experiments.trial_types import TargetTask, TrialOutcome
 from scissor_cli.insertion import InsertionOptions, NeedleParams, needle_path, run_strategies
@@ -162,11 +161,8 @@ class TrialContext:
         ins = self.cfg.insertion
         if ins is None or loop.final_x is None or task.entry is None:
             return np.zeros(0), np.zeros(0)
-        f_scale, tip_scale = draw_insertion(self.errors, self.cfg.seed, task.index, trial)
-        base = NeedleParams.from_config(ins, self.cfg.needle, self.cfg.tissue.mesh)
-        params = replace(base, friction_static_mN_per_mm=base.friction_static_mN_per_mm * f_scale,
-                         friction_kinetic_mN_per_mm=base.friction_kinetic_mN_per_mm * f_scale,
-                         tip_force_mN=base.tip_force_mN * tip_scale)
+        params = trial_needle(NeedleParams.from_config(ins, self.cfg.needle, self.cfg.tissue.mesh), self.errors,
+                              self.cfg.seed, task.index, trial)
         # each strategy's sensor goes on from the loop's on its own (a tracker follows one needle), all drawing
         # their frame noise from the one insertion stream, in the order they measure
         rng = np.random.default_rng([int(self.cfg.seed), task.index, trial, 13])
