@@ -19,7 +19,11 @@ the target and the obstacles are the layer's points carried by the slab's
 nodes at the layer's level (their 2-D probe on the slab's plane), the
 camera sees the target's in-plane part and the clearance is measured in
 the layer's plane. With a 2-D controller model against the slab, `loop`
-runs the model's own insertion (`model_state.ModelInsertion`).
+runs the model's own insertion (`model_state.ModelInsertion`). The plant
+may also be a body (docs/model.md §20): the needle along any axis, the
+lesion and the obstacles read in 3-D (`points.BodyPoints`), `loop` on
+both components of the miss across the needle (those its cameras see),
+each command within the drives' speed.
 """
 
 from __future__ import annotations
