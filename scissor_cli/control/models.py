@@ -28,7 +28,7 @@ from scissor_cli.control.plant import Controller, Plant
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import TargetProbe
 
-#: (strokes (C,) mm) → (target (2,) mm, J (2, C) mm/mm): what a learned map answers
+#: (strokes (C,) mm) → (target (k,) mm, J (k, C) mm/mm): what a learned map answers (k = 2; 3 for a body's)
 TargetMap = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
@@ -70,7 +70,7 @@ class MapController:
 
     @property
     def jacobian(self) -> np.ndarray:
-        """J (2, C) mm/mm of the map at the commanded strokes."""
+        """J (k, C) mm/mm of the map at the commanded strokes (k = 2, or 3 for a body's surrogate)."""
         return self._J
 
     @property
