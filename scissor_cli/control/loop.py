@@ -54,7 +54,7 @@ from scissor_cli.control.allocation import stroke_step
 from scissor_cli.control.broyden import BroydenCorrection
 from scissor_cli.control.corridor_check import Corridor, corridor_at
 from scissor_cli.control.law import PID, stalled, traveling
-from scissor_cli.control.plant import Controller, Plant, TruthFactory, TruthPerturbation, true_tissue
+from scissor_cli.control.plant import Controller, ModelPaths, Plant, TruthFactory, TruthPerturbation, true_tissue
 from scissor_cli.control.result import History, LoopResult
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import probe_points, probe_targets
@@ -237,7 +237,9 @@ class TargetRun:
     direction (2,): the needle axis of the miss (default the corridor's);
     truth_factory: makes another true tissue (the 3-D slab) and its view
     from the perturbation; controller_factory (lo, hi, resolution_mm, tol)
-    → controller: a controller on another model (docs/model.md §15).
+    → controller: a controller on another model (docs/model.md §15);
+    model_paths: the model's states earlier loops of this target solved in
+    this process (`plant.ModelPaths`; for the model's own controller).
     """
 
     truth: TruthPerturbation = TruthPerturbation()
@@ -252,6 +254,7 @@ class TargetRun:
     direction: Optional[np.ndarray] = None
     truth_factory: Optional[TruthFactory] = None
     controller_factory: Optional[Callable] = None
+    model_paths: Optional[ModelPaths] = None
 
 
 def run_target(model: Tissue, target_rest: np.ndarray, desired: np.ndarray, cfg: ControllerConfig,
@@ -281,7 +284,7 @@ def run_target(model: Tissue, target_rest: np.ndarray, desired: np.ndarray, cfg:
     else:
         plant = Plant(**_made(run.truth_factory, run.truth), actuator=actuator, probe=probe, tol=run.tol)
     if run.controller_factory is None:
-        controller = Controller(model, probe, actuator.lo, actuator.hi, run.resolution_mm, run.tol)
+        controller = Controller(model, probe, actuator.lo, actuator.hi, run.resolution_mm, run.tol, run.model_paths)
     else:
         controller = run.controller_factory(actuator.lo, actuator.hi, run.resolution_mm, run.tol)
     if controller.shares(plant):

@@ -9,6 +9,7 @@ of solving it again.
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Callable, Optional
 
@@ -18,7 +19,7 @@ from scissor_cli.control.actuator import Actuator
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import TargetProbe, apply_probe, target_positions
 from scissor_cli.sensing.sensor import TrueState
-from scissor_cli.solvers.tracking import TrackedEquilibrium
+from scissor_cli.solvers.tracking import TrackedEquilibrium, TrackerState
 
 
 @dataclass(frozen=True)
@@ -90,12 +91,14 @@ class Controller:
     nominal limits; it does not know the backlash).
     """
 
-    def __init__(self, tissue: Tissue, probe: TargetProbe, lo, hi, resolution_mm: float = 0.0, tol: float = 1e-10):
+    def __init__(self, tissue: Tissue, probe: TargetProbe, lo, hi, resolution_mm: float = 0.0, tol: float = 1e-10,
+                 paths: Optional["ModelPaths"] = None):
         self.tissue, self.probe = tissue, probe
         self.lo, self.hi = np.asarray(lo, float), np.asarray(hi, float)
         self.resolution_mm = resolution_mm
         self.eq = TrackedEquilibrium(tissue, tol)
         self.eq.move_to(self.eq.strokes, tangent=True)
+        self.paths, self._commands = paths, ()
 
     @property
     def n_cups(self) -> int:
@@ -124,8 +127,51 @@ class Controller:
         same_state = plant is not None and self.shares(plant) and np.array_equal(plant.strokes, commanded)
         if same_state and plant.eq.jacobian_is_current:
             self.eq.adopt(plant.eq)
-        else:
+        elif self.paths is None or (plant is not None and self.shares(plant)):
             self.eq.move_to(commanded, tangent=True)
+        else:  # the same commands from rest as an earlier loop of this model: the same states, taken over
+            self._commands = (self._commands, np.asarray(commanded, float).tobytes())
+            state = self.paths.get(self._commands)
+            if state is None:
+                self.eq.move_to(commanded, tangent=True)
+                self.paths.put(self._commands, self.eq.snapshot())
+            else:
+                self.eq.restore(state)
+
+
+class ModelPaths:
+    """The controller model's equilibria along the command sequences its loops have sent, in one process.
+
+    A trial's truth differs from the model, but the controller's model does
+    not: two loops that command the same strokes from rest (the drives'
+    top speed on the way to a far lesion, as every trial of a target does)
+    solve the same model states, bit for bit. A `Controller` given these
+    paths takes a state solved before instead of solving it again
+    (`TrackedEquilibrium.restore`: the loop goes on exactly as if it had
+    solved it). Keyed by the whole command sequence from rest; keeps the
+    `capacity` most recently used states (each holds the nodes and the
+    tangent: a few hundred kB for a body). One per model tissue and target.
+    """
+
+    def __init__(self, capacity: int = 48):
+        self.capacity = capacity
+        self._states: OrderedDict[tuple, TrackerState] = OrderedDict()
+        self.hits = self.misses = 0
+
+    def get(self, commands: tuple) -> Optional[TrackerState]:
+        state = self._states.get(commands)
+        if state is None:
+            self.misses += 1
+        else:
+            self.hits += 1
+            self._states.move_to_end(commands)
+        return state
+
+    def put(self, commands: tuple, state: TrackerState) -> None:
+        self._states[commands] = state
+        self._states.move_to_end(commands)
+        while len(self._states) > self.capacity:
+            self._states.popitem(last=False)
 
 
 @dataclass(frozen=True)

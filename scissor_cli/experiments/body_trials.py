@@ -108,6 +108,7 @@ class BodyTrialContext:
         self.errors: ErrorModel = error_model(self.cfg.trials)
         self.sensors = body_sensor_model(self.cfg, self.errors)
         self._guesses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.paths: dict[int, control.ModelPaths] = {}  # per target: the model's states the loops solved
         self.controllers: Optional[Callable] = None  # from the first task (a surrogate's samples come in it)
 
     def guess(self, task) -> tuple[np.ndarray, np.ndarray] | None:
@@ -132,7 +133,8 @@ class BodyTrialContext:
             truth=truth, sensor=sensor, resolution_mm=self.errors.actuator_resolution_mm,
             backlash_mm=self.errors.backlash_mm, target=task.name, guess=self.guess(task),
             direction=np.asarray(task.direction, float), controller_factory=self.controllers(task.index),
-            truth_factory=self.truth.factory(task.rest)))
+            truth_factory=self.truth.factory(task.rest),
+            model_paths=self.paths.setdefault(task.index, control.ModelPaths())))
         miss, depth_error = self.insert(task, trial, truth, sensor, r)
         columns, table = r.history_table()
         final = np.asarray(r.final_error, float)

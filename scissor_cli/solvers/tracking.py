@@ -19,6 +19,7 @@ continuation.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from functools import lru_cache
 from itertools import combinations_with_replacement
 from math import factorial
@@ -74,6 +75,8 @@ class TrackedEquilibrium:
         # Its last equilibria (strokes (C,), x (N, 2), the exact ∂x/∂s there or None), oldest first:
         # what the polynomial predictor is fitted to.
         self.history: list[tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]] = []
+        # After `restore` the factorisation slot holds another state's K_ff: refactor before the next move.
+        self._factor_elsewhere = False
 
     def refactor(self, x: np.ndarray) -> None:
         """Factor the exact K_ff at x (N, 2) and compute ∂x/∂s there (docs/model.md §5)."""
@@ -96,6 +99,7 @@ class TrackedEquilibrium:
             D[t.free_dofs] = factor.solve(-KB[t.free_dofs])  # every cup's column in one solve
         check_finite(D, "the cup response (K_ff singular?)")
         self.response, self.tangent_x = D, x
+        self._factor_elsewhere = False
 
     @property
     def jacobian_is_current(self) -> bool:
@@ -113,6 +117,8 @@ class TrackedEquilibrium:
         if self.response is None:
             self.refactor(self.x)
         if not np.array_equal(strokes, self.strokes):
+            if self._factor_elsewhere:  # (restored: the chord steps need the factorisation at x)
+                self.refactor(self.x)
             fallbacks = self.stats["fallbacks"]
             fitted = self._fitted(strokes - self.strokes)
             x0, s0 = (self.x, self.strokes) if fitted is not None else self._start(strokes)
@@ -241,11 +247,40 @@ class TrackedEquilibrium:
         self.stats["refactors"] += r.factorizations
         return r.x if r.converged else None
 
+    def snapshot(self) -> "TrackerState":
+        """This tracker's state at an equilibrium with its exact tangent, to `restore` later (this tracker's own)."""
+        if not self.jacobian_is_current:
+            raise ValueError("snapshot needs the exact tangent at the equilibrium (move_to(..., tangent=True))")
+        return TrackerState(self.x, self.strokes.copy(), self.response, tuple(self.history))
+
+    def restore(self, state: "TrackerState") -> None:
+        """Go back to a `snapshot` of this tracker: from here on it answers exactly as it did after taking it.
+
+        The factorisation is not kept in the state (it is large and CHOLMOD
+        overwrites it in place); the next move factors K_ff at x again first —
+        the very factorisation the tracker held there, so the moves that follow
+        are, bit for bit, the ones it would have made.
+        """
+        self.x, self.strokes, self.response = state.x, state.strokes.copy(), state.response
+        self.tangent_x, self.history = state.x, list(state.history)
+        self._factor_elsewhere = True
+
     def adopt(self, other: "TrackedEquilibrium") -> None:
         """Take another tracker's state of the same tissue (same x, strokes and ∂x/∂s)."""
         self.x, self.strokes = other.x, other.strokes.copy()
         self.response, self.tangent_x = other.response, other.tangent_x
         # Our own factorisation is now at some other state; the next move refreshes it when it matters.
+
+
+@dataclass(frozen=True)
+class TrackerState:
+    """A tracker's equilibrium (`TrackedEquilibrium.snapshot`): x (N, d) mm at strokes (C,) mm, ∂x/∂s there
+    (dN, C) and the history its polynomial predictor fits. Arrays are shared, never written."""
+
+    x: np.ndarray
+    strokes: np.ndarray
+    response: np.ndarray
+    history: tuple
 
 
 def _degree(C: int, exact: bool, have: int) -> Optional[tuple[np.ndarray, np.ndarray, int]]:
