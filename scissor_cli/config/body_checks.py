@@ -141,7 +141,7 @@ def body_problems(cfg: BodyConfig) -> list[Problem]:
     problems += _unique(cfg.cups, "cups") + _unique(cfg.targets, "targets") + _unique(cfg.obstacles, "obstacles")
     problems += _unique(cfg.forward, "forward") + _reserved_names(cfg)
     problems += _lesion_problems(cfg, surface) + _obstacle_problems(cfg, surface)
-    problems += _cup_problems(cfg, surface) + _forward_problems(cfg)
+    problems += _cup_problems(cfg, surface) + _forward_problems(cfg) + _grip_problems(cfg, surface)
     lo, hi = body_box(surface)
     problems += insertion_problems(cfg.insertion, float(np.max(hi - lo)))
     problems += surrogate_samples_problems(cfg.controller, len(cfg.cups))
@@ -301,6 +301,24 @@ def _obstacle_problems(cfg: BodyConfig, surface) -> list[Problem]:
             gap = g3.segment_segment_distance(pa, pb, a, b).min() - _radius(p) - _radius(q)
             if gap < 0:
                 out.append((field, f"obstacles {p.name!r} and {q.name!r} overlap"))
+    return out
+
+
+def _grip_problems(cfg: BodyConfig, surface) -> list[Problem]:
+    """manipulation_points on a body: cups to place ≤ the cups given; a skin region that reaches the skin."""
+    mp = cfg.manipulation_points
+    if mp is None:
+        return []
+    out: list[Problem] = []
+    if mp.cups > len(cfg.cups):
+        out.append((("manipulation_points", "cups"), (
+            f"{mp.cups} cups to place but {len(cfg.cups)} given: the grips replace the first `cups` entries of "
+            f"`cups` (their contact_mm and axis); give at least {mp.cups} cups or place fewer")))
+    _, dist = surface.nearest_skin(np.asarray([mp.skin.center_mm], float))
+    if dist[0] > mp.skin.radius_mm:
+        out.append((("manipulation_points", "skin"), (
+            f"the ball of radius {mp.skin.radius_mm:g} mm about {mp.skin.center_mm} holds no skin (the skin is "
+            f"{dist[0]:.3g} mm from its centre): centre it on the skin or widen radius_mm")))
     return out
 
 

@@ -124,6 +124,25 @@ class SphereConfig(_Section):
     radius_mm: Num(0.05, MAX_TISSUE_MM)
 
 
+class SkinRegionConfig(_Section):
+    """A ball whose skin holds the candidate grips (docs/model.md §20, "Where to grip")."""
+
+    center_mm: Vec3
+    radius_mm: Num(0.5, MAX_TISSUE_MM)
+
+
+class BodyManipulationPointsConfig(_Section):
+    """Where the cups grip a body, chosen by the planner over the skin (docs/model.md §20, "Where to grip")."""
+
+    #: the candidates: the skin's mesh nodes within this ball (at least a cup's radius from the held base)
+    skin: SkinRegionConfig
+    #: one candidate per cube of this edge
+    spacing_mm: Num(0.5, 50.0) = 4.0
+    #: how many cups to place: the first `cups` entries of `cups` (≤ len(cups): checks); two control the miss
+    #: across the needle, three the lesion's 3-D position
+    cups: Int(1, 16) = 2
+
+
 class TubeConfig(_Section):
     """A vessel: a polyline and its radius."""
 
@@ -211,6 +230,8 @@ class BodyConfig(_Section):
     cameras: Optional[Annotated[list[BodyCameraConfig], Len(2, 8)]] = None
     robot: RobotConfig = RobotConfig()
     trials: TrialsConfig = TrialsConfig()
+    #: the cups' grips chosen over the skin (docs/model.md §20): the first `cups` entries move there
+    manipulation_points: Optional[BodyManipulationPointsConfig] = None
     #: the needle inserted along each lesion's plan after its manipulation (docs/model.md §20, §12)
     insertion: Optional[InsertionConfig] = None
 
@@ -220,5 +241,6 @@ class BodyConfig(_Section):
 
 
 __all__ = ["BODY_SHAPES", "BodyCameraConfig", "BodyConfig", "BodyControllerConfig", "BodyCupConfig",
-           "BodyMeshConfig", "BodyNeedleConfig", "BodyObstacleConfig", "BodyTissueConfig", "HeldPlaneConfig",
-           "LesionConfig", "PlaneConfig", "SkinConfig", "SphereConfig", "TubeConfig"]
+           "BodyManipulationPointsConfig", "BodyMeshConfig", "BodyNeedleConfig", "BodyObstacleConfig",
+           "BodyTissueConfig", "HeldPlaneConfig", "LesionConfig", "PlaneConfig", "SkinConfig", "SkinRegionConfig",
+           "SphereConfig", "TubeConfig"]

@@ -23,7 +23,7 @@ from scissor_cli.config.body_sections import BodyConfig
 from scissor_cli.config.element_budget import TETRAHEDRA_BUDGET
 from scissor_cli.config.loading import resolved_yaml
 from scissor_cli.experiments.body_resolution import BodyChoice, choose_body_scale
-from scissor_cli.experiments.build import body_model
+from scissor_cli.experiments.build import body_model, with_grips
 from scissor_cli.experiments.forward_stage import forward_stage
 from scissor_cli.experiments.run_cache import cache_dir
 from scissor_cli.experiments.run_summary import RunSummary
@@ -33,8 +33,10 @@ from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.body_inputs import body_shape, inclusions, sizing
 from scissor_cli.mesh.body_mesh import estimate_tetrahedra
 from scissor_cli.mesh.probe import probe_points
+from scissor_cli.planning.body_grips import BodyGripPlan, plan_body_grips, verify
 from scissor_cli.scene.body_scene import build_body_scene
 from scissor_cli.solvers.jacobian import cup_target_jacobian
+from scissor_cli.text import signed
 
 
 def body_scene_problems(cfg: BodyConfig) -> list[str]:
@@ -78,11 +80,35 @@ def run_body_simulation(cfg: BodyConfig, run: SinkFactory, execution: Execution)
         cfg = cfg.model_copy(update={
             "tissue": cfg.tissue.model_copy(update={"accuracy_mm": None}),
             "controller": cfg.controller.model_copy(update={"mesh_scale": choice.chosen.scale})})
+    grips = None
+    if cfg.manipulation_points is not None:
+        cfg, grips = body_grip_stage(cfg, cache)
     tissue = _build(cfg, cache)
     summary = RunSummary(run.location, tissue.mesh.n_elements)
     with run.open(resolved_yaml(cfg), cfg.seed) as sink:
+        if grips is not None:
+            summary.figures.append(sink.manipulation_points(grips, tissue))
         body_stages(cfg, tissue, sink, summary, choice=choice, execution=execution)
     return summary
+
+
+def body_grip_stage(cfg: BodyConfig, cache: Path | None) -> tuple[BodyConfig, BodyGripPlan]:
+    """Choose where the first `manipulation_points.cups` cups grip the skin (docs/model.md §20); the run goes on
+    with them. The config the run records has the chosen contacts and axes and no `manipulation_points`, so
+    trials and `--resume` rebuild the body that ran; the search is in /manipulation_points."""
+    mp = cfg.manipulation_points
+    _, _, tissue = body_model(cfg, cache, scale=cfg.controller.mesh_scale)
+    limit = min(min(-c.stroke_mm[0], c.stroke_mm[1]) for c in cfg.cups[:mp.cups])
+    plan = plan_body_grips(tissue, mp.skin.center_mm, mp.skin.radius_mm, mp.spacing_mm, mp.cups,
+                           cfg.needle.direction, cfg.cups[0].radius_mm, limit)
+    placed = with_grips(cfg, plan.contacts, plan.axes).model_copy(update={"manipulation_points": None})
+    verify(plan, lambda contacts, axes: body_model(placed, cache, scale=cfg.controller.mesh_scale)[2],
+           np.array([c.stroke_mm for c in placed.cups[:mp.cups]], float))
+    where = "; ".join(f"{c.name} at {signed(p)} mm pushing {signed(a)}" for c, p, a in
+                      zip(placed.cups, plan.contacts, plan.axes))
+    progress.info(f"manipulation points: {len(plan.candidates)} candidates on the skin ranked in "
+                  f"{plan.search_s:.2f} s for {plan.controls}, verified in {plan.verify_s:.2f} s: {where}")
+    return placed, plan
 
 
 def _build(cfg: BodyConfig, cache: Path | None) -> Tissue:

@@ -34,13 +34,13 @@ def build_model(cfg: Config, model: str | None = None, mesh_scale: float | None 
     return scene, mesh, build_tissue(scene, mesh, model=model)
 
 
-def with_grips(cfg: Config, contacts: np.ndarray, axes: np.ndarray) -> Config:
-    """The config with the first len(contacts) cups' contact_mm (k, 2) and axis (k, 2) replaced (radius, stroke, speed
-    stay)."""
+def with_grips(cfg: Config | BodyConfig, contacts: np.ndarray, axes: np.ndarray) -> Config | BodyConfig:
+    """The config (a layer's or a body's) with the first len(contacts) cups' contact_mm (k, d) and axis (k, d)
+    replaced (radius, stroke, speed stay)."""
     cups = list(cfg.cups)
     for i, (p, a) in enumerate(zip(contacts, axes)):
-        cups[i] = cups[i].model_copy(update={"contact_mm": [float(p[0]), float(p[1])],
-                                             "axis": [float(a[0]) + 0.0, float(a[1]) + 0.0]})
+        cups[i] = cups[i].model_copy(update={"contact_mm": [float(v) for v in p],
+                                             "axis": [float(v) + 0.0 for v in a]})
     return cfg.model_copy(update={"cups": cups})
 
 

@@ -181,6 +181,12 @@ class ResultsSink:
 
     def manipulation_points(self, plan, scene) -> Path:
         """The manipulation-point plan (docs/model.md §7): /manipulation_points and its figure."""
+        if getattr(scene, "dim", 2) == 3:  # `scene` is then the body's tissue (its skin is drawn)
+            from scissor_cli.output.body.grips import save_body_grips_figure, write_body_grips  # noqa: PLC0415
+
+            write_body_grips(self.out, plan)
+            self.out.flush()
+            return save_body_grips_figure(plan, scene, self.location)
         from scissor_cli.output.grip_figures import save_grip_figure, write_manipulation_points  # noqa: PLC0415
 
         write_manipulation_points(self.out, plan)

@@ -53,11 +53,11 @@ from scissor_cli.config import ManipulationPointsConfig, NeedleConfig
 from scissor_cli.mechanics.tissue import Tissue, build_tissue
 from scissor_cli.mesh.mesh import Mesh
 from scissor_cli.mesh.outlines import deformed_outlines, embed_outlines
-from scissor_cli.mesh.probe import probe_targets, target_positions
+from scissor_cli.mesh.probe import TargetProbe, probe_targets, target_positions
 from scissor_cli.planning.corridor import candidate_directions, ranked_insertions
 from scissor_cli.scene.scene import Scene
 from scissor_cli.solvers.common import SolverError
-from scissor_cli.solvers.linear import Factorization
+from scissor_cli.solvers.linear import Factorization, factorize_free
 
 #: Candidates verified by a full nonlinear solve (the best by the linear score).
 VERIFY = 3
@@ -178,23 +178,24 @@ def needle_axis(scene: Scene, target_rest: np.ndarray, needle_cfg: NeedleConfig)
     return ranked[0].direction if ranked else np.array([1.0, 0.0])
 
 
-def adjoint_responses(tissue: Tissue, x: np.ndarray, targets: np.ndarray, F: np.ndarray,
+def adjoint_responses(tissue: Tissue, x: np.ndarray, probe: TargetProbe, F: np.ndarray,
                       factor: Optional[Factorization] = None) -> tuple[np.ndarray, np.ndarray, Factorization]:
-    """Responses R (K, P, 2) mm/mN of targets (K, 2) to the forces F (2N, P) mN at the equilibrium x (N, 2),
+    """Responses R (K, P, d) mm/mN of the probe's K targets to the forces F (dN, P) mN at the equilibrium x (N, d),
     by one adjoint solve per target component (K_ff λ = S_tᵀ, R = λᵀ F); and the candidates' compliance
-    u (P,) mm/mN = f_cᵀ K_ff⁻¹ f_c."""
-    K = tissue.stiffness_free(x, project=False)
-    factor = Factorization(K) if factor is None else factor.refactor(K)
+    u (P,) mm/mN = f_cᵀ K_ff⁻¹ f_c. d = tissue.dim: the layer's (2) or a body's (3)."""
+    d = tissue.dim
+    K = tissue.stiffness_free(x, project=False, upper=True)
+    factor = factorize_free(tissue, K, {}) if factor is None else factor.refactor(K)
     free = tissue.free_dofs
-    probe = probe_targets(tissue.mesh, np.atleast_2d(targets))
-    St = np.zeros((2 * tissue.mesh.n_nodes, 2 * probe.n_targets))  # S_tᵀ: one column per target component
-    for k in range(probe.n_targets):
-        for d in range(2):
-            St[2 * probe.nodes[k] + d, 2 * k + d] = probe.bary[k]
-    lam = factor.solve(np.ascontiguousarray(St[free]))
-    lam = lam.reshape(len(free), -1)
+    n_targets, corners = probe.nodes.shape
+    St = np.zeros((d * tissue.mesh.n_nodes, d * n_targets))  # S_tᵀ: one column per target component
+    rows = d * probe.nodes[:, :, None] + np.arange(d)  # (K, corners, d)
+    cols = np.broadcast_to(d * np.arange(n_targets)[:, None, None] + np.arange(d), rows.shape)
+    np.add.at(St, (rows.ravel(), cols.ravel()), np.repeat(probe.bary[:, :, None], d, axis=2).ravel())
+    lam = factor.solve(np.ascontiguousarray(St[free])).reshape(len(free), -1)
     Ff = F[free]
-    R = (lam.T @ Ff).reshape(probe.n_targets, 2, -1).transpose(0, 2, 1)
+    Ff = Ff.toarray() if hasattr(Ff, "toarray") else Ff
+    R = (lam.T @ Ff).reshape(n_targets, d, -1).transpose(0, 2, 1)
     u = np.einsum("ip,ip->p", Ff, factor.solve(np.ascontiguousarray(Ff)).reshape(Ff.shape))
     return R, u, factor
 
@@ -223,7 +224,7 @@ def plan_grips(mp: ManipulationPointsConfig, needle: NeedleConfig, tissue: Tissu
     x = free.rest
     targets = np.array([t.rest for t in scene.targets]).reshape(-1, 2)
     F = force_vectors(free.mesh, cands, radius)
-    R, u, _ = adjoint_responses(free, x, targets, F)
+    R, u, _ = adjoint_responses(free, x, probe_targets(free.mesh, targets), F)
     per_stroke = R / u[None, :, None]
     responses = []
     total = np.zeros(len(cands))
