@@ -102,9 +102,14 @@ def test_the_run_inserts_every_planned_lesion_along_its_plan_and_so_do_its_trial
         assert abs(depth.attrs["depth_error_mm"]) <= 0.05 < abs(f["insertion/T1/none"].attrs["depth_error_mm"])
         miss, depth_error = f["trials/T1/miss_mm"][()], f["trials/T1/depth_error_mm"][()]
         assert list(f["trials/T1/miss_mm"].attrs["strategies"]) == ["none", "depth"]
+        f_steps = len(depth["tip"])
     assert miss.shape == (1, 2) and np.all(np.isfinite(miss)) and np.all(miss < 2.0)
     assert abs(depth_error[0, 1]) <= 0.05 < abs(depth_error[0, 0])
     assert_png_drawn(tmp_path / "run" / "insertion_path_T1.png")
+    # ParaView: the insertion's steps on the body's own mesh
+    r = run_cli("export", tmp_path / "run", "--out", tmp_path / "paraview", "--format", "vtu")
+    assert r.returncode == 0, r.stderr
+    assert len(list((tmp_path / "paraview" / "insertion_T1_depth").glob("*.vtu"))) == f_steps
 
 
 def test_loop_drives_both_components_of_the_miss_with_both_cups(body):

@@ -161,19 +161,20 @@ def _read(f: h5py.File, path: Path) -> RunData:
         data.layer_check = _read_layer_check(f, path)
     for target, g in f.get("insertion", {}).items():
         for strategy in g:
-            data.insertion.append(_read_insertion(f, path, target, strategy, n, data.layer_check))
+            data.insertion.append(_read_insertion(f, path, target, strategy, n, data.layer_check, body=d == 3))
     return data
 
 
 def _read_insertion(f: h5py.File, path: Path, target: str, strategy: str, n: int,
-                    layer_check: "LayerCheck | None") -> Insertion:
-    """One insertion: on the layer's mesh (K, N, 2), or on the slab's (K, N3, 3) when it ran in the slab."""
+                    layer_check: "LayerCheck | None", body: bool = False) -> Insertion:
+    """One insertion: on the run's mesh, the layer's (K, N, 2) or a body's (K, N, 3), or on the slab's (K, N3, 3)
+    when a layer's ran in the slab."""
     base = f"insertion/{target}/{strategy}"
-    slab = (f"{base}/displacement" in f and np.ndim(f[f"{base}/displacement"]) == 3
+    slab = (not body and f"{base}/displacement" in f and np.ndim(f[f"{base}/displacement"]) == 3
             and f[f"{base}/displacement"].shape[2] == 3)
     if slab and layer_check is None:
         raise ExportError(f"{path}: /{base}/displacement is 3-D but there is no /layer_check/mesh to show it on")
-    d = 3 if slab else 2
+    d = 3 if slab or body else 2
     disp = _array(f, f"{base}/displacement", (None, len(layer_check.nodes) if slab else n, d), path)
     k = len(disp)
     steps = {}
@@ -249,7 +250,8 @@ def _write(data: RunData, writer: "_Writer") -> None:
                                  f"insertion {ins.target} / {ins.strategy} in the 3-D slab: {k} step(s), "
                                  "displacement per step (time = step)")
         else:
-            stem = writer.series(name, points, cells, [{"displacement": _lift(u)} for u in ins.displacement],
+            stem = writer.series(name, points, cells, [{"displacement": u if body else _lift(u)}
+                                                       for u in ins.displacement],
                                  f"insertion {ins.target} / {ins.strategy}: {k} step(s), displacement per step "
                                  "(time = step)")
         writer.table(f"{stem}.csv", *_step_table(ins), f"insertion {ins.target} / {ins.strategy}: per-step numbers")
