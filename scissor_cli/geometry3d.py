@@ -93,6 +93,17 @@ def inside_surface(points: np.ndarray, nodes: np.ndarray, triangles: np.ndarray)
     return winding_numbers(points, nodes, triangles) > 0.5
 
 
+def rotation_matrix(rotation_vector) -> np.ndarray:
+    """(3, 3): the rotation by a rotation vector (3,) rad (Rodrigues' formula; the identity for a zero vector)."""
+    v = np.asarray(rotation_vector, float)
+    theta = float(np.linalg.norm(v))
+    if theta < 1e-15:
+        return np.eye(3)
+    k = v / theta
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(theta) * K + (1.0 - np.cos(theta)) * K @ K
+
+
 def point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Distances (K, S) from points p (K, 3) to segments a→b (S, 3 each)."""
     p = np.atleast_2d(p)[:, None, :]

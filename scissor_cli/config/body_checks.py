@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from scissor_cli import geometry3d as g3
+from scissor_cli.config.body_imaging import body_imaging_problems
 from scissor_cli.config.body_mesh_file import read_body_mesh_arrays
 from scissor_cli.config.body_sections import BodyConfig
 from scissor_cli.config.checks import (
@@ -144,6 +145,7 @@ def body_problems(cfg: BodyConfig) -> list[Problem]:
     problems += _cup_problems(cfg, surface) + _forward_problems(cfg) + _grip_problems(cfg, surface)
     lo, hi = body_box(surface)
     problems += insertion_problems(cfg.insertion, float(np.max(hi - lo)))
+    problems += body_imaging_problems(cfg, surface, skin_normals)
     problems += surrogate_samples_problems(cfg.controller, len(cfg.cups))
     if cfg.solver.kind != "newton":
         problems.append((("solver", "kind"), f"{cfg.solver.kind!r}: a 3-D body is solved by Newton with its kept "
@@ -151,9 +153,8 @@ def body_problems(cfg: BodyConfig) -> list[Problem]:
     if cfg.trials.truth != "layer":
         problems.append((("trials", "truth"), "a 3-D scene's trials run against the body itself: leave trials.truth "
                          "out (the slab is the 2-D layer's 3-D check)"))
-    if cfg.trials.budget:
-        problems.append((("trials", "budget"), "the error budget of a 3-D scene (its 3-D sources, docs/model.md §20) "
-                         "is not built yet: leave trials.budget false (the trials themselves run)"))
+    if cfg.trials.budget and cfg.trials.count == 0:
+        problems.append((("trials", "budget"), "the error budget reruns the trials: it needs trials.count >= 1"))
     if cfg.tissue.accuracy_mm is not None and not (cfg.forward and cfg.targets):
         problems.append((("tissue", "accuracy_mm"), "the mesh is picked by the lesions' positions under the forward "
                          "cases: the scene needs at least one target and one forward case"))

@@ -17,6 +17,7 @@ import numpy as np
 from annotated_types import Len
 from pydantic import Field, field_validator, model_validator
 
+from scissor_cli.config.body_imaging import BodyImagingConfig
 from scissor_cli.config.sections import (
     MAX_TISSUE_MM,
     MIN_EDGE_MM,
@@ -234,6 +235,8 @@ class BodyConfig(_Section):
     manipulation_points: Optional[BodyManipulationPointsConfig] = None
     #: the needle inserted along each lesion's plan after its manipulation (docs/model.md §20, §12)
     insertion: Optional[InsertionConfig] = None
+    #: ultrasound with the probe on the skin instead of the camera(s) (docs/ultrasound.md, "On the body (3-D)")
+    imaging: Optional[BodyImagingConfig] = None
 
     @property
     def dim(self) -> int:

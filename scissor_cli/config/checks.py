@@ -384,6 +384,10 @@ def scene_problems(cfg: Config) -> list[Problem]:
     problems += _point_spacing_problems(cfg)
     if cfg.trials.budget and cfg.trials.count == 0:
         problems.append((("trials", "budget"), "the error budget reruns the trials: it needs trials.count >= 1"))
+    for name in ("registration_mm", "registration_deg", "lesion_stiffness_log_sd"):
+        if getattr(cfg.trials, name):
+            problems.append((("trials", name), "a 3-D scene's error source (the body's registration, the lesion's "
+                             "stiffness; docs/model.md §20): a layer has none, leave it out"))
     if not problems:  # reading a mesh file is worth it only for an otherwise sound scene
         problems += _mesh_file_problems(cfg, outline)
     return problems

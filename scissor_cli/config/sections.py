@@ -311,6 +311,12 @@ class TrialsConfig(_Section):
     probe_angle_sd_deg: Optional[Num(0.0, 10.0)] = None
     #: with `imaging`: the electronic noise's amplitude relative to imaging.snr_db's (1: that SNR; 0: no noise)
     electronic_noise_scale: Optional[Num(0.0, 10.0)] = None
+    #: a 3-D scene's: the body's registration in the robot's frame, σ of its offset per axis (mm) and of its
+    #: rotation about each axis (deg), about the body's origin: the needle goes in along the planned line moved so
+    registration_mm: Optional[Num(0.0, 50.0)] = None
+    registration_deg: Optional[Num(0.0, 30.0)] = None
+    #: a 3-D scene's: the lesion's stiffness factor (its region's E) times a log-normal factor of this σ
+    lesion_stiffness_log_sd: Optional[Spread] = None
     #: the error budget (docs/model.md §16): the trials again with one error source at a time
     budget: bool = False
 

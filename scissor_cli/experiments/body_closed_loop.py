@@ -29,7 +29,8 @@ from scissor_cli.config.body_sections import BodyConfig
 from scissor_cli.experiments.body_insertion import body_insertion_stage
 from scissor_cli.experiments.body_surrogate import body_surrogate_data
 from scissor_cli.experiments.body_trials import BodyTruth, body_sensor_model, model_controllers
-from scissor_cli.experiments.profiles import IMAGING_SPREADS, INSERTION_SPREADS, error_model
+from scissor_cli.experiments.error_budget import run_budget
+from scissor_cli.experiments.profiles import CAMERA_SPREADS, IMAGING_SPREADS, INSERTION_SPREADS, error_model
 from scissor_cli.experiments.run_cache import cache_dir
 from scissor_cli.experiments.sink import Manipulation, RunSink, product_key
 from scissor_cli.experiments.trial_stage import Execution, run_trial_stage
@@ -63,9 +64,11 @@ def body_loop_stages(cfg: BodyConfig, tissue: Tissue, sink: RunSink, summary, do
              for k, p in enumerate(plans) if p.feasible]
     if "trials" not in done:
         em = error_model(cfg.trials)
-        skipped = IMAGING_SPREADS + (INSERTION_SPREADS if cfg.insertion is None else ())
-        attrs = {"count": cfg.trials.count, "profile": cfg.trials.profile, "seed": cfg.seed, "sensor": "camera",
-                 "cameras": len(cfg.cameras) if cfg.cameras else 1, "controller_model": cfg.controller.model,
+        other_sensor = IMAGING_SPREADS if cfg.imaging is None else CAMERA_SPREADS  # the sensor not used
+        skipped = other_sensor + (INSERTION_SPREADS if cfg.insertion is None else ())
+        attrs = {"count": cfg.trials.count, "profile": cfg.trials.profile, "seed": cfg.seed,
+                 **({"sensor": "camera", "cameras": len(cfg.cameras) if cfg.cameras else 1} if cfg.imaging is None
+                    else {"sensor": "ultrasound"}), "controller_model": cfg.controller.model,
                  **({} if model_data is None else {"surrogate_error_mm": model_data.validation_error_mm}),
                  **{k: getattr(em, k) for k in em.__dataclass_fields__
                     if k not in ("profile",) + skipped},
@@ -75,6 +78,8 @@ def body_loop_stages(cfg: BodyConfig, tissue: Tissue, sink: RunSink, summary, do
                              {p.target: p.reason for p in plans if p.target not in planned}, dim=3)
         sink.mark_finished("trials")
     summary.trials_run = run_trial_stage(sink, cfg, tasks, execution)
+    if cfg.trials.budget:  # the trials again with one source at a time, the body's own too (docs/model.md §20)
+        summary.figures += run_budget(cfg, tasks, sink, execution, done)
 
 
 def _plan_stage(cfg: BodyConfig, tissue: Tissue, sink: RunSink) -> list[BodyNeedlePlan]:
@@ -102,14 +107,14 @@ def _plan_stage(cfg: BodyConfig, tissue: Tissue, sink: RunSink) -> list[BodyNeed
 def _manipulation_stage(cfg: BodyConfig, tissue: Tissue, truth: BodyTruth, plans: list, sink: RunSink,
                         done: frozenset[str], model_data=None) -> list:
     """Each planned lesion's closed loop and open-loop baseline on the body itself, seen without error."""
-    sensors = body_sensor_model(cfg, error_model(cfg.trials))
+    sensors = body_sensor_model(cfg, error_model(cfg.trials), truth.tissue.mesh)
     controllers = model_controllers(cfg, model_data)
     paths = []
     for k, (plan, target) in enumerate(zip(plans, tissue.scene.targets)):
         if not plan.feasible or product_key("manipulation", target.name) in done:
             continue
         desired = np.asarray(plan.desired, float)
-        run = control.TargetRun(sensor=sensors.nominal(desired), target=target.name,
+        run = control.TargetRun(sensor=sensors.nominal(desired, k, cfg.seed), target=target.name,
                                 direction=np.asarray(plan.direction, float), controller_factory=controllers(k),
                                 truth_factory=truth.factory(target.rest))
         closed = control.run_target(tissue, target.rest, desired, cfg.controller, run)

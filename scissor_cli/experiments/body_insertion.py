@@ -38,14 +38,15 @@ def body_insertion_stage(cfg: BodyConfig, truth: Tissue, plans: list, sink: RunS
     mesh); print each lesion's miss per strategy. Returns the figures' paths."""
     params = NeedleParams.from_config(cfg.insertion, cfg.needle, cfg.tissue.mesh)
     strategies = list(cfg.insertion.strategies)
-    sensors = body_sensor_model(cfg, error_model(cfg.trials))
+    sensors = body_sensor_model(cfg, error_model(cfg.trials), truth.mesh)
+    index = {t.name: k for k, t in enumerate(truth.scene.targets)}
     paths: list[Path] = []
     for target, plan in to_insert(truth.scene.targets, plans, done):
         strokes = np.asarray(plan.strokes, float)
         x0 = solve_equilibrium(truth, strokes).x
         path = NeedlePath(np.asarray(plan.entry, float), np.asarray(plan.direction, float), float(plan.depth_mm),
                           np.asarray(target.rest, float), target.name)
-        sensor = sensors.nominal(np.asarray(plan.desired, float))
+        sensor = sensors.nominal(np.asarray(plan.desired, float), index[target.name], cfg.seed)
         bar = StepBar(target.name, path.depth_mm, params, strategies)
         try:
             results = run_strategies(truth, x0, strokes, dict.fromkeys(strategies, path), params,

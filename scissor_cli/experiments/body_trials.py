@@ -29,7 +29,7 @@ from scissor_cli.control.allocation import along_mm, miss_mm
 from scissor_cli.control.models import MapController, SectionController
 from scissor_cli.control.plant import TruthView, true_tissue
 from scissor_cli.experiments.build import body_model, section_model
-from scissor_cli.experiments.profiles import ErrorModel, draw_trial, error_model, trial_needle
+from scissor_cli.experiments.profiles import ErrorModel, draw_body, draw_trial, error_model, trial_needle
 from scissor_cli.experiments.trial_types import TrialOutcome
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_strategies
 from scissor_cli.layer3d.surrogate import Surrogate
@@ -80,6 +80,13 @@ class BodyTruth:
             _, mesh, self.tissue = body_model(cfg)
             self.centroids = mesh.nodes[mesh.tetrahedra].mean(axis=1)
 
+    def lesion_scaled(self, E_field: np.ndarray, lesion: str, factor: float) -> np.ndarray:
+        """The trial's E field (M,) on the truth's tetrahedra with the lesion's own times `factor`."""
+        if factor == 1.0:
+            return E_field
+        mesh = self.tissue.mesh
+        return np.where(mesh.region == mesh.region_names.index(lesion), factor, 1.0) * E_field
+
     def factory(self, target_rest: np.ndarray) -> Optional[Callable]:
         """The `TargetRun.truth_factory` of the lesion at target_rest (3,) mm, or None (the truth is the model)."""
         if not self.finer:
@@ -90,8 +97,21 @@ class BodyTruth:
         return lambda perturbation: (true_tissue(fine, perturbation), view)
 
 
-def body_sensor_model(cfg, errors: ErrorModel) -> BodyCameraModel:
-    """The run's 3-D camera model: `cameras` (triangulating) or `camera`, the profile's pixel noise and bias."""
+def body_sensor_model(cfg, errors: ErrorModel, mesh=None):
+    """The run's 3-D sensor model: with `imaging`, the ultrasound with its probe on `mesh`'s skin
+    (`sensing.ultrasound.body_sensor`, the profile's imaging errors); else the camera model, `cameras`
+    (triangulating) or `camera`, with the profile's pixel noise and bias."""
+    if cfg.imaging is not None:
+        from scissor_cli.experiments.sensor_models import imaging_tables_for  # noqa: PLC0415 (pymust: only here)
+        from scissor_cli.sensing.ultrasound import ImagingErrors  # noqa: PLC0415
+        from scissor_cli.sensing.ultrasound.body_sensor import body_ultrasound_model  # noqa: PLC0415
+
+        if mesh is None:
+            raise ValueError("the body's ultrasound needs the body's mesh (its skin holds the probe)")
+        return body_ultrasound_model(cfg.imaging, mesh, cfg.targets, cfg.obstacles, imaging_tables_for(cfg.imaging),
+                                     cfg.needle.direction, ImagingErrors(
+                                         errors.sound_speed_sd_m_per_s, errors.probe_position_sd_mm,
+                                         errors.probe_angle_sd_deg, errors.electronic_noise_scale))
     return BodyCameraModel.from_config(cfg.cameras if cfg.cameras else cfg.camera,
                                        pixel_noise_px=errors.pixel_noise_px,
                                        localisation_error_mm=errors.localisation_error_mm,
@@ -106,7 +126,7 @@ class BodyTrialContext:
         self.scene, self.mesh, self.tissue = body_model(self.cfg, scale=self.cfg.controller.mesh_scale)
         self.truth = BodyTruth(self.cfg, self.tissue)
         self.errors: ErrorModel = error_model(self.cfg.trials)
-        self.sensors = body_sensor_model(self.cfg, self.errors)
+        self.sensors = body_sensor_model(self.cfg, self.errors, self.truth.tissue.mesh)
         self._guesses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.paths: dict[int, control.ModelPaths] = {}  # per target: the model's states the loops solved
         self.controllers: Optional[Callable] = None  # from the first task (a surrogate's samples come in it)
@@ -124,8 +144,10 @@ class BodyTrialContext:
         if self.controllers is None:
             self.controllers = model_controllers(self.cfg, task.controller_model)
         draw = draw_trial(self.errors, self.scene.material.nu, self.truth.centroids, self.cfg.seed, task.index, trial)
-        truth = control.TruthPerturbation(E_scale=draw.E_field, fiber_offset_rad=draw.fiber_offset_rad, nu=draw.nu,
-                                          eta_scale=draw.eta_scale)
+        body = draw_body(self.errors, self.cfg.seed, task.index, trial)
+        truth = control.TruthPerturbation(E_scale=self.truth.lesion_scaled(draw.E_field, task.name,
+                                                                           body.lesion_stiffness),
+                                          fiber_offset_rad=draw.fiber_offset_rad, nu=draw.nu, eta_scale=draw.eta_scale)
         desired = np.asarray(task.desired, float)
         sensor = self.sensors.for_trial(TrialDraws(draw.localisation_z, draw.rng,
                                                    (int(self.cfg.seed), task.index, trial), goal_mm=desired))
@@ -135,19 +157,25 @@ class BodyTrialContext:
             direction=np.asarray(task.direction, float), controller_factory=self.controllers(task.index),
             truth_factory=self.truth.factory(task.rest),
             model_paths=self.paths.setdefault(task.index, control.ModelPaths())))
-        miss, depth_error = self.insert(task, trial, truth, sensor, r)
+        # the needle goes in along the plan's line where the robot, registered with the trial's error, puts it
+        direction = body.rotation @ np.asarray(task.direction, float)
+        entry = body.moved(np.asarray(task.entry, float))[0] if task.entry is not None else None
+        miss, depth_error = self.insert(task, trial, truth, sensor, r, entry, direction)
         columns, table = r.history_table()
         final = np.asarray(r.final_error, float)
+        across = final if body.registered_exactly else final + desired - body.moved(desired)[0]  # from the line
         return TrialOutcome(
             target_index=task.index, trial=trial, ok=True, message=r.message, final_error=final,
             iterations=int(r.iterations), time_s=float(r.time_s), corridor_clear=False, clearance_mm=float("nan"),
             stop_reason=r.stop_reason, correctable_mm=float(r.correctable_error_mm),
             uncorrectable_mm=float(r.uncorrectable_error_mm), history_columns=list(columns), history=table,
-            miss_mm=miss_mm(final, task.direction), along_mm=along_mm(-final, task.direction),
-            insertion_miss_mm=miss, insertion_depth_error_mm=depth_error, trial_time_s=time.perf_counter() - t0)
+            miss_mm=miss_mm(across, direction), along_mm=along_mm(-across, direction),
+            insertion_miss_mm=miss, insertion_depth_error_mm=depth_error, trial_time_s=time.perf_counter() - t0,
+            lost_frames=int(getattr(sensor, "lost_frames", 0)), frames=int(getattr(sensor, "frames", 0)))
 
-    def insert(self, task, trial: int, truth, sensor, loop) -> tuple[np.ndarray, np.ndarray]:
-        """With `insertion`: each strategy's needle in the trial's true body from the loop's end, (miss, depth
+    def insert(self, task, trial: int, truth, sensor, loop, entry, direction) -> tuple[np.ndarray, np.ndarray]:
+        """With `insertion`: each strategy's needle in the trial's true body from the loop's end, along the line
+        from entry (3,) mm along direction (3,) (the plan's, moved by the registration's error), (miss, depth
         error) (S,) mm; else two empty arrays.
 
         As a layer's trial inserts (`trials.TrialContext.insert`): the profile's factors on the friction and
@@ -167,7 +195,7 @@ class BodyTrialContext:
         if plant is not nominal and "loop" in ins.strategies:
             model_x0 = solve_equilibrium(nominal, loop.final_strokes, start=loop.final_x,
                                          start_strokes=loop.final_strokes).x
-        path = NeedlePath(np.asarray(task.entry, float), np.asarray(task.direction, float), float(task.depth_mm),
+        path = NeedlePath(np.asarray(entry, float), np.asarray(direction, float), float(task.depth_mm),
                           np.asarray(task.rest, float), task.name)
         options = {k: InsertionOptions(k, self.cfg.controller, sensor.reseeded(rng), nominal, model_x0,
                                        keep_displacement=False) for k in ins.strategies}

@@ -17,7 +17,9 @@ is what is left of the ultrasound's error); material mismatch as four
 rows (E with its heterogeneity field; ν; η; the fiber angle); actuator
 (resolution and backlash); release slip (only when the run sets one); the
 3-D truth (with a `layer_check`: the slab against the layer); the needle
-(with `insertion`: the drawn friction and tip force);
+(with `insertion`: the drawn friction and tip force); a 3-D scene's own
+(docs/model.md §20): the body's registration in the robot's frame and the
+lesion's stiffness (a body has no slab or release-slip row);
 `none` (every source off: what is left is the loop's own tolerance, pixel
 rounding and, with insertion, the nominal needle drag; with `imaging`, the
 exact sensor: the imaging section left out and the `ideal` profile, since
@@ -34,14 +36,14 @@ from dataclasses import dataclass, field, replace
 from scissor_cli import progress
 from scissor_cli.config import Config, resolved_yaml
 from scissor_cli.experiments.pool import deferred_signals
-from scissor_cli.experiments.profiles import CAMERA_SPREADS, IMAGING_SPREADS, error_model
+from scissor_cli.experiments.profiles import BODY_SPREADS, CAMERA_SPREADS, IMAGING_SPREADS, error_model
 from scissor_cli.experiments.sink import product_key
 from scissor_cli.experiments.trials import execute_rows
 
 #: every `trials` field that switches an error source (their values: the profile's, or the config's)
 SOURCE_FIELDS = ("pixel_noise_px", "localisation_error_mm", "E_log_sd", "heterogeneity_log_sd", "nu_sd",
                  "eta_log_sd", "fiber_angle_sd_deg", "actuator_resolution_mm", "backlash_mm", "release_slip_mm",
-                 "friction_log_sd", "tip_force_log_sd") + IMAGING_SPREADS
+                 "friction_log_sd", "tip_force_log_sd") + IMAGING_SPREADS + BODY_SPREADS
 #: the rows of the budget and the fields each switches on, in the order they are reported
 ROWS: dict[str, tuple[str, ...]] = {
     "camera": ("pixel_noise_px",),
@@ -58,12 +60,18 @@ ROWS: dict[str, tuple[str, ...]] = {
     "release_slip": ("release_slip_mm",),
     "slab": (),
     "needle": ("friction_log_sd", "tip_force_log_sd"),
+    "registration": ("registration_mm", "registration_deg"),
+    "lesion_stiffness": ("lesion_stiffness_log_sd",),
     "none": (),
 }
 assert set(f for fs in ROWS.values() for f in fs) == set(SOURCE_FIELDS)
 #: the rows only a scene with imaging has, and those (the camera's) it then has not
 IMAGING_ROWS = ("sound_speed", "probe_calibration", "electronic_noise", "speckle")
 CAMERA_ROWS = tuple(name for name, fields in ROWS.items() if fields and set(fields) <= set(CAMERA_SPREADS))
+#: the rows only a 3-D scene has, and those a 3-D trial does not draw (the slab is a layer's truth; the release
+#: slip a layer's)
+BODY_ROWS = ("registration", "lesion_stiffness")
+LAYER_ROWS = ("slab", "release_slip")
 
 
 @dataclass(frozen=True)
@@ -78,12 +86,15 @@ def budget_plan(cfg: Config) -> BudgetPlan:
     """The budget's rows for a config: variant configs (trials.budget off) by row name, and the rows skipped."""
     values = {k: getattr(error_model(cfg.trials), k) for k in SOURCE_FIELDS}
     rows, notes = {}, []
-    if cfg.imaging is None:
+    imaging, body = getattr(cfg, "imaging", None), getattr(cfg, "dim", 2) == 3
+    if imaging is None:
         notes.append(f"no imaging rows ({', '.join(IMAGING_ROWS)}): the scene has no imaging section")
     else:
         notes.append(f"no {' or '.join(CAMERA_ROWS)} row: with imaging the camera's sources do not apply")
     for name, fields in ROWS.items():
-        if (name in IMAGING_ROWS and cfg.imaging is None) or (name in CAMERA_ROWS and cfg.imaging is not None):
+        if (name in IMAGING_ROWS and imaging is None) or (name in CAMERA_ROWS and imaging is not None):
+            continue
+        if (name in BODY_ROWS and not body) or (name in LAYER_ROWS and body):
             continue
         if name == "slab" and cfg.layer_check is None:
             notes.append("no 3-D truth row: the scene has no layer_check section")
@@ -98,7 +109,7 @@ def budget_plan(cfg: Config) -> BudgetPlan:
         truth = "slab" if name == "slab" else "layer"
         trials = {**on, "truth": truth, "budget": False}
         update = {}
-        if name == "none" and cfg.imaging is not None:  # the exact sensor (module docstring)
+        if name == "none" and imaging is not None:  # the exact sensor (module docstring)
             trials["profile"], update["imaging"] = "ideal", None
         rows[name] = cfg.model_copy(update={**update, "trials": cfg.trials.model_copy(update=trials)})
     return BudgetPlan(rows, notes)
@@ -119,7 +130,7 @@ def identical_trials(row: Config) -> bool:
     which stands for all its trials.
     """
     em = error_model(row.trials)
-    return row.imaging is None and not any(getattr(em, f) for f in SOURCE_FIELDS)
+    return getattr(row, "imaging", None) is None and not any(getattr(em, f) for f in SOURCE_FIELDS)
 
 
 def run_budget(cfg: Config, tasks: list, sink, execution, done: frozenset[str] = frozenset()) -> list:

@@ -91,6 +91,22 @@ exactly what it drew before:
 matched to the scanner's in the example scenes; a configured mismatch is a
 property of the scene and applies in every profile).
 
+A 3-D scene's own sources (docs/model.md §20, "Budget"), 0 in every
+profile because neither the paper nor its bench reports them, drawn on a
+stream of their own (`draw_body`):
+
+* ``registration_mm``, ``registration_deg``: the body's registration in
+  the robot's frame, σ of its offset per axis and of its rotation about
+  each axis (about the body's origin). The needle goes in along the
+  planned line moved by that error; the loop, which sees the lesion with
+  the camera(s), does not know it. A fiducial-based registration of a
+  phantom reaches about 1 mm target registration error; set it to the
+  setup's own;
+* ``lesion_stiffness_log_sd``: σ of the log of a factor on the lesion's
+  stiffness (its region's E, `targets[].stiffness_factor`), which imaging
+  does not measure well (elastography reports 2–5× the fat's E for
+  benign and malignant lesions alike).
+
 ``release_slip_mm`` (default 0 in every profile) is an optional extra source:
 the tissue slipping in the cup along the push axis after the loop stops,
 which the paper names as its main error (no prone position, no vertical
@@ -105,6 +121,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from scissor_cli.config import TrialsConfig
+from scissor_cli.geometry3d import rotation_matrix
 
 PROFILES: dict[str, dict[str, float]] = {
     "ideal": dict(
@@ -112,18 +129,21 @@ PROFILES: dict[str, dict[str, float]] = {
         fiber_angle_sd_deg=0.0, heterogeneity_log_sd=0.0, actuator_resolution_mm=0.0, backlash_mm=0.0,
         release_slip_mm=0.0, friction_log_sd=0.0, tip_force_log_sd=0.0,
         sound_speed_sd_m_per_s=0.0, probe_position_sd_mm=0.0, probe_angle_sd_deg=0.0, electronic_noise_scale=0.0,
+        registration_mm=0.0, registration_deg=0.0, lesion_stiffness_log_sd=0.0,
     ),
     "prosthesis": dict(
         pixel_noise_px=0.5, localisation_error_mm=0.3, E_log_sd=0.10, nu_sd=0.01, eta_log_sd=0.2,
         fiber_angle_sd_deg=10.0, heterogeneity_log_sd=0.05, actuator_resolution_mm=0.01, backlash_mm=0.02,
         release_slip_mm=0.0, friction_log_sd=0.2, tip_force_log_sd=0.2,
         sound_speed_sd_m_per_s=10.0, probe_position_sd_mm=0.2, probe_angle_sd_deg=0.5, electronic_noise_scale=1.0,
+        registration_mm=0.0, registration_deg=0.0, lesion_stiffness_log_sd=0.0,
     ),
     "ex_vivo": dict(
         pixel_noise_px=1.0, localisation_error_mm=0.6, E_log_sd=0.30, nu_sd=0.02, eta_log_sd=0.5,
         fiber_angle_sd_deg=20.0, heterogeneity_log_sd=0.30, actuator_resolution_mm=0.01, backlash_mm=0.02,
         release_slip_mm=0.0, friction_log_sd=0.4, tip_force_log_sd=0.4,
         sound_speed_sd_m_per_s=35.0, probe_position_sd_mm=0.2, probe_angle_sd_deg=0.5, electronic_noise_scale=1.0,
+        registration_mm=0.0, registration_deg=0.0, lesion_stiffness_log_sd=0.0,
     ),
 }
 
@@ -155,6 +175,9 @@ class ErrorModel:
     probe_position_sd_mm: float = 0.0
     probe_angle_sd_deg: float = 0.0
     electronic_noise_scale: float = 0.0
+    registration_mm: float = 0.0
+    registration_deg: float = 0.0
+    lesion_stiffness_log_sd: float = 0.0
 
     @property
     def exact_measurement(self) -> bool:
@@ -218,6 +241,42 @@ def draw_trial(model: ErrorModel, nu_model: float, centroids: np.ndarray, seed: 
         release_slip_mm=slip,
         rng=np.random.default_rng(rng.integers(0, 2**63 - 1)),
     )
+
+
+#: the ErrorModel fields only a 3-D scene uses (and stores)
+BODY_SPREADS = ("registration_mm", "registration_deg", "lesion_stiffness_log_sd")
+#: the tag of the 3-D sources' own stream
+BODY_STREAM = 14
+
+
+@dataclass(frozen=True)
+class BodyDraw:
+    """A 3-D trial's own sources: the registration's offset (3,) mm and rotation (3,) rad (about x, y, z) of the
+    body in the robot's frame, and the factor on the lesion's stiffness."""
+
+    offset_mm: np.ndarray
+    rotation_rad: np.ndarray
+    lesion_stiffness: float
+
+    def moved(self, points: np.ndarray) -> np.ndarray:
+        """Points (K, 3) mm of the body's frame where the robot, registered with this error, puts them."""
+        return np.atleast_2d(points) @ self.rotation.T + self.offset_mm
+
+    @property
+    def registered_exactly(self) -> bool:
+        return not (np.any(self.offset_mm) or np.any(self.rotation_rad))
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """(3, 3): the rotation by the rotation vector `rotation_rad`."""
+        return rotation_matrix(self.rotation_rad)
+
+
+def draw_body(model: ErrorModel, seed: int, target_index: int, trial: int) -> BodyDraw:
+    """Trial k's 3-D sources (docs/model.md §20, "Budget"), on a stream of their own: the other draws stay."""
+    z = np.random.default_rng([int(seed), int(target_index), int(trial), BODY_STREAM]).standard_normal(7)
+    return BodyDraw(model.registration_mm * z[:3], np.deg2rad(model.registration_deg) * z[3:6],
+                    float(np.exp(model.lesion_stiffness_log_sd * z[6])))
 
 
 #: the ErrorModel fields that only a scene with insertion uses (and stores)

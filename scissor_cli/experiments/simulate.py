@@ -26,7 +26,13 @@ from scissor_cli.experiments.imaging_stage import prepare_imaging
 from scissor_cli.experiments.insertion_stage import insertion_stage
 from scissor_cli.experiments.model_planning import reserved_scene
 from scissor_cli.experiments.needle_model_stage import needs_needle_models
-from scissor_cli.experiments.profiles import CAMERA_SPREADS, IMAGING_SPREADS, INSERTION_SPREADS, error_model
+from scissor_cli.experiments.profiles import (
+    BODY_SPREADS,
+    CAMERA_SPREADS,
+    IMAGING_SPREADS,
+    INSERTION_SPREADS,
+    error_model,
+)
 from scissor_cli.experiments.run_cache import cache_dir
 from scissor_cli.experiments.run_summary import RunSummary
 from scissor_cli.experiments.selection import select
@@ -248,7 +254,8 @@ def allocate_trial_arrays(sink: RunSink, cfg: Config, tasks: list[TargetTask], p
     other_sensor = CAMERA_SPREADS if cfg.imaging is not None else IMAGING_SPREADS
     attrs = {"count": cfg.trials.count, "profile": cfg.trials.profile, "seed": cfg.seed,
              "sensor": "camera" if cfg.imaging is None else "ultrasound",
-             **{k: v for k, v in asdict(em).items() if k not in ("profile",) + INSERTION_SPREADS + other_sensor}}
+             **{k: v for k, v in asdict(em).items()
+                if k not in ("profile",) + INSERTION_SPREADS + other_sensor + BODY_SPREADS}}
     if cfg.insertion is not None:
         attrs.update({k: getattr(em, k) for k in INSERTION_SPREADS})
         attrs["insertion_strategies"] = list(cfg.insertion.strategies)

@@ -229,6 +229,7 @@ class BodyCameraModel:
         return BodyCameraSensor(self.cameras, self._reference(draws.goal_mm), self.biases(draws), self._noise(),
                                 draws.rng)
 
-    def nominal(self, goal_mm=None) -> BodyCameraSensor:
-        """The sensor with no error drawn: exact projection, no noise, rounding or bias."""
+    def nominal(self, goal_mm=None, target_index: int = 0, seed: int = 0) -> BodyCameraSensor:
+        """The sensor with no error drawn: exact projection, no noise, rounding or bias (a camera draws nothing per
+        lesion or seed: target_index and seed are the ultrasound's, `sensing.ultrasound.body_sensor`)."""
         return BodyCameraSensor(self.cameras, self._reference(goal_mm), None, self._noise(), None, exact=True)

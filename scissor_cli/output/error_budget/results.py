@@ -1,6 +1,6 @@
 """The error budget in results.h5 and its summary (docs/contract.md, `/budget`; docs/model.md §16).
 
-`/budget/<row>/<target>/final_error` (T, 2), `.../miss_mm` (T,) or, with
+`/budget/<row>/<target>/final_error` (T, 2) ((T, 3) in a 3-D scene), `.../miss_mm` (T,) or, with
 insertion, (T, strategies), `.../failed` (T,) bool; `/budget/<row>` attrs:
 the trial settings the row switched on. `/budget` attrs: `sources` (the rows,
 `all` first: the run's own `/trials`), `profile`, `paper_max_mm`.
@@ -24,7 +24,8 @@ def write_budget_row(out: ResultsFile, row: str, fields: dict, outcomes: dict[st
     """One row's trials per target (`trials.TrialOutcome`s in trial order), stored whole."""
     for target, trials in outcomes.items():
         ok = np.array([o is not None and o.ok for o in trials])
-        final = np.array([o.final_error if k else np.zeros(2) for o, k in zip(trials, ok)], float).reshape(-1, 2)
+        dim = next((np.size(o.final_error) for o, k in zip(trials, ok) if k), 2)  # (3 in a 3-D scene)
+        final = np.array([o.final_error if k else np.zeros(dim) for o, k in zip(trials, ok)], float).reshape(-1, dim)
         if any(o is not None and np.size(o.insertion_miss_mm) for o in trials):
             width = max(np.size(o.insertion_miss_mm) for o in trials if o is not None)
             miss = np.array([o.insertion_miss_mm if k else np.zeros(width) for o, k in zip(trials, ok)], float)
@@ -33,7 +34,7 @@ def write_budget_row(out: ResultsFile, row: str, fields: dict, outcomes: dict[st
         g = f"budget/{row}/{target}"
         check_finite(f"/{g}/final_error", final)
         check_finite(f"/{g}/miss_mm", miss)
-        out.dataset(f"{g}/final_error", final, "mm", description="true minus desired, x and y")
+        out.dataset(f"{g}/final_error", final, "mm", description="true minus desired, x and y (and z in 3-D)")
         out.dataset(f"{g}/miss_mm", miss, "mm", description="miss across the needle (per strategy with insertion)")
         out.dataset(f"{g}/failed", ~ok, description="trial crashed: its numbers are fill values")
     out.attrs(f"budget/{row}", fields)
@@ -93,7 +94,8 @@ def budget_rows(budget: dict[str, dict[str, BudgetCell]], strategy: int = -1) ->
             var_all, ms_all = (_variance(total.final_error), _mean_square(total.final_error)) if total is not None \
                 else (0.0, 0.0)
             rec = {"source": row, "target": target, "trials": len(e)}
-            for name, values in (("x", e[:, 0] if len(e) else e), ("y", e[:, 1] if len(e) else e), ("miss", miss)):
+            axes = [("x", 0), ("y", 1)] + ([("z", 2)] if e.ndim == 2 and e.shape[1] == 3 else [])
+            for name, values in [(a, e[:, i] if len(e) else e) for a, i in axes] + [("miss", miss)]:
                 stats = (np.median(values), np.percentile(values, 95), np.max(values)) if len(values) else (0.0,) * 3
                 rec.update({f"{name}_median_mm": float(stats[0]), f"{name}_p95_mm": float(stats[1]),
                             f"{name}_max_mm": float(stats[2])})

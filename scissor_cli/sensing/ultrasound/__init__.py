@@ -9,9 +9,13 @@ imported only by the functions that use them.
 
 As the loop's sensor (`imaging_sensor`): `imaging_tables` per run,
 `UltrasoundModel` (a `sensing.sensor.SensorModel`), its `for_trial` and
-`nominal` sensors (`UltrasoundSensor`).
+`nominal` sensors (`UltrasoundSensor`). On a 3-D body (`body_pose`,
+`body_scatter`, `body_sensor`): `BodyProbePose` on the skin,
+`body_ultrasound_model` → `BodyUltrasoundModel` and its `BodyUltrasoundSensor`.
 """
 
+from scissor_cli.sensing.ultrasound.body_pose import BodyProbePose, imaging_pose, skin_pose
+from scissor_cli.sensing.ultrasound.body_sensor import BodyUltrasoundModel, BodyUltrasoundSensor, body_ultrasound_model
 from scissor_cli.sensing.ultrasound.fast import FrameKernels, fast_frame, frame_kernels, log_compress
 from scissor_cli.sensing.ultrasound.imaging_sensor import (
     ImagingErrors,
@@ -42,6 +46,8 @@ from scissor_cli.sensing.ultrasound.transducer import (
 from scissor_cli.sensing.ultrasound.validation import FastValidation, validate_fast
 
 __all__ = [
+    "BodyProbePose", "BodyUltrasoundModel", "BodyUltrasoundSensor", "body_ultrasound_model", "imaging_pose",
+    "skin_pose",
     "ECHOGENICITY_DB", "FastValidation", "FrameKernels", "ImageGrid", "ImagingErrors", "ImagingTables", "LINEAR_PROBES",
     "ProbeParams", "ProbePose", "PsfModel", "Scatterers", "SpeckleTracker", "TrackState", "TrackingParams",
     "UltrasoundModel", "UltrasoundSensor", "block_match", "build_psf", "draw_scatterers", "elevation_width_mm",

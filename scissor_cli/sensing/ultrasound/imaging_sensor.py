@@ -371,19 +371,10 @@ class UltrasoundSensor:
         self._counts.frames += 1
         if self._last_mm is None:
             self._last_mm = self._first_position(env)
-        elif self._tracker is None:
-            self._counts.lost += 1
         else:
-            before = copy.copy(self._tracker)
-            try:
-                st = self._tracker.update(env)
-                self.correlation = st.correlation
-                if st.correlation < LOST_CORRELATION:
-                    raise ValueError("no match")
-                self._last_mm = st.position_mm
-            except ValueError:  # the block or its search left the image, or nothing matched: hold the last position
-                self._tracker = before
-                self._counts.lost += 1
+            self._tracker, self._last_mm, lost, correlation = tracked(self._tracker, env, self._last_mm)
+            self._counts.lost += lost
+            self.correlation = self.correlation if correlation is None else correlation
         y = self.believed_pose.to_layer(self._last_mm)
         if self.recorded is not None:
             r = self.recorded
@@ -420,6 +411,26 @@ class UltrasoundSensor:
         other._tracker = copy.copy(self._tracker)
         other.recorded = None
         return other
+
+
+def tracked(tracker, env: np.ndarray, last_mm: np.ndarray) -> tuple[object, np.ndarray, bool, Optional[float]]:
+    """A later frame's lesion: (the tracker, its (lateral, depth) mm, lost, the match's correlation or None).
+
+    A `SpeckleTracker` follows it; when the block or its search leaves the
+    image, or nothing matches (correlation below LOST_CORRELATION), the last
+    position is held, the tracker kept as it was, and the frame is lost.
+    Without a tracker every frame holds the last position, lost.
+    """
+    if tracker is None:
+        return None, last_mm, True, None
+    before = copy.copy(tracker)
+    try:
+        st = tracker.update(env)
+    except ValueError:
+        return before, last_mm, True, None
+    if st.correlation < LOST_CORRELATION:
+        return before, last_mm, True, st.correlation
+    return tracker, st.position_mm, False, st.correlation
 
 
 def obstacle_echogenicity(names: Sequence[str], overrides: Optional[dict] = None) -> list[float]:
