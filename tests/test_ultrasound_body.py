@@ -19,10 +19,10 @@ import yaml
 from scissor_cli import geometry3d as g3
 from scissor_cli.config import ConfigError, parse_config
 from scissor_cli.config.body_imaging import PROBE_ELEVATION, PROBE_FREQUENCY_HZ, elevation_reach_mm
+from scissor_cli.mesh.probe import locate_in_tetrahedra
 from scissor_cli.sensing.sensor import TrialDraws, TrueState
 from scissor_cli.sensing.ultrasound import build_psf, elevation_width_mm, imaging_tables, probe_params
 from scissor_cli.sensing.ultrasound.body_pose import skin_pose, skin_surface
-from scissor_cli.sensing.ultrasound.body_scatter import locate_in_tetrahedra
 from scissor_cli.sensing.ultrasound.body_sensor import body_ultrasound_model
 
 from helpers import write_scene
