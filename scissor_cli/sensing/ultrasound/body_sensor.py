@@ -54,14 +54,15 @@ from scissor_cli.sensing.ultrasound.imaging_sensor import (
     LOCALISE_SEARCH_MM,
     NOISE_STREAM,
     NOMINAL_TRIAL,
-    POSE_STREAM,
     SOUND_SPEED_RANGE,
     SPECKLE_STREAM,
     TRACKING_JITTER_MM,
     WINDOW_SLACK_MM,
     ImagingErrors,
     ImagingTables,
+    drawn_sound_speed,
     obstacle_echogenicity,
+    pose_draws,
     tracked,
 )
 from scissor_cli.sensing.ultrasound.psf import SCATTERERS_PER_CELL
@@ -115,12 +116,9 @@ class BodyUltrasoundModel:
 
     def for_trial(self, draws: TrialDraws) -> "BodyUltrasoundSensor":
         """Trial k's sensor: its sound speed and calibration error, speckle and noise streams (module docstring)."""
-        key = tuple(int(k) for k in draws.key)
-        if len(key) < 2:
-            raise ValueError(f"an ultrasound trial needs its key (seed, target, trial), got {draws.key!r}")
-        z = np.random.default_rng(key + (POSE_STREAM,)).standard_normal(7)
+        key, z = pose_draws(draws, 7)
         e = self.errors
-        c_t = float(np.clip(self.sound_speed_m_per_s + e.sound_speed_sd_m_per_s * z[0], *SOUND_SPEED_RANGE))
+        c_t = drawn_sound_speed(self.sound_speed_m_per_s, e.sound_speed_sd_m_per_s, z[0])
         believed = self.pose.moved(e.probe_position_sd_mm * z[1:4], math.radians(e.probe_angle_sd_deg) * z[4:7])
         return BodyUltrasoundSensor(self, key[1], c_t, believed, key + (SPECKLE_STREAM,),
                                     np.random.default_rng(key + (NOISE_STREAM,)), draws.goal_mm)

@@ -185,12 +185,9 @@ class UltrasoundModel:
 
     def for_trial(self, draws: TrialDraws) -> "UltrasoundSensor":
         """Trial k's sensor: its sound speed and calibration error, speckle and noise streams (module docstring)."""
-        key = tuple(int(k) for k in draws.key)
-        if len(key) < 2:
-            raise ValueError(f"an ultrasound trial needs its key (seed, target, trial), got {draws.key!r}")
-        z = np.random.default_rng(key + (POSE_STREAM,)).standard_normal(4)
+        key, z = pose_draws(draws, 4)
         e = self.errors
-        c_t = float(np.clip(self.sound_speed_m_per_s + e.sound_speed_sd_m_per_s * z[0], *SOUND_SPEED_RANGE))
+        c_t = drawn_sound_speed(self.sound_speed_m_per_s, e.sound_speed_sd_m_per_s, z[0])
         offset = e.probe_position_sd_mm * (z[1] * self.pose.lateral + z[2] * self.pose.axis)
         turn = math.radians(e.probe_angle_sd_deg) * z[3]
         ca, sa = math.cos(turn), math.sin(turn)
@@ -411,6 +408,20 @@ class UltrasoundSensor:
         other._tracker = copy.copy(self._tracker)
         other.recorded = None
         return other
+
+
+def pose_draws(draws: TrialDraws, n: int) -> tuple[tuple[int, ...], np.ndarray]:
+    """A trial's key (seed, target, trial) and its n normals on POSE_STREAM: the sound speed's, then the probe
+    pose's calibration error (drawn whatever their σ, so one σ does not shift the others)."""
+    key = tuple(int(k) for k in draws.key)
+    if len(key) < 2:
+        raise ValueError(f"an ultrasound trial needs its key (seed, target, trial), got {draws.key!r}")
+    return key, np.random.default_rng(key + (POSE_STREAM,)).standard_normal(n)
+
+
+def drawn_sound_speed(nominal_m_per_s: float, sd_m_per_s: float, z: float) -> float:
+    """The trial's tissue sound speed (m/s) from its normal z, within SOUND_SPEED_RANGE."""
+    return float(np.clip(nominal_m_per_s + sd_m_per_s * z, *SOUND_SPEED_RANGE))
 
 
 def tracked(tracker, env: np.ndarray, last_mm: np.ndarray) -> tuple[object, np.ndarray, bool, Optional[float]]:
