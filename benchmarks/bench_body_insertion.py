@@ -6,12 +6,18 @@ parameters (§12), under `none`, `depth` and `loop` (both cups would move it; th
 the wall time, steps, the lesion's miss at the end, the last force, active-set passes that did not settle.
 Goal (§20): a 50 mm insertion in 0.5 mm steps ≤ 5 s at 30k tetrahedra.
 
-    PYTHONPATH=. python benchmarks/bench_body_insertion.py [--depth-mm 50] [--step-mm 0.5]
+Also, for `loop`'s J in 3-D (the kept factor's answer, `model_state.JACOBIAN_DIRECT_3D`): at every
+CHECK_EVERY-th step of an untimed `none` insertion, that J against PCG's converged one (the largest relative
+difference where PCG converges), and the capture radius's effect: the same insertion with the layer's default
+(half the coarsest edge) for the captured count, the time and the miss.
+
+    PYTHONPATH=. python benchmarks/bench_body_insertion.py [--depth-mm 50] [--step-mm 0.5] [--repeats 3]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from pathlib import Path
 
@@ -22,18 +28,44 @@ from scissor_cli import runtime
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "example_dome.yaml"
+#: steps between two checks of the direct J against the converged one
+CHECK_EVERY = 10
+
+
+def jacobian_check(tissue, probe, differences: list):
+    """A `record` hook: at every CHECK_EVERY-th step, J from the kept factor against PCG's converged J (appended
+    as (depth mm, relative difference))."""
+    from scissor_cli.insertion.model_state import ModelState
+
+    count = [0]
+
+    def record(state, x, strokes):
+        count[0] += 1
+        if count[0] % CHECK_EVERY or state.solver is None:
+            return
+        J = {}
+        for direct in (True, False):  # the kept factor's answer first: PCG may refresh it (this run is not timed)
+            model = ModelState(tissue, tissue, x, x, strokes)
+            model.direct = direct
+            J[direct] = model.jacobian(state, probe, state.solver, rows=2)[0]
+        if not model.direct:  # PCG converged (else it fell back on the factor's answer: nothing to compare)
+            differences.append((state.depth_mm, float(np.linalg.norm(J[True] - J[False]) / np.linalg.norm(J[False]))))
+
+    return record
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--depth-mm", type=float, default=50.0)
     ap.add_argument("--step-mm", type=float, default=0.5)
+    ap.add_argument("--repeats", type=int, default=3, help="timed runs per strategy (the median is reported)")
     args = ap.parse_args()
     runtime.configure()
     from scissor_cli.config import load_config
     from scissor_cli.config.sections import InsertionConfig
     from scissor_cli.experiments.build import body_model
     from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_strategies
+    from scissor_cli.insertion.points import needle_points
     from scissor_cli.planning.body_lines import skin_entries
     from scissor_cli.solvers.equilibrium import solve_equilibrium
 
@@ -51,17 +83,37 @@ def main() -> None:
     print(f"{cfg.name}: {mesh.n_elements} tetrahedra; {lesion.name} from {np.round(entries[0], 1).tolist()} along "
           f"{n.tolist()}, {args.depth_mm:g} mm in {args.step_mm:g} mm steps", flush=True)
     res.figure("tetrahedra", mesh.n_elements, "1")
+
+    def insert(strategy, p, record=None):
+        return run_strategies(tissue, x0, strokes, {strategy: path}, p,
+                              {strategy: InsertionOptions(strategy, cfg.controller, keep_displacement=False,
+                                                          record=record)})[0]
+
     rows = []
-    for strategy in ("none", "depth", "loop"):
-        t0 = time.perf_counter()
-        r = run_strategies(tissue, x0, strokes, {strategy: path}, params,
-                           {strategy: InsertionOptions(strategy, cfg.controller, keep_displacement=False)})[0]
-        wall = time.perf_counter() - t0
-        rows.append({"strategy": strategy, "steps": r.steps, "depth_mm": float(r.depth_mm[-1]), "wall_s": wall,
+    coarsest = dataclasses.replace(params, capture_radius_mm=0.5 * cfg.tissue.mesh.max_edge_mm * cfg.tissue.mesh.scale)
+    for strategy, p in [("none", params), ("depth", params), ("loop", params), ("none", coarsest)]:
+        walls = []
+        for _ in range(args.repeats if p is params else 1):
+            t0 = time.perf_counter()
+            r = insert(strategy, p)
+            walls.append(time.perf_counter() - t0)
+        wall = float(np.median(walls))
+        capture = "local" if p.capture_radius_mm is None else f"{p.capture_radius_mm:g} mm"
+        rows.append({"strategy": strategy, "capture": capture, "steps": r.steps, "depth_mm": float(r.depth_mm[-1]),
+                     "wall_s": wall, "repeats": len(walls), "captured": int(r.stuck[-1] + r.slipping[-1]),
                      "miss_mm": r.miss_mm, "force_mN": float(r.needle_force_mN[-1]), "unsettled": r.unsettled,
                      "stop": r.stop_reason})
-        print(f"  {strategy}: {r.steps} steps to {r.depth_mm[-1]:.1f} mm in {wall:.1f} s, miss {r.miss_mm:.3f} mm, "
+        print(f"  {strategy} (capture {capture}): {r.steps} steps to {r.depth_mm[-1]:.1f} mm in {wall:.1f} s "
+              f"(median of {len(walls)}), {rows[-1]['captured']} nodes captured, miss {r.miss_mm:.3f} mm, "
               f"force {r.needle_force_mN[-1]:.0f} mN ({r.stop_reason})", flush=True)
+    differences = []
+    insert("none", params, jacobian_check(tissue, needle_points(tissue, lesion.rest).probe, differences))
+    worst = max(d for _, d in differences)
+    print(f"  loop's J from the kept factor against PCG's: largest relative difference {worst:.2%} over "
+          f"{len(differences)} checks", flush=True)
+    res.figure("jacobian_direct_difference", worst, "relative")
+    res.table("jacobian_checks", [{"depth_mm": z, "difference": d} for z, d in differences],
+              {"depth_mm": "mm", "difference": "relative"})
     res.table("strategies", rows, {"depth_mm": "mm", "wall_s": "s", "miss_mm": "mm", "force_mN": "mN"})
     res.data("config", str(CONFIG.relative_to(ROOT)))
     res.write()

@@ -48,7 +48,8 @@ from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.experiments.build import build_model  # noqa: E402
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion  # noqa: E402
 from scissor_cli.insertion import needle as needle_module  # noqa: E402
-from scissor_cli.insertion.needle import NeedleState, advance, free_nodes  # noqa: E402
+from scissor_cli.insertion.capture import free_nodes  # noqa: E402
+from scissor_cli.insertion.needle import NeedleState, advance  # noqa: E402
 from scissor_cli.planning.needle_plan import plan_target  # noqa: E402
 from scissor_cli.solvers.equilibrium import solve_equilibrium  # noqa: E402
 

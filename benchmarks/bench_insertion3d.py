@@ -65,9 +65,10 @@ from scissor_cli.experiments.layer_check_stage import slab_resolution_stage  # n
 from scissor_cli.experiments.run_cache import CACHE_DIR  # noqa: E402
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, miss_and_depth_error, run_insertion  # noqa: E402
 from scissor_cli.insertion import run as insertion_run  # noqa: E402
+from scissor_cli.insertion.capture import free_nodes  # noqa: E402
 from scissor_cli.insertion.chord import ChordSolver  # noqa: E402
 from scissor_cli.insertion.model_table import tabulate  # noqa: E402
-from scissor_cli.insertion.needle import NeedleState, advance, free_nodes  # noqa: E402
+from scissor_cli.insertion.needle import NeedleState, advance  # noqa: E402
 from scissor_cli.insertion.steering import NeedleModel  # noqa: E402
 from scissor_cli.layer3d.check import slab_spec  # noqa: E402
 from scissor_cli.layer3d.slab import build_slab, slab_probe  # noqa: E402

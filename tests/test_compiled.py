@@ -107,7 +107,7 @@ def test_one_pass_gradient_and_stiffness_leave_inverted_elements_to_numpy(tissue
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_stiffness_times_equals_the_numpy_product(tissue, seed):
-    """Tissue.stiffness_times runs `compiled.packed_times_2d` in 2-D: Σ_e K_e v_e as fem.packed_times has it."""
+    """Tissue.stiffness_times runs `compiled.packed_times`: Σ_e K_e v_e as fem.packed_times has it."""
     x = _state(tissue, DEFORMATIONS[2], 0.15, seed)
     Ke = tissue.element_stiffness(x, project=bool(seed))
     v = np.random.default_rng(seed).standard_normal(x.size)

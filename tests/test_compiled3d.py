@@ -67,8 +67,11 @@ def test_stiffness_is_the_derivative_of_the_gradient(slab):
     h = 1e-6
     gp = compiled3d.energy_gradient(slab.ops, slab.params, x + h * v.reshape(x.shape))[1]
     gm = compiled3d.energy_gradient(slab.ops, slab.params, x - h * v.reshape(x.shape))[1]
-    Kv = fem.packed_times(slab.ops, compiled3d.element_stiffness(slab.ops, slab.params, x, False), v)
+    Ke = compiled3d.element_stiffness(slab.ops, slab.params, x, False)
+    Kv = fem.packed_times(slab.ops, Ke, v)
     np.testing.assert_allclose(Kv, (gp - gm) / (2 * h), rtol=1e-5, atol=1e-6 * np.abs(Kv).max())
+    # the compiled product (`compiled.packed_times`, what Tissue.stiffness_times runs) is numpy's
+    np.testing.assert_allclose(slab.stiffness_times(x, v, Ke), Kv, rtol=1e-12, atol=1e-12 * np.abs(Kv).max())
 
 
 @pytest.mark.parametrize("A", DEFORMATIONS[1:])

@@ -19,7 +19,8 @@ import pytest
 from scissor_cli.config import load_config
 from scissor_cli.experiments.build import build_model
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion
-from scissor_cli.insertion.needle import NeedleState, advance, free_nodes
+from scissor_cli.insertion.capture import free_nodes
+from scissor_cli.insertion.needle import NeedleState, advance
 
 import friction_reference
 from helpers import example_dict, write_scene

@@ -14,7 +14,8 @@ from scissor_cli import progress
 from scissor_cli.config import load_config
 from scissor_cli.experiments.build import build_model
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion, shaft_lengths
-from scissor_cli.insertion.needle import NeedleState, advance, free_nodes
+from scissor_cli.insertion.capture import free_nodes
+from scissor_cli.insertion.needle import NeedleState, advance
 from scissor_cli.solvers.newton import solve_newton
 
 from figure_checks import assert_png_drawn

@@ -18,8 +18,9 @@ import yaml
 from scissor_cli.config import parse_config
 from scissor_cli.experiments.build import build_model
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion
+from scissor_cli.insertion.capture import free_nodes
 from scissor_cli.insertion.chord import ChordSolver, Hold
-from scissor_cli.insertion.needle import NeedleState, advance, free_nodes, transverse_basis
+from scissor_cli.insertion.needle import NeedleState, advance, transverse_basis
 from scissor_cli.layer3d.slab import SlabSpec, build_slab
 from scissor_cli.solvers.common import Conditions, objective_gradient
 from scissor_cli.solvers.equilibrium import solve_equilibrium

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from scissor_cli.insertion import shaft_lengths
-from scissor_cli.insertion.needle import NeedleState, capture, free_nodes, transverse_basis
+from scissor_cli.insertion.capture import capture, capture_radii, free_nodes, node_edges
+from scissor_cli.insertion.needle import NeedleParams, NeedleState, transverse_basis
 from scissor_cli.insertion.run import miss_and_depth_error
 
 from figure_checks import assert_figure_readable
@@ -46,16 +47,54 @@ def test_capture_uses_the_3d_distance_to_the_axis():
         [-1.0, 0.0, 5.0],  # behind the entry
         [9.9, -1.9, 5.0],  # just inside, near the tip
     ])
-    got = capture(None, state, x, np.arange(len(x)), 2.0)
+    radii = np.full(len(x), 2.0)
+    got = capture(x, np.arange(len(x)), state.entry, state.direction, state.depth_mm, state.captured, radii)
     assert sorted(got.tolist()) == [0, 1, 5]
-    state.captured = np.array([1])
-    assert sorted(capture(None, state, x, np.arange(len(x)), 2.0).tolist()) == [0, 5]
+    assert sorted(capture(x, np.arange(len(x)), state.entry, state.direction, state.depth_mm, np.array([1]),
+                          radii).tolist()) == [0, 5]
+    # each node against its own radius: node 1 (1.5 mm off) is not captured with a 1.4 mm one
+    radii[1] = 1.4
+    assert sorted(capture(x, np.arange(len(x)), state.entry, state.direction, state.depth_mm, state.captured,
+                          radii).tolist()) == [0, 5]
 
 
 def test_2d_capture_unchanged():
     state = NeedleState(np.zeros(2), np.array([0.0, 1.0]), depth_mm=5.0)
     x = np.array([[1.9, 3.0], [-2.1, 3.0], [0.0, 5.5], [0.5, 0.0]])
-    assert sorted(capture(None, state, x, np.arange(4), 2.0).tolist()) == [0, 3]
+    assert sorted(capture(x, np.arange(4), state.entry, state.direction, state.depth_mm, state.captured,
+                          np.full(4, 2.0)).tolist()) == [0, 3]
+
+
+def test_node_edges_of_a_right_tetrahedron():
+    """Node 0 meets three unit edges; node 1 one unit edge and two √2 ones."""
+    X = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    mean, longest = node_edges(X, np.arange(4)[:, None])
+    np.testing.assert_allclose(mean, [1.0] + [(1.0 + 2.0 * np.sqrt(2.0)) / 3.0] * 3, rtol=1e-12)
+    np.testing.assert_allclose(longest, [1.0] + [np.sqrt(2.0)] * 3, rtol=1e-12)
+
+
+def test_a_body_captures_by_its_local_edge_and_a_layer_by_its_coarsest():
+    """The default radius (docs/model.md §20): a body's half mean edge at each node, a layer's half max edge."""
+    from scissor_cli.config import InsertionConfig, NeedleConfig
+    from scissor_cli.config.body_sections import BodyMeshConfig
+    from scissor_cli.config.sections import MeshConfig
+
+    body = NeedleParams.from_config(InsertionConfig(), NeedleConfig(), BodyMeshConfig(max_edge_mm=6.0, min_edge_mm=1.5))
+    assert body.capture_radius_mm is None
+    layer = NeedleParams.from_config(InsertionConfig(), NeedleConfig(), MeshConfig(max_edge_mm=4.0, min_edge_mm=1.0))
+    assert layer.capture_radius_mm == pytest.approx(2.0)
+    given = NeedleParams.from_config(InsertionConfig(capture_radius_mm=1.0), NeedleConfig(),
+                                     BodyMeshConfig(max_edge_mm=6.0, min_edge_mm=1.5))
+    assert given.capture_radius_mm == 1.0
+    # two tetrahedra sharing a face, the second three times the size: its apex takes half its own edges
+    X = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [3.0, 3.0, 3.0]])
+    corners = np.array([[0, 1, 2, 3], [1, 2, 3, 4]]).T
+    tissue = SimpleNamespace(mesh=SimpleNamespace(nodes=X, n_nodes=5), ops=SimpleNamespace(corners=corners))
+    np.testing.assert_array_equal(capture_radii(tissue, 2.5), 2.5)
+    local = capture_radii(tissue, None)
+    apex = np.linalg.norm(X[4] - X[1:4], axis=1).mean()
+    assert local[4] == pytest.approx(0.5 * apex)
+    assert local[0] == pytest.approx(0.5)
 
 
 def test_shares_along_the_axis_sum_to_the_depth_in_3d():

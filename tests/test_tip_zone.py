@@ -9,7 +9,8 @@ import yaml
 
 from scissor_cli.config import parse_config
 from scissor_cli.experiments.build import build_model
-from scissor_cli.insertion.needle import free_nodes, transverse_basis
+from scissor_cli.insertion.capture import free_nodes
+from scissor_cli.insertion.needle import transverse_basis
 from scissor_cli.insertion.tip_zone import tip_weights, unit_stencil, zone_mesh
 from scissor_cli.layer3d.slab import SlabSpec, build_slab
 

@@ -336,7 +336,7 @@ class InsertionConfig(_Section):
     #: radius of the disc about the tip that the tip force is spread over (mm)
     tip_zone_mm: Num(gt=0.0, hi=COORD_MM) = 2.0
     #: a node this close to the axis is captured when the tip passes it (mm);
-    #: None: half the mesh's coarsest edge (max_edge_mm × scale)
+    #: None: half the mesh's coarsest edge (max_edge_mm × scale); in a body half the mean edge at each node
     capture_radius_mm: Optional[Num(gt=0.0, hi=COORD_MM)] = None
     strategies: Annotated[list[Literal["none", "depth", "loop"]], Len(1, 3)] = ["none", "depth", "loop"]
 

@@ -1,6 +1,7 @@
 """Needle insertion and needle–tissue interaction (docs/model.md §12)."""
 
-from scissor_cli.insertion.needle import NeedleParams, NeedleState, shaft_lengths
+from scissor_cli.insertion.capture import shaft_lengths
+from scissor_cli.insertion.needle import NeedleParams, NeedleState
 from scissor_cli.insertion.run import (
     STRATEGIES,
     InsertionOptions,

@@ -233,3 +233,41 @@ def friction_rule(axial, lag, limit, free, slip, sign, lag_tol, force_error, pos
         if (free[k] and abs(over) <= force_error) or (slip[k] and abs(ahead) <= position_error):
             unclear = True
     return -1 if unclear else changed
+
+
+@njit(**_JIT)
+def best_elements(inv, origin, ok, points, best, worst, bary):
+    """Each point's element: the one whose smallest barycentric coordinate is the largest (the first on ties).
+
+    inv (E, d, d) the inverses of the elements' edge matrices (columns
+    x_a − x_0), origin (E, d) their first vertices, ok (E,) whether the
+    inverse exists (an element without one is never chosen), points (Q, d).
+    Into best (Q,) the element, worst (Q,) its smallest coordinate (−inf if
+    none is ok) and bary (Q, d + 1) its coordinates: the arg-max over every
+    element that `tip_zone._consistent_loads` took with numpy arrays of
+    Q × E × (d + 1).
+    """
+    n_points, d = points.shape
+    lam = np.empty(d + 1)
+    for q in range(n_points):
+        top, arg = -np.inf, 0
+        for e in range(inv.shape[0]):
+            if not ok[e]:
+                continue
+            total, beaten = 0.0, False
+            for i in range(d):
+                value = 0.0
+                for j in range(d):
+                    value += inv[e, i, j] * (points[q, j] - origin[e, j])
+                if value <= top:  # its smallest coordinate cannot beat the best: the common case, decided early
+                    beaten = True
+                    break
+                lam[i + 1] = value
+                total += value
+            if beaten or 1.0 - total <= top:
+                continue
+            lam[0] = 1.0 - total
+            top, arg = lam.min(), e
+            bary[q] = lam
+        best[q], worst[q] = arg, top
+    return best

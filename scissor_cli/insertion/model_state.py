@@ -27,7 +27,10 @@ rows (`ChordSolver.step`), and K v products from the exact element
 Hessians at the state. A kept factorisation is close to the current
 tangent, so a few iterations reach PCG_TOL; no factorisation is made unless
 they do not (then the kept one is refreshed at the state, where one
-iteration suffices). No residual enters J: it is the pure linear response. A body compressed
+iteration suffices). No residual enters J: it is the pure linear response. In 3-D (the slab, a body)
+J is the kept factor's answer with the hold's rows from the start (`JACOBIAN_DIRECT_3D`): each PCG
+iteration there costs a triangular solve and an element-by-element K v on tens of thousands of
+tetrahedra, and the kept factor's answer is within a percent of the converged one. A body compressed
 ahead of the tip can have a tangent that is not positive definite; the
 kept factor is then of its elements' positive semi-definite projection and
 PCG on the exact tangent does not converge even on a fresh one. From then
@@ -52,6 +55,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from scissor_cli.insertion.capture import free_nodes
 from scissor_cli.insertion.chord import ChordFailed, ChordSolver, Hold
 from scissor_cli.insertion.needle import (
     STEP_TOL,
@@ -59,7 +63,6 @@ from scissor_cli.insertion.needle import (
     NeedleParams,
     NeedleState,
     advance,
-    free_nodes,
     needle_conditions,
 )
 from scissor_cli.mechanics.tissue import Tissue
@@ -72,6 +75,10 @@ from scissor_cli.solvers.linear import conjugate_gradients
 PCG_TOL = 1e-8
 #: iterations before the kept factorisation is refreshed at the state (and then as many again)
 PCG_MAX = 40
+#: In 3-D the loop's J is the kept factor's answer with the hold, one triangular solve per cup, not PCG to
+#: PCG_TOL: a feedback gain the loop corrects, within 0.7 % of the converged J at every step of example_dome's
+#: 50 mm insertion, the loop's miss the same, for a third of its time (benchmarks/bench_body_insertion.py)
+JACOBIAN_DIRECT_3D = True
 #: a cup move's K_fD Δu_D is the gradient's change over this much of the move (mm, its largest boundary displacement)
 MOVE_PROBE_MM = 1e-3
 
@@ -97,9 +104,9 @@ class ModelState:
         #: PCG iterations and factorisations of the last `jacobian` (the benchmark's evidence)
         self.last_iterations = 0
         self.last_factorizations = 0
-        #: once PCG has failed on a fresh factor (a tangent that is not positive definite), each J is one solve
-        #: on the kept factor (`_held_response`)
-        self.direct = False
+        #: each J one solve on the kept factor (`_held_response`): in 3-D from the start (JACOBIAN_DIRECT_3D), in
+        #: 2-D once PCG has failed on a fresh factor (a tangent that is not positive definite)
+        self.direct = model.dim == 3 and JACOBIAN_DIRECT_3D
 
     def follow(self, state: NeedleState, x_plant: np.ndarray, strokes: np.ndarray, loads: np.ndarray) -> None:
         """Move to the model's equilibrium at strokes (C,) under the needle's hold and loads (2N,) as they stand.

@@ -50,7 +50,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from scissor_cli.config import InsertionConfig, MeshConfig, NeedleConfig
+from scissor_cli.config.body_sections import BodyMeshConfig
 from scissor_cli.insertion import kernels
+from scissor_cli.insertion.capture import capture, capture_radii, shaft_lengths
 from scissor_cli.insertion.chord import ChordFailed, ChordSolver, Hold, hold_conditions
 from scissor_cli.insertion.tip_zone import ZoneMesh, tip_weights, zone_mesh
 from scissor_cli.mechanics.tissue import Tissue
@@ -118,7 +120,8 @@ class NeedleParams:
     friction_kinetic_mN_per_mm: float = 10.0
     tip_force_mN: float = 100.0
     tip_zone_mm: float = 2.0
-    capture_radius_mm: float = 2.0
+    #: None: half the mean edge at each node (`capture.capture_radii`, a body's default)
+    capture_radius_mm: float | None = 2.0
     radius_mm: float = 0.6  # half the needle diameter: obstacle clearance
     #: the settled set's relative residual; None: by dimension (STEP_TOL, STEP_TOL_3D). When given, the
     #: passes before are solved to PASS_TOL (or to it, if tighter)
@@ -131,13 +134,16 @@ class NeedleParams:
         return (PASS_TOL, STEP_TOL) if d == 2 else (PASS_TOL_3D, STEP_TOL_3D)
 
     @classmethod
-    def from_config(cls, ins: InsertionConfig, needle: NeedleConfig, mesh: MeshConfig) -> "NeedleParams":
+    def from_config(cls, ins: InsertionConfig, needle: NeedleConfig, mesh: MeshConfig | BodyMeshConfig
+                    ) -> "NeedleParams":
         """From the `insertion`, `needle` and `tissue.mesh` sections.
 
-        The capture radius defaults to half the coarsest edge.
+        The capture radius defaults to half the coarsest edge in the layer and
+        the slab, and to half the mean edge at each node in a body (mesh a
+        `BodyMeshConfig`; `capture.capture_radii`).
         """
         capture = ins.capture_radius_mm
-        if capture is None:
+        if capture is None and not isinstance(mesh, BodyMeshConfig):
             capture = 0.5 * mesh.max_edge_mm * mesh.scale
         return cls(ins.step_mm, ins.friction_static_mN_per_mm, ins.friction_kinetic_mN_per_mm, ins.tip_force_mN,
                    ins.tip_zone_mm, capture, 0.5 * needle.diameter_mm)
@@ -170,6 +176,8 @@ class NeedleState:
     equilibrium: tuple | None = field(default=None, repr=False)
     #: the tissue's `tip_zone.ZoneMesh`, made at the first step
     zone: ZoneMesh | None = field(default=None, repr=False)
+    #: each node's capture radius (N,) mm (`capture.capture_radii`), made at the first step
+    radii_mm: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def across(self) -> np.ndarray:
@@ -229,48 +237,6 @@ def transverse_basis(direction: np.ndarray) -> np.ndarray:
     return np.stack([t, np.cross(n, t)])
 
 
-def free_nodes(tissue: Tissue) -> np.ndarray:
-    """Nodes (F,) whose every dof (2 or 3, `tissue.dim`) is free: the only ones a needle can capture or push."""
-    return np.flatnonzero(np.all(tissue.free_index.reshape(-1, tissue.dim) >= 0, axis=1))
-
-
-def shaft_lengths(axial: np.ndarray, depth_mm: float) -> np.ndarray:
-    """Shares l_i (P,) mm of the inserted length for captured nodes at axial positions (P,) mm.
-
-    Half of each neighbouring gap along the axis; the first node also takes
-    the gap to the entry, the last the gap to the tip, so Σ l_i = depth.
-    """
-    p = axial.size
-    if p == 0:
-        return np.zeros(0)
-    order = np.argsort(axial, kind="stable")
-    s = np.clip(axial[order], 0.0, depth_mm)
-    bounds = np.concatenate([[0.0], 0.5 * (s[1:] + s[:-1]), [depth_mm]])
-    lengths = np.empty(p)
-    lengths[order] = np.diff(bounds)
-    return lengths
-
-
-def capture(tissue: Tissue, state: NeedleState, x: np.ndarray, candidates: np.ndarray, radius_mm: float) -> np.ndarray:
-    """Newly captured nodes (Q,): not yet captured, projecting behind the tip and within radius_mm of the axis."""
-    rel = x[candidates] - state.entry
-    s = rel @ state.direction
-    if rel.shape[1] == 2:
-        distance = np.abs(rel @ state.across)
-    else:  # the 3-D distance to the axis: both transverse components
-        distance = np.linalg.norm(rel @ state.transverse.T, axis=1)
-    new = (s >= -1e-9) & (s <= state.depth_mm) & (distance <= radius_mm)
-    new_nodes = candidates[new]
-    return new_nodes[~_marks(x.shape[0], state.captured)[new_nodes]]
-
-
-def _marks(n_nodes: int, nodes: np.ndarray) -> np.ndarray:
-    """(n_nodes,) bool, True at nodes: membership by lookup (np.isin sorts both arrays)."""
-    marked = np.zeros(n_nodes, bool)
-    marked[nodes] = True
-    return marked
-
-
 def advance(
     tissue: Tissue, state: NeedleState, x: np.ndarray, strokes: np.ndarray, step_mm: float, params: NeedleParams,
     candidates: np.ndarray,
@@ -320,7 +286,9 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
     d = x.shape[1]
     old = state.captured.copy()
     state.depth_mm += step_mm
-    new = capture(tissue, state, x, candidates, params.capture_radius_mm)
+    if state.radii_mm is None:
+        state.radii_mm = capture_radii(tissue, params.capture_radius_mm)
+    new = capture(x, candidates, state.entry, n, state.depth_mm, old, state.radii_mm)
     captured = np.concatenate([old, new]).astype(np.int64)
     offset_new = (x[new] - state.entry) @ t.T
     offset = (np.concatenate([state.offset, offset_new[:, 0]]) if d == 2

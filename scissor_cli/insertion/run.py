@@ -38,8 +38,9 @@ import numpy as np
 
 from scissor_cli.config import ControllerConfig
 from scissor_cli.control.law import PID, split_error
+from scissor_cli.insertion.capture import free_nodes
 from scissor_cli.insertion.model_state import ModelInsertion, ModelState, move_held, moved_start
-from scissor_cli.insertion.needle import NeedleParams, NeedleState, advance, free_nodes, transverse_basis
+from scissor_cli.insertion.needle import NeedleParams, NeedleState, advance, transverse_basis
 from scissor_cli.insertion.points import is_body, needle_points
 from scissor_cli.insertion.steering import NeedleModel, TableSteering
 from scissor_cli.mechanics.tissue import Tissue

@@ -23,6 +23,8 @@ from functools import lru_cache
 
 import numpy as np
 
+from scissor_cli.insertion import kernels
+from scissor_cli.insertion.capture import node_edges
 from scissor_cli.mechanics.tissue import Tissue
 
 #: Gauss–Legendre points across the zone's radius, and directions over its half circle (2-D) or, per polar
@@ -78,14 +80,8 @@ class ZoneMesh:
 def zone_mesh(tissue: Tissue) -> ZoneMesh:
     """The `ZoneMesh` of the tissue's rest mesh."""
     corners = tissue.ops.corners  # (d + 1, M)
-    X = tissue.mesh.nodes
-    n_nodes, m = X.shape[0], corners.shape[1]
-    reach = np.zeros(n_nodes)
-    for a in range(corners.shape[0]):
-        for b in range(a):
-            length = np.linalg.norm(X[corners[a]] - X[corners[b]], axis=1)
-            np.maximum.at(reach, corners[a], length)
-            np.maximum.at(reach, corners[b], length)
+    n_nodes, m = tissue.mesh.n_nodes, corners.shape[1]
+    reach = node_edges(tissue.mesh.nodes, corners)[1]
     order = np.argsort(corners.ravel(), kind="stable")
     indptr = np.concatenate([[0], np.cumsum(np.bincount(corners.ravel(), minlength=n_nodes))])
     return ZoneMesh(2.0 * reach, indptr, (order % m).astype(np.int64))
@@ -130,16 +126,14 @@ def _consistent_loads(xe: np.ndarray, corners: np.ndarray, points: np.ndarray, w
     ok = np.abs(det) > 1e-300
     inv = np.zeros_like(edges)
     inv[ok] = np.linalg.inv(edges[ok])
-    rel = points[:, None, :] - xe[0][None]  # (Q, E, d)
-    lam = np.einsum("eij,qej->qei", inv, rel)  # (Q, E, d)
-    bary = np.concatenate([1.0 - lam.sum(axis=2, keepdims=True), lam], axis=2)  # (Q, E, d + 1)
-    worst = np.where(ok[None], bary.min(axis=2), -np.inf)
-    best = np.argmax(worst, axis=1)  # (Q,)
-    q = np.flatnonzero(worst[np.arange(points.shape[0]), best] >= -INSIDE_TOL)
+    n_points = points.shape[0]
+    best, worst, bary = np.empty(n_points, np.int64), np.empty(n_points), np.zeros((n_points, points.shape[1] + 1))
+    kernels.best_elements(inv, np.ascontiguousarray(xe[0]), ok, points, best, worst, bary)
+    q = np.flatnonzero(worst >= -INSIDE_TOL)
     if q.size == 0:
         return np.zeros(0, np.int64), np.zeros(0)
     e = best[q]
-    b = np.clip(bary[q, e], 0.0, None)
+    b = np.clip(bary[q], 0.0, None)
     b /= b.sum(axis=1, keepdims=True)
     node_ids = corners[:, e].T.ravel()  # (q · (d + 1),)
     contributions = (b * w[q, None]).ravel()

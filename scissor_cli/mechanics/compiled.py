@@ -345,28 +345,32 @@ def jacobians_2d(x, corners, grad_rows):
 
 
 @njit(**_JIT)
-def packed_times_2d(Ke, corners, v, out):
-    """out = Σ_e K_e v_e (2N,) for packed element matrices Ke (21, M) and v (2N,) (`fem.packed_times`), out
-    zeroed first.
+def packed_times(Ke, corners, v, out):
+    """out = Σ_e K_e v_e (dN,) for packed element matrices Ke (P, M) and v (dN,) (`fem.packed_times`), out zeroed
+    first; d = corners.shape[0] − 1 (2: triangles, P = 21; 3: tetrahedra, P = 78).
 
-    One pass over the elements instead of numpy's 36 whole-array products
-    and a bincount (the tangent predictor's K_fd δ_d; benchmarks/bench_forward.py).
+    One pass over the elements instead of numpy's whole-array products and
+    a bincount (the tangent predictor's K_fd δ_d, benchmarks/bench_forward.py;
+    the needle loop's held response, benchmarks/bench_body_insertion.py).
     """
+    d = corners.shape[0] - 1
+    n_dof = d * (d + 1)
     out[:] = 0.0
-    for e in range(corners.shape[1]):
-        n = 0
-        for p in range(6):
-            dp = 2 * corners[p // 2, e] + p % 2
-            vp = v[dp]
-            acc = 0.0
-            for q in range(p, 6):
-                dq = 2 * corners[q // 2, e] + q % 2
+    n = 0
+    # pair by pair, each over all elements: Ke's rows are read in order (element by element, a tetrahedron's 78
+    # entries lie M apart and the pass ran slower than numpy's)
+    for p in range(n_dof):
+        node_p, comp_p = p // d, p % d
+        for q in range(p, n_dof):
+            node_q, comp_q = q // d, q % d
+            for e in range(corners.shape[1]):
+                dp = d * corners[node_p, e] + comp_p
+                dq = d * corners[node_q, e] + comp_q
                 k = Ke[n, e]
-                acc += k * v[dq]
+                out[dp] += k * v[dq]
                 if q != p:
-                    out[dq] += k * vp
-                n += 1
-            out[dp] += acc
+                    out[dq] += k * v[dp]
+            n += 1
 
 
 @njit(**_JIT)

@@ -173,17 +173,15 @@ class Tissue:
         return pattern.assemble(self.element_stiffness(x, project) if Ke is None else Ke)
 
     def stiffness_times(self, x: np.ndarray, v: np.ndarray, Ke: np.ndarray | None = None) -> np.ndarray:
-        """K v (2N,) for a full vector v (2N,), element by element without assembling K.
+        """K v (dN,) for a full vector v (dN,), element by element without assembling K.
 
-        Ke (21, M), the exact packed element Hessians at x, saves evaluating them again.
+        Ke (21 or 78, M), the exact packed element Hessians at x, saves evaluating them again.
         """
         Ke = self.element_stiffness(x) if Ke is None else Ke
-        if self.dim == 2:  # one compiled pass (`compiled.packed_times_2d`)
-            out = np.empty(v.size)
-            compiled.packed_times_2d(np.ascontiguousarray(Ke, dtype=np.float64), self.ops.corners,
-                                     np.ascontiguousarray(v, dtype=np.float64), out)
-            return out
-        return fem.packed_times(self.ops, Ke, v)
+        out = np.empty(v.size)  # one compiled pass (`compiled.packed_times`)
+        compiled.packed_times(np.ascontiguousarray(Ke, dtype=np.float64), self.ops.corners,
+                              np.ascontiguousarray(v, dtype=np.float64), out)
+        return out
 
     def force_scale(self, grad: np.ndarray) -> float:
         """A force (mN) to make residuals relative: the Dirichlet reactions.
