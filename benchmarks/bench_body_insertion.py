@@ -11,6 +11,13 @@ CHECK_EVERY-th step of an untimed `none` insertion, that J against PCG's converg
 difference where PCG converges), and the capture radius's effect: the same insertion with the layer's default
 (half the coarsest edge) for the captured count, the time and the miss.
 
+Speed against error: `none` solved to each of TOLERANCES (every pass and step, `NeedleParams.step_tol`),
+its time and how far its lesion and force end from the tightest one's.
+
+And a trial with the needle (goal §20: every strategy ≤ 15 s): `scissor simulate` of example_dome with
+`insertion` (every strategy) and TRIALS trials per lesion, one process (`--jobs 1`); each trial's time from
+results.h5 (its loop and its three insertions in the drawn true body), and each strategy's miss.
+
     PYTHONPATH=. python benchmarks/bench_body_insertion.py [--depth-mm 50] [--step-mm 0.5] [--repeats 3]
 """
 
@@ -18,11 +25,16 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import subprocess
+import sys
+import tempfile
 import time
 from pathlib import Path
 
+import h5py
 import numpy as np
 import results_io
+import yaml
 
 from scissor_cli import runtime
 
@@ -30,6 +42,35 @@ ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "example_dome.yaml"
 #: steps between two checks of the direct J against the converged one
 CHECK_EVERY = 10
+#: the step tolerances of the speed-against-error sweep, the tightest the reference
+TOLERANCES = (1e-6, 1e-5, 1e-4, 3e-4, 1e-3)
+#: trials per lesion of the timed trials with the needle
+TRIALS = 2
+
+
+def trial_times(cfg_data: dict) -> tuple[list[dict], list[str]]:
+    """`scissor simulate` of the scene with every strategy and TRIALS trials per lesion, one process: a row per
+    trial (its time and each strategy's miss), and the strategies' names."""
+    scene = dict(cfg_data, insertion={"strategies": ["none", "depth", "loop"]},
+                 trials=dict(cfg_data["trials"], count=TRIALS))
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "dome_needle.yaml"
+        path.write_text(yaml.safe_dump(scene, sort_keys=False))
+        r = subprocess.run([sys.executable, "-m", "scissor_cli", "simulate", str(path), "--jobs", "1", "--out",
+                            str(Path(tmp) / "run"), "--quiet"], capture_output=True, text=True, cwd=tmp,
+                           env=results_io.subprocess_env())
+        if r.returncode != 0:
+            raise SystemExit(f"simulate failed ({r.returncode}):\n{r.stderr[-2000:]}")
+        rows = []
+        with h5py.File(Path(tmp) / "run" / "results.h5", "r") as f:
+            for target in f["trials"]:
+                g = f["trials"][target]
+                strategies = [str(x) for x in g["miss_mm"].attrs["strategies"]]
+                for k, (t, miss) in enumerate(zip(g["trial_time_s"][()], g["miss_mm"][()])):
+                    rows.append({"target": target, "trial": k, "trial_s": float(t),
+                                 "loop_s": float(g["time_s"][k]), **{f"miss_{s}_mm": float(m)
+                                                                    for s, m in zip(strategies, miss)}})
+    return rows, strategies
 
 
 def jacobian_check(tissue, probe, differences: list):
@@ -106,6 +147,22 @@ def main() -> None:
         print(f"  {strategy} (capture {capture}): {r.steps} steps to {r.depth_mm[-1]:.1f} mm in {wall:.1f} s "
               f"(median of {len(walls)}), {rows[-1]['captured']} nodes captured, miss {r.miss_mm:.3f} mm, "
               f"force {r.needle_force_mN[-1]:.0f} mN ({r.stop_reason})", flush=True)
+    sweep = []
+    for tol in TOLERANCES:
+        t0 = time.perf_counter()
+        r = insert("none", dataclasses.replace(params, step_tol=tol))
+        sweep.append({"step_tol": tol, "wall_s": time.perf_counter() - t0, "target": r.target[-1],
+                      "force_mN": float(r.needle_force_mN[-1]), "miss_mm": r.miss_mm})
+    reference = sweep[0]
+    for row in sweep:
+        row["target_off_mm"] = float(np.linalg.norm(row["target"] - reference["target"]))
+        row["force_off_mN"] = abs(row["force_mN"] - reference["force_mN"])
+    for row in sweep:
+        del row["target"]
+        print(f"  none solved to {row['step_tol']:.0e}: {row['wall_s']:.1f} s, lesion {row['target_off_mm']:.1e} mm "
+              f"from the {TOLERANCES[0]:.0e} solution's, force {row['force_off_mN']:.1e} mN off", flush=True)
+    res.table("tolerances", sweep, {"wall_s": "s", "force_mN": "mN", "miss_mm": "mm", "target_off_mm": "mm",
+                                    "force_off_mN": "mN"})
     differences = []
     insert("none", params, jacobian_check(tissue, needle_points(tissue, lesion.rest).probe, differences))
     worst = max(d for _, d in differences)
@@ -114,8 +171,16 @@ def main() -> None:
     res.figure("jacobian_direct_difference", worst, "relative")
     res.table("jacobian_checks", [{"depth_mm": z, "difference": d} for z, d in differences],
               {"depth_mm": "mm", "difference": "relative"})
+    trials, strategies = trial_times(yaml.safe_load(CONFIG.read_text()))
+    times = [x["trial_s"] for x in trials]
+    print(f"  a trial with the needle ({', '.join(strategies)}): median {np.median(times):.1f} s, slowest "
+          f"{max(times):.1f} s over {len(times)} trials", flush=True)
+    res.figure("trial_median_s", float(np.median(times)), "s")
+    res.figure("trial_max_s", float(max(times)), "s")
+    res.table("trials", trials, {"trial_s": "s", "loop_s": "s", **{f"miss_{s}_mm": "mm" for s in strategies}})
     res.table("strategies", rows, {"depth_mm": "mm", "wall_s": "s", "miss_mm": "mm", "force_mN": "mN"})
     res.data("config", str(CONFIG.relative_to(ROOT)))
+    res.data("default_step_tol", params.step_tol)
     res.write()
 
 

@@ -72,6 +72,12 @@ def test_stiffness_is_the_derivative_of_the_gradient(slab):
     np.testing.assert_allclose(Kv, (gp - gm) / (2 * h), rtol=1e-5, atol=1e-6 * np.abs(Kv).max())
     # the compiled product (`compiled.packed_times`, what Tissue.stiffness_times runs) is numpy's
     np.testing.assert_allclose(slab.stiffness_times(x, v, Ke), Kv, rtol=1e-12, atol=1e-12 * np.abs(Kv).max())
+    # a v on a few nodes (a cup's stroke): the product from the elements touching them alone is the same
+    local = np.zeros_like(v)
+    local[3 * slab.cup_nodes[0][:, None] + np.arange(3)] = 1.0
+    assert local.any()
+    Kl = fem.packed_times(slab.ops, Ke, local)
+    np.testing.assert_allclose(slab.stiffness_times_near(x, local), Kl, rtol=1e-12, atol=1e-12 * np.abs(Kl).max())
 
 
 @pytest.mark.parametrize("A", DEFORMATIONS[1:])

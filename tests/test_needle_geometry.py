@@ -11,7 +11,7 @@ import pytest
 
 from scissor_cli.insertion import shaft_lengths
 from scissor_cli.insertion.capture import capture, capture_radii, free_nodes, node_edges
-from scissor_cli.insertion.needle import NeedleParams, NeedleState, transverse_basis
+from scissor_cli.insertion.needle import STEP_TOL_BODY, NeedleParams, NeedleState, transverse_basis
 from scissor_cli.insertion.run import miss_and_depth_error
 
 from figure_checks import assert_figure_readable
@@ -74,15 +74,17 @@ def test_node_edges_of_a_right_tetrahedron():
 
 
 def test_a_body_captures_by_its_local_edge_and_a_layer_by_its_coarsest():
-    """The default radius (docs/model.md §20): a body's half mean edge at each node, a layer's half max edge."""
+    """The defaults (docs/model.md §20): a body's radius half the mean edge at each node, a layer's half the max edge;
+    a body's steps solved to STEP_TOL_BODY, a layer's by dimension."""
     from scissor_cli.config import InsertionConfig, NeedleConfig
     from scissor_cli.config.body_sections import BodyMeshConfig
     from scissor_cli.config.sections import MeshConfig
 
     body = NeedleParams.from_config(InsertionConfig(), NeedleConfig(), BodyMeshConfig(max_edge_mm=6.0, min_edge_mm=1.5))
-    assert body.capture_radius_mm is None
+    assert body.capture_radius_mm is None and body.step_tol == STEP_TOL_BODY
+    assert body.tolerances(3) == (STEP_TOL_BODY, STEP_TOL_BODY)
     layer = NeedleParams.from_config(InsertionConfig(), NeedleConfig(), MeshConfig(max_edge_mm=4.0, min_edge_mm=1.0))
-    assert layer.capture_radius_mm == pytest.approx(2.0)
+    assert layer.capture_radius_mm == pytest.approx(2.0) and layer.step_tol is None
     given = NeedleParams.from_config(InsertionConfig(capture_radius_mm=1.0), NeedleConfig(),
                                      BodyMeshConfig(max_edge_mm=6.0, min_edge_mm=1.5))
     assert given.capture_radius_mm == 1.0

@@ -60,11 +60,13 @@ from scissor_cli.insertion.chord import ChordFailed, ChordSolver, Hold
 from scissor_cli.insertion.needle import (
     STEP_TOL,
     STEP_TOL_3D,
+    STEP_TOL_BODY,
     NeedleParams,
     NeedleState,
     advance,
     needle_conditions,
 )
+from scissor_cli.insertion.points import is_body
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import TargetProbe, probe_targets, target_positions
 from scissor_cli.solvers.common import SolverError, objective_gradient
@@ -126,12 +128,12 @@ class ModelState:
         x = None
         if g is not None:
             try:
-                x = self.solver.converge(start, g, hold, STEP_TOL, loads)[0]
+                x = self.solver.converge(start, g, hold, settled_tol(model), loads)[0]
             except ChordFailed:
                 x = None
         if x is None:  # Newton from the last state, the hold placed, continuing from its strokes
             r = solve_equilibrium(model, strokes, start=hold.place(self.x), start_strokes=self.strokes,
-                                  conditions=needle_conditions(state, loads), tol=STEP_TOL)
+                                  conditions=needle_conditions(state, loads), tol=settled_tol(model))
             x = r.x
         self.x, self._x_plant, self.strokes = x, x_plant.copy(), strokes.copy()
 
@@ -169,12 +171,13 @@ class ModelState:
         # holds has J exactly 0 across the axis, and the loop must not divide by 1e-16)
         held_zero = Hold(hold.captured, np.zeros_like(hold.base), hold.stuck, hold.ride, hold.n, hold.t)
         free = model.free_dofs
-        Ke = model.element_stiffness(x)
+        Ke = None if self.direct else model.element_stiffness(x)  # (a direct J needs no K v but K_fD's)
         R = np.zeros((x.shape[1], model.n_cups))
         responses = np.zeros((model.n_cups,) + x.shape)
         its = 0
         for c in range(model.n_cups):
-            b = -model.stiffness_times(x, model.cup_displacement(c), Ke)
+            u_c = model.cup_displacement(c)
+            b = -(model.stiffness_times_near(x, u_c) if Ke is None else model.stiffness_times(x, u_c, Ke))
             d, k, direct = _held_response(model, solver, hold, x, Ke, b, free, tol, self.direct)
             self.direct = self.direct or direct
             its += k
@@ -239,7 +242,7 @@ def move_held(tissue: Tissue, state: NeedleState, x: np.ndarray, s: np.ndarray, 
     None: the strokes placed only); Newton (as a step's fallback) when they
     fail or that start inverts an element.
     """
-    tol = STEP_TOL if tissue.dim == 2 else STEP_TOL_3D  # an insertion step's settled residual (`needle`)
+    tol = settled_tol(tissue)
     hold = hold_at(state, x)
     predicted = moved_start(tissue, state, x, command) if responses is None else \
         x + np.tensordot(command - s, responses, axes=1)
@@ -253,6 +256,14 @@ def move_held(tissue: Tissue, state: NeedleState, x: np.ndarray, s: np.ndarray, 
     r = solve_equilibrium(tissue, command, start=x, start_strokes=s, conditions=needle_conditions(state, loads),
                           tol=tol)
     return r.x
+
+
+def settled_tol(tissue: Tissue) -> float:
+    """The relative residual an insertion step settles to in this tissue (`needle`'s by dimension, a body's own):
+    a cup move under the needle and the controller's model are solved to it too."""
+    if tissue.dim == 2:
+        return STEP_TOL
+    return STEP_TOL_BODY if is_body(tissue) else STEP_TOL_3D
 
 
 def moved_start(tissue: Tissue, state: NeedleState, x: np.ndarray, command: np.ndarray) -> np.ndarray:

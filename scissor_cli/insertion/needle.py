@@ -78,6 +78,11 @@ STEP_TOL = PASS_TOL
 #: `NeedleParams.step_tol` overrides.
 STEP_TOL_3D = 1e-4
 PASS_TOL_3D = 1e-4
+#: A body's passes and steps (`NeedleParams.from_config` of a body's mesh): its insertion is the
+#: trials' inner loop, and solving each step to 3e-4 instead of 1e-4 moves the lesion by a few
+#: hundredths of a micrometre, thousands of times below what a camera resolves, for fewer chord
+#: steps (benchmarks/bench_body_insertion.py's speed against error; docs/performance.md)
+STEP_TOL_BODY = 3e-4
 #: decide a pass from its chord step's prediction of the converged reactions and
 #: lags once no decision lies within GUARD_FORCE·res·(force scale) mN or
 #: GUARD_POSITION·res mm of its threshold (res the relative residual there)
@@ -123,14 +128,14 @@ class NeedleParams:
     #: None: half the mean edge at each node (`capture.capture_radii`, a body's default)
     capture_radius_mm: float | None = 2.0
     radius_mm: float = 0.6  # half the needle diameter: obstacle clearance
-    #: the settled set's relative residual; None: by dimension (STEP_TOL, STEP_TOL_3D). When given, the
-    #: passes before are solved to PASS_TOL (or to it, if tighter)
+    #: every pass's and the settled set's relative residual; None: by dimension (PASS_TOL and STEP_TOL,
+    #: PASS_TOL_3D and STEP_TOL_3D)
     step_tol: float | None = None
 
     def tolerances(self, d: int) -> tuple[float, float]:
         """(pass, step) relative residuals of an insertion step in dimension d."""
         if self.step_tol is not None:
-            return min(PASS_TOL, self.step_tol), self.step_tol
+            return self.step_tol, self.step_tol
         return (PASS_TOL, STEP_TOL) if d == 2 else (PASS_TOL_3D, STEP_TOL_3D)
 
     @classmethod
@@ -140,13 +145,15 @@ class NeedleParams:
 
         The capture radius defaults to half the coarsest edge in the layer and
         the slab, and to half the mean edge at each node in a body (mesh a
-        `BodyMeshConfig`; `capture.capture_radii`).
+        `BodyMeshConfig`; `capture.capture_radii`); a body's steps are solved
+        to STEP_TOL_BODY.
         """
+        body = isinstance(mesh, BodyMeshConfig)
         capture = ins.capture_radius_mm
-        if capture is None and not isinstance(mesh, BodyMeshConfig):
+        if capture is None and not body:
             capture = 0.5 * mesh.max_edge_mm * mesh.scale
         return cls(ins.step_mm, ins.friction_static_mN_per_mm, ins.friction_kinetic_mN_per_mm, ins.tip_force_mN,
-                   ins.tip_zone_mm, capture, 0.5 * needle.diameter_mm)
+                   ins.tip_zone_mm, capture, 0.5 * needle.diameter_mm, STEP_TOL_BODY if body else None)
 
 
 @dataclass
