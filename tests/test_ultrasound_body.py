@@ -25,6 +25,7 @@ from scissor_cli.sensing.ultrasound import build_psf, elevation_width_mm, imagin
 from scissor_cli.sensing.ultrasound.body_pose import skin_pose, skin_surface
 from scissor_cli.sensing.ultrasound.body_sensor import body_ultrasound_model
 
+from figure_checks import assert_png_drawn
 from helpers import write_scene
 from test_body_loop import SCENE
 from test_cli import run_cli
@@ -169,7 +170,8 @@ def test_validate_exits_2_on_each_bad_pose_without_a_traceback(tmp_path):
 
 def test_simulate_runs_the_body_loop_on_the_ultrasound(tmp_path):
     """`scissor simulate` end to end: the nominal manipulation and a trial read the probe; the history's y (the
-    elevation) is NaN, x and z are the ultrasound's."""
+    elevation) is NaN, x and z are the ultrasound's. The nominal manipulation's frames are /imaging/T1 in the
+    body's frame (K, 3) with the B-mode figure, and `report` reads the run."""
     data = scene()
     data["trials"] = {"count": 1, "profile": "ideal"}
     r = run_cli("simulate", write_scene(tmp_path, data), "--out", tmp_path / "run", "--quiet")
@@ -184,3 +186,16 @@ def test_simulate_runs_the_body_loop_on_the_ultrasound(tmp_path):
         true = table[:, [columns.index("true_x"), columns.index("true_z")]]
         assert np.all(np.isfinite(seen)) and np.max(np.abs(seen - true)) < 0.3
         assert f["trials/T1/frames"][0] >= len(table) and f["trials/T1/lost_frames"][0] == 0
+        im = f["imaging"]
+        frames, tracked, true = im["T1/frames"], im["T1/tracked"][()], im["T1/true"][()]
+        assert frames.shape[1:] == (im["grid_depth_mm"].size, im["grid_lateral_mm"].size)
+        assert tracked.shape == true.shape == (frames.shape[0], 3) and frames.shape[0] >= 2
+        assert np.shape(im.attrs["lateral_axis"]) == (3,) and np.shape(im.attrs["position_mm"]) == (3,)
+        # the scanner reports the lesion in the image plane, at the plan's elevation (the true one's is not seen)
+        lateral, axis = np.asarray(im.attrs["lateral_axis"]), np.asarray(im.attrs["axis"])
+        in_plane = (tracked - true) @ np.stack([lateral, axis]).T
+        assert np.max(np.abs(in_plane)) < 0.3
+        assert np.max(frames[-1]) > 0.0
+    assert_png_drawn(tmp_path / "run" / "imaging_T1.png")
+    r = run_cli("report", tmp_path / "run", "--out", tmp_path / "report")
+    assert r.returncode == 0, r.stderr

@@ -26,6 +26,7 @@ import numpy as np
 
 from scissor_cli import control, progress
 from scissor_cli.config.body_sections import BodyConfig
+from scissor_cli.experiments.body_imaging_stage import body_imaging_record
 from scissor_cli.experiments.body_insertion import body_insertion_stage
 from scissor_cli.experiments.body_surrogate import body_surrogate_data
 from scissor_cli.experiments.body_trials import BodyTruth, body_sensor_model, model_controllers
@@ -114,7 +115,10 @@ def _manipulation_stage(cfg: BodyConfig, tissue: Tissue, truth: BodyTruth, plans
         if not plan.feasible or product_key("manipulation", target.name) in done:
             continue
         desired = np.asarray(plan.desired, float)
-        run = control.TargetRun(sensor=sensors.nominal(desired, k, cfg.seed), target=target.name,
+        imaging = cfg.imaging is not None  # the closed loop's frames kept: /imaging and the B-mode figure
+        sensor = sensors.nominal(desired, k, cfg.seed, record=True) if imaging else sensors.nominal(desired, k,
+                                                                                                    cfg.seed)
+        run = control.TargetRun(sensor=sensor, target=target.name,
                                 direction=np.asarray(plan.direction, float), controller_factory=controllers(k),
                                 truth_factory=truth.factory(target.rest))
         closed = control.run_target(tissue, target.rest, desired, cfg.controller, run)
@@ -124,6 +128,9 @@ def _manipulation_stage(cfg: BodyConfig, tissue: Tissue, truth: BodyTruth, plans
             r.corridor_entry = np.asarray(plan.entry, float)
         # drawn on the truth's mesh: the nodes the loop ends with are its
         out = sink.manipulation(Manipulation(target.name, closed, opened, truth.tissue, target.rest, None))
+        if imaging and hasattr(sink, "imaging"):
+            paths += sink.imaging(body_imaging_record(cfg.imaging, target.name, plan, closed, sensor), truth.tissue,
+                                  [])
         sink.mark_finished(product_key("manipulation", target.name))
         paths += [p for p in np.atleast_1d(out) if p is not None]
         true_miss = float(np.linalg.norm((np.eye(3) - np.outer(plan.direction, plan.direction)) @ closed.final_error))

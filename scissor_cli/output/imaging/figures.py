@@ -35,6 +35,7 @@ from scissor_cli.mesh.outlines import boundary_loop, deformed_outlines, embed_ou
 from scissor_cli.output.figures import OBSTACLE, TISSUE, save
 from scissor_cli.output.insertion.figures import mesh_edges, pick_frames
 from scissor_cli.sensing.ultrasound import ProbePose, log_compress
+from scissor_cli.sensing.ultrasound.body_pose import BodyProbePose
 
 #: the displayed dynamic range (dB) unless the record's attrs give `dynamic_range_db`
 DYNAMIC_RANGE_DB = 50.0
@@ -51,8 +52,21 @@ DESIRED = "#7ddc1f"
 PROBE = "0.1"
 
 
-def pose(record: ImagingRecord) -> ProbePose:
-    """The probe's pose the scanner assumes (the record's position and axis)."""
+class PlaneView:
+    """A body's probe pose as the figures read it: body points (..., 3) → (lateral, depth) (..., 2) mm in the
+    image plane (their elevation, which the plane does not show, dropped)."""
+
+    def __init__(self, body_pose: BodyProbePose):
+        self.body_pose = body_pose
+
+    def to_probe(self, points_mm: np.ndarray) -> np.ndarray:
+        return self.body_pose.to_probe(points_mm)[..., :2]
+
+
+def pose(record: ImagingRecord) -> ProbePose | PlaneView:
+    """The probe's pose the scanner assumes (the record's position and axis; a body's also its lateral axis)."""
+    if np.size(record.probe_position_mm) == 3:
+        return PlaneView(BodyProbePose(record.probe_position_mm, record.probe_axis, record.attrs["lateral_axis"]))
     return ProbePose(record.probe_position_mm, record.probe_axis)
 
 
@@ -73,16 +87,16 @@ def in_db(record: ImagingRecord, ks) -> tuple[np.ndarray, float]:
 
 
 def needle_line(record: ImagingRecord, p: ProbePose, reach_mm: float) -> np.ndarray:
-    """The plan's needle line (2, 2) mm in the layer, long enough (± reach_mm about the entry) to cross any view."""
+    """The plan's needle line (2, d) mm in the scene, long enough (± reach_mm about the entry) to cross any view."""
     d = np.asarray(record.needle_direction, float)
-    d = d / max(float(np.hypot(*d)), 1e-12)
+    d = d / max(float(np.linalg.norm(d)), 1e-12)
     e = np.asarray(record.needle_entry, float)
     return np.array([e - reach_mm * d, e + reach_mm * d])
 
 
 def _reach_mm(record: ImagingRecord, extra: float = 0.0) -> float:
     lat, dep = np.asarray(record.grid_lateral_mm, float), np.asarray(record.grid_depth_mm, float)
-    far = float(np.hypot(*(np.asarray(record.needle_entry, float) - np.asarray(record.probe_position_mm, float))))
+    far = float(np.linalg.norm(np.asarray(record.needle_entry, float) - np.asarray(record.probe_position_mm, float)))
     return 2.0 * (far + float(np.ptp(lat) + np.ptp(dep)) + extra) + 1.0
 
 
@@ -114,13 +128,21 @@ def _caption(record: ImagingRecord, dr: float) -> str:
     if "assumed_sound_speed_m_per_s" in a and "sound_speed_m_per_s" in a:
         speeds = (f" (the scanner assumes {float(a['assumed_sound_speed_m_per_s']):.0f} m/s, the tissue's is "
                   f"{float(a['sound_speed_m_per_s']):.0f} m/s)")
+    plane = (" A body's needle line and lesions are projected into the image plane; the tracked lesion lies at the "
+             "plan's elevation." if np.size(record.probe_position_mm) == 3 else "")
     return (f"Depth is the scanner's apparent depth, echo time × assumed sound speed / 2{speeds}; the true lesion is "
-            f"drawn at its true depth. Points mapped into the probe frame with the probe's pose. "
+            f"drawn at its true depth. Points mapped into the probe frame with the probe's pose.{plane} "
             f"0\u00a0dB: the brightest pixel shown; {dr:.0f}\u00a0dB displayed.")
 
 
-def _miss(record: ImagingRecord, k: int) -> float:
-    return float(np.hypot(*(np.asarray(record.tracked[k], float) - np.asarray(record.true[k], float))))
+def _miss(record: ImagingRecord, k: int, p) -> str:
+    """|tracked − true| at frame k; a body's split into the image plane's part and the elevation it does not see."""
+    tracked, true = np.asarray(record.tracked[k], float), np.asarray(record.true[k], float)
+    if isinstance(p, PlaneView):
+        apart = p.body_pose.to_probe(true) - p.body_pose.to_probe(tracked)
+        return (f"tracked − true: {float(np.hypot(apart[0], apart[1])):.2f} mm in plane,\n"
+                f"{abs(float(apart[2])):.2f} mm in elevation (unseen)")
+    return f"|tracked − true| {float(np.linalg.norm(tracked - true)):.2f} mm"
 
 
 def bmode_figure(record: ImagingRecord, title: str) -> Figure:
@@ -136,7 +158,7 @@ def bmode_figure(record: ImagingRecord, title: str) -> Figure:
         im, k_art, t_art, _ = _bmode_axes(ax, record, img, dr, p)
         k_art.set_data([tracked[k, 0]], [tracked[k, 1]])
         t_art.set_data([true[k, 0]], [true[k, 1]])
-        ax.set_title(f"{name}: frame {k + 1}/{K}, |tracked − true| {_miss(record, k):.2f} mm", fontsize=9)
+        ax.set_title(f"{name}: frame {k + 1}/{K}\n{_miss(record, k, p)}", fontsize=9)
     axes[1].plot(tracked[:, 0], tracked[:, 1], "-", color=TRACKED, lw=0.8, alpha=0.8, label="tracked path")
     axes[1].plot(true[:, 0], true[:, 1], "--", color=TRUE, lw=0.8, alpha=0.8, label="true path")
     axes[0].set_ylabel(_depth_label(record))
@@ -229,8 +251,7 @@ def imaging_animation(path: Path | str, record: ImagingRecord, tissue, layer_fra
         tracked_t.set_data([record.tracked[k][0]], [record.tracked[k][1]])
         when = f", t = {k * float(frame_time):.2f} s" if frame_time is not None else ""
         stroke = ", ".join(f"{s:+.2f}" for s in strokes[k])
-        caption.set_text(f"{title}\nframe {k + 1}/{K}{when}; strokes ({stroke}) mm; "
-                         f"|tracked − true| {_miss(record, k):.2f} mm")
+        caption.set_text(f"{title}\nframe {k + 1}/{K}{when}; strokes ({stroke}) mm; {_miss(record, k, p)}")
         return [im, k_art, t_art, skin, lines, true_t, tracked_t, caption, *obstacles]
 
     draw(0)
@@ -244,10 +265,12 @@ def imaging_animation(path: Path | str, record: ImagingRecord, tissue, layer_fra
 def imaging_outputs(record: ImagingRecord, tissue, layer_frames: list, out_dir: Path) -> list[Path]:
     """imaging_<target>.png (before | after) and imaging_<target>.gif (the manipulation beside the tissue).
 
-    layer_frames: the tissue's nodes (N, 2) mm at each of the record's K frames.
+    layer_frames: the tissue's nodes (N, 2) mm at each of the record's K frames. A body's record (3-D): the
+    PNG alone, its needle line and lesions projected into the image plane (no animation beside a 3-D body).
     """
     K = len(record.frames)
-    if len(layer_frames) != K:
+    body = np.size(record.probe_position_mm) == 3
+    if not body and len(layer_frames) != K:
         raise ValueError(f"imaging {record.target}: {len(layer_frames)} tissue frames for {K} B-mode frames")
     a = record.attrs
     probe = f"{a['probe']}, " if "probe" in a else ""
@@ -255,6 +278,8 @@ def imaging_outputs(record: ImagingRecord, tissue, layer_frames: list, out_dir: 
     name = tissue.scene.name
     png = save(bmode_figure(record, f"{name} — {record.target}: B-mode before and after the manipulation "
                                     f"({probe}{model}{K} frames)"), Path(out_dir) / f"imaging_{record.target}.png")
+    if body:
+        return [png]
     title = f"{name} — {record.target}: the manipulation in B-mode ({probe.rstrip(', ') or 'ultrasound'})"
     gif = imaging_animation(Path(out_dir) / f"imaging_{record.target}.gif", record, tissue, layer_frames, title)
     return [png, gif]

@@ -11,7 +11,8 @@ Layout:
   `position_mm` and `axis`, the probe's pose. Also one per run: a later
   target's must be the same.
 * `/imaging/<target>/frames` (K, H, W) float32: the envelope, linear; one
-  gzip chunk per frame. `tracked`, `true` (K, 2) mm in the layer's frame,
+  gzip chunk per frame. `tracked`, `true` (K, 2) mm in the layer's frame
+  ((K, 3) in a body's, whose /imaging attrs add `lateral_axis`),
   `strokes` (K, C) mm; attrs `needle_entry`, `needle_direction`, `desired`.
 
 Every array goes through `ResultsFile`'s finite check first.
@@ -60,8 +61,11 @@ def check_record(record: ImagingRecord) -> tuple[int, int, int]:
     if frames.ndim != 3 or frames.shape[1:] != (H, W) or frames.shape[0] < 1:
         raise ValueError(f"imaging {record.target}: frames must be (K, H, W) = (K, {H}, {W}), got {frames.shape}")
     K = frames.shape[0]
-    expected = {"tracked": (K, 2), "true": (K, 2), "needle_entry": (2,), "needle_direction": (2,),
-                "desired": (2,), "probe_position_mm": (2,), "probe_axis": (2,)}
+    d = 3 if np.size(record.probe_position_mm) == 3 else 2  # a body's record is in 3-D (its pose has a lateral)
+    expected = {"tracked": (K, d), "true": (K, d), "needle_entry": (d,), "needle_direction": (d,),
+                "desired": (d,), "probe_position_mm": (d,), "probe_axis": (d,)}
+    if d == 3 and np.shape(record.attrs.get("lateral_axis")) != (3,):
+        raise ValueError(f"imaging {record.target}: a body's record needs attrs['lateral_axis'] (3,)")
     for name, shape in expected.items():
         if np.shape(getattr(record, name)) != shape:
             raise ValueError(f"imaging {record.target}: {name} must be {shape}, got {np.shape(getattr(record, name))}")
@@ -161,10 +165,12 @@ def write_imaging(out: ResultsFile, record: ImagingRecord, cup_names: list[str] 
     out.h5.create_dataset(f"{base}/frames", data=frames, chunks=(1, H, W), **FRAME_COMPRESSION)
     out.attrs(f"{base}/frames", {"units": "1", "description": "envelope per frame (K, H, W), linear, before log "
                                  "compression; rows: grid_depth_mm, columns: grid_lateral_mm; arbitrary scale"})
-    out.dataset(f"{base}/tracked", paths["tracked"], "mm", columns=["x", "y"],
-                description="the lesion's position the tracking reports per frame, in the layer's frame")
-    out.dataset(f"{base}/true", paths["true"], "mm", columns=["x", "y"],
-                description="the true target per frame, in the layer's frame (in-plane)")
+    columns = ["x", "y", "z"][:paths["tracked"].shape[1]]
+    out.dataset(f"{base}/tracked", paths["tracked"], "mm", columns=columns,
+                description="the lesion's position the tracking reports per frame, in the scene's frame (a body: "
+                            "at the plan's elevation, which one image plane does not see)")
+    out.dataset(f"{base}/true", paths["true"], "mm", columns=columns,
+                description="the true target per frame, in the scene's frame (the layer: in-plane)")
     named = cup_names is not None and len(cup_names) == paths["strokes"].shape[1]
     strokes_attrs = {"columns": list(cup_names)} if named else {}
     out.dataset(f"{base}/strokes", paths["strokes"], "mm", description="cup strokes per frame", **strokes_attrs)

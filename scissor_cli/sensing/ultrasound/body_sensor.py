@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import copy
 import math
+import time
 from dataclasses import dataclass
 from typing import Optional
 
@@ -60,6 +61,7 @@ from scissor_cli.sensing.ultrasound.imaging_sensor import (
     WINDOW_SLACK_MM,
     ImagingErrors,
     ImagingTables,
+    Recording,
     drawn_sound_speed,
     obstacle_echogenicity,
     pose_draws,
@@ -123,12 +125,13 @@ class BodyUltrasoundModel:
         return BodyUltrasoundSensor(self, key[1], c_t, believed, key + (SPECKLE_STREAM,),
                                     np.random.default_rng(key + (NOISE_STREAM,)), draws.goal_mm)
 
-    def nominal(self, goal_mm=None, target_index: int = 0, seed: int = 0) -> "BodyUltrasoundSensor":
+    def nominal(self, goal_mm=None, target_index: int = 0, seed: int = 0,
+                record: bool = False) -> "BodyUltrasoundSensor":
         """The sensor of lesion target_index with no error drawn: the configured pose and sound speeds, the
-        speckle of (seed, target, NOMINAL_TRIAL)."""
+        speckle of (seed, target, NOMINAL_TRIAL); record: keep every frame (`BodyUltrasoundSensor.recorded`)."""
         key = (int(seed), int(target_index), NOMINAL_TRIAL)
         return BodyUltrasoundSensor(self, target_index, self.sound_speed_m_per_s, self.pose, key + (SPECKLE_STREAM,),
-                                    np.random.default_rng(key + (NOISE_STREAM,)), goal_mm)
+                                    np.random.default_rng(key + (NOISE_STREAM,)), goal_mm, record)
 
     def error_reach_mm(self, depth_mm: float) -> float:
         """What the drawn errors can do, 3σ, to where the scanner sees a lesion at depth_mm (mm)."""
@@ -162,7 +165,8 @@ class BodyUltrasoundSensor:
     """
 
     def __init__(self, model: BodyUltrasoundModel, target_index: int, tissue_sound_speed_m_per_s: float,
-                 believed_pose: BodyProbePose, speckle_key: tuple, rng: np.random.Generator, goal_mm=None):
+                 believed_pose: BodyProbePose, speckle_key: tuple, rng: np.random.Generator, goal_mm=None,
+                 record: bool = False):
         self.model, self.target_index = model, int(target_index)
         self.tissue_sound_speed_m_per_s = float(tissue_sound_speed_m_per_s)
         self.true_pose, self.believed_pose = model.pose, believed_pose
@@ -190,6 +194,10 @@ class BodyUltrasoundSensor:
         self._last_mm: Optional[np.ndarray] = None
         self._counts = {"frames": 0, "lost": 0}  # shared with reseeded copies
         self.correlation = float("nan")
+        #: every frame with the reported lesion (3,) and the true one (3,) body mm, when asked (the nominal run's
+        #: B-mode figure and /imaging); its nodes are not kept
+        self.recorded: Optional[Recording] = Recording() if record else None
+        self._env: Optional[np.ndarray] = None  # the last frame, kept while recording
 
     @property
     def noise_mm(self) -> float:
@@ -275,6 +283,7 @@ class BodyUltrasoundSensor:
     def image_position(self, state: TrueState) -> np.ndarray:
         """One frame; the lesion's (lateral, apparent depth) mm in it, localised (first frame) or tracked."""
         env = self.frame(state)
+        self._env = env if self.recorded is not None else None
         self._counts["frames"] += 1
         if self._last_mm is None:
             self._last_mm = self._first_position(env)
@@ -292,7 +301,15 @@ class BodyUltrasoundSensor:
 
     def measure(self, state: TrueState) -> np.ndarray:
         """(3,) body mm, NaN in the coordinates along the elevation (module docstring)."""
-        return np.where(self.unseen, np.nan, self.point(self.image_position(state)))
+        t0 = time.perf_counter()
+        reported = self.point(self.image_position(state))
+        if self.recorded is not None:
+            r = self.recorded
+            r.frames.append(self._env)
+            r.tracked.append(reported)
+            r.true.append(np.array(state.target_mm, float).reshape(3))
+            r.frame_time_s.append(time.perf_counter() - t0)
+        return np.where(self.unseen, np.nan, reported)
 
     def _first_position(self, env: np.ndarray) -> np.ndarray:
         g = self.grid
@@ -313,6 +330,7 @@ class BodyUltrasoundSensor:
         other = copy.copy(self)
         other.rng = rng
         other._tracker = copy.copy(self._tracker)
+        other.recorded = None
         return other
 
 
