@@ -9,6 +9,7 @@ its lateral axis the needle's (in-plane guidance: the image plane is the needle'
 from __future__ import annotations
 
 import copy
+import csv
 import math
 
 import h5py
@@ -199,3 +200,5 @@ def test_simulate_runs_the_body_loop_on_the_ultrasound(tmp_path):
     assert_png_drawn(tmp_path / "run" / "imaging_T1.png")
     r = run_cli("report", tmp_path / "run", "--out", tmp_path / "report")
     assert r.returncode == 0, r.stderr
+    rows = list(csv.DictReader((tmp_path / "report" / "summary.csv").open()))
+    assert rows and all(row["controller"] == "body" and row["sensor"] == "ultrasound" for row in rows)

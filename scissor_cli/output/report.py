@@ -112,14 +112,16 @@ def _extra_iterations(g, trials: np.ndarray, step_mm: Optional[np.ndarray]) -> O
 
 def _controller(f) -> tuple[str, float, float]:
     """(kind[+broyden], build time s, error mm) of a run's controller model; a run without /controller_model: the
-    layer."""
+    kind its /trials name (a body's `body`), else the layer."""
     if "controller_model" in f:
         a = f["controller_model"].attrs
         update = str(a.get("jacobian_update", "none"))
         kind = str(a["kind"]) + ("+broyden" if update == "broyden" else "")
         return kind, float(a.get("build_time_s", np.nan)), float(a.get("validation_error_mm", np.nan))
     text = str(f.attrs.get("config_yaml", ""))
-    return ("layer+broyden" if "jacobian_update: broyden" in text else "layer"), float("nan"), float("nan")
+    trials = f["trials"].attrs if "trials" in f else {}
+    kind = str(trials["controller_model"]) if "controller_model" in trials else "layer"
+    return (kind + "+broyden" if "jacobian_update: broyden" in text else kind), float("nan"), float("nan")
 
 
 def _config_name(text: str) -> str:
