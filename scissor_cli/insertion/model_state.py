@@ -30,7 +30,8 @@ they do not (then the kept one is refreshed at the state, where one
 iteration suffices). No residual enters J: it is the pure linear response. In 3-D (the slab, a body)
 J is the kept factor's answer with the hold's rows from the start (`JACOBIAN_DIRECT_3D`): each PCG
 iteration there costs a triangular solve and an element-by-element K v on tens of thousands of
-tetrahedra, and the kept factor's answer is within a percent of the converged one. A body compressed
+tetrahedra, and the kept factor's answer is close to the converged one (the benchmark
+checks how close). A body compressed
 ahead of the tip can have a tangent that is not positive definite; the
 kept factor is then of its elements' positive semi-definite projection and
 PCG on the exact tangent does not converge even on a fresh one. From then
@@ -78,8 +79,8 @@ PCG_TOL = 1e-8
 #: iterations before the kept factorisation is refreshed at the state (and then as many again)
 PCG_MAX = 40
 #: In 3-D the loop's J is the kept factor's answer with the hold, one triangular solve per cup, not PCG to
-#: PCG_TOL: a feedback gain the loop corrects, within 0.7 % of the converged J at every step of example_dome's
-#: 50 mm insertion, the loop's miss the same, for a third of its time (benchmarks/bench_body_insertion.py)
+#: PCG_TOL: a feedback gain the loop corrects; benchmarks/bench_body_insertion.py checks it against PCG's
+#: converged J along example_dome's insertion (docs/performance.md)
 JACOBIAN_DIRECT_3D = True
 #: a cup move's K_fD Δu_D is the gradient's change over this much of the move (mm, its largest boundary displacement)
 MOVE_PROBE_MM = 1e-3

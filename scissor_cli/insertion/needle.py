@@ -79,9 +79,8 @@ STEP_TOL = PASS_TOL
 STEP_TOL_3D = 1e-4
 PASS_TOL_3D = 1e-4
 #: A body's passes and steps (`NeedleParams.from_config` of a body's mesh): its insertion is the
-#: trials' inner loop, and solving each step to 3e-4 instead of 1e-4 moves the lesion by a few
-#: hundredths of a micrometre, thousands of times below what a camera resolves, for fewer chord
-#: steps (benchmarks/bench_body_insertion.py's speed against error; docs/performance.md)
+#: trials' inner loop, and 3e-4 instead of 1e-4 moves the lesion far below what a camera resolves
+#: for fewer chord steps (benchmarks/bench_body_insertion.py's speed against error; docs/performance.md)
 STEP_TOL_BODY = 3e-4
 #: decide a pass from its chord step's prediction of the converged reactions and
 #: lags once no decision lies within GUARD_FORCE·res·(force scale) mN or
