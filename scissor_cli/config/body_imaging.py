@@ -39,7 +39,7 @@ import numpy as np
 from annotated_types import Len
 from pydantic import field_validator
 
-from scissor_cli.config.imaging_checks import PROBE_ARRAYS, image_half_width_mm
+from scissor_cli.config.imaging_checks import PROBE_ARRAYS, echo_problems, image_half_width_mm
 from scissor_cli.config.sections import LINEAR_PROBE_NAMES, Num, Vec3, _Section
 
 #: element height (mm) and elevation focus (mm) of each linear probe (pymust.getparam)
@@ -190,15 +190,7 @@ def body_imaging_problems(cfg, surface, skin_normals) -> list:
         out.append((("imaging", "model"), (
             f"{im.model!r}: on a body the frames are the fast model's (the SIMUS reference runs on the layer and the "
             f"slab, where it is checked against it); allowed: fast")))
-    if im.lesion_echogenicity_db == 0.0:
-        out.append((("imaging", "lesion_echogenicity_db"),
-                    "0 dB: a lesion that echoes like the background cannot be seen; give it a contrast"))
-    names = {o.name for o in cfg.obstacles}
-    for name in sorted(im.obstacle_echogenicity_db or {}):
-        if name not in names:
-            out.append((("imaging", "obstacle_echogenicity_db", name),
-                        f"unknown obstacle {name!r}; obstacles are {sorted(names)}"))
-    return out
+    return out + echo_problems(im, cfg.obstacles)
 
 
 def _lesion_image_problems(cfg, origin: np.ndarray, axis: np.ndarray, lateral: np.ndarray) -> list:

@@ -68,10 +68,17 @@ def imaging_problems(cfg: Config, outline: np.ndarray, inside) -> list:
         problems.append((("imaging", "lesion_radius_mm"), (
             f"the lesion ({2 * im.lesion_radius_mm:g} mm across) must be smaller than the image "
             f"({2 * half:.4g} × {im.depth_mm:g} mm)")))
+    return problems + echo_problems(im, cfg.obstacles)
+
+
+def echo_problems(im, obstacles) -> list:
+    """The echoes an `imaging` section (the layer's or a body's) gives: a lesion with no contrast, an obstacle's
+    echogenicity naming no obstacle of obstacles (each with a `name`); (path, message) pairs."""
+    problems = []
     if im.lesion_echogenicity_db == 0.0:
         problems.append((("imaging", "lesion_echogenicity_db"),
                          "0 dB: a lesion that echoes like the background cannot be seen; give it a contrast"))
-    names = {o.name for o in cfg.obstacles}
+    names = {o.name for o in obstacles}
     for name in sorted(im.obstacle_echogenicity_db or {}):
         if name not in names:
             problems.append((("imaging", "obstacle_echogenicity_db", name),
