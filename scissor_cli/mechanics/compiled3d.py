@@ -47,6 +47,8 @@ def _det_hessian_table() -> tuple[np.ndarray, np.ndarray]:
 
 
 _HD_INDEX, _HD_SIGN = _det_hessian_table()
+#: (index, sign) (9, 9): ∂²J/∂F² as a table on vec F (`nodal.det_hessian` reads it too)
+DET_HESSIAN = (_HD_INDEX, _HD_SIGN)
 
 
 @njit(**_JIT)

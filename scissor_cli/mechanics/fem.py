@@ -20,7 +20,7 @@ the hot path.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
@@ -269,6 +269,9 @@ class SparsePattern:
     indices: np.ndarray
     shape: tuple[int, int]
     upper: bool = False
+    #: (X,) int64 into csr data: where the entries of `sparse_pattern`'s `extra` land (the nodal volume's
+    #: coupling, `mechanics.nodal`); empty without
+    extra_slot: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     def assemble(self, Ke: np.ndarray) -> sp.csr_matrix:
         """The CSR matrix of packed element matrices Ke (P, M)."""
@@ -287,12 +290,15 @@ class SparsePattern:
         return K
 
 
-def sparse_pattern(ops: FEOperators, dof_index: np.ndarray | None = None, upper: bool = False) -> SparsePattern:
+def sparse_pattern(ops: FEOperators, dof_index: np.ndarray | None = None, upper: bool = False,
+                   extra: tuple[np.ndarray, np.ndarray] | None = None) -> SparsePattern:
     """Pattern of the matrix over the dofs with dof_index >= 0 (renumbered by it).
 
     dof_index (dN,) maps each global dof to its row in the reduced system, or
     -1 to drop it (Dirichlet dofs); None keeps every dof. `upper`: only the
-    upper triangle (row <= column).
+    upper triangle (row <= column). `extra`: (rows, cols) (X,) of entries
+    beyond the elements', already renumbered (upper ones when `upper`): the
+    pattern holds them too and `extra_slot` says where each lands.
     """
     n = ops.dim * ops.n_nodes
     if dof_index is None:
@@ -317,8 +323,12 @@ def sparse_pattern(ops: FEOperators, dof_index: np.ndarray | None = None, upper:
     rows, cols, packed = rows.ravel(), cols.ravel(), packed.ravel()
     keep = (rows >= 0) & (cols >= 0)
     size = int(dof_index.max()) + 1
-    indptr, indices, slot = compiled.csr_pattern(rows[keep].astype(np.int64), cols[keep].astype(np.int64), size)
-    return SparsePattern(packed[keep], slot, indptr, indices, (size, size), upper)
+    rows, cols = rows[keep].astype(np.int64), cols[keep].astype(np.int64)
+    n_elem = len(rows)
+    if extra is not None:
+        rows, cols = np.concatenate([rows, extra[0]]), np.concatenate([cols, extra[1]])
+    indptr, indices, slot = compiled.csr_pattern(rows, cols, size)
+    return SparsePattern(packed[keep], slot[:n_elem], indptr, indices, (size, size), upper, slot[n_elem:])
 
 
 def max_feasible_step_3d(F: np.ndarray, dF: np.ndarray) -> float:

@@ -22,7 +22,7 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 
-from scissor_cli.mechanics import compiled, compiled3d, fem, materials
+from scissor_cli.mechanics import compiled, compiled3d, fem, materials, nodal
 from scissor_cli.mesh.mesh import Mesh
 from scissor_cli.scene.scene import Scene
 
@@ -43,6 +43,10 @@ class Tissue:
     free_index: np.ndarray  # (2N,) position in free_dofs or -1
     pattern_free_upper: fem.SparsePattern  # K_ff's upper triangle, what a Cholesky factorisation reads
     mass: np.ndarray  # (2N,) kg, lumped
+    #: the element (docs/model.md §21): "p1", every term per element, or "nodal", the volumetric term on the nodes
+    element: str = "p1"
+    #: the nodal volume's structure with element "nodal", else None
+    nodal: nodal.NodalVolume | None = None
     #: one symbolic factorisation of K_ff's pattern, reused by every solve on this mesh
     factor_cache: dict = field(default_factory=dict, compare=False, repr=False)
 
@@ -54,7 +58,70 @@ class Tissue:
     def pattern_free(self) -> fem.SparsePattern:
         """K_ff's pattern, both triangles (the Jacobian's, the grip planner's), built on first use: the solvers read
         only the upper one, and on a 3-D slab this one costs as much to build as the rest of the slab."""
-        return fem.sparse_pattern(self.ops, self.free_index)
+        return free_pattern(self.ops, self.free_index, self.nodal, upper=False)
+
+    @cached_property
+    def element_params(self) -> materials.MaterialParams:
+        """What the element kernels take: the material, or with element "nodal" α times its deviatoric part
+        (κ = 0; for `linear` λ − κ = −2μ/3, so its term is μ dev ε : dev ε; docs/model.md §21)."""
+        p = self.params
+        if self.nodal is None:
+            return p
+        a = self.nodal.element_share
+        return materials.MaterialParams(p.model, a * p.mu, np.zeros_like(p.kappa), a * (p.lam - p.kappa), a * p.eta,
+                                        p.fiber, p.tension_only)
+
+    @cached_property
+    def averaged_params(self) -> materials.MaterialParams:
+        """The material of the nodes' averaged F̄ (element "nodal"): (1 − α) times the rest-volume average of the
+        elements' deviatoric part, their fibers averaged and normalised."""
+        p, nv = self.params, self.nodal
+        share = 1.0 - nv.element_share
+        mu = nodal.nodal_average(self.ops, p.mu, nv.rest_volume)
+        eta = nodal.nodal_average(self.ops, p.eta, nv.rest_volume)
+        fiber = nodal.nodal_average(self.ops, p.fiber, nv.rest_volume)
+        norm = np.linalg.norm(fiber, axis=1)
+        fiber = np.where(norm[:, None] > 1e-12, fiber / np.maximum(norm, 1e-300)[:, None], np.eye(fiber.shape[1])[0])
+        return materials.MaterialParams(p.model, share * mu, np.zeros_like(mu), share * (-2.0 / 3.0) * mu, share * eta,
+                                        fiber, p.tension_only)
+
+    @cached_property
+    def nodal_kappa(self) -> np.ndarray:
+        """κ_a (N,) kPa of the nodal volume term (element "nodal")."""
+        return nodal.nodal_kappa(self.ops, self.params.kappa, self.nodal.rest_volume)
+
+    def _nodal_state(self, x: np.ndarray, F: np.ndarray | None = None) -> nodal.NodalState:
+        F = fem.deformation_gradients(self.ops, x) if F is None else F
+        return nodal.nodal_state(self.ops, self.nodal, self.nodal_kappa, F, self._linear)
+
+    @property
+    def _linear(self) -> bool:
+        """Whether the material is small-strain (its nodal volumes linearised)."""
+        return self.params.model == "linear"
+
+    def _averaged(self, x: np.ndarray, order: int, project: bool = False):
+        """ψ (N,) weighted by V_a, P (N, d, d) and C (N, d², d²) (by `order`, C projected if asked) at the nodes' F̄."""
+        Fbar = nodal.averaged_gradients(self.nodal, x)
+        if project:
+            psi, P, C = materials.evaluate_projected(Fbar, self.averaged_params)
+        else:
+            psi, P, C = materials.evaluate(Fbar, self.averaged_params, order=order)
+        V = self.nodal.rest_volume
+        return psi * V, None if P is None else P * V[:, None, None], None if C is None else C * V[:, None, None]
+
+    def _plus_nodal(self, x: np.ndarray, U: float, grad: np.ndarray) -> tuple[float, np.ndarray]:
+        """U and ∇U with the nodal terms added (element "nodal"; as they are otherwise)."""
+        if self.nodal is None or not np.isfinite(U):
+            return U, grad
+        state = self._nodal_state(x)
+        psi, P, _ = self._averaged(x, order=1)
+        return (U + nodal.energy(self.nodal, self.nodal_kappa, state) + float(psi.sum()),
+                grad + nodal.gradient(self.ops, state) + nodal.averaged_forces(self.nodal, P))
+
+    def _coupling(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """B's data at x and the weights κ_a / V_a of the nodal coupling Bᵀ W B."""
+        return (nodal.b_data(self.ops, self.nodal, self._nodal_state(x)),
+                self.nodal_kappa / self.nodal.rest_volume)
 
     @property
     def dim(self) -> int:
@@ -109,8 +176,13 @@ class Tissue:
 
     def energy(self, x: np.ndarray) -> float:
         """Strain energy U (µJ) at positions x (N, 2); +inf if an element is inverted."""
-        psi, _, _ = materials.evaluate(fem.deformation_gradients(self.ops, x), self.params, order=0)
-        return float(np.dot(psi, self.ops.volume))
+        F = fem.deformation_gradients(self.ops, x)
+        psi, _, _ = materials.evaluate(F, self.element_params, order=0)
+        U = float(np.dot(psi, self.ops.volume))
+        if self.nodal is None or not np.isfinite(U):
+            return U
+        return (U + nodal.energy(self.nodal, self.nodal_kappa, self._nodal_state(x, F))
+                + float(self._averaged(x, order=0)[0].sum()))
 
     def energy_gradient(self, x: np.ndarray, require_positive_J: bool = False) -> tuple[float, np.ndarray | None]:
         """U (µJ) and ∇U (2N,) in mN at positions x (N, 2).
@@ -119,14 +191,15 @@ class Tissue:
         evaluation of F for the check and the energy (a solver's trial step).
         """
         if self.compiled:  # the compiled loop, unless an element needs the numpy path's policy
-            fast = self._kernels.energy_gradient(self.ops, self.params, x)
+            fast = self._kernels.energy_gradient(self.ops, self.element_params, x)
             if fast is not None:
-                return fast
+                return self._plus_nodal(x, *fast)
         F = fem.deformation_gradients(self.ops, x)
         if require_positive_J and not np.min(materials.jacobian_det(F), initial=np.inf) > 0:
             return float("inf"), None
-        psi, P, _ = materials.evaluate(F, self.params, order=1)
-        return float(np.dot(psi, self.ops.volume)), fem.scatter_vector(self.ops, fem.element_forces(self.ops, P))
+        psi, P, _ = materials.evaluate(F, self.element_params, order=1)
+        U = float(np.dot(psi, self.ops.volume))
+        return self._plus_nodal(x, U, fem.scatter_vector(self.ops, fem.element_forces(self.ops, P)))
 
     def energy_gradient_stiffness(self, x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
         """U (µJ), ∇U (2N,) mN and the exact packed element Hessians (21, M) mN/mm at x (N, 2).
@@ -135,9 +208,14 @@ class Tissue:
         pass where the model has one (the tangent predictor needs all three).
         """
         if self.compiled:
-            fast = self._kernels.energy_gradient_stiffness(self.ops, self.params, x, False)
+            fast = self._kernels.energy_gradient_stiffness(self.ops, self.element_params, x, False)
             if fast is not None:
-                return fast
+                if self.nodal is None:
+                    return fast
+                U, grad, Ke = fast
+                U, grad = self._plus_nodal(x, U, grad)
+                F = fem.deformation_gradients(self.ops, x)
+                return U, grad, Ke + nodal.element_hessians(self.ops, F, self._nodal_state(x, F), self._linear)
         U, grad = self.energy_gradient(x)
         return U, grad, self.element_stiffness(x)
 
@@ -151,16 +229,18 @@ class Tissue:
         them need it. In 3-D each tetrahedron's 9x9 tangent is clamped
         (`compiled3d.project_matrix`; `materials.psd` on the numpy path).
         """
-        if self.compiled:
-            Ke = self._kernels.element_stiffness(self.ops, self.params, x, project)
-            if Ke is not None:
-                return Ke
+        Ke = self._kernels.element_stiffness(self.ops, self.element_params, x, project) if self.compiled else None
+        if Ke is None:
+            F = fem.deformation_gradients(self.ops, x)
+            if project:
+                C = materials.evaluate_projected(F, self.element_params)[2]
+            else:
+                C = materials.evaluate(F, self.element_params, order=2)[2]
+            Ke = fem.element_matrices(self.ops, C)
+        if self.nodal is None or project:  # projected: the nodal coupling alone is PSD, p̄ ∂²v is left out
+            return Ke
         F = fem.deformation_gradients(self.ops, x)
-        if project:
-            C = materials.evaluate_projected(F, self.params)[2]
-        else:
-            C = materials.evaluate(F, self.params, order=2)[2]
-        return fem.element_matrices(self.ops, C)
+        return Ke + nodal.element_hessians(self.ops, F, self._nodal_state(x, F), self._linear)
 
     def stiffness_free(
         self, x: np.ndarray, project: bool = False, Ke: np.ndarray | None = None, upper: bool = False
@@ -170,7 +250,12 @@ class Tissue:
         From the packed element Hessians Ke (21, M) if given.
         """
         pattern = self.pattern_free_upper if upper else self.pattern_free
-        return pattern.assemble(self.element_stiffness(x, project) if Ke is None else Ke)
+        K = pattern.assemble(self.element_stiffness(x, project) if Ke is None else Ke)
+        if self.nodal is not None:  # + Bᵀ W B and Āᵀ C̄ Ā, the nodal terms' coupling, in the joined pattern's slots
+            data, weight = self._coupling(x)
+            C = self._averaged(x, order=2, project=project)[2]
+            nodal.add_tangent(self.nodal, data, weight, C, self.free_index, pattern.upper, pattern.extra_slot, K.data)
+        return K
 
     def stiffness_times(self, x: np.ndarray, v: np.ndarray, Ke: np.ndarray | None = None) -> np.ndarray:
         """K v (dN,) for a full vector v (dN,), element by element without assembling K.
@@ -181,7 +266,18 @@ class Tissue:
         out = np.empty(v.size)  # one compiled pass (`compiled.packed_times`)
         compiled.packed_times(np.ascontiguousarray(Ke, dtype=np.float64), self.ops.corners,
                               np.ascontiguousarray(v, dtype=np.float64), out)
-        return out
+        return self._plus_coupling_times(x, v, out)
+
+    def _plus_coupling_times(self, x: np.ndarray, v: np.ndarray, Kv: np.ndarray) -> np.ndarray:
+        """Kv + Bᵀ W B v with element "nodal" (Kv as it is otherwise)."""
+        if self.nodal is None:
+            return Kv
+        data, weight = self._coupling(x)
+        C = self._averaged(x, order=2)[2]
+        d = self.dim
+        dF = nodal.averaged_gradients(self.nodal, v.reshape(-1, d)).reshape(-1, d * d)
+        stress = np.einsum("akl,al->ak", C, dF).reshape(-1, d, d)
+        return Kv + nodal.coupling_times(self.nodal, data, weight, v) + nodal.averaged_forces(self.nodal, stress)
 
     def stiffness_times_near(self, x: np.ndarray, v: np.ndarray) -> np.ndarray:
         """K v (dN,) for a v (dN,) that is zero but on a few nodes (a cup's unit stroke): the same product as
@@ -193,12 +289,15 @@ class Tissue:
         if not self.compiled:
             return self.stiffness_times(x, v)
         ops = fem.take_elements(self.ops, touching)
-        Ke = self._kernels.element_stiffness(ops, self.params.take(touching), x, False)
+        Ke = self._kernels.element_stiffness(ops, self.element_params.take(touching), x, False)
         if Ke is None:  # an element it cannot take: the numpy path says why
             return self.stiffness_times(x, v)
+        if self.nodal is not None:
+            F = fem.deformation_gradients(ops, x)
+            Ke = Ke + nodal.element_hessians(ops, F, self._nodal_state(x).take(touching), self._linear)
         out = np.empty(v.size)
         compiled.packed_times(Ke, ops.corners, np.ascontiguousarray(v, dtype=np.float64), out)
-        return out
+        return self._plus_coupling_times(x, v, out)
 
     def force_scale(self, grad: np.ndarray) -> float:
         """A force (mN) to make residuals relative: the Dirichlet reactions.
@@ -286,8 +385,9 @@ def scene_material(scene: Scene, element_obstacle: np.ndarray, model: str | None
     return element_E, fiber, params
 
 
-def build_tissue(scene: Scene, mesh: Mesh, model: str | None = None) -> Tissue:
-    """The discrete tissue of a scene on a mesh; `model` overrides the material model."""
+def build_tissue(scene: Scene, mesh: Mesh, model: str | None = None, element: str = "p1") -> Tissue:
+    """The discrete tissue of a scene on a mesh; `model` overrides the material model; `element`: "p1" or
+    "nodal" (docs/model.md §21)."""
     element_E, fiber, params = scene_material(scene, mesh.element_obstacle, model)
     fixed = mesh.boundary_nodes_on_sides(scene.fixed_sides)
     if len(fixed) == 0:
@@ -310,16 +410,28 @@ def build_tissue(scene: Scene, mesh: Mesh, model: str | None = None) -> Tissue:
     dirichlet = np.sort(np.concatenate([2 * held, 2 * held + 1]))
     ops = fem.build_operators(mesh, scene.thickness_mm)
     cup_axes = np.array([c.axis for c in scene.cups]).reshape(-1, 2)
-    return tissue_from_boundary(scene, mesh, ops, (element_E, fiber, params), fixed, cup_nodes, cup_axes, dirichlet)
+    return tissue_from_boundary(scene, mesh, ops, (element_E, fiber, params), fixed, cup_nodes, cup_axes, dirichlet,
+                                element)
 
 
-def tissue_from_boundary(scene: Scene, mesh, ops, material, fixed, cup_nodes, cup_axes, dirichlet) -> Tissue:
+def free_pattern(ops: fem.FEOperators, free_index: np.ndarray, nodal_volume: nodal.NodalVolume | None,
+                 upper: bool) -> fem.SparsePattern:
+    """K_ff's pattern (or its upper triangle): the elements' pairs, joined by the nodal coupling's if any."""
+    extra = None if nodal_volume is None else nodal.pairs(nodal_volume, free_index, upper)
+    return fem.sparse_pattern(ops, free_index, upper=upper, extra=extra)
+
+
+def tissue_from_boundary(scene: Scene, mesh, ops, material, fixed, cup_nodes, cup_axes, dirichlet,
+                         element: str = "p1") -> Tissue:
     """The `Tissue` once its Dirichlet dofs are known: the free-dof index, the K_ff patterns, the mass.
 
     material: (element_E (M,) kPa, fiber (M, 2), MaterialParams) as from
     `scene_material`; dirichlet (Nd,): every held dof, sorted. Shared by the
-    2-D layer and the 3-D slab (whose held dofs depend on its options).
+    2-D layer and the 3-D slab (whose held dofs depend on its options). `element`: "p1" or "nodal".
     """
+    if element not in nodal.ELEMENTS:
+        raise ValueError(f"unknown element {element!r}; allowed values: {', '.join(nodal.ELEMENTS)}")
+    nodal_volume = nodal.nodal_volume(ops) if element == "nodal" else None
     element_E, fiber, params = material
     n_dofs = mesh.nodes.size
     free_mask = np.ones(n_dofs, bool)
@@ -340,6 +452,8 @@ def tissue_from_boundary(scene: Scene, mesh, ops, material, fixed, cup_nodes, cu
         dirichlet_dofs=dirichlet,
         free_dofs=free,
         free_index=free_index,
-        pattern_free_upper=fem.sparse_pattern(ops, free_index, upper=True),
+        pattern_free_upper=free_pattern(ops, free_index, nodal_volume, upper=True),
         mass=fem.lumped_mass(ops, scene.material.density_kg_per_mm3),
+        element=element,
+        nodal=nodal_volume,
     )

@@ -83,23 +83,29 @@ class TrackedEquilibrium:
         t = self.tissue
         self.stats["refactors"] += 1
         Ke = t.element_stiffness(x)
-        K = t.pattern_free_upper.assemble(Ke)
+        K = t.stiffness_free(x, Ke=Ke, upper=True)
         try:
             factor = factorize_free(t, K, self.factors)
         except SolverError:  # not positive definite (an unstable state): LDLᵀ for the response only
             factor = Factorization(K, upper=True)
-        # K_fc B from the elements that touch a cup: B vanishes on every other element's dofs.
-        e = self._cup_elems
-        dofs = t.ops.elem_dofs[e]
-        KB_e = np.einsum("eij,ejc->eic", fem.unpack(Ke[:, e]), self._B[dofs])
         D = self._B.copy()
         if t.n_cups:
-            KB = np.stack([np.bincount(dofs.ravel(), weights=KB_e[:, :, c].ravel(), minlength=self._B.shape[0])
-                           for c in range(t.n_cups)], axis=1)  # (dN, C): a few cups, not elements
-            D[t.free_dofs] = factor.solve(-KB[t.free_dofs])  # every cup's column in one solve
+            D[t.free_dofs] = factor.solve(-self._cup_forces(x, Ke)[t.free_dofs])  # every cup's column in one solve
         check_finite(D, "the cup response (K_ff singular?)")
         self.response, self.tangent_x = D, x
         self._factor_elsewhere = False
+
+    def _cup_forces(self, x: np.ndarray, Ke: np.ndarray) -> np.ndarray:
+        """K B (dN, C) at x: each cup's unit stroke through the tangent whose element Hessians are Ke."""
+        t = self.tissue
+        if t.nodal is not None:  # the nodal coupling reaches two rings beyond the cup's elements
+            return np.column_stack([t.stiffness_times(x, self._B[:, c], Ke) for c in range(t.n_cups)])
+        # from the elements that touch a cup: B vanishes on every other element's dofs
+        e = self._cup_elems
+        dofs = t.ops.elem_dofs[e]
+        KB_e = np.einsum("eij,ejc->eic", fem.unpack(Ke[:, e]), self._B[dofs])
+        return np.stack([np.bincount(dofs.ravel(), weights=KB_e[:, :, c].ravel(), minlength=self._B.shape[0])
+                         for c in range(t.n_cups)], axis=1)  # (dN, C): a few cups, not elements
 
     @property
     def jacobian_is_current(self) -> bool:
