@@ -64,6 +64,10 @@ class BodyMeshConfig(_Section):
     #: a mesh used as it is (docs/contract.md, "Reproducibility"): an .npz with nodes (N, 3) mm, tetrahedra (M, 4)
     #: and region (M,), or a scissor results.h5 of a 3-D scene; relative to the config file's folder
     file: Optional[Annotated[str, Field(min_length=1, max_length=4096)]] = None
+    #: the element (docs/model.md §21): p1, linear simplices with every term per element (the paper's); nodal,
+    #: the same simplices with the volumetric term on the nodes (averaged nodal volume), which does not lock
+    #: at ν near 0.5; needs solver.kind newton
+    element: Literal["p1", "nodal"] = "p1"
 
 
 class SkinConfig(_Section):

@@ -89,6 +89,10 @@ class MeshConfig(_Section):
     #: `triangles` (M, 3), or a scissor results .h5 (its /mesh); relative to the config file's folder.
     #: Pins the mesh so that another machine gives the same numbers (docs/contract.md, "Reproducibility")
     file: Optional[Annotated[str, Field(min_length=1, max_length=4096)]] = None
+    #: the element (docs/model.md §21): p1, linear simplices with every term per element (the paper's); nodal,
+    #: the same simplices with the volumetric term on the nodes (averaged nodal volume), which does not lock
+    #: at ν near 0.5; needs solver.kind newton
+    element: Literal["p1", "nodal"] = "p1"
 
 
 class TissueConfig(_Section):

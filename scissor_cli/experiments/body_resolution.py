@@ -75,7 +75,7 @@ def _solve(cfg: BodyConfig, scale: float, cache: Path | None) -> tuple[BodyCandi
     t0 = time.perf_counter()
     scene = build_body_scene(cfg)
     mesh = mesh_body(scene, cfg.tissue.mesh, scale, cache)
-    tissue = build_body(scene, mesh)
+    tissue = build_body(scene, mesh, element=cfg.tissue.mesh.element)
     t1 = time.perf_counter()
     probe = probe_points(mesh.nodes, mesh.tetrahedra, np.array([t.rest for t in scene.targets]).reshape(-1, 3))
     ends = [target_positions(probe, solve_equilibrium(tissue, scene.strokes_vector(case.strokes),

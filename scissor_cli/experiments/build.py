@@ -31,7 +31,7 @@ def build_model(cfg: Config, model: str | None = None, mesh_scale: float | None 
     """Scene, mesh and tissue of a validated config; `model` and `mesh_scale` override the config's."""
     scene = scene_of(cfg)
     mesh = mesh_for_config(scene, cfg.tissue.mesh, scale=mesh_scale)
-    return scene, mesh, build_tissue(scene, mesh, model=model)
+    return scene, mesh, build_tissue(scene, mesh, model=model, element=cfg.tissue.mesh.element)
 
 
 def with_grips(cfg: Config | BodyConfig, contacts: np.ndarray, axes: np.ndarray) -> Config | BodyConfig:
@@ -49,7 +49,7 @@ def body_model(cfg: BodyConfig, cache: Path | None = None, scale: float = 1.0,
     """Scene, mesh (`mesh.body_mesh.BodyMesh`) and tissue of a validated 3-D config at a mesh scale."""
     scene = build_body_scene(cfg)
     mesh = mesh_body(scene, cfg.tissue.mesh, scale, cache)
-    return scene, mesh, build_body(scene, mesh, model=model)
+    return scene, mesh, build_body(scene, mesh, model=model, element=cfg.tissue.mesh.element)
 
 
 def section_model(cfg: BodyConfig, index: int) -> tuple[Tissue, TargetProbe, SectionPlane]:

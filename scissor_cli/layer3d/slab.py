@@ -79,8 +79,9 @@ def slab_mesh(mesh: Mesh, spec: SlabSpec) -> SlabMesh:
     return replace(extrude(mesh.nodes, mesh.triangles, mesh.element_obstacle, levels, layer), plane=mesh)
 
 
-def build_slab(scene: Scene, mesh: Mesh, spec: SlabSpec, model: str | None = None) -> Tissue:
-    """The slab tissue (dim 3) of a scene and its layer's 2-D mesh; BoundaryError if a cup grips nothing."""
+def build_slab(scene: Scene, mesh: Mesh, spec: SlabSpec, model: str | None = None, element: str = "p1") -> Tissue:
+    """The slab tissue (dim 3) of a scene and its layer's 2-D mesh; BoundaryError if a cup grips nothing.
+    `element`: the layer's ("p1" or "nodal", docs/model.md §21)."""
     mesh = plane_mesh(scene, mesh, spec)
     sm = slab_mesh(mesh, spec)
     element_E, fiber, params = scene_material(scene, sm.element_obstacle, model)
@@ -116,7 +117,8 @@ def build_slab(scene: Scene, mesh: Mesh, spec: SlabSpec, model: str | None = Non
     axes = np.zeros((len(scene.cups), 3))
     if len(scene.cups):
         axes[:, :2] = np.array([c.axis for c in scene.cups])
-    return tissue_from_boundary(scene, sm, ops, (element_E, fiber, params), fixed, cup_nodes, axes, dirichlet)
+    return tissue_from_boundary(scene, sm, ops, (element_E, fiber, params), fixed, cup_nodes, axes, dirichlet,
+                                element)
 
 
 @dataclass(frozen=True)

@@ -70,9 +70,10 @@ def skin_nodes(scene: BodyScene, mesh: BodyMesh, held: np.ndarray) -> np.ndarray
     return np.setdiff1d(boundary, held)
 
 
-def build_body(scene: BodyScene, mesh: BodyMesh, model: str | None = None) -> Tissue:
-    """The body tissue (dim 3) of a scene on its mesh; `model` overrides the material model. BoundaryError when
-    nothing is held or a cup grips no skin node (a mesh coarser than the cup)."""
+def build_body(scene: BodyScene, mesh: BodyMesh, model: str | None = None, element: str = "p1") -> Tissue:
+    """The body tissue (dim 3) of a scene on its mesh; `model` overrides the material model; `element` "p1" or
+    "nodal" (docs/model.md §21). BoundaryError when nothing is held or a cup grips no skin node (a mesh coarser
+    than the cup)."""
     m = scene.material
     model = model or m.model
     element_E = region_E(scene, mesh)
@@ -97,4 +98,5 @@ def build_body(scene: BodyScene, mesh: BodyMesh, model: str | None = None) -> Ti
     dirichlet = np.sort((3 * held[:, None] + np.arange(3)).ravel()).astype(np.int64)
     ops = fem.simplex_operators(mesh.nodes, mesh.tetrahedra)
     axes = np.array([c.axis for c in scene.cups], float).reshape(-1, 3)
-    return tissue_from_boundary(scene, mesh, ops, (element_E, fiber, params), fixed, cup_nodes, axes, dirichlet)
+    return tissue_from_boundary(scene, mesh, ops, (element_E, fiber, params), fixed, cup_nodes, axes, dirichlet,
+                                element)

@@ -187,7 +187,8 @@ def write_model(out: ResultsFile, tissue) -> None:
     out.dataset("mesh/element_obstacle", mesh.element_obstacle.astype(np.int64),
                 description="obstacle index, -1 tissue")
     angles = mesh.angles_deg()
-    out.attrs("mesh", {"n_nodes": mesh.n_nodes, "n_elements": mesh.n_elements, "min_angle_deg": float(angles.min())})
+    out.attrs("mesh", {"n_nodes": mesh.n_nodes, "n_elements": mesh.n_elements, "min_angle_deg": float(angles.min()),
+                       "element": tissue.element, "nodes_per_element": int(mesh.triangles.shape[1])})
     m = tissue.scene.material
     out.attrs("material", {
         "model": tissue.params.model, "E_kPa": m.E_kPa, "nu": m.nu, "eta_kPa": m.eta_kPa,

@@ -149,7 +149,7 @@ def skin_forces(tissue: Tissue, cands: SkinCandidates, cup_radius_mm: float) -> 
 
 def released_body(tissue: Tissue) -> Tissue:
     """The body on the same mesh with every cup released (their nodes free)."""
-    return build_body(replace(tissue.scene, cups=()), tissue.mesh)
+    return build_body(replace(tissue.scene, cups=()), tissue.mesh, element=tissue.element)
 
 
 def across(direction) -> np.ndarray:

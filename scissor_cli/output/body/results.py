@@ -24,7 +24,8 @@ def write_body_model(out: ResultsFile, tissue) -> None:
     out.dataset("mesh/fixed_nodes", tissue.fixed_nodes.astype(np.int64))
     out.dataset("mesh/element_E_kPa", tissue.element_E_kPa, "kPa")
     out.attrs("mesh", {"n_nodes": mesh.n_nodes, "n_elements": mesh.n_elements, "regions": list(mesh.region_names),
-                       "min_dihedral_deg": float(mesh.min_dihedral_deg), "shape": scene.shape})
+                       "min_dihedral_deg": float(mesh.min_dihedral_deg), "shape": scene.shape,
+                       "element": tissue.element, "nodes_per_element": int(mesh.tetrahedra.shape[1])})
     m = scene.material
     out.attrs("material", {
         "model": tissue.params.model, "E_kPa": m.E_kPa, "nu": m.nu, "eta_kPa": m.eta_kPa,
