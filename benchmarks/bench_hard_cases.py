@@ -18,7 +18,8 @@ runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_
 import results_io  # noqa: E402
 
 from scissor_cli.config import load_config  # noqa: E402
-from scissor_cli.experiments.build import build_model  # noqa: E402
+from scissor_cli.config.body_sections import BodyConfig  # noqa: E402
+from scissor_cli.experiments.build import body_model, build_model  # noqa: E402
 from scissor_cli.solvers.common import SolverError  # noqa: E402
 from scissor_cli.solvers.equilibrium import EquilibriumSolver  # noqa: E402
 
@@ -35,8 +36,13 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|")
     for path in sorted((ROOT / "configs" / "hard").glob("*.yaml")):
         cfg = load_config(path)
-        _, mesh, tissue = build_model(cfg, mesh_scale=args.scale * cfg.tissue.mesh.scale)
-        for label, kind, memory in (("newton", "newton", 0), ("admm", "admm", 0), ("admm+anderson", "admm", 5)):
+        solvers = (("newton", "newton", 0), ("admm", "admm", 0), ("admm+anderson", "admm", 5))
+        if isinstance(cfg, BodyConfig):  # a body: Newton on its own element (ADMM is a layer's solver)
+            _, mesh, tissue = body_model(cfg, cache=ROOT / "runs" / ".mesh-cache", scale=args.scale)
+            solvers = solvers[:1]
+        else:
+            _, mesh, tissue = build_model(cfg, mesh_scale=args.scale * cfg.tissue.mesh.scale)
+        for label, kind, memory in solvers:
             solver_cfg = cfg.solver.model_copy(update={"kind": kind, "anderson_memory": memory})
             forward = EquilibriumSolver.from_config(tissue, solver_cfg)
             for case in cfg.forward:
