@@ -1,0 +1,181 @@
+"""Elements that lock and one that does not (docs/model.md §21): error against quadratic elements, and cost.
+
+For the 2-D example (configs/example.yaml) and the dome (configs/example_dome.yaml), on each scene's own mesh
+with its own held and cup nodes, linear elasticity under a 1 mm push of the first cup, at ν 0.45, 0.49 and
+0.499: each lesion's displacement with `p1` and with `nodal` against scikit-fem's P2 on the same mesh
+(benchmarks/quadratic_reference.py), the same on the dome with a second cup (both pushed), and the cost of
+one tangent: assembly of K_ff, its upper triangle's
+nonzeros, its factorisation (CHOLMOD, the solvers' `factorize_free`), and a whole nonlinear forward solve
+(the scene's material at ν 0.45, Newton to 1e-8: the layer's push10, the dome's 8 mm push). Then the dome
+with its fibers at ν 0.49 and an 8 mm push at mesh scale 1 and 0.7: how far the lesions move under refinement.
+Times are medians of `--repeats` runs in this process, p1 and nodal side by side.
+
+    PYTHONPATH=. python3 benchmarks/bench_elements.py             # about 12 minutes on 2 cores
+    PYTHONPATH=. python3 benchmarks/bench_elements.py --quick     # the layer only (variant "quick")
+
+Writes benchmarks/results/bench_elements.json (or bench_elements.quick.json).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import quadratic_reference  # noqa: E402
+import results_io  # noqa: E402
+
+from scissor_cli import runtime  # noqa: E402
+from scissor_cli.config import load_config  # noqa: E402
+from scissor_cli.experiments.build import body_model, build_model  # noqa: E402
+from scissor_cli.mechanics.body_tissue import build_body  # noqa: E402
+from scissor_cli.mechanics.tissue import build_tissue  # noqa: E402
+from scissor_cli.mesh.probe import probe_points, target_positions  # noqa: E402
+from scissor_cli.solvers.equilibrium import solve_equilibrium  # noqa: E402
+from scissor_cli.solvers.linear import factorize_free  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+NUS = (0.45, 0.49, 0.499)
+ELEMENTS = ("p1", "nodal")
+
+
+def _median_time(fn, repeats: int) -> tuple[float, object]:
+    times, out = [], None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), out
+
+
+#: the second cup of the dome's two-cup variant: on the skin opposite the vessel, pushing along +x
+SECOND_CUP = {"name": "cup2", "contact_mm": [-57.5, 0.0, 10.0], "axis": [1.0, 0.0, 0.0], "radius_mm": 5.0,
+              "stroke_mm": [-15.0, 15.0], "speed_mm_per_s": 5.0}
+
+
+def _config(scene_name: str, nu: float, model: str):
+    """A shipped scene (`example_dome.yaml+cup2`: the dome with SECOND_CUP) at ν with a material model."""
+    name, _, variant = scene_name.partition("+")
+    cfg = load_config(ROOT / "configs" / name)
+    cfg = cfg.model_copy(update={"material": cfg.material.model_copy(update={"nu": nu, "model": model})})
+    if variant == "cup2":
+        cups = list(cfg.cups) + [type(cfg.cups[0]).model_validate(SECOND_CUP)]
+        cfg = cfg.model_copy(update={"cups": cups})
+    return cfg
+
+
+def _tissues(scene_name: str, nu: float, model: str, scale: float = 1.0):
+    """{element: Tissue} of a shipped scene at ν with a material model, on one mesh."""
+    cfg = _config(scene_name, nu, model)
+    if scene_name.startswith("example_dome.yaml"):
+        scene, mesh, _ = body_model(cfg, cache=ROOT / "runs" / ".mesh-cache", scale=scale)
+        return {e: build_body(scene, mesh, element=e) for e in ELEMENTS}
+    scene, mesh, _ = build_model(cfg)
+    return {e: build_tissue(scene, mesh, element=e) for e in ELEMENTS}
+
+
+def _targets(tissue) -> np.ndarray:
+    return np.array([t.rest for t in tissue.scene.targets]).reshape(len(tissue.scene.targets), -1)
+
+
+def accuracy_rows(scene_name: str) -> list[dict]:
+    """Per ν and target: |u − u_P2| / |u_P2| of p1 and nodal, 1 mm push of every cup, linear elasticity."""
+    rows = []
+    for nu in NUS:
+        tissues = _tissues(scene_name, nu, "linear")
+        any_t = tissues["p1"]
+        d, points = any_t.dim, _targets(any_t)
+        strokes = np.ones(any_t.n_cups)
+        held = np.zeros(any_t.rest.size, bool)
+        held[any_t.dirichlet_dofs] = True
+        moved = any_t.apply_strokes(any_t.rest, strokes) - any_t.rest
+        t0 = time.perf_counter()
+        _, ref = quadratic_reference.solve_p2(any_t.mesh.nodes, any_t.ops.triangles, held.reshape(-1, d), moved,
+                                              any_t.element_E_kPa, nu, points)
+        p2_s = time.perf_counter() - t0
+        probe = probe_points(any_t.mesh.nodes, any_t.ops.triangles, points)
+        for k, name in enumerate(t.name for t in any_t.scene.targets):
+            row = {"scene": scene_name, "nu": nu, "target": name, "p2_move_mm": float(np.linalg.norm(ref[k])),
+                   "p2_s": p2_s}
+            for element, tissue in tissues.items():
+                x = solve_equilibrium(tissue, strokes, method="newton").x
+                u = target_positions(probe, x)[k] - points[k]
+                row[f"{element}_error_pct"] = 100 * float(np.linalg.norm(u - ref[k]) / np.linalg.norm(ref[k]))
+            rows.append(row)
+            print(f"{scene_name} ν {nu} {name}: p1 {row['p1_error_pct']:.1f} %, nodal {row['nodal_error_pct']:.1f} %"
+                  f" off P2 (P2 move {row['p2_move_mm']:.4f} mm)", flush=True)
+    return rows
+
+
+def cost_rows(scene_name: str, stroke_mm: float, repeats: int) -> list[dict]:
+    """Per element: assembly, nonzeros, factorisation and a nonlinear forward solve, at the scene's material."""
+    cfg = load_config(ROOT / "configs" / scene_name)
+    tissues = _tissues(scene_name, 0.45, cfg.material.model)
+    rows = []
+    for element, tissue in tissues.items():
+        strokes = np.zeros(tissue.n_cups)
+        strokes[0] = stroke_mm
+        assemble_s, K = _median_time(lambda t=tissue: t.stiffness_free(t.rest, upper=True), repeats)
+        factor_s, _ = _median_time(lambda t=tissue, K=K: factorize_free(t, K, {}), repeats)
+        solve_s, r = _median_time(lambda t=tissue, s=strokes: solve_equilibrium(t, s, method="newton", tol=1e-8),
+                                  repeats)
+        rows.append({"scene": scene_name, "element": element, "unknowns": int(tissue.free_dofs.size),
+                     "K_upper_nnz": int(K.nnz), "assemble_ms": 1e3 * assemble_s, "factor_ms": 1e3 * factor_s,
+                     "forward_s": solve_s, "newton_iterations": int(r.iterations), "stroke_mm": stroke_mm})
+        print(f"{scene_name} {element}: nnz {K.nnz}, assemble {1e3 * assemble_s:.1f} ms, "
+              f"factor {1e3 * factor_s:.1f} ms, forward {solve_s:.2f} s ({r.iterations} it)", flush=True)
+    return rows
+
+
+def refinement_rows(repeats: int) -> list[dict]:
+    """The dome with its fibers at ν 0.49, an 8 mm push: how far the lesions move from mesh scale 1 to 0.7."""
+    rows = []
+    ends = {}
+    for scale in (1.0, 0.7):
+        for element, tissue in _tissues("example_dome.yaml", 0.49, "neo_hookean_fiber", scale).items():
+            strokes = np.full(tissue.n_cups, 8.0)
+            probe = probe_points(tissue.mesh.nodes, tissue.ops.triangles, _targets(tissue))
+            solve_s, r = _median_time(lambda t=tissue, s=strokes: solve_equilibrium(t, s, method="newton", tol=1e-8),
+                                      repeats)
+            ends[element, scale] = target_positions(probe, r.x)
+            rows.append({"element": element, "scale": scale, "tetrahedra": int(tissue.mesh.n_elements),
+                         "forward_s": solve_s, "newton_iterations": int(r.iterations)})
+            print(f"refinement {element} scale {scale}: {tissue.mesh.n_elements} tetrahedra, {solve_s:.1f} s",
+                  flush=True)
+    for row in rows:
+        if row["scale"] == 0.7:
+            e = row["element"]
+            row["lesion_shift_mm"] = float(np.linalg.norm(ends[e, 0.7] - ends[e, 1.0], axis=1).max())
+            print(f"refinement {e}: lesions move {row['lesion_shift_mm']:.3f} mm from scale 1 to 0.7", flush=True)
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="the 2-D example only")
+    ap.add_argument("--repeats", type=int, default=3)
+    args = ap.parse_args()
+    runtime.configure()
+    res = results_io.Results("bench_elements", variant="quick" if args.quick else None)
+    scenes = [("example.yaml", 10.0)] + ([] if args.quick else [("example_dome.yaml", 8.0)])
+    accuracy, cost = [], []
+    for name, stroke in scenes:
+        accuracy += accuracy_rows(name)
+        cost += cost_rows(name, stroke, args.repeats)
+    if not args.quick:
+        accuracy += accuracy_rows("example_dome.yaml+cup2")
+        res.table("refinement", refinement_rows(1), units={"forward_s": "s", "lesion_shift_mm": "mm"})
+    res.table("accuracy", accuracy, units={"p2_move_mm": "mm", "p2_s": "s", "p1_error_pct": "%",
+                                           "nodal_error_pct": "%"})
+    res.table("cost", cost, units={"assemble_ms": "ms", "factor_ms": "ms", "forward_s": "s", "stroke_mm": "mm"})
+    print(res.write())
+
+
+if __name__ == "__main__":
+    main()
