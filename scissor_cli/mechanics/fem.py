@@ -269,9 +269,9 @@ class SparsePattern:
     indices: np.ndarray
     shape: tuple[int, int]
     upper: bool = False
-    #: (X,) int64 into csr data: where the entries of `sparse_pattern`'s `extra` land (the nodal volume's
-    #: coupling, `mechanics.nodal`); empty without
-    extra_slot: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    #: (X,) int32 into csr data: where the entries of `sparse_pattern`'s `extra` land (the nodal element's
+    #: coupling, `mechanics.nodal`; int32 halves what its loop streams); empty without
+    extra_slot: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
 
     def assemble(self, Ke: np.ndarray) -> sp.csr_matrix:
         """The CSR matrix of packed element matrices Ke (P, M)."""
@@ -328,7 +328,8 @@ def sparse_pattern(ops: FEOperators, dof_index: np.ndarray | None = None, upper:
     if extra is not None:
         rows, cols = np.concatenate([rows, extra[0]]), np.concatenate([cols, extra[1]])
     indptr, indices, slot = compiled.csr_pattern(rows, cols, size)
-    return SparsePattern(packed[keep], slot[:n_elem], indptr, indices, (size, size), upper, slot[n_elem:])
+    return SparsePattern(packed[keep], slot[:n_elem], indptr, indices, (size, size), upper,
+                         slot[n_elem:].astype(np.int32))
 
 
 def max_feasible_step_3d(F: np.ndarray, dF: np.ndarray) -> float:

@@ -49,6 +49,8 @@ class Tissue:
     nodal: nodal.NodalVolume | None = None
     #: one symbolic factorisation of K_ff's pattern, reused by every solve on this mesh
     factor_cache: dict = field(default_factory=dict, compare=False, repr=False)
+    #: the nodal state at the last x (element "nodal", `_nodal_state`)
+    nodal_cache: dict = field(default_factory=dict, compare=False, repr=False)
 
     @property
     def rest(self) -> np.ndarray:
@@ -91,8 +93,15 @@ class Tissue:
         return nodal.nodal_kappa(self.ops, self.params.kappa, self.nodal.rest_volume)
 
     def _nodal_state(self, x: np.ndarray, F: np.ndarray | None = None) -> nodal.NodalState:
+        """The nodal volumes and pressures at x (N, d), kept for the last x: a Newton step asks for them at the
+        same x from the gradient, the element Hessians, the coupling and the products."""
+        last = self.nodal_cache.get("state")
+        if last is not None and last[0].shape == x.shape and np.array_equal(last[0], x):
+            return last[1]
         F = fem.deformation_gradients(self.ops, x) if F is None else F
-        return nodal.nodal_state(self.ops, self.nodal, self.nodal_kappa, F, self._linear)
+        state = nodal.nodal_state(self.ops, self.nodal, self.nodal_kappa, F, self._linear)
+        self.nodal_cache["state"] = (np.array(x, dtype=float, copy=True), state)
+        return state
 
     @property
     def _linear(self) -> bool:
@@ -360,7 +369,7 @@ class Tissue:
             fiber,
             m.tension_only,
         )
-        return replace(self, params=params, element_E_kPa=E, fiber=fiber)
+        return replace(self, params=params, element_E_kPa=E, fiber=fiber, nodal_cache={})
 
 
 class BoundaryError(ValueError):
