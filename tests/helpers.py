@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import importlib.util
+import sys
 from pathlib import Path
 
 import yaml
@@ -41,3 +43,13 @@ ROUNDOFF_FLOOR = 1e-7
 def rates_above_roundoff(history) -> list[float]:
     """Residual ratios r[k+1]/r[k] of the steps that start above ROUNDOFF_FLOOR, in order."""
     return [b / a for a, b in zip(history[:-1], history[1:]) if a >= ROUNDOFF_FLOOR]
+
+
+def benchmark_module(name: str):
+    """benchmarks/NAME.py as a module: benchmarks/ is no package (registered in sys.modules, for its dataclasses)."""
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    return sys.modules[name]

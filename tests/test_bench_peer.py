@@ -8,8 +8,6 @@ mesh the peer's target positions must agree with scissor's Newton to 1e-6 mm.
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,20 +18,15 @@ from scissor_cli.experiments.simulate import build_model
 from scissor_cli.mesh.probe import probe_targets, target_positions
 from scissor_cli.solvers.newton import solve_newton
 
+from helpers import benchmark_module
+
 pytest.importorskip("skfem")  # the benchmark's peer (the bench and test extras)
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _bench_module():
-    """benchmarks/ is no package: load the script as a module (registered, for its dataclasses)."""
-    name = "bench_solvers"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / "bench_solvers.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
+    return benchmark_module("bench_solvers")
 
 
 @pytest.fixture(scope="module")
