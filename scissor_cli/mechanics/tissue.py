@@ -118,14 +118,18 @@ class Tissue:
         V = self.nodal.rest_volume
         return psi * V, None if P is None else P * V[:, None, None], None if C is None else C * V[:, None, None]
 
-    def _plus_nodal(self, x: np.ndarray, U: float, grad: np.ndarray) -> tuple[float, np.ndarray]:
-        """U and ∇U with the nodal terms added (element "nodal"; as they are otherwise)."""
+    def _plus_nodal(self, x: np.ndarray, U: float, grad: np.ndarray | None,
+                    require_positive_J: bool = False) -> tuple[float, np.ndarray | None]:
+        """U and ∇U with the nodal terms added (element "nodal"; as they are otherwise). With require_positive_J,
+        (inf, None) also when a node's averaged F̄ is inverted, as for an element."""
         if self.nodal is None or not np.isfinite(U):
             return U, grad
         state = self._nodal_state(x)
         psi, P, _ = self._averaged(x, order=1)
-        return (U + nodal.energy(self.nodal, self.nodal_kappa, state) + float(psi.sum()),
-                grad + nodal.gradient(self.ops, state) + nodal.averaged_forces(self.nodal, P))
+        U = U + nodal.energy(self.nodal, self.nodal_kappa, state) + float(psi.sum())
+        if require_positive_J and not np.isfinite(U):
+            return float("inf"), None
+        return U, grad + nodal.gradient(self.ops, state) + nodal.averaged_forces(self.nodal, P)
 
     def _coupling(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """B's data at x and the weights κ_a / V_a of the nodal coupling Bᵀ W B."""
@@ -202,13 +206,13 @@ class Tissue:
         if self.compiled:  # the compiled loop, unless an element needs the numpy path's policy
             fast = self._kernels.energy_gradient(self.ops, self.element_params, x)
             if fast is not None:
-                return self._plus_nodal(x, *fast)
+                return self._plus_nodal(x, *fast, require_positive_J)
         F = fem.deformation_gradients(self.ops, x)
         if require_positive_J and not np.min(materials.jacobian_det(F), initial=np.inf) > 0:
             return float("inf"), None
         psi, P, _ = materials.evaluate(F, self.element_params, order=1)
         U = float(np.dot(psi, self.ops.volume))
-        return self._plus_nodal(x, U, fem.scatter_vector(self.ops, fem.element_forces(self.ops, P)))
+        return self._plus_nodal(x, U, fem.scatter_vector(self.ops, fem.element_forces(self.ops, P)), require_positive_J)
 
     def energy_gradient_stiffness(self, x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
         """U (µJ), ∇U (2N,) mN and the exact packed element Hessians (21, M) mN/mm at x (N, 2).
