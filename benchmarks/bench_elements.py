@@ -8,6 +8,7 @@ one tangent: assembly of K_ff, its upper triangle's
 nonzeros, its factorisation (CHOLMOD, the solvers' `factorize_free`), and a whole nonlinear forward solve
 (the scene's material at ν 0.45, Newton to 1e-8: the layer's push10, the dome's 8 mm push). Then the dome
 with its fibers at ν 0.49 and an 8 mm push at mesh scale 1 and 0.7: how far the lesions move under refinement.
+Last, the sweep that chose α (`nodal.ELEMENT_SHARE`): the dome at ν 0.49 against P2 for each share in SHARES.
 Times are medians of `--repeats` runs in this process, p1 and nodal side by side.
 
     PYTHONPATH=. python3 benchmarks/bench_elements.py             # about 12 minutes on 2 cores
@@ -22,6 +23,7 @@ import argparse
 import statistics
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -133,6 +135,31 @@ def cost_rows(scene_name: str, stroke_mm: float, repeats: int) -> list[dict]:
     return rows
 
 
+#: the shares α of the element's own deviatoric energy the sweep tries (nodal.ELEMENT_SHARE is the built one)
+SHARES = (0.0, 0.2, 0.35, 0.5, 0.65, 0.8, 1.0)
+
+
+def share_rows(nu: float = 0.49) -> list[dict]:
+    """The dome, linear elasticity at ν, a 1 mm push: each target's error against P2 for every α in SHARES."""
+    tissue = _tissues("example_dome.yaml", nu, "linear")["nodal"]
+    points, d = _targets(tissue), tissue.dim
+    strokes = np.ones(tissue.n_cups)
+    held = np.zeros(tissue.rest.size, bool)
+    held[tissue.dirichlet_dofs] = True
+    moved = tissue.apply_strokes(tissue.rest, strokes) - tissue.rest
+    _, ref = quadratic_reference.solve_p2(tissue.mesh.nodes, tissue.ops.triangles, held.reshape(-1, d), moved,
+                                          tissue.element_E_kPa, nu, points)
+    probe = probe_points(tissue.mesh.nodes, tissue.ops.triangles, points)
+    rows = []
+    for share in SHARES:
+        t = replace(tissue, nodal=replace(tissue.nodal, element_share=share), nodal_cache={}, factor_cache={})
+        u = target_positions(probe, solve_equilibrium(t, strokes, method="newton").x) - points
+        err = 100 * np.linalg.norm(u - ref, axis=1) / np.linalg.norm(ref, axis=1)
+        rows.append({"share": share, "nu": nu, "max_error_pct": float(err.max())})
+        print(f"share α {share}: worst target {err.max():.1f} % off P2", flush=True)
+    return rows
+
+
 def refinement_rows(repeats: int) -> list[dict]:
     """The dome with its fibers at ν 0.49, an 8 mm push: how far the lesions move from mesh scale 1 to 0.7."""
     rows = []
@@ -171,6 +198,7 @@ def main() -> None:
     if not args.quick:
         accuracy += accuracy_rows("example_dome.yaml+cup2")
         res.table("refinement", refinement_rows(1), units={"forward_s": "s", "lesion_shift_mm": "mm"})
+        res.table("share", share_rows(), units={"max_error_pct": "%"})
     res.table("accuracy", accuracy, units={"p2_move_mm": "mm", "p2_s": "s", "p1_error_pct": "%",
                                            "nodal_error_pct": "%"})
     res.table("cost", cost, units={"assemble_ms": "ms", "factor_ms": "ms", "forward_s": "s", "stroke_mm": "mm"})

@@ -55,8 +55,8 @@ _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 #: the element kinds `Tissue` knows: `p1` (linear simplices, every term per element) and `nodal` (this module)
 ELEMENTS: tuple[str, ...] = ("p1", "nodal")
-#: α, the share of the deviatoric energy kept per element (the rest per node): lesion moves nearest quadratic
-#: elements at every ν and mesh scale tried (benchmarks/bench_elements.py, its share sweep)
+#: α, the share of the deviatoric energy kept per element (the rest per node): in the flat bottom of the error
+#: against quadratic elements over α, at each ν tried (benchmarks/bench_elements.py, its `share` table)
 ELEMENT_SHARE = 0.5
 
 
