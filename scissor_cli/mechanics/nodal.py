@@ -36,6 +36,10 @@ V_a ∂F̄_a,ij/∂x_bi). `pairs` lists those dof pairs per node,
 `fem.sparse_pattern` joins them to the elements', and compiled loops add
 into their slots. ∂v_e/∂x = V_e cof(F_e) ∇N.
 
+The loops over elements and nodes (the state, the gradient, B, the
+nodes' material, the pairs) are compiled in `mechanics.nodal_compiled`;
+this module holds the structure and the calls.
+
 Arrays: positions x (N, d) mm; F (M, d, d); B's data (nnz,) in mm² (in 2-D
 times the thickness) — B is (N, dN) in CSR with a fixed pattern; energies
 µJ, forces mN, stiffness mN/mm.
@@ -46,12 +50,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse as sp
-from numba import njit
 
-from scissor_cli.mechanics import compiled, compiled3d, fem
-
-_JIT = dict(cache=True, nogil=True, error_model="numpy")
+from scissor_cli.mechanics import compiled, compiled3d, fem, materials, nodal_compiled
 
 #: the element kinds `Tissue` knows: `p1` (linear simplices, every term per element) and `nodal` (this module)
 ELEMENTS: tuple[str, ...] = ("p1", "nodal")
@@ -96,38 +96,10 @@ def nodal_volume(ops: fem.FEOperators, element_share: float = ELEMENT_SHARE) -> 
     # (a square pattern of the larger side: B's rows are its first N)
     indptr, indices, slot = compiled.csr_pattern(rows.ravel().astype(np.int64), cols.ravel().astype(np.int64), d * N)
     structure = NodalVolume(rest, indptr[:N + 1].copy(), indices, slot.reshape(M, n * n * d), d)
-    at_rest = NodalState(np.ones(N), np.zeros(N), np.zeros(M), volume_gradients(ops, None, linear=True))
+    # at rest with the linear volume ∂v_e/∂x = V_e ∇N: B's data is then B_lin
+    at_rest = NodalState(np.ones(N), np.zeros(N), np.zeros(M), ops.grad_n * ops.volume[:, None, None])
     return NodalVolume(rest, structure.b_indptr, indices, structure.b_slot, d, b_data(ops, structure, at_rest),
                        element_share)
-
-
-def volume_gradients(ops: fem.FEOperators, F: np.ndarray | None, linear: bool) -> np.ndarray:
-    """∂v_e/∂x (M, d+1, d) mm² (times h in 2-D): V_e cof(F_e) ∇N_b, or V_e ∇N_b when `linear`."""
-    g = ops.grad_n  # (M, d+1, d)
-    if linear:
-        return g * ops.volume[:, None, None]
-    cof = cofactor(F)  # (M, d, d)
-    return np.einsum("eij,ebj->ebi", cof, g) * ops.volume[:, None, None]
-
-
-def cofactor(F: np.ndarray) -> np.ndarray:
-    """cof F = det(F) F⁻ᵀ (M, d, d) in closed form (finite for singular F)."""
-    if F.shape[1] == 2:
-        return np.stack([np.stack([F[:, 1, 1], -F[:, 1, 0]], 1), np.stack([-F[:, 0, 1], F[:, 0, 0]], 1)], 1)
-    c = np.empty_like(F)
-    for i in range(3):
-        for j in range(3):
-            i1, i2, j1, j2 = (i + 1) % 3, (i + 2) % 3, (j + 1) % 3, (j + 2) % 3
-            c[:, i, j] = F[:, i1, j1] * F[:, i2, j2] - F[:, i1, j2] * F[:, i2, j1]
-    return c
-
-
-def element_volumes(ops: fem.FEOperators, F: np.ndarray, linear: bool) -> np.ndarray:
-    """Current element volumes v_e (M,) mm³ (times h in 2-D): V_e det F_e, or V_e (1 + tr(F_e − I))."""
-    d = F.shape[1]
-    if linear:
-        return ops.volume * (1.0 + np.trace(F, axis1=1, axis2=2) - d)
-    return ops.volume * np.linalg.det(F)
 
 
 def nodal_kappa(ops: fem.FEOperators, kappa: np.ndarray, rest_volume: np.ndarray) -> np.ndarray:
@@ -148,16 +120,39 @@ def nodal_average(ops: fem.FEOperators, values: np.ndarray, rest_volume: np.ndar
 def averaged_gradients(nodal: NodalVolume, x: np.ndarray) -> np.ndarray:
     """F̄ (N, d, d): each node's rest-volume average of its elements' F at positions x (N, d) (linear in x)."""
     F = np.zeros((nodal.n_nodes, nodal.dim, nodal.dim))
-    _averaged(nodal.b_indptr, nodal.b_indices, nodal.b_rest, nodal.rest_volume, np.ascontiguousarray(x, float), F)
+    nodal_compiled.averaged(nodal.b_indptr, nodal.b_indices, nodal.b_rest, nodal.rest_volume,
+                            np.ascontiguousarray(x, float), F)
     return F
 
 
 def averaged_forces(nodal: NodalVolume, stress: np.ndarray) -> np.ndarray:
     """Σ_a Āᵀ_a vec(stress_a) (dN,) for per-node stresses (N, d, d) already weighted by (1 − α) V_a."""
     out = np.zeros(nodal.dim * nodal.n_nodes)
-    _averaged_transpose(nodal.b_indptr, nodal.b_indices, nodal.b_rest, nodal.rest_volume,
-                        np.ascontiguousarray(stress, float), out)
+    nodal_compiled.averaged_transpose(nodal.b_indptr, nodal.b_indices, nodal.b_rest, nodal.rest_volume,
+                                      np.ascontiguousarray(stress, float), out)
     return out
+
+
+def averaged_material(nodal: NodalVolume, params: materials.MaterialParams, x: np.ndarray, order: int,
+                      project: bool = False) -> tuple:
+    """Ψ_dev V_a (N,) µJ, P V_a (N, d, d) and C V_a (N, d², d²) (None beyond `order`; with `project` all three, C
+    PSD-projected as the elements' tangents are) at the nodes' F̄ for positions x (N, d); params: the nodes'
+    material (`Tissue.averaged_params`, already times 1 − α).
+
+    In one compiled loop over the nodes (`nodal_compiled.averaged_material`)
+    where it takes them; else the numpy kernels, whose policy for an
+    inverted F̄ (Ψ = +inf) makes such a node infeasible like an element.
+    """
+    F = averaged_gradients(nodal, x)
+    V = nodal.rest_volume
+    fast = nodal_compiled.averaged_material(F, V, params, order, project)
+    if fast is not None:
+        return fast
+    if project:
+        psi, P, C = materials.evaluate_projected(F, params)
+    else:
+        psi, P, C = materials.evaluate(F, params, order=order)
+    return psi * V, None if P is None else P * V[:, None, None], None if C is None else C * V[:, None, None]
 
 
 @dataclass(frozen=True)
@@ -176,14 +171,14 @@ class NodalState:
 
 def nodal_state(ops: fem.FEOperators, nodal: NodalVolume, kappa_a: np.ndarray, F: np.ndarray,
                 linear: bool) -> NodalState:
-    """The nodal volumes, pressures and element volume gradients at deformation gradients F (M, d, d)."""
-    n = ops.dim + 1
-    v = element_volumes(ops, F, linear)
-    v_a = np.bincount(ops.triangles.ravel(), weights=np.repeat(v / n, n), minlength=nodal.n_nodes)
-    J = v_a / nodal.rest_volume
-    p = kappa_a * (J - 1.0)
-    p_bar = p[ops.triangles].sum(axis=1) / n
-    return NodalState(J, p, p_bar, volume_gradients(ops, F, linear))
+    """The nodal volumes, pressures and element volume gradients at deformation gradients F (M, d, d): v_e = V_e
+    det F_e (V_e (1 + tr(F_e − I)) when `linear`), ∂v_e/∂x = V_e cof(F_e) ∇N (V_e ∇N), one compiled pass
+    (`nodal_compiled.nodal_state`)."""
+    M, N, d = len(ops.triangles), nodal.n_nodes, ops.dim
+    J, p, p_bar, dv = np.empty(N), np.empty(N), np.empty(M), np.empty((M, d + 1, d))
+    nodal_compiled.nodal_state(np.ascontiguousarray(F, float), ops.corners, ops.grad_rows, ops.volume,
+                               nodal.rest_volume, np.ascontiguousarray(kappa_a, float), bool(linear), J, p, p_bar, dv)
+    return NodalState(J, p, p_bar, dv)
 
 
 def energy(nodal: NodalVolume, kappa_a: np.ndarray, state: NodalState) -> float:
@@ -193,26 +188,26 @@ def energy(nodal: NodalVolume, kappa_a: np.ndarray, state: NodalState) -> float:
 
 def gradient(ops: fem.FEOperators, state: NodalState) -> np.ndarray:
     """∇U_vol (dN,) mN: Σ_e p̄_e ∂v_e/∂x."""
-    d = ops.dim
-    return fem.scatter_vector(ops, (state.dv * state.element_pressure[:, None, None]).reshape(-1, d * (d + 1)))
+    out = np.empty(ops.dim * ops.n_nodes)
+    nodal_compiled.pressure_forces(ops.corners, state.dv, state.element_pressure, out)
+    return out
 
 
 def element_hessians(ops: fem.FEOperators, F: np.ndarray, state: NodalState, linear: bool) -> np.ndarray:
-    """p̄_e ∂²v_e/∂x², packed (P, M) mN/mm: V_e p̄_e Gᵀ Q(F_e) G with Q = ∂²det F/∂F² (zero for `linear`).
-
-    In closed form (`_pressure_hessians`): with g_a = ∇N_a, the block (a, b) is V_e p̄_e ε_ikm (F (g_a × g_b))_m
-    in 3-D and V_e p̄_e ε_ik (g_a × g_b) in 2-D.
-    """
-    d = ops.dim
-    Ke = np.zeros((len(fem.pairs_for(d)), len(ops.triangles)))
-    if not linear:
-        _pressure_hessians(np.ascontiguousarray(F, float), ops.grad_rows, ops.volume * state.element_pressure, Ke)
+    """p̄_e ∂²v_e/∂x², packed (P, M) mN/mm: V_e p̄_e Gᵀ Q(F_e) G with Q = ∂²det F/∂F² (zero for `linear`), in
+    closed form (`nodal_compiled.pressure_hessians`)."""
+    P, M = len(fem.pairs_for(ops.dim)), len(ops.triangles)
+    if linear:
+        return np.zeros((P, M))
+    Ke = np.empty((P, M))
+    nodal_compiled.pressure_hessians(np.ascontiguousarray(F, float), ops.grad_rows,
+                                     ops.volume * state.element_pressure, Ke)
     return Ke
 
 
 def det_hessian(F: np.ndarray) -> np.ndarray:
     """Q = ∂²det F / ∂vec F² (M, d², d²), vec row-major (in 3-D Q[(i,j),(k,l)] = Σ_mn ε_ikm ε_jln F_mn): the
-    reference `_pressure_hessians` is checked against."""
+    reference `nodal_compiled.pressure_hessians` is checked against."""
     M, d = F.shape[0], F.shape[1]
     if d == 2:
         Q = np.zeros((M, 4, 4))
@@ -223,52 +218,19 @@ def det_hessian(F: np.ndarray) -> np.ndarray:
     return np.where(index >= 0, sign * F.reshape(M, 9)[:, np.maximum(index, 0)], 0.0)
 
 
-@njit(**_JIT)
-def _pressure_hessians(F, grad_rows, scale, Ke):
-    """Ke[pair, e] = scale_e Σ_jl ∂N_a/∂X_j Q(F_e)[(i,j),(k,l)] ∂N_b/∂X_l for the packed pairs
-    (p = d a + i ≤ q = d b + k)."""
-    M = F.shape[0]
-    d = F.shape[1]
-    n = d * (d + 1)
-    for e in range(M):
-        w = scale[e]
-        row = 0
-        for p in range(n):
-            a, i = p // d, p % d
-            for q in range(p, n):
-                b, k = q // d, q % d
-                if i == k:
-                    Ke[row, e] = 0.0
-                elif d == 2:
-                    cross = grad_rows[a, 0, e] * grad_rows[b, 1, e] - grad_rows[a, 1, e] * grad_rows[b, 0, e]
-                    Ke[row, e] = w * cross if i == 0 else -w * cross
-                else:
-                    c0 = grad_rows[a, 1, e] * grad_rows[b, 2, e] - grad_rows[a, 2, e] * grad_rows[b, 1, e]
-                    c1 = grad_rows[a, 2, e] * grad_rows[b, 0, e] - grad_rows[a, 0, e] * grad_rows[b, 2, e]
-                    c2 = grad_rows[a, 0, e] * grad_rows[b, 1, e] - grad_rows[a, 1, e] * grad_rows[b, 0, e]
-                    m = 3 - i - k
-                    fm = F[e, m, 0] * c0 + F[e, m, 1] * c1 + F[e, m, 2] * c2
-                    sign = 1.0 if (k - i) % 3 == 1 else -1.0  # ε_ikm: +1 for (0,1,2) and its cyclic shifts
-                    Ke[row, e] = w * sign * fm
-                row += 1
-
-
 def b_data(ops: fem.FEOperators, nodal: NodalVolume, state: NodalState) -> np.ndarray:
     """B's data (nnz,): row a, column (b, i) holds Σ_{e∋a,b} ∂v_e/∂x_bi / (d+1)."""
-    n = ops.dim + 1
-    per_row = (state.dv.reshape(len(state.dv), -1) / n)  # (M, n·d): the same for each row corner a
-    return np.bincount(nodal.b_slot.ravel(), weights=np.tile(per_row, (1, n)).ravel(), minlength=len(nodal.b_indices))
-
-
-def b_matrix(nodal: NodalVolume, data: np.ndarray) -> sp.csr_matrix:
-    """B (N, dN) as a CSR matrix."""
-    return sp.csr_matrix((data, nodal.b_indices, nodal.b_indptr), shape=(nodal.n_nodes, nodal.dim * nodal.n_nodes))
+    out = np.empty(len(nodal.b_indices))
+    nodal_compiled.b_values(np.ascontiguousarray(state.dv, float), nodal.b_slot, out)
+    return out
 
 
 def coupling_times(nodal: NodalVolume, data: np.ndarray, weight: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Bᵀ diag(weight) B v (dN,) for a full vector v (dN,); weight (N,) = κ_a / V_a."""
-    B = b_matrix(nodal, data)
-    return B.T @ (weight * (B @ v))
+    out = np.empty(nodal.dim * nodal.n_nodes)
+    nodal_compiled.coupling_product(nodal.b_indptr, nodal.b_indices, data, np.ascontiguousarray(weight, float),
+                                    np.ascontiguousarray(v, float), out)
+    return out
 
 
 def pairs(nodal: NodalVolume, dof_index: np.ndarray, upper: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -278,9 +240,9 @@ def pairs(nodal: NodalVolume, dof_index: np.ndarray, upper: bool) -> tuple[np.nd
     keeps each row's pairs with row ≤ column once. Each node a adds the
     (n_a)² products of its row's kept dofs.
     """
-    count = _count_pairs(nodal.b_indptr, nodal.b_indices, dof_index, upper)
+    count = nodal_compiled.count_pairs(nodal.b_indptr, nodal.b_indices, dof_index, upper)
     rows, cols = np.empty(count, np.int64), np.empty(count, np.int64)
-    _fill_pairs(nodal.b_indptr, nodal.b_indices, dof_index, upper, rows, cols)
+    nodal_compiled.fill_pairs(nodal.b_indptr, nodal.b_indices, dof_index, upper, rows, cols)
     return rows, cols
 
 
@@ -289,98 +251,5 @@ def add_tangent(nodal: NodalVolume, data: np.ndarray, weight: np.ndarray, tangen
     """The two-ring part of the tangent into the CSR data `out` of a joined pattern, pair k of `pairs` at slot[k]:
     weight_a B_ap B_aq (the volume; B's data `data`, weight (N,) = κ_a / V_a) + (Āᵀ_a C_a Ā_a)_pq (the averaged
     strain; tangents (N, d², d²) already weighted by (1 − α) V_a)."""
-    _add_pairs(nodal.b_indptr, nodal.b_indices, data, weight, nodal.b_rest, nodal.rest_volume,
-               np.ascontiguousarray(tangent, float), dof_index, upper, slot, out)
-
-
-@njit(**_JIT)
-def _count_pairs(indptr, indices, dof_index, upper):
-    count = 0
-    for a in range(indptr.shape[0] - 1):
-        kept = 0
-        for t in range(indptr[a], indptr[a + 1]):
-            if dof_index[indices[t]] >= 0:
-                kept += 1
-        count += kept * (kept + 1) // 2 if upper else kept * kept
-    return count
-
-
-@njit(**_JIT)
-def _fill_pairs(indptr, indices, dof_index, upper, rows, cols):
-    k = 0
-    for a in range(indptr.shape[0] - 1):
-        for s in range(indptr[a], indptr[a + 1]):
-            p = dof_index[indices[s]]
-            if p < 0:
-                continue
-            for t in range(s if upper else indptr[a], indptr[a + 1]):
-                q = dof_index[indices[t]]
-                if q < 0:
-                    continue
-                rows[k] = p
-                cols[k] = q
-                k += 1
-
-
-@njit(**_JIT)
-def _averaged(indptr, indices, b_rest, rest_volume, x, F):
-    """F̄_a[i, j] = Σ_b x_b[i] B_lin[a, (b, j)] / V_a over row a's entries (entry s: dof r, node r // d, j = r % d)."""
-    d = F.shape[1]
-    for a in range(indptr.shape[0] - 1):
-        inv = 1.0 / rest_volume[a]
-        for s in range(indptr[a], indptr[a + 1]):
-            r = indices[s]
-            b, j = r // d, r % d
-            w = b_rest[s] * inv
-            for i in range(d):
-                F[a, i, j] += x[b, i] * w
-
-
-@njit(**_JIT)
-def _averaged_transpose(indptr, indices, b_rest, rest_volume, stress, out):
-    """out[d b + i] += Σ_j stress_a[i, j] B_lin[a, (b, j)] / V_a: the transpose of `_averaged`."""
-    d = stress.shape[1]
-    for a in range(indptr.shape[0] - 1):
-        inv = 1.0 / rest_volume[a]
-        for s in range(indptr[a], indptr[a + 1]):
-            r = indices[s]
-            b, j = r // d, r % d
-            w = b_rest[s] * inv
-            for i in range(d):
-                out[d * b + i] += stress[a, i, j] * w
-
-
-@njit(**_JIT)
-def _add_pairs(indptr, indices, data, weight, b_rest, rest_volume, tangent, dof_index, upper, slot, out):
-    """The pairs of `_fill_pairs`, in its order. Pair (s, t) (entry s = dof (b, i), t = (c, k) of row a) gets
-    w_a B_as B_at + Σ_jl ḡ_ab[j] C_a[d i + j, d k + l] ḡ_ac[l], with ḡ_ab[j] = B_lin[a, (b, j)] / V_a found at
-    s − i + j (a node's d dofs are consecutive in its row). Row s's contraction with C_a is formed once
-    (r[k, l]); each pair then costs d + 1 products."""
-    d = int(round(np.sqrt(tangent.shape[1])))
-    r = np.empty((d, d))
-    k = 0
-    for a in range(indptr.shape[0] - 1):
-        w = weight[a]
-        inv2 = 1.0 / (rest_volume[a] * rest_volume[a])
-        for s in range(indptr[a], indptr[a + 1]):
-            if dof_index[indices[s]] < 0:
-                continue
-            ws = w * data[s]
-            i = indices[s] % d
-            s0 = s - i
-            for kk in range(d):
-                for m in range(d):
-                    acc = 0.0
-                    for j in range(d):
-                        acc += b_rest[s0 + j] * tangent[a, d * i + j, d * kk + m]
-                    r[kk, m] = acc * inv2
-            for t in range(s if upper else indptr[a], indptr[a + 1]):
-                if dof_index[indices[t]] < 0:
-                    continue
-                kk = indices[t] % d
-                t0 = t - kk
-                acc = ws * data[t]
-                for m in range(d):
-                    acc += r[kk, m] * b_rest[t0 + m]
-                out[slot[k]] += acc
-                k += 1
+    nodal_compiled.add_pairs(nodal.b_indptr, nodal.b_indices, data, weight, nodal.b_rest, nodal.rest_volume,
+                             np.ascontiguousarray(tangent, float), dof_index, upper, slot, out)

@@ -110,13 +110,7 @@ class Tissue:
 
     def _averaged(self, x: np.ndarray, order: int, project: bool = False):
         """ψ (N,) weighted by V_a, P (N, d, d) and C (N, d², d²) (by `order`, C projected if asked) at the nodes' F̄."""
-        Fbar = nodal.averaged_gradients(self.nodal, x)
-        if project:
-            psi, P, C = materials.evaluate_projected(Fbar, self.averaged_params)
-        else:
-            psi, P, C = materials.evaluate(Fbar, self.averaged_params, order=order)
-        V = self.nodal.rest_volume
-        return psi * V, None if P is None else P * V[:, None, None], None if C is None else C * V[:, None, None]
+        return nodal.averaged_material(self.nodal, self.averaged_params, x, order, project)
 
     def _plus_nodal(self, x: np.ndarray, U: float, grad: np.ndarray | None,
                     require_positive_J: bool = False) -> tuple[float, np.ndarray | None]:
