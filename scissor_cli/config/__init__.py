@@ -5,6 +5,7 @@ split may change.
 """
 
 from scissor_cli.config.checks import obstacle_outline, scene_problems, tissue_outline
+from scissor_cli.config.controller_class import ControllerClassError, controller_instance
 from scissor_cli.config.element_budget import ELEMENT_BUDGET, estimate_elements
 from scissor_cli.config.loading import (
     MAX_CONFIG_BYTES,
@@ -41,11 +42,13 @@ from scissor_cli.config.sections import (
 
 __all__ = [
     "ELEMENT_BUDGET", "MAX_CONFIG_BYTES",
-    "BoxConfig", "CameraConfig", "CircleConfig", "Config", "ConfigError", "ControllerConfig", "CupConfig",
+    "BoxConfig", "CameraConfig", "CircleConfig", "Config", "ConfigError", "ControllerClassError", "ControllerConfig",
+    "CupConfig",
     "DHLinkConfig", "ForwardCase", "ImagingConfig", "InsertionConfig", "LayerCheckConfig", "ManipulationPointsConfig",
     "MaterialConfig", "MeshConfig",
     "NeedleConfig", "ObstacleConfig",
     "RobotConfig", "SolverConfig", "StudyConfig", "TargetConfig", "TissueConfig", "TrialsConfig",
-    "estimate_elements", "load_config", "obstacle_outline", "parse_config", "read_config_text", "resolved_yaml",
+    "controller_instance", "estimate_elements", "load_config", "obstacle_outline", "parse_config", "read_config_text",
+    "resolved_yaml",
     "scene_problems", "tissue_outline",
 ]

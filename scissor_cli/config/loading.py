@@ -29,6 +29,7 @@ from scissor_cli.config.body_checks import body_problems
 from scissor_cli.config.body_section import section_problems
 from scissor_cli.config.body_sections import BODY_SHAPES, BodyConfig
 from scissor_cli.config.checks import scene_problems
+from scissor_cli.config.controller_class import controller_problems, with_class_folder
 from scissor_cli.config.element_budget import budget_problems
 from scissor_cli.config.messages import loc_text, located, pydantic_problem, show
 from scissor_cli.config.sections import Config
@@ -246,7 +247,9 @@ def parse_config(text: str, source: str = "<config>", base_dir: Path | None = No
         raise ConfigError(_one_message([located(source, root, *pydantic_problem(e, model, other))
                                         for e in errors])) from None
     cfg = _absolute_paths(cfg, base_dir)
-    for check in ((body_problems, section_problems) if body else (scene_problems, budget_problems)):
+    cfg = cfg.model_copy(update={"controller": with_class_folder(cfg.controller, base_dir)})
+    checks = (body_problems, section_problems) if body else (scene_problems, budget_problems)
+    for check in checks + (lambda c: controller_problems(c.controller),):
         problems = check(cfg)
         if problems:
             raise ConfigError(_one_message([located(source, root, loc, what) for loc, what in problems]))

@@ -17,7 +17,7 @@ from typing import Any, Optional
 import yaml
 from pydantic import BaseModel
 
-from scissor_cli.config.sections import NAME_PATTERN, SCENE_NAME_PATTERN, Config
+from scissor_cli.config.sections import CLASS_PATH, NAME_PATTERN, SCENE_NAME_PATTERN, Config
 
 #: values and keys are shown at most this long in a message
 SHOW_CHARS = 60
@@ -157,6 +157,8 @@ def allowed(loc: tuple, root: type = Config) -> str:
             return "a name of 1 to 64 letters, digits, '_', '.', '+' or '-', starting with a letter or digit"
         if SCENE_NAME_PATTERN in patterns:
             return "a name of 1 to 128 letters, digits, spaces, '_', '.', '+' or '-', starting with a letter or digit"
+        if CLASS_PATH in patterns:
+            return "a class as \"package.module:Class\" (dotted Python names, a colon, the class's name)"
         return "a string"
     if typing.get_origin(tp) is typing.Literal:
         return "one of " + ", ".join(repr(a) for a in typing.get_args(tp))

@@ -16,7 +16,7 @@ Units follow docs/model.md §0: mm, s, kPa, kg; angles in degrees in the config.
 
 from __future__ import annotations
 
-from typing import Annotated, Literal, Optional
+from typing import Annotated, Any, Literal, Optional
 
 import numpy as np
 from annotated_types import Len
@@ -172,7 +172,29 @@ class SurrogateConfig(_Section):
 SURROGATE_SAMPLES_PER_CUP = 8
 
 
+class MPCConfig(_Section):
+    """The model-predictive law (docs/model.md §22): a QP over `horizon` frames on the controller's model."""
+
+    #: frames the QP looks ahead
+    horizon: Int(1, 100) = 10
+    #: ρ on each frame's squared stroke step (mm²) beside the squared miss (mm²)
+    action_weight: Num(0.0, 1.0e6) = 0.01
+
+
+#: "package.module:Class": a dotted module, a colon, a class name (docs/model.md §22)
+CLASS_PATH = r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*:[A-Za-z_][A-Za-z0-9_]*$"
+
+
 class ControllerConfig(_Section):
+    #: pid: the built-in law (docs/model.md §6); mpc: the model-predictive QP; python: your class (docs/model.md §22)
+    law: Literal["pid", "mpc", "python"] = "pid"
+    mpc: MPCConfig = MPCConfig()
+    #: law python: the controller class, "package.module:Class", imported from `class_folder`
+    class_path: Optional[Annotated[str, Field(pattern=CLASS_PATH, max_length=300)]] = None
+    #: law python: the class's keyword arguments
+    init_args: dict[str, Any] = {}
+    #: law python: the folder `class_path` is imported from; absent: the config file's folder (stored absolute)
+    class_folder: Optional[Annotated[str, Field(max_length=4096)]] = None
     kp: Num(0.0, 100.0) = 0.8
     ki: Num(0.0, 100.0) = 0.1
     kd: Num(0.0, 100.0) = 0.0

@@ -17,7 +17,7 @@ import numpy as np
 from scissor_cli.control.actuator import quantise
 
 #: Why `run_loop` stopped.
-STOP_REASONS = ("tolerance", "max_iterations", "stalled", "stroke_limit", "solver_failed")
+STOP_REASONS = ("tolerance", "max_iterations", "stalled", "stroke_limit", "solver_failed", "controller_failed")
 
 #: Iterations without a 10 % better correctable error before the loop is "stalled".
 STALL_PATIENCE = 5

@@ -48,13 +48,14 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from scissor_cli.config import ControllerConfig
+from scissor_cli.config import ControllerConfig, controller_instance
 from scissor_cli.control.actuator import Actuator, quantise
 from scissor_cli.control.allocation import stroke_step
 from scissor_cli.control.broyden import BroydenCorrection
 from scissor_cli.control.corridor_check import Corridor, corridor_at
 from scissor_cli.control.law import PID, stalled, traveling
 from scissor_cli.control.plant import Controller, ModelPaths, Plant, TruthFactory, TruthPerturbation, true_tissue
+from scissor_cli.control.plugin import ControllerLaw, checked_velocity, drive, frame_info, observation
 from scissor_cli.control.result import History, LoopResult
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import probe_points, probe_targets
@@ -74,6 +75,7 @@ def run_loop(
     target: str = "",
     cup_names: Optional[list[str]] = None,
     direction: Optional[np.ndarray] = None,
+    law: Optional[ControllerLaw] = None,
 ) -> LoopResult:
     """The closed loop of docs/model.md §6 from the plant's and controller's current states.
 
@@ -93,6 +95,13 @@ def run_loop(
     a stroke limit and asks to go further ("stroke_limit"), or when a solve
     fails ("solver_failed", the reason in `message`; the failed move is not
     in the history).
+
+    With an outside law (`law`, or `cfg.law` "mpc" / "python", docs/model.md
+    §22) the PID is replaced: each frame the law gets the observation and
+    info of `control.plugin` and returns velocities (C,) mm/s, which go
+    through `plugin.drive`; the stops are the same, plus
+    "controller_failed" when the law raises or returns no finite
+    velocities (the message says which). The history gains `clipped`.
     """
     t0 = time.perf_counter()
     desired = np.asarray(desired, float)
@@ -105,6 +114,8 @@ def run_loop(
     max_step = plant.actuator.speed_mm_per_s * dt
     correction = BroydenCorrection(sensor.noise_mm) if cfg.jacobian_update == "broyden" else None
     seen = getattr(sensor, "seen", None)  # a body seen by one camera: what it observes (`stroke_step`)
+    law = outside_law(cfg) if law is None else law  # (None: the built-in PID)
+    clipped = None if law is None else [0]  # cups the drives cut in the move to each row's command
     for k in range(cfg.max_iterations + 1):
         y = sensor.measure(plant.true_state())
         J = controller.jacobian
@@ -139,11 +150,27 @@ def run_loop(
             reason = "stalled"  # (moving one way at the drives' top speed is not stalling; chattering is)
         if reason:
             break
-        new, saturated = pid.command(command, ds, controller.lo, controller.hi, controller.resolution_mm)
-        if saturated.any() and np.array_equal(new, command):
-            # Anti-windup froze the integral and the state will not change: the same command forever.
-            reason, message = "stroke_limit", "the command sits at a stroke limit and asks to go further"
-            break
+        if law is None:
+            new, saturated = pid.command(command, ds, controller.lo, controller.hi, controller.resolution_mm)
+            if saturated.any() and np.array_equal(new, command):
+                # Anti-windup froze the integral and the state will not change: the same command forever.
+                reason, message = "stroke_limit", "the command sits at a stroke limit and asks to go further"
+                break
+        else:
+            obs = observation(y, desired, direction, command, sim_t)
+            info = frame_info(J, controller.lo, controller.hi, plant.actuator.speed_mm_per_s, dt, cfg.error, k,
+                              target, cup_names)
+            try:
+                if k == 0:
+                    law.reset(obs, info)
+                velocity = checked_velocity(law.act(obs, info), controller.n_cups)
+            except Exception as exc:  # noqa: BLE001 - an outside controller may raise anything: its loop stops
+                reason, message = "controller_failed", f"{_law_name(cfg)}: {type(exc).__name__}: {exc}"
+                break
+            moved = drive(command, velocity, dt, controller.lo, controller.hi, plant.actuator.speed_mm_per_s,
+                          controller.resolution_mm)
+            new = moved.command
+            clipped.append(moved.clipped)
         tw = time.perf_counter()
         try:
             plant.apply(new, tangent=tangent)
@@ -154,8 +181,29 @@ def run_loop(
         hist.wall.append(time.perf_counter() - tw)
         sim_t += max(dt, plant.actuator.last_move_s)
         command = new
-    return hist.result(plant, controller, desired, target, "closed", reason, message, time.perf_counter() - t0,
-                       cup_names, direction, cfg.error)
+    result = hist.result(plant, controller, desired, target, "closed", reason, message, time.perf_counter() - t0,
+                         cup_names, direction, cfg.error)
+    if clipped is not None:
+        result.hist_clipped = np.array(clipped[:len(result.hist_time_s)], np.int64)
+    return result
+
+
+def outside_law(cfg: ControllerConfig) -> Optional[ControllerLaw]:
+    """A new controller object for `cfg.law` "mpc" or "python" (docs/model.md §22); None for the built-in "pid".
+
+    One per manipulation, so a trial starts from the class's own initial state.
+    """
+    if cfg.law == "mpc":
+        from scissor_cli.control.mpc import MPCLaw  # noqa: PLC0415 - OSQP is loaded only by a run that uses it
+
+        return MPCLaw(cfg.mpc.horizon, cfg.mpc.action_weight)
+    if cfg.law == "python":
+        return controller_instance(cfg)
+    return None
+
+
+def _law_name(cfg: ControllerConfig) -> str:
+    return cfg.class_path if cfg.law == "python" else cfg.law
 
 
 def _correctable_norm(step) -> float:
@@ -239,7 +287,9 @@ class TargetRun:
     from the perturbation; controller_factory (lo, hi, resolution_mm, tol)
     → controller: a controller on another model (docs/model.md §15);
     model_paths: the model's states earlier loops of this target solved in
-    this process (`plant.ModelPaths`; for the model's own controller).
+    this process (`plant.ModelPaths`; for the model's own controller);
+    law: an outside controller object (`plugin.ControllerLaw`) used instead
+    of the config's `law` (the Python API's).
     """
 
     truth: TruthPerturbation = TruthPerturbation()
@@ -255,6 +305,7 @@ class TargetRun:
     truth_factory: Optional[TruthFactory] = None
     controller_factory: Optional[Callable] = None
     model_paths: Optional[ModelPaths] = None
+    law: Optional[ControllerLaw] = None
 
 
 def run_target(model: Tissue, target_rest: np.ndarray, desired: np.ndarray, cfg: ControllerConfig,
@@ -269,6 +320,36 @@ def run_target(model: Tissue, target_rest: np.ndarray, desired: np.ndarray, cfg:
     "closed") or `open_loop` ("open"). With a corridor, the needle corridor
     through the reached true target is checked on the final true state:
     `corridor_clear`, `clearance_mm`, `corridor_entry`.
+    """
+    plant, controller, direction = loop_parts(model, target_rest, run)
+    scene = model.scene
+    names = list(scene.cup_names)
+    if run.mode == "closed":
+        result = run_loop(plant, controller, desired, cfg, run.sensor, run.target, names, direction, run.law)
+    elif run.mode == "open":
+        result = open_loop(plant, controller, desired, run.sensor, cfg.rate_hz, run.target, names, direction,
+                           cfg.error)
+    else:
+        raise ValueError(f"mode must be 'closed' or 'open', got {run.mode!r}")
+    if run.corridor is not None:
+        corridor = run.corridor
+        entry, clearance = corridor_at(model if run.truth_factory else plant.tissue, plant.layer_x,
+                                       result.final_position, corridor)
+        result.corridor_entry, result.clearance_mm = entry, clearance
+        result.corridor_direction = corridor.direction
+        result.corridor_clear = bool(clearance > 0)
+    return result
+
+
+def loop_parts(model: Tissue, target_rest: np.ndarray, run: TargetRun = TargetRun()) -> tuple[Plant, Controller,
+                                                                                               Optional[np.ndarray]]:
+    """The plant, the controller and the needle axis (d,) (or None) `run_target` runs its loop on.
+
+    The truth is `true_tissue(model, run.truth)` or `run.truth_factory`'s
+    tissue and view, its actuator the scene's limits and speeds with the
+    run's resolution and backlash; the controller is on the model (or
+    `run.controller_factory`'s). Both start at rest; `run.guess` is handed
+    to the trackers on `model`.
     """
     direction = run.direction
     if direction is None and run.corridor is not None:
@@ -294,22 +375,7 @@ def run_target(model: Tissue, target_rest: np.ndarray, desired: np.ndarray, cfg:
         trackers += [controller.eq] if getattr(controller, "tissue", None) is model else []
         for eq in trackers:
             eq.guesses.append((np.asarray(run.guess[0], float), np.asarray(run.guess[1], float)))
-    names = list(scene.cup_names)
-    if run.mode == "closed":
-        result = run_loop(plant, controller, desired, cfg, run.sensor, run.target, names, direction)
-    elif run.mode == "open":
-        result = open_loop(plant, controller, desired, run.sensor, cfg.rate_hz, run.target, names, direction,
-                           cfg.error)
-    else:
-        raise ValueError(f"mode must be 'closed' or 'open', got {run.mode!r}")
-    if run.corridor is not None:
-        corridor = run.corridor
-        entry, clearance = corridor_at(model if run.truth_factory else plant.tissue, plant.layer_x,
-                                       result.final_position, corridor)
-        result.corridor_entry, result.clearance_mm = entry, clearance
-        result.corridor_direction = corridor.direction
-        result.corridor_clear = bool(clearance > 0)
-    return result
+    return plant, controller, direction
 
 
 def _made(factory: TruthFactory, truth: TruthPerturbation) -> dict:

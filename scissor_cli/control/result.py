@@ -68,6 +68,8 @@ class LoopResult:
     clearance_mm: float = float("nan")
     corridor_entry: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))
     corridor_direction: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))
+    #: with an outside law (docs/model.md §22): (K,) cups the drives cut in the move to each row's command
+    hist_clipped: Optional[np.ndarray] = None
 
     @property
     def history(self) -> dict[str, np.ndarray]:
@@ -94,7 +96,8 @@ class LoopResult:
 
         Columns: time_s, stroke_cmd_<cup>..., stroke_<cup>..., measured_x,
         measured_y, true_x, true_y, error_x, error_y, correctable_mm,
-        uncorrectable_mm, along_mm (all mm except time_s in s); in a body
+        uncorrectable_mm, along_mm (all mm except time_s in s), with an
+        outside law clipped (cups the drives cut); in a body
         measured_z, true_z, error_z too (measured NaN where the sensor does
         not see that axis).
         """
@@ -105,13 +108,14 @@ class LoopResult:
             + [f"stroke_{c}" for c in self.cup_names]
             + [f"{kind}_{a}" for kind in ("measured", "true", "error") for a in axes]
             + ["correctable_mm", "uncorrectable_mm", "along_mm"]
+            + ([] if self.hist_clipped is None else ["clipped"])
         )
         table = np.column_stack(
             [
                 self.hist_time_s, self.hist_strokes_cmd, self.hist_strokes, self.hist_measured,
                 self.hist_true, self.hist_error, self.hist_correctable, self.hist_uncorrectable,
                 self.hist_along,
-            ]
+            ] + ([] if self.hist_clipped is None else [self.hist_clipped])
         ).astype(np.float64)
         return names, table
 

@@ -35,7 +35,7 @@ from scissor_cli.experiments.profiles import CAMERA_SPREADS, IMAGING_SPREADS, IN
 from scissor_cli.experiments.run_cache import cache_dir
 from scissor_cli.experiments.sink import Manipulation, RunSink, product_key
 from scissor_cli.experiments.trial_stage import Execution, run_trial_stage
-from scissor_cli.experiments.trial_types import TargetTask
+from scissor_cli.experiments.trial_types import TargetTask, law_attrs
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.planning.body_plan import BodyNeedlePlan, body_robot_check, plan_body_targets, stored_body_plan
 from scissor_cli.robot.chain import RobotModel
@@ -59,15 +59,13 @@ def body_loop_stages(cfg: BodyConfig, tissue: Tissue, sink: RunSink, summary, do
     if cfg.controller.model == "surrogate":
         model_data = body_surrogate_data(cfg, tissue, cache_dir(sink.location))
     summary.figures += _manipulation_stage(cfg, tissue, truth, plans, sink, done, model_data)
-    tasks = [TargetTask(k, p.target, tissue.scene.targets[k].rest, np.asarray(p.desired, float),
-                        np.asarray(p.strokes, float), "", np.asarray(p.direction, float),
-                        np.asarray(p.entry, float), float(p.depth_mm), controller_model=model_data)
-             for k, p in enumerate(plans) if p.feasible]
+    tasks = body_tasks(tissue, plans, model_data)
     if "trials" not in done:
         em = error_model(cfg.trials)
         other_sensor = IMAGING_SPREADS if cfg.imaging is None else CAMERA_SPREADS  # the sensor not used
         skipped = other_sensor + (INSERTION_SPREADS if cfg.insertion is None else ())
         attrs = {"count": cfg.trials.count, "profile": cfg.trials.profile, "seed": cfg.seed,
+                 **law_attrs(cfg.controller),
                  **({"sensor": "camera", "cameras": len(cfg.cameras) if cfg.cameras else 1} if cfg.imaging is None
                     else {"sensor": "ultrasound"}), "controller_model": cfg.controller.model,
                  **({} if model_data is None else {"surrogate_error_mm": model_data.validation_error_mm}),
@@ -84,16 +82,7 @@ def body_loop_stages(cfg: BodyConfig, tissue: Tissue, sink: RunSink, summary, do
 
 
 def _plan_stage(cfg: BodyConfig, tissue: Tissue, sink: RunSink) -> list[BodyNeedlePlan]:
-    robot = RobotModel.from_config(cfg.robot)
-    check = body_robot_check(robot, np.asarray(cfg.robot.layer_origin_mm, float),
-                             float(np.deg2rad(cfg.robot.layer_yaw_deg)))
-    tracker = TrackedEquilibrium(tissue, 1e-8)
-
-    def solve(strokes: np.ndarray) -> np.ndarray:
-        tracker.move_to(np.asarray(strokes, float))
-        return tracker.x.copy()
-
-    plans = plan_body_targets(tissue, tissue.scene, cfg.needle, robot_check=check, solve=solve)
+    plans = body_plans(cfg, tissue)
     for plan in plans:
         sink.body_plan(plan)
         where = (f"entry {np.round(plan.entry, 1).tolist()} along {np.round(plan.direction, 3).tolist()}, "
@@ -103,6 +92,28 @@ def _plan_stage(cfg: BodyConfig, tissue: Tissue, sink: RunSink) -> list[BodyNeed
         progress.info(f"plan {plan.target}: " + (where if plan.feasible else f"none: {plan.reason}")
                       + ("" if plan.robot_ok or not plan.feasible else f"; ROBOT: {plan.robot_note}"))
     return plans
+
+
+def body_tasks(tissue: Tissue, plans: list[BodyNeedlePlan], model_data=None) -> list[TargetTask]:
+    """Plain-data tasks of the lesions with a feasible plan (and the controller's model's data, if any)."""
+    return [TargetTask(k, p.target, tissue.scene.targets[k].rest, np.asarray(p.desired, float),
+                       np.asarray(p.strokes, float), "", np.asarray(p.direction, float),
+                       np.asarray(p.entry, float), float(p.depth_mm), controller_model=model_data)
+            for k, p in enumerate(plans) if p.feasible]
+
+
+def body_plans(cfg: BodyConfig, tissue: Tissue) -> list[BodyNeedlePlan]:
+    """Every lesion's straight needle and strokes on the body (docs/model.md §19, "Plan"), in the scene's order."""
+    robot = RobotModel.from_config(cfg.robot)
+    check = body_robot_check(robot, np.asarray(cfg.robot.layer_origin_mm, float),
+                             float(np.deg2rad(cfg.robot.layer_yaw_deg)))
+    tracker = TrackedEquilibrium(tissue, 1e-8)
+
+    def solve(strokes: np.ndarray) -> np.ndarray:
+        tracker.move_to(np.asarray(strokes, float))
+        return tracker.x.copy()
+
+    return plan_body_targets(tissue, tissue.scene, cfg.needle, robot_check=check, solve=solve)
 
 
 def _manipulation_stage(cfg: BodyConfig, tissue: Tissue, truth: BodyTruth, plans: list, sink: RunSink,

@@ -29,7 +29,7 @@ from scissor_cli.control.allocation import along_mm, miss_mm
 from scissor_cli.control.models import MapController, SectionController
 from scissor_cli.control.plant import TruthView, true_tissue
 from scissor_cli.experiments.build import body_model, section_model
-from scissor_cli.experiments.profiles import ErrorModel, draw_body, draw_trial, error_model, trial_needle
+from scissor_cli.experiments.profiles import BodyDraw, ErrorModel, draw_body, draw_trial, error_model, trial_needle
 from scissor_cli.experiments.trial_types import TrialOutcome
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_strategies
 from scissor_cli.layer3d.surrogate import Surrogate
@@ -139,8 +139,19 @@ class BodyTrialContext:
             self._guesses[task.index] = (task.plan_strokes, solve_equilibrium(self.tissue, task.plan_strokes).x)
         return self._guesses[task.index]
 
-    def run(self, task, trial: int):
-        t0 = time.perf_counter()
+    def nominal_run(self, task) -> control.TargetRun:
+        """The nominal manipulation's `control.TargetRun`: the nominal body as the truth, its camera(s) without
+        error, the controller's model (what `simulate`'s manipulation stage runs)."""
+        if self.controllers is None:
+            self.controllers = model_controllers(self.cfg, task.controller_model)
+        sensor = self.sensors.nominal(np.asarray(task.desired, float), task.index, self.cfg.seed)
+        return control.TargetRun(sensor=sensor, target=task.name, direction=np.asarray(task.direction, float),
+                                 controller_factory=self.controllers(task.index),
+                                 truth_factory=self.truth.factory(task.rest))
+
+    def target_run(self, task, trial: int) -> tuple[control.TargetRun, BodyDraw]:
+        """How trial `trial` of `task` runs its loop (`control.TargetRun`: the drawn truth with the lesion's
+        stiffness, the sensor, the actuator's errors, the controller's model), and its 3-D draw."""
         if self.controllers is None:
             self.controllers = model_controllers(self.cfg, task.controller_model)
         draw = draw_trial(self.errors, self.scene.material.nu, self.truth.centroids, self.cfg.seed, task.index, trial)
@@ -151,12 +162,20 @@ class BodyTrialContext:
         desired = np.asarray(task.desired, float)
         sensor = self.sensors.for_trial(TrialDraws(draw.localisation_z, draw.rng,
                                                    (int(self.cfg.seed), task.index, trial), goal_mm=desired))
-        r = control.run_target(self.tissue, task.rest, desired, self.cfg.controller, control.TargetRun(
+        return control.TargetRun(
             truth=truth, sensor=sensor, resolution_mm=self.errors.actuator_resolution_mm,
             backlash_mm=self.errors.backlash_mm, target=task.name, guess=self.guess(task),
             direction=np.asarray(task.direction, float), controller_factory=self.controllers(task.index),
             truth_factory=self.truth.factory(task.rest),
-            model_paths=self.paths.setdefault(task.index, control.ModelPaths())))
+            model_paths=self.paths.setdefault(task.index, control.ModelPaths())), body
+
+    def run(self, task, trial: int):
+        t0 = time.perf_counter()
+        run, body = self.target_run(task, trial)
+        truth, sensor, desired = run.truth, run.sensor, np.asarray(task.desired, float)
+        r = control.run_target(self.tissue, task.rest, desired, self.cfg.controller, run)
+        if r.stop_reason == "controller_failed":  # an outside controller's failure fails its trial (the run goes on)
+            raise control.ControllerError(r.message)
         # the needle goes in along the plan's line where the robot, registered with the trial's error, puts it
         direction = body.rotation @ np.asarray(task.direction, float)
         entry = body.moved(np.asarray(task.entry, float))[0] if task.entry is not None else None

@@ -49,6 +49,7 @@ from scissor_cli.experiments.sink import (  # noqa: F401 - raised through this m
 from scissor_cli.experiments.slab_starts import with_slab_starts
 from scissor_cli.experiments.study import run_study
 from scissor_cli.experiments.trial_stage import Execution, TrialsFailed, expected_duration, run_trial_stage  # noqa: F401 (this module's API)
+from scissor_cli.experiments.trial_types import law_attrs
 from scissor_cli.experiments.trials import TargetTask
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.outlines import boundary_loop, deformed_outlines, embed_outlines
@@ -252,7 +253,7 @@ def allocate_trial_arrays(sink: RunSink, cfg: Config, tasks: list[TargetTask], p
     em = error_model(cfg.trials)
     # the sensor's sources: the camera's, or with imaging the ultrasound's (the camera's do not apply then)
     other_sensor = CAMERA_SPREADS if cfg.imaging is not None else IMAGING_SPREADS
-    attrs = {"count": cfg.trials.count, "profile": cfg.trials.profile, "seed": cfg.seed,
+    attrs = {"count": cfg.trials.count, "profile": cfg.trials.profile, "seed": cfg.seed, **law_attrs(cfg.controller),
              "sensor": "camera" if cfg.imaging is None else "ultrasound",
              **{k: v for k, v in asdict(em).items()
                 if k not in ("profile",) + INSERTION_SPREADS + other_sensor + BODY_SPREADS}}
@@ -304,13 +305,8 @@ def _plan_stage(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary,
     controller's model where it is not the layer (docs/model.md §15); (plans, the model's data or None)."""
     scene = tissue.scene
     robot_check = robot_joint_check(cfg)
-    plans = []
     cache = StateCache(tissue)
-    advance = progress.bar("needle plans", len(scene.targets))
-    for target in scene.targets:
-        plans.append(plan_target(tissue, scene, target, cfg.needle, robot_check=robot_check, cache=cache))
-        advance(1)
-
+    plans = layer_plans(cfg, tissue, cache)
     reserved = reserved_scene(scene, cfg.controller.stroke_reserve)  # a 3-D-aware model plans again inside it
 
     def replan(t: int, target_at, layer_at=None) -> NeedlePlan:
@@ -338,6 +334,19 @@ def _plan_stage(cfg: Config, tissue: Tissue, sink: RunSink, summary: RunSummary,
                if plan.feasible else f"infeasible: {plan.reason}")
         )
     return plans, model_data
+
+
+def layer_plans(cfg: Config, tissue: Tissue, cache: StateCache | None = None) -> list[NeedlePlan]:
+    """Every target's needle plan on the layer (docs/model.md §8), in the scene's order; `cache` keeps the
+    solved states for a later replanning."""
+    robot_check = robot_joint_check(cfg)
+    cache = StateCache(tissue) if cache is None else cache
+    plans = []
+    advance = progress.bar("needle plans", len(tissue.scene.targets))
+    for target in tissue.scene.targets:
+        plans.append(plan_target(tissue, tissue.scene, target, cfg.needle, robot_check=robot_check, cache=cache))
+        advance(1)
+    return plans
 
 
 def stored_model(cfg: Config, tissue: Tissue, sink: RunSink, plans: list):

@@ -47,12 +47,17 @@ def run_trial_stage(sink: RunSink, cfg, tasks: list[TargetTask], execution: Exec
         progress.info(f"trials: {len(work)} to run ({cfg.trials.profile} profile, {execution.jobs} job(s), "
                       f"{execution.executor} executor)")
     advance = progress.bar("trials", len(work))
-    t0, failed, finished, lost = time.perf_counter(), 0, 0, []
+    t0, failed, finished, lost, refused = time.perf_counter(), 0, 0, [], []
     with closing(execute(sink.config_yaml, work, execution.jobs, execution.executor, execution.scheduler)) as outcomes:
         for outcome in outcomes:
             with deferred_signals():
                 sink.trial(by_index[outcome.target_index].name, outcome)
-            failed += not outcome.ok
+            if outcome.ok:
+                pass
+            elif outcome.stop_reason == "controller_failed":  # the user's controller's doing: a result, not a crash
+                refused.append(f"{by_index[outcome.target_index].name}#{outcome.trial}: {outcome.message}")
+            else:
+                failed += 1
             if outcome.lost_frames:
                 lost.append(f"{by_index[outcome.target_index].name}#{outcome.trial}: {outcome.lost_frames}")
             finished += 1
@@ -65,6 +70,9 @@ def run_trial_stage(sink: RunSink, cfg, tasks: list[TargetTask], execution: Exec
     if lost:  # with imaging: frames on which the tracking lost the lesion (the last position held)
         progress.info(f"imaging: the lesion was lost on some frames of {len(lost)} trial(s) ({', '.join(lost[:10])}"
                       f"{', …' if len(lost) > 10 else ''})")
+    if refused:  # an outside controller raised or gave no finite velocities (docs/model.md §22)
+        progress.info(f"controller: {len(refused)} trial(s) failed in the controller (failed in results.h5, with "
+                      f"the message); the first: {refused[0]}")
     sink.trial_figures(cfg.name)
     if failed:
         raise TrialsFailed(f"{failed} trial(s) crashed (see /trials/<target>/message); re-run them with --resume")

@@ -64,3 +64,14 @@ class TrialOutcome:
     #: with `imaging`: frames on which the tracking lost the lesion (the loop's and the insertions'), and all frames
     lost_frames: int = 0
     frames: int = 0
+
+
+def law_attrs(controller) -> dict:
+    """/trials attrs naming the control law (docs/contract.md): `controller_law`, and the class or the MPC's
+    horizon and weight."""
+    attrs = {"controller_law": controller.law}
+    if controller.law == "python":
+        attrs["controller_class"] = controller.class_path
+    elif controller.law == "mpc":
+        attrs |= {"mpc_horizon": controller.mpc.horizon, "mpc_action_weight": controller.mpc.action_weight}
+    return attrs

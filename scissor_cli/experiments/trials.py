@@ -22,7 +22,7 @@ from scissor_cli.config.body_sections import BodyConfig
 from scissor_cli.control.allocation import along_mm, miss_mm
 from scissor_cli.experiments.build import build_model
 from scissor_cli.experiments.pool import run_pool
-from scissor_cli.experiments.profiles import ErrorModel, draw_trial, error_model, trial_needle
+from scissor_cli.experiments.profiles import ErrorModel, TrialDraw, draw_trial, error_model, trial_needle
 from scissor_cli.experiments.sensor_models import sensor_model
 from scissor_cli.experiments.trial_types import TargetTask, TrialOutcome
 from scissor_cli.insertion import InsertionOptions, NeedleParams, needle_path, run_strategies
@@ -98,8 +98,9 @@ class TrialContext:
         return self.sensors.for_trial(TrialDraws(draw.localisation_z, draw.rng, (int(self.cfg.seed), task.index, trial),
                                                  goal_mm=np.asarray(task.desired, float)))
 
-    def run(self, task: TargetTask, trial: int) -> TrialOutcome:
-        t0 = time.perf_counter()
+    def target_run(self, task: TargetTask, trial: int) -> tuple[control.TargetRun, TrialDraw]:
+        """How trial `trial` of `task` runs its loop (`control.TargetRun`: the drawn truth, the sensor, the
+        actuator's errors, the corridor, the controller's model), and its draw."""
         if self.slab_truth is not None and task.slab_start is not None:
             self.slab_truth.remember(*task.slab_start)
         draw = draw_trial(self.errors, self.scene.material.nu, self.centroids, self.cfg.seed, task.index, trial)
@@ -109,14 +110,30 @@ class TrialContext:
         corridor = None
         if task.side:
             corridor = control.Corridor(task.side, task.direction, corridor_radius(self.cfg.needle))
-        sensor = self.sensor(task, trial, draw)
-        r = control.run_target(self.tissue, task.rest, task.desired, self.cfg.controller, control.TargetRun(
-            truth=truth, sensor=sensor,
+        return control.TargetRun(
+            truth=truth, sensor=self.sensor(task, trial, draw),
             resolution_mm=self.errors.actuator_resolution_mm, backlash_mm=self.errors.backlash_mm,
             corridor=corridor, target=task.name, guess=self.guess(task),
             truth_factory=None if self.slab_truth is None else self.slab_truth.for_target(task.rest, task.plan_strokes),
             controller_factory=self.controller_factory(task),
-        ))
+        ), draw
+
+    def nominal_run(self, task: TargetTask) -> control.TargetRun:
+        """The nominal manipulation's `control.TargetRun`: the model as the truth, the exact camera, the plan's
+        corridor and needle axis (what `simulate`'s manipulation stage runs, Fig. 11)."""
+        corridor = None
+        if task.side:
+            corridor = control.Corridor(task.side, task.direction, corridor_radius(self.cfg.needle))
+        return control.TargetRun(corridor=corridor, target=task.name, direction=np.asarray(task.direction, float),
+                                 controller_factory=self.controller_factory(task))
+
+    def run(self, task: TargetTask, trial: int) -> TrialOutcome:
+        t0 = time.perf_counter()
+        run, draw = self.target_run(task, trial)
+        truth, sensor = run.truth, run.sensor
+        r = control.run_target(self.tissue, task.rest, task.desired, self.cfg.controller, run)
+        if r.stop_reason == "controller_failed":  # an outside controller's failure fails its trial (the run goes on)
+            raise control.ControllerError(r.message)
         # The optional release slip moves the target along the (first) cup's axis after the loop.
         slip = draw.release_slip_mm * self.scene.cups[0].axis if len(self.scene.cups) else np.zeros(2)
         columns, table = r.history_table()
@@ -220,7 +237,8 @@ def run_trial(config_yaml: str, task: TargetTask, trial: int) -> TrialOutcome:
         return TrialOutcome(
             target_index=task.index, trial=trial, ok=False, message=f"{type(exc).__name__}: {exc}",
             final_error=np.zeros(2), iterations=-1, time_s=elapsed, trial_time_s=elapsed,
-            corridor_clear=False, clearance_mm=0.0, stop_reason="solver_failed",
+            corridor_clear=False, clearance_mm=0.0,
+            stop_reason="controller_failed" if isinstance(exc, control.ControllerError) else "solver_failed",
             correctable_mm=0.0, uncorrectable_mm=0.0, history_columns=[], history=np.zeros((0, 0)),
         )
 
