@@ -285,18 +285,16 @@ def _new_run(options: SimulateOptions, execution) -> None:
 
 def _run(cfg: Config, directory: Path, execution, scene) -> None:
     """A run of cfg from its first stage into `directory` (claimed); its config recorded first for `--resume`."""
+    from scissor_cli import api
     from scissor_cli.experiments.pool import WorkerLost
-    from scissor_cli.experiments.simulate import NonFiniteError, TrialsFailed, run_simulation
+    from scissor_cli.experiments.simulate import NonFiniteError, TrialsFailed
     from scissor_cli.experiments.study import StudyError
     from scissor_cli.mechanics.tissue import BoundaryError
     from scissor_cli.mesh.mesh import MeshError
-    from scissor_cli.output.results_sink import RunDirectory
     from scissor_cli.solvers.common import SolverError
 
-    run = RunDirectory(directory)
-    run.start(resolved_yaml(cfg))
     try:
-        summary = run_simulation(cfg, run, execution)
+        summary = api.run(cfg, directory, execution)  # the Python API's run: the CLI adds options and exit codes
     except (BoundaryError, MeshError, StudyError) as exc:
         _fail(2, f"{scene}: {exc}")
     except NotImplementedError as exc:  # the needle planner's inverse kinematics for a custom chain

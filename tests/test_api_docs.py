@@ -1,0 +1,30 @@
+"""docs/api.md's code runs: its python blocks, in order, in one namespace, from the repository's root."""
+
+import re
+
+import pytest
+
+from helpers import ROOT
+
+BLOCKS = re.findall(r"```python\n(.*?)```", (ROOT / "docs" / "api.md").read_text(), flags=re.S)
+
+
+def test_api_md_has_examples():
+    assert len(BLOCKS) >= 3
+
+
+def test_api_md_examples_run(monkeypatch):
+    monkeypatch.chdir(ROOT)
+    namespace: dict = {}
+    for k, block in enumerate(BLOCKS):
+        if "gymnasium" in block:
+            pytest.importorskip("gymnasium")
+        exec(compile(block, f"docs/api.md block {k + 1}", "exec"), namespace)  # noqa: S102 - the docs' own code
+
+
+def test_the_package_root_hands_on_exactly_the_apis_names():
+    import scissor_cli
+    import scissor_cli.api
+
+    assert set(scissor_cli.API_NAMES) == set(scissor_cli.api.__all__)
+    assert scissor_cli.manipulate is scissor_cli.api.manipulate
