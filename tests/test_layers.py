@@ -17,7 +17,8 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "scissor_cli"
 LAYERS = [
     "", "geometry", "geometry3d", "runtime", "progress", "text", "config", "scene", "mesh", "mechanics", "solvers",
-    "robot", "planning", "sensing", "control", "insertion", "layer3d", "experiments", "output", "cli", "__main__",
+    "robot", "planning", "sensing", "control", "insertion", "layer3d", "experiments", "output", "api", "gym", "cli",
+    "__main__",
 ]
 RANK = {name: i for i, name in enumerate(LAYERS)}
 BASE = {"", "geometry", "geometry3d", "runtime", "progress", "text"}  # importable from everywhere
