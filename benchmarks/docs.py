@@ -397,7 +397,41 @@ def _goal_rows() -> list[list]:
     add("the grip search over the body's skin ≤ 2 s", "bench_body_grips",
         lambda r: (f"{fixed(max(x['search_s'] for x in rows_of(r, 'grips')), 2)} s (the slowest of 1, 2, 3 cups)",
                    max(x["search_s"] for x in rows_of(r, "grips")) <= 2))
+    add("an environment step of the layer: ≥ 200 per second", "bench_gym", at_least("layer_steps_per_s", 200, 0, "/s"))
+    add("an environment step of the body's surrogate: ≥ 1 000 per second", "bench_gym",
+        at_least("surrogate_steps_per_s", 1000, 0, "/s"))
+    add("an environment step of the body: ≥ 5 per second", "bench_gym", at_least("body_steps_per_s", 5, 1, "/s"))
+    add("an environment's reset after the first ≤ 1 s (the slowest plant)", "bench_gym",
+        lambda r: (f"{fixed(max(fig(r, k + '_reset_s') for k in ('layer', 'surrogate', 'body')), 2)} s",
+                   max(fig(r, k + "_reset_s") for k in ("layer", "surrogate", "body")) <= 1))
+    add("an MPC step with 3 cups and H = 10 ≤ 10 ms (median)", "bench_mpc", at_most("c3_median_ms", 10, 2, " ms"))
     return out
+
+
+@renderer("outside_controllers", "bench_controllers", "bench_gym", "bench_mpc")
+def _outside_controllers(laws, gym, mpc) -> str:
+    rows = [[x["scene"], f"`{x['law']}`", num(x["trials"]), fixed(x["iterations_median"], 0),
+             "–" if x["time_to_tolerance_s_median"] is None else fixed(x["time_to_tolerance_s_median"], 1),
+             f"{fixed(x['miss_median_mm'], 3)} / {fixed(x['miss_p95_mm'], 3)} / {fixed(x['miss_max_mm'], 3)}",
+             num(x["stroke_limit_stops"]), fixed(1000 * x["loop_wall_s_median"], 0)]
+            for x in rows_of(laws, "laws")]
+    envs = [[x["environment"], x["config"].replace("configs/", ""), fixed(x["steps_per_s"], 0),
+             fixed(x["first_reset_s"], 2), fixed(x["reset_s"], 3)] for x in rows_of(gym, "environments")]
+    steps = [[num(x["cups"]), fixed(x["first_ms"], 2), fixed(x["median_ms"], 2), fixed(x["p90_ms"], 2),
+              fixed(x["stroke_step_median_ms"], 3)] for x in rows_of(mpc, "mpc_step")]
+    return (table(["truth", "law", "trials", "iterations (median)", "robot time to tolerance (s, median)",
+                   "true miss median / p95 / max (mm)", "stroke-limit stops", "loop wall (ms, median)"], rows)
+            + "\n\nThe paper's prosthesis scene, 4 targets × 30 trials each way, the same seed and draws: `layer` "
+              "is `configs/paper_trials_prosthesis.yaml`, `body` its study on the dome "
+              "(`configs/paper_trials_prosthesis_dome.yaml`). " + source(laws)
+            + "\n\n" + table(["environment", "scene", "steps per second", "first reset (s)",
+                              "later reset (s, median)"], envs)
+            + "\n\nRandom actions with the profile's draws; the first reset builds the model (the surrogate's "
+              "includes its training). " + source(gym)
+            + "\n\n" + table(["cups", "MPC step, first call (ms)", "median (ms)", "p90 (ms)",
+                              "the PID's stroke step, median (ms)"], steps)
+            + "\n\nH = 10 frames, different problems per call (OSQP set-up, solve and the exact active-set "
+              "polish). " + source(mpc))
 
 
 @renderer("goals")
@@ -481,6 +515,18 @@ def _elements(r) -> str:
               "volume alone), the dome at ν 0.49 against P2, worst target: "
               + ", ".join(f"α {fixed(x['share'], 2)} {fixed(x['max_error_pct'], 1)} %" for x in rows_of(r, "share"))
               + ".\n\n" + source(r))
+
+
+@renderer("element_convergence", "bench_element_convergence")
+def _element_convergence(r) -> str:
+    out = [[f"`{x['element']}`", " → ".join(num(n) for n in x["tetrahedra"]),
+            " / ".join(fixed(d, 3) for d in x["changes_mm"]), " / ".join(fixed(p, 2) for p in x["orders"]),
+            fixed(x["finest_error_mm"], 3)] for x in rows_of(r, "orders")]
+    scales = " → ".join(fixed(s, 1) for s in rows_of(r, "orders")[0]["scales"])
+    return (table(["element", f"tetrahedra (scale {scales})", "lesions' change between levels (mm)",
+                   "observed order", "finest level's error, Richardson (mm)"], out)
+            + "\n\nThe dome with its fibers at ν 0.49, an 8 mm push, Newton to 1e-8; the change is the largest over "
+              "the lesions, the order p = log(d_k/d_k+1)/log(h_k+1/h_k+2) with h = N^(-1/3). " + source(r))
 
 
 @renderer("control", "bench_control.table")

@@ -28,3 +28,20 @@ def test_the_package_root_hands_on_exactly_the_apis_names():
 
     assert set(scissor_cli.API_NAMES) == set(scissor_cli.api.__all__)
     assert scissor_cli.manipulate is scissor_cli.api.manipulate
+
+
+def test_the_core_runs_without_gymnasium(tmp_path):
+    """`pip install .` without the extra: nothing but scissor_cli.gym imports gymnasium."""
+    import subprocess
+    import sys
+
+    from test_cli import small_scene
+
+    scene = small_scene(tmp_path, **{"trials.count": 1})
+    code = ("import sys; sys.modules['gymnasium'] = None\n"  # any `import gymnasium` now fails
+            "from scissor_cli.cli import app\n"
+            f"sys.argv = ['scissor', 'simulate', {str(scene)!r}, '--out', {str(tmp_path / 'out')!r}, '--quiet']\n"
+            "app()")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "out" / "results.h5").is_file()

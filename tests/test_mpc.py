@@ -201,3 +201,25 @@ def test_a_solver_that_does_not_converge_raises(monkeypatch):
     with pytest.raises(MPCError, match="maximum iterations reached"):
         mpc_step(J, [2.0, 3.0], [5.0, 5.0], [0.0, 0.0], [15.0, 15.0], [0.5, 0.5], 10, 0.01, X)
     assert issubclass(MPCError, ValueError)
+
+
+def test_mpc_through_simulate_reaches_tolerance_in_no_more_iterations_than_pid(tmp_path):
+    """The issue's criterion: the two-cup scene, ideal profile, every target within tolerance with
+    `controller.law: mpc`, in no more iterations than the built-in PID (median over the trials)."""
+    import scissor_cli.api as scissor
+    from helpers import ROOT
+
+    base = scissor.load_config(ROOT / "configs" / "two_cups.yaml")
+    iterations = {}
+    for law in ("pid", "mpc"):
+        cfg = base.model_copy(update={"controller": base.controller.model_copy(update={"law": law}),
+                                      "trials": base.trials.model_copy(update={"count": 2, "profile": "ideal"})})
+        scissor.simulate(cfg, tmp_path / law)
+        trials = scissor.read_trials(tmp_path / law / "results.h5")
+        assert trials, "no targets were planned"
+        for name, t in trials.items():
+            assert not t["failed"].any()
+            assert set(t["stop_reason"]) == {"tolerance"}, (law, name, t["message"])
+            iterations[law, name] = np.median(t["iterations"])
+    for name in trials:
+        assert iterations["mpc", name] <= iterations["pid", name], iterations

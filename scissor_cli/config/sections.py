@@ -177,8 +177,9 @@ class MPCConfig(_Section):
 
     #: frames the QP looks ahead
     horizon: Int(1, 100) = 10
-    #: ρ on each frame's squared stroke step (mm²) beside the squared miss (mm²)
-    action_weight: Num(0.0, 1.0e6) = 0.01
+    #: ρ on each frame's squared stroke step (mm²) beside the squared miss (mm²): well below the along-axis weight
+    #: (0.01) of the stop rule's spare cups, else the law leaves the along part the stop waits for (docs/model.md §22)
+    action_weight: Num(1.0e-8, 1.0e6) = 1.0e-3
 
 
 #: "package.module:Class": a dotted module, a colon, a class name (docs/model.md §22)

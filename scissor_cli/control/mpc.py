@@ -327,7 +327,7 @@ class MPCLaw:
     manipulation.
     """
 
-    def __init__(self, horizon: int = 10, action_weight: float = 0.01):
+    def __init__(self, horizon: int = 10, action_weight: float = 1.0e-3):
         if int(horizon) != horizon or horizon < 1:
             raise ValueError(f"horizon must be a positive integer, got {horizon!r}")
         if not (np.isfinite(action_weight) and action_weight > 0):

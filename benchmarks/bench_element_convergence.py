@@ -1,0 +1,98 @@
+"""Convergence under refinement, per element (docs/model.md §21): the observed order on the body.
+
+The dome (configs/example_dome.yaml) with its fibers at ν 0.49 and an 8 mm push, meshed at `tissue.mesh.scale`
+2, 1.4, 1 and 0.7, solved with `p1` and with `nodal` (Newton to 1e-8). Per element and level: the tetrahedra,
+the lesions' positions, the change from the previous level (the largest over the lesions, mm), the observed
+order of convergence from three consecutive levels,
+
+    p = log(d_k / d_{k+1}) / log(h_k / h_{k+1}),    h = N^(-1/3)   (N tetrahedra: the mean element size),
+
+and the Richardson estimate of each level's error, d_{k+1} / ((h_k / h_{k+1})^p − 1) at the finest pair. The
+mesh is graded around the lesions and vessels, so a scale changes N by less than scale⁻³; h is read from N.
+
+    PYTHONPATH=. python3 benchmarks/bench_element_convergence.py     # about 5 minutes on 2 cores
+
+Writes benchmarks/results/bench_element_convergence.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import results_io  # noqa: E402
+
+from scissor_cli import runtime  # noqa: E402
+from scissor_cli.config import load_config  # noqa: E402
+from scissor_cli.experiments.build import body_model  # noqa: E402
+from scissor_cli.mechanics.body_tissue import build_body  # noqa: E402
+from scissor_cli.mesh.probe import probe_points, target_positions  # noqa: E402
+from scissor_cli.solvers.equilibrium import solve_equilibrium  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+SCALES = (2.0, 1.4, 1.0, 0.7)
+ELEMENTS = ("p1", "nodal")
+NU = 0.49
+STROKE_MM = 8.0
+
+
+def level_rows() -> list[dict]:
+    """One row per (element, scale): tetrahedra, the lesions' final positions (T, 3) mm, the solve's time."""
+    cfg = load_config(ROOT / "configs" / "example_dome.yaml")
+    cfg = cfg.model_copy(update={"material": cfg.material.model_copy(update={"nu": NU})})
+    rows = []
+    for scale in SCALES:
+        scene, mesh, _ = body_model(cfg, cache=ROOT / "runs" / ".mesh-cache", scale=scale)
+        rest = np.array([t.rest for t in scene.targets]).reshape(len(scene.targets), 3)
+        probe = probe_points(mesh.nodes, mesh.tetrahedra, rest)
+        for element in ELEMENTS:
+            tissue = build_body(scene, mesh, element=element)
+            t0 = time.perf_counter()
+            r = solve_equilibrium(tissue, np.full(tissue.n_cups, STROKE_MM), method="newton", tol=1e-8)
+            rows.append({"element": element, "scale": scale, "tetrahedra": int(mesh.n_elements),
+                         "h": float(mesh.n_elements) ** (-1.0 / 3.0), "forward_s": time.perf_counter() - t0,
+                         "newton_iterations": int(r.iterations), "lesions_mm": target_positions(probe, r.x).tolist(),
+                         "moves_mm": np.linalg.norm(target_positions(probe, r.x) - rest, axis=1).tolist()})
+            print(f"{element} scale {scale}: {mesh.n_elements} tetrahedra, moves "
+                  f"{np.round(rows[-1]['moves_mm'], 3).tolist()} mm, {rows[-1]['forward_s']:.1f} s", flush=True)
+    return rows
+
+
+def orders(rows: list[dict]) -> list[dict]:
+    """Per element: the change between levels, the observed orders and the finest level's Richardson error."""
+    out = []
+    for element in ELEMENTS:
+        levels = [r for r in rows if r["element"] == element]
+        x = [np.asarray(r["lesions_mm"]) for r in levels]
+        h = [r["h"] for r in levels]
+        d = [float(np.linalg.norm(x[k + 1] - x[k], axis=1).max()) for k in range(len(x) - 1)]
+        p = [float(np.log(d[k] / d[k + 1]) / np.log(h[k + 1] / h[k + 2])) if d[k + 1] > 0 else float("nan")
+             for k in range(len(d) - 1)]
+        ratio = h[-2] / h[-1]
+        finest_error = d[-1] / (ratio ** p[-1] - 1.0) if np.isfinite(p[-1]) and p[-1] > 0 else float("nan")
+        out.append({"element": element, "changes_mm": d, "orders": p, "finest_error_mm": float(finest_error),
+                    "scales": [r["scale"] for r in levels], "tetrahedra": [r["tetrahedra"] for r in levels]})
+        print(f"{element}: changes {np.round(d, 4).tolist()} mm, observed orders {np.round(p, 2).tolist()}, "
+              f"finest level's error (Richardson) {finest_error:.4f} mm", flush=True)
+    return out
+
+
+def main() -> None:
+    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()
+    runtime.configure()
+    res = results_io.Results("bench_element_convergence")
+    print(f"machine: {results_io.machine()}, load {results_io.load1()}")
+    rows = level_rows()
+    res.table("levels", rows, units={"forward_s": "s", "lesions_mm": "mm", "moves_mm": "mm"})
+    res.table("orders", orders(rows), units={"changes_mm": "mm", "finest_error_mm": "mm"})
+    print(res.write())
+
+
+if __name__ == "__main__":
+    main()
