@@ -526,7 +526,9 @@ def _element_convergence(r) -> str:
     return (table(["element", f"tetrahedra (scale {scales})", "lesions' change between levels (mm)",
                    "observed order", "finest level's error, Richardson (mm)"], out)
             + "\n\nThe dome with its fibers at ν 0.49, an 8 mm push, Newton to 1e-8; the change is the largest over "
-              "the lesions, the order p = log(d_k/d_k+1)/log(h_k+1/h_k+2) with h = N^(-1/3). " + source(r))
+              "the lesions, the order p = log(d_k/d_k+1)/log(h_k+1/h_k+2) with h the mesh scale (the finest three "
+              "levels' is the asymptotic one: the coarse levels differ less than their scales, the graded mesh's "
+              "largest edges being capped). " + source(r))
 
 
 @renderer("control", "bench_control.table")

@@ -207,6 +207,7 @@ def test_mpc_through_simulate_reaches_tolerance_in_no_more_iterations_than_pid(t
     """The issue's criterion: the two-cup scene, ideal profile, every target within tolerance with
     `controller.law: mpc`, in no more iterations than the built-in PID (median over the trials)."""
     import scissor_cli.api as scissor
+
     from helpers import ROOT
 
     base = scissor.load_config(ROOT / "configs" / "two_cups.yaml")

@@ -3,9 +3,9 @@
 
 The class is imported from `controller.class_folder` (the config file's
 folder unless given), so a controller beside the scene file needs no
-install. The folder is put first on `sys.path` for the import only, and a
-module already imported from elsewhere under the same name is not taken
-for it. What can go wrong is the config's problem (exit 2, naming the
+install. The folder is put first on `sys.path` for the import only (a
+module of that name the process has already imported is used as it is).
+What can go wrong is the config's problem (exit 2, naming the
 field): a module that does not import, a missing class, a class without
 `act`, `init_args` its constructor does not take.
 """
