@@ -37,7 +37,7 @@ def test_the_core_runs_without_gymnasium(tmp_path):
 
     from test_cli import small_scene
 
-    scene = small_scene(tmp_path, **{"trials.count": 1})
+    scene = small_scene(tmp_path)  # (its trials: 0; the forward cases, plans and figures import the pipeline)
     code = ("import sys; sys.modules['gymnasium'] = None\n"  # any `import gymnasium` now fails
             "from scissor_cli.cli import app\n"
             f"sys.argv = ['scissor', 'simulate', {str(scene)!r}, '--out', {str(tmp_path / 'out')!r}, '--quiet']\n"

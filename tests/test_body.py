@@ -154,6 +154,7 @@ def test_the_jacobian_is_the_derivative_of_full_solves(run):
         np.testing.assert_allclose((ends[0] - ends[1]) / (2 * h), J[:, c], rtol=1e-4, atol=1e-6)
 
 
+@pytest.mark.slow  # (tests/test_golden.py's dome reproduces the same paths' numbers from a file, a superset)
 def test_the_same_scene_twice_gives_the_same_mesh_and_numbers(run, tmp_path):
     scene, out = run
     r = run_cli("simulate", scene, "--out", tmp_path / "again", "--quiet")

@@ -436,7 +436,14 @@ COARSE_DOME = _coarse_dome()
 COARSE_DOME_PATHS = _paths(COARSE_DOME)
 
 
-@settings(max_examples=8, **QUICK)
+@settings(max_examples=5, **QUICK)  # (each a dome's run: `-m fuzz`'s long profile draws many more)
 @given(data=mutated_scene(base=COARSE_DOME, paths=COARSE_DOME_PATHS, max_mutations=2))
 def test_simulate_mutated_dome(tmp_path_factory, data):
+    _check_simulate(tmp_path_factory.mktemp("ds"), data)
+
+
+@pytest.mark.fuzz
+@settings(max_examples=40, **LONG)
+@given(data=mutated_scene(base=COARSE_DOME, paths=COARSE_DOME_PATHS, max_mutations=2))
+def test_fuzz_simulate_mutated_dome(tmp_path_factory, data):
     _check_simulate(tmp_path_factory.mktemp("ds"), data)
