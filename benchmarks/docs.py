@@ -531,6 +531,41 @@ def _element_convergence(r) -> str:
               "largest edges being capped). " + source(r))
 
 
+@renderer("cook", "bench_cook")
+def _cook(r) -> str:
+    levels = rows_of(r, "levels")
+    ns = list(dict.fromkeys(x["n"] for x in levels))
+    tets = {x["n"]: x["tetrahedra"] for x in levels}
+    out = [[f"`{x['element']}`", " / ".join(fixed(f, 3) for f in x["forces_mN"]),
+            " / ".join(fixed(e, 1) for e in x["errors_pct"]), " / ".join(fixed(p, 2) for p in x["orders"])]
+           for x in rows_of(r, "orders")]
+    ref = rows_of(r, "orders")[0]["reference_mN"]
+    return (table(["element", "reaction (mN), n = " + " / ".join(str(n) for n in ns), "off the reference (%)",
+                   "observed order"], out)
+            + f"\n\nn × n × n/4 hexahedra of six tetrahedra ({' / '.join(num(tets[n]) for n in ns)} tetrahedra); "
+              f"the reference {fixed(ref, 3)} mN is the Richardson extrapolation of `nodal`'s three finest levels. "
+              + source(r))
+
+
+@renderer("element_downstream", "bench_element_downstream")
+def _element_downstream(r) -> str:
+    rows = rows_of(r, "downstream")
+    value = {(x["scene"], x["what"], x["element"]): x for x in rows}
+
+    def cell(x) -> str:
+        return "–" if x is None else f"{fixed(x['value'], 1 if x['unit'] == '%' else 3)} {x['unit']}"
+
+    out = [[scene, what, cell(value.get((scene, what, "p1"))), cell(value.get((scene, what, "nodal")))]
+           for scene, what in dict.fromkeys((x["scene"], x["what"]) for x in rows)]
+    run_s = {(x["scene"], x["element"]): x["run_s"] for x in rows}
+    runs = ", ".join(f"{scene} {fixed(run_s.get((scene, 'p1')), 0)} / {fixed(run_s.get((scene, 'nodal')), 0)} s"
+                     for scene in dict.fromkeys(x["scene"] for x in rows))
+    return (table(["scene", "figure", "`p1`", "`nodal`"], out)
+            + "\n\nThe layer check: how much the 2-D layer overstates the targets' in-plane motion against the "
+              "slab; planned strokes: the largest cup's; drag: the target's largest move along the needle during "
+              f"the nominal insertion. Newton, no trials; whole runs p1 / nodal: {runs}. " + source(r))
+
+
 @renderer("control", "bench_control.table")
 def _control(r) -> str:
     out = [[x["scene"], x["cups"], f"{fixed(x['iteration_ms'], 1)} ms",
