@@ -165,7 +165,7 @@ def run_loop(
                     law.reset(obs, info)
                 velocity = checked_velocity(law.act(obs, info), controller.n_cups)
             except Exception as exc:  # noqa: BLE001 - an outside controller may raise anything: its loop stops
-                reason, message = "controller_failed", f"{_law_name(cfg)}: {type(exc).__name__}: {exc}"
+                reason, message = "controller_failed", f"{_law_name(law)}: {type(exc).__name__}: {exc}"
                 break
             moved = drive(command, velocity, dt, controller.lo, controller.hi, plant.actuator.speed_mm_per_s,
                           controller.resolution_mm)
@@ -202,8 +202,9 @@ def outside_law(cfg: ControllerConfig) -> Optional[ControllerLaw]:
     return None
 
 
-def _law_name(cfg: ControllerConfig) -> str:
-    return cfg.class_path if cfg.law == "python" else cfg.law
+def _law_name(law: ControllerLaw) -> str:
+    """"module:Class" of a controller object (the form of `controller.class_path`)."""
+    return f"{type(law).__module__}:{type(law).__qualname__}"
 
 
 def _correctable_norm(step) -> float:
