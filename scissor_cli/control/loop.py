@@ -352,9 +352,7 @@ def loop_parts(model: Tissue, target_rest: np.ndarray, run: TargetRun = TargetRu
     `run.controller_factory`'s). Both start at rest; `run.guess` is handed
     to the trackers on `model`.
     """
-    direction = run.direction
-    if direction is None and run.corridor is not None:
-        direction = run.corridor.direction
+    direction = needle_axis(run)
     scene = model.scene
     if model.dim == 3:  # a body: the lesion carried by its rest tetrahedron
         probe = probe_points(model.mesh.nodes, model.mesh.tetrahedra, np.asarray(target_rest, float)[None])
@@ -377,6 +375,13 @@ def loop_parts(model: Tissue, target_rest: np.ndarray, run: TargetRun = TargetRu
         for eq in trackers:
             eq.guesses.append((np.asarray(run.guess[0], float), np.asarray(run.guess[1], float)))
     return plant, controller, direction
+
+
+def needle_axis(run: TargetRun) -> Optional[np.ndarray]:
+    """The axis (d,) the loop takes the miss across: the run's direction, else its corridor's, else None."""
+    if run.direction is None and run.corridor is not None:
+        return run.corridor.direction
+    return run.direction
 
 
 def _made(factory: TruthFactory, truth: TruthPerturbation) -> dict:

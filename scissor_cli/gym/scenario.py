@@ -29,11 +29,10 @@ from scissor_cli import api, control
 from scissor_cli.config import resolved_yaml
 from scissor_cli.config.body_sections import BodyConfig
 from scissor_cli.control.actuator import Actuator
-from scissor_cli.control.loop import loop_parts
+from scissor_cli.control.loop import loop_parts, needle_axis
 from scissor_cli.control.models import MapController
 from scissor_cli.experiments.body_surrogate import body_surrogate_data
 from scissor_cli.experiments.trial_types import TargetTask
-from scissor_cli.experiments.trials import trial_context
 from scissor_cli.layer3d.surrogate import Surrogate
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.sensing.sensor import TrueState
@@ -68,7 +67,7 @@ def built(cfg: api.Scene, surrogate: bool = False) -> Built:
     key = resolved_yaml(cfg)
     if key not in _BUILT:
         _BUILT.clear()
-        tissue = trial_context(key).tissue  # the trials' model: one build serves the plans and the trials
+        tissue = api.build_tissue(cfg)  # the trials' model: one build serves the plans and the trials
         _BUILT[key] = Built(cfg, tissue, api.tasks(cfg, tissue, api.plan(cfg, tissue)))
     model = _BUILT[key]
     needs = surrogate or (isinstance(cfg, BodyConfig) and cfg.controller.model == "surrogate")
@@ -150,5 +149,5 @@ def episode_parts(model: Built, task: TargetTask, trial: Optional[int], plant: s
     truth = SurrogatePlant(model.surrogate, task.index, actuator)
     controller = MapController(model.surrogate.target_map(task.index), len(actuator.lo), actuator.lo, actuator.hi,
                                run.resolution_mm)
-    direction = run.direction if run.direction is not None or run.corridor is None else run.corridor.direction
+    direction = needle_axis(run)
     return truth, controller, direction, run
