@@ -12,9 +12,9 @@ node a Dirichlet dof, solved by the one Newton (`solvers.equilibrium`).
   body's apex.
 * Held: the dome's base (the nodes of its faces on z = 0), or a surface
   body's boundary nodes on its held planes.
-* A cup grips the skin nodes within its radius of its contact (the
-  nearest skin point to where the scene put it) and moves them rigidly
-  along its axis.
+* A cup grips the skin nodes nearest its contact (the nearest skin point
+  to where the scene put it) whose shares of the skin add up to its area
+  π r² (`cup_patch`), and moves them rigidly along its axis.
 """
 
 from __future__ import annotations
@@ -28,6 +28,9 @@ from scissor_cli.scene.body_scene import BodyScene
 
 #: a boundary node lies on a held plane when it is this close to it (× the body's size)
 PLANE_TOL = 1e-6
+#: a cup whose nearest skin node alone stands for more than this many times its area π r² is refused: the
+#: mesh is too coarse there to grip it (`cup_patch`)
+PATCH_AREA_LIMIT = 2.0
 
 
 def region_E(scene: BodyScene, mesh: BodyMesh) -> np.ndarray:
@@ -70,10 +73,41 @@ def skin_nodes(scene: BodyScene, mesh: BodyMesh, held: np.ndarray) -> np.ndarray
     return np.setdiff1d(boundary, held)
 
 
+def skin_areas(mesh: BodyMesh, skin: np.ndarray) -> np.ndarray:
+    """Each skin node's share of the skin (S,) mm²: a third of the area of every skin face it is a corner of
+    (the faces not on the held base), for the nodes `skin` (S,)."""
+    faces = mesh.boundary_triangles[~mesh.boundary_base]
+    corners = mesh.nodes[faces]
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    per_node = np.bincount(faces.ravel(), weights=np.repeat(area / 3.0, 3), minlength=mesh.n_nodes)
+    return per_node[skin]
+
+
+def cup_patch(mesh: BodyMesh, skin: np.ndarray, contact: np.ndarray, radius_mm: float) -> np.ndarray:
+    """The skin nodes (P,) a cup of radius_mm at `contact` (3,) mm grips: the nearest ones to the contact whose
+    skin shares (`skin_areas`) add up closest to the cup's area π r², the nearest node at least. Empty when
+    even the nearest node's share exceeds PATCH_AREA_LIMIT × π r² (the mesh is too coarse at the cup).
+
+    Gripping every node within the radius makes the gripped area follow the
+    mesh: a node's share reaches about half an edge beyond it, so the held
+    area swings by the width of the last ring of nodes with where that ring
+    happens to fall (docs/model.md §21). Matching the shares to π r² keeps
+    the area the cup's, within one node's share, on any mesh.
+    """
+    distance = np.linalg.norm(mesh.nodes[skin] - np.asarray(contact, float), axis=1)
+    order = np.lexsort((skin, distance))  # nearest first; ties by node number (deterministic)
+    covered = np.cumsum(skin_areas(mesh, skin)[order])
+    area = np.pi * radius_mm**2
+    if covered.size == 0 or covered[0] > PATCH_AREA_LIMIT * area:
+        return np.zeros(0, np.int64)
+    count = int(np.argmin(np.abs(covered - area))) + 1
+    return np.sort(skin[order[:count]])
+
+
 def build_body(scene: BodyScene, mesh: BodyMesh, model: str | None = None, element: str = "p1") -> Tissue:
     """The body tissue (dim 3) of a scene on its mesh; `model` overrides the material model; `element` "p1" or
-    "nodal" (docs/model.md §21). BoundaryError when nothing is held or a cup grips no skin node (a mesh coarser
-    than the cup)."""
+    "nodal" (docs/model.md §21). BoundaryError when nothing is held or a cup is smaller than the mesh at it
+    (`cup_patch`)."""
     m = scene.material
     model = model or m.model
     element_E = region_E(scene, mesh)
@@ -86,10 +120,12 @@ def build_body(scene: BodyScene, mesh: BodyMesh, model: str | None = None, eleme
     skin = skin_nodes(scene, mesh, fixed)
     cup_nodes = []
     for cup in scene.cups:
-        nodes = skin[np.linalg.norm(mesh.nodes[skin] - cup.contact, axis=1) <= cup.radius_mm * (1 + 1e-9)]
+        nodes = cup_patch(mesh, skin, cup.contact, cup.radius_mm)
         if nodes.size == 0:
-            raise BoundaryError(f"cup {cup.name!r} grips no skin node within {cup.radius_mm:g} mm of "
-                                f"{np.round(cup.contact, 3).tolist()}: refine tissue.mesh at the cup")
+            raise BoundaryError(f"cup {cup.name!r} (radius {cup.radius_mm:g} mm at "
+                                f"{np.round(cup.contact, 3).tolist()}) is smaller than the mesh there: its nearest "
+                                f"skin node alone stands for more than {PATCH_AREA_LIMIT:g}× the cup's area; refine "
+                                "tissue.mesh at the cup")
         for other, prev in zip(scene.cups, cup_nodes):
             if np.intersect1d(nodes, prev).size:
                 raise BoundaryError(f"cups {other.name!r} and {cup.name!r} grip the same skin nodes")

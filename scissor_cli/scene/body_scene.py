@@ -42,8 +42,9 @@ class Inclusion:
 
 @dataclass(frozen=True)
 class SkinCup:
-    """A suction cup: its patch is the skin within radius_mm of `contact` (3,) mm, the nearest skin point to where
-    it was given; a stroke moves the patch along `axis` (3,), the inward normal there unless given."""
+    """A suction cup: its patch is the skin of area π radius_mm² around `contact` (3,) mm, the nearest skin point
+    to where it was given (`mechanics.body_tissue.cup_patch`); a stroke moves the patch along `axis` (3,), the
+    inward normal there unless given."""
 
     name: str
     contact: np.ndarray
