@@ -8,11 +8,13 @@ configs/example_dome.yaml end to end instead (goal: ≤ 2 min). With --model lay
 paper's layer on each lesion's section (docs/model.md §19, "Control"), holding the sides --section-fixed names
 (the reduction's assumption; default bottom, the side opposite the cup); --model surrogate, the surrogate
 learned from the body; --mesh-scale the controller's body that much coarser than the truth's
-(`controller.mesh_scale`); --trials overrides the 30 per target.
+(`controller.mesh_scale`); --trials overrides the 30 per target; --element nodal runs truth and model on the
+element that does not lock (docs/model.md §21; variant "nodal").
 
     PYTHONPATH=. python3 benchmarks/bench_dome_study.py [--example]
     PYTHONPATH=. python3 benchmarks/bench_dome_study.py --model layer [--section-fixed bottom,left,right]
     PYTHONPATH=. python3 benchmarks/bench_dome_study.py --model surrogate | --mesh-scale 2
+    PYTHONPATH=. python3 benchmarks/bench_dome_study.py --element nodal     # about 25 minutes on 2 cores
 """
 
 from __future__ import annotations
@@ -75,6 +77,8 @@ def main() -> None:
     ap.add_argument("--mesh-scale", type=float, default=1.0, help="controller.mesh_scale (the model's body coarser)")
     ap.add_argument("--section-fixed", default="bottom", help="--model layer: the section's held sides, a,b,...")
     ap.add_argument("--trials", type=int, default=None, help="trials per target (default: the config's)")
+    ap.add_argument("--element", choices=("p1", "nodal"), default=None,
+                    help="tissue.mesh.element, the truth's and the model's (default: the config's)")
     args = ap.parse_args()
     config = ROOT / "configs" / ("example_dome.yaml" if args.example else "paper_trials_prosthesis_dome.yaml")
     sides = args.section_fixed.split(",")
@@ -85,6 +89,8 @@ def main() -> None:
         variant = "surrogate"
     if args.mesh_scale != 1.0:
         variant = (variant + "." if variant else "") + f"mesh-scale-{args.mesh_scale:g}"
+    if args.element is not None and args.element != "p1":
+        variant = (variant + "." if variant else "") + args.element
     res = results_io.Results("bench_dome_study", variant)
     scene = yaml.safe_load(config.read_text())
     scene["controller"]["model"] = args.model
@@ -93,6 +99,8 @@ def main() -> None:
         scene["controller"]["section_fixed"] = sides
     if args.trials is not None:
         scene["trials"]["count"] = args.trials
+    if args.element is not None:
+        scene["tissue"].setdefault("mesh", {})["element"] = args.element
     rows, wall, cpu = simulate_scene(scene, config.name)
     res.figure("wall_s", wall, "s")
     res.figure("cpu_s", cpu, "s")
@@ -103,6 +111,7 @@ def main() -> None:
     res.data("model", args.model)
     res.data("section_fixed", sides if args.model == "layer" else None)
     res.data("mesh_scale", args.mesh_scale)
+    res.data("element", scene["tissue"].get("mesh", {}).get("element", "p1"))
     for row in rows:
         print(f"{row['target']}: max |x| {row['max_x_mm']:.2f}, |y| {row['max_y_mm']:.2f}, |z| {row['max_z_mm']:.2f} "
               f"mm; miss median {row['miss_median_mm']:.2f}, p95 {row['miss_p95_mm']:.2f} mm", flush=True)

@@ -106,6 +106,7 @@ COMMANDS = {
         "python3 benchmarks/compare_controller_models.py configs/paper_trials_prosthesis_slab.yaml",
     "docs_scenes": "python3 benchmarks/docs.py --images-only",
     "bench_dome_study.example": "python3 benchmarks/bench_dome_study.py --example",
+    "bench_dome_study.nodal": "python3 benchmarks/bench_dome_study.py --element nodal",
     "bench_body_grips": "python3 benchmarks/bench_body_grips.py",
     "bench_dome_study.layer": "python3 benchmarks/bench_dome_study.py --model layer",
     "bench_dome_study.layer.bottom-left-right":
@@ -564,6 +565,26 @@ def _element_downstream(r) -> str:
             + "\n\nThe layer check: how much the 2-D layer overstates the targets' in-plane motion against the "
               "slab; planned strokes: the largest cup's; drag: the target's largest move along the needle during "
               f"the nominal insertion. Newton, no trials; whole runs p1 / nodal: {runs}. " + source(r))
+
+
+@renderer("element_dome_study", "bench_dome_study", "bench_dome_study.nodal")
+def _element_dome_study(p1, nodal) -> str:
+    """benchmarks/bench_dome_study.py and --element nodal: the paper's dome study on each element."""
+    out = []
+    for label, r in (("`p1`", p1), ("`nodal`", nodal)):
+        for x in rows_of(r, "targets"):
+            if not x["trials"]:
+                out.append([label, x["target"], 0, "no plan", "", "", "", "", ""])
+                continue
+            out.append([label, x["target"], x["trials"], fixed(x["max_x_mm"], 2), fixed(x["max_y_mm"], 2),
+                        fixed(x["max_z_mm"], 2), f"{fixed(x['miss_median_mm'], 2)} / {fixed(x['miss_p95_mm'], 2)}",
+                        x["at_stroke_limit"], f"{fixed(x['trial_s_median'], 1)} s"])
+    paper = p1["data"]["paper_max_mm"]
+    out.append(["the paper (Fig. 14)", "", 30, num(paper["x"]), num(paper["y"]), "not reported", "", "", ""])
+    runs = ", ".join(f"{label} {fixed(fig(r, 'wall_s') / 60, 1)} min" for label, r in (("p1", p1), ("nodal", nodal)))
+    return (table(["element", "target", "trials", "max \\|x\\| (mm)", "max \\|y\\| (mm)", "max \\|z\\| (mm)",
+                   "true miss median / p95 (mm)", "at the stroke limit", "a trial (median)"], out)
+            + f"\n\nThe whole study with `--jobs 2`, from nothing: {runs}. " + source(p1, nodal))
 
 
 @renderer("control", "bench_control.table")
