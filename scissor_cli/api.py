@@ -20,6 +20,7 @@ stable; docs/api.md lists them with their arguments.
 from __future__ import annotations
 
 from dataclasses import replace
+from functools import lru_cache
 from pathlib import Path
 from typing import Optional, Union
 
@@ -31,6 +32,7 @@ from scissor_cli.config import Config, ConfigError, load_config, parse_config, r
 from scissor_cli.config.body_sections import BodyConfig
 from scissor_cli.control import ControllerError, ControllerLaw, LoopResult, PIDLaw
 from scissor_cli.experiments.body_closed_loop import body_plans, body_tasks
+from scissor_cli.experiments.body_resolution import resolved_by_accuracy
 from scissor_cli.experiments.run_summary import RunSummary
 from scissor_cli.experiments.simulate import layer_plans, run_simulation, trial_tasks
 from scissor_cli.experiments.trial_stage import Execution
@@ -50,9 +52,25 @@ __all__ = [
 
 
 def build_tissue(cfg: Scene) -> Tissue:
-    """The scene's tissue as `simulate` builds it (the 2-D layer, or the body at `controller.mesh_scale`): the
-    one the trials of this config use in this process, built on first use."""
-    return trial_context(resolved_yaml(cfg)).tissue
+    """The scene's tissue as `simulate` builds it (the 2-D layer, or the body at `controller.mesh_scale`, on
+    the element and mesh `tissue.accuracy_mm` picks when given): the one the trials of this config use in this
+    process, built on first use."""
+    return _context(cfg).tissue
+
+
+def _context(cfg: Scene):
+    """The trial context `simulate`'s trials of this config would run in (`experiments.trials.trial_context`)."""
+    return trial_context(_computed_yaml(resolved_yaml(cfg)))
+
+
+@lru_cache(maxsize=8)
+def _computed_yaml(config_yaml: str) -> str:
+    """The config a run computes on, as YAML: a body's `tissue.accuracy_mm` resolved into its element and model
+    mesh as `simulate` resolves it (`experiments.body_resolution.resolved_by_accuracy`: solves, so kept)."""
+    cfg = parse_config(config_yaml, "<api config>")
+    if not isinstance(cfg, BodyConfig) or cfg.tissue.accuracy_mm is None:
+        return config_yaml
+    return resolved_yaml(resolved_by_accuracy(cfg)[0])
 
 
 def solve(tissue: Tissue, strokes_mm, start: Optional[np.ndarray] = None):
@@ -77,7 +95,7 @@ def trial_run(cfg: Scene, task: TargetTask, trial: Optional[int] = None) -> tupl
     """The tissue model and `control.TargetRun` of trial `trial` (the profile's draws for it, its sensor, the
     truth: `simulate`'s trial with that index and the config's seed), or with None the nominal manipulation's
     (the model's truth, an exact sensor)."""
-    context = trial_context(resolved_yaml(cfg))
+    context = _context(cfg)
     if trial is None:
         return context.tissue, context.nominal_run(task)
     return context.tissue, context.target_run(task, trial)[0]

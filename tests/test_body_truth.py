@@ -12,7 +12,7 @@ from scissor_cli.control.plant import TruthPerturbation
 from scissor_cli.experiments.body_trials import BodyTruth
 from scissor_cli.experiments.build import body_model
 
-from helpers import write_scene
+from helpers import simulate_here, write_scene
 from test_body_loop import SCENE, _true_miss
 from test_cli import run_cli
 
@@ -41,9 +41,7 @@ def test_a_coarser_model_with_broyden_still_puts_every_lesion_on_the_finer_truth
     """Broyden's correction of the coarse model's J (3 × cups) from the two cameras' moves (its rows under one
     camera: tests/test_broyden.py)."""
     data = _scene(mesh_scale=2.0, jacobian_update="broyden")
-    r = run_cli("simulate", write_scene(tmp_path, data), "--out", tmp_path / "run", "--quiet")
-    assert r.returncode == 0, r.stderr
-    with h5py.File(tmp_path / "run" / "results.h5", "r") as f:
+    with h5py.File(simulate_here(tmp_path, data) / "results.h5", "r") as f:
         for t in ("T1", "T2"):
             direction = f[f"plan/{t}"].attrs["direction"]
             assert f[f"trials/{t}/manipulation_miss_mm"][0] <= 0.1
@@ -51,19 +49,25 @@ def test_a_coarser_model_with_broyden_still_puts_every_lesion_on_the_finer_truth
         assert f["/"].attrs["status"] == "complete"
 
 
-def test_accuracy_picks_the_models_body_and_leaves_the_truth_configured(tmp_path):
-    data = dict(_scene(), tissue=dict(SCENE["tissue"], accuracy_mm=0.5), trials={"count": 0})
+def test_accuracy_picks_the_models_body_and_element_and_leaves_the_truth_configured(tmp_path):
+    """With `element: auto` the pick names the element too (docs/model.md §21): the run computes on it, records
+    it in the config it keeps (so trials and --resume rebuild it), and measured its candidates against nodal."""
+    mesh = dict(SCENE["tissue"]["mesh"], element="auto")
+    data = dict(_scene(), tissue=dict(SCENE["tissue"], accuracy_mm=0.5, mesh=mesh), trials={"count": 0})
     data["forward"] = [{"name": "push", "strokes": {"side": 4.0}}]
-    r = run_cli("simulate", write_scene(tmp_path, data), "--out", tmp_path / "run", "--quiet")
-    assert r.returncode == 0, r.stderr
+    simulate_here(tmp_path, data)
     with h5py.File(tmp_path / "run" / "results.h5", "r") as f:
         resolution = f["mesh_resolution"]
         pick = int(resolution.attrs["pick"])
         errors = resolution["error_mm"][()]
         assert errors[pick] <= 0.5 and resolution.attrs["chosen_scale"] == resolution["scale"][pick]
         assert len(f["mesh/tetrahedra"]) == resolution["n_tetrahedra"][pick]  # the run's body is the pick
+        element = resolution.attrs["element"]
+        assert element == resolution["element"][pick].decode() and f["mesh"].attrs["element"] == element
+        assert resolution.attrs["reference_element"] == "nodal" and errors[0] == 0.0
         recorded = yaml.safe_load(f.attrs["config_yaml"])
     assert recorded["tissue"]["accuracy_mm"] is None and recorded["tissue"]["mesh"]["scale"] == 1.0
+    assert recorded["tissue"]["mesh"]["element"] == element
     assert recorded["controller"]["mesh_scale"] == resolution_scale(tmp_path)
 
 
@@ -85,10 +89,7 @@ def test_a_surrogate_learned_from_the_body_puts_every_lesion_on_its_needle(tmp_p
     """controller.model surrogate: §15's interpolant of the body's lesions over the strokes, checked against
     held-out body solves; the loop on it ends on the (configured mesh's) needle line."""
     data = _scene(model="surrogate", surrogate={"samples": 16})
-    path = write_scene(tmp_path, data)
-    r = run_cli("simulate", path, "--out", tmp_path / "run", "--quiet")
-    assert r.returncode == 0, r.stderr
-    with h5py.File(tmp_path / "run" / "results.h5", "r") as f:
+    with h5py.File(simulate_here(tmp_path, data) / "results.h5", "r") as f:
         attrs = f["trials"].attrs
         assert attrs["controller_model"] == "surrogate" and 0.0 <= attrs["surrogate_error_mm"] < 0.05
         for t in ("T1", "T2"):

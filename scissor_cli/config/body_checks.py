@@ -155,6 +155,9 @@ def body_problems(cfg: BodyConfig) -> list[Problem]:
                          "out (the slab is the 2-D layer's 3-D check)"))
     if cfg.trials.budget and cfg.trials.count == 0:
         problems.append((("trials", "budget"), "the error budget reruns the trials: it needs trials.count >= 1"))
+    if cfg.tissue.mesh.element == "auto" and cfg.tissue.accuracy_mm is None:
+        problems.append((("tissue", "mesh", "element"), "auto picks the element by the accuracy asked for: give "
+                         "tissue.accuracy_mm, or name the element (p1 or nodal)"))
     if cfg.tissue.accuracy_mm is not None and not (cfg.forward and cfg.targets):
         problems.append((("tissue", "accuracy_mm"), "the mesh is picked by the lesions' positions under the forward "
                          "cases: the scene needs at least one target and one forward case"))

@@ -4,9 +4,9 @@ The stages of a 2-D run that a body has today: the model (the mesh, its
 regions and materials), every forward case (Newton on the 3-D tissue with
 its kept factor, `solvers.equilibrium`), each lesion's position under it,
 and the cups-to-lesions Jacobian at rest (3 × cups per lesion). With
-`tissue.accuracy_mm` the model's mesh is picked first (`body_resolution`;
-the run's body is meshed at `controller.mesh_scale`, the trials' truth at
-the configured mesh). Each
+`tissue.accuracy_mm` the model's mesh (and with `element: auto` the
+element) is picked first (`body_resolution`; the run's body is meshed at
+`controller.mesh_scale`, the trials' truth at the configured mesh). Each
 product goes to the run's sink as a 2-D run's does, and is marked finished
 for `--resume`.
 """
@@ -22,7 +22,7 @@ from scissor_cli import progress
 from scissor_cli.config.body_sections import BodyConfig
 from scissor_cli.config.element_budget import TETRAHEDRA_BUDGET
 from scissor_cli.config.loading import resolved_yaml
-from scissor_cli.experiments.body_resolution import BodyChoice, choose_body_scale
+from scissor_cli.experiments.body_resolution import BodyChoice, resolved_by_accuracy
 from scissor_cli.experiments.build import body_model, with_grips
 from scissor_cli.experiments.forward_stage import forward_stage
 from scissor_cli.experiments.run_cache import cache_dir
@@ -72,14 +72,9 @@ def body_budget_problem(cfg: BodyConfig) -> str | None:
 def run_body_simulation(cfg: BodyConfig, run: SinkFactory, execution: Execution) -> RunSummary:
     """Everything `scissor simulate` does for a 3-D scene, into the sink `run` opens; returns the run's summary."""
     cache = cache_dir(run.location)
-    choice = None
-    if cfg.tissue.accuracy_mm is not None:
-        choice = choose_body_scale(cfg, cache)
+    cfg, choice = resolved_by_accuracy(cfg, cache)
+    if choice is not None:
         progress.info(f"mesh by accuracy: {choice.explain()}")
-        # the pick is the model's body; the trials' truth stays the configured mesh (docs/model.md §19, "Control")
-        cfg = cfg.model_copy(update={
-            "tissue": cfg.tissue.model_copy(update={"accuracy_mm": None}),
-            "controller": cfg.controller.model_copy(update={"mesh_scale": choice.chosen.scale})})
     grips = None
     if cfg.manipulation_points is not None:
         cfg, grips = body_grip_stage(cfg, cache)

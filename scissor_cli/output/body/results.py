@@ -42,15 +42,18 @@ def write_body_model(out: ResultsFile, tissue) -> None:
 
 
 def write_body_resolution(out: ResultsFile, choice) -> None:
-    """/mesh_resolution: every candidate mesh of `tissue.accuracy_mm` (a table) and the pick (attributes)."""
+    """/mesh_resolution: every candidate (mesh and element) of `tissue.accuracy_mm` (a table) and the pick
+    (attributes)."""
     rows = choice.candidates
     out.dataset("mesh_resolution/scale", np.array([c.scale for c in rows]), "1")
     out.dataset("mesh_resolution/n_tetrahedra", np.array([c.n_tetrahedra for c in rows], np.int64))
+    out.dataset("mesh_resolution/element", np.array([c.element for c in rows], dtype="S"))
     out.dataset("mesh_resolution/error_mm", np.array([c.error_mm for c in rows]), "mm",
-                description="largest lesion distance from the configured mesh's; -1: not solved")
+                description="largest lesion distance from the reference's (row 0: the configured mesh); -1: not solved")
     out.dataset("mesh_resolution/time_s", np.array([max(c.mesh_s, 0) + max(c.solve_s, 0) for c in rows]), "s")
     out.attrs("mesh_resolution", {"accuracy_mm": choice.accuracy_mm, "pick": int(choice.pick),
-                                  "chosen_scale": float(rows[choice.pick].scale)})
+                                  "chosen_scale": float(rows[choice.pick].scale), "element": choice.element,
+                                  "reference_element": rows[0].element})
 
 
 def write_body_plan(out: ResultsFile, plan) -> None:
