@@ -581,10 +581,12 @@ def _element_dome_study(p1, nodal) -> str:
                         x["at_stroke_limit"], f"{fixed(x['trial_s_median'], 1)} s"])
     paper = p1["data"]["paper_max_mm"]
     out.append(["the paper (Fig. 14)", "", 30, num(paper["x"]), num(paper["y"]), "not reported", "", "", ""])
-    runs = ", ".join(f"{label} {fixed(fig(r, 'wall_s') / 60, 1)} min" for label, r in (("p1", p1), ("nodal", nodal)))
+    runs = ", ".join(f"{label} {fixed(fig(r, 'wall_s') / 60, 1)} min wall, {num(fig(r, 'cpu_s'), 3)} CPU-s"
+                     for label, r in (("p1", p1), ("nodal", nodal)))
     return (table(["element", "target", "trials", "max \\|x\\| (mm)", "max \\|y\\| (mm)", "max \\|z\\| (mm)",
                    "true miss median / p95 (mm)", "at the stroke limit", "a trial (median)"], out)
-            + f"\n\nThe whole study with `--jobs 2`, from nothing: {runs}. " + source(p1, nodal))
+            + f"\n\nThe whole study with `--jobs 2`, from nothing: {runs} (the wall times and a trial's depend on "
+              "the machine's load, in the source line; the CPU seconds less). " + source(p1, nodal))
 
 
 @renderer("control", "bench_control.table")
