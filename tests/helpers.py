@@ -53,3 +53,25 @@ def benchmark_module(name: str):
         sys.modules[name] = module
         spec.loader.exec_module(module)
     return sys.modules[name]
+
+
+def simulate_here(directory: Path, data: dict, name: str = "run", jobs: int = 1) -> Path:
+    """`scissor simulate` of the scene `data` (written to directory/NAME.yaml) into directory/NAME, through the
+    Python API in this process (`api.simulate`: the CLI's own `api.run`, without the process's start-up, for the
+    tests that read what a run stores rather than how the command behaves as a process); returns the run's
+    directory."""
+    from scissor_cli import api  # noqa: PLC0415
+
+    out = Path(directory) / name
+    api.simulate(api.load_config(write_scene(Path(directory), data, f"{name}.yaml")), out, jobs=jobs)
+    return out
+
+
+def cli_here(*args):
+    """`scissor ARGS` run in this process (typer's CliRunner): for commands whose files a test reads, not its exit
+    as a process (those tests start `python -m scissor_cli`). The result has exit_code, stdout and stderr."""
+    from typer.testing import CliRunner  # noqa: PLC0415
+
+    from scissor_cli.cli import app  # noqa: PLC0415
+
+    return CliRunner().invoke(app, [str(a) for a in args])

@@ -37,10 +37,13 @@ def test_the_core_runs_without_gymnasium(tmp_path):
 
     from test_cli import small_scene
 
-    scene = small_scene(tmp_path)  # (its trials: 0; the forward cases, plans and figures import the pipeline)
+    # (one trial per target, on the pool's two workers: every stage's imports, the trials' included, not their
+    # statistics: the forward cases, plans, manipulations and figures import the pipeline)
+    scene = small_scene(tmp_path, **{"trials.count": 1})
     code = ("import sys; sys.modules['gymnasium'] = None\n"  # any `import gymnasium` now fails
             "from scissor_cli.cli import app\n"
-            f"sys.argv = ['scissor', 'simulate', {str(scene)!r}, '--out', {str(tmp_path / 'out')!r}, '--quiet']\n"
+            f"sys.argv = ['scissor', 'simulate', {str(scene)!r}, '--out', {str(tmp_path / 'out')!r}, '--jobs', '2',"
+            " '--quiet']\n"
             "app()")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr

@@ -2,7 +2,8 @@
 
 The scene: a dome (radius 40, height 25 mm) with a skin shell, two lesions,
 a vessel beside one and a cyst, two cups on the skin, two forward cases —
-coarse, so the module's one `scissor simulate` takes seconds.
+coarse, so the module's one run (through the API in this process: `scissor simulate`'s own `api.run`) takes
+seconds. (The body's run as a process: tests/test_golden.py's dome.)
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from scissor_cli.solvers.equilibrium import solve_equilibrium
 from scissor_cli.solvers.jacobian import cup_target_jacobian
 
 from figure_checks import assert_png_drawn
-from helpers import write_scene
+from helpers import cli_here, simulate_here, write_scene
 from test_cli import run_cli
 
 SCENE = {
@@ -52,10 +53,8 @@ SCENE = {
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("body")
-    scene = write_scene(tmp, SCENE)
-    r = run_cli("simulate", scene, "--out", tmp / "run", "--quiet")
-    assert r.returncode == 0, r.stderr
-    return scene, tmp / "run"
+    out = simulate_here(tmp, SCENE)
+    return tmp / "run.yaml", out
 
 
 def _independent_gradient(nodes, tets, x, E, nu, eta, fiber):
@@ -169,8 +168,8 @@ def test_figures_and_export_show_the_body(run):
     _, out = run
     for name in ("forward_push.png", "forward_push_3d.png", "forward_both.png"):
         assert_png_drawn(out / name)
-    r = run_cli("export", out, "--format", "vtu")
-    assert r.returncode == 0, r.stderr
+    r = cli_here("export", out, "--format", "vtu")
+    assert r.exit_code == 0, r.output
     import meshio
 
     mesh = meshio.read(out / "export" / "forward_push.vtu")
@@ -193,9 +192,7 @@ def test_a_closed_surface_body_meshes_and_solves(tmp_path):
             "cups": [{"name": "cup", "contact_mm": [20.0, 0.0, 12.0], "radius_mm": 5.0}],
             "targets": [{"name": "T", "position_mm": [20.0, 15.0, 10.0], "radius_mm": 3.0}],
             "forward": [{"name": "push", "strokes": {"cup": 4.0}}], "trials": {"count": 0}}
-    r = run_cli("simulate", write_scene(tmp_path, data), "--out", tmp_path / "run", "--quiet")
-    assert r.returncode == 0, r.stderr
-    with h5py.File(tmp_path / "run" / "results.h5", "r") as f:
+    with h5py.File(simulate_here(tmp_path, data) / "results.h5", "r") as f:
         axis = f["cups/cup"].attrs["axis"]
         np.testing.assert_allclose(axis, [0.0, 1.0, 0.0], atol=1e-9)  # the inward normal of the face y = 0
         moved = f["forward/push/targets/T"][()] - np.array([20.0, 15.0, 10.0])
@@ -210,9 +207,8 @@ def test_a_pinned_mesh_file_is_used_as_it_is(run, tmp_path):
         nodes = f["mesh/nodes"][()]
     data = yaml.safe_load(yaml.safe_dump(SCENE))
     data["tissue"]["mesh"]["file"] = str(out / "results.h5")
-    r = run_cli("simulate", write_scene(tmp_path, data), "--out", tmp_path / "pinned", "--quiet")
-    assert r.returncode == 0, r.stderr
-    with h5py.File(tmp_path / "pinned" / "results.h5", "r") as f:
+    pinned = dict(data, forward=[])  # (the mesh is on test, not the forward cases the fixture's run solved)
+    with h5py.File(simulate_here(tmp_path, pinned, name="pinned") / "results.h5", "r") as f:
         assert np.array_equal(f["mesh/nodes"][()], nodes)
     data["targets"] = data["targets"][:1]  # another scene's regions: refused
     r = run_cli("validate", write_scene(tmp_path, data))

@@ -11,7 +11,7 @@ from scissor_cli.config.loading import parse_config
 from scissor_cli.experiments.error_budget import budget_plan
 from scissor_cli.experiments.profiles import draw_body, error_model
 
-from helpers import example_dict, write_scene
+from helpers import cli_here, example_dict, simulate_here, write_scene
 from test_body_loop import SCENE
 from test_cli import run_cli
 
@@ -40,9 +40,7 @@ def test_the_registration_moves_the_needles_line_by_a_rigid_motion():
 
 def test_a_bodys_budget_has_its_own_sources(tmp_path):
     one = dict(SCENE, targets=SCENE["targets"][:1], trials=TRIALS)  # (one lesion keeps the test short)
-    r = run_cli("simulate", write_scene(tmp_path, one), "--out", tmp_path / "run", "--quiet")
-    assert r.returncode == 0, r.stderr
-    with h5py.File(tmp_path / "run" / "results.h5", "r") as f:
+    with h5py.File(simulate_here(tmp_path, one) / "results.h5", "r") as f:
         assert list(f["budget"].attrs["sources"]) == ["all", "registration", "lesion_stiffness", "none"]
         for t in ("T1",):
             none = f[f"budget/none/{t}/miss_mm"][()]
@@ -56,8 +54,8 @@ def test_a_bodys_budget_has_its_own_sources(tmp_path):
             assert np.all(np.isfinite(stiff)) and not np.array_equal(stiff, f[f"budget/none/{t}/final_error"][()])
         assert f["trials"].attrs["registration_mm"] == 0.5
     assert (tmp_path / "run" / "budget.png").is_file()
-    r = run_cli("report", tmp_path / "run", "--out", tmp_path / "report")
-    assert r.returncode == 0, r.stderr
+    r = cli_here("report", tmp_path / "run", "--out", tmp_path / "report")
+    assert r.exit_code == 0, r.output
     assert "z_max_mm" in (tmp_path / "report" / "budget.md").read_text()  # a body's vertical error too
 
 

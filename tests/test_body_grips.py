@@ -17,7 +17,7 @@ from scissor_cli.planning.manipulation_points import adjoint_responses
 from scissor_cli.solvers.common import Conditions
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 
-from helpers import write_scene
+from helpers import simulate_here, write_scene
 from test_body_loop import SCENE, _true_miss
 from test_cli import run_cli
 
@@ -82,9 +82,7 @@ def test_two_cups_span_the_miss_and_three_the_position():
 
 
 def test_grips_chosen_on_the_skin_put_every_lesion_on_its_needle(tmp_path):
-    r = run_cli("simulate", write_scene(tmp_path, _scene()), "--out", tmp_path / "run", "--quiet")
-    assert r.returncode == 0, r.stderr
-    with h5py.File(tmp_path / "run" / "results.h5", "r") as f:
+    with h5py.File(simulate_here(tmp_path, _scene()) / "results.h5", "r") as f:
         mp = f["manipulation_points"].attrs
         chosen = mp["chosen"]
         assert chosen.shape == (2, 3)

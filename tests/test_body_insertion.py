@@ -18,7 +18,7 @@ from scissor_cli.planning.body_lines import skin_entries
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 
 from figure_checks import assert_png_drawn
-from helpers import write_scene
+from helpers import cli_here, simulate_here, write_scene
 from test_body_loop import SCENE
 from test_cli import run_cli
 
@@ -90,9 +90,7 @@ def test_the_run_inserts_every_planned_lesion_along_its_plan_and_so_do_its_trial
     benchmarks/bench_body_insertion.py.)"""
     data = dict(COARSE, targets=COARSE["targets"][:1], trials={"count": 1, "profile": "ideal"},
                 insertion={"step_mm": 1.0, "capture_radius_mm": 2.5, "strategies": ["none", "depth"]})
-    r = run_cli("simulate", write_scene(tmp_path, data), "--out", tmp_path / "run", "--quiet")
-    assert r.returncode == 0, r.stderr
-    with h5py.File(tmp_path / "run" / "results.h5", "r") as f:
+    with h5py.File(simulate_here(tmp_path, data) / "results.h5", "r") as f:
         plan = f["plan/T1"].attrs
         depth = f["insertion/T1/depth"]
         assert depth["tip"].shape[1] == 3 and depth["target"].shape[1] == 3
@@ -107,8 +105,8 @@ def test_the_run_inserts_every_planned_lesion_along_its_plan_and_so_do_its_trial
     assert abs(depth_error[0, 1]) <= 0.05 < abs(depth_error[0, 0])
     assert_png_drawn(tmp_path / "run" / "insertion_path_T1.png")
     # ParaView: the insertion's steps on the body's own mesh
-    r = run_cli("export", tmp_path / "run", "--out", tmp_path / "paraview", "--format", "vtu")
-    assert r.returncode == 0, r.stderr
+    r = cli_here("export", tmp_path / "run", "--out", tmp_path / "paraview", "--format", "vtu")
+    assert r.exit_code == 0, r.output
     assert len(list((tmp_path / "paraview" / "insertion_T1_depth").glob("*.vtu"))) == f_steps
 
 

@@ -13,8 +13,7 @@ import h5py
 import numpy as np
 import pytest
 
-from helpers import write_scene
-from test_cli import run_cli
+from helpers import simulate_here
 
 SCENE = {
     "name": "loop-dome",
@@ -40,10 +39,24 @@ SCENE = {
 }
 
 
-def _run(tmp_path, data, *options):
-    r = run_cli("simulate", write_scene(tmp_path, data), "--out", tmp_path / "run", "--quiet", *options)
-    assert r.returncode == 0, r.stderr
-    return h5py.File(tmp_path / "run" / "results.h5", "r")
+def _run(tmp_path, data, jobs=1):
+    """The scene's run (`simulate_here`: through the API in this process), its results.h5 open."""
+    return h5py.File(simulate_here(tmp_path, data, jobs=jobs) / "results.h5", "r")
+
+
+#: the scene with one forward case: the uninterrupted run the resume below is held to, and the run the two cameras'
+#: checks read (one run for both)
+WITH_FORWARD = {**SCENE, "forward": [{"name": "push3", "strokes": {"side": 3.0}}]}
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """WITH_FORWARD's uninterrupted run, in this process: (its config, results.h5)."""
+    from scissor_cli.config import load_config
+
+    tmp = tmp_path_factory.mktemp("loop")
+    out = simulate_here(tmp, WITH_FORWARD, name="ref")
+    return load_config(tmp / "ref.yaml"), out / "results.h5"
 
 
 def _true_miss(error: np.ndarray, direction: np.ndarray) -> np.ndarray:
@@ -51,8 +64,8 @@ def _true_miss(error: np.ndarray, direction: np.ndarray) -> np.ndarray:
     return np.linalg.norm(np.atleast_2d(error) @ (np.eye(3) - np.outer(n, n)), axis=1)
 
 
-def test_two_cameras_and_two_cups_put_every_lesion_on_its_needle(tmp_path):
-    with _run(tmp_path, SCENE) as f:
+def test_two_cameras_and_two_cups_put_every_lesion_on_its_needle(reference):
+    with h5py.File(reference[1], "r") as f:
         for t in ("T1", "T2"):
             plan = f[f"plan/{t}"].attrs
             assert plan["feasible"] and plan["clearance_mm"] >= 0.0  # clear by the margin and the radii
@@ -83,23 +96,21 @@ def test_one_camera_above_does_not_see_depth_and_the_true_3d_error_is_kept(tmp_p
 @pytest.mark.slow  # (the default run has the ideal trials above; these are the profile's, with two workers)
 def test_prosthesis_trials_run_on_two_workers_none_failed(tmp_path):
     data = dict(SCENE, trials={"count": 4, "profile": "prosthesis"})
-    with _run(tmp_path, data, "--jobs", "2") as f:
+    with _run(tmp_path, data, jobs=2) as f:
         for t in ("T1", "T2"):
             assert f[f"trials/{t}/done"][()].all() and not f[f"trials/{t}/failed"][()].any()
 
 
-def test_a_run_stopped_in_its_manipulations_resumes_to_the_uninterrupted_run(tmp_path, monkeypatch):
+def test_a_run_stopped_in_its_manipulations_resumes_to_the_uninterrupted_run(reference, tmp_path, monkeypatch):
     """Ctrl-C while T2's nominal manipulation is stored: `--resume` keeps the forward cases, the plans and T1's
     manipulation as stored and completes the run to the numbers of one that was never stopped."""
-    from scissor_cli.config import load_config
     from scissor_cli.experiments.simulate import Execution, resume_simulation, run_simulation
     from scissor_cli.output import results_sink as sink_module
     from scissor_cli.output.results_sink import RunDirectory, open_for_resume
 
     from test_resume_stages import assert_same_run, wall_times
 
-    cfg = load_config(write_scene(tmp_path, {**SCENE, "forward": [{"name": "push3", "strokes": {"side": 3.0}}]}))
-    run_simulation(cfg, RunDirectory(tmp_path / "ref"), execution=Execution(jobs=1))
+    cfg, ref = reference
     real = sink_module.ResultsSink.manipulation
 
     def stopped(self, product, *args):
@@ -126,4 +137,4 @@ def test_a_run_stopped_in_its_manipulations_resumes_to_the_uninterrupted_run(tmp
         assert h5.attrs["status"] == "complete"
         for k, attrs in plans_before.items():
             assert all(np.array_equal(np.asarray(h5[f"plan/{k}"].attrs[a]), np.asarray(v)) for a, v in attrs.items())
-    assert_same_run(tmp_path / "ref" / "results.h5", run / "results.h5")
+    assert_same_run(ref, run / "results.h5")

@@ -34,6 +34,15 @@ def _simulate(path, out, *extra):
     return out / "results.h5"
 
 
+def _here(path, out):
+    """The config at `path` run through the API in this process, as `scissor simulate` runs it; its results.h5.
+    (The runs a budget row is compared with: their numbers, not the command, are on test.)"""
+    from scissor_cli import api
+
+    api.simulate(api.load_config(path), out)
+    return out / "results.h5"
+
+
 @pytest.fixture(scope="module")
 def budget_run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("budget")
@@ -48,7 +57,7 @@ def test_a_row_is_the_trials_of_its_variant_config(budget_run):
     assert variant.trials.pixel_noise_px == 0 and variant.trials.E_log_sd == 0 and variant.trials.backlash_mm == 0
     path = tmp / "variant.yaml"
     path.write_text(resolved_yaml(variant))
-    alone = _simulate(path, tmp / "alone")
+    alone = _here(path, tmp / "alone")
     with h5py.File(h5_path) as a, h5py.File(alone) as b:
         for target in ("T1", "T2"):
             assert np.array_equal(a[f"budget/localisation/{target}/final_error"][()],
@@ -66,7 +75,7 @@ def test_a_row_that_draws_nothing_runs_once_and_equals_its_variant_run_in_full(b
     assert identical_trials(plan.rows["none"]) and not identical_trials(plan.rows["camera"])
     path = tmp / "none.yaml"
     path.write_text(resolved_yaml(plan.rows["none"]))
-    alone = _simulate(path, tmp / "none")
+    alone = _here(path, tmp / "none")
     with h5py.File(h5_path) as a, h5py.File(alone) as b:
         assert a["budget/none"].attrs["identical_trials"] and "identical_trials" not in a["budget/camera"].attrs
         for target in ("T1", "T2"):
@@ -87,7 +96,7 @@ def test_only_rows_without_a_drawn_source_or_speckle_are_identical():
 
 def test_the_all_row_is_the_ordinary_trials(budget_run):
     tmp, scene, h5_path = budget_run
-    plain = _simulate(scene, tmp / "plain")
+    plain = _here(scene, tmp / "plain")
     with h5py.File(h5_path) as a, h5py.File(plain) as b:
         assert list(a["budget"].attrs["sources"])[0] == "all"
         for target in ("T1", "T2"):

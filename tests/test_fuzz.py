@@ -201,7 +201,7 @@ def _check_validate(tmp_path: Path, content: bytes) -> None:
 # Quick profile (default run)
 
 
-@settings(max_examples=200, **QUICK)
+@settings(max_examples=120, **QUICK)  # (the long profile: 1500)
 @given(data=mutated_scene())
 def test_validate_mutated_values(tmp_path_factory, data):
     _check_validate(tmp_path_factory.mktemp("v"), _dump(data).encode())
@@ -245,7 +245,7 @@ def _check_simulate(tmp_path: Path, data: dict, codes=(0, 1, 2)) -> None:
         assert "results so far:" in result.stderr and "(status = failed)" in result.stderr, result.stderr
 
 
-@settings(max_examples=15, **QUICK)
+@settings(max_examples=10, **QUICK)  # (each a run; the long profile: 200)
 @given(data=st.one_of(mutated_scene(base=COARSE, paths=COARSE_PATHS, max_mutations=2),
                       edge_of_range(COARSE, COARSE_PATHS)))
 def test_simulate_mutated_values(tmp_path_factory, data):
@@ -295,14 +295,14 @@ def coincident_points(draw, base=COARSE):
     return data
 
 
-@settings(max_examples=10, **QUICK)
+@settings(max_examples=6, **QUICK)  # (each a run; the long profile: 150)
 @given(data=coincident_points())
 def test_simulate_coincident_points(tmp_path_factory, data):
     """Coincident or nearly coincident targets, obstacles and cups: the run works or is refused (exit 2)."""
     _check_simulate(tmp_path_factory.mktemp("c"), data, codes=(0, 2))
 
 
-@settings(max_examples=150, **QUICK)
+@settings(max_examples=100, **QUICK)  # (the long profile: 500)
 @given(data=edge_of_range(EXAMPLE_DATA, EXAMPLE_PATHS))
 def test_validate_edges_of_ranges(tmp_path_factory, data):
     _check_validate(tmp_path_factory.mktemp("e"), _dump(data).encode())
@@ -436,7 +436,7 @@ COARSE_DOME = _coarse_dome()
 COARSE_DOME_PATHS = _paths(COARSE_DOME)
 
 
-@settings(max_examples=5, **QUICK)  # (each a dome's run: `-m fuzz`'s long profile draws many more)
+@settings(max_examples=3, **QUICK)  # (each a dome's run: `-m fuzz`'s long profile draws 40)
 @given(data=mutated_scene(base=COARSE_DOME, paths=COARSE_DOME_PATHS, max_mutations=2))
 def test_simulate_mutated_dome(tmp_path_factory, data):
     _check_simulate(tmp_path_factory.mktemp("ds"), data)

@@ -11,7 +11,7 @@ import yaml
 
 from scissor_cli.config import ConfigError, parse_config
 from scissor_cli.experiments.build import build_model
-from tests.helpers import example_dict, write_scene
+from tests.helpers import cli_here, example_dict, simulate_here, write_scene
 
 from figure_checks import assert_png_drawn
 
@@ -71,10 +71,9 @@ def small_scene(tmp_path):
 
 
 def test_run_writes_layer_check(tmp_path):
-    path = small_scene(tmp_path)
-    out = tmp_path / "run"
-    r = _cli("simulate", path, "--out", out, "--trials", "0")
-    assert r.returncode == 0, r.stderr
+    data = yaml.safe_load(small_scene(tmp_path).read_text())
+    data["trials"] = dict(data.get("trials") or {}, count=0)  # (`--trials 0`, through the API in this process)
+    out = simulate_here(tmp_path, data)
     with h5py.File(out / "results.h5") as f:
         nodes, tets = f["layer_check/mesh/nodes"][()], f["layer_check/mesh/tetrahedra"][()]
         assert nodes.shape[1] == 3 and tets.shape[1] == 4 and tets.dtype == np.int64
@@ -92,8 +91,8 @@ def test_run_writes_layer_check(tmp_path):
         # the 2-D forward case is untouched by the check
         assert f["forward/push4/displacement"].shape[1] == 2
     assert_png_drawn(out / "layer_check_push4.png")
-    rep = _cli("report", out)
-    assert rep.returncode == 0, rep.stderr
+    rep = cli_here("report", out)
+    assert rep.exit_code == 0, rep.output
     assert "layer check" in rep.stdout.lower()
 
 
@@ -135,11 +134,12 @@ def test_slab_truth_inserts_in_the_slab_nominally_and_in_trials(tmp_path):
     §14): 3-D shapes in results.h5 (docs/contract.md), and export and report read them. The slab meshes its
     own, coarser plane (`in_plane_scale`): the layer's nodes in the frames are points of the slab."""
     data = yaml.safe_load(small_scene(tmp_path).read_text())
-    data["insertion"] = {"strategies": ["none", "depth", "loop"], "step_mm": 1.0}
-    data["layer_check"]["in_plane_scale"] = 1.5
-    out = tmp_path / "run"
-    r = _cli("simulate", write_scene(tmp_path, data), "--out", out, "--trials", "1", "--jobs", "1", "--truth", "slab")
-    assert r.returncode == 0, r.stderr
+    # (2 mm steps on a slab plane twice as coarse as the layer's: the 3-D insertion's layout and readers are on
+    # test here, not its fidelity; `simulate_here`: the run through the API, as `--trials 1 --truth slab` would)
+    data["insertion"] = {"strategies": ["none", "depth", "loop"], "step_mm": 2.0}
+    data["layer_check"]["in_plane_scale"] = 2.0
+    data["trials"] = dict(data.get("trials") or {}, count=1, truth="slab")
+    out = simulate_here(tmp_path, data)
     with h5py.File(out / "results.h5") as f:
         n3 = f["layer_check/mesh/nodes"].shape[0]
         levels = np.unique(f["layer_check/mesh/nodes"][:, 2]).size
@@ -157,11 +157,11 @@ def test_slab_truth_inserts_in_the_slab_nominally_and_in_trials(tmp_path):
             assert ins.attrs["completed"]
     assert (out / "insertion_T1.gif").exists()
     assert_png_drawn(out / "insertion_path_T1.png")
-    exported = _cli("export", out, "--out", tmp_path / "export")
-    assert exported.returncode == 0, exported.stderr
+    exported = cli_here("export", out, "--out", tmp_path / "export")
+    assert exported.exit_code == 0, exported.output
     assert any("insertion_T1_none" in p.name for p in (tmp_path / "export").iterdir())
-    rep = _cli("report", out, "--out", tmp_path / "report")
-    assert rep.returncode == 0, rep.stderr
+    rep = cli_here("report", out, "--out", tmp_path / "report")
+    assert rep.exit_code == 0, rep.output
 
 
 @pytest.mark.parametrize("change, words", [

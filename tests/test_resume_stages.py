@@ -44,7 +44,7 @@ def scene(tmp_path: Path) -> Path:
     data["forward"] = data["forward"][:1]
     data["layer_check"] = {"height_mm": 8.0, "layer_z_mm": 4.0, "chest_wall_fixed": True, "cup_holds_z": True,
                            "max_layer_mm": 4.0, "accuracy_mm": None}
-    data["insertion"] = {"step_mm": 2.0, "friction_static_mN_per_mm": 15.0, "friction_kinetic_mN_per_mm": 10.0,
+    data["insertion"] = {"step_mm": 4.0, "friction_static_mN_per_mm": 15.0, "friction_kinetic_mN_per_mm": 10.0,
                          "tip_force_mN": 100.0, "tip_zone_mm": 2.0, "strategies": ["none"]}
     data["trials"] = {"count": 1, "profile": "prosthesis"}
     return write_scene(tmp_path, data)

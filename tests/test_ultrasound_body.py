@@ -27,7 +27,7 @@ from scissor_cli.sensing.ultrasound.body_pose import skin_pose, skin_surface
 from scissor_cli.sensing.ultrasound.body_sensor import body_ultrasound_model
 
 from figure_checks import assert_png_drawn
-from helpers import write_scene
+from helpers import cli_here, simulate_here, write_scene
 from test_body_loop import SCENE
 from test_cli import run_cli
 
@@ -175,9 +175,7 @@ def test_simulate_runs_the_body_loop_on_the_ultrasound(tmp_path):
     body's frame (K, 3) with the B-mode figure, and `report` reads the run."""
     data = scene()
     data["trials"] = {"count": 1, "profile": "ideal"}
-    r = run_cli("simulate", write_scene(tmp_path, data), "--out", tmp_path / "run", "--quiet")
-    assert r.returncode == 0, r.stderr
-    with h5py.File(tmp_path / "run" / "results.h5", "r") as f:
+    with h5py.File(simulate_here(tmp_path, data) / "results.h5", "r") as f:
         assert f["/"].attrs["status"] == "complete" and f["trials"].attrs["sensor"] == "ultrasound"
         history = f["trials/T1/history/0"]
         columns = list(history.attrs["columns"])
@@ -198,7 +196,7 @@ def test_simulate_runs_the_body_loop_on_the_ultrasound(tmp_path):
         assert np.max(np.abs(in_plane)) < 0.3
         assert np.max(frames[-1]) > 0.0
     assert_png_drawn(tmp_path / "run" / "imaging_T1.png")
-    r = run_cli("report", tmp_path / "run", "--out", tmp_path / "report")
-    assert r.returncode == 0, r.stderr
+    r = cli_here("report", tmp_path / "run", "--out", tmp_path / "report")
+    assert r.exit_code == 0, r.output
     rows = list(csv.DictReader((tmp_path / "report" / "summary.csv").open()))
     assert rows and all(row["controller"] == "body" and row["sensor"] == "ultrasound" for row in rows)
