@@ -346,9 +346,9 @@ def test_largest_scene_file_validates_in_seconds():
             "obstacles": obstacles}
     text = yaml.safe_dump(data, default_flow_style=None, width=10**6)
     assert 100 * 1024 < len(text) <= MAX_CONFIG_BYTES
-    t0 = time.perf_counter()
+    t0 = time.process_time()  # this process's CPU seconds: the work validation does, not the machine's load
     cfg = parse_config(text)
-    assert len(cfg.obstacles) == 33 and time.perf_counter() - t0 < 10.0
+    assert len(cfg.obstacles) == 33 and time.process_time() - t0 < 10.0
     data["obstacles"].append({"name": "more", "circle": {"center_mm": [500.0, 800.0], "radius_mm": 5.0}})
     refused(data, "obstacles (line", f"at most {checks.MAX_OBSTACLE_VERTICES}")
 
@@ -363,8 +363,8 @@ def test_interleaved_obstacles_validate_in_seconds():
         strips.append({"name": f"s{k}", "polygon_mm": poly.round(4).tolist()})
     data = {"tissue": {"size_mm": [1000.0, 1000.0], "mesh": {"min_edge_mm": 20.0, "max_edge_mm": 60.0}},
             "cups": [{"name": "c", "contact_mm": [500.0, 1000.0], "axis": [0.0, -1.0]}], "obstacles": strips}
-    t0 = time.perf_counter()
-    assert len(parse(data).obstacles) == 25 and time.perf_counter() - t0 < 10.0
+    t0 = time.process_time()  # CPU seconds: the pairwise checks' work, which a shared machine does not inflate
+    assert len(parse(data).obstacles) == 25 and time.process_time() - t0 < 10.0
 
 
 # --------------------------------------------------------------------------
