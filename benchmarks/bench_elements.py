@@ -152,7 +152,7 @@ def share_rows(nu: float = 0.49) -> list[dict]:
     probe = probe_points(tissue.mesh.nodes, tissue.ops.triangles, points)
     rows = []
     for share in SHARES:
-        t = replace(tissue, nodal=replace(tissue.nodal, element_share=share), nodal_cache={}, factor_cache={})
+        t = replace(tissue, element=tissue.element.with_share(share), factor_cache={})
         u = target_positions(probe, solve_equilibrium(t, strokes, method="newton").x) - points
         err = 100 * np.linalg.norm(u - ref, axis=1) / np.linalg.norm(ref, axis=1)
         rows.append({"share": share, "nu": nu, "max_error_pct": float(err.max())})

@@ -60,7 +60,7 @@ def test_a_loose_accuracy_gets_the_cheaper_element_on_a_coarser_mesh_and_the_api
     assert choice.element == "p1" and choice.candidates[1].error_mm <= 1.0
     assert choice.chosen.scale > 1.0
     tissue = api.build_tissue(cfg)  # as `simulate` builds it: the pick's element and mesh
-    assert tissue.element == "p1" and tissue.mesh.n_elements == choice.chosen.n_tetrahedra
+    assert tissue.element.name == "p1" and tissue.mesh.n_elements == choice.chosen.n_tetrahedra
 
 
 def test_a_named_element_keeps_its_own_reference():

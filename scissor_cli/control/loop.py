@@ -58,7 +58,7 @@ from scissor_cli.control.plant import Controller, ModelPaths, Plant, TruthFactor
 from scissor_cli.control.plugin import ControllerLaw, checked_velocity, drive, frame_info, observation
 from scissor_cli.control.result import History, LoopResult
 from scissor_cli.mechanics.tissue import Tissue
-from scissor_cli.mesh.probe import probe_points, probe_targets
+from scissor_cli.mesh.probe import probe_targets
 from scissor_cli.sensing.sensor import EXACT, Sensor
 from scissor_cli.solvers.common import SolverError
 
@@ -355,7 +355,7 @@ def loop_parts(model: Tissue, target_rest: np.ndarray, run: TargetRun = TargetRu
     direction = needle_axis(run)
     scene = model.scene
     if model.dim == 3:  # a body: the lesion carried by its rest tetrahedron
-        probe = probe_points(model.mesh.nodes, model.mesh.tetrahedra, np.asarray(target_rest, float)[None])
+        probe = model.element.probe(model.rest, np.asarray(target_rest, float)[None])
     else:
         probe = probe_targets(model.mesh, np.asarray(target_rest, float)[None])
     actuator = Actuator.from_scene(scene, run.resolution_mm, run.backlash_mm)

@@ -32,7 +32,6 @@ from scissor_cli.experiments.trial_stage import Execution
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.body_inputs import body_shape, inclusions, sizing
 from scissor_cli.mesh.body_mesh import estimate_tetrahedra
-from scissor_cli.mesh.probe import probe_points
 from scissor_cli.planning.body_grips import BodyGripPlan, plan_body_grips, verify
 from scissor_cli.scene.body_scene import build_body_scene
 from scissor_cli.solvers.jacobian import cup_target_jacobian
@@ -128,8 +127,7 @@ def body_stages(cfg: BodyConfig, tissue: Tissue, sink: RunSink, summary, done: f
             sink.target(t.name, t.rest, t.rest if t.desired is None else t.desired,
                         "rest" if t.desired is None else "config")
         sink.mark_finished("model")
-    probe = probe_points(tissue.mesh.nodes, tissue.mesh.tetrahedra,
-                         np.array([t.rest for t in scene.targets]).reshape(-1, 3))
+    probe = tissue.element.probe(tissue.rest, np.array([t.rest for t in scene.targets]).reshape(-1, 3))
     forward_stage(cfg.forward, cfg.solver, tissue, probe, sink, summary,
                   lambda case, strokes, result, targets: dict(
                       title=f"{cfg.name}: forward case {case}", tissue=tissue, x=result.x,

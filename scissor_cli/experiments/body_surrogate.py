@@ -26,7 +26,7 @@ from scissor_cli.experiments.controller_model_stage import load_model_data, save
 from scissor_cli.layer3d.surrogate import Surrogate, train
 from scissor_cli.layer3d.tissue_models import ModelData
 from scissor_cli.mechanics.tissue import Tissue
-from scissor_cli.mesh.probe import TargetProbe, probe_points, target_positions
+from scissor_cli.mesh.probe import TargetProbe, target_positions
 
 #: the design's solves: well below any accuracy a run asks for (as the mesh choice's, `body_resolution`)
 SOLVE_TOL = 1e-8
@@ -63,8 +63,7 @@ def body_surrogate_data(cfg: BodyConfig, tissue: Tissue, cache: Optional[Path]) 
     lo = np.array([c.stroke_min_mm for c in scene.cups])
     hi = np.array([c.stroke_max_mm for c in scene.cups])
     n = cfg.controller.surrogate.samples
-    probe = probe_points(tissue.mesh.nodes, tissue.mesh.tetrahedra,
-                         np.array([t.rest for t in scene.targets]).reshape(-1, 3))
+    probe = tissue.element.probe(tissue.rest, np.array([t.rest for t in scene.targets]).reshape(-1, 3))
     advance = progress.bar("controller model (surrogate): body solves", n + max(4, n // 4))
     samples = train(tissue, _Lesions(probe), None, lo, hi, n, SOLVE_TOL, advance)
     error = Surrogate(samples, components=3).validation_error_mm()

@@ -34,7 +34,7 @@ from scissor_cli.experiments.trial_types import TrialOutcome
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_strategies
 from scissor_cli.layer3d.surrogate import Surrogate
 from scissor_cli.mechanics.tissue import Tissue
-from scissor_cli.mesh.probe import probe_points, target_positions
+from scissor_cli.mesh.probe import target_positions
 from scissor_cli.sensing.camera3d_sensor import BodyCameraModel
 from scissor_cli.sensing.sensor import TrialDraws
 from scissor_cli.solvers.equilibrium import solve_equilibrium
@@ -92,7 +92,7 @@ class BodyTruth:
         if not self.finer:
             return None
         fine, mesh = self.tissue, self.tissue.mesh
-        probe = probe_points(mesh.nodes, mesh.tetrahedra, np.asarray(target_rest, float)[None])
+        probe = fine.element.probe(mesh.nodes, np.asarray(target_rest, float)[None])
         view = TruthView(target=lambda x: target_positions(probe, x)[0], layer=lambda x: x)
         return lambda perturbation: (true_tissue(fine, perturbation), view)
 

@@ -152,7 +152,7 @@ def _solve_group(config_yaml: str, index: int, strokes: np.ndarray) -> list[tupl
         cfg = parse_config(config_yaml, "<run config>")
         scene, mesh, tissue = build_model(cfg)
         slab = build_slab(scene, mesh, slab_spec(cfg.layer_check, cfg.tissue.mesh), model=tissue.params.model,
-                          element=tissue.element)
+                          element=tissue.element.name)
         _SLABS[config_yaml] = (slab, slab_probe(slab, np.array([t.rest for t in scene.targets]).reshape(-1, 2)),
                                layer_probe(slab, mesh))
     slab, probe, layer = _SLABS[config_yaml]
@@ -206,7 +206,7 @@ def _nominal_slab(cfg: Config, tissue: Tissue) -> Tissue:
     from scissor_cli.layer3d.slab import build_slab  # noqa: PLC0415
 
     return build_slab(tissue.scene, tissue.mesh, slab_spec(cfg.layer_check, cfg.tissue.mesh), model=tissue.params.model,
-                      element=tissue.element)
+                      element=tissue.element.name)
 
 
 #: stroke grid of the model's (and the layer's) path in the figure; the slab's is solved at SLAB_PATH_POINTS

@@ -117,7 +117,7 @@ def run_study(cfg: Config) -> StudyResult:
             for case in cases:
                 strokes = scene.strokes_vector(case.strokes)
                 exact = _newton_row(tissue, strokes, probe, case.name, level, kind, model, study, rows)
-                if exact is not None and tissue.nodal is None and mesh.n_elements <= study.admm_max_elements:
+                if exact is not None and tissue.element.per_element and mesh.n_elements <= study.admm_max_elements:
                     for memory in [0] + ([study.anderson_memory] if study.anderson_memory else []):
                         _admm_rows(tissue, strokes, probe, exact, case.name, level, kind, model, memory, study, rows)
             progress.info(f"study: {kind} level {level:g} ({mesh.n_elements} elements), {model} done")

@@ -78,7 +78,7 @@ class TrialContext:
                 from scissor_cli.layer3d.slab import build_slab  # noqa: PLC0415
 
                 slab = build_slab(self.scene, self.mesh, slab_spec(self.cfg.layer_check, self.cfg.tissue.mesh),
-                                  model=self.tissue.params.model, element=self.tissue.element)
+                                  model=self.tissue.params.model, element=self.tissue.element.name)
             self._controller_model = ControllerModel(task.controller_model, self.tissue, slab)
         model = self._controller_model
         return lambda lo, hi, resolution_mm, tol: model.controller(task.index, lo, hi, resolution_mm, tol)

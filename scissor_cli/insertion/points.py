@@ -22,7 +22,7 @@ import numpy as np
 from scissor_cli.geometry import segment_polygon_distance
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.outlines import deformed_outlines, embed_outlines
-from scissor_cli.mesh.probe import TargetProbe, probe_points, probe_targets
+from scissor_cli.mesh.probe import TargetProbe, probe_targets
 from scissor_cli.planning.body_lines import carry_obstacles, shaft_clearance
 
 
@@ -70,7 +70,7 @@ class BodyPoints:
 
     def __init__(self, tissue: Tissue, target_rest: np.ndarray):
         mesh = tissue.mesh
-        self.probe = probe_points(mesh.nodes, mesh.tetrahedra, np.asarray(target_rest, float)[None])
+        self.probe = tissue.element.probe(mesh.nodes, np.asarray(target_rest, float)[None])
         self._carried = carry_obstacles(tissue.scene.obstacles, mesh.nodes, mesh.tetrahedra, mesh.boundary_triangles)
         self.has_obstacles = bool(len(self._carried.radius))
 

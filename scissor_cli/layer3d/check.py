@@ -149,8 +149,8 @@ def build_layer_check(tissue: Tissue, spec: SlabSpec) -> LayerCheck:
     """The slab of a 2-D tissue (its scene, mesh and material model) and its plane-stress companion."""
     scene, mesh = tissue.scene, tissue.mesh
     model = tissue.params.model
-    slab = build_slab(scene, mesh, spec, model=model, element=tissue.element)
-    stress = build_slab(scene, mesh, stress_spec(tissue), model=model, element=tissue.element)
+    slab = build_slab(scene, mesh, spec, model=model, element=tissue.element.name)
+    stress = build_slab(scene, mesh, stress_spec(tissue), model=model, element=tissue.element.name)
     if len(scene.targets):
         names = [t.name for t in scene.targets]
         points = np.array([t.rest for t in scene.targets])

@@ -200,7 +200,7 @@ def solve_group(model: Tissue, spec: SlabSpec, surface, points: np.ndarray, k: i
     slot, so a case's numbers do not depend on which cases share its process (`--jobs` changes nothing).
     """
     try:
-        slab = build_slab(model.scene, surface, spec, model=model.params.model, element=model.element)
+        slab = build_slab(model.scene, surface, spec, model=model.params.model, element=model.element.name)
     except BoundaryError as exc:
         return [(k, [(i, exc) for i, _ in cases])]
     probe = slab_probe(slab, points) if len(points) else layer_probe(slab, model.mesh)

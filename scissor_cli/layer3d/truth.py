@@ -39,7 +39,7 @@ class SlabTruth:
 
     def __init__(self, model: Tissue, spec: SlabSpec):
         self.model = model
-        self.slab = build_slab(model.scene, model.mesh, spec, model=model.params.model, element=model.element)
+        self.slab = build_slab(model.scene, model.mesh, spec, model=model.params.model, element=model.element.name)
         sm = self.slab.mesh
         self._layer = layer_probe(self.slab, model.mesh)
         self._triangle = sm.element_triangle  # the layer's triangle of each tetrahedron

@@ -22,7 +22,7 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 
-from scissor_cli.mechanics import compiled, compiled3d, fem, materials, nodal
+from scissor_cli.mechanics import compiled, compiled3d, elements, fem, materials
 from scissor_cli.mesh.mesh import Mesh
 from scissor_cli.scene.scene import Scene
 
@@ -32,7 +32,6 @@ class Tissue:
     scene: Scene
     mesh: Mesh
     ops: fem.FEOperators
-    params: materials.MaterialParams
     element_E_kPa: np.ndarray  # (M,)
     fiber: np.ndarray  # (M, 2) unit, reference frame
     fixed_nodes: np.ndarray  # (F,)
@@ -43,14 +42,11 @@ class Tissue:
     free_index: np.ndarray  # (2N,) position in free_dofs or -1
     pattern_free_upper: fem.SparsePattern  # K_ff's upper triangle, what a Cholesky factorisation reads
     mass: np.ndarray  # (2N,) kg, lumped
-    #: the element (docs/model.md §21): "p1", every term per element, or "nodal", the volumetric term on the nodes
-    element: str = "p1"
-    #: the nodal volume's structure with element "nodal", else None
-    nodal: nodal.NodalVolume | None = None
+    #: the element on this mesh and material (`mechanics.elements`, docs/model.md §21): where the energy's terms
+    #: live beyond the per-element kernels, and the geometry probes and export ask
+    element: elements.LinearSimplex
     #: one symbolic factorisation of K_ff's pattern, reused by every solve on this mesh
     factor_cache: dict = field(default_factory=dict, compare=False, repr=False)
-    #: the nodal state at the last x (element "nodal", `_nodal_state`)
-    nodal_cache: dict = field(default_factory=dict, compare=False, repr=False)
 
     @property
     def rest(self) -> np.ndarray:
@@ -60,75 +56,17 @@ class Tissue:
     def pattern_free(self) -> fem.SparsePattern:
         """K_ff's pattern, both triangles (the Jacobian's, the grip planner's), built on first use: the solvers read
         only the upper one, and on a 3-D slab this one costs as much to build as the rest of the slab."""
-        return free_pattern(self.ops, self.free_index, self.nodal, upper=False)
-
-    @cached_property
-    def element_params(self) -> materials.MaterialParams:
-        """What the element kernels take: the material, or with element "nodal" α times its deviatoric part
-        (κ = 0; for `linear` λ − κ = −2μ/3, so its term is μ dev ε : dev ε; docs/model.md §21)."""
-        p = self.params
-        if self.nodal is None:
-            return p
-        a = self.nodal.element_share
-        return materials.MaterialParams(p.model, a * p.mu, np.zeros_like(p.kappa), a * (p.lam - p.kappa), a * p.eta,
-                                        p.fiber, p.tension_only)
-
-    @cached_property
-    def averaged_params(self) -> materials.MaterialParams:
-        """The material of the nodes' averaged F̄ (element "nodal"): (1 − α) times the rest-volume average of the
-        elements' deviatoric part, their fibers averaged and normalised."""
-        p, nv = self.params, self.nodal
-        share = 1.0 - nv.element_share
-        mu = nodal.nodal_average(self.ops, p.mu, nv.rest_volume)
-        eta = nodal.nodal_average(self.ops, p.eta, nv.rest_volume)
-        fiber = nodal.nodal_average(self.ops, p.fiber, nv.rest_volume)
-        norm = np.linalg.norm(fiber, axis=1)
-        fiber = np.where(norm[:, None] > 1e-12, fiber / np.maximum(norm, 1e-300)[:, None], np.eye(fiber.shape[1])[0])
-        return materials.MaterialParams(p.model, share * mu, np.zeros_like(mu), share * (-2.0 / 3.0) * mu, share * eta,
-                                        fiber, p.tension_only)
-
-    @cached_property
-    def nodal_kappa(self) -> np.ndarray:
-        """κ_a (N,) kPa of the nodal volume term (element "nodal")."""
-        return nodal.nodal_kappa(self.ops, self.params.kappa, self.nodal.rest_volume)
-
-    def _nodal_state(self, x: np.ndarray, F: np.ndarray | None = None) -> nodal.NodalState:
-        """The nodal volumes and pressures at x (N, d), kept for the last x: a Newton step asks for them at the
-        same x from the gradient, the element Hessians, the coupling and the products."""
-        last = self.nodal_cache.get("state")
-        if last is not None and last[0].shape == x.shape and np.array_equal(last[0], x):
-            return last[1]
-        F = fem.deformation_gradients(self.ops, x) if F is None else F
-        state = nodal.nodal_state(self.ops, self.nodal, self.nodal_kappa, F, self._linear)
-        self.nodal_cache["state"] = (np.array(x, dtype=float, copy=True), state)
-        return state
+        return free_pattern(self.ops, self.free_index, self.element, upper=False)
 
     @property
-    def _linear(self) -> bool:
-        """Whether the material is small-strain (its nodal volumes linearised)."""
-        return self.params.model == "linear"
+    def params(self) -> materials.MaterialParams:
+        """The material per element (the element holds it: `with_material` swaps both together)."""
+        return self.element.params
 
-    def _averaged(self, x: np.ndarray, order: int, project: bool = False):
-        """ψ (N,) weighted by V_a, P (N, d, d) and C (N, d², d²) (by `order`, C projected if asked) at the nodes' F̄."""
-        return nodal.averaged_material(self.nodal, self.averaged_params, x, order, project)
-
-    def _plus_nodal(self, x: np.ndarray, U: float, grad: np.ndarray | None,
-                    require_positive_J: bool = False) -> tuple[float, np.ndarray | None]:
-        """U and ∇U with the nodal terms added (element "nodal"; as they are otherwise). With require_positive_J,
-        (inf, None) also when a node's averaged F̄ is inverted, as for an element."""
-        if self.nodal is None or not np.isfinite(U):
-            return U, grad
-        state = self._nodal_state(x)
-        psi, P, _ = self._averaged(x, order=1)
-        U = U + nodal.energy(self.nodal, self.nodal_kappa, state) + float(psi.sum())
-        if require_positive_J and not np.isfinite(U):
-            return float("inf"), None
-        return U, grad + nodal.gradient(self.ops, state) + nodal.averaged_forces(self.nodal, P)
-
-    def _coupling(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """B's data at x and the weights κ_a / V_a of the nodal coupling Bᵀ W B."""
-        return (nodal.b_data(self.ops, self.nodal, self._nodal_state(x)),
-                self.nodal_kappa / self.nodal.rest_volume)
+    @property
+    def element_params(self) -> materials.MaterialParams:
+        """What the per-element kernels take (`elements.LinearSimplex.element_params`)."""
+        return self.element.element_params
 
     @property
     def dim(self) -> int:
@@ -186,10 +124,7 @@ class Tissue:
         F = fem.deformation_gradients(self.ops, x)
         psi, _, _ = materials.evaluate(F, self.element_params, order=0)
         U = float(np.dot(psi, self.ops.volume))
-        if self.nodal is None or not np.isfinite(U):
-            return U
-        return (U + nodal.energy(self.nodal, self.nodal_kappa, self._nodal_state(x, F))
-                + float(self._averaged(x, order=0)[0].sum()))
+        return U + self.element.added_energy(x, F) if np.isfinite(U) else U
 
     def energy_gradient(self, x: np.ndarray, require_positive_J: bool = False) -> tuple[float, np.ndarray | None]:
         """U (µJ) and ∇U (2N,) in mN at positions x (N, 2).
@@ -200,13 +135,14 @@ class Tissue:
         if self.compiled:  # the compiled loop, unless an element needs the numpy path's policy
             fast = self._kernels.energy_gradient(self.ops, self.element_params, x)
             if fast is not None:
-                return self._plus_nodal(x, *fast, require_positive_J)
+                return self.element.add_gradient(x, *fast, require_positive_J)
         F = fem.deformation_gradients(self.ops, x)
         if require_positive_J and not np.min(materials.jacobian_det(F), initial=np.inf) > 0:
             return float("inf"), None
         psi, P, _ = materials.evaluate(F, self.element_params, order=1)
         U = float(np.dot(psi, self.ops.volume))
-        return self._plus_nodal(x, U, fem.scatter_vector(self.ops, fem.element_forces(self.ops, P)), require_positive_J)
+        return self.element.add_gradient(x, U, fem.scatter_vector(self.ops, fem.element_forces(self.ops, P)),
+                                         require_positive_J)
 
     def energy_gradient_stiffness(self, x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
         """U (µJ), ∇U (2N,) mN and the exact packed element Hessians (21, M) mN/mm at x (N, 2).
@@ -217,12 +153,10 @@ class Tissue:
         if self.compiled:
             fast = self._kernels.energy_gradient_stiffness(self.ops, self.element_params, x, False)
             if fast is not None:
-                if self.nodal is None:
-                    return fast
                 U, grad, Ke = fast
-                U, grad = self._plus_nodal(x, U, grad)
-                F = fem.deformation_gradients(self.ops, x)
-                return U, grad, Ke + nodal.element_hessians(self.ops, F, self._nodal_state(x, F), self._linear)
+                U, grad = self.element.add_gradient(x, U, grad)
+                added = self.element.added_hessians(self.ops, x)
+                return U, grad, Ke if added is None else Ke + added
         U, grad = self.energy_gradient(x)
         return U, grad, self.element_stiffness(x)
 
@@ -244,10 +178,10 @@ class Tissue:
             else:
                 C = materials.evaluate(F, self.element_params, order=2)[2]
             Ke = fem.element_matrices(self.ops, C)
-        if self.nodal is None or project:  # projected: the nodal coupling alone is PSD, p̄ ∂²v is left out
+        if project:  # projected: an element's coupling alone is PSD (the nodal p̄ ∂²v is left out)
             return Ke
-        F = fem.deformation_gradients(self.ops, x)
-        return Ke + nodal.element_hessians(self.ops, F, self._nodal_state(x, F), self._linear)
+        added = self.element.added_hessians(self.ops, x)
+        return Ke if added is None else Ke + added
 
     def stiffness_free(
         self, x: np.ndarray, project: bool = False, Ke: np.ndarray | None = None, upper: bool = False
@@ -258,10 +192,7 @@ class Tissue:
         """
         pattern = self.pattern_free_upper if upper else self.pattern_free
         K = pattern.assemble(self.element_stiffness(x, project) if Ke is None else Ke)
-        if self.nodal is not None:  # + Bᵀ W B and Āᵀ C̄ Ā, the nodal terms' coupling, in the joined pattern's slots
-            data, weight = self._coupling(x)
-            C = self._averaged(x, order=2, project=project)[2]
-            nodal.add_tangent(self.nodal, data, weight, C, self.free_index, pattern.upper, pattern.extra_slot, K.data)
+        self.element.add_tangent(x, pattern, K.data, self.free_index, project)
         return K
 
     def stiffness_times(self, x: np.ndarray, v: np.ndarray, Ke: np.ndarray | None = None) -> np.ndarray:
@@ -273,18 +204,7 @@ class Tissue:
         out = np.empty(v.size)  # one compiled pass (`compiled.packed_times`)
         compiled.packed_times(np.ascontiguousarray(Ke, dtype=np.float64), self.ops.corners,
                               np.ascontiguousarray(v, dtype=np.float64), out)
-        return self._plus_coupling_times(x, v, out)
-
-    def _plus_coupling_times(self, x: np.ndarray, v: np.ndarray, Kv: np.ndarray) -> np.ndarray:
-        """Kv + Bᵀ W B v with element "nodal" (Kv as it is otherwise)."""
-        if self.nodal is None:
-            return Kv
-        data, weight = self._coupling(x)
-        C = self._averaged(x, order=2)[2]
-        d = self.dim
-        dF = nodal.averaged_gradients(self.nodal, v.reshape(-1, d)).reshape(-1, d * d)
-        stress = np.einsum("akl,al->ak", C, dF).reshape(-1, d, d)
-        return Kv + nodal.coupling_times(self.nodal, data, weight, v) + nodal.averaged_forces(self.nodal, stress)
+        return self.element.add_times(x, v, out)
 
     def stiffness_times_near(self, x: np.ndarray, v: np.ndarray) -> np.ndarray:
         """K v (dN,) for a v (dN,) that is zero but on a few nodes (a cup's unit stroke): the same product as
@@ -299,12 +219,11 @@ class Tissue:
         Ke = self._kernels.element_stiffness(ops, self.element_params.take(touching), x, False)
         if Ke is None:  # an element it cannot take: the numpy path says why
             return self.stiffness_times(x, v)
-        if self.nodal is not None:
-            F = fem.deformation_gradients(ops, x)
-            Ke = Ke + nodal.element_hessians(ops, F, self._nodal_state(x).take(touching), self._linear)
+        added = self.element.added_hessians(ops, x, touching)
+        Ke = Ke if added is None else Ke + added
         out = np.empty(v.size)
         compiled.packed_times(Ke, ops.corners, np.ascontiguousarray(v, dtype=np.float64), out)
-        return self._plus_coupling_times(x, v, out)
+        return self.element.add_times(x, v, out)
 
     def force_scale(self, grad: np.ndarray) -> float:
         """A force (mN) to make residuals relative: the Dirichlet reactions.
@@ -367,7 +286,7 @@ class Tissue:
             fiber,
             m.tension_only,
         )
-        return replace(self, params=params, element_E_kPa=E, fiber=fiber, nodal_cache={})
+        return replace(self, element_E_kPa=E, fiber=fiber, element=self.element.with_material(params))
 
 
 class BoundaryError(ValueError):
@@ -421,11 +340,10 @@ def build_tissue(scene: Scene, mesh: Mesh, model: str | None = None, element: st
                                 element)
 
 
-def free_pattern(ops: fem.FEOperators, free_index: np.ndarray, nodal_volume: nodal.NodalVolume | None,
+def free_pattern(ops: fem.FEOperators, free_index: np.ndarray, element: elements.LinearSimplex,
                  upper: bool) -> fem.SparsePattern:
-    """K_ff's pattern (or its upper triangle): the elements' pairs, joined by the nodal coupling's if any."""
-    extra = None if nodal_volume is None else nodal.pairs(nodal_volume, free_index, upper)
-    return fem.sparse_pattern(ops, free_index, upper=upper, extra=extra)
+    """K_ff's pattern (or its upper triangle): the elements' pairs, joined by the element's extra ones if any."""
+    return fem.sparse_pattern(ops, free_index, upper=upper, extra=element.extra_pairs(free_index, upper))
 
 
 def tissue_from_boundary(scene: Scene, mesh, ops, material, fixed, cup_nodes, cup_axes, dirichlet,
@@ -436,10 +354,8 @@ def tissue_from_boundary(scene: Scene, mesh, ops, material, fixed, cup_nodes, cu
     `scene_material`; dirichlet (Nd,): every held dof, sorted. Shared by the
     2-D layer and the 3-D slab (whose held dofs depend on its options). `element`: "p1" or "nodal".
     """
-    if element not in nodal.ELEMENTS:
-        raise ValueError(f"unknown element {element!r}; allowed values: {', '.join(nodal.ELEMENTS)}")
-    nodal_volume = nodal.nodal_volume(ops) if element == "nodal" else None
     element_E, fiber, params = material
+    formulation = elements.build(element, ops, params)
     n_dofs = mesh.nodes.size
     free_mask = np.ones(n_dofs, bool)
     free_mask[dirichlet] = False
@@ -450,7 +366,6 @@ def tissue_from_boundary(scene: Scene, mesh, ops, material, fixed, cup_nodes, cu
         scene=scene,
         mesh=mesh,
         ops=ops,
-        params=params,
         element_E_kPa=element_E,
         fiber=fiber,
         fixed_nodes=fixed,
@@ -459,8 +374,7 @@ def tissue_from_boundary(scene: Scene, mesh, ops, material, fixed, cup_nodes, cu
         dirichlet_dofs=dirichlet,
         free_dofs=free,
         free_index=free_index,
-        pattern_free_upper=free_pattern(ops, free_index, nodal_volume, upper=True),
+        pattern_free_upper=free_pattern(ops, free_index, formulation, upper=True),
         mass=fem.lumped_mass(ops, scene.material.density_kg_per_mm3),
-        element=element,
-        nodal=nodal_volume,
+        element=formulation,
     )

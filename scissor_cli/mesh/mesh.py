@@ -291,3 +291,16 @@ def locate(mesh: Mesh, points: np.ndarray, tol: float = 1e-9) -> tuple[np.ndarra
 def interpolate(positions: np.ndarray, triangles: np.ndarray, tri_idx: np.ndarray, bary: np.ndarray) -> np.ndarray:
     """Points (K, 2) carried by barycentric coordinates on node positions (N, 2)."""
     return np.einsum("kj,kjd->kd", bary, positions[triangles[tri_idx]])
+
+
+#: meshio's cell type by (dimension, nodes per cell): what export writes, what an element's `cell_type` names
+MESHIO_CELLS: dict[tuple[int, int], str] = {(2, 3): "triangle", (3, 4): "tetra", (2, 6): "triangle6",
+                                            (3, 10): "tetra10"}
+
+
+def meshio_cell_type(dim: int, nodes_per_cell: int) -> str:
+    """meshio's name of a cell with these nodes in d = `dim` (ValueError for one it has no name for)."""
+    try:
+        return MESHIO_CELLS[dim, nodes_per_cell]
+    except KeyError:
+        raise ValueError(f"no meshio cell of {nodes_per_cell} nodes in {dim}-D") from None

@@ -30,6 +30,8 @@ from xml.etree import ElementTree as ET
 import h5py
 import numpy as np
 
+from scissor_cli.mesh.mesh import meshio_cell_type
+
 FORMATS = ("xdmf", "vtu")
 #: the per-step arrays of /insertion/<target>/<strategy>/ that go into its CSV, in column order
 INSERTION_STEP_ARRAYS = ("depth_mm", "tip", "target", "needle_force_mN", "stuck", "slipping", "min_clearance_mm")
@@ -230,7 +232,7 @@ def export_run(run_dir: Path, out_dir: Path, fmt: str = "xdmf", partial: bool = 
 def _write(data: RunData, writer: "_Writer") -> None:
     body = data.nodes.shape[1] == 3
     points = data.nodes if body else _lift(data.nodes)
-    cells = [("tetra" if body else "triangle", data.triangles)]
+    cells = [(meshio_cell_type(data.nodes.shape[1], data.triangles.shape[1]), data.triangles)]
     nn, ne = len(data.nodes), len(data.triangles)
     writer.mesh("mesh", points, cells, data.point_data, data.cell_data,
                 f"{'3-D body' if body else '2-D'} rest mesh, {nn} nodes, {ne} {'tetrahedra' if body else 'triangles'};"
@@ -245,7 +247,7 @@ def _write(data: RunData, writer: "_Writer") -> None:
         k = len(ins.displacement)
         if ins.slab:  # _read checked the slab's mesh is there
             lc = data.layer_check
-            stem = writer.series(name, lc.nodes, [("tetra", lc.tetrahedra)],
+            stem = writer.series(name, lc.nodes, [(meshio_cell_type(3, lc.tetrahedra.shape[1]), lc.tetrahedra)],
                                  [{"displacement": u} for u in ins.displacement],
                                  f"insertion {ins.target} / {ins.strategy} in the 3-D slab: {k} step(s), "
                                  "displacement per step (time = step)")
@@ -257,7 +259,7 @@ def _write(data: RunData, writer: "_Writer") -> None:
         writer.table(f"{stem}.csv", *_step_table(ins), f"insertion {ins.target} / {ins.strategy}: per-step numbers")
     if data.layer_check is not None:
         lc = data.layer_check
-        tets = [("tetra", lc.tetrahedra)]
+        tets = [(meshio_cell_type(3, lc.tetrahedra.shape[1]), lc.tetrahedra)]
         writer.mesh("layer_check_mesh", lc.nodes, tets, {}, {},
                     f"3-D slab, {len(lc.nodes)} nodes, {len(lc.tetrahedra)} tetrahedra")
         for case, u in lc.displacement.items():

@@ -188,7 +188,8 @@ def write_model(out: ResultsFile, tissue) -> None:
                 description="obstacle index, -1 tissue")
     angles = mesh.angles_deg()
     out.attrs("mesh", {"n_nodes": mesh.n_nodes, "n_elements": mesh.n_elements, "min_angle_deg": float(angles.min()),
-                       "element": tissue.element, "nodes_per_element": int(mesh.triangles.shape[1])})
+                       "element": tissue.element.name,
+                       "nodes_per_element": tissue.element.nodes_per_element})
     m = tissue.scene.material
     out.attrs("material", {
         "model": tissue.params.model, "E_kPa": m.E_kPa, "nu": m.nu, "eta_kPa": m.eta_kPa,

@@ -51,7 +51,7 @@ from scipy.spatial import cKDTree
 from scissor_cli.config.body_checks import skin_normals
 from scissor_cli.mechanics.body_tissue import build_body, held_nodes, skin_nodes
 from scissor_cli.mechanics.tissue import BoundaryError, Tissue
-from scissor_cli.mesh.probe import probe_points, target_positions
+from scissor_cli.mesh.probe import target_positions
 from scissor_cli.planning.manipulation_points import TEST_STROKE_FRACTION, adjoint_responses
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 
@@ -149,7 +149,7 @@ def skin_forces(tissue: Tissue, cands: SkinCandidates, cup_radius_mm: float) -> 
 
 def released_body(tissue: Tissue) -> Tissue:
     """The body on the same mesh with every cup released (their nodes free)."""
-    return build_body(replace(tissue.scene, cups=()), tissue.mesh, element=tissue.element)
+    return build_body(replace(tissue.scene, cups=()), tissue.mesh, element=tissue.element.name)
 
 
 def across(direction) -> np.ndarray:
@@ -229,7 +229,7 @@ def plan_body_grips(tissue: Tissue, center_mm, radius_mm: float, spacing_mm: flo
     free = released_body(tissue)
     lesions = tissue.scene.targets
     rest = np.array([t.rest for t in lesions], float).reshape(-1, 3)
-    probe = probe_points(free.mesh.nodes, free.mesh.tetrahedra, rest)
+    probe = free.element.probe(free.rest, rest)
     R, u, _ = adjoint_responses(free, free.rest, probe, skin_forces(free, cands, cup_radius_mm))
     G = R / u[None, :, None]  # (T, P, 3) mm per mm of stroke
     Q = across(needle_direction)
@@ -252,8 +252,7 @@ def verify(plan: BodyGripPlan, gripped: GrippedBody, stroke_limits: np.ndarray) 
     """
     t0 = time.perf_counter()
     body = gripped(plan.contacts, plan.axes)
-    probe = probe_points(body.mesh.nodes, body.mesh.tetrahedra,
-                         np.array([t.rest for t in body.scene.targets], float).reshape(-1, 3))
+    probe = body.element.probe(body.rest, np.array([t.rest for t in body.scene.targets], float).reshape(-1, 3))
     lo, hi = np.asarray(stroke_limits, float).T
     plan.test_strokes = np.clip(TEST_STROKE_FRACTION * np.maximum(np.abs(lo), np.abs(hi)), lo, hi)
     plan.predicted = np.stack([plan.per_stroke[:, c] * s for c, s in zip(plan.chosen, plan.test_strokes)])

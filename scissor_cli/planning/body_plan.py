@@ -40,7 +40,7 @@ import numpy as np
 
 from scissor_cli.config.body_sections import BodyNeedleConfig
 from scissor_cli.mechanics.tissue import Tissue
-from scissor_cli.mesh.probe import probe_points, target_positions
+from scissor_cli.mesh.probe import target_positions
 from scissor_cli.planning import body_lines as bl
 from scissor_cli.robot.chain import RobotModel
 from scissor_cli.robot.registration import body_plan_to_joints
@@ -125,7 +125,7 @@ class _Planner:
         mesh = tissue.mesh
         self.directions, self.angle = bl.cone_directions(needle.direction, needle.cone_deg)
         self.obstacles = obstacles
-        self.lesion_probe = probe_points(mesh.nodes, mesh.tetrahedra, self.lesion.rest[None])
+        self.lesion_probe = tissue.element.probe(mesh.nodes, self.lesion.rest[None])
         self.allowance = 0.5 * needle.diameter_mm + needle.margin_mm
         self.solves, self.capped, self.failures = 0, False, {}
 

@@ -168,7 +168,7 @@ def force_vectors(mesh: Mesh, cands: GripCandidates, radius_mm: float) -> np.nda
 def released(tissue: Tissue) -> Tissue:
     """The tissue on the same mesh with every cup released (their nodes free): where candidates push."""
     scene = replace(tissue.scene, cups=())
-    return build_tissue(scene, tissue.mesh, element=tissue.element)
+    return build_tissue(scene, tissue.mesh, element=tissue.element.name)
 
 
 def needle_axis(scene: Scene, target_rest: np.ndarray, needle_cfg: NeedleConfig) -> np.ndarray:

@@ -122,9 +122,9 @@ class EquilibriumSolver:
     def _admm_for(self, inertia: Inertia | None):
         from scissor_cli.solvers.admm.solver import AdmmSolver  # built only when asked for
 
-        if self.tissue.nodal is not None:  # (the config check says so first: docs/model.md §21)
-            raise ValueError("the ADMM solver needs every energy term per element: element 'nodal' is solved by "
-                             "method 'newton'")
+        if not self.tissue.element.per_element:  # (the config check says so first: docs/model.md §21)
+            raise ValueError("the ADMM solver needs every energy term per element: element "
+                             f"{self.tissue.element.name!r} is solved by method 'newton'")
         dt_s = None if inertia is None else inertia.dt_s
         if self._admm is None or self._admm.dt_s != dt_s:
             self._admm = AdmmSolver(self.tissue, dt_s=dt_s, anderson_memory=self.anderson_memory)

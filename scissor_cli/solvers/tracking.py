@@ -98,7 +98,7 @@ class TrackedEquilibrium:
     def _cup_forces(self, x: np.ndarray, Ke: np.ndarray) -> np.ndarray:
         """K B (dN, C) at x: each cup's unit stroke through the tangent whose element Hessians are Ke."""
         t = self.tissue
-        if t.nodal is not None:  # the nodal coupling reaches two rings beyond the cup's elements
+        if not t.element.per_element:  # its coupling (the nodal one) reaches beyond the cup's elements
             return np.column_stack([t.stiffness_times(x, self._B[:, c], Ke) for c in range(t.n_cups)])
         # from the elements that touch a cup: B vanishes on every other element's dofs
         e = self._cup_elems

@@ -25,7 +25,8 @@ def write_body_model(out: ResultsFile, tissue) -> None:
     out.dataset("mesh/element_E_kPa", tissue.element_E_kPa, "kPa")
     out.attrs("mesh", {"n_nodes": mesh.n_nodes, "n_elements": mesh.n_elements, "regions": list(mesh.region_names),
                        "min_dihedral_deg": float(mesh.min_dihedral_deg), "shape": scene.shape,
-                       "element": tissue.element, "nodes_per_element": int(mesh.tetrahedra.shape[1])})
+                       "element": tissue.element.name,
+                       "nodes_per_element": tissue.element.nodes_per_element})
     m = scene.material
     out.attrs("material", {
         "model": tissue.params.model, "E_kPa": m.E_kPa, "nu": m.nu, "eta_kPa": m.eta_kPa,
