@@ -13,7 +13,7 @@ from scissor_cli.config import ConfigError, parse_config, resolved_yaml
 from scissor_cli.config.body_checks import DomeSurface
 from scissor_cli.config.body_sections import BodyConfig
 
-from helpers import ROOT, example_dict, write_scene
+from helpers import ROOT, cli_here, example_dict, write_scene
 from test_cli import run_cli
 
 DOME = ROOT / "configs" / "example_dome.yaml"
@@ -127,20 +127,27 @@ def test_bad_3d_input_exits_2_through_the_cli(tmp_path):
 def test_options_and_models_that_a_body_does_not_take_exit_2(tmp_path):
     scene = write_scene(tmp_path, dome())
     for option in (["--study"], ["--truth", "slab"], ["--solver", "admm"]):
-        r = run_cli("simulate", scene, "--trials", "0", *option, "--out", str(tmp_path / "run"))
-        assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+        r = _refused_here("simulate", scene, "--trials", "0", *option, "--out", str(tmp_path / "run"))
         assert "3-D" in r.stderr
     data = dome()
     data["controller"]["mesh_scale"] = 0.5  # the model's body is never finer than the truth's
-    r = run_cli("validate", write_scene(tmp_path, data))
-    assert r.returncode == 2 and "controller.mesh_scale" in r.stderr and "Traceback" not in r.stderr
+    r = _refused_here("validate", write_scene(tmp_path, data))
+    assert "controller.mesh_scale" in r.stderr
+
+
+def _refused_here(*args):
+    """`scissor ARGS` in this process (`cli_here`), checked to exit 2 with a message and no traceback (the exit as a
+    process: test_bad_3d_input_exits_2_through_the_cli)."""
+    r = cli_here(*args)
+    assert r.exit_code == 2 and isinstance(r.exception, SystemExit), (r.exit_code, r.output)
+    assert "Traceback" not in r.output and r.stderr.startswith("error: "), r.output
+    return r
 
 
 def test_a_mesh_over_the_budget_is_refused_before_meshing(tmp_path):
     data = dome()
     data["tissue"]["mesh"] = {"min_edge_mm": 0.3, "max_edge_mm": 0.6}
-    r = run_cli("validate", write_scene(tmp_path, data))
-    assert r.returncode == 2 and "Traceback" not in r.stderr
+    r = _refused_here("validate", write_scene(tmp_path, data))
     assert "tissue.mesh" in r.stderr and "budget" in r.stderr
 
 
@@ -155,6 +162,5 @@ def test_a_bad_surface_file_exits_2_naming_the_field(tmp_path, content, words):
         (tmp_path / "body.stl").write_bytes(content)
     data = {"tissue": {"shape": "surface", "surface_file": "body.stl",
                        "fixed": [{"plane": {"point_mm": [0, 0, 0], "normal": [0, 0, 1]}}]}, "trials": {"count": 0}}
-    r = run_cli("validate", write_scene(tmp_path, data))
-    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    r = _refused_here("validate", write_scene(tmp_path, data))
     assert words in r.stderr and "body.stl" in r.stderr

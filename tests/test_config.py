@@ -31,7 +31,7 @@ from scissor_cli.config import (
 from scissor_cli.config import element_budget as budget
 from scissor_cli.config.messages import _unwrap, field_type
 
-from helpers import EXAMPLE, ROOT, deep_update, example_dict, write_scene
+from helpers import EXAMPLE, ROOT, cli_here, deep_update, example_dict, write_scene
 
 
 def run_cli(*args, cwd=None):
@@ -118,10 +118,10 @@ BAD = [
 @pytest.mark.parametrize("field,value,words", BAD, ids=[f"{b[0]}={b[1]}" for b in BAD])
 def test_bad_config_exits_2_naming_the_field(tmp_path, field, value, words):
     path = write_scene(tmp_path, deep_update(example_dict(), field, value))
-    proc = run_cli("validate", path)
-    assert proc.returncode == 2
-    assert "Traceback" not in proc.stderr
-    message = proc.stderr
+    result = cli_here("validate", path)  # in this process: the exit as a process is test_line_number_points_...'s
+    assert result.exit_code == 2 and isinstance(result.exception, SystemExit)
+    assert "Traceback" not in result.output
+    message = result.stderr
     assert message.startswith(f"error: {path}: ") and message.count("error:") == 1
     assert "(line " in message or "(in the block at line" in message
     for w in words:

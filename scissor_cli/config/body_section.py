@@ -34,7 +34,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from pydantic import ValidationError
-from skimage.measure import approximate_polygon, find_contours
 
 from scissor_cli import geometry
 from scissor_cli.config.body_checks import Problem, body_apex, body_box, body_surface, skin_normals
@@ -104,6 +103,8 @@ def section_outline(surface, plane: SectionPlane, inside: np.ndarray) -> np.ndar
     not be symmetric about its contact). The mesher places its own boundary
     points along the edges.
     """
+    from skimage.measure import approximate_polygon, find_contours  # (heavy: scipy.signal; only a body's section)
+
     lo, hi = body_box(surface)
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
     c2 = plane.to_plane(corners)
