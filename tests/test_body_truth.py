@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import h5py
 import numpy as np
+import pytest
 import yaml
 
 from scissor_cli.config.loading import parse_config
@@ -85,33 +86,39 @@ def test_a_mesh_file_pins_the_models_body_too(tmp_path):
     assert r.returncode == 2 and "controller.mesh_scale" in r.stderr
 
 
-def test_a_surrogate_learned_from_the_body_puts_every_lesion_on_its_needle(tmp_path):
+def test_a_surrogate_learned_from_the_body_puts_every_lesion_on_its_needle_and_is_cached(tmp_path, monkeypatch):
     """controller.model surrogate: §15's interpolant of the body's lesions over the strokes, checked against
-    held-out body solves; the loop on it ends on the (configured mesh's) needle line."""
+    held-out body solves; the loop on it ends on the (configured mesh's) needle line. Its samples are cached beside
+    the run, read back without a solve, under a key that another model's body does not share."""
+    from scissor_cli.experiments import body_surrogate
+    from scissor_cli.experiments.run_cache import cache_dir
+
     data = _scene(model="surrogate", surrogate={"samples": 16})
-    with h5py.File(simulate_here(tmp_path, data) / "results.h5", "r") as f:
+    run = simulate_here(tmp_path, data)
+    with h5py.File(run / "results.h5", "r") as f:
         attrs = f["trials"].attrs
         assert attrs["controller_model"] == "surrogate" and 0.0 <= attrs["surrogate_error_mm"] < 0.05
+        error = float(attrs["surrogate_error_mm"])
         for t in ("T1", "T2"):
             direction = f[f"plan/{t}"].attrs["direction"]
             assert f[f"trials/{t}/manipulation_miss_mm"][0] <= 0.1
             assert _true_miss(f[f"trials/{t}/final_error"][()], direction).max() <= 0.1
-
-
-def test_the_surrogates_samples_are_cached_and_read_back_the_same(tmp_path):
-    from scissor_cli.experiments.body_surrogate import body_surrogate_data
-
-    cfg = parse_config(yaml.safe_dump(_scene(model="surrogate", surrogate={"samples": 16})), "<test>")
+    cache = cache_dir(run)
+    assert len(list(cache.glob("controller-surrogate-*.npz"))) == 1
+    cfg = parse_config(yaml.safe_dump(data), "<test>")
     _, _, tissue = body_model(cfg)
-    fitted = body_surrogate_data(cfg, tissue, tmp_path)
-    cached = body_surrogate_data(cfg, tissue, tmp_path)
-    assert len(list(tmp_path.glob("controller-surrogate-*.npz"))) == 1
-    np.testing.assert_array_equal(cached.samples.targets, fitted.samples.targets)
-    np.testing.assert_array_equal(cached.samples.held_targets, fitted.samples.held_targets)
-    assert cached.validation_error_mm == fitted.validation_error_mm
+
+    def no_solves(*args, **kwargs):
+        raise AssertionError("the cached samples were fitted again")
+
+    monkeypatch.setattr(body_surrogate, "train", no_solves)
+    cached = body_surrogate.body_surrogate_data(cfg, tissue, cache)
+    assert cached.kind == "surrogate" and cached.validation_error_mm == error
+    assert cached.samples.targets.shape[0] == 16
     other = cfg.model_copy(update={"controller": cfg.controller.model_copy(update={"mesh_scale": 2.0})})
-    assert body_surrogate_data(other, body_model(other, scale=2.0)[2], tmp_path) is not None
-    assert len(list(tmp_path.glob("controller-surrogate-*.npz"))) == 2  # another model's body: another key
+    assert body_surrogate._key(other) != body_surrogate._key(cfg)  # another model's body: another file
+    with pytest.raises(AssertionError, match="fitted again"):
+        body_surrogate.body_surrogate_data(other, body_model(other, scale=2.0)[2], cache)
 
 
 def test_a_surrogate_with_too_few_samples_for_its_cups_exits_2(tmp_path):

@@ -180,7 +180,7 @@ def test_nodal_error_does_not_grow_with_nu_on_a_slab():
     move at ν 0.499, the slab held at its chest wall); the nodal element's barely moves."""
     errs = {}
     for nu in (0.3, 0.499):
-        _, _, layer = build_model(_cfg(scale=2.0, model="linear", nu=nu))
+        _, _, layer = build_model(_cfg(scale=3.0, model="linear", nu=nu))
         levels = (0.0, 2.5, 5.0, 7.5, 10.0)
         for element, e in _lesion_errors({e: _slab(layer, e, levels) for e in ("p1", "nodal")}).items():
             errs[element, nu] = e.max()

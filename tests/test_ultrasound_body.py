@@ -160,9 +160,10 @@ def test_a_bad_pose_is_one_message_naming_the_field(change, words):
 def test_validate_exits_2_on_each_bad_pose_without_a_traceback(tmp_path):
     bad = [{"position_mm": [5.0, 10.0, 40.0]}, {"axis": [0.0, 0.0, 1.0]}, {"position_mm": [5.0, 17.0, 23.0]},
            {"lateral_axis": [0.6, 0.0, 0.8]}]
-    for k, change in enumerate(bad):
-        r = run_cli("validate", write_scene(tmp_path, scene(**change), f"bad{k}.yaml"))
-        assert r.returncode == 2 and "imaging." in r.stderr and "Traceback" not in r.stderr, r.stderr
+    for k, change in enumerate(bad):  # in this process (`cli_here`); the last one as a process
+        r = cli_here("validate", write_scene(tmp_path, scene(**change), f"bad{k}.yaml"))
+        assert r.exit_code == 2 and isinstance(r.exception, SystemExit), r.output
+        assert "imaging." in r.stderr and "Traceback" not in r.output, r.output
     text = write_scene(tmp_path, scene(), "nan.yaml").read_text().replace("24.5", ".nan")
     (tmp_path / "nan.yaml").write_text(text)
     r = run_cli("validate", tmp_path / "nan.yaml")
