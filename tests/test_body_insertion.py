@@ -54,7 +54,7 @@ def test_with_no_friction_and_no_tip_force_the_lesion_does_not_move(body):
     whose static limit is zero never sticks (it once did: caught up, stuck, released, until locked stuck at the tip
     holding 2.6 mN, which carried the lesion 2.7e-3 mm)."""
     r, rest = _insert(body, friction_static_mN_per_mm=0.0, friction_kinetic_mN_per_mm=0.0, tip_force_mN=0.0,
-                      step_tol=1e-8)
+                      step_tol=1e-8, step_mm=2.0)
     assert r.completed and r.steps >= 10 and not np.any(r.stuck)
     assert np.max(np.linalg.norm(r.target - rest, axis=1)) <= 1e-3
     assert np.all(np.abs(r.needle_force_mN) <= 1e-6)
