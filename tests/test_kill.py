@@ -33,7 +33,7 @@ from helpers import deep_update, example_dict, write_scene
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="process checks read /proc")
 
-TRIALS = 20  # per target; 2 targets: a kill after 8, and a resume killed after 6 more, leave trials to run
+TRIALS = 14  # per target; 2 targets: a kill after 8, and a resume killed after 6 more, leave trials to run
 ROOT = Path(__file__).resolve().parents[1]
 
 
