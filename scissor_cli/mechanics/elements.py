@@ -35,7 +35,7 @@ import numpy as np
 
 from scissor_cli.mechanics import fem, materials, nodal
 from scissor_cli.mesh.mesh import meshio_cell_type
-from scissor_cli.mesh.probe import TargetProbe, locate_in_simplices
+from scissor_cli.mesh.probe import TargetProbe, locate_in_simplices, probe_points
 
 
 @dataclass(frozen=True)
@@ -97,8 +97,8 @@ class LinearSimplex:
     def probe(self, nodes: np.ndarray, points: np.ndarray, extrapolate: bool = False) -> TargetProbe:
         """The probe of rest points (K, d) mm: the element holding each, its nodes and its shape functions there
         (`mesh.probe.target_positions` carries them; `locate` says what a point outside does)."""
-        cell, bary = self.locate(nodes, np.atleast_2d(np.asarray(points, float)), extrapolate)
-        return TargetProbe(tri_idx=cell, nodes=self.ops.triangles[cell], bary=self.shape_functions(bary))
+        located = probe_points(nodes, self.ops.triangles, points, extrapolate)  # its weights: the coordinates
+        return replace(located, bary=self.shape_functions(located.bary))
 
     # -- the energy's terms beyond the per-element kernels (none here) -----------------------------------------
     @property
