@@ -91,8 +91,8 @@ class BodyTruth:
         """The `TargetRun.truth_factory` of the lesion at target_rest (3,) mm, or None (the truth is the model)."""
         if not self.finer:
             return None
-        fine, mesh = self.tissue, self.tissue.mesh
-        probe = fine.element.probe(mesh.nodes, np.asarray(target_rest, float)[None])
+        fine = self.tissue
+        probe = fine.element.probe(fine.rest, np.asarray(target_rest, float)[None])
         view = TruthView(target=lambda x: target_positions(probe, x)[0], layer=lambda x: x)
         return lambda perturbation: (true_tissue(fine, perturbation), view)
 

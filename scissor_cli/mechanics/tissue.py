@@ -31,7 +31,6 @@ from scissor_cli.scene.scene import Scene
 class Tissue:
     scene: Scene
     mesh: Mesh
-    ops: fem.FEOperators
     element_E_kPa: np.ndarray  # (M,)
     fiber: np.ndarray  # (M, 2) unit, reference frame
     fixed_nodes: np.ndarray  # (F,)
@@ -57,6 +56,11 @@ class Tissue:
         """K_ff's pattern, both triangles (the Jacobian's, the grip planner's), built on first use: the solvers read
         only the upper one, and on a 3-D slab this one costs as much to build as the rest of the slab."""
         return free_pattern(self.ops, self.free_index, self.element, upper=False)
+
+    @property
+    def ops(self) -> fem.FEOperators:
+        """The mesh's FE operators (the element is made on them)."""
+        return self.element.ops
 
     @property
     def params(self) -> materials.MaterialParams:
@@ -365,7 +369,6 @@ def tissue_from_boundary(scene: Scene, mesh, ops, material, fixed, cup_nodes, cu
     return Tissue(
         scene=scene,
         mesh=mesh,
-        ops=ops,
         element_E_kPa=element_E,
         fiber=fiber,
         fixed_nodes=fixed,

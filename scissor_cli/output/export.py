@@ -232,7 +232,7 @@ def export_run(run_dir: Path, out_dir: Path, fmt: str = "xdmf", partial: bool = 
 def _write(data: RunData, writer: "_Writer") -> None:
     body = data.nodes.shape[1] == 3
     points = data.nodes if body else _lift(data.nodes)
-    cells = [(meshio_cell_type(data.nodes.shape[1], data.triangles.shape[1]), data.triangles)]
+    cells = _cells(data.nodes, data.triangles)
     nn, ne = len(data.nodes), len(data.triangles)
     writer.mesh("mesh", points, cells, data.point_data, data.cell_data,
                 f"{'3-D body' if body else '2-D'} rest mesh, {nn} nodes, {ne} {'tetrahedra' if body else 'triangles'};"
@@ -247,7 +247,7 @@ def _write(data: RunData, writer: "_Writer") -> None:
         k = len(ins.displacement)
         if ins.slab:  # _read checked the slab's mesh is there
             lc = data.layer_check
-            stem = writer.series(name, lc.nodes, [(meshio_cell_type(3, lc.tetrahedra.shape[1]), lc.tetrahedra)],
+            stem = writer.series(name, lc.nodes, _cells(lc.nodes, lc.tetrahedra),
                                  [{"displacement": u} for u in ins.displacement],
                                  f"insertion {ins.target} / {ins.strategy} in the 3-D slab: {k} step(s), "
                                  "displacement per step (time = step)")
@@ -259,7 +259,7 @@ def _write(data: RunData, writer: "_Writer") -> None:
         writer.table(f"{stem}.csv", *_step_table(ins), f"insertion {ins.target} / {ins.strategy}: per-step numbers")
     if data.layer_check is not None:
         lc = data.layer_check
-        tets = [(meshio_cell_type(3, lc.tetrahedra.shape[1]), lc.tetrahedra)]
+        tets = _cells(lc.nodes, lc.tetrahedra)
         writer.mesh("layer_check_mesh", lc.nodes, tets, {}, {},
                     f"3-D slab, {len(lc.nodes)} nodes, {len(lc.tetrahedra)} tetrahedra")
         for case, u in lc.displacement.items():
@@ -269,6 +269,11 @@ def _write(data: RunData, writer: "_Writer") -> None:
         if rows:
             writer.table("layer_check_targets.csv", ["case", "target", "x_mm", "y_mm", "z_mm"], rows,
                          "3-D slab: deformed target positions per case")
+
+
+def _cells(nodes: np.ndarray, cells: np.ndarray) -> list[tuple[str, np.ndarray]]:
+    """meshio's cell block of simplices (M, n) on nodes (N, d), named by d and n."""
+    return [(meshio_cell_type(nodes.shape[1], cells.shape[1]), cells)]
 
 
 def _max_norm(u: np.ndarray) -> float:
