@@ -34,6 +34,7 @@ from scissor_cli.control import ControllerError, ControllerLaw, LoopResult, PIDL
 from scissor_cli.experiments.body_closed_loop import body_plans, body_tasks
 from scissor_cli.experiments.body_resolution import resolved_by_accuracy
 from scissor_cli.experiments.run_summary import RunSummary
+from scissor_cli.experiments.selection import resolved_by_selection
 from scissor_cli.experiments.simulate import layer_plans, run_simulation, trial_tasks
 from scissor_cli.experiments.trial_stage import Execution
 from scissor_cli.experiments.trial_types import TargetTask
@@ -52,9 +53,9 @@ __all__ = [
 
 
 def build_tissue(cfg: Scene) -> Tissue:
-    """The scene's tissue as `simulate` builds it (the 2-D layer, or the body at `controller.mesh_scale`, on
-    the element and mesh `tissue.accuracy_mm` picks when given): the one the trials of this config use in this
-    process, built on first use."""
+    """The scene's tissue as `simulate` builds it (the 2-D layer, on what `solver.accuracy_mm` picks when given;
+    or the body at `controller.mesh_scale`, on the element and mesh `tissue.accuracy_mm` picks when given): the one
+    the trials of this config use in this process, built on first use."""
     return _context(cfg).tissue
 
 
@@ -66,11 +67,13 @@ def _context(cfg: Scene):
 @lru_cache(maxsize=8)
 def _computed_yaml(config_yaml: str) -> str:
     """The config a run computes on, as YAML: a body's `tissue.accuracy_mm` resolved into its element and model
-    mesh as `simulate` resolves it (`experiments.body_resolution.resolved_by_accuracy`: solves, so kept)."""
+    mesh (`experiments.body_resolution.resolved_by_accuracy`), a layer's `solver.accuracy_mm` into its element,
+    mesh, model and solver (`experiments.selection.resolved_by_selection`), as `simulate` resolves them (both
+    solve, so the answer is kept)."""
     cfg = parse_config(config_yaml, "<api config>")
-    if not isinstance(cfg, BodyConfig) or cfg.tissue.accuracy_mm is None:
-        return config_yaml
-    return resolved_yaml(resolved_by_accuracy(cfg)[0])
+    if isinstance(cfg, BodyConfig):
+        return config_yaml if cfg.tissue.accuracy_mm is None else resolved_yaml(resolved_by_accuracy(cfg)[0])
+    return config_yaml if cfg.solver.accuracy_mm is None else resolved_yaml(resolved_by_selection(cfg)[0])
 
 
 def solve(tissue: Tissue, strokes_mm, start: Optional[np.ndarray] = None):

@@ -74,9 +74,11 @@ def test_auto_without_an_accuracy_is_refused_naming_the_field():
         parse_config(yaml.safe_dump(data), "auto.yaml", Path.cwd())
 
 
-def test_a_layer_names_its_element():
+def test_a_layers_auto_needs_solver_accuracy():
+    """A layer picks its element with §9's selection (tests/test_selection.py): without solver.accuracy_mm, exit 2
+    naming both fields."""
     text = (Path(__file__).resolve().parents[1] / "configs" / "example.yaml").read_text()
     data = yaml.safe_load(text)
     data["tissue"].setdefault("mesh", {})["element"] = "auto"
-    with pytest.raises(ConfigError, match=r"tissue\.mesh\.element"):
+    with pytest.raises(ConfigError, match=r"tissue\.mesh\.element(.|\n)*solver\.accuracy_mm"):
         parse_config(yaml.safe_dump(data), "example.yaml", Path.cwd())

@@ -280,15 +280,15 @@ def _run_problems(cfg: Config) -> list[Problem]:
     if cfg.solver.accuracy_mm is not None and not cfg.targets:
         problems.append((("solver", "accuracy_mm"),
                          "the accuracy is measured at the targets: the scene needs at least one"))
-    if cfg.tissue.mesh.element == "nodal":
+    # (with solver.accuracy_mm the selection picks the solver: ADMM only on p1)
+    if cfg.tissue.mesh.element == "nodal" and cfg.solver.kind == "admm" and cfg.solver.accuracy_mm is None:
         # ADMM's local step is one element's energy; the nodal volume term couples the elements around a node
-        if cfg.solver.kind == "admm":
-            problems.append((("solver", "kind"), "'admm' needs every energy term per element; element 'nodal' puts "
-                             "the volumetric term on the nodes (docs/model.md §21): use solver.kind newton, or "
-                             "tissue.mesh.element p1"))
-        if cfg.solver.accuracy_mm is not None:
-            problems.append((("solver", "accuracy_mm"), "the accuracy selection (docs/model.md §9) calibrates the p1 "
-                             "element and ADMM: with tissue.mesh.element nodal give solver.kind and the mesh"))
+        problems.append((("solver", "kind"), "'admm' needs every energy term per element; element 'nodal' puts "
+                         "the volumetric term on the nodes (docs/model.md §21): use solver.kind newton, or "
+                         "tissue.mesh.element p1"))
+    if cfg.tissue.mesh.element == "auto" and cfg.solver.accuracy_mm is None:
+        problems.append((("tissue", "mesh", "element"), "auto picks the element by the accuracy asked for: give "
+                         "solver.accuracy_mm, or name the element (p1 or nodal)"))
     return problems
 
 

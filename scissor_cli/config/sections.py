@@ -91,8 +91,9 @@ class MeshConfig(_Section):
     file: Optional[Annotated[str, Field(min_length=1, max_length=4096)]] = None
     #: the element (docs/model.md §21): p1, linear simplices with every term per element (the paper's); nodal,
     #: the same simplices with the volumetric term on the nodes (averaged nodal volume), which does not lock
-    #: at ν near 0.5; needs solver.kind newton
-    element: Literal["p1", "nodal"] = "p1"
+    #: at ν near 0.5; needs solver.kind newton; auto, the cheaper of the two that solver.accuracy_mm's
+    #: selection predicts within the accuracy (which it needs; docs/model.md §9)
+    element: Literal["p1", "nodal", "auto"] = "p1"
 
 
 class TissueConfig(_Section):

@@ -35,7 +35,7 @@ from scissor_cli.experiments.profiles import (
 )
 from scissor_cli.experiments.run_cache import cache_dir
 from scissor_cli.experiments.run_summary import RunSummary
-from scissor_cli.experiments.selection import select
+from scissor_cli.experiments.selection import resolved_by_selection
 from scissor_cli.experiments.sink import (  # noqa: F401 - raised through this module's API
     ForwardCase,
     Manipulation,
@@ -76,12 +76,8 @@ def run_simulation(cfg: Config, run: SinkFactory,
         from scissor_cli.experiments.body_run import run_body_simulation  # noqa: PLC0415
 
         return run_body_simulation(cfg, run, execution)
-    selection = None
-    if cfg.solver.accuracy_mm is not None:
-        selection = select(cfg, cfg.solver.accuracy_mm)
-        # the file records the config that ran; the budget stays in /selection
-        cfg = selection.apply(cfg)
-        cfg = cfg.model_copy(update={"solver": cfg.solver.model_copy(update={"accuracy_mm": None})})
+    # the file records the config that ran; the budget stays in /selection
+    cfg, selection = resolved_by_selection(cfg)
     grips = None
     if cfg.manipulation_points is not None:
         cfg, grips = grip_stage(cfg)

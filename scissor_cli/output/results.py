@@ -435,13 +435,17 @@ def write_selection(out: ResultsFile, sel) -> None:
     p = sel.pick
     out.attrs("selection", {
         "accuracy_mm": sel.accuracy_mm, "meets_budget": sel.meets_budget, "explanation": sel.explain(),
-        "level": p.level, "model": p.model, "solver": p.solver, "tolerance": p.tolerance, "n_elements": p.n_elements,
-        "predicted_error_mm": p.predicted_error_mm, "predicted_time_s": p.predicted_time_s,
-        "observed_order": sel.order, "calibration_case": sel.case, "calibration_s": sel.calibration_s,
+        "element": p.element, "level": p.level, "model": p.model, "solver": p.solver, "tolerance": p.tolerance,
+        "n_elements": p.n_elements, "predicted_error_mm": p.predicted_error_mm, "predicted_time_s": p.predicted_time_s,
+        "observed_order": sel.order[p.element], "calibration_case": sel.case, "calibration_s": sel.calibration_s,
     })
-    levels = sorted(sel.discretisation_mm)
-    out.dataset("selection/discretisation_mm", np.array([sel.discretisation_mm[L] for L in levels]), "mm",
-                levels=levels)
+    elements = list(sel.discretisation_mm)
+    levels = sorted(sel.discretisation_mm[p.element])
+    out.dataset("selection/discretisation_mm", np.array([sel.discretisation_mm[p.element][L] for L in levels]), "mm",
+                levels=levels, element=p.element)
+    out.dataset("selection/element_discretisation_mm",
+                np.array([[sel.discretisation_mm[e][L] for L in levels] for e in elements]), "mm", levels=levels,
+                elements=elements, observed_orders=[sel.order[e] for e in elements])
     out.dataset("selection/model_mm", np.array(list(sel.model_mm.values())), "mm", models=list(sel.model_mm))
     tols = sorted(sel.solver_mm)
     out.dataset("selection/admm_mm", filled([sel.solver_mm[t] for t in tols], MISSING), "mm", tolerances=tols,
