@@ -4,7 +4,7 @@ step), the uncorrectable part with one cup, the actuator (resolution,
 backlash, anti-windup), the incremental equilibria against the reference
 Newton, determinism, and the Fig. 11 figure."""
 
-from functools import lru_cache
+from functools import lru_cache, partial
 from pathlib import Path
 
 import numpy as np
@@ -383,6 +383,55 @@ def test_a_guess_from_another_tissue_does_not_change_the_equilibrium():
         eq.move_to(np.array([-12.0]), tangent=False)
     assert guided.tangent_x is model_state  # the move started from the guess
     np.testing.assert_allclose(guided.x, plain.x, atol=1e-7)
+
+
+def test_a_move_the_fast_path_cannot_finish_continues_from_its_guess(monkeypatch):
+    """When the predictor and Newton fail, the load continuation starts from the move's guess (nearer in stroke:
+    a shorter path) and, if that path fails too, from the current state; either way the equilibrium is the
+    same."""
+    from scissor_cli.solvers import tracking
+
+    _, tissue, _ = scene_setup("paper_pull")
+    truth = tissue.with_material(0.8, fiber_angle_rad=0.8)
+    guess = solve_newton(tissue, np.array([-11.0])).x  # the model's state: only a starting point for the truth
+    reference = solve_newton(truth, np.array([-12.0]), tol=1e-10).x
+    starts, real = [], tracking.solve_newton
+
+    def continuation(tissue, strokes, x0, strokes0, fail_from_guess=False, **kw):
+        starts.append(float(strokes0[0]))
+        if fail_from_guess and x0 is guess:
+            raise tracking.SolverError("this path fails")
+        return real(tissue, strokes, x0=x0, strokes0=strokes0, **kw)
+
+    monkeypatch.setattr(TrackedEquilibrium, "_corrected", lambda self, *a, **kw: None)  # the fast path fails
+    for fail in (False, True):
+        starts.clear()
+        monkeypatch.setattr(tracking, "solve_newton", partial(continuation, fail_from_guess=fail))
+        eq = TrackedEquilibrium(truth)
+        eq.guesses.append((np.array([-11.0]), guess))
+        eq.move_to(np.array([-12.0]), tangent=False)
+        assert starts == ([-11.0, 0.0] if fail else [-11.0])
+        np.testing.assert_allclose(eq.x, reference, atol=1e-7)
+
+
+def test_the_open_loop_baseline_starts_its_truth_from_the_closed_loops_end(monkeypatch):
+    """`TargetRun.truth_guess` (what a body's manipulation stage hands its open-loop baseline: the closed loop's
+    end on the same truth) reaches the truth's tracker and does not change the baseline's end."""
+    truth = ct.TruthPerturbation(E_scale=1.3, fiber_offset_rad=0.2)
+    closed = manipulate("paper_push", 0, truth=truth)
+    ended = (closed.hist_strokes[-1], closed.final_x)
+    guesses, move_to = [], TrackedEquilibrium.move_to
+
+    def spy(self, strokes, tangent=True):
+        if not tangent:  # the truth's tracker
+            guesses.append(list(self.guesses))
+        return move_to(self, strokes, tangent)
+
+    plain = manipulate("paper_push", 0, mode="open", truth=truth)
+    monkeypatch.setattr(TrackedEquilibrium, "move_to", spy)
+    guided = manipulate("paper_push", 0, mode="open", truth=truth, truth_guess=ended)
+    assert guesses and all(g and g[0][1] is ended[1] for g in guesses)
+    np.testing.assert_allclose(guided.final_position, plain.final_position, atol=1e-7)
 
 
 def test_truth_equal_to_model_is_solved_once():

@@ -283,6 +283,8 @@ class TargetRun:
     loop) or "open" (one Jacobian step, the baseline); target: its name;
     tol: the solves' relative residual; guess: (strokes (C,), x (N, 2)) a
     known equilibrium of the model the first big move may start from;
+    truth_guess: the same for the truth (x on the truth's mesh: an earlier
+    loop's end on the same true tissue);
     direction (2,): the needle axis of the miss (default the corridor's);
     truth_factory: makes another true tissue (the 3-D slab) and its view
     from the perturbation; controller_factory (lo, hi, resolution_mm, tol)
@@ -302,6 +304,7 @@ class TargetRun:
     target: str = ""
     tol: float = 1e-10
     guess: Optional[tuple[np.ndarray, np.ndarray]] = None
+    truth_guess: Optional[tuple[np.ndarray, np.ndarray]] = None
     direction: Optional[np.ndarray] = None
     truth_factory: Optional[TruthFactory] = None
     controller_factory: Optional[Callable] = None
@@ -374,6 +377,8 @@ def loop_parts(model: Tissue, target_rest: np.ndarray, run: TargetRun = TargetRu
         trackers += [controller.eq] if getattr(controller, "tissue", None) is model else []
         for eq in trackers:
             eq.guesses.append((np.asarray(run.guess[0], float), np.asarray(run.guess[1], float)))
+    if run.truth_guess is not None:
+        plant.eq.guesses.append((np.asarray(run.truth_guess[0], float), np.asarray(run.truth_guess[1], float)))
     return plant, controller, direction
 
 

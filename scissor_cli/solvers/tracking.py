@@ -14,7 +14,7 @@ tangents too when the tracker has them: its start residuals are decades
 below the tangent predictor's on the small moves of a loop. A move the
 fast path cannot finish (the predictor inverts an element, or Newton does
 not converge from it) is solved by `solvers.newton.solve_newton` with load
-continuation.
+continuation, from the move's start (`_continued`).
 """
 
 from __future__ import annotations
@@ -131,8 +131,7 @@ class TrackedEquilibrium:
             x = self._corrected(strokes, x0, s0, fitted)
             if x is None:
                 self.stats["fallbacks"] += 1
-                r = solve_newton(self.tissue, strokes, x0=self.x, strokes0=self.strokes, tol=self.tol,
-                                 factors=self.factors)
+                r = self._continued(strokes, x0, s0)
                 x = r.x
                 self.stats["refactors"] += r.factorizations
                 self.refactor(x)  # the old tangent just failed as a predictor
@@ -143,6 +142,18 @@ class TrackedEquilibrium:
             self.x, self.strokes = x, strokes.copy()
         if tangent and not self.jacobian_is_current:
             self.refactor(self.x)
+
+    def _continued(self, strokes: np.ndarray, x0: np.ndarray, s0: np.ndarray):
+        """`solve_newton`'s load continuation to `strokes` (C,) mm from the move's start (x0, s0): a guess
+        nearer in stroke when the move had one (a shorter path, fewer load steps), else the current state, which
+        is also where it starts again when the guess's path fails (a guess may be another tissue's state)."""
+        try:
+            return solve_newton(self.tissue, strokes, x0=x0, strokes0=s0, tol=self.tol, factors=self.factors)
+        except SolverError:
+            if x0 is self.x:
+                raise
+        return solve_newton(self.tissue, strokes, x0=self.x, strokes0=self.strokes, tol=self.tol,
+                            factors=self.factors)
 
     def _fitted(self, ds: np.ndarray) -> Optional[np.ndarray]:
         """The move's increment (2N,) from a polynomial in the strokes fitted to recent equilibria, or None.
