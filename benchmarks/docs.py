@@ -532,6 +532,32 @@ def _element_convergence(r) -> str:
               "largest edges being capped). " + source(r))
 
 
+@renderer("selection_elements", "bench_selection_elements")
+def _selection_elements(r) -> str:
+    picks = rows_of(r, "picks")
+
+    def pick(x) -> list:
+        what = f"`{x['element']}` {x['model']}, ×{x['level']:g} ({num(x['n_elements'])})"
+        reference = x["element"] == "nodal" and x["level"] == 0.25 and x["model"] == "neo_hookean_fiber"
+        real = "(the reference)" if reference else fixed(x["error_mm"], 3)
+        predicted = fixed(x["predicted_error_mm"], 3) + ("" if x["meets_budget"] else " (over)")
+        return [what, f"{predicted} / {real}", fixed(1e3 * x["solve_s"], 0)]
+
+    rows = []
+    for auto, p1 in zip(picks[0::2], picks[1::2]):
+        rows.append([fixed(auto["nu"], 3), num(auto["budget_mm"])] + pick(auto) + pick(p1))
+    calibration = {x["nu"]: x["calibration_s"] for x in picks}
+    return (table(["ν", "budget (mm)", "`auto` picks", "predicted / real error (mm)", "solve (ms)",
+                   "`p1` alone picks", "predicted / real error (mm)", "solve (ms)"], rows)
+            + "\n\nconfigs/example.yaml, its hardest case (push10); one calibration per ν with `element: auto` ("
+            + " / ".join(f"{fixed(t, 1)} s" for t in calibration.values()) + " at ν "
+            + " / ".join(fixed(nu, 3) for nu in calibration)
+            + "), the p1 column choosing among its p1 candidates only (what `element: p1` picks). Real error: the "
+              "targets' largest distance from `nodal`, the richest model, Newton, on the size field × 0.25; "
+              "\"(over)\": no candidate is predicted within 0.7 × the budget, the most accurate one runs. "
+            + source(r))
+
+
 @renderer("cook", "bench_cook")
 def _cook(r) -> str:
     levels = rows_of(r, "levels")
