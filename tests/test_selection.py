@@ -7,6 +7,7 @@ import yaml
 from scissor_cli import api
 from scissor_cli.config import load_config, parse_config
 from scissor_cli.experiments import selection as selection_module
+from scissor_cli.experiments.build import scene_of
 from scissor_cli.experiments.selection import hardest_case, select
 from scissor_cli.experiments.simulate import build_model
 from scissor_cli.mesh.probe import probe_targets, target_positions
@@ -92,9 +93,7 @@ def test_auto_picks_the_element_that_does_not_lock_and_meets_the_budget(monkeypa
     sel = select(cfg, 1.0)
     assert {c.element for c in sel.candidates} == {"p1", "nodal"}
     assert min(sel.discretisation_mm["p1"].values()) > sel.discretisation_mm["nodal"][1.0]
-    scene, _, _ = build_model(cfg.model_copy(update={"tissue": cfg.tissue.model_copy(update={
-        "mesh": cfg.tissue.mesh.model_copy(update={"element": "nodal"})})}), mesh_scale=4.0)
-    _, strokes = hardest_case(cfg, scene)
+    _, strokes = hardest_case(cfg, scene_of(cfg))
     fine = cfg.tissue.mesh.model_copy(update={"scale": 0.5 * cfg.tissue.mesh.scale, "element": "nodal"})
     scene, mesh, tissue = build_model(cfg.model_copy(update={"tissue": cfg.tissue.model_copy(update={"mesh": fine})}),
                                       model="neo_hookean_fiber")
