@@ -6,7 +6,8 @@ with its own held and cup nodes, linear elasticity under a 1 mm push of the firs
 (benchmarks/quadratic_reference.py), the same on the dome with a second cup (both pushed), and the cost of
 one tangent: assembly of K_ff, its upper triangle's
 nonzeros, its factorisation (CHOLMOD, the solvers' `factorize_free`), and a whole nonlinear forward solve
-(the scene's material at ν 0.45, Newton to 1e-8: the layer's push10, the dome's 8 mm push). Then the dome
+(the scene's material at ν 0.45, Newton to 1e-8: the layer's push10, the dome's 8 mm push), and beside them
+what quadratic elements on the same mesh would cost (unknowns, nonzeros, the same factorisation). Then the dome
 with its fibers at ν 0.49 and an 8 mm push at mesh scale 1 and 0.7: how far the lesions move under refinement.
 Last, the sweep that chose α (`nodal.ELEMENT_SHARE`): the dome at ν 0.49 against P2 for each share in SHARES.
 Times are medians of `--repeats` runs in this process, p1 and nodal side by side.
@@ -27,6 +28,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse as sp
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -40,7 +42,7 @@ from scissor_cli.mechanics.body_tissue import build_body  # noqa: E402
 from scissor_cli.mechanics.tissue import build_tissue  # noqa: E402
 from scissor_cli.mesh.probe import probe_points, target_positions  # noqa: E402
 from scissor_cli.solvers.equilibrium import solve_equilibrium  # noqa: E402
-from scissor_cli.solvers.linear import factorize_free  # noqa: E402
+from scissor_cli.solvers.linear import Factorization, factorize_free  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 NUS = (0.45, 0.49, 0.499)
@@ -132,7 +134,33 @@ def cost_rows(scene_name: str, stroke_mm: float, repeats: int) -> list[dict]:
                      "forward_s": solve_s, "newton_iterations": int(r.iterations), "stroke_mm": stroke_mm})
         print(f"{scene_name} {element}: nnz {K.nnz}, assemble {1e3 * assemble_s:.1f} ms, "
               f"factor {1e3 * factor_s:.1f} ms, forward {solve_s:.2f} s ({r.iterations} it)", flush=True)
-    return rows
+    return rows + [p2_cost_row(scene_name, tissues["p1"], repeats)]
+
+
+def p2_cost_row(scene_name: str, tissue, repeats: int) -> dict:
+    """Quadratic elements' side of the cost table on the same mesh and held nodes: the unknowns, K_ff's upper
+    nonzeros, scikit-fem's assembly of the linear-elastic K (scissor has no nonlinear P2 to time) and the same
+    CHOLMOD factorisation as the others (nested dissection by node, `linear.Factorization`)."""
+    d = tissue.dim
+    held = np.zeros(tissue.rest.size, bool)
+    held[tissue.dirichlet_dofs] = True
+    system = quadratic_reference.p2_system(tissue.mesh.nodes, tissue.ops.triangles, held.reshape(-1, d),
+                                           np.zeros_like(tissue.rest), tissue.element_E_kPa, 0.45)
+    assemble_s, K = _median_time(system.assemble, repeats)
+    free = np.setdiff1d(np.arange(K.shape[0]), system.held_dofs)
+    K_upper = sp.triu(K.tocsr()[free][:, free], format="csr")
+    K_upper.sort_indices()
+
+    def factor():
+        return Factorization(K_upper, definite=True, upper=True, ordering="nested_dissection",
+                             groups=system.node_of_dof[free])
+
+    factor_s, _ = _median_time(factor, repeats)
+    print(f"{scene_name} p2: {free.size} unknowns, nnz {K_upper.nnz}, assemble {1e3 * assemble_s:.1f} ms, "
+          f"factor {1e3 * factor_s:.1f} ms", flush=True)
+    return {"scene": scene_name, "element": "p2", "unknowns": int(free.size), "K_upper_nnz": int(K_upper.nnz),
+            "assemble_ms": 1e3 * assemble_s, "factor_ms": 1e3 * factor_s, "forward_s": None,
+            "newton_iterations": None, "stroke_mm": None}
 
 
 #: the shares α of the element's own deviatoric energy the sweep tries (nodal.ELEMENT_SHARE is the built one)

@@ -495,9 +495,15 @@ def _elements(r) -> str:
 
     accuracy = [[scene.replace(".yaml", ""), fixed(nu, 3), cells(scene, nu, "p1_error_pct"),
                  cells(scene, nu, "nodal_error_pct")] for scene, nu in keys]
-    cost = [[x["scene"].replace(".yaml", ""), f"`{x['element']}`", num(x["K_upper_nnz"]), fixed(x["assemble_ms"], 1),
-             fixed(x["factor_ms"], 1), f"{fixed(x['forward_s'], 2)} ({x['newton_iterations']} it)"]
+    cost = [[x["scene"].replace(".yaml", ""), f"`{x['element']}`", num(x["unknowns"]), num(x["K_upper_nnz"]),
+             fixed(x["assemble_ms"], 1), fixed(x["factor_ms"], 1),
+             "—" if x["forward_s"] is None else f"{fixed(x['forward_s'], 2)} ({x['newton_iterations']} it)"]
             for x in rows_of(r, "cost")]
+    quadratic = ("" if not any(x["element"] == "p2" for x in rows_of(r, "cost")) else
+                 " `p2`: the quadratic elements of the reference on the same mesh (6-node triangles, 10-node "
+                 "tetrahedra), linear elasticity: scikit-fem's assembly (a vectorised Python assembler, not "
+                 "comparable with the compiled kernels) and the same CHOLMOD factorisation; scissor has no nonlinear "
+                 "P2 solve to time.")
     shift = {x["element"]: x for x in rows_of(r, "refinement") if "lesion_shift_mm" in x}
     coarse = {x["element"]: x for x in rows_of(r, "refinement") if "lesion_shift_mm" not in x}
     refinement = "; ".join(f"`{e}` {fixed(x['lesion_shift_mm'], 3)} mm ({num(coarse[e]['tetrahedra'])} → "
@@ -507,10 +513,11 @@ def _elements(r) -> str:
             + "\n\nLinear elasticity, every cup pushed 1 mm (`+cup2`: the dome with a second cup, both pushed), "
               "each scene's own mesh; the reference is scikit-fem's quadratic elements on the same mesh and nodes "
               "(`benchmarks/quadratic_reference.py`).\n\n"
-            + table(["scene", "element", "K_ff nonzeros (upper)", "assembly (ms)", "factorisation (ms)",
+            + table(["scene", "element", "unknowns", "K_ff nonzeros (upper)", "assembly (ms)", "factorisation (ms)",
                      "forward solve (s)"], cost)
             + "\n\nOne tangent at rest and one nonlinear forward solve (the scene's material at ν 0.45, Newton to "
-              "1e-8: the layer's 10 mm push, the dome's 8 mm); medians of the repeats. Under refinement, the dome "
+              "1e-8: the layer's 10 mm push, the dome's 8 mm); medians of the repeats." + quadratic
+            + " Under refinement, the dome "
               f"with its fibers at ν 0.49 pushed 8 mm: its lesions move from mesh scale 1 to 0.7 by {refinement}. "
               "The share α of the element's own deviatoric energy (`nodal.ELEMENT_SHARE`; 1 is the averaged nodal "
               "volume alone), the dome at ν 0.49 against P2, worst target: "

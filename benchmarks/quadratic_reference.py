@@ -12,6 +12,8 @@ with itself. Loaded by benchmarks/bench_elements.py and the element tests
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 
@@ -20,6 +22,38 @@ def solve_p2(nodes: np.ndarray, cells: np.ndarray, held: np.ndarray, displacemen
     """P2 linear elasticity with the vertex dofs `held` (N, d) bool held at `displacement` (N, d) mm; E per
     element (M,) or one value, ν one value; plane strain in 2-D. Returns the displacements (N, d) mm of the
     vertices and (K, d) of `points` (K, d), the quadratic field evaluated there."""
+    import skfem
+
+    system = p2_system(nodes, cells, held, displacement, E_kPa, nu)
+    basis, u = system.basis, system.u
+    K = system.assemble()
+    A, b, x, free = skfem.condense(K, np.zeros(K.shape[0]), x=u, D=system.held_dofs)
+    u[free] = _cholesky_solve(A, b)
+    at_points = np.column_stack([part.probes(points.T) @ u[index]
+                                 for part, index in zip(basis.split_bases(), basis.split_indices())])
+    return u[basis.nodal_dofs.T].T.copy(), at_points
+
+
+@dataclass
+class P2System:
+    """P2 linear elasticity on a mesh: its basis, the stiffness form, the held dofs (H,) and their values in u
+    (n_dofs,) mm, and each dof's node (n_dofs,): a vertex's index, or N + its edge's (facet's in 2-D)."""
+
+    basis: object
+    form: object
+    e_field: object
+    held_dofs: np.ndarray
+    u: np.ndarray
+    node_of_dof: np.ndarray
+
+    def assemble(self):
+        """K (n_dofs, n_dofs) in mN/mm (E in kPa, lengths in mm)."""
+        return self.form.assemble(self.basis, E=self.e_field)
+
+
+def p2_system(nodes: np.ndarray, cells: np.ndarray, held: np.ndarray, displacement: np.ndarray,
+              E_kPa: np.ndarray | float, nu: float) -> P2System:
+    """The P2 system of `solve_p2` before it is solved (benchmarks/bench_elements.py times its cost)."""
     import skfem
     from skfem.models.elasticity import lame_parameters, linear_elasticity
 
@@ -40,8 +74,7 @@ def solve_p2(nodes: np.ndarray, cells: np.ndarray, held: np.ndarray, displacemen
     def stiffness(u, v, w):
         return w["E"] * linear_elasticity(lam1, mu1).form(u, v, w)
 
-    K = stiffness.assemble(basis, E=e_field)
-    n_dofs = K.shape[0]
+    n_dofs = basis.N
     u = np.zeros(n_dofs)
     vertex_dofs = basis.nodal_dofs.T  # (N, d)
     fixed = [vertex_dofs[held]]
@@ -52,12 +85,10 @@ def solve_p2(nodes: np.ndarray, cells: np.ndarray, held: np.ndarray, displacemen
     mid = 0.5 * (displacement[edges[:, 0]] + displacement[edges[:, 1]])
     fixed.append(edge_dofs[both])
     u[edge_dofs[both]] = mid[both]
-    D = np.concatenate(fixed)
-    A, b, x, free = skfem.condense(K, np.zeros(n_dofs), x=u, D=D)
-    u[free] = _cholesky_solve(A, b)
-    at_points = np.column_stack([part.probes(points.T) @ u[index]
-                                 for part, index in zip(basis.split_bases(), basis.split_indices())])
-    return u[vertex_dofs].T.copy(), at_points
+    node_of_dof = np.empty(n_dofs, np.int64)
+    node_of_dof[vertex_dofs] = np.arange(len(nodes))[:, None]
+    node_of_dof[edge_dofs] = len(nodes) + np.arange(len(edges))[:, None]
+    return P2System(basis, stiffness, e_field, np.concatenate(fixed), u, node_of_dof)
 
 
 def _cholesky_solve(A, b: np.ndarray) -> np.ndarray:
