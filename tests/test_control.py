@@ -12,7 +12,6 @@ import pytest
 
 from scissor_cli import control as ct
 from scissor_cli.config import ControllerConfig, load_config
-from scissor_cli.control.loop import loop_parts
 from scissor_cli.experiments.simulate import build_model, robot_joint_check
 from scissor_cli.mesh.probe import apply_probe, probe_targets, target_positions
 from scissor_cli.output import figures
@@ -452,53 +451,6 @@ def test_truth_equal_to_model_is_solved_once():
     r = ct.run_loop(plant, ctrl, plans[0].desired, cfg.controller)
     assert r.converged and ctrl.eq.stats["moves"] == 1  # only its construction solved
     assert ctrl.eq.x is plant.eq.x
-
-
-def _refreshing_run(tissue, refresh_error: float, commands) -> tuple[ct.Controller, list[bool]]:
-    """A controller on `tissue` moved through `commands`, checking after each move that J is the exact tangent or
-    predicted the model's target move within `refresh_error`; returns it and whether each move kept J exact."""
-    probe = probe_targets(tissue.mesh, tissue.scene.targets[0].rest[None])
-    act = ct.Actuator.from_scene(tissue.scene)
-    ctrl = ct.Controller(tissue, probe, act.lo, act.hi, refresh_error=refresh_error)
-    exact = []
-    for s in commands:
-        J, s0, y0 = ctrl.jacobian, ctrl.strokes.copy(), target_positions(probe, ctrl.eq.x)[0]
-        ctrl.update(np.array(s, float))
-        dy = target_positions(probe, ctrl.eq.x)[0] - y0
-        exact.append(ctrl.eq.jacobian_is_current)
-        if exact[-1]:
-            ref = cup_target_jacobian(tissue, ctrl.eq.x, probe)
-            np.testing.assert_allclose(ctrl.jacobian, ref, rtol=1e-6, atol=1e-9)
-        else:
-            assert np.linalg.norm(dy - J @ (ctrl.strokes - s0)) <= refresh_error * np.linalg.norm(dy)
-    return ctrl, exact
-
-
-def test_a_controller_carrying_its_jacobian_refreshes_it_when_it_mispredicts():
-    _, tissue, _ = scene_setup("paper_push")
-    commands = [[0.5 * k] for k in range(1, 17)] + [[8.0 - 0.05 * k] for k in range(1, 9)]
-    exact, every = _refreshing_run(tissue, 0.0, commands)
-    assert all(every)  # 0: the exact tangent at every command
-    carried, kept = _refreshing_run(tissue, 0.012, commands)
-    assert not all(kept) and any(kept[1:])  # some moves carried J, a far one refreshed it
-    assert carried.eq.stats["refactors"] < exact.eq.stats["refactors"]
-    np.testing.assert_allclose(carried.eq.x, exact.eq.x, atol=1e-6)  # the model's states are the same equilibria
-    _, always = _refreshing_run(tissue, 1e-12, commands[:6])
-    assert all(always)  # a bound below round-off refreshes every move
-
-
-def test_a_loop_carrying_its_jacobian_reaches_the_target_with_fewer_factorisations():
-    cfg, tissue, plans = scene_setup("paper_push")
-    results = {}
-    for refresh in (0.0, 0.05):
-        ccfg = cfg.controller.model_copy(update={"jacobian_refresh_error": refresh})
-        truth = ct.TruthPerturbation(E_scale=1.3, fiber_offset_rad=FIBER_15)
-        plant, ctrl, _ = loop_parts(tissue, tissue.scene.targets[0].rest, ct.TargetRun(truth=truth), refresh)
-        results[refresh] = (ct.run_loop(plant, ctrl, plans[0].desired, ccfg), ctrl.eq.stats["refactors"])
-    (exact, n_exact), (carried, n_carried) = results[0.0], results[0.05]
-    assert exact.converged and carried.converged
-    assert abs(carried.iterations - exact.iterations) <= 2
-    assert n_carried < n_exact
 
 
 # --------------------------------------------------------------------------

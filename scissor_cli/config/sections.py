@@ -211,10 +211,6 @@ class ControllerConfig(_Section):
     error: Literal["miss", "position"] = "miss"
     #: none: J is the model's; broyden: corrected online from each observed move (docs/model.md §15)
     jacobian_update: Literal["none", "broyden"] = "none"
-    #: the model's J at each command: 0 — its exact tangent, factored every time (the paper's); > 0 — carried by
-    #: the model's own moves (secant) and factored again once it mispredicts the model's target move by more than
-    #: this fraction of it (docs/model.md §6). The controller's own model only (layer or body).
-    jacobian_refresh_error: Num(0.0, 1.0) = 0.0
     #: the controller's (and planner's) model of the tissue (docs/model.md §15): layer — the 2-D layer (the paper);
     #: calibrated — the layer with one stroke transmission per cup fitted to the nominal slab; surrogate — learned
     #: from nominal slab equilibria; slab — the nominal slab itself (reference, slow). All but layer need layer_check.

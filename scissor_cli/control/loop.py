@@ -108,7 +108,7 @@ def run_loop(
     cup_names = cup_names or [f"cup{c}" for c in range(controller.n_cups)]
     dt = 1.0 / cfg.rate_hz
     pid = PID(cfg.kp, cfg.ki, cfg.kd, dt)
-    tangent = controller.shares(plant) and controller.exact_jacobian  # (else the controller refreshes its own)
+    tangent = controller.shares(plant)
     hist, corr_norms = History(), []
     command, sim_t, reason, message = controller.strokes.copy(), 0.0, "", ""
     max_step = plant.actuator.speed_mm_per_s * dt
@@ -325,7 +325,7 @@ def run_target(model: Tissue, target_rest: np.ndarray, desired: np.ndarray, cfg:
     through the reached true target is checked on the final true state:
     `corridor_clear`, `clearance_mm`, `corridor_entry`.
     """
-    plant, controller, direction = loop_parts(model, target_rest, run, cfg.jacobian_refresh_error)
+    plant, controller, direction = loop_parts(model, target_rest, run)
     scene = model.scene
     names = list(scene.cup_names)
     if run.mode == "closed":
@@ -345,16 +345,15 @@ def run_target(model: Tissue, target_rest: np.ndarray, desired: np.ndarray, cfg:
     return result
 
 
-def loop_parts(model: Tissue, target_rest: np.ndarray, run: TargetRun = TargetRun(),
-               jacobian_refresh_error: float = 0.0) -> tuple[Plant, Controller, Optional[np.ndarray]]:
+def loop_parts(model: Tissue, target_rest: np.ndarray, run: TargetRun = TargetRun()) -> tuple[Plant, Controller,
+                                                                                               Optional[np.ndarray]]:
     """The plant, the controller and the needle axis (d,) (or None) `run_target` runs its loop on.
 
     The truth is `true_tissue(model, run.truth)` or `run.truth_factory`'s
     tissue and view, its actuator the scene's limits and speeds with the
-    run's resolution and backlash; the controller is on the model, its J
-    carried between exact tangents up to `jacobian_refresh_error`
-    (`Controller`), or `run.controller_factory`'s. Both start at rest;
-    `run.guess` is handed to the trackers on `model`.
+    run's resolution and backlash; the controller is on the model (or
+    `run.controller_factory`'s). Both start at rest; `run.guess` is handed
+    to the trackers on `model`.
     """
     direction = needle_axis(run)
     scene = model.scene
@@ -368,8 +367,7 @@ def loop_parts(model: Tissue, target_rest: np.ndarray, run: TargetRun = TargetRu
     else:
         plant = Plant(**_made(run.truth_factory, run.truth), actuator=actuator, probe=probe, tol=run.tol)
     if run.controller_factory is None:
-        controller = Controller(model, probe, actuator.lo, actuator.hi, run.resolution_mm, run.tol, run.model_paths,
-                                jacobian_refresh_error)
+        controller = Controller(model, probe, actuator.lo, actuator.hi, run.resolution_mm, run.tol, run.model_paths)
     else:
         controller = run.controller_factory(actuator.lo, actuator.hi, run.resolution_mm, run.tol)
     if controller.shares(plant):

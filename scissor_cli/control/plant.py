@@ -92,21 +92,13 @@ class Controller:
     """
 
     def __init__(self, tissue: Tissue, probe: TargetProbe, lo, hi, resolution_mm: float = 0.0, tol: float = 1e-10,
-                 paths: Optional["ModelPaths"] = None, refresh_error: float = 0.0):
+                 paths: Optional["ModelPaths"] = None):
         self.tissue, self.probe = tissue, probe
         self.lo, self.hi = np.asarray(lo, float), np.asarray(hi, float)
         self.resolution_mm = resolution_mm
-        #: 0: the exact J at every command; > 0: J carried by secant updates, refreshed above this relative error
-        #: of its prediction of the model's own target move (`controller.jacobian_refresh_error`, docs/model.md §6)
-        self.refresh_error = float(refresh_error)
         self.eq = TrackedEquilibrium(tissue, tol)
         self.eq.move_to(self.eq.strokes, tangent=True)
         self.paths, self._commands = paths, ()
-
-    @property
-    def exact_jacobian(self) -> bool:
-        """Whether J is the model's exact tangent at every command (no secant carrying)."""
-        return self.refresh_error == 0.0
 
     @property
     def n_cups(self) -> int:
@@ -130,55 +122,21 @@ class Controller:
         """Move the model to the commanded strokes (C,) mm and update J there.
 
         When the plant is this very tissue and sits at exactly these strokes,
-        its equilibrium is taken over. With `paths`, a command sequence an
-        earlier loop of this model sent takes its state over; only states
-        with the exact tangent are kept there (a later loop's restore then
-        refactors exactly where this one did, so it goes on bit for bit).
+        its equilibrium (solved with its tangent) is taken over.
         """
-        commanded = np.asarray(commanded, float)
         same_state = plant is not None and self.shares(plant) and np.array_equal(plant.strokes, commanded)
-        if same_state and (plant.eq.jacobian_is_current or not self.exact_jacobian):
-            before = self._before_move()
+        if same_state and plant.eq.jacobian_is_current:
             self.eq.adopt(plant.eq)
-            self._refresh_if_mispredicted(*before)
         elif self.paths is None or (plant is not None and self.shares(plant)):
-            self._move(commanded)
+            self.eq.move_to(commanded, tangent=True)
         else:  # the same commands from rest as an earlier loop of this model: the same states, taken over
-            self._commands = (self._commands, commanded.tobytes())
+            self._commands = (self._commands, np.asarray(commanded, float).tobytes())
             state = self.paths.get(self._commands)
             if state is None:
-                self._move(commanded)
-                if self.eq.jacobian_is_current:
-                    self.paths.put(self._commands, self.eq.snapshot())
+                self.eq.move_to(commanded, tangent=True)
+                self.paths.put(self._commands, self.eq.snapshot())
             else:
                 self.eq.restore(state)
-
-    def _move(self, commanded: np.ndarray) -> None:
-        if self.exact_jacobian:
-            self.eq.move_to(commanded, tangent=True)
-            return
-        before = self._before_move()
-        self.eq.move_to(commanded, tangent=False)
-        self._refresh_if_mispredicted(*before)
-
-    def _model_target(self) -> np.ndarray:
-        """The model's target (d,) mm at its equilibrium."""
-        return target_positions(self.probe, self.eq.x)[0]
-
-    def _before_move(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(J (d, C), strokes (C,), target (d,)) of the model before a move: what `_refresh_if_mispredicted` checks."""
-        return apply_probe(self.probe, self.eq.response, self.tissue.dim), self.strokes.copy(), self._model_target()
-
-    def _refresh_if_mispredicted(self, J: np.ndarray, strokes: np.ndarray, target: np.ndarray) -> None:
-        """Factor the exact tangent at the new state when J (d, C) from before the move mispredicted the model's
-        target move by more than `refresh_error` of it; else J goes on as the move's secant update
-        (`TrackedEquilibrium.move_to` without the tangent)."""
-        if self.eq.jacobian_is_current:
-            return
-        moved = self._model_target() - target
-        mispredicted = np.linalg.norm(moved - J @ (self.strokes - strokes))
-        if mispredicted > self.refresh_error * np.linalg.norm(moved):
-            self.eq.refactor(self.eq.x)
 
 
 class ModelPaths:

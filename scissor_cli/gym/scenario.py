@@ -137,14 +137,13 @@ def episode_run(model: Built, task: TargetTask, trial: Optional[int]) -> tuple[T
 def episode_parts(model: Built, task: TargetTask, trial: Optional[int], plant: str = "body"):
     """(plant, controller, needle axis (d,) or None, run) of one episode.
 
-    plant "body" (a layer's too): `loop_parts` on the run (the controller's J as the config's
-    `controller.jacobian_refresh_error` says); "surrogate": a
+    plant "body" (a layer's too): `loop_parts` on the run; "surrogate": a
     `SurrogatePlant` with the run's actuator errors and a `MapController`
     on the same map (its J the map's derivative).
     """
     tissue, run = episode_run(model, task, trial)
     if plant != "surrogate":
-        parts = loop_parts(tissue, task.rest, run, model.cfg.controller.jacobian_refresh_error)
+        parts = loop_parts(tissue, task.rest, run)
         return (*parts, run)
     actuator = Actuator.from_scene(model.tissue.scene, run.resolution_mm, run.backlash_mm)
     truth = SurrogatePlant(model.surrogate, task.index, actuator)
