@@ -36,8 +36,9 @@ def solve_p2(nodes: np.ndarray, cells: np.ndarray, held: np.ndarray, displacemen
 
 @dataclass
 class P2System:
-    """P2 linear elasticity on a mesh: its basis, the stiffness form, the held dofs (H,) and their values in u
-    (n_dofs,) mm, and each dof's node (n_dofs,): a vertex's index, or N + its edge's (facet's in 2-D)."""
+    """P2 linear elasticity on a mesh: its basis, the stiffness form and E (kPa) as a P0 field it takes, the held
+    dofs (H,) and their values in u (n_dofs,) mm, and each dof's node (n_dofs,): a vertex's index, or N + its
+    edge's (facet's in 2-D)."""
 
     basis: object
     form: object
