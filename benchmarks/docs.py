@@ -885,6 +885,19 @@ def _body(r) -> str:
     return table(["measurement", "value", "note"], rows) + "\n\n" + source(r)
 
 
+@renderer("body_truth_tol", "bench_body_truth_tol")
+def _body_truth_tol(r) -> str:
+    """benchmarks/bench_body_truth_tol.py: a trial's true dome settled at each relative residual along a travel."""
+    d = r["data"]["replay"]
+    rows = [[f"`{x['element']}`", f"{x['tol']:g}", f"{num(x['lesion_off_mm'])} mm",
+             f"{fixed(x['settle_median_s'], 2)} s", f"{fixed(x['replay_s'], 1)} s", x["factorisations"],
+             x["newton_iterations"]] for x in rows_of(r, "tolerances")]
+    return (table(["element", "relative residual", "lesion from its 1e-10 settle (max)", "a settle (median)",
+                   "the travel", "factorisations", "Newton iterations"], rows)
+            + f"\n\n{d['config']}, {d['target']}'s first trial's truth, {d['moves']} moves of {d['step_mm']} mm from "
+              f"rest.\n\n" + source(r))
+
+
 @renderer("body_insertion", "bench_body_insertion")
 def _body_insertion(r) -> str:
     """benchmarks/bench_body_insertion.py: one insertion per strategy in the example dome's body, the capture

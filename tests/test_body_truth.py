@@ -3,15 +3,21 @@ body at `controller.mesh_scale` (set by `tissue.accuracy_mm`), the trials' truth
 
 from __future__ import annotations
 
+import dataclasses
+
 import h5py
 import numpy as np
 import pytest
 import yaml
 
 from scissor_cli.config.loading import parse_config
+from scissor_cli.control.loop import loop_parts
 from scissor_cli.control.plant import TruthPerturbation
-from scissor_cli.experiments.body_trials import BodyTruth
+from scissor_cli.experiments.body_trials import BODY_TRUTH_TOL, BodyTrialContext, BodyTruth
 from scissor_cli.experiments.build import body_model
+from scissor_cli.experiments.trial_types import TargetTask
+from scissor_cli.mesh.probe import target_positions
+from scissor_cli.solvers.tracking import TrackedEquilibrium
 
 from helpers import simulate_here, write_scene
 from test_body_loop import SCENE, _true_miss
@@ -36,6 +42,27 @@ def test_the_truth_is_the_configured_mesh_and_the_model_is_coarser():
     same = parse_config(yaml.safe_dump(_scene()), "<test>")
     _, _, same_model = body_model(same)
     assert BodyTruth(same, same_model).factory(rest) is None  # mesh_scale 1: the truth is the model's mesh
+
+
+def test_a_trials_truth_settles_to_the_body_truth_tolerance_and_the_model_to_the_loops():
+    """BODY_TRUTH_TOL reaches a trial's perturbed truth only: the controller's model (its J) and a truth that is the
+    model itself keep the loop's tolerance. Along a few moves the lesion settled at BODY_TRUTH_TOL stays within
+    1e-4 mm of its 1e-10 settle, far below a camera's noise (σ ≈ 0.15 mm)."""
+    ctx = BodyTrialContext(yaml.safe_dump(dict(_scene(), trials={"count": 1, "profile": "prosthesis"})))
+    target = ctx.cfg.targets[0]
+    task = TargetTask(0, target.name, np.asarray(target.position_mm, float), np.asarray(target.desired_mm, float),
+                      np.zeros(ctx.tissue.n_cups), "", np.array([-1.0, 0.0, 0.0]))
+    run, _ = ctx.target_run(task, 0)
+    plant, controller, _ = loop_parts(ctx.tissue, task.rest, run)
+    assert plant.tissue is not ctx.tissue and plant.eq.tol == BODY_TRUTH_TOL > run.tol == controller.eq.tol
+    shared, _, _ = loop_parts(ctx.tissue, task.rest, dataclasses.replace(run, truth=TruthPerturbation()))
+    assert shared.tissue is ctx.tissue and shared.eq.tol == run.tol
+    probe = plant.tissue.element.probe(plant.tissue.rest, task.rest[None])
+    loose, tight = TrackedEquilibrium(plant.tissue, BODY_TRUTH_TOL), TrackedEquilibrium(plant.tissue, 1e-10)
+    for strokes in ([1.5, 0.0], [3.0, -1.0], [3.5, -2.0]):
+        loose.move_to(np.array(strokes), tangent=False)
+        tight.move_to(np.array(strokes), tangent=False)
+        assert np.linalg.norm(target_positions(probe, loose.x) - target_positions(probe, tight.x)) <= 1e-4
 
 
 def test_a_coarser_model_with_broyden_still_puts_every_lesion_on_the_finer_truths_needle(tmp_path):

@@ -203,6 +203,33 @@ def test_large_2d_factors_are_ordered_by_nested_dissection():
     assert small.factor_cache["free"].ordering == "amd"
 
 
+def test_a_new_slot_on_a_known_pattern_reuses_its_nested_dissection(monkeypatch):
+    """Each trial's trackers open slots of their own on one pattern: METIS runs for the first only, the others
+    take its ordering from the tissue's cache (the same ordering, so the same factor); a given ordering must fit."""
+    from types import SimpleNamespace
+
+    from scissor_cli.solvers import linear
+
+    A = _laplacian_3d(8, 0.5)
+    upper = sp.triu(A).tocsr()
+    tissue = SimpleNamespace(factor_cache={}, dim=3, free_dofs=np.arange(A.shape[0]))
+    calls = []
+    metis = linear.nested_dissection
+    monkeypatch.setattr(linear, "nested_dissection", lambda *a: calls.append(1) or metis(*a))
+    b = np.random.default_rng(5).random(A.shape[0])
+    first, second = {}, {}
+    x1 = linear.factorize_free(tissue, upper, first).solve(b)
+    x2 = linear.factorize_free(tissue, upper, second).solve(b)
+    assert len(calls) == 1 and second["free"] is not first["free"]
+    assert np.array_equal(second["free"].perm, first["free"].perm)
+    np.testing.assert_array_equal(x2, x1)
+    assert np.linalg.norm(A @ x1 - b) <= 1e-10 * np.linalg.norm(b)
+    with pytest.raises(ValueError):
+        Factorization(upper, definite=True, upper=True, ordering="nested_dissection", perm=np.arange(3))
+    with pytest.raises(ValueError):
+        Factorization(upper, definite=True, upper=True, perm=first["free"].perm)  # (AMD takes none)
+
+
 def _laplacian_2d_blocks(m: int) -> sp.csr_matrix:
     """A 2-D grid Laplacian (m², m²) + I, each node carrying 2 unknowns (I ⊗ 2x2 SPD block): a 2-D stiffness's
     pattern."""

@@ -281,7 +281,9 @@ class TargetRun:
     the backlash); sensor: how the target is seen; corridor: the plan's
     needle corridor, checked on the final true state; mode "closed" (the
     loop) or "open" (one Jacobian step, the baseline); target: its name;
-    tol: the solves' relative residual; guess: (strokes (C,), x (N, 2)) a
+    tol: the solves' relative residual; truth_tol: the true tissue's, when
+    it is not the model itself (None: tol; a camera reads the truth to
+    its noise, the controller's J wants the model tighter); guess: (strokes (C,), x (N, 2)) a
     known equilibrium of the model the first big move may start from;
     truth_guess: the same for the truth (x on the truth's mesh: an earlier
     loop's end on the same true tissue);
@@ -303,6 +305,7 @@ class TargetRun:
     mode: str = "closed"
     target: str = ""
     tol: float = 1e-10
+    truth_tol: Optional[float] = None
     guess: Optional[tuple[np.ndarray, np.ndarray]] = None
     truth_guess: Optional[tuple[np.ndarray, np.ndarray]] = None
     direction: Optional[np.ndarray] = None
@@ -362,10 +365,12 @@ def loop_parts(model: Tissue, target_rest: np.ndarray, run: TargetRun = TargetRu
     else:
         probe = probe_targets(model.mesh, np.asarray(target_rest, float)[None])
     actuator = Actuator.from_scene(scene, run.resolution_mm, run.backlash_mm)
+    truth_tol = run.tol if run.truth_tol is None else run.truth_tol
     if run.truth_factory is None:
-        plant = Plant(true_tissue(model, run.truth), actuator, probe, run.tol)
+        truth = true_tissue(model, run.truth)
+        plant = Plant(truth, actuator, probe, run.tol if truth is model else truth_tol)
     else:
-        plant = Plant(**_made(run.truth_factory, run.truth), actuator=actuator, probe=probe, tol=run.tol)
+        plant = Plant(**_made(run.truth_factory, run.truth), actuator=actuator, probe=probe, tol=truth_tol)
     if run.controller_factory is None:
         controller = Controller(model, probe, actuator.lo, actuator.hi, run.resolution_mm, run.tol, run.model_paths)
     else:

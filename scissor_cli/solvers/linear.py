@@ -69,7 +69,9 @@ class Factorization:
     (CHOLMOD's own, cvxopt's CHOLMOD has no METIS) or "nested_dissection"
     (METIS through pymetis, `nested_dissection`), computed once per pattern;
     `groups` (n,) numbers each unknown's node so the ordering keeps a node's
-    unknowns together. On a 3-D tetrahedral tangent AMD fills in badly:
+    unknowns together; `perm` (n,), a nested-dissection ordering already
+    computed for this pattern (`perm` of an earlier factorisation), skips
+    METIS. On a 3-D tetrahedral tangent AMD fills in badly:
     nested dissection halves the factor's nonzeros and its time at 65k
     unknowns (docs/performance.md). In 2-D AMD is as good up to ~10k
     unknowns; beyond, nested dissection wins too (fewer nonzeros, a faster
@@ -78,9 +80,12 @@ class Factorization:
     """
 
     def __init__(self, A: sp.spmatrix, definite: bool = False, upper: bool = False,
-                 ordering: str = "amd", groups: np.ndarray | None = None, supernodal: bool = True):
+                 ordering: str = "amd", groups: np.ndarray | None = None, supernodal: bool = True,
+                 perm: np.ndarray | None = None):
         if ordering not in ("amd", "nested_dissection"):
             raise ValueError(f"unknown ordering {ordering!r}: 'amd' or 'nested_dissection'")
+        if perm is not None and (ordering != "nested_dissection" or len(perm) != A.shape[0]):
+            raise ValueError("a given perm is a nested-dissection ordering of A's unknowns")
         self.definite = definite
         self.supernodal = supernodal
         self.upper = upper
@@ -96,6 +101,7 @@ class Factorization:
         self.cg_rate: float | None = None
         self._pattern: tuple | None = None
         self._chol = self._ldl = None
+        self._given_perm = None if perm is None else cvxopt.matrix(np.asarray(perm).tolist(), tc="i")
         self.refactor(A)
 
     def refactor(self, A: sp.spmatrix) -> "Factorization":
@@ -111,7 +117,8 @@ class Factorization:
             upper = slice(None) if self.upper else A.indices >= row
             lower = cvxopt.spmatrix(A.data[upper], A.indices[upper].astype(int), row[upper].astype(int), (n, n))
             self._pattern, self._upper, self._lower = (A.nnz, n), upper, lower
-            self._chol = self._ldl = self._perm = None
+            self._chol = self._ldl = None
+            self._perm, self._given_perm = self._given_perm, None  # (given for the first pattern only)
         else:
             self._lower.V = cvxopt.matrix(A.data[self._upper])
         self.factorizations += 1
@@ -162,6 +169,12 @@ class Factorization:
         """Whether A (as given to `refactor`) has the pattern's size and entry count, so the factor can
         precondition it."""
         return self._pattern is not None and (A.nnz, A.shape[0]) == self._pattern
+
+    @property
+    def perm(self) -> np.ndarray | None:
+        """The nested-dissection ordering (n,) this factor's analysis was given (METIS's, or `perm`'s), or None
+        (AMD): what another factorisation of the same pattern may take as its `perm`."""
+        return None if self._perm is None else np.asarray(memoryview(self._perm)).ravel().astype(np.int64)
 
     @property
     def nnz_factor(self) -> int:
@@ -380,7 +393,11 @@ def factorize_free(tissue, K_upper: sp.csr_matrix, factors: dict | None = None,
 
     Refactors the symbolic analysis kept in `factors["free"]` (default: the
     tissue's own slot, one per mesh and boundary set, shared by every solve
-    on it; the controller's trackers keep their own); raises SolverError if
+    on it; the controller's trackers keep their own). A new slot's nested
+    dissection is computed once per pattern and kept in the tissue's cache
+    (shared by the tissues `Tissue.with_material` derives): each trial's
+    trackers analyse the same pattern again, and METIS is most of that
+    analysis on the nodal element's wider pattern. Raises SolverError if
     K_ff is not positive definite (Newton then projects). A 3-D tissue's
     factor is ordered by nested dissection (`Factorization`), a 2-D one's by
     AMD below ND_MIN_UNKNOWNS_2D unknowns and by nested dissection above.
@@ -391,7 +408,12 @@ def factorize_free(tissue, K_upper: sp.csr_matrix, factors: dict | None = None,
     if factor is None:
         large = tissue.dim == 3 or K_upper.shape[0] >= ND_MIN_UNKNOWNS_2D
         ordering = "nested_dissection" if large else "amd"
+        known = ("ordering", K_upper.shape[0], K_upper.nnz)  # (a wrong match would only cost fill, never accuracy)
+        perm = tissue.factor_cache.get(known) if large else None
         factor = factors["free"] = Factorization(K_upper, definite=True, upper=True, ordering=ordering,
-                                                 groups=tissue.free_dofs // tissue.dim, supernodal=supernodal)
+                                                 groups=tissue.free_dofs // tissue.dim, supernodal=supernodal,
+                                                 perm=perm)
+        if large and perm is None and factor.perm is not None:
+            tissue.factor_cache[known] = factor.perm
         return factor
     return factor.refactor(K_upper)
