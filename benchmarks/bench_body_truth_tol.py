@@ -6,7 +6,7 @@ a loop's top-speed travel on the first trial's perturbed truth of the paper dome
 settled by the loop's tracker (`TrackedEquilibrium.move_to`, no tangent) at each relative residual in TOLS.
 Per element and tolerance: the largest distance of the lesion from its 1e-10 settle over the moves, the
 settle's median time, the factorisations and Newton iterations. `experiments.body_trials.BODY_TRUTH_TOL`
-is chosen from this table. About 3 minutes on 2 cores.
+is chosen from this table. About a minute and a half on 2 cores.
 
     PYTHONPATH=. python3 benchmarks/bench_body_truth_tol.py
 """

@@ -282,9 +282,10 @@ class TargetRun:
     needle corridor, checked on the final true state; mode "closed" (the
     loop) or "open" (one Jacobian step, the baseline); target: its name;
     tol: the solves' relative residual; truth_tol: the true tissue's, when
-    it is not the model itself (None: tol; a camera reads the truth to
-    its noise, the controller's J wants the model tighter); guess: (strokes (C,), x (N, 2)) a
-    known equilibrium of the model the first big move may start from;
+    it is not the model itself (None: tol; a camera reads the truth to its
+    noise, the controller's J wants the model tighter); guess: (strokes
+    (C,), x (N, 2)) a known equilibrium of the model the first big move
+    may start from;
     truth_guess: the same for the truth (x on the truth's mesh: an earlier
     loop's end on the same true tissue);
     direction (2,): the needle axis of the miss (default the corridor's);
