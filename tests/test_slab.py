@@ -280,7 +280,7 @@ def test_shifted_hessian_factors_with_the_smallest_shift_and_starts_near_the_las
     lam[0] = -0.004  # k̄ ≈ 1.5: μ = 1e-3 is not enough, 1e-2 is
     K = sp.csr_matrix(np.triu((Q * lam) @ Q.T))
     g = rng.normal(size=n)
-    tissue = type("T", (), {"dim": 3, "free_dofs": np.arange(n)})()
+    tissue = type("T", (), {"dim": 3, "free_dofs": np.arange(n), "factor_cache": {}})()
     factors: dict = {}
     d, tries = _shifted_solve(tissue, K, g, factors)
     assert factors["shift"] == 1e-2 and tries == SHIFTS.index(1e-2) + 1
