@@ -9,12 +9,14 @@ paper's layer on each lesion's section (docs/model.md §19, "Control"), holding 
 (the reduction's assumption; default bottom, the side opposite the cup); --model surrogate, the surrogate
 learned from the body; --mesh-scale the controller's body that much coarser than the truth's
 (`controller.mesh_scale`); --trials overrides the 30 per target; --element nodal runs truth and model on the
-element that does not lock (docs/model.md §21; variant "nodal").
+element that does not lock (docs/model.md §21; variant "nodal"); --grading sets `tissue.mesh.grading` (the body's
+edge growth per mm from its features; a coarser mesh for an element accurate on it; variant "grading-G").
 
     PYTHONPATH=. python3 benchmarks/bench_dome_study.py [--example]
     PYTHONPATH=. python3 benchmarks/bench_dome_study.py --model layer [--section-fixed bottom,left,right]
     PYTHONPATH=. python3 benchmarks/bench_dome_study.py --model surrogate | --mesh-scale 2
-    PYTHONPATH=. python3 benchmarks/bench_dome_study.py --element nodal     # about 25 minutes on 2 cores
+    PYTHONPATH=. python3 benchmarks/bench_dome_study.py --element nodal     # about 20 minutes on 2 cores
+    PYTHONPATH=. python3 benchmarks/bench_dome_study.py --element nodal --grading 0.5
 """
 
 from __future__ import annotations
@@ -79,6 +81,8 @@ def main() -> None:
     ap.add_argument("--trials", type=int, default=None, help="trials per target (default: the config's)")
     ap.add_argument("--element", choices=("p1", "nodal"), default=None,
                     help="tissue.mesh.element, the truth's and the model's (default: the config's)")
+    ap.add_argument("--grading", type=float, default=None,
+                    help="tissue.mesh.grading, the edge's growth per mm from the features (default: the config's)")
     args = ap.parse_args()
     config = ROOT / "configs" / ("example_dome.yaml" if args.example else "paper_trials_prosthesis_dome.yaml")
     sides = args.section_fixed.split(",")
@@ -91,6 +95,8 @@ def main() -> None:
         variant = (variant + "." if variant else "") + f"mesh-scale-{args.mesh_scale:g}"
     if args.element is not None and args.element != "p1":
         variant = (variant + "." if variant else "") + args.element
+    if args.grading is not None:
+        variant = (variant + "." if variant else "") + f"grading-{args.grading:g}"
     res = results_io.Results("bench_dome_study", variant)
     scene = yaml.safe_load(config.read_text())
     scene["controller"]["model"] = args.model
@@ -101,6 +107,8 @@ def main() -> None:
         scene["trials"]["count"] = args.trials
     if args.element is not None:
         scene["tissue"].setdefault("mesh", {})["element"] = args.element
+    if args.grading is not None:
+        scene["tissue"].setdefault("mesh", {})["grading"] = args.grading
     rows, wall, cpu = simulate_scene(scene, config.name)
     res.figure("wall_s", wall, "s")
     res.figure("cpu_s", cpu, "s")
@@ -112,6 +120,7 @@ def main() -> None:
     res.data("section_fixed", sides if args.model == "layer" else None)
     res.data("mesh_scale", args.mesh_scale)
     res.data("element", scene["tissue"].get("mesh", {}).get("element", "p1"))
+    res.data("grading", scene["tissue"].get("mesh", {}).get("grading"))
     for row in rows:
         print(f"{row['target']}: max |x| {row['max_x_mm']:.2f}, |y| {row['max_y_mm']:.2f}, |z| {row['max_z_mm']:.2f} "
               f"mm; miss median {row['miss_median_mm']:.2f}, p95 {row['miss_p95_mm']:.2f} mm", flush=True)
