@@ -19,7 +19,12 @@ And a trial with the needle (goal §20: every strategy ≤ 15 s): `scissor simul
 `insertion` (every strategy) and TRIALS trials per lesion, one process (`--jobs 1`); each trial's time from
 results.h5 (its loop and its three insertions in the drawn true body), and each strategy's miss.
 
+With --element and --grading the whole benchmark runs on that element and mesh grading (`tissue.mesh.element`,
+`tissue.mesh.grading`; variant "ELEMENT.grading-G"), and --scale-30k names the mesh scale that gives about 30k
+tetrahedra on it.
+
     PYTHONPATH=. python benchmarks/bench_body_insertion.py [--depth-mm 50] [--step-mm 0.5] [--repeats 3]
+    PYTHONPATH=. python benchmarks/bench_body_insertion.py --element nodal --grading 0.5 --scale-30k 0.7
 """
 
 from __future__ import annotations
@@ -103,7 +108,11 @@ def main() -> None:
     ap.add_argument("--depth-mm", type=float, default=50.0)
     ap.add_argument("--step-mm", type=float, default=0.5)
     ap.add_argument("--repeats", type=int, default=3, help="timed runs per strategy (the median is reported)")
+    ap.add_argument("--element", choices=("p1", "nodal"), default=None, help="tissue.mesh.element (the config's)")
+    ap.add_argument("--grading", type=float, default=None, help="tissue.mesh.grading (the config's)")
+    ap.add_argument("--scale-30k", type=float, default=SCALE_30K, help="the mesh scale giving about 30k tetrahedra")
     args = ap.parse_args()
+    mesh_options = {k: v for k, v in (("element", args.element), ("grading", args.grading)) if v is not None}
     runtime.configure()
     from scissor_cli.config import load_config
     from scissor_cli.config.sections import InsertionConfig
@@ -113,8 +122,11 @@ def main() -> None:
     from scissor_cli.planning.body_lines import skin_entries
     from scissor_cli.solvers.equilibrium import solve_equilibrium
 
-    res = results_io.Results("bench_body_insertion")
+    variant = ".".join([args.element or "p1"] + ([f"grading-{args.grading:g}"] if args.grading is not None else []))
+    res = results_io.Results("bench_body_insertion", None if not mesh_options else variant)
     cfg = load_config(CONFIG)
+    cfg = cfg.model_copy(update={"tissue": cfg.tissue.model_copy(
+        update={"mesh": cfg.tissue.mesh.model_copy(update=mesh_options)})})
     scene, mesh, tissue = body_model(cfg)
     params = NeedleParams.from_config(InsertionConfig(step_mm=args.step_mm), cfg.needle, cfg.tissue.mesh)
     lesion = scene.targets[0]
@@ -167,7 +179,7 @@ def main() -> None:
     res.table("tolerances", sweep, {"wall_s": "s", "force_mN": "mN", "miss_mm": "mm", "target_off_mm": "mm",
                                     "force_off_mN": "mN"})
     # the goal's size: the same insertion in the same dome meshed finer, to about 30k tetrahedra
-    _, mesh_30k, tissue_30k = body_model(cfg, scale=SCALE_30K)
+    _, mesh_30k, tissue_30k = body_model(cfg, scale=args.scale_30k)
     x0_30k = solve_equilibrium(tissue_30k, strokes).x
     walls = []
     for _ in range(args.repeats):
@@ -176,7 +188,7 @@ def main() -> None:
                            {"none": InsertionOptions("none", cfg.controller, keep_displacement=False)})[0]
         walls.append(time.perf_counter() - t0)
     wall = float(np.median(walls))
-    print(f"  none at {mesh_30k.n_elements} tetrahedra (mesh scale {SCALE_30K:g}): {wall:.1f} s (median of "
+    print(f"  none at {mesh_30k.n_elements} tetrahedra (mesh scale {args.scale_30k:g}): {wall:.1f} s (median of "
           f"{len(walls)}), miss {r.miss_mm:.3f} mm", flush=True)
     res.figure("tetrahedra_30k", mesh_30k.n_elements, "1")
     res.figure("none_30k_s", wall, "s")
@@ -189,7 +201,9 @@ def main() -> None:
     res.figure("jacobian_direct_difference", worst, "relative")
     res.table("jacobian_checks", [{"depth_mm": z, "difference": d} for z, d in differences],
               {"depth_mm": "mm", "difference": "relative"})
-    trials, strategies = trial_times(yaml.safe_load(CONFIG.read_text()))
+    scene_data = yaml.safe_load(CONFIG.read_text())
+    scene_data["tissue"].setdefault("mesh", {}).update(mesh_options)
+    trials, strategies = trial_times(scene_data)
     times = [x["trial_s"] for x in trials]
     print(f"  a trial with the needle ({', '.join(strategies)}): median {np.median(times):.1f} s, slowest "
           f"{max(times):.1f} s over {len(times)} trials", flush=True)
@@ -199,6 +213,8 @@ def main() -> None:
     res.table("strategies", rows, {"depth_mm": "mm", "wall_s": "s", "miss_mm": "mm", "force_mN": "mN"})
     res.data("config", str(CONFIG.relative_to(ROOT)))
     res.data("default_step_tol", params.step_tol)
+    res.data("mesh_options", mesh_options)
+    res.data("scale_30k", args.scale_30k)
     res.write()
 
 
