@@ -11,7 +11,7 @@ later Newton step and control move pays; the median of --repeats), the two forwa
 solves, and the lesions' largest distance from the reference (mm, and % of the reference's move). The timed
 peer in the same run is `p1` on the default mesh, what the dome study runs today.
 
-    PYTHONPATH=. python3 benchmarks/bench_element_meshes.py      # about 8 minutes on 2 cores
+    PYTHONPATH=. python3 benchmarks/bench_element_meshes.py      # about 5 minutes on 2 cores
 
 Writes benchmarks/results/bench_element_meshes.json.
 """
