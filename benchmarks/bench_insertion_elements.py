@@ -1,0 +1,98 @@
+"""The needle in the body, speed against error per element and mesh (docs/model.md §20, §21); not a test.
+
+configs/example_dome.yaml's body, the needle along −x through T1 at rest from where that line enters the skin,
+50 mm in 0.5 mm steps, strategy `none`, the default needle–tissue parameters (§12), on `p1` and `nodal` over
+meshes of growing `tissue.mesh.grading` (and `p1` refined to about 30k tetrahedra, the size of the insertion's
+time goal). The reference is `nodal` on the default grading with every edge × REFERENCE_SCALE. Per row: the
+tetrahedra, the insertion's wall time (the median of --repeats), where the lesion ends (its drag by the
+needle) and how far that is from the reference's (mm, and % of the reference's drag), the needle's last force
+and the lesion's miss. What it answers: which element and mesh reach a given accuracy of the insertion's drag
+fastest, the fair form of "a 50 mm insertion ≤ 5 s" once the elements differ in accuracy.
+
+    PYTHONPATH=. python3 benchmarks/bench_insertion_elements.py      # about 6 minutes on 2 cores
+
+Writes benchmarks/results/bench_insertion_elements.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import results_io  # noqa: E402
+
+from scissor_cli import runtime  # noqa: E402
+from scissor_cli.config import load_config  # noqa: E402
+from scissor_cli.config.sections import InsertionConfig  # noqa: E402
+from scissor_cli.experiments.build import body_model  # noqa: E402
+from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_strategies  # noqa: E402
+from scissor_cli.planning.body_lines import skin_entries  # noqa: E402
+from scissor_cli.solvers.equilibrium import solve_equilibrium  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIG = ROOT / "configs" / "example_dome.yaml"
+DEPTH_MM, STEP_MM = 50.0, 0.5
+REFERENCE_SCALE = 0.7
+#: (element, grading, mesh scale): the rows, the reference first
+ROWS = (("nodal", 0.3, REFERENCE_SCALE), ("p1", 0.3, 1.0), ("p1", 0.3, 0.85), ("nodal", 0.3, 1.0),
+        ("p1", 0.5, 1.0), ("nodal", 0.5, 1.0), ("p1", 0.7, 1.0), ("nodal", 0.7, 1.0))
+
+
+def insertion(element: str, grading: float, scale: float, repeats: int) -> dict:
+    """One `none` insertion on (element, grading, scale): the mesh, its median time and where it leaves T1."""
+    cfg = load_config(CONFIG)
+    mesh_cfg = cfg.tissue.mesh.model_copy(update={"element": element, "grading": grading})
+    cfg = cfg.model_copy(update={"tissue": cfg.tissue.model_copy(update={"mesh": mesh_cfg})})
+    scene, mesh, tissue = body_model(cfg, cache=ROOT / "runs" / ".mesh-cache", scale=scale)
+    params = NeedleParams.from_config(InsertionConfig(step_mm=STEP_MM), cfg.needle, cfg.tissue.mesh)
+    lesion, n = scene.targets[0], np.array([-1.0, 0.0, 0.0])
+    entries, _, _ = skin_entries(mesh.nodes, mesh.boundary_triangles, np.zeros(len(mesh.boundary_triangles), bool),
+                                 lesion.rest, n[None])
+    strokes = np.zeros(len(scene.cups))
+    x0 = solve_equilibrium(tissue, strokes).x
+    path = NeedlePath(entries[0], n, DEPTH_MM, lesion.rest, lesion.name)
+    walls, r = [], None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        r = run_strategies(tissue, x0, strokes, {"none": path}, params,
+                           {"none": InsertionOptions("none", cfg.controller, keep_displacement=False)})[0]
+        walls.append(time.perf_counter() - t0)
+    return {"element": element, "grading": grading, "scale": scale, "tetrahedra": int(mesh.n_elements),
+            "wall_s": statistics.median(walls), "steps": r.steps, "lesion_end_mm": r.target[-1].tolist(),
+            "drag_mm": float(np.linalg.norm(r.target[-1] - lesion.rest)),
+            "force_mN": float(r.needle_force_mN[-1]), "miss_mm": r.miss_mm, "stop": r.stop_reason}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeats", type=int, default=2, help="timed insertions per row (the median)")
+    args = ap.parse_args()
+    runtime.configure()
+    res = results_io.Results("bench_insertion_elements")
+    rows = []
+    for element, grading, scale in ROWS:
+        row = insertion(element, grading, scale, 1 if not rows else args.repeats)
+        ref = rows[0] if rows else row
+        off = float(np.linalg.norm(np.subtract(row["lesion_end_mm"], ref["lesion_end_mm"])))
+        row |= {"error_mm": off, "error_pct": 100.0 * off / ref["drag_mm"], "reference": not rows}
+        rows.append(row)
+        print(f"{element} grading {grading} ×{scale:g}: {row['tetrahedra']} tetrahedra, {row['wall_s']:.1f} s, "
+              f"drag {row['drag_mm']:.3f} mm, {off:.3f} mm ({row['error_pct']:.1f} %) off the reference, "
+              f"force {row['force_mN']:.0f} mN, miss {row['miss_mm']:.3f} mm ({row['stop']})", flush=True)
+    res.table("insertions", rows, units={"wall_s": "s", "drag_mm": "mm", "force_mN": "mN", "miss_mm": "mm",
+                                         "error_mm": "mm", "error_pct": "%"})
+    res.data("config", str(CONFIG.relative_to(ROOT)))
+    res.data("depth_mm", DEPTH_MM)
+    res.data("step_mm", STEP_MM)
+    res.write()
+
+
+if __name__ == "__main__":
+    main()
