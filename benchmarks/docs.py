@@ -83,6 +83,7 @@ COMMANDS = {
     "bench_hard_cases": "python3 benchmarks/bench_hard_cases.py",
     "bench_elements": "python3 benchmarks/bench_elements.py",
     "bench_element_meshes": "python3 benchmarks/bench_element_meshes.py",
+    "bench_insertion_elements": "python3 benchmarks/bench_insertion_elements.py",
     "bench_dome_study.nodal.grading-0.5": "python3 benchmarks/bench_dome_study.py --element nodal --grading 0.5",
     "bench_dome_study.example.nodal.grading-0.5":
         "python3 benchmarks/bench_dome_study.py --example --element nodal --grading 0.5",
@@ -574,6 +575,23 @@ def _element_meshes(r) -> str:
               "and in % of the reference's move. A factorisation: the tangent at rest, numeric only (the pattern "
               "analysed), the median of the repeats. "
               + source(r))
+
+
+@renderer("insertion_elements", "bench_insertion_elements")
+def _insertion_elements(r) -> str:
+    rows = rows_of(r, "insertions")
+
+    def off(x) -> str:
+        return "–" if x["reference"] else f"{fixed(x['error_mm'], 3)} ({fixed(x['error_pct'], 1)} %)"
+
+    out = [[f"`{x['element']}`", fixed(x["grading"], 1) + (f", ×{x['scale']:g}" if x["scale"] != 1.0 else "")
+            + (" (the reference)" if x["reference"] else ""), num(x["tetrahedra"]), fixed(x["wall_s"], 1),
+            fixed(x["drag_mm"], 3), off(x), fixed(x["force_mN"], 0), fixed(x["miss_mm"], 3)] for x in rows]
+    return (table(["element", "grading", "tetrahedra", "the insertion (s)", "the lesion's drag (mm)",
+                   "its end off the reference, mm (% of the drag)", "last force (mN)", "miss (mm)"], out)
+            + f"\n\nconfigs/example_dome.yaml, T1 along −x from the skin, {num(r['data']['depth_mm'])} mm in "
+              f"{num(r['data']['step_mm'])} mm steps, `none`, the default needle–tissue parameters; ×s: "
+              "`tissue.mesh.scale`; the time is the median of the repeats. " + source(r))
 
 
 @renderer("element_default", "bench_element_meshes", "bench_dome_study", "bench_dome_study.nodal.grading-0.5",
