@@ -33,7 +33,6 @@ import results_io  # noqa: E402
 from scissor_cli import runtime  # noqa: E402
 from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.experiments.build import body_model  # noqa: E402
-from scissor_cli.mechanics.body_tissue import build_body  # noqa: E402
 from scissor_cli.mesh.probe import probe_points, target_positions  # noqa: E402
 from scissor_cli.solvers.equilibrium import solve_equilibrium  # noqa: E402
 from scissor_cli.solvers.linear import factorize_free  # noqa: E402
@@ -47,17 +46,16 @@ STROKES_MM = (10.0, -10.0)
 REFERENCE_SCALE = 0.7
 
 
-def _config(nu: float, grading: float):
+def _config(nu: float, grading: float, element: str):
     cfg = load_config(CONFIG)
-    mesh = cfg.tissue.mesh.model_copy(update={"grading": grading})
+    mesh = cfg.tissue.mesh.model_copy(update={"grading": grading, "element": element})
     return cfg.model_copy(update={"tissue": cfg.tissue.model_copy(update={"mesh": mesh}),
                                   "material": cfg.material.model_copy(update={"nu": nu})})
 
 
 def _moves(nu: float, grading: float, element: str, scale: float, repeats: int) -> dict:
     """One (ν, grading, element, scale): the mesh, one factorisation's cost and the lesions' moves (S, T, 3) mm."""
-    scene, mesh, _ = body_model(_config(nu, grading), cache=ROOT / "runs" / ".mesh-cache", scale=scale)
-    tissue = build_body(scene, mesh, element=element)
+    scene, mesh, tissue = body_model(_config(nu, grading, element), cache=ROOT / "runs" / ".mesh-cache", scale=scale)
     rest = np.array([t.rest for t in scene.targets]).reshape(len(scene.targets), 3)
     probe = probe_points(mesh.nodes, mesh.tetrahedra, rest)
     K = tissue.stiffness_free(tissue.rest, upper=True)
