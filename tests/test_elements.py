@@ -90,6 +90,27 @@ def test_gradient_and_tangent_match_finite_differences(tissues, which):
                                atol=1e-9 * np.abs(Kv).max())
 
 
+def test_the_compiled_whole_gradient_is_the_term_by_term_one(tissues):
+    """In 3-D every term's gradient comes from one compiled call (`nodal_compiled.energy_gradient`): the same U and
+    ∇U as the per-element kernels plus the nodal terms; it declines where that path owns the policy."""
+    slab = tissues[1]
+    x = _perturbed(slab)
+    whole = slab.element.compiled_energy_gradient(x)
+    if slab.params.model == "linear":  # (its constant tangent: the term-by-term path serves)
+        assert whole is None
+        return
+    U, g = whole
+    U0, g0 = slab.element.add_gradient(x, *slab._kernels.energy_gradient(slab.ops, slab.element_params, x))
+    assert U == pytest.approx(U0, rel=1e-12)
+    np.testing.assert_allclose(g, g0, rtol=0, atol=1e-11 * np.abs(g0).max())
+    inverted = x.copy()
+    e = slab.ops.triangles[0]
+    inverted[e[0]], inverted[e[1]] = x[e[1]], x[e[0]]
+    assert slab.element.compiled_energy_gradient(inverted) is None
+    assert slab.energy_gradient(inverted, require_positive_J=True) == (float("inf"), None)
+    assert tissues[0].element.compiled_energy_gradient(_perturbed(tissues[0])) is None  # 2-D: term by term
+
+
 def test_projected_tangent_is_positive_semidefinite(tissues):
     tissue = tissues[0]
     K = tissue.stiffness_free(_perturbed(tissue), project=True).toarray()

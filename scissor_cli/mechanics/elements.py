@@ -33,7 +33,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from scissor_cli.mechanics import fem, materials, nodal
+from scissor_cli.mechanics import fem, materials, nodal, nodal_compiled
 from scissor_cli.mesh.mesh import meshio_cell_type
 from scissor_cli.mesh.probe import TargetProbe, locate_in_simplices, probe_points
 
@@ -117,6 +117,11 @@ class LinearSimplex:
     def added_energy(self, x: np.ndarray, F: np.ndarray) -> float:
         """What the element adds to the per-element energy at x (N, d), F (M, d, d) its elements' gradients."""
         return 0.0
+
+    def compiled_energy_gradient(self, x: np.ndarray) -> tuple[float, np.ndarray] | None:
+        """U (µJ) and ∇U (dN,) mN of every term in one compiled call, where the element has one; None: the per-element
+        kernels' answer plus `add_gradient`'s."""
+        return None
 
     def add_gradient(self, x: np.ndarray, U: float, grad: np.ndarray,
                      require_positive_J: bool = False) -> tuple[float, np.ndarray | None]:
@@ -226,6 +231,13 @@ class Nodal(LinearSimplex):
     def added_energy(self, x: np.ndarray, F: np.ndarray) -> float:
         return (nodal.energy(self.volume, self.kappa, self.state(x, F))
                 + float(self._averaged(x, order=0)[0].sum()))
+
+    def compiled_energy_gradient(self, x):
+        """In 3-D, every term in three compiled passes (`nodal_compiled.energy_gradient`): a quarter of the
+        term-by-term path's passes over the mesh, the insertion's and the line searches' cost. The state is not
+        kept: a tangent at x forms it (`state`)."""
+        return nodal_compiled.energy_gradient(self.ops, self.element_params, self.averaged_params,
+                                              self.volume.rest_volume, self.kappa, x)
 
     def add_gradient(self, x, U, grad, require_positive_J=False):
         if not np.isfinite(U):

@@ -38,7 +38,9 @@ into their slots. ∂v_e/∂x = V_e cof(F_e) ∇N.
 
 The loops over elements and nodes (the state, the gradient, B, the
 nodes' material, the pairs) are compiled in `mechanics.nodal_compiled`;
-this module holds the structure and the calls.
+this module holds the structure and the calls. In 3-D the whole gradient
+is also one compiled call (`nodal_compiled.energy_gradient`), every term's
+force as an element stress: P_e + Σ_{a∈e} P̄_a/(d+1) + p̄_e cof F_e.
 
 Arrays: positions x (N, d) mm; F (M, d, d); B's data (nnz,) in mm² (in 2-D
 times the thickness) — B is (N, dN) in CSR with a fixed pattern; energies

@@ -5,7 +5,10 @@ every node at each Newton step. Each is one loop over the elements or the
 nodes here, in both dimensions (d = F.shape[1]), instead of whole-array
 numpy temporaries (F's cofactors, determinants, einsum, bincount): the
 same sums in the same order as those where the order was defined (the
-scatters: bit for bit), otherwise equal to round-off.
+scatters: bit for bit), otherwise equal to round-off. The 3-D gradient,
+which the needle's chord steps and every line search ask for most, is
+also fused into three passes over the mesh (`energy_gradient_3d`), equal
+to the term-by-term sum to round-off.
 
 The nodes' material Ψ_dev(F̄_a) reuses the element loops' closed forms:
 `compiled._stress` / `_tangent` (2-D, the tangent projected per energy
@@ -354,6 +357,108 @@ def averaged_material_3d(F, V, material, tension_only, hd_pattern, order, projec
             for j in range(9):
                 C[node, i, j] = T[i, j] * w
     return -1
+
+
+@njit(**_JIT)
+def energy_gradient_3d(x, corners, grad_rows, volume, material, node_material, tension_only, rest_volume, kappa,
+                       F, S, Fbar, v, out):
+    """U (µJ) of every term of the 3-D nodal element at positions x (N, 3) and ∇U into out (3N,) mN, in three
+    passes; returns (U, -1), or (nan, 0) for an element or node it cannot take (J ≤ J_FLOOR, a non-finite term).
+
+    Every term's force is an element stress against ∇N, so one scatter
+    carries them all: with F̄_a = Σ_{e∋a} V_e F_e / (4 V_a) and
+    v_a = Σ_{e∋a} V_e det F_e / 4, ∂/∂x of V_a Ψ(F̄_a) is Σ_{e∋a} V_e (P̄_a / 4) : ∂F_e/∂x and ∂v_e/∂x = V_e
+    cof(F_e) ∇N, so element e's stress is P_e + Σ_{a∈e} P̄_a / 4 + p̄_e cof F_e. The elements first (F_e, their
+    own α share, v_a and F̄_a summed at the corners), then the nodes (J_a, p_a, P̄_a), then the elements again.
+    material / node_material: `compiled3d._material`'s (κ = 0) of the elements' and the nodes' deviatoric shares;
+    kappa (N,) kPa, rest_volume (N,) mm³; F, S (M, 9), Fbar (N, 9), v (N,): scratch.
+    """
+    mu, _, eta, fiber = material
+    mu_a, _, eta_a, fiber_a = node_material
+    M, N = corners.shape[1], rest_volume.shape[0]
+    f, c, P, a = np.empty(9), np.empty(9), np.empty(9), np.empty(3)
+    Fbar[:] = 0.0
+    v[:] = 0.0
+    U = 0.0
+    for e in range(M):
+        compiled3d._deformation(x, corners, grad_rows, e, f)
+        a[0], a[1], a[2] = fiber[e, 0], fiber[e, 1], fiber[e, 2]
+        psi, J = compiled3d._stress(f, c, a, mu[e], 0.0, eta[e], tension_only, P)[:2]
+        finite = psi
+        for p in range(9):
+            finite += P[p]
+        if not (J > J_FLOOR and math.isfinite(finite)):
+            return math.nan, 0
+        V = volume[e]
+        U += psi * V
+        for p in range(9):
+            F[e, p] = f[p]
+            S[e, p] = P[p]
+        share = 0.25 * V
+        for k in range(4):
+            node = corners[k, e]
+            v[node] += share * J
+            for p in range(9):
+                Fbar[node, p] += share * f[p]
+    for node in range(N):  # v now becomes p_a and Fbar P̄_a (in place)
+        Va = rest_volume[node]
+        Ja = v[node] / Va
+        U += 0.5 * Va * kappa[node] * (Ja - 1.0) ** 2
+        v[node] = kappa[node] * (Ja - 1.0)
+        for p in range(9):
+            f[p] = Fbar[node, p] / Va
+        a[0], a[1], a[2] = fiber_a[node, 0], fiber_a[node, 1], fiber_a[node, 2]
+        psi, J = compiled3d._stress(f, c, a, mu_a[node], 0.0, eta_a[node], tension_only, P)[:2]
+        finite = psi
+        for p in range(9):
+            finite += P[p]
+        if not (J > J_FLOOR and math.isfinite(finite)):
+            return math.nan, 0
+        U += psi * Va
+        for p in range(9):
+            Fbar[node, p] = P[p]
+    out[:] = 0.0
+    for e in range(M):
+        pressure = 0.0
+        for p in range(9):
+            P[p] = S[e, p]
+            f[p] = F[e, p]
+        for k in range(4):
+            node = corners[k, e]
+            pressure += 0.25 * v[node]
+            for p in range(9):
+                P[p] += 0.25 * Fbar[node, p]
+        c[0] = f[4] * f[8] - f[5] * f[7]
+        c[1] = f[5] * f[6] - f[3] * f[8]
+        c[2] = f[3] * f[7] - f[4] * f[6]
+        c[3] = f[7] * f[2] - f[8] * f[1]
+        c[4] = f[8] * f[0] - f[6] * f[2]
+        c[5] = f[6] * f[1] - f[7] * f[0]
+        c[6] = f[1] * f[5] - f[2] * f[4]
+        c[7] = f[2] * f[3] - f[0] * f[5]
+        c[8] = f[0] * f[4] - f[1] * f[3]
+        for p in range(9):
+            P[p] += pressure * c[p]
+        compiled3d._add_forces(out, P, volume[e], corners, grad_rows, e)
+    return U, -1
+
+
+def energy_gradient(ops, element_params, node_params, rest_volume: np.ndarray, kappa: np.ndarray,
+                    x: np.ndarray) -> tuple[float, np.ndarray] | None:
+    """U (µJ) and ∇U (3N,) mN of the 3-D nodal element in one compiled call (`energy_gradient_3d`); None where
+    the term-by-term path must answer: 2-D, the `linear` model, an element or node it cannot take.
+    element_params / node_params: the deviatoric shares per element (M) and per node (N)."""
+    if ops.dim != 3 or element_params.model == "linear":
+        return None
+    M, N = ops.corners.shape[1], len(rest_volume)
+    material, tension_only = compiled3d._material(element_params)
+    node_material, _ = compiled3d._material(node_params)
+    out = np.empty(3 * N)
+    U, bad = energy_gradient_3d(np.ascontiguousarray(x, dtype=np.float64), ops.corners, ops.grad_rows, ops.volume,
+                                material, node_material, tension_only, rest_volume,
+                                np.ascontiguousarray(kappa, float), np.empty((M, 9)), np.empty((M, 9)),
+                                np.empty((N, 9)), np.empty(N), out)
+    return None if bad >= 0 else (float(U), out)
 
 
 def averaged_material(F: np.ndarray, V: np.ndarray, params, order: int, project: bool) -> tuple | None:
