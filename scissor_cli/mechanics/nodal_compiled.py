@@ -360,8 +360,7 @@ def averaged_material_3d(F, V, material, tension_only, hd_pattern, order, projec
 
 
 @njit(**_JIT)
-def energy_gradient_3d(x, corners, grad_rows, volume, material, node_material, tension_only, rest_volume, kappa,
-                       F, S, Fbar, v, out):
+def energy_gradient_3d(x, corners, grad_rows, volume, material, tension_only, nodes, scratch, out):
     """U (µJ) of every term of the 3-D nodal element at positions x (N, 3) and ∇U into out (3N,) mN, in three
     passes; returns (U, -1), or (nan, 0) for an element or node it cannot take (J ≤ J_FLOOR, a non-finite term).
 
@@ -370,11 +369,12 @@ def energy_gradient_3d(x, corners, grad_rows, volume, material, node_material, t
     v_a = Σ_{e∋a} V_e det F_e / 4, ∂/∂x of V_a Ψ(F̄_a) is Σ_{e∋a} V_e (P̄_a / 4) : ∂F_e/∂x and ∂v_e/∂x = V_e
     cof(F_e) ∇N, so element e's stress is P_e + Σ_{a∈e} P̄_a / 4 + p̄_e cof F_e. The elements first (F_e, their
     own α share, v_a and F̄_a summed at the corners), then the nodes (J_a, p_a, P̄_a), then the elements again.
-    material / node_material: `compiled3d._material`'s (κ = 0) of the elements' and the nodes' deviatoric shares;
-    kappa (N,) kPa, rest_volume (N,) mm³; F, S (M, 9), Fbar (N, 9), v (N,): scratch.
+    material: `compiled3d._material`'s (κ = 0) of the elements' deviatoric share; nodes: (rest_volume (N,) mm³,
+    κ_a (N,) kPa, the nodes' deviatoric share as material); scratch: F, S (M, 9), Fbar (N, 9), v (N,).
     """
     mu, _, eta, fiber = material
-    mu_a, _, eta_a, fiber_a = node_material
+    rest_volume, kappa, (mu_a, _, eta_a, fiber_a) = nodes
+    F, S, Fbar, v = scratch
     M, N = corners.shape[1], rest_volume.shape[0]
     f, c, P, a = np.empty(9), np.empty(9), np.empty(9), np.empty(3)
     Fbar[:] = 0.0
@@ -454,10 +454,10 @@ def energy_gradient(ops, element_params, node_params, rest_volume: np.ndarray, k
     material, tension_only = compiled3d._material(element_params)
     node_material, _ = compiled3d._material(node_params)
     out = np.empty(3 * N)
+    nodes = (rest_volume, np.ascontiguousarray(kappa, float), node_material)
+    scratch = (np.empty((M, 9)), np.empty((M, 9)), np.empty((N, 9)), np.empty(N))
     U, bad = energy_gradient_3d(np.ascontiguousarray(x, dtype=np.float64), ops.corners, ops.grad_rows, ops.volume,
-                                material, node_material, tension_only, rest_volume,
-                                np.ascontiguousarray(kappa, float), np.empty((M, 9)), np.empty((M, 9)),
-                                np.empty((N, 9)), np.empty(N), out)
+                                material, tension_only, nodes, scratch, out)
     return None if bad >= 0 else (float(U), out)
 
 
