@@ -21,10 +21,10 @@ results.h5 (its loop and its three insertions in the drawn true body), and each 
 
 With --element and --grading the whole benchmark runs on that element and mesh grading (`tissue.mesh.element`,
 `tissue.mesh.grading`; variant "ELEMENT.grading-G"), and --scale-30k names the mesh scale that gives about 30k
-tetrahedra on it.
+tetrahedra on it; `--element p1 --grading 0.3 --scale-30k 0.85` is the body's default before `nodal`.
 
     PYTHONPATH=. python benchmarks/bench_body_insertion.py [--depth-mm 50] [--step-mm 0.5] [--repeats 3]
-    PYTHONPATH=. python benchmarks/bench_body_insertion.py --element nodal --grading 0.5 --scale-30k 0.7
+    PYTHONPATH=. python benchmarks/bench_body_insertion.py --element p1 --grading 0.3 --scale-30k 0.85
 """
 
 from __future__ import annotations
@@ -46,8 +46,9 @@ from scissor_cli import runtime
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "example_dome.yaml"
-#: the dome's mesh scale that gives about 30k tetrahedra (§20's size)
-SCALE_30K = 0.85
+#: the dome's mesh scale that gives about 30k tetrahedra (§20's size) on the default mesh (`p1`'s former
+#: default, graded 0.3: 0.85)
+SCALE_30K = 0.74
 #: steps between two checks of the direct J against the converged one
 CHECK_EVERY = 10
 #: the step tolerances of the speed-against-error sweep, the tightest the reference
@@ -115,14 +116,15 @@ def main() -> None:
     mesh_options = {k: v for k, v in (("element", args.element), ("grading", args.grading)) if v is not None}
     runtime.configure()
     from scissor_cli.config import load_config
+    from scissor_cli.config.body_sections import BodyMeshConfig
     from scissor_cli.config.sections import InsertionConfig
     from scissor_cli.experiments.build import body_model
     from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_strategies
     from scissor_cli.insertion.points import needle_points
     from scissor_cli.planning.body_lines import skin_entries
     from scissor_cli.solvers.equilibrium import solve_equilibrium
-
-    variant = ".".join([args.element or "p1"] + ([f"grading-{args.grading:g}"] if args.grading is not None else []))
+    variant = ".".join([args.element or BodyMeshConfig().element]
+                       + ([f"grading-{args.grading:g}"] if args.grading is not None else []))
     res = results_io.Results("bench_body_insertion", None if not mesh_options else variant)
     cfg = load_config(CONFIG)
     cfg = cfg.model_copy(update={"tissue": cfg.tissue.model_copy(

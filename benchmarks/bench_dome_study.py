@@ -8,15 +8,15 @@ configs/example_dome.yaml end to end instead (goal: ≤ 2 min). With --model lay
 paper's layer on each lesion's section (docs/model.md §19, "Control"), holding the sides --section-fixed names
 (the reduction's assumption; default bottom, the side opposite the cup); --model surrogate, the surrogate
 learned from the body; --mesh-scale the controller's body that much coarser than the truth's
-(`controller.mesh_scale`); --trials overrides the 30 per target; --element nodal runs truth and model on the
-element that does not lock (docs/model.md §21; variant "nodal"); --grading sets `tissue.mesh.grading` (the body's
-edge growth per mm from its features; a coarser mesh for an element accurate on it; variant "grading-G").
+(`controller.mesh_scale`); --trials overrides the 30 per target; --element runs truth and model on that element
+(`tissue.mesh.element`, docs/model.md §21; variant "ELEMENT"); --grading sets `tissue.mesh.grading` (the body's
+edge growth per mm from its features; variant "grading-G"). `--element p1 --grading 0.3` is the body's default
+before `nodal` (docs/model.md §21, "The body's default").
 
     PYTHONPATH=. python3 benchmarks/bench_dome_study.py [--example]
     PYTHONPATH=. python3 benchmarks/bench_dome_study.py --model layer [--section-fixed bottom,left,right]
     PYTHONPATH=. python3 benchmarks/bench_dome_study.py --model surrogate | --mesh-scale 2
-    PYTHONPATH=. python3 benchmarks/bench_dome_study.py --element nodal     # about 20 minutes on 2 cores
-    PYTHONPATH=. python3 benchmarks/bench_dome_study.py --element nodal --grading 0.5
+    PYTHONPATH=. python3 benchmarks/bench_dome_study.py [--example] --element p1 --grading 0.3
 """
 
 from __future__ import annotations
@@ -33,6 +33,8 @@ import h5py
 import numpy as np
 import results_io
 import yaml
+
+from scissor_cli.config.body_sections import BodyMeshConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the paper's Fig. 14 maxima, prosthesis (mm): X across the push, Y along it
@@ -93,7 +95,7 @@ def main() -> None:
         variant = "surrogate"
     if args.mesh_scale != 1.0:
         variant = (variant + "." if variant else "") + f"mesh-scale-{args.mesh_scale:g}"
-    if args.element is not None and args.element != "p1":
+    if args.element is not None:
         variant = (variant + "." if variant else "") + args.element
     if args.grading is not None:
         variant = (variant + "." if variant else "") + f"grading-{args.grading:g}"
@@ -119,8 +121,9 @@ def main() -> None:
     res.data("model", args.model)
     res.data("section_fixed", sides if args.model == "layer" else None)
     res.data("mesh_scale", args.mesh_scale)
-    res.data("element", scene["tissue"].get("mesh", {}).get("element", "p1"))
-    res.data("grading", scene["tissue"].get("mesh", {}).get("grading"))
+    mesh = scene["tissue"].get("mesh", {})
+    res.data("element", mesh.get("element", BodyMeshConfig().element))
+    res.data("grading", mesh.get("grading", BodyMeshConfig().grading))
     for row in rows:
         print(f"{row['target']}: max |x| {row['max_x_mm']:.2f}, |y| {row['max_y_mm']:.2f}, |z| {row['max_z_mm']:.2f} "
               f"mm; miss median {row['miss_median_mm']:.2f}, p95 {row['miss_p95_mm']:.2f} mm", flush=True)

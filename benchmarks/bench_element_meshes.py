@@ -3,15 +3,17 @@
 The paper's dome (configs/paper_trials_prosthesis_dome.yaml: its fibers, ν 0.45, and the same at ν 0.49, the
 real tissue's), pushed and pulled 10 mm by its cup (the trials' strokes stay within this), solved with `p1` and
 with `nodal` on meshes of growing `tissue.mesh.grading` (the edge's growth per mm from the lesions, vessels and
-cup: the default 0.3 and coarser), Newton to 1e-8. The reference is `nodal` on the default grading at
+cup: 0.3, a layer's default and a body's before `nodal`, then coarser; 0.4 is a body's default), Newton to
+1e-8. The reference is `nodal` on grading 0.3 at
 `tissue.mesh.scale` 0.7 (every edge × 0.7; docs/performance-elements.md, "Convergence under refinement", gives
 its own error under refinement). Per ν, element and grading: the tetrahedra and unknowns, the factor's nonzeros,
 one numeric factorisation of the tangent at rest on its analysed pattern (CHOLMOD, `factorize_free`, what every
 later Newton step and control move pays; the median of --repeats), the two forward
 solves, and the lesions' largest distance from the reference (mm, and % of the reference's move). The timed
-peer in the same run is `p1` on the default mesh, what the dome study runs today.
+peer in the same run is `p1` graded 0.3, what the dome study ran before `nodal` (docs/model.md §21, "The body's
+default").
 
-    PYTHONPATH=. python3 benchmarks/bench_element_meshes.py      # about 5 minutes on 2 cores
+    PYTHONPATH=. python3 benchmarks/bench_element_meshes.py      # about 7 minutes on 2 cores
 
 Writes benchmarks/results/bench_element_meshes.json.
 """
@@ -40,7 +42,7 @@ from scissor_cli.solvers.linear import factorize_free  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "paper_trials_prosthesis_dome.yaml"
 NUS = (0.45, 0.49)
-GRADINGS = (0.3, 0.5, 0.7)
+GRADINGS = (0.3, 0.4, 0.5, 0.7)
 ELEMENTS = ("p1", "nodal")
 STROKES_MM = (10.0, -10.0)
 REFERENCE_SCALE = 0.7

@@ -42,7 +42,7 @@ DEPTH_MM, STEP_MM = 50.0, 0.5
 REFERENCE_SCALE = 0.7
 #: (element, grading, mesh scale): the rows, the reference first
 ROWS = (("nodal", 0.3, REFERENCE_SCALE), ("p1", 0.3, 1.0), ("p1", 0.3, 0.85), ("nodal", 0.3, 1.0),
-        ("p1", 0.5, 1.0), ("nodal", 0.5, 1.0), ("p1", 0.7, 1.0), ("nodal", 0.7, 1.0))
+        ("nodal", 0.4, 1.0), ("p1", 0.5, 1.0), ("nodal", 0.5, 1.0), ("p1", 0.7, 1.0), ("nodal", 0.7, 1.0))
 
 
 def insertion(element: str, grading: float, scale: float, repeats: int) -> dict:

@@ -15,6 +15,7 @@ import yaml
 
 from scissor_cli.config import parse_config
 from scissor_cli.experiments.build import body_model
+from scissor_cli.mechanics.nodal import ELEMENT_SHARE
 from scissor_cli.mesh.probe import probe_points, target_positions
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 from scissor_cli.solvers.jacobian import cup_target_jacobian
@@ -57,9 +58,22 @@ def run(tmp_path_factory):
     return tmp / "run.yaml", out
 
 
-def _independent_gradient(nodes, tets, x, E, nu, eta, fiber):
-    """∇U (N, 3) mN of the §3 energy Ψ = μ/2 (J^{-2/3} I1 − 3) + κ/2 (J − 1)² + η/2 (I4 − 1)² on P1 tetrahedra,
-    written out here from the model's formula (first Piola–Kirchhoff stress, then nodal forces)."""
+def _deviatoric_stress(F, mu, eta, fiber):
+    """P (M, 3, 3) kPa of Ψ_dev = μ/2 (J^{-2/3} I1 − 3) + η/2 (I4 − 1)² (§3's energy without its volume term)."""
+    J = np.linalg.det(F)
+    FinvT = np.transpose(np.linalg.inv(F), (0, 2, 1))
+    I1 = np.einsum("mij,mij->m", F, F)
+    Fa = np.einsum("mij,mj->mi", F, fiber)
+    I4 = np.einsum("mi,mi->m", Fa, Fa)
+    P = (mu / 2 * J ** (-2 / 3))[:, None, None] * (2 * F - (2 / 3) * I1[:, None, None] * FinvT)
+    return P + (2 * eta * (I4 - 1))[:, None, None] * np.einsum("mi,mj->mij", Fa, fiber)
+
+
+def _independent_gradient(nodes, tets, x, E, nu, eta, fiber, element, share):
+    """∇U (N, 3) mN of the §3 energy on linear tetrahedra, written out here from the model's formulas: for `p1`
+    Ψ = Ψ_dev + κ/2 (J − 1)² per element; for `nodal` (§21) α Σ_e V_e Ψ_dev(F_e) + (1 − α) Σ_a V_a Ψ_dev(F̄_a) +
+    Σ_a V_a κ_a/2 (J_a − 1)², every nodal quantity the rest-volume average over the node's elements (the fiber
+    normalised), α = `share`. Each term's force as an element stress (first Piola–Kirchhoff), then nodal forces."""
     X, Y = nodes[tets], x[tets]  # (M, 4, 3)
     Dm = np.transpose(X[:, 1:] - X[:, :1], (0, 2, 1))  # columns are edges
     Ds = np.transpose(Y[:, 1:] - Y[:, :1], (0, 2, 1))
@@ -67,14 +81,27 @@ def _independent_gradient(nodes, tets, x, E, nu, eta, fiber):
     F = Ds @ B
     V = np.abs(np.linalg.det(Dm)) / 6.0
     J = np.linalg.det(F)
-    FinvT = np.transpose(np.linalg.inv(F), (0, 2, 1))
-    I1 = np.einsum("mij,mij->m", F, F)
+    cof = J[:, None, None] * np.transpose(np.linalg.inv(F), (0, 2, 1))
     mu, kappa = E / (2 * (1 + nu)), E / (3 * (1 - 2 * nu))
-    Fa = np.einsum("mij,mj->mi", F, fiber)
-    I4 = np.einsum("mi,mi->m", Fa, Fa)
-    P = (mu / 2 * J ** (-2 / 3))[:, None, None] * (2 * F - (2 / 3) * I1[:, None, None] * FinvT)
-    P += (kappa * (J - 1) * J)[:, None, None] * FinvT
-    P += (2 * eta * (I4 - 1))[:, None, None] * np.einsum("mi,mj->mij", Fa, fiber)
+    if element == "p1":
+        P = _deviatoric_stress(F, mu, eta * np.ones_like(E), fiber) + (kappa * (J - 1))[:, None, None] * cof
+    else:
+        def average(values):  # (M, ...) -> (N, ...): Σ_{e∋a} V_e values_e / (4 V_a)
+            out = np.zeros((len(nodes),) + values.shape[1:])
+            for a in range(4):
+                np.add.at(out, tets[:, a], V.reshape((-1,) + (1,) * (values.ndim - 1)) * values / 4)
+            return out / V_a.reshape((-1,) + (1,) * (values.ndim - 1))
+
+        V_a = np.zeros(len(nodes))
+        for a in range(4):
+            np.add.at(V_a, tets[:, a], V / 4)
+        J_a, kappa_a, mu_a = average(J), average(kappa), average(mu)
+        fiber_a = average(fiber)
+        fiber_a /= np.linalg.norm(fiber_a, axis=1, keepdims=True)
+        P_a = (1 - share) * _deviatoric_stress(average(F), mu_a, eta * np.ones_like(mu_a), fiber_a)
+        p_a = kappa_a * (J_a - 1)
+        P = share * _deviatoric_stress(F, mu, eta * np.ones_like(E), fiber)
+        P += P_a[tets].mean(axis=1) + p_a[tets].mean(axis=1)[:, None, None] * cof
     H = V[:, None, None] * P @ np.transpose(B, (0, 2, 1))  # forces on corners 1..3 as columns
     forces = np.concatenate([-H.sum(axis=2, keepdims=True), H], axis=2)  # (M, 3, 4)
     g = np.zeros_like(x)
@@ -88,6 +115,7 @@ def test_every_forward_case_is_an_equilibrium_recomputed_from_the_results(run):
     with h5py.File(out / "results.h5", "r") as f:
         nodes, tets = f["mesh/nodes"][()], f["mesh/tetrahedra"][()]
         E, fiber = f["mesh/element_E_kPa"][()], f["mesh/fiber"][()]
+        element = f["mesh"].attrs["element"]
         nu, eta = float(f["material"].attrs["nu"]), float(f["material"].attrs["eta_kPa"])
         held = np.concatenate([f["mesh/fixed_nodes"][()]] + [f[f"cups/{c}/nodes"][()] for c in f["cups"]])
         cases = {c: f[f"forward/{c}/displacement"][()] for c in f["forward"]}
@@ -96,7 +124,7 @@ def test_every_forward_case_is_an_equilibrium_recomputed_from_the_results(run):
     assert set(cases) == {"push", "both"}
     free = np.setdiff1d(np.arange(len(nodes)), held)
     for name, u in cases.items():
-        g = _independent_gradient(nodes, tets, nodes + u, E, nu, eta, fiber)
+        g = _independent_gradient(nodes, tets, nodes + u, E, nu, eta, fiber, element, ELEMENT_SHARE)
         reaction = np.linalg.norm(g[held])
         assert reaction > 1.0  # the cups do push
         assert np.linalg.norm(g[free]) <= 1e-3 * reaction, name

@@ -97,7 +97,9 @@ def test_the_run_inserts_every_planned_lesion_along_its_plan_and_so_do_its_trial
         np.testing.assert_allclose(depth.attrs["entry"], plan["entry"])
         np.testing.assert_allclose(depth.attrs["direction"], plan["direction"])
         assert depth.attrs["has_obstacles"] and np.all(depth["min_clearance_mm"][()] > 0.0)  # the vessel beside it
-        assert abs(depth.attrs["depth_error_mm"]) <= 0.05 < abs(f["insertion/T1/none"].attrs["depth_error_mm"])
+        # `depth` stops where the cameras saw the lesion before its shortened last step; the lesion moves on
+        # during that step (its drag is not chased): a few hundredths of a mm, `none`'s push ahead a millimetre
+        assert abs(depth.attrs["depth_error_mm"]) <= 0.1 < abs(f["insertion/T1/none"].attrs["depth_error_mm"])
         miss, depth_error = f["trials/T1/miss_mm"][()], f["trials/T1/depth_error_mm"][()]
         assert list(f["trials/T1/miss_mm"].attrs["strategies"]) == ["none", "depth"]
         f_steps = len(depth["tip"])
@@ -111,12 +113,15 @@ def test_the_run_inserts_every_planned_lesion_along_its_plan_and_so_do_its_trial
 
 
 def test_loop_drives_both_components_of_the_miss_with_both_cups(body):
-    """From rest, T1 on its line: the needle's drag pushes it off; `loop` (J 2 × 2, the body's held response)
-    brings it back within 0.1 mm and below `none`'s miss, the cups within the drives' speed each step."""
+    """From rest, T1 on its line: the shaft's drag pushes it off; `loop` (J 2 × 2, the body's held response)
+    brings it back within 0.1 mm and to a fraction of `none`'s miss, the cups within the drives' speed each step.
+    Without the tip's force: its push on the lesion in the last steps is faster than the drives follow (the
+    cups' reach per step), and on the element that does not lock it moves this coarse dome's lesion by a few
+    tenths of a millimetre, which the drag test is not about."""
     cfg, scene, _ = body
-    none, _ = _insert(body, "none")
-    loop, _ = _insert(body, "loop")
-    assert loop.completed and loop.miss_mm <= 0.1 and loop.miss_mm < none.miss_mm
+    none, _ = _insert(body, "none", tip_force_mN=0.0)
+    loop, _ = _insert(body, "loop", tip_force_mN=0.0)
+    assert loop.completed and loop.miss_mm <= 0.1 and loop.miss_mm < 0.2 * none.miss_mm
     assert np.any(np.abs(loop.strokes[-1]) > 0.5)  # the cups moved
     reach = np.array([c.speed_mm_per_s for c in scene.cups]) / cfg.controller.rate_hz
     assert np.all(np.abs(np.diff(loop.strokes, axis=0)) <= reach + 1e-9)

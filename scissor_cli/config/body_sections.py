@@ -57,8 +57,10 @@ class BodyMeshConfig(_Section):
     max_edge_mm: Num(MIN_EDGE_MM, 100.0) = 6.0
     #: at the lesions, obstacles and cup patches
     min_edge_mm: Num(MIN_EDGE_MM, 100.0) = 1.5
-    #: growth of the edge length per mm of distance from a feature
-    grading: Num(0.001, 100.0) = 0.3
+    #: growth of the edge length per mm of distance from a feature; coarser than a layer's 0.3 because the default
+    #: element does not lock: the coarsest grading on which `nodal` meets the refinement bound (docs/model.md §21,
+    #: "The body's default")
+    grading: Num(0.001, 100.0) = 0.4
     #: multiplies both edge lengths (the accuracy ladder's levels)
     scale: Num(0.01, 100.0) = 1.0
     #: a mesh used as it is (docs/contract.md, "Reproducibility"): an .npz with nodes (N, 3) mm, tetrahedra (M, 4)
@@ -66,9 +68,9 @@ class BodyMeshConfig(_Section):
     file: Optional[Annotated[str, Field(min_length=1, max_length=4096)]] = None
     #: the element (docs/model.md §21): p1, linear simplices with every term per element (the paper's); nodal,
     #: the same simplices with the volumetric term on the nodes (averaged nodal volume), which does not lock
-    #: at ν near 0.5; auto, the cheaper of the two that meets tissue.accuracy_mm (which it needs; p1 when p1 does,
-    #: docs/model.md §21)
-    element: Literal["p1", "nodal", "auto"] = "p1"
+    #: at ν near 0.5 (the default: p1 locks on a body at any ν a breast has); auto, the cheaper of the two that
+    #: meets tissue.accuracy_mm (which it needs; p1 when p1 does, docs/model.md §21)
+    element: Literal["p1", "nodal", "auto"] = "nodal"
 
 
 class SkinConfig(_Section):
