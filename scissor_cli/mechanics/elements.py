@@ -233,9 +233,9 @@ class Nodal(LinearSimplex):
                 + float(self._averaged(x, order=0)[0].sum()))
 
     def compiled_energy_gradient(self, x):
-        """In 3-D, every term in three compiled passes (`nodal_compiled.energy_gradient`): a quarter of the
-        term-by-term path's passes over the mesh, the insertion's and the line searches' cost. The state is not
-        kept: a tangent at x forms it (`state`)."""
+        """In 3-D, every term in three compiled passes over the mesh (`nodal_compiled.energy_gradient`) where the
+        term-by-term path makes seven: the insertion's and the line searches' cost. The state is not kept: a
+        tangent at x forms it (`state`)."""
         return nodal_compiled.energy_gradient(self.ops, self.element_params, self.averaged_params,
                                               self.volume.rest_volume, self.kappa, x)
 
