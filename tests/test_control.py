@@ -414,6 +414,32 @@ def test_a_move_the_fast_path_cannot_finish_continues_from_its_guess(monkeypatch
         np.testing.assert_allclose(eq.x, reference, atol=1e-7)
 
 
+def test_a_fitted_move_that_fails_continues_from_a_nearer_guess(monkeypatch):
+    """A tracker with equilibria behind it predicts a move by its own fit, from its current state; when that fails,
+    the load continuation starts from a known equilibrium much nearer in stroke (what the body's plan search keeps:
+    its samples jump between strokes of opposite sign), and the equilibrium is the same."""
+    from scissor_cli.solvers import tracking
+
+    _, tissue, _ = scene_setup("paper_pull")
+    reference = solve_newton(tissue, np.array([-12.0]), tol=1e-10).x
+    eq = TrackedEquilibrium(tissue)
+    for s in (-1.0, -2.0, -3.0, 3.0):
+        eq.move_to(np.array([s]), tangent=False)
+    assert eq._fitted(np.array([-15.0])) is not None  # the move would be predicted by the fit
+    eq.guesses.append((np.array([-11.0]), solve_newton(tissue, np.array([-11.0])).x))
+    starts, real = [], tracking.solve_newton
+
+    def continuation(tissue, strokes, x0, strokes0, **kw):
+        starts.append(float(strokes0[0]))
+        return real(tissue, strokes, x0=x0, strokes0=strokes0, **kw)
+
+    monkeypatch.setattr(TrackedEquilibrium, "_corrected", lambda self, *a, **kw: None)  # the fast path fails
+    monkeypatch.setattr(tracking, "solve_newton", continuation)
+    eq.move_to(np.array([-12.0]), tangent=False)
+    assert starts == [-11.0]
+    np.testing.assert_allclose(eq.x, reference, atol=1e-7)
+
+
 def test_the_open_loop_baseline_starts_its_truth_from_the_closed_loops_end(monkeypatch):
     """`TargetRun.truth_guess` (what a body's manipulation stage hands its open-loop baseline: the closed loop's
     end on the same truth) reaches the truth's tracker and does not change the baseline's end."""

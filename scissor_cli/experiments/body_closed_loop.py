@@ -110,7 +110,12 @@ def body_plans(cfg: BodyConfig, tissue: Tissue) -> list[BodyNeedlePlan]:
     tracker = TrackedEquilibrium(tissue, 1e-8)
 
     def solve(strokes: np.ndarray) -> np.ndarray:
-        tracker.move_to(np.asarray(strokes, float))
+        # The search asks for states, not for ∂x/∂s: no factorisation at each state for it. Its samples jump
+        # between strokes of opposite sign (`body_plan.stroke_grid`'s order), so each solved state is kept as a
+        # start for a later sample nearer to it than the tracker's last (`TrackedEquilibrium._start`).
+        strokes = np.asarray(strokes, float)
+        tracker.move_to(strokes, tangent=False)
+        tracker.guesses.append((strokes.copy(), tracker.x))
         return tracker.x.copy()
 
     return plan_body_targets(tissue, tissue.scene, cfg.needle, robot_check=check, solve=solve)

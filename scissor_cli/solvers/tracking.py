@@ -14,7 +14,8 @@ tangents too when the tracker has them: its start residuals are decades
 below the tangent predictor's on the small moves of a loop. A move the
 fast path cannot finish (the predictor inverts an element, or Newton does
 not converge from it) is solved by `solvers.newton.solve_newton` with load
-continuation, from the move's start (`_continued`).
+continuation (`_continued`), from the move's start or, when a known
+equilibrium (`guesses`) is much nearer in stroke, from that one.
 """
 
 from __future__ import annotations
@@ -131,6 +132,8 @@ class TrackedEquilibrium:
             x = self._corrected(strokes, x0, s0, fitted)
             if x is None:
                 self.stats["fallbacks"] += 1
+                if fitted is not None:  # (the fit starts from the current state) a nearer guess is a shorter path
+                    x0, s0 = self._nearest_guess(strokes) or (x0, s0)
                 r = self._continued(strokes, x0, s0)
                 x = r.x
                 self.stats["refactors"] += r.factorizations
@@ -234,12 +237,21 @@ class TrackedEquilibrium:
         from the nominal slab there at a residual of 1e-1, against 1e-3 from
         its fit, and paid a factorisation for it).
         """
-        if self.guesses:
-            s_g, x_g = min(self.guesses, key=lambda g: np.linalg.norm(g[0] - strokes))
-            if np.linalg.norm(s_g - strokes) < 0.5 * np.linalg.norm(self.strokes - strokes):
-                self.refactor(x_g)
-                return x_g, s_g
+        guess = self._nearest_guess(strokes)
+        if guess is not None:
+            self.refactor(guess[0])
+            return guess
         return self.x, self.strokes
+
+    def _nearest_guess(self, strokes: np.ndarray) -> Optional[tuple[np.ndarray, np.ndarray]]:
+        """(x, strokes) of the guess nearest in stroke to `strokes` (C,) mm, if it is much nearer than the current
+        state (less than half its distance), else None."""
+        if not self.guesses:
+            return None
+        s_g, x_g = min(self.guesses, key=lambda g: np.linalg.norm(g[0] - strokes))
+        if np.linalg.norm(s_g - strokes) < 0.5 * np.linalg.norm(self.strokes - strokes):
+            return x_g, s_g
+        return None
 
     def _corrected(self, strokes: np.ndarray, x0: np.ndarray, s0: np.ndarray,
                    fitted: Optional[np.ndarray] = None) -> Optional[np.ndarray]:
