@@ -64,6 +64,8 @@ ALONG_WEIGHT = 1.0e-2
 #: Up to this many cups a bounded step is solved exactly over the box's faces (`_on_faces`; one cup: a
 #: clip), beyond by scipy's BVLS, whose set-up costs more than the whole face search for 1–2 cups.
 FACES_MAX_CUPS = 3
+#: BVLS's iterations per cup beyond FACES_MAX_CUPS (scipy's default, one per cup, can stop short of the optimum)
+BVLS_MAX_ITER = 20
 
 #: How the controller reads the error (config `controller.error`).
 ERROR_MODES = ("miss", "position")
@@ -172,7 +174,10 @@ def _in_box(A: np.ndarray, b: np.ndarray, lb: np.ndarray, ub: np.ndarray, lam: f
         return _on_faces(A, b, lb, ub, lam), False
     C = A.shape[1]
     Aa = np.vstack([A, np.sqrt(lam) * np.eye(C)])
-    return lsq_linear(Aa, np.concatenate([b, np.zeros(C)]), bounds=(lb, ub), method="bvls").x, False
+    # BVLS stops after max_iter (scipy's default: C) whether or not it has converged, and may need more: a stroke
+    # can enter and leave the active set; one that still has not (status 0) gets the exact face search instead
+    r = lsq_linear(Aa, np.concatenate([b, np.zeros(C)]), bounds=(lb, ub), method="bvls", max_iter=BVLS_MAX_ITER * C)
+    return (r.x if r.status >= 1 else _on_faces(A, b, lb, ub, lam)), False
 
 
 def _bounded(A: np.ndarray, b: np.ndarray, lb: np.ndarray, ub: np.ndarray, lam: float) -> tuple[np.ndarray, bool]:
