@@ -62,8 +62,8 @@ def _deformation(x, corners, grad_rows, e, f):
 
 
 @njit(**_JIT)
-def _stress(f, c, a, mu, kappa, eta, tension_only, P):
-    """Ψ (kPa) and P (9,) into P; the cofactor vec (9,) into c; returns (Ψ, J, α, s, 1/J, I4−1, η_eff, v0, v1, v2)."""
+def _cofactor(f, c):
+    """cof F = det(F) F⁻ᵀ as a vec (9,) into c, from vec F f (9,), both row-major; returns det F."""
     c[0] = f[4] * f[8] - f[5] * f[7]
     c[1] = f[5] * f[6] - f[3] * f[8]
     c[2] = f[3] * f[7] - f[4] * f[6]
@@ -73,7 +73,13 @@ def _stress(f, c, a, mu, kappa, eta, tension_only, P):
     c[6] = f[1] * f[5] - f[2] * f[4]
     c[7] = f[2] * f[3] - f[0] * f[5]
     c[8] = f[0] * f[4] - f[1] * f[3]
-    J = f[0] * c[0] + f[1] * c[1] + f[2] * c[2]
+    return f[0] * c[0] + f[1] * c[1] + f[2] * c[2]
+
+
+@njit(**_JIT)
+def _stress(f, c, a, mu, kappa, eta, tension_only, P):
+    """Ψ (kPa) and P (9,) into P; the cofactor vec (9,) into c; returns (Ψ, J, α, s, 1/J, I4−1, η_eff, v0, v1, v2)."""
+    J = _cofactor(f, c)
     I1 = 0.0
     for p in range(9):
         I1 += f[p] * f[p]
@@ -97,6 +103,16 @@ def _stress(f, c, a, mu, kappa, eta, tension_only, P):
             P[3 + j] += t * v1 * a[j]
             P[6 + j] += t * v2 * a[j]
     return psi, J, alpha, s, iJ, I4m1, eta_eff, v0, v1, v2
+
+
+@njit(**_JIT)
+def _takes(psi, P, J):
+    """Whether a term at J = det F with energy density psi (kPa) and stress P (9,) is one the loops take: J >
+    J_FLOOR and every value finite (else the caller's numpy path and its policy answer)."""
+    finite = psi
+    for p in range(9):
+        finite += P[p]
+    return J > J_FLOOR and math.isfinite(finite)
 
 
 @njit(**_JIT)
@@ -125,10 +141,7 @@ def energy_gradient_3d(x, corners, grad_rows, volume, material, tension_only, ou
         _deformation(x, corners, grad_rows, e, f)
         a[0], a[1], a[2] = fiber[e, 0], fiber[e, 1], fiber[e, 2]
         psi, J = _stress(f, c, a, mu[e], kappa[e], eta[e], tension_only, P)[:2]
-        finite = psi
-        for p in range(9):
-            finite += P[p]
-        if not (J > J_FLOOR and math.isfinite(finite)):
+        if not _takes(psi, P, J):
             return math.nan, e
         U += psi * volume[e]
         _add_forces(out, P, volume[e], corners, grad_rows, e)

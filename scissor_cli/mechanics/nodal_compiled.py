@@ -328,10 +328,7 @@ def averaged_material_3d(F, V, material, tension_only, hd_pattern, order, projec
         a[0], a[1], a[2] = fiber[node, 0], fiber[node, 1], fiber[node, 2]
         psi_a, J, alpha, s, iJ, I4m1, eta_eff, v0, v1, v2 = compiled3d._stress(
             f, c, a, mu[node], kappa[node], eta[node], tension_only, p)
-        finite = psi_a
-        for q in range(9):
-            finite += p[q]
-        if not (J > J_FLOOR and math.isfinite(finite)):
+        if not compiled3d._takes(psi_a, p, J):
             return node
         w = V[node]
         psi[node] = psi_a * w
@@ -384,10 +381,7 @@ def energy_gradient_3d(x, corners, grad_rows, volume, material, tension_only, no
         compiled3d._deformation(x, corners, grad_rows, e, f)
         a[0], a[1], a[2] = fiber[e, 0], fiber[e, 1], fiber[e, 2]
         psi, J = compiled3d._stress(f, c, a, mu[e], 0.0, eta[e], tension_only, P)[:2]
-        finite = psi
-        for p in range(9):
-            finite += P[p]
-        if not (J > J_FLOOR and math.isfinite(finite)):
+        if not compiled3d._takes(psi, P, J):
             return math.nan, 0
         V = volume[e]
         U += psi * V
@@ -409,10 +403,7 @@ def energy_gradient_3d(x, corners, grad_rows, volume, material, tension_only, no
             f[p] = Fbar[node, p] / Va
         a[0], a[1], a[2] = fiber_a[node, 0], fiber_a[node, 1], fiber_a[node, 2]
         psi, J = compiled3d._stress(f, c, a, mu_a[node], 0.0, eta_a[node], tension_only, P)[:2]
-        finite = psi
-        for p in range(9):
-            finite += P[p]
-        if not (J > J_FLOOR and math.isfinite(finite)):
+        if not compiled3d._takes(psi, P, J):
             return math.nan, 0
         U += psi * Va
         for p in range(9):
@@ -428,15 +419,7 @@ def energy_gradient_3d(x, corners, grad_rows, volume, material, tension_only, no
             pressure += 0.25 * v[node]
             for p in range(9):
                 P[p] += 0.25 * Fbar[node, p]
-        c[0] = f[4] * f[8] - f[5] * f[7]
-        c[1] = f[5] * f[6] - f[3] * f[8]
-        c[2] = f[3] * f[7] - f[4] * f[6]
-        c[3] = f[7] * f[2] - f[8] * f[1]
-        c[4] = f[8] * f[0] - f[6] * f[2]
-        c[5] = f[6] * f[1] - f[7] * f[0]
-        c[6] = f[1] * f[5] - f[2] * f[4]
-        c[7] = f[2] * f[3] - f[0] * f[5]
-        c[8] = f[0] * f[4] - f[1] * f[3]
+        compiled3d._cofactor(f, c)
         for p in range(9):
             P[p] += pressure * c[p]
         compiled3d._add_forces(out, P, volume[e], corners, grad_rows, e)
