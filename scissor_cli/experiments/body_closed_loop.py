@@ -112,7 +112,7 @@ def body_plans(cfg: BodyConfig, tissue: Tissue) -> list[BodyNeedlePlan]:
     def solve(strokes: np.ndarray) -> np.ndarray:
         # The search asks for states, not for ∂x/∂s: no factorisation at each state for it. Its samples jump
         # between strokes of opposite sign (`body_plan.stroke_grid`'s order), so each solved state is kept as a
-        # start for a later sample nearer to it than the tracker's last (`TrackedEquilibrium._start`).
+        # start for a later sample nearer to it than the tracker's last (`TrackedEquilibrium.move_to`'s fallback).
         strokes = np.asarray(strokes, float)
         tracker.move_to(strokes, tangent=False)
         tracker.guesses.append((strokes.copy(), tracker.x))
