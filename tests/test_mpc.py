@@ -4,7 +4,7 @@ and the solver's failure."""
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from scissor_cli.control import mpc
@@ -53,6 +53,12 @@ def test_the_move_respects_the_speed_and_the_stroke_limits(p):
 
 @settings(max_examples=40, deadline=None)
 @given(problems(outside=True))
+# a box face at 0 and a speed limit at −m on the same stroke (one normal, two bounds), beside cups held still
+# by zero limits: the polish must hold the box face, the tighter of the two (control.mpc._polished)
+@example(dict(J=np.array([[0.5, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, -1.0]]), error_mm=np.array([0.0, 0.0, 1.0]),
+              strokes_mm=np.array([-1.0, -1.0, -1.0]), lo_mm=np.zeros(3), hi_mm=np.array([1.0, 0.0, 0.0]),
+              max_step_mm=np.array([2.0 ** -15, 0.0, 0.0]), horizon=2, action_weight=1.0, direction=None,
+              mode="miss"))
 def test_strokes_outside_their_limits_come_back_at_full_speed(p):
     u = mpc_step(**p)
     s0, lo, hi, m = p["strokes_mm"], p["lo_mm"], p["hi_mm"], p["max_step_mm"]

@@ -57,7 +57,6 @@ from typing import Any, Optional
 import numpy as np
 import osqp
 import scipy.sparse as sp
-from scipy.linalg import qr
 
 from scissor_cli.control.allocation import ALONG_WEIGHT, projector
 
@@ -154,8 +153,9 @@ def _polished(K: np.ndarray, q: np.ndarray, A: np.ndarray, lb: np.ndarray, ub: n
     equal = lb == ub
     tol_p = CERTIFICATE_SLACK * max(1.0, np.abs(lb[np.abs(lb) < 1e20]).max(initial=0.0),
                                     np.abs(ub[np.abs(ub) < 1e20]).max(initial=0.0))
+    violation = np.zeros(lb.shape)
     for _ in range(POLISH_ROUNDS):
-        sol, rows, sign = _face_optimum(K, q, A, lb, ub, lower, upper, equal)
+        sol, rows, sign = _face_optimum(K, q, A, lb, ub, lower, upper, equal, violation)
         if sol is None:
             return None
         x, lam = sol[: K.shape[0]], sol[K.shape[0]:]
@@ -169,21 +169,27 @@ def _polished(K: np.ndarray, q: np.ndarray, A: np.ndarray, lb: np.ndarray, ub: n
         leave = np.zeros_like(lower)
         leave[rows[wrong]] = True
         lower, upper = (lower | below) & ~leave, (upper | above) & ~leave
+        # of rows that repeat one another, the next solve holds the one this solution violates most: with
+        # the same normal, a box face at 0 and a speed limit at −m cannot both hold, and only the tighter is
+        # the optimum's
+        violation = np.maximum(lb - z, z - ub).clip(min=0.0)
     return None
 
 
 def _face_optimum(K: np.ndarray, q: np.ndarray, A: np.ndarray, lb: np.ndarray, ub: np.ndarray, lower: np.ndarray,
-                  upper: np.ndarray, equal: np.ndarray) -> tuple[Optional[np.ndarray], np.ndarray, np.ndarray]:
+                  upper: np.ndarray, equal: np.ndarray, priority: np.ndarray
+                  ) -> tuple[Optional[np.ndarray], np.ndarray, np.ndarray]:
     """(x and λ stacked, or None when the KKT system is singular; the rows (r,) held; their signs (r,): +1
     upper, −1 lower, 0 an equality) for min ½xᵀKx + qᵀx with the rows `lower`/`upper` at their bounds.
 
-    Rows that repeat others (a cup at a box face in two frames and at full speed between them) are dropped by
-    a pivoted QR: their multipliers are zero.
+    Rows that repeat others (a cup at a box face in two frames and at full speed between them) are dropped:
+    their multipliers are zero. Which of them stay is `_independent`'s choice: equalities first, then the
+    rows in descending `priority` (m,).
     """
     rows = np.flatnonzero(lower | upper)
     if rows.size:
-        R, piv = qr(A[rows].T, mode="r", pivoting=True)
-        rows = np.sort(rows[piv[: int(np.sum(np.abs(np.diag(R)) > 1e-9))]])
+        order = np.lexsort((rows, -priority[rows], ~equal[rows]))  # equalities, then priority, then index
+        rows = np.sort(_independent(A, rows[order]))
     n, r = K.shape[0], rows.size
     kkt = np.zeros((n + r, n + r))
     kkt[:n, :n], kkt[n:, :n] = K, A[rows]
@@ -199,6 +205,22 @@ def _face_optimum(K: np.ndarray, q: np.ndarray, A: np.ndarray, lb: np.ndarray, u
     if not np.all(np.isfinite(sol)) or np.abs(kkt @ sol - rhs).max() > tol:
         return None, rows, sign
     return sol, rows, sign
+
+
+def _independent(A: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """The rows (r,) of A (m, n), taken in the given order, that are not combinations of those kept before
+    them (Gram–Schmidt, orthogonalised twice against round-off). The rows are few and short."""
+    basis = np.zeros((0, A.shape[1]))
+    keep = []
+    for i in rows:
+        v = A[i].astype(float)
+        for _ in range(2):
+            v = v - basis.T @ (basis @ v)
+        norm = np.linalg.norm(v)
+        if norm > 1e-9 * max(np.linalg.norm(A[i]), 1.0):
+            keep.append(i)
+            basis = np.vstack([basis, v / norm])
+    return np.array(keep, dtype=rows.dtype)
 
 
 def _plan(J, error_mm, strokes_mm, lo_mm, hi_mm, max_step_mm, horizon: int, action_weight: float,
