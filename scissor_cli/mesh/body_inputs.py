@@ -2,7 +2,7 @@
 
 The scene's lesions and obstacles become the mesher's inclusions (each a
 tagged region), its cup patches the size field's refine patches, and its
-`tissue.mesh` section the sizing (edges × `scale` × the ladder's scale).
+`tissue.mesh` section the sizing (the edge bounds × `scale` × the ladder's scale).
 """
 
 from __future__ import annotations
@@ -39,7 +39,8 @@ def inclusions(scene: BodyScene) -> tuple:
 
 
 def sizing(scene: BodyScene, mesh: BodyMeshConfig, scale: float = 1.0) -> BodySizing:
-    """The size field at a scale (every edge length × mesh.scale × scale), fine at the cups' patches."""
+    """The size field at a scale (the smallest and largest edge × mesh.scale × scale; the grading, edge per mm
+    of distance, unscaled: a graded body coarsens far less than the factor), fine at the cups' patches."""
     f = mesh.scale * scale
     return BodySizing(mesh.min_edge_mm * f, mesh.max_edge_mm * f, mesh.grading,
                       tuple((c.contact, c.radius_mm) for c in scene.cups))
