@@ -209,8 +209,8 @@ class BodyControllerConfig(ControllerConfig):
     #: down; `config.body_section`); absent: [bottom], the side opposite the cup, as the paper's rectangle was held
     section_fixed: Optional[Annotated[list[Side], Len(1, 4)]] = None
     #: the model's body (the run's plans and forward cases, and the controller's model with body or surrogate)
-    #: meshed with every edge times this over tissue.mesh; the trials' truth is tissue.mesh itself, so above 1
-    #: the controller knows a coarser body than the one it moves (docs/model.md §19, "Control");
+    #: meshed with tissue.mesh's edge bounds times this (its grading kept); the trials' truth is tissue.mesh
+    #: itself, so above 1 the controller knows a coarser body than the one it moves (docs/model.md §19, "Control");
     #: tissue.accuracy_mm sets it
     mesh_scale: Num(1.0, 8.0) = 1.0
 

@@ -2,7 +2,7 @@
 (docs/model.md §19, "Mesh"; §21).
 
 Candidates are the configured size field (the finest) and coarser ones,
-every edge length times each of SCALES. The reference is solved first over
+the smallest and largest edge times each of SCALES (the grading kept). The reference is solved first over
 the forward cases (Newton to SOLVE_TOL): the configured mesh on the scene's
 element, or with `auto` on `nodal`, the element that converges (p1 locks:
 measured against itself it would leave out its own locking error). Then the
