@@ -9,14 +9,18 @@ tasks, same trial indices: the same draws) under each setting in turn,
 round after round, and prints per setting the median CPU time
 (process_time) of the round, the counts that do not depend on the load
 (gradients, sparse-solve columns, factorisations) and the largest
-difference of every insertion miss from the first setting's.
+difference of every insertion miss and every trial's final error from
+the first setting's.
 
 A setting is NAME=module.ATTR:value[,module.ATTR:value…], with a module
-of `scissor_cli.insertion` (`chord`, `needle`) and a Python literal; the
-first setting is the reference, e.g.
+of `scissor_cli.insertion` by its name (`chord`, `needle`) or any other
+by its path below `scissor_cli` (`solvers.newton`), and a Python
+literal; the first setting is the reference, e.g.
 
     PYTHONPATH=. python benchmarks/ab_trials.py configs/example_3d.yaml --truth layer --count 4 \\
         a=chord.CONTRACTION:0.5 b=chord.CONTRACTION:0.85 --rounds 6
+    PYTHONPATH=. python benchmarks/ab_trials.py configs/example_dome.yaml --count 2 \\
+        on=solvers.newton.HESSIAN_FREE:True off=solvers.newton.HESSIAN_FREE:False
 
 `--truth layer` runs a layer-truth trial as the error budget's rows do;
 `--count` trials per target (the budget is off). Settings touch module
@@ -59,10 +63,11 @@ def parse_setting(text: str) -> tuple[str, dict]:
     out = {}
     for item in body.split(","):
         target, _, value = item.partition(":")
-        module, _, attr = target.partition(".")
-        mod = importlib.import_module(f"scissor_cli.insertion.{module}")
+        module, _, attr = target.rpartition(".")
+        path = f"scissor_cli.{module}" if "." in module else f"scissor_cli.insertion.{module}"
+        mod = importlib.import_module(path)
         if not hasattr(mod, attr):
-            raise SystemExit(f"scissor_cli.insertion.{module} has no {attr}")
+            raise SystemExit(f"{path} has no {attr}")
         out[(mod, attr)] = ast.literal_eval(value)
     return name, out
 
@@ -135,7 +140,7 @@ def main() -> None:
           f"{os.getloadavg()[0]:.2f}")
     counts = Counts()
     cpu = {name: [] for name in settings}
-    seen, misses = {}, {}
+    seen, misses, finals = {}, {}, {}
     for _ in range(args.rounds):
         for name, setting in settings.items():
             for (mod, attr), value in (defaults | setting).items():
@@ -146,6 +151,7 @@ def main() -> None:
             cpu[name].append(time.process_time() - t)
             seen[name] = dict(counts.n)
             misses[name] = np.concatenate([o.insertion_miss_mm for o in outcomes] + [np.zeros(0)])
+            finals[name] = np.concatenate([np.ravel(o.final_error) for o in outcomes])
             failed = [o.message for o in outcomes if not o.ok]
             if failed:
                 raise SystemExit(f"setting {name}: a trial failed: {failed[0]}")
@@ -154,18 +160,20 @@ def main() -> None:
     for name in settings:
         c = np.array(cpu[name])
         apart = np.max(np.abs(misses[name] - misses[reference]), initial=0.0)
+        final_apart = np.max(np.abs(finals[name] - finals[reference]), initial=0.0)
         print(f"{name}: CPU {np.median(c):.2f} s median of {c.size} ({c.min():.2f}–{c.max():.2f}), "
               f"{np.median(c) / np.median(cpu[reference]):.3f}× {reference}; "
               + ", ".join(f"{k} {v}" for k, v in sorted(seen[name].items()))
-              + f"; insertion misses within {apart:.1e} mm of {reference}'s")
+              + f"; insertion misses within {apart:.1e} mm, final errors within {final_apart:.1e} mm of {reference}'s")
         rows.append({"setting": name, "values": {f"{mod.__name__}.{attr}": repr(v) for (mod, attr), v in
                                                  settings[name].items()},
                      "cpu_median_s": np.median(c), "cpu_min_s": c.min(), "cpu_max_s": c.max(), "rounds": c.size,
                      "over_reference": np.median(c) / np.median(cpu[reference]), **seen[name],
-                     "misses_apart_mm": apart})
+                     "misses_apart_mm": apart, "final_errors_apart_mm": final_apart})
     print(f"load average now {os.getloadavg()[0]:.2f}")
     res.table("settings", rows, {"cpu_median_s": "s (CPU)", "cpu_min_s": "s (CPU)", "cpu_max_s": "s (CPU)",
-                                 "misses_apart_mm": "mm"})
+                                 "misses_apart_mm": "mm",
+                                 "final_errors_apart_mm": "mm"})
     res.figure("trials", len(work), "trials")
     res.write()
 

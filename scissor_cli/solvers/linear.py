@@ -94,7 +94,7 @@ class Factorization:
         #: numeric factorisations tried (failed ones too), and conjugate-gradient
         #: iterations preconditioned by this factor (`preconditioned_cg`)
         self.factorizations = self.cg_iterations = 0
-        #: set by `solve_free` when preconditioning with this factor got slow
+        #: set by `preconditioned_cg` when preconditioning with this factor got slow
         self.stale = False
         #: per-iteration residual contraction of the last converged `preconditioned_cg` on this
         #: factor (an upper bound, rtol^(1/iterations)); None since the last refactorisation
@@ -304,19 +304,26 @@ def conjugate_gradients(times: Callable[[np.ndarray], np.ndarray], precondition:
     return None, max_iter, "iterations"
 
 
-def preconditioned_cg(A: sp.csr_matrix, b: np.ndarray, factor: Factorization, rtol: float,
-                      max_iter: int = KRYLOV_MAX_ITER, upper: bool = True) -> tuple[np.ndarray | None, int, str]:
+def preconditioned_cg(A: sp.csr_matrix | Callable[[np.ndarray], np.ndarray], b: np.ndarray, factor: Factorization,
+                      rtol: float, max_iter: int = KRYLOV_MAX_ITER,
+                      upper: bool = True) -> tuple[np.ndarray | None, int, str]:
     """x with A x = b to ‖b − A x‖ ≤ rtol ‖b‖ by `conjugate_gradients` preconditioned with `factor`.
 
-    A (n, n) symmetric, given by its upper triangle when `upper`; `factor` a
-    Cholesky factorisation of a nearby matrix (an earlier Newton tangent).
-    Returns (x, iterations, "converged"), or (None, iterations, why) when the
-    iteration meets a direction of non-positive curvature ("curvature": A is
-    not positive definite), turns non-finite, or does not reach rtol within
-    max_iter (`conjugate_gradients`' reasons). The true residual is checked
-    before x is returned.
+    A (n, n) symmetric, given by its upper triangle when `upper`, or as the
+    operator v ↦ A v (a Hessian applied without assembling it,
+    `solvers.hessian_free`); `factor` a Cholesky factorisation of a nearby
+    matrix (an earlier Newton tangent). Returns (x, iterations, "converged"),
+    or (None, iterations, why) when the iteration meets a direction of
+    non-positive curvature ("curvature": A is not positive definite), turns
+    non-finite, or does not reach rtol within max_iter
+    (`conjugate_gradients`' reasons). The true residual is checked before x
+    is returned. Records on the factor the iterations, the rate reached and
+    whether it is `stale` (a converged solve that needed more than
+    KRYLOV_STALE_ITER iterations: the next solve factors instead).
     """
-    if upper:
+    if callable(A):
+        times = A
+    elif upper:
         diag, AT = A.diagonal(), A.T
 
         def times(v):
@@ -325,8 +332,10 @@ def preconditioned_cg(A: sp.csr_matrix, b: np.ndarray, factor: Factorization, rt
         times = A.__matmul__
     x, k, why = conjugate_gradients(times, factor.solve, b, rtol, max_iter)
     factor.cg_iterations += k
-    if x is not None and k > 0:
-        factor.cg_rate = rtol ** (1.0 / k)
+    if x is not None:
+        factor.stale = k > KRYLOV_STALE_ITER
+        if k > 0:
+            factor.cg_rate = rtol ** (1.0 / k)
     return x, k, why
 
 
@@ -351,7 +360,6 @@ def solve_free(tissue, K_upper: sp.csr_matrix, b: np.ndarray, factors: dict | No
             and factor.matches(K_upper)):
         x, k, why = preconditioned_cg(K_upper, b, factor, rtol, max_iter)
         if x is not None:
-            factor.stale = k > KRYLOV_STALE_ITER
             return x, False
         if why == "curvature":
             raise NotPositiveDefinite("system matrix is not positive definite (conjugate gradients met negative "

@@ -37,6 +37,7 @@ from scissor_cli.solvers.common import (
     objective_gradient,
 )
 from scissor_cli.solvers.held import Held as _Held
+from scissor_cli.solvers.hessian_free import hessian_free_step
 from scissor_cli.solvers.linear import KRYLOV_MAX_ITER, NotPositiveDefinite, factorize_free, solve_free
 
 ARMIJO = 1e-4
@@ -74,6 +75,9 @@ KRYLOV_FORCING_MAX_2D = 0.1
 #: Hessian stays first: there the shifted one's steps stalled.
 SHIFTS = (1e-4, 1e-3, 1e-2, 1e-1)
 SHIFT_BELOW = 1e-2
+#: with `krylov` (3-D), a step near the solution is first solved without assembling the Hessian
+#: (`solvers.hessian_free`); off, every such step assembles K_ff (for A/B runs: benchmarks/ab_trials.py)
+HESSIAN_FREE = True
 
 
 def _krylov(tissue: Tissue, krylov: bool | None) -> bool:
@@ -227,23 +231,13 @@ def newton_iterations(
         rtol = min(KRYLOV_FORCING, res) if krylov else None
         if contracted and not krylov:
             rtol = _reuse_forcing(factors, res, history[-2])
-        cg_iter = KRYLOV_MAX_ITER if krylov else KRYLOV_MAX_ITER_2D
-        for project in ([False, True] if res < exact_below else [True]):
-            K = _system(tissue, x, project, inertia, held)
-            try:
-                d, factored = solve_free(tissue, K, g, factors, rtol, cg_iter)
-            except NotPositiveDefinite as exc:  # an indefinite exact Hessian: shifted (3-D), then the projected one
-                n_factor += exc.factored
-                shifted = (_shifted_solve(tissue, K, g, factors) if krylov and not project and res < SHIFT_BELOW
-                           else None)
-                if shifted is None:
-                    continue
-                d, factored = shifted  # (factored: the factorisations the shifts took)
+        if krylov and HESSIAN_FREE and res < exact_below:
+            d = hessian_free_step(tissue, x, g, inertia, conditions.loads, held, factors, rtol)
+            step = None if d is None else held.unrotate(d)
+        if step is None:
+            step, factored = _assembled_step(tissue, x, g, res, res < exact_below, inertia, held, factors, rtol,
+                                             krylov)
             n_factor += factored
-            d = -d
-            if np.all(np.isfinite(d)) and np.dot(g, d) < 0:
-                step = held.unrotate(d)
-                break
         if step is None:
             raise SolverError(
                 f"Newton found no descent direction at iteration {it} (residual {res:.3g})",
@@ -256,6 +250,29 @@ def newton_iterations(
         x, False, max_iter, history[-1], time.perf_counter() - t0, "newton",
         f"not converged in {max_iter} iterations (relative residual {history[-1]:.3g} > {tol:g})", history, n_factor,
     )
+
+
+def _assembled_step(tissue, x, g, res, exact, inertia, held, factors, rtol, krylov) -> tuple[np.ndarray | None, int]:
+    """(the Newton step (Nf,) or None, factorisations) on the assembled Hessian: the exact one first when
+    `exact`, shifted in 3-D near the solution when it is not positive definite, else the PSD-projected one."""
+    n_factor = 0
+    cg_iter = KRYLOV_MAX_ITER if krylov else KRYLOV_MAX_ITER_2D
+    for project in ([False, True] if exact else [True]):
+        K = _system(tissue, x, project, inertia, held)
+        try:
+            d, factored = solve_free(tissue, K, g, factors, rtol, cg_iter)
+        except NotPositiveDefinite as exc:  # an indefinite exact Hessian: shifted (3-D), then the projected one
+            n_factor += exc.factored
+            shifted = (_shifted_solve(tissue, K, g, factors) if krylov and not project and res < SHIFT_BELOW
+                       else None)
+            if shifted is None:
+                continue
+            d, factored = shifted  # (factored: the factorisations the shifts took)
+        n_factor += factored
+        d = -d
+        if np.all(np.isfinite(d)) and np.dot(g, d) < 0:
+            return held.unrotate(d), n_factor
+    return None, n_factor
 
 
 def _shifted_solve(tissue, K, g, factors) -> tuple[np.ndarray, int] | None:
