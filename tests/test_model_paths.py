@@ -56,6 +56,7 @@ def test_loops_sharing_the_models_paths_answer_as_loops_without(body):
             run = control.TargetRun(truth=truth, sensor=sensor, direction=np.array([-1.0, 0.0, 0.0]), model_paths=store)
             results.append(control.run_target(tissue, rest, desired, cfg.controller, run))
     assert paths.hits > 0
+    assert paths.get(()) is not None  # the rest state, where every loop's J starts, is shared too
     for a, b in zip(shared, alone):
         assert a.iterations == b.iterations > 1
         assert np.array_equal(a.final_error, b.final_error)

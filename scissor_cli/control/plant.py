@@ -97,8 +97,14 @@ class Controller:
         self.lo, self.hi = np.asarray(lo, float), np.asarray(hi, float)
         self.resolution_mm = resolution_mm
         self.eq = TrackedEquilibrium(tissue, tol)
-        self.eq.move_to(self.eq.strokes, tangent=True)
         self.paths, self._commands = paths, ()
+        rest = paths.get(self._commands) if paths is not None else None
+        if rest is None:  # J at rest: the model's tangent factored there
+            self.eq.move_to(self.eq.strokes, tangent=True)
+            if paths is not None:
+                paths.put(self._commands, self.eq.snapshot())
+        else:  # every loop of this model starts from the same rest state: taken over, as a later state is
+            self.eq.restore(rest)
 
     @property
     def n_cups(self) -> int:
@@ -148,7 +154,8 @@ class ModelPaths:
     solve the same model states, bit for bit. A `Controller` given these
     paths takes a state solved before instead of solving it again
     (`TrackedEquilibrium.restore`: the loop goes on exactly as if it had
-    solved it). Keyed by the whole command sequence from rest; keeps the
+    solved it). Keyed by the whole command sequence from rest (the rest
+    state itself, where each loop's J starts, by the empty one); keeps the
     `capacity` most recently used states (each holds the nodes and the
     tangent: a few hundred kB for a body). One per model tissue and target.
     """
