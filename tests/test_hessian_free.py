@@ -12,7 +12,7 @@ import yaml
 from scissor_cli.config.loading import parse_config
 from scissor_cli.experiments.build import body_model
 from scissor_cli.solvers import hessian_free, newton
-from scissor_cli.solvers.common import NO_CONDITIONS, Conditions, Inertia
+from scissor_cli.solvers.common import NO_CONDITIONS, Conditions, Inertia, objective_gradient
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 from scissor_cli.solvers.held import Held
 from scissor_cli.solvers.linear import Factorization, factorize_free
@@ -47,19 +47,21 @@ def _assembled(tissue, x, inertia, held):
 
 
 @pytest.mark.parametrize("with_conditions", [False, True])
-def test_the_difference_operator_is_the_assembled_hessian(body, with_conditions):
+@pytest.mark.parametrize("difference, bound", [("forward", 1e-5), ("central", 1e-7)])
+def test_the_difference_operator_is_the_assembled_hessian(body, with_conditions, difference, bound):
     tissue, x = body
     conditions = _conditions(tissue) if with_conditions else NO_CONDITIONS
     inertia = Inertia(0.05, x.ravel() + 0.01, tissue.mass) if with_conditions else None
     held = Held(tissue, conditions)
     K, times = _assembled(tissue, x, inertia, held)
-    op = hessian_free.hessian_times(tissue, x, inertia, conditions.loads, held)
+    grad = objective_gradient(tissue, x, inertia, conditions.loads)[1] if difference == "forward" else None
+    op = hessian_free.hessian_times(tissue, x, grad, inertia, conditions.loads, held)
     rng = np.random.default_rng(0)
     rough = rng.standard_normal(tissue.free_dofs.size)
     smooth = factorize_free(tissue, K, {}).solve(rough)  # what conjugate gradients steps along
     for v in (rough, smooth):
         exact = times(v)
-        assert np.linalg.norm(op(v) - exact) <= 1e-6 * np.linalg.norm(exact)
+        assert np.linalg.norm(op(v) - exact) <= bound * np.linalg.norm(exact)
     if with_conditions:  # the held rows and columns are the identity's
         e = np.zeros(tissue.free_dofs.size)
         e[held.pos] = 1.0
@@ -94,12 +96,16 @@ def test_no_usable_factor_or_a_failing_one_leaves_the_step_to_the_assembled_hess
     tissue, x = body
     held = Held(tissue, NO_CONDITIONS)
     K, _ = _assembled(tissue, x, None, held)
+    grad = objective_gradient(tissue, x, None)[1]
     g = np.random.default_rng(1).standard_normal(tissue.free_dofs.size)
-    args = (tissue, x, g, None, None, held)
+    args = (tissue, x, grad, g, None, None, held)
     assert hessian_free.hessian_free_step(*args, {}, 1e-2) is None  # no factor
     good = {"free": factorize_free(tissue, K, {})}
-    d = hessian_free.hessian_free_step(*args, good, 1e-2)
-    assert d is not None and np.dot(g, d) < 0
+    for rtol in (1e-2, 1e-7):  # the forward difference, the central one
+        d = hessian_free.hessian_free_step(*args, good, rtol)
+        assert d is not None and np.dot(g, d) < 0
+        _, exact = _assembled(tissue, x, None, held)
+        assert np.linalg.norm(exact(d) + g) <= 2 * rtol * np.linalg.norm(g)
     assert hessian_free.hessian_free_step(*args, good, 0.1 * hessian_free.SMALLEST_FORCING) is None
     good["free"].stale = True
     assert hessian_free.hessian_free_step(*args, good, 1e-2) is None

@@ -232,7 +232,7 @@ def newton_iterations(
         if contracted and not krylov:
             rtol = _reuse_forcing(factors, res, history[-2])
         if krylov and HESSIAN_FREE and res < exact_below:
-            d = hessian_free_step(tissue, x, g, inertia, conditions.loads, held, factors, rtol)
+            d = hessian_free_step(tissue, x, grad, g, inertia, conditions.loads, held, factors, rtol)
             step = None if d is None else held.unrotate(d)
         if step is None:
             step, factored = _assembled_step(tissue, x, g, res, res < exact_below, inertia, held, factors, rtol,
