@@ -49,6 +49,10 @@ MAX_EXTRAPOLATION = 64.0
 STEP_FRACTION = 0.7
 #: and is solved to this relative residual only
 SUBSTEP_TOL = 1e-4
+#: a load step below this fraction of the remaining increment ends the continuation: the path has met a stroke
+#: where an element inverts whatever the path (the feasible fraction then shrinks about 3× a step, and each step
+#: is a Newton solve at a nearly singular state), not a detour it can go round
+SMALLEST_LOAD_STEP = 1e-3
 #: a chord step (the last factorisation reused) is kept when it shrinks the residual this much
 CHORD_CONTRACTION = 0.3
 #: chord steps only far from the solution: the last steps are full Newton steps
@@ -405,10 +409,11 @@ def solve_newton(
         alpha = tissue.max_feasible_step(x, pred - x)
         final = alpha > 1.0 / STEP_FRACTION
         fraction = 1.0 if final else STEP_FRACTION * alpha
-        if fraction < 1e-6:
+        if fraction < SMALLEST_LOAD_STEP:
             raise SolverError(
                 note + f"every load step inverts an element: at most {alpha:.2g} of the remaining stroke increment "
-                "is feasible",
+                f"is feasible, at strokes {np.round(s_done, 3).tolist()} mm on the way to "
+                f"{np.round(strokes, 3).tolist()} mm",
                 SolveResult(x, False, iterations, np.nan, time.perf_counter() - t0, "newton", "inversion"),
             )
         s_next = s_done + fraction * (strokes - s_done)
