@@ -1016,6 +1016,27 @@ def _body_truth_tol(r) -> str:
               f"rest.\n\n" + source(r))
 
 
+@renderer("trial_steps", "ab_trials.example_dome.on.off", "ab_trials.example_dome.forward.central")
+def _trial_steps(hessian_free, difference) -> str:
+    """benchmarks/ab_trials.py on example_dome's trials: Newton steps with and without the assembled Hessian, and
+    the forward against the central difference (`solvers/hessian_free.py`)."""
+    rows = []
+    for r in (hessian_free, difference):
+        for x in rows_of(r, "settings"):
+            setting = ", ".join(f"`{k.rsplit('.', 1)[1]} = {v}`" for k, v in x["values"].items())
+            rows.append([setting, f"{fixed(x['cpu_median_s'], 1)} s ({fixed(x['cpu_min_s'], 1)}–"
+                                  f"{fixed(x['cpu_max_s'], 1)}, {x['rounds']})",
+                         f"{fixed(x['over_reference'], 2)}×", x["factorisations"], x["solve columns"],
+                         x["gradients"], f"{num(x['final_errors_apart_mm'])} mm"])
+    trials = fig(hessian_free, "trials")
+    return (table(["setting", "CPU, the trials (median, range, rounds)", "against the first of its pair",
+                   "factorisations", "sparse-solve columns", "gradients", "final errors apart from the first's"],
+                  rows)
+            + f"\n\nEach pair replays the same {trials} trials of configs/example_dome.yaml (2 per target) in one "
+              "process, the settings in turn; each pair at its own commit (the source lines below): between the two, the "
+              "model's rest state came to be shared by the loops.\n\n" + source(hessian_free, difference))
+
+
 @renderer("body_insertion", "bench_body_insertion")
 def _body_insertion(r) -> str:
     """benchmarks/bench_body_insertion.py: one insertion per strategy in the example dome's body, the capture
