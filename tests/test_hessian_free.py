@@ -101,7 +101,7 @@ def test_no_usable_factor_or_a_failing_one_leaves_the_step_to_the_assembled_hess
     args = (tissue, x, grad, g, None, None, held)
     assert hessian_free.hessian_free_step(*args, {}, 1e-2) is None  # no factor
     good = {"free": factorize_free(tissue, K, {})}
-    for rtol in (1e-2, 1e-7):  # the forward difference, the central one
+    for rtol in (1e-2, 1e-6):  # the forward difference, the central one
         d = hessian_free.hessian_free_step(*args, good, rtol)
         assert d is not None and np.dot(g, d) < 0
         _, exact = _assembled(tissue, x, None, held)
@@ -110,5 +110,5 @@ def test_no_usable_factor_or_a_failing_one_leaves_the_step_to_the_assembled_hess
     good["free"].stale = True
     assert hessian_free.hessian_free_step(*args, good, 1e-2) is None
     far = {"free": Factorization(sp.diags(K.diagonal()).tocsr(), definite=True, upper=True)}  # a poor preconditioner
-    assert hessian_free.hessian_free_step(*args, far, 1e-8) is None
-    assert far["free"].stale  # so the assembled step factors at once
+    assert hessian_free.hessian_free_step(*args, far, 1e-6) is None
+    assert far["free"].stale  # (not converged within the iterations) so the assembled step factors at once

@@ -43,8 +43,9 @@ FORWARD_STEP_MM = 1e-6
 CENTRAL_STEP_MM = 1e-5
 #: the forward difference serves forcing terms from this one up, the central one those below
 FORWARD_FORCING = 1e-5
-#: no difference serves a forcing term below this one: there the assembled H is used
-SMALLEST_FORCING = 1e-8
+#: no difference serves a forcing term below this one: there the assembled H is used (the central difference's
+#: error reached 1e-8 of ‖H v‖ on the slab's smooth directions, where conjugate gradients steps)
+SMALLEST_FORCING = 1e-6
 
 
 def hessian_times(tissue: Tissue, x: np.ndarray, grad: np.ndarray | None, inertia: Inertia | None,
@@ -88,9 +89,12 @@ def hessian_free_step(tissue: Tissue, x: np.ndarray, grad: np.ndarray, g: np.nda
     grad (dN,) is ∇Φ at x, g (Nf,) its reduced form (`held.vector` of
     grad's free part). None when the slot holds no usable factor (none, not
     Cholesky, stale), rtol is below SMALLEST_FORCING, or conjugate
-    gradients fails (then the factor is marked stale unless H met negative
-    curvature, so the assembled step that follows factors at once instead
-    of iterating again); also when d is not a descent direction.
+    gradients fails; also when d is not a descent direction. A failure to
+    converge within the iterations marks the factor stale, so the assembled
+    step that follows factors at once instead of iterating again; the
+    others (negative curvature, a residual the operator's error kept from
+    its target, a non-finite gradient) leave the factor to the assembled
+    step's own conjugate gradients.
     """
     factor = factors.get("free")
     if rtol < SMALLEST_FORCING or factor is None or factor.method != "cholesky" or factor.stale:
@@ -98,7 +102,7 @@ def hessian_free_step(tissue: Tissue, x: np.ndarray, grad: np.ndarray, g: np.nda
     times = hessian_times(tissue, x, grad if rtol >= FORWARD_FORCING else None, inertia, loads, held)
     d, _, why = preconditioned_cg(times, g, factor, rtol, KRYLOV_MAX_ITER)
     if d is None:
-        factor.stale = why != "curvature"  # (negative curvature: the assembled H decides how to step)
+        factor.stale = why == "iterations"
         return None
     d = -d
     return d if np.all(np.isfinite(d)) and np.dot(g, d) < 0 else None
