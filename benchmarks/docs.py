@@ -1033,8 +1033,7 @@ def _trial_steps(hessian_free, difference) -> str:
                    "factorisations", "sparse-solve columns", "gradients", "final errors apart from the first's"],
                   rows)
             + f"\n\nEach pair replays the same {trials} trials of configs/example_dome.yaml (2 per target) in one "
-              "process, the settings in turn; each pair at its own commit (the source lines below): between the "
-              "two, the model's rest state came to be shared by the loops.\n\n" + source(hessian_free, difference))
+              "process, the settings in turn.\n\n" + source(hessian_free, difference))
 
 
 @renderer("body_insertion", "bench_body_insertion")
