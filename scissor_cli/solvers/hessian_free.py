@@ -59,6 +59,7 @@ def hessian_times(tissue: Tissue, x: np.ndarray, grad: np.ndarray | None, inerti
     """
     free = tissue.free_dofs
     base = x.ravel()
+    at_x = None if grad is None else grad[free]  # (the forward difference's base, taken once)
 
     def gradient_at(step: np.ndarray) -> np.ndarray:
         return objective_gradient(tissue, (base + step).reshape(x.shape), inertia, loads)[1][free]
@@ -71,9 +72,9 @@ def hessian_times(tissue: Tissue, x: np.ndarray, grad: np.ndarray | None, inerti
         largest = float(np.max(np.abs(step)))
         if largest == 0.0:
             return v - moved
-        if grad is not None:
+        if at_x is not None:
             h = FORWARD_STEP_MM / largest
-            change = (gradient_at(h * step) - grad[free]) / h
+            change = (gradient_at(h * step) - at_x) / h
         else:
             h = CENTRAL_STEP_MM / largest
             change = (gradient_at(h * step) - gradient_at(-h * step)) / (2.0 * h)
