@@ -47,7 +47,7 @@ def replay(ctx: BodyTrialContext, task: TargetTask, tol: float) -> dict:
     """The travel settled at tol: lesion positions (MOVES, 3) mm, settle times (s), the tracker's counts."""
     run, _ = ctx.target_run(task, 0)
     truth = true_tissue(ctx.tissue, run.truth)
-    probe = truth.element.probe(truth.rest, np.asarray(task.rest, float)[None])
+    probe = truth.probe(np.asarray(task.rest, float)[None])
     eq = TrackedEquilibrium(truth, tol)
     lesion, times = [], []
     for k in range(1, MOVES + 1):

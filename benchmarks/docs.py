@@ -605,15 +605,24 @@ def _element_meshes(r) -> str:
 @renderer("insertion_elements", "bench_insertion_elements")
 def _insertion_elements(r) -> str:
     rows = rows_of(r, "insertions")
+
+    def centre(x: dict) -> str:
+        if "centre_error_mm" not in x:  # (a result recorded before the lesion became its region's mean)
+            return "–"
+        return "–" if x["reference"] else f"{fixed(x['centre_error_mm'], 3)} mm ({fixed(x['centre_error_pct'], 1)} %)"
+
     out = [[f"`{x['element']}`", fixed(x["grading"], 1) + (f", ×{x['scale']:g}" if x["scale"] != 1.0 else "")
             + (" (the reference)" if x["reference"] else ""), num(x["tetrahedra"]), fixed(x["wall_s"], 1),
-            fixed(x["drag_mm"], 3), "–" if x["reference"] else off_reference(x), fixed(x["force_mN"], 0),
-            fixed(x["miss_mm"], 3)] for x in rows]
+            fixed(x["drag_mm"], 3), "–" if x["reference"] else off_reference(x), centre(x),
+            fixed(x["force_mN"], 0), fixed(x["miss_mm"], 3)] for x in rows]
     return (table(["element", "grading", "tetrahedra", "the insertion (s)", "the lesion's drag (mm)",
-                   "its end off the reference (% of the drag)", "last force (mN)", "miss (mm)"], out)
+                   "its end off the reference (% of the drag)", "its centre point's end off the reference's",
+                   "last force (mN)", "miss (mm)"], out)
             + f"\n\nconfigs/example_dome.yaml, T1 along −x from the skin, {num(r['data']['depth_mm'])} mm in "
               f"{num(r['data']['step_mm'])} mm steps, `none`, the default needle–tissue parameters; ×s: "
-              "`tissue.mesh.scale`; the time is the median of the repeats. " + source(r))
+              "`tissue.mesh.scale`; the time is the median of the repeats. The lesion is its region's mean (as "
+              "scissor carries it, [model.md §21](model.md#the-lesion-is-its-regions-mean)); its centre point "
+              "lies on the needle's line, where the displacement has no limit under refinement. " + source(r))
 
 
 @renderer("element_default", "bench_element_meshes", "bench_dome_study.p1.grading-0.3", "bench_dome_study",

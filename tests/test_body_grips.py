@@ -11,7 +11,7 @@ import yaml
 
 from scissor_cli.config.loading import parse_config
 from scissor_cli.experiments.build import body_model
-from scissor_cli.mesh.probe import probe_points, target_positions
+from scissor_cli.mesh.probe import target_positions
 from scissor_cli.planning import body_grips as bg
 from scissor_cli.planning.manipulation_points import adjoint_responses
 from scissor_cli.solvers.common import Conditions
@@ -58,7 +58,7 @@ def test_adjoint_responses_on_the_body_equal_finite_differences_of_full_solves(b
     assert free.n_cups == 0
     c = bg.skin_candidates(free, REGION["center_mm"], REGION["radius_mm"], 8.0, 5.0)
     F = bg.skin_forces(free, c, 5.0)
-    probe = probe_points(free.mesh.nodes, free.mesh.tetrahedra, np.array([t.rest for t in free.scene.targets]))
+    probe = free.probe(np.array([t.rest for t in free.scene.targets]))
     R, u, _ = adjoint_responses(free, free.rest, probe, F)
     assert R.shape == (2, len(c), 3) and np.all(u > 0)
     eps = 0.5  # mN: small enough to stay linear

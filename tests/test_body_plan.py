@@ -285,8 +285,7 @@ def test_a_cyst_whose_centre_lies_outside_follows_the_nearest_tetrahedron(cyst):
 def _independent(tissue, scene, strokes):
     """The lesion (3,) and the vessel (P, 3) carried by a solve from rest, not the planner's warm-started chain."""
     x = solve_equilibrium(tissue, np.asarray(strokes, float)).x
-    lesion = target_positions(probe_points(tissue.mesh.nodes, tissue.mesh.tetrahedra, scene.targets[0].rest[None]),
-                              x)[0]
+    lesion = target_positions(tissue.probe(scene.targets[0].rest[None]), x)[0]
     ob = scene.obstacles[0]
     return x, lesion, target_positions(probe_points(tissue.mesh.nodes, tissue.mesh.tetrahedra, ob.points), x)
 

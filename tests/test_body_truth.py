@@ -57,7 +57,7 @@ def test_a_trials_truth_settles_to_the_body_truth_tolerance_and_the_model_to_the
     assert plant.tissue is not ctx.tissue and plant.eq.tol == BODY_TRUTH_TOL > run.tol == controller.eq.tol
     shared, _, _ = loop_parts(ctx.tissue, task.rest, dataclasses.replace(run, truth=TruthPerturbation()))
     assert shared.tissue is ctx.tissue and shared.eq.tol == run.tol
-    probe = plant.tissue.element.probe(plant.tissue.rest, task.rest[None])
+    probe = plant.tissue.probe(task.rest[None])
     loose, tight = TrackedEquilibrium(plant.tissue, BODY_TRUTH_TOL), TrackedEquilibrium(plant.tissue, 1e-10)
     for strokes in ([1.5, 0.0], [3.0, -1.0], [3.5, -2.0]):
         loose.move_to(np.array(strokes), tangent=False)

@@ -361,8 +361,8 @@ def loop_parts(model: Tissue, target_rest: np.ndarray, run: TargetRun = TargetRu
     """
     direction = needle_axis(run)
     scene = model.scene
-    if model.dim == 3:  # a body: the lesion carried by its rest tetrahedron
-        probe = model.element.probe(model.rest, np.asarray(target_rest, float)[None])
+    if model.dim == 3:  # a body: the lesion carried as its region's mean
+        probe = model.probe(np.asarray(target_rest, float)[None])
     else:
         probe = probe_targets(model.mesh, np.asarray(target_rest, float)[None])
     actuator = Actuator.from_scene(scene, run.resolution_mm, run.backlash_mm)

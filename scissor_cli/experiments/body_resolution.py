@@ -29,7 +29,7 @@ from scissor_cli import progress
 from scissor_cli.config.body_sections import BodyConfig
 from scissor_cli.mechanics.body_tissue import build_body
 from scissor_cli.mesh.body_inputs import mesh_body
-from scissor_cli.mesh.probe import probe_points, target_positions
+from scissor_cli.mesh.probe import target_positions
 from scissor_cli.scene.body_scene import build_body_scene
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 
@@ -90,7 +90,7 @@ def _solve(cfg: BodyConfig, scale: float, element: str, cache: Path | None) -> t
     mesh = mesh_body(scene, cfg.tissue.mesh, scale, cache)
     tissue = build_body(scene, mesh, element=element)
     t1 = time.perf_counter()
-    probe = probe_points(mesh.nodes, mesh.tetrahedra, np.array([t.rest for t in scene.targets]).reshape(-1, 3))
+    probe = tissue.probe(np.array([t.rest for t in scene.targets]).reshape(-1, 3))
     ends = [target_positions(probe, solve_equilibrium(tissue, scene.strokes_vector(case.strokes),
                                                       tol=SOLVE_TOL).x) for case in cfg.forward]
     return (BodyCandidate(scale, element, mesh.n_elements, mesh_s=t1 - t0, solve_s=time.perf_counter() - t1),

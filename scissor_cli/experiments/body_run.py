@@ -127,7 +127,7 @@ def body_stages(cfg: BodyConfig, tissue: Tissue, sink: RunSink, summary, done: f
             sink.target(t.name, t.rest, t.rest if t.desired is None else t.desired,
                         "rest" if t.desired is None else "config")
         sink.mark_finished("model")
-    probe = tissue.element.probe(tissue.rest, np.array([t.rest for t in scene.targets]).reshape(-1, 3))
+    probe = tissue.probe(np.array([t.rest for t in scene.targets]).reshape(-1, 3))
     forward_stage(cfg.forward, cfg.solver, tissue, probe, sink, summary,
                   lambda case, strokes, result, targets: dict(
                       title=f"{cfg.name}: forward case {case}", tissue=tissue, x=result.x,

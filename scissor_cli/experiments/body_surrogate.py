@@ -63,7 +63,7 @@ def body_surrogate_data(cfg: BodyConfig, tissue: Tissue, cache: Optional[Path]) 
     lo = np.array([c.stroke_min_mm for c in scene.cups])
     hi = np.array([c.stroke_max_mm for c in scene.cups])
     n = cfg.controller.surrogate.samples
-    probe = tissue.element.probe(tissue.rest, np.array([t.rest for t in scene.targets]).reshape(-1, 3))
+    probe = tissue.probe(np.array([t.rest for t in scene.targets]).reshape(-1, 3))
     advance = progress.bar("controller model (surrogate): body solves", n + max(4, n // 4))
     samples = train(tissue, _Lesions(probe), None, lo, hi, n, SOLVE_TOL, advance)
     error = Surrogate(samples, components=3).validation_error_mm()

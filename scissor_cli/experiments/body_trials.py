@@ -99,7 +99,7 @@ class BodyTruth:
         if not self.finer:
             return None
         fine = self.tissue
-        probe = fine.element.probe(fine.rest, np.asarray(target_rest, float)[None])
+        probe = fine.probe(np.asarray(target_rest, float)[None])
         view = TruthView(target=lambda x: target_positions(probe, x)[0], layer=lambda x: x)
         return lambda perturbation: (true_tissue(fine, perturbation), view)
 

@@ -16,6 +16,9 @@ from typing import Callable, Optional
 from scissor_cli import __version__
 
 CACHE_DIR = ".scissor-cache"
+#: what the cached files mean, beside the code's version: raised when that changes between versions (2: a body's
+#: lesion became its region's mean, docs/model.md §21), so a cache written before is not read as today's
+REVISION = 2
 
 
 def cache_dir(location: Optional[Path]) -> Optional[Path]:
@@ -24,8 +27,9 @@ def cache_dir(location: Optional[Path]) -> Optional[Path]:
 
 
 def key(parts: dict) -> str:
-    """20 hex digits of the SHA-256 of `parts` (JSON-able) and the code's version."""
-    return hashlib.sha256(json.dumps({**parts, "version": __version__}, sort_keys=True).encode()).hexdigest()[:20]
+    """20 hex digits of the SHA-256 of `parts` (JSON-able), the code's version and the cache's `REVISION`."""
+    parts = {**parts, "version": __version__, "revision": REVISION}
+    return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:20]
 
 
 def write_whole(path: Path, write: Callable[[Path], None]) -> None:

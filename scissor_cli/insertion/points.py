@@ -70,7 +70,7 @@ class BodyPoints:
 
     def __init__(self, tissue: Tissue, target_rest: np.ndarray):
         mesh = tissue.mesh
-        self.probe = tissue.element.probe(mesh.nodes, np.asarray(target_rest, float)[None])
+        self.probe = tissue.probe(np.asarray(target_rest, float)[None])
         self._carried = carry_obstacles(tissue.scene.obstacles, mesh.nodes, mesh.tetrahedra, mesh.boundary_triangles)
         self.has_obstacles = bool(len(self._carried.radius))
 

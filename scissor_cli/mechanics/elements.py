@@ -100,6 +100,35 @@ class LinearSimplex:
         located = probe_points(nodes, self.ops.triangles, points, extrapolate)  # its weights: the coordinates
         return replace(located, bary=self.shape_functions(located.bary))
 
+    def mean_probe(self, nodes: np.ndarray, cells: np.ndarray, center: np.ndarray) -> TargetProbe:
+        """The probe (one row) of the mean position over a region, the elements `cells` (R,) of a mesh whose rest
+        nodes are `nodes` (N, d) mm, that reads `center` (d,) mm at rest.
+
+        The weights are ∫ N_a dV / V over the region (this element's quadrature and shape functions): the mean of
+        the interpolated positions. The region is faceted, so its rest centroid lies off `center` by a fraction
+        of an edge: each weight is then scaled by 1 + λ·(1, X_a − center), the least relative change that makes
+        the weights sum to 1 and read `center` at rest, so the probe carries any affine map of the region
+        exactly, as a point's does. ValueError for an empty region, or one whose centroid is so far off
+        `center` that a weight would turn negative.
+        """
+        cells = np.asarray(cells, np.int64)
+        if cells.size == 0:
+            raise ValueError("a region's mean needs at least one element")
+        points, weights = self.quadrature()
+        shape = self.shape_functions(points)  # (Q, d + 1)
+        per_corner = (weights @ shape)[None, :] * self.ops.volume[cells, None]  # (R, d + 1) mm³: ∫_e N_a dV
+        corners = self.ops.triangles[cells]
+        ids, where = np.unique(corners, return_inverse=True)
+        w = np.bincount(where.ravel(), per_corner.ravel(), len(ids))
+        w /= w.sum()
+        center = np.asarray(center, float)
+        A = np.vstack([np.ones(len(ids)), (nodes[ids] - center).T])  # (d + 1, P): Σ w = 1, Σ w (X − c) = 0
+        lam = np.linalg.solve((A * w) @ A.T, np.r_[1.0, np.zeros(self.dim)] - A @ w)
+        w = w * (1.0 + lam @ A)
+        if not np.all(w > 0.0):
+            raise ValueError(f"the region's centroid is too far from {center.tolist()} mm for its mean to read it")
+        return TargetProbe(tri_idx=np.array([cells[0]]), nodes=ids[None, :], bary=w[None, :])
+
     # -- the energy's terms beyond the per-element kernels (none here) -----------------------------------------
     @property
     def element_params(self) -> materials.MaterialParams:

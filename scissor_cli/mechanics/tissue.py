@@ -24,6 +24,7 @@ import scipy.sparse as sp
 
 from scissor_cli.mechanics import compiled, compiled3d, elements, fem, materials
 from scissor_cli.mesh.mesh import Mesh
+from scissor_cli.mesh.probe import TargetProbe, stacked_probes
 from scissor_cli.scene.scene import Scene
 
 
@@ -102,6 +103,32 @@ class Tissue:
         flat = np.array(x, dtype=float).ravel()
         flat[self.dirichlet_dofs] = self.boundary_positions(np.asarray(strokes, float))
         return flat.reshape(-1, self.dim)
+
+    def probe(self, points: np.ndarray, extrapolate: bool = False) -> TargetProbe:
+        """The probe of rest points (K, d) mm (`mesh.probe.target_positions` carries it).
+
+        A point at a body's lesion (its centre, as the scene gives it) stands
+        for the lesion, which is carried as its region's mean
+        (`LinearSimplex.mean_probe`; docs/model.md §21, "The lesion is its
+        region's mean"): the needle's friction acts along a line through the
+        lesion, and the displacement at a point on that line has no limit
+        under refinement, the region's mean has. Any other point, and every
+        point of the layer and the slab (no lesion regions), is carried by
+        the element holding it (`extrapolate` as in `LinearSimplex.locate`).
+        """
+        points = np.atleast_2d(np.asarray(points, float))
+        located = self.element.probe(self.rest, points, extrapolate)
+        regions = lesion_regions(self)
+        if not regions:
+            return located
+        rows = []
+        for k, point in enumerate(points):
+            row = TargetProbe(located.tri_idx[k:k + 1], located.nodes[k:k + 1], located.bary[k:k + 1])
+            cells = next((cells for center, cells in regions if np.allclose(center, point, rtol=0.0, atol=1e-9)), None)
+            if cells is not None:
+                row = replace(self.element.mean_probe(self.rest, cells, point), tri_idx=row.tri_idx)
+            rows.append(row)
+        return stacked_probes(rows)
 
     def jacobians(self, x: np.ndarray) -> np.ndarray:
         """J = det F (M,) of every element at positions x (N, d)."""
@@ -298,6 +325,21 @@ class Tissue:
 
 class BoundaryError(ValueError):
     """The boundary conditions cannot be built on this mesh."""
+
+
+def lesion_regions(tissue: Tissue) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(centre (d,) mm, the region's elements (R,)) of each scene target whose region the mesh tags (a body's
+    lesions: `mesh.body_mesh.BodyMesh.region_names`); empty for the layer and the slab."""
+    names = getattr(tissue.mesh, "region_names", None)
+    if names is None:
+        return []
+    out = []
+    for target in tissue.scene.targets:
+        if target.name in names:
+            cells = np.flatnonzero(tissue.mesh.region == names.index(target.name))
+            if cells.size:
+                out.append((np.asarray(target.rest, float), cells))
+    return out
 
 
 def scene_material(scene: Scene, element_obstacle: np.ndarray, model: str | None = None):

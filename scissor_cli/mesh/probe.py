@@ -21,7 +21,10 @@ class TargetProbe:
 
     nodes (K, d + 1) int: the containing triangle's (tetrahedron's)
     vertices; bary (K, d + 1): the barycentric weights at rest (rows sum to
-    1); tri_idx (K,) the element, for reference.
+    1); tri_idx (K,) the element, for reference. A body's lesion is the mean
+    of its region (`LinearSimplex.mean_probe`): its row holds the region's
+    nodes, P columns (P ≥ d + 1; a narrower row of the same probe is padded
+    with weight 0), and every use reads the columns as weights of nodes.
     """
 
     tri_idx: np.ndarray
@@ -42,6 +45,16 @@ def probe_targets(mesh: Mesh, points: np.ndarray) -> TargetProbe:
 def target_positions(probe: TargetProbe, x: np.ndarray) -> np.ndarray:
     """Deformed target positions (K, d) mm for node positions x (N, d) mm."""
     return np.einsum("kj,kjd->kd", probe.bary, np.asarray(x, float)[probe.nodes])
+
+
+def stacked_probes(probes: list[TargetProbe]) -> TargetProbe:
+    """One probe of every row of `probes`, in order: rows with fewer nodes than the widest are padded with their
+    first node at weight 0 (a point's d + 1 corners beside a region's mean, `LinearSimplex.mean_probe`)."""
+    width = max(p.nodes.shape[1] for p in probes)
+    pad = [(np.pad(p.nodes, ((0, 0), (0, width - p.nodes.shape[1])), mode="edge"),
+            np.pad(p.bary, ((0, 0), (0, width - p.bary.shape[1])))) for p in probes]
+    return TargetProbe(tri_idx=np.concatenate([p.tri_idx for p in probes]),
+                       nodes=np.concatenate([n for n, _ in pad]), bary=np.concatenate([w for _, w in pad]))
 
 
 def apply_probe(probe: TargetProbe, D: np.ndarray, d: int = 2) -> np.ndarray:

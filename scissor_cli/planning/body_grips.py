@@ -229,7 +229,7 @@ def plan_body_grips(tissue: Tissue, center_mm, radius_mm: float, spacing_mm: flo
     free = released_body(tissue)
     lesions = tissue.scene.targets
     rest = np.array([t.rest for t in lesions], float).reshape(-1, 3)
-    probe = free.element.probe(free.rest, rest)
+    probe = free.probe(rest)
     R, u, _ = adjoint_responses(free, free.rest, probe, skin_forces(free, cands, cup_radius_mm))
     G = R / u[None, :, None]  # (T, P, 3) mm per mm of stroke
     Q = across(needle_direction)
@@ -252,7 +252,7 @@ def verify(plan: BodyGripPlan, gripped: GrippedBody, stroke_limits: np.ndarray) 
     """
     t0 = time.perf_counter()
     body = gripped(plan.contacts, plan.axes)
-    probe = body.element.probe(body.rest, np.array([t.rest for t in body.scene.targets], float).reshape(-1, 3))
+    probe = body.probe(np.array([t.rest for t in body.scene.targets], float).reshape(-1, 3))
     lo, hi = np.asarray(stroke_limits, float).T
     plan.test_strokes = np.clip(TEST_STROKE_FRACTION * np.maximum(np.abs(lo), np.abs(hi)), lo, hi)
     plan.predicted = np.stack([plan.per_stroke[:, c] * s for c, s in zip(plan.chosen, plan.test_strokes)])

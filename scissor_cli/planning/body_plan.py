@@ -122,10 +122,9 @@ class _Planner:
                  obstacles, max_candidates: int):
         self.tissue, self.scene, self.needle, self.lesion = tissue, scene, needle, scene.targets[index]
         self.robot_check, self.solve_fn, self.memo, self.max_candidates = robot_check, solve, memo, max_candidates
-        mesh = tissue.mesh
         self.directions, self.angle = bl.cone_directions(needle.direction, needle.cone_deg)
         self.obstacles = obstacles
-        self.lesion_probe = tissue.element.probe(mesh.nodes, self.lesion.rest[None])
+        self.lesion_probe = tissue.probe(self.lesion.rest[None])
         self.allowance = 0.5 * needle.diameter_mm + needle.margin_mm
         self.solves, self.capped, self.failures = 0, False, {}
 
