@@ -49,7 +49,7 @@ def target_positions(probe: TargetProbe, x: np.ndarray) -> np.ndarray:
 
 def stacked_probes(probes: list[TargetProbe]) -> TargetProbe:
     """One probe of every row of `probes`, in order: rows with fewer nodes than the widest are padded with their
-    first node at weight 0 (a point's d + 1 corners beside a region's mean, `LinearSimplex.mean_probe`)."""
+    last node at weight 0 (a point's d + 1 corners beside a region's mean, `LinearSimplex.mean_probe`)."""
     width = max(p.nodes.shape[1] for p in probes)
     pad = [(np.pad(p.nodes, ((0, 0), (0, width - p.nodes.shape[1])), mode="edge"),
             np.pad(p.bary, ((0, 0), (0, width - p.bary.shape[1])))) for p in probes]
