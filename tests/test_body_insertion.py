@@ -12,9 +12,12 @@ import pytest
 import yaml
 
 from scissor_cli.config.loading import parse_config
+from scissor_cli.experiments.body_trials import body_sensor_model
 from scissor_cli.experiments.build import body_model
+from scissor_cli.experiments.profiles import error_model
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_strategies
 from scissor_cli.planning.body_lines import skin_entries
+from scissor_cli.sensing.sensor import EXACT, TrueState
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 
 from figure_checks import assert_png_drawn
@@ -33,7 +36,7 @@ def body():
     return cfg, scene, tissue
 
 
-def _insert(body, strategy="none", direction=(-1.0, 0.0, 0.0), record=None, **params):
+def _insert(body, strategy="none", direction=(-1.0, 0.0, 0.0), record=None, sensor=EXACT, **params):
     """Insert towards T1 from rest along `direction`, from where that line enters the skin, to T1's depth."""
     cfg, scene, tissue = body
     n = np.asarray(direction, float) / np.linalg.norm(direction)
@@ -46,7 +49,7 @@ def _insert(body, strategy="none", direction=(-1.0, 0.0, 0.0), record=None, **pa
     p = NeedleParams(**{"step_mm": 1.0, "capture_radius_mm": 2.5, **params})
     path = NeedlePath(entries[0], n, float(depths[0]), rest, "T1")
     return run_strategies(tissue, x0, strokes, {strategy: path}, p,
-                          {strategy: InsertionOptions(strategy, cfg.controller, record=record)})[0], rest
+                          {strategy: InsertionOptions(strategy, cfg.controller, record=record, sensor=sensor)})[0], rest
 
 
 def test_with_no_friction_and_no_tip_force_the_lesion_does_not_move(body):
@@ -125,6 +128,23 @@ def test_loop_drives_both_components_of_the_miss_with_both_cups(body):
     assert np.any(np.abs(loop.strokes[-1]) > 0.5)  # the cups moved
     reach = np.array([c.speed_mm_per_s for c in scene.cups]) / cfg.controller.rate_hz
     assert np.all(np.abs(np.diff(loop.strokes, axis=0)) <= reach + 1e-9)
+
+
+def test_loop_under_one_camera_drives_the_miss_it_sees(body):
+    """One camera above does not see the depth along its view: its reading's z is NaN. The loop drives the part of
+    the miss across the needle that the camera sees (y, the needle along x), as the manipulation's law does. It
+    once computed the miss as T · (reading − entry), which 0 · NaN made NaN in both rows, and the cups never moved:
+    `loop` ended where `depth` did."""
+    cfg, scene, tissue = body
+    one = parse_config(yaml.safe_dump(dict({k: v for k, v in COARSE.items() if k != "cameras"},
+                                           camera={"position_mm": [0.0, 0.0, 400.0]})), "<test>")
+    sensor = body_sensor_model(one, error_model(one.trials), tissue.mesh).nominal(scene.targets[0].rest)
+    assert np.isnan(sensor.measure(TrueState(scene.targets[0].rest, tissue.rest, tissue.mesh))[2])
+    runs = {k: _insert(body, k, tip_force_mN=0.0, sensor=sensor)[0] for k in ("depth", "loop")}
+    loop = runs["loop"]
+    assert loop.completed and np.any(np.abs(loop.strokes[-1] - loop.strokes[0]) > 0.5)  # the cups moved
+    seen_miss = {k: abs(r.target[-1][1] - r.entry[1]) for k, r in runs.items()}  # y: across the needle, seen
+    assert seen_miss["loop"] <= 0.1 and seen_miss["loop"] < 0.5 * seen_miss["depth"]
 
 
 def test_a_bad_insertion_section_of_a_body_exits_2(tmp_path):

@@ -398,8 +398,20 @@ def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID) -> None:
     seen = needle.seen()
     body = needle.body
     across = state.transverse if body else state.transverse[:1, :2]  # a body's miss has two components
-    e = -(across @ (seen - needle.p0[:seen.size]))
-    seen_rows = np.isfinite(e)  # (a body's component along one camera's view is not seen: not driven)
+    offset = seen - needle.p0[:seen.size]
+    if body:
+        # One camera does not see the depth along its view (NaN there): as the manipulation's law does
+        # (`allocation.stroke_step`), the unseen coordinates count as 0 and the loop drives what the sensor
+        # observes of the miss, S Tᵀ e, with S its projector (`seen` of the camera or ultrasound sensor; else
+        # onto the coordinates it reports). (across @ offset alone is NaN in both rows, 0 · NaN being NaN: the
+        # cups then never moved.)
+        measured = np.isfinite(offset)
+        S = getattr(needle.options.sensor, "seen", None)
+        observed = (np.diag(measured.astype(float)) if S is None else S) @ across.T  # (3, 2)
+        e = -(across @ np.where(measured, offset, 0.0))
+    else:
+        e = -(across @ offset)
+    seen_rows = np.isfinite(e)
     if isinstance(steering, TableSteering):
         J, responses = steering.jacobian(state.depth_mm, s, seen), None
         e = np.array([-steering.offset(state.depth_mm, s, -e[0], J[0])])
@@ -417,7 +429,10 @@ def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID) -> None:
             responses = None
     if not np.any(seen_rows):
         return
-    ds, _, _ = split_error(J[seen_rows], e[seen_rows])
+    if body and not isinstance(steering, TableSteering):
+        ds, _, _ = split_error(observed @ J, observed @ e)
+    else:
+        ds, _, _ = split_error(J[seen_rows], e[seen_rows])
     tissue = needle.tissue
     lo = np.array([c.stroke_min_mm for c in tissue.scene.cups])
     hi = np.array([c.stroke_max_mm for c in tissue.scene.cups])
