@@ -1067,7 +1067,11 @@ def _body_insertion(r) -> str:
               f"time and how far the lesion ends from the tightest's: {sweep}. A trial with the needle (example_dome, "
               f"every strategy, one process): median {fixed(fig(r, 'trial_median_s'), 1)} s, slowest "
               f"{fixed(fig(r, 'trial_max_s'), 1)} s over {len(trials)} trials (its loop and three insertions in the "
-              f"drawn true body). " + source(r))
+              f"drawn true body, seen by the scene's one camera); the needle's miss across its line, mean and largest "
+              f"over them: " + "; ".join(
+                  f"`{k}` {fixed(sum(x[f'miss_{k}_mm'] for x in trials) / len(trials), 3)} / "
+                  f"{fixed(max(x[f'miss_{k}_mm'] for x in trials), 3)} mm" for k in ("none", "depth", "loop"))
+            + ". " + source(r))
 
 
 @renderer("body_grips", "bench_body_grips")
