@@ -108,7 +108,8 @@ class LinearSimplex:
         the interpolated positions. The region is faceted, so its rest centroid lies off `center` by a fraction
         of an edge: each weight is then scaled by 1 + λ·(1, X_a − center), the least relative change that makes
         the weights sum to 1 and read `center` at rest, so the probe carries any affine map of the region
-        exactly, as a point's does. ValueError for an empty region, or one whose centroid is so far off
+        exactly, as a point's does. Its `tri_idx` is the region's first element (`Tissue.probe` gives the
+        element holding the centre instead). ValueError for an empty region, or one whose centroid is so far off
         `center` that a weight would turn negative.
         """
         cells = np.asarray(cells, np.int64)
