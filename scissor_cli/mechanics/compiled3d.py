@@ -128,6 +128,33 @@ def jacobians_3d(x, corners, grad_rows):
 
 
 @njit(**_JIT)
+def feasibility_cubic_3d(x, dx, corners, grad_rows):
+    """b, c, d and Fujiwara's root bound (each (M,)) of det(F + α dF) = J (1 + b α + c α² + d α³) for positions
+    x and a direction dx (N, 3) (`fem.max_feasible_step_3d`'s coefficients and bound, in one pass without the
+    (M, 3, 3) stacks of F and dF); J > 0 is the caller's to ensure."""
+    M = corners.shape[1]
+    b, c, d, bound = np.empty(M), np.empty(M), np.empty(M), np.empty(M)
+    f, g, cf, cg = np.empty(9), np.empty(9), np.empty(9), np.empty(9)
+    for e in range(M):
+        _deformation(x, corners, grad_rows, e, f)
+        _deformation(dx, corners, grad_rows, e, g)
+        J = _cofactor(f, cf)
+        det_g = _cofactor(g, cg)
+        sb, sc = 0.0, 0.0
+        for p in range(9):
+            sb += cf[p] * g[p]
+            sc += f[p] * cg[p]
+        b[e], c[e], d[e] = sb / J, sc / J, det_g / J
+        if not (math.isfinite(b[e]) and math.isfinite(c[e]) and math.isfinite(d[e])):
+            bound[e] = np.inf  # non-finite coefficients: always solved
+        elif b[e] >= 0.0 and c[e] >= 0.0 and d[e] >= 0.0:
+            bound[e] = 0.0  # Descartes: no positive root
+        else:
+            bound[e] = 2.0 * max(max(abs(b[e]), math.sqrt(abs(c[e]))), np.cbrt(abs(0.5 * d[e])))
+    return b, c, d, bound
+
+
+@njit(**_JIT)
 def energy_gradient_3d(x, corners, grad_rows, volume, material, tension_only, out):
     """U (µJ) and ∇U written into out (3N,) mN; returns (U, -1), or (nan, e) for the first element e it cannot take.
 

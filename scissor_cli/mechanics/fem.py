@@ -357,6 +357,12 @@ def max_feasible_step_3d(F: np.ndarray, dF: np.ndarray) -> float:
         bound = 2.0 * np.maximum(np.maximum(np.abs(b), np.sqrt(np.abs(c))), np.cbrt(np.abs(0.5 * d)))
         bound[(b >= 0) & (c >= 0) & (d >= 0)] = 0.0
         bound[~np.isfinite(bound)] = np.inf  # non-finite coefficients: always solved
+    return first_sign_change(b, c, d, bound)
+
+
+def first_sign_change(b: np.ndarray, c: np.ndarray, d: np.ndarray, bound: np.ndarray) -> float:
+    """`max_feasible_step_3d`'s α from each element's cubic coefficients b, c, d and root bound (all (M,)),
+    whichever pass computed them (numpy above, or `compiled3d.feasibility_cubic_3d`)."""
     if bound.size > _FIRST_SOLVED:  # the largest bounds, in no order (a partition, not a sort: only the set matters)
         order = np.argpartition(-bound, _FIRST_SOLVED - 1)
     else:

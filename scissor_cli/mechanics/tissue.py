@@ -141,11 +141,13 @@ class Tissue:
         J_e(α) = det(F + α dF) = J + α tr(cof(F)ᵀ dF) + α² det dF is a quadratic
         per element, so the first root is found in closed form, in one compiled
         loop (`compiled.max_feasible_step_2d`). In 3-D it is a cubic:
-        `fem.max_feasible_step_3d`.
+        `fem.max_feasible_step_3d`, its coefficients from one compiled pass (`compiled3d.feasibility_cubic_3d`).
         """
         if self.dim == 3:
-            F = fem.deformation_gradients(self.ops, x)
-            return fem.max_feasible_step_3d(F, fem.deformation_gradients(self.ops, x + dx) - F)
+            cubic = compiled3d.feasibility_cubic_3d(np.ascontiguousarray(x, dtype=np.float64),
+                                                    np.ascontiguousarray(dx, dtype=np.float64),
+                                                    self.ops.corners, self.ops.grad_rows)
+            return fem.first_sign_change(*cubic)
         return float(compiled.max_feasible_step_2d(np.ascontiguousarray(x, dtype=np.float64),
                                                    np.ascontiguousarray(dx, dtype=np.float64),
                                                    self.ops.corners, self.ops.grad_rows))
