@@ -289,6 +289,19 @@ def test_a_detached_float32_factor_solves_to_single_precision_and_the_slot_refac
     np.testing.assert_allclose(f.solve(b), ref, rtol=1e-10)
 
 
+def test_a_float32_factor_solves_a_block_as_it_solves_each_column():
+    """Many right-hand sides go through the BLAS-3 sweeps (`_solve_block`), one through the matrix-vector ones: the
+    same solution to float32's precision, whatever the block's width."""
+    A = sp.triu(_laplacian_3d(12, 0.1)).tocsr()
+    kept = Factorization(A, definite=True, upper=True, ordering="nested_dissection", supernodal=True).detach()
+    rng = np.random.default_rng(8)
+    for k in (2, 7, 40):
+        b = rng.normal(size=(A.shape[0], k))
+        block = kept.solve(b)
+        each = np.column_stack([kept.solve(b[:, j]) for j in range(k)])
+        assert np.linalg.norm(block - each) <= 1e-5 * np.linalg.norm(each)
+
+
 def test_the_float32_solve_compiled_in_one_process_solves_in_another():
     """The compiled solve links BLAS by symbol name (solvers.supernodal._link_blas), so numba may cache it: a
     second process, which loads the cached code and links the name again, solves as the first did."""

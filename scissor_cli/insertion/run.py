@@ -42,7 +42,7 @@ from scissor_cli.insertion.capture import free_nodes
 from scissor_cli.insertion.model_state import ModelInsertion, ModelState, move_held, moved_start
 from scissor_cli.insertion.needle import NeedleParams, NeedleState, advance, transverse_basis
 from scissor_cli.insertion.points import is_body, needle_points
-from scissor_cli.insertion.steering import NeedleModel, TableSteering
+from scissor_cli.insertion.steering import DEADBAND, MissFilter, NeedleModel, TableSteering, seen_directions
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import target_positions
 from scissor_cli.sensing.sensor import EXACT, Sensor, TrueState
@@ -309,6 +309,9 @@ def _insert_together(tissue, x0, strokes, path, params, options: dict) -> dict:
     first = next(iter(options.values()))
     needle = _Needle(tissue, x0, strokes, path, params, first)
     steering = _steering(needle, first, params) if "loop" in options else None
+    # a body's loop on a model tissue filters the miss it steers on (a table's steering filters its own)
+    miss = (MissFilter(2, first.controller.tolerance_mm, first.sensor.noise_mm)
+            if isinstance(steering, ModelState) and needle.body else None)
     pid = None
     if steering is not None:
         gains = first.controller
@@ -349,7 +352,7 @@ def _insert_together(tissue, x0, strokes, path, params, options: dict) -> dict:
                 out = n.step(amount)
                 loads = out.loads
                 if steering is not None:
-                    _correct(n, steering, out.loads, pid)
+                    _correct(n, steering, out.loads, pid, miss)
                 n.keep(out)
         except SolverError as exc:
             for k, n in list(running.items()):
@@ -383,7 +386,7 @@ def _model_state(plant, model, x0, model_x0, strokes, p0, n, target_rest, params
     return ModelState(model, plant, model_x0, x0, strokes)
 
 
-def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID) -> None:
+def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID, miss: Optional[MissFilter] = None) -> None:
     """One §6 loop iteration on the miss across the needle, the needle holding its captured nodes.
 
     J is the controller's: its 3-D model's held Jacobian at this depth
@@ -392,7 +395,10 @@ def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID) -> None:
     `ModelInsertion`). On the table the command moves the cups with the
     needle's next step (one equilibrium for both, the step bounded by the
     drives' speed); otherwise the plant is solved at the command with the
-    same hold (§14, the layer model's loop as it was).
+    same hold (§14, the layer model's loop as it was). On a body the miss
+    is filtered (`miss`: the model body's own move under the needle
+    predicts, the reading corrects what the sensor sees), and the cups stay
+    while its seen part is within the deadband (as on the table).
     """
     state, x, s = needle.state, needle.x, needle.s
     seen = needle.seen()
@@ -408,7 +414,8 @@ def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID) -> None:
         measured = np.isfinite(offset)
         S = getattr(needle.options.sensor, "seen", None)
         observed = (np.diag(measured.astype(float)) if S is None else S) @ across.T  # (3, 2)
-        e = -(across @ np.where(measured, offset, 0.0))
+        reading = across @ np.where(measured, offset, 0.0)
+        e = -reading
     else:
         e = -(across @ offset)
     seen_rows = np.isfinite(e)
@@ -418,7 +425,14 @@ def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID) -> None:
         if abs(e[0]) <= steering.deadband_mm:  # on the line as well as the filter can tell: the cups stay
             return
     else:
+        before = target_positions(needle.probe, steering.x)[0] if miss is not None else None
         steering.follow(state, x, s, loads)
+        if miss is not None:
+            moved = across @ (target_positions(needle.probe, steering.x)[0] - before)
+            estimate = miss.update(moved, reading, seen_directions(across @ observed))
+            if np.linalg.norm(observed @ estimate) <= DEADBAND * needle.options.controller.tolerance_mm:
+                return  # on the line as well as the filter can tell: the cups stay
+            e = -estimate
         if body:
             J, responses = steering.jacobian(state, needle.probe, state.solver, rows=2)
         else:

@@ -92,6 +92,52 @@ class NeedleModel:
         return self.steered_height_mm if strategy == "loop" else self.end_height_mm
 
 
+class MissFilter:
+    """A Kalman filter of the target's offset across the needle's axis, k components (mm), as `loop` steers on it.
+
+    The prior is the manipulation's end: on the line, σ prior_sd_mm (the
+    controller's tolerance) per component. Each frame the model predicts
+    the offset's move since the last (its drag and the cups' effect: a
+    table's, `TableSteering`, or a model body's own insertion), uncertain by
+    DRIFT_SD_MM per component; the reading corrects the components the
+    sensor sees, each with its σ noise_mm (an exact sensor: the reading
+    itself there). A component no sensor sees keeps the prediction.
+    """
+
+    def __init__(self, k: int, prior_sd_mm: float, noise_mm: float):
+        self.offset_mm = np.zeros(k)
+        #: (k, k) mm² the estimate's covariance
+        self.covariance = float(prior_sd_mm) ** 2 * np.eye(k)
+        self._noise_var = float(noise_mm) ** 2
+        self._started = False
+
+    def update(self, moved_mm: np.ndarray, reading_mm: np.ndarray, seen: np.ndarray) -> np.ndarray:
+        """The filtered offset (k,) mm after a frame: the model's predicted move since the last frame moved_mm (k,)
+        (ignored on the first: the prior holds there), and the reading of the components seen (r, k) (orthonormal
+        rows, r ≤ k; r = 0: nothing seen) observe, reading_mm (k,) (its components off `seen` ignored)."""
+        k = self.offset_mm.size
+        if self._started:
+            self.offset_mm = self.offset_mm + np.asarray(moved_mm, float)
+            self.covariance = self.covariance + DRIFT_SD_MM ** 2 * np.eye(k)
+        self._started = True
+        H = np.asarray(seen, float).reshape(-1, k)
+        if H.shape[0]:
+            P = self.covariance
+            innovation = H @ P @ H.T + self._noise_var * np.eye(H.shape[0])
+            gain = np.linalg.solve(innovation, H @ P).T  # P Hᵀ S⁻¹ (S and P symmetric)
+            self.offset_mm = self.offset_mm + gain @ (H @ np.asarray(reading_mm, float) - H @ self.offset_mm)
+            self.covariance = (np.eye(k) - gain @ H) @ P
+        return self.offset_mm.copy()
+
+
+def seen_directions(observed: np.ndarray) -> np.ndarray:
+    """The orthonormal rows (r, k) spanning what a sensor observes of a k-component offset, from its projector
+    restricted to those components (k, k) (T S Tᵀ: symmetric, eigenvalues in [0, 1], 0 or 1 where the view is
+    square to the components): the directions it sees more than half of, `MissFilter.update`'s `seen`."""
+    values, vectors = np.linalg.eigh(0.5 * (observed + observed.T))
+    return vectors[:, values > 0.5].T
+
+
 class TableSteering:
     """The `loop` strategy's Jacobian from a `NeedleModel`, with Broyden's correction when asked for.
 
@@ -105,35 +151,28 @@ class TableSteering:
     def __init__(self, model: NeedleModel, across: np.ndarray, broyden: bool = False, noise_mm: float = 0.0,
                  tolerance_mm: float = 0.1):
         self.model = model
-        self.prior_sd_mm = float(tolerance_mm)
         #: |offset| (mm) below which the loop does not move the cups
         self.deadband_mm = DEADBAND * float(tolerance_mm)
         self.across = np.asarray(across, float)[:2]
         self.correction: Optional[BroydenCorrection] = BroydenCorrection(noise_mm) if broyden else None
         self._drift0: Optional[np.ndarray] = None
         self._window: list = []
-        self._noise_var = float(noise_mm) ** 2
-        #: the filter: the offset's estimate (mm) and variance (mm²), the depth and strokes it holds at
-        self._offset: Optional[float] = None
-        self._var = 0.0
+        self._filter = MissFilter(1, tolerance_mm, noise_mm)
+        #: the depth, strokes and J the filter's estimate holds at
         self._at: tuple = ()
 
     def offset(self, depth_mm: float, strokes: np.ndarray, seen_offset_mm: float, J_across: np.ndarray) -> float:
         """The filtered across-axis offset (mm) of the target from the needle line, from this frame's
-        `seen_offset_mm` at depth (mm) and strokes (C,) mm; J_across (C,) the held Jacobian steered with."""
+        `seen_offset_mm` at depth (mm) and strokes (C,) mm; J_across (C,) the held Jacobian steered with: the
+        table's drag and J_across times the strokes' change predict the move (`MissFilter`)."""
         strokes = np.asarray(strokes, float)
-        if self._offset is None:  # the manipulation's end: on the line within the tolerance
-            self._offset, self._var = 0.0, self.prior_sd_mm ** 2
-        else:
+        moved = 0.0
+        if self._at:
             depth0, strokes0, J0 = self._at
             drift = self.across @ (self.model.target_at(depth_mm) - self.model.target_at(depth0))[:2]
-            self._offset += float(drift + J0 @ (strokes - strokes0))
-            self._var += DRIFT_SD_MM ** 2
-        gain = self._var / (self._var + self._noise_var) if self._var + self._noise_var > 0 else 1.0
-        self._offset += gain * (float(seen_offset_mm) - self._offset)
-        self._var *= 1.0 - gain
+            moved = float(drift + J0 @ (strokes - strokes0))
         self._at = (depth_mm, strokes.copy(), np.asarray(J_across, float).copy())
-        return self._offset
+        return float(self._filter.update(np.array([moved]), np.array([float(seen_offset_mm)]), np.ones((1, 1)))[0])
 
     def jacobian(self, depth_mm: float, strokes: np.ndarray, measured: np.ndarray) -> np.ndarray:
         """J (1, C) of the across-axis miss at this depth; `measured` (2,) the sensor's target at strokes (C,) mm.

@@ -32,9 +32,13 @@ from numba import njit, types
 #: the BLAS routines the compiled solve calls, by the symbol names they are linked under (`_link_blas`):
 #: (uplo, trans, diag, n, A, lda, x, incx) and (trans, m, n, alpha, A, lda, x, incx, beta, y, incy), every
 #: argument a pointer (Fortran: by reference), passed as an address
-_BLAS = {"strsv": 8, "sgemv": 11}
+_BLAS = {"strsv": 8, "sgemv": 11, "strsm": 11, "sgemm": 13}
 _strsv = types.ExternalFunction("scissor_blas_strsv", types.void(*[types.intp] * _BLAS["strsv"]))
 _sgemv = types.ExternalFunction("scissor_blas_sgemv", types.void(*[types.intp] * _BLAS["sgemv"]))
+#: (side, uplo, trans, diag, m, n, alpha, A, lda, B, ldb) and (transa, transb, m, n, k, alpha, A, lda, B, ldb,
+#: beta, C, ldc): the same supernode sweeps on a block of right-hand sides (`_solve_block`)
+_strsm = types.ExternalFunction("scissor_blas_strsm", types.void(*[types.intp] * _BLAS["strsm"]))
+_sgemm = types.ExternalFunction("scissor_blas_sgemm", types.void(*[types.intp] * _BLAS["sgemm"]))
 
 
 @functools.cache
@@ -80,12 +84,23 @@ class SupernodalFactor:
               self.blocks)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
-        """x (float64) with A x = b, for b (n,) or (n, k)."""
+        """x (float64) with A x = b, for b (n,) or (n, k).
+
+        Several right-hand sides are solved together, each supernode's block
+        read once for all of them (BLAS-3 `strsm`, `sgemm`: `_solve_block`);
+        one is solved with the matrix–vector kernels (`_solve_columns`).
+        """
         b = np.asarray(b, dtype=float)
         B = b.reshape(b.shape[0], -1)
-        X = np.empty(B.shape)
         _link_blas()
-        _solve_columns(self.starts, self.row_ptr, self.block_rows, self.block_ptr, self.blocks, self.perm, B, X)
+        if B.shape[1] == 1:
+            X = np.empty(B.shape)
+            _solve_columns(self.starts, self.row_ptr, self.block_rows, self.block_ptr, self.blocks, self.perm, B, X)
+            return X.reshape(b.shape)
+        Y = np.asfortranarray(B[self.perm], dtype=np.float32)  # P b, each column contiguous
+        _solve_block(self.starts, self.row_ptr, self.block_rows, self.block_ptr, self.blocks, Y)
+        X = np.empty(B.shape)
+        X[self.perm] = Y
         return X.reshape(b.shape)
 
 
@@ -162,3 +177,48 @@ def _solve_columns(starts, row_ptr, block_rows, block_ptr, blocks, perm, B, X):
             _strsv(ch, ch + 2, ch + 1, d, a, d + 4, yp + 4 * c0, d + 12)
         for k in range(n):
             X[perm[k], col] = y[k]
+
+
+@njit(cache=True)
+def _solve_block(starts, row_ptr, block_rows, block_ptr, blocks, Y):
+    """Y (n, k) float32, column-major, permuted: overwritten with L⁻ᵀ L⁻¹ Y, supernode by supernode with BLAS-3
+    (`_solve_columns`' sweeps with a block of columns in place of one; BLAS linked: `_link_blas`)."""
+    n, k = Y.shape
+    most = 0
+    for s in range(starts.size - 1):
+        most = max(most, row_ptr[s + 1] - row_ptr[s] - (starts[s + 1] - starts[s]))
+    tmp = np.empty(max(most, 1) * k, np.float32)  # (below, k) column-major
+    # by-reference dims (m, n, k, lda, ldb, ldc), scalars (1, 0, −1), chars (L, N, T)
+    dims = np.empty(6, np.int32)
+    scalars = np.array([1.0, 0.0, -1.0], np.float32)
+    chars = np.array([76, 78, 84], np.uint8)
+    d, s_, ch = np.int64(dims.ctypes.data), np.int64(scalars.ctypes.data), np.int64(chars.ctypes.data)
+    blk, yp, tp = np.int64(blocks.ctypes.data), np.int64(Y.ctypes.data), np.int64(tmp.ctypes.data)
+    dims[1], dims[4] = k, n
+    n_super = starts.size - 1
+    for s in range(n_super):  # L Y = B
+        c0, w = starts[s], starts[s + 1] - starts[s]
+        r0, r = row_ptr[s], row_ptr[s + 1] - row_ptr[s]
+        below = r - w
+        dims[0], dims[2], dims[3], dims[5] = w, w, r, max(below, 1)
+        a = blk + 4 * block_ptr[s]
+        _strsm(ch, ch, ch + 1, ch + 1, d, d + 4, s_, a, d + 12, yp + 4 * c0, d + 16)
+        if below > 0:
+            dims[0] = below
+            _sgemm(ch + 1, ch + 1, d, d + 4, d + 8, s_, a + 4 * w, d + 12, yp + 4 * c0, d + 16, s_ + 4, tp, d + 20)
+            for j in range(k):
+                for i in range(below):
+                    Y[block_rows[r0 + w + i], j] -= tmp[j * below + i]
+    for s in range(n_super - 1, -1, -1):  # Lᵀ X = Y
+        c0, w = starts[s], starts[s + 1] - starts[s]
+        r0, r = row_ptr[s], row_ptr[s + 1] - row_ptr[s]
+        below = r - w
+        dims[0], dims[2], dims[3], dims[5] = w, below, r, max(below, 1)
+        a = blk + 4 * block_ptr[s]
+        if below > 0:
+            for j in range(k):
+                for i in range(below):
+                    tmp[j * below + i] = Y[block_rows[r0 + w + i], j]
+            # Y_s −= A_belowᵀ tmp: (w × below)(below × k)
+            _sgemm(ch + 2, ch + 1, d, d + 4, d + 8, s_ + 8, a + 4 * w, d + 12, tp, d + 20, s_, yp + 4 * c0, d + 16)
+        _strsm(ch, ch, ch + 2, ch + 1, d, d + 4, s_, a, d + 12, yp + 4 * c0, d + 16)
