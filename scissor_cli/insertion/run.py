@@ -311,7 +311,7 @@ def _insert_together(tissue, x0, strokes, path, params, options: dict) -> dict:
     steering = _steering(needle, first, params) if "loop" in options else None
     # a body's loop on a model tissue filters the miss it steers on (a table's steering filters its own)
     miss = (MissFilter(2, first.controller.tolerance_mm, first.sensor.noise_mm)
-            if isinstance(steering, ModelState) and needle.body else None)
+            if steering is not None and needle.body else None)
     pid = None
     if steering is not None:
         gains = first.controller
@@ -398,55 +398,49 @@ def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID, miss: Optio
     same hold (§14, the layer model's loop as it was). On a body the miss
     is filtered (`miss`: the model body's own move under the needle
     predicts, the reading corrects what the sensor sees), and the cups stay
-    while its seen part is within the deadband (as on the table).
+    while the estimate is within the deadband (as on the table).
     """
     state, x, s = needle.state, needle.x, needle.s
     seen = needle.seen()
     body = needle.body
     across = state.transverse if body else state.transverse[:1, :2]  # a body's miss has two components
     offset = seen - needle.p0[:seen.size]
-    if body:
-        # One camera does not see the depth along its view (NaN there): as the manipulation's law does
-        # (`allocation.stroke_step`), the unseen coordinates count as 0 and the loop drives what the sensor
-        # observes of the miss, S Tᵀ e, with S its projector (`seen` of the camera or ultrasound sensor; else
-        # onto the coordinates it reports). (across @ offset alone is NaN in both rows, 0 · NaN being NaN: the
-        # cups then never moved.)
-        measured = np.isfinite(offset)
-        S = getattr(needle.options.sensor, "seen", None)
-        observed = (np.diag(measured.astype(float)) if S is None else S) @ across.T  # (3, 2)
-        reading = across @ np.where(measured, offset, 0.0)
-        e = -reading
-    else:
-        e = -(across @ offset)
-    seen_rows = np.isfinite(e)
     if isinstance(steering, TableSteering):
+        e = -(across @ offset)
         J, responses = steering.jacobian(state.depth_mm, s, seen), None
         e = np.array([-steering.offset(state.depth_mm, s, -e[0], J[0])])
         if abs(e[0]) <= steering.deadband_mm:  # on the line as well as the filter can tell: the cups stay
             return
-    else:
-        before = target_positions(needle.probe, steering.x)[0] if miss is not None else None
+    elif body:
+        # One camera does not see the depth along its view (NaN there): the unseen coordinates count as 0 and
+        # the filter is told which directions across the needle the sensor sees (T S Tᵀ, S its projector:
+        # `seen` of the camera or ultrasound sensor, else onto the coordinates it reports). (across @ offset
+        # alone is NaN in both rows, 0 · NaN being NaN: the cups once never moved.) Where it sees nothing the
+        # estimate is the model's prediction, and the loop drives both components (a cup that corrects the
+        # seen one moves the unseen one too).
+        measured = np.isfinite(offset)
+        S = getattr(needle.options.sensor, "seen", None)
+        observed = across @ (np.diag(measured.astype(float)) if S is None else S) @ across.T  # (2, 2)
+        before = target_positions(needle.probe, steering.x)[0]
         steering.follow(state, x, s, loads)
-        if miss is not None:
-            moved = across @ (target_positions(needle.probe, steering.x)[0] - before)
-            estimate = miss.update(moved, reading, seen_directions(across @ observed))
-            if np.linalg.norm(observed @ estimate) <= DEADBAND * needle.options.controller.tolerance_mm:
-                return  # on the line as well as the filter can tell: the cups stay
-            e = -estimate
-        if body:
-            J, responses = steering.jacobian(state, needle.probe, state.solver, rows=2)
-        else:
-            J, responses = steering.jacobian(state, needle.probe, state.solver)
+        moved = across @ (target_positions(needle.probe, steering.x)[0] - before)
+        estimate = miss.update(moved, across @ np.where(measured, offset, 0.0), seen_directions(observed))
+        if np.linalg.norm(estimate) <= DEADBAND * needle.options.controller.tolerance_mm:
+            return  # on the line as well as the filter can tell: the cups stay
+        e = -estimate
+        J, responses = steering.jacobian(state, needle.probe, state.solver, rows=2)
+    else:
+        e = -(across @ offset)
+        steering.follow(state, x, s, loads)
+        J, responses = steering.jacobian(state, needle.probe, state.solver)
         if responses.shape[1:] != x.shape:
             # a 2-D model's responses are no start for the slab (its levels near the fixed chest wall do not
             # move as the layer does): the strokes placed only
             responses = None
+    seen_rows = np.isfinite(e)
     if not np.any(seen_rows):
         return
-    if body and not isinstance(steering, TableSteering):
-        ds, _, _ = split_error(observed @ J, observed @ e)
-    else:
-        ds, _, _ = split_error(J[seen_rows], e[seen_rows])
+    ds, _, _ = split_error(J[seen_rows], e[seen_rows])
     tissue = needle.tissue
     lo = np.array([c.stroke_min_mm for c in tissue.scene.cups])
     hi = np.array([c.stroke_max_mm for c in tissue.scene.cups])
