@@ -19,7 +19,7 @@ from scissor_cli.config import parse_config
 from scissor_cli.experiments.build import build_model
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_insertion
 from scissor_cli.insertion.capture import free_nodes
-from scissor_cli.insertion.chord import ChordSolver, Hold
+from scissor_cli.insertion.chord import ChordFailed, ChordSolver, Hold
 from scissor_cli.insertion.needle import NeedleState, advance, transverse_basis
 from scissor_cli.layer3d.slab import SlabSpec, build_slab
 from scissor_cli.solvers.common import Conditions, objective_gradient
@@ -232,6 +232,38 @@ def test_a_float32_factor_that_does_not_contract_hands_the_solver_to_float64(sla
     zero = np.zeros(slab.n_cups)
     newton = solve_equilibrium(slab, zero, start=start, start_strokes=zero, conditions=hold.conditions(loads), tol=1e-8)
     np.testing.assert_allclose(chord_x, newton.x, atol=1e-6)
+
+
+def _first_trial_does_not_contract(monkeypatch):
+    """Make a ChordSolver's first trial step report a residual that does not contract (then the true ones)."""
+    exact, calls = ChordSolver._trial, []
+
+    def trial(self, x, step, hold, loads):
+        out = exact(self, x, step, hold, loads)
+        calls.append(1)
+        return (out[0], out[1], np.inf) if len(calls) == 1 else out
+
+    monkeypatch.setattr(ChordSolver, "_trial", trial)
+
+
+def test_a_factor_fresh_at_another_state_is_refreshed_where_a_step_does_not_contract(slab_model, monkeypatch):
+    """A factor is the exact tangent only where it was made: a solve from another state whose first step does not
+    contract refactors there and converges. (A solve that failed on a fresh factor and went to Newton once left
+    the factor marked fresh, and every later solve from elsewhere gave up at its first such step.)"""
+    slab, x, hold, loads = _a_hold(slab_model)
+    start = hold.place(x)
+    _, g = objective_gradient(slab, start, None, loads)
+    solver = ChordSolver(slab, single_precision=False)
+    solver.refactor(slab.rest)  # fresh, at the rest state
+    _first_trial_does_not_contract(monkeypatch)
+    made = solver.factorizations
+    chord_x, _, its, verdict = solver.converge(start, g, hold, 1e-8, loads)
+    assert verdict is None and its > 0 and solver.factorizations > made
+    # where the fresh factor was made, the same step not contracting is the tangent's failure
+    solver.refactor(start)
+    _first_trial_does_not_contract(monkeypatch)
+    with pytest.raises(ChordFailed):
+        solver.converge(start, g, hold, 1e-8, loads)
 
 
 def idx_dofs(hold):

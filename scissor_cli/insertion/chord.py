@@ -86,6 +86,8 @@ class ChordSolver:
         self._factor = None
         self.factorizations = 0
         self.fresh = False
+        #: the positions (N, d) the kept factor is the tangent at
+        self._factored_at: np.ndarray | None = None
         #: dofs per node
         self.d = tissue.dim
         self._slot = np.full(tissue.mesh.n_nodes, -1, np.int64)
@@ -118,6 +120,7 @@ class ChordSolver:
         if factor is None:
             raise SolverError("the needle's chord solver found no positive definite stiffness")
         self._factor, self.fresh = factor, True
+        self._factored_at = np.array(x, dtype=float)
         self._slot[:] = -1
         self._used = 0
 
@@ -270,6 +273,10 @@ class ChordSolver:
         free = t.free_dofs
         if self._factor is None:
             self.refactor(x)
+        elif self.fresh and not np.array_equal(x, self._factored_at):
+            # fresh at another state (a solve that failed there and went to Newton, a start moved since): a
+            # step here that does not contract is the factor's age, not a failure of the exact tangent
+            self.fresh = False
         g_free = g[free]
         res = hold.held_residual(self, g)
         gap = np.empty(hold.rows.size)
