@@ -112,9 +112,13 @@ class MissFilter:
         self._started = False
 
     def update(self, moved_mm: np.ndarray, reading_mm: np.ndarray, seen: np.ndarray) -> np.ndarray:
-        """The filtered offset (k,) mm after a frame: the model's predicted move since the last frame moved_mm (k,)
-        (ignored on the first: the prior holds there), and the reading of the components seen (r, k) (orthonormal
-        rows, r ≤ k; r = 0: nothing seen) observe, reading_mm (k,) (its components off `seen` ignored)."""
+        """The filtered offset (k,) mm after a frame.
+
+        moved_mm (k,): the model's predicted move since the last frame
+        (ignored on the first: the prior holds there); reading_mm (k,): the
+        sensor's offset, read only along `seen` (r, k), the orthonormal
+        directions it observes (r ≤ k; r = 0: nothing seen this frame).
+        """
         k = self.offset_mm.size
         if self._started:
             self.offset_mm = self.offset_mm + np.asarray(moved_mm, float)

@@ -351,6 +351,11 @@ def max_feasible_step_3d(F: np.ndarray, dF: np.ndarray) -> float:
     largest bounds are solved first, then only those whose bound exceeds the
     β found. The same β as solving every element (each matrix's
     eigenvalues do not depend on the batch), at a fraction of the cost.
+
+    The definition on F and dF stacks: `Tissue.max_feasible_step` takes the
+    coefficients and bounds from one compiled pass over x and dx
+    (`compiled3d.feasibility_cubic_3d`) into `first_sign_change`, and the
+    tests compare the two.
     """
     b, c, d = _feasibility_cubic(F, dF)
     with np.errstate(all="ignore"):
