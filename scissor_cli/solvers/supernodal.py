@@ -93,15 +93,29 @@ class SupernodalFactor:
         b = np.asarray(b, dtype=float)
         B = b.reshape(b.shape[0], -1)
         _link_blas()
+        refs = _by_reference()
         if B.shape[1] == 1:
             X = np.empty(B.shape)
-            _solve_columns(self.starts, self.row_ptr, self.block_rows, self.block_ptr, self.blocks, self.perm, B, X)
+            _solve_columns(self.starts, self.row_ptr, self.block_rows, self.block_ptr, self.blocks, self.perm, B, X,
+                           *refs)
             return X.reshape(b.shape)
         Y = np.asfortranarray(B[self.perm], dtype=np.float32)  # P b, each column contiguous
-        _solve_block(self.starts, self.row_ptr, self.block_rows, self.block_ptr, self.blocks, Y)
+        _solve_block(self.starts, self.row_ptr, self.block_rows, self.block_ptr, self.blocks, Y, *refs)
         X = np.empty(B.shape)
         X[self.perm] = Y
         return X.reshape(b.shape)
+
+
+def _by_reference() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The BLAS calls' by-reference arguments, owned by the caller for the whole compiled solve: dims (6,) int32
+    (the kernels fill them), scalars (1, 0, −1) float32, chars (L, N, T).
+
+    Not allocated inside the compiled loops: there an array read only
+    through its address is dead to numba after that read and may be freed
+    at once; BLAS-3 routines allocate workspace of their own, which may
+    then reuse it (a float32 block solve that failed at random).
+    """
+    return np.zeros(6, np.int32), np.array([1.0, 0.0, -1.0], np.float32), np.array([76, 78, 84], np.uint8)
 
 
 @njit(cache=True)
@@ -138,15 +152,12 @@ def _pack(colptr, rows, values, starts, row_ptr, block_ptr, block_rows, blocks):
 
 
 @njit(cache=True)
-def _solve_columns(starts, row_ptr, block_rows, block_ptr, blocks, perm, B, X):
-    """X[:, c] = A⁻¹ B[:, c] for each column: P, L⁻¹ and L⁻ᵀ supernode by supernode, Pᵀ (BLAS linked: `_link_blas`)."""
+def _solve_columns(starts, row_ptr, block_rows, block_ptr, blocks, perm, B, X, dims, scalars, chars):
+    """X[:, c] = A⁻¹ B[:, c] for each column: P, L⁻¹ and L⁻ᵀ supernode by supernode, Pᵀ (BLAS linked: `_link_blas`;
+    dims, scalars, chars: `_by_reference`, here dims (n, lda, m, inc))."""
     n = perm.size
     y = np.empty(n, np.float32)
     tmp = np.empty(n, np.float32)
-    # the by-reference scalars: dims (n, lda, m, inc), scalars (1, 0, −1), chars (L, N, T)
-    dims = np.empty(4, np.int32)
-    scalars = np.array([1.0, 0.0, -1.0], np.float32)
-    chars = np.array([76, 78, 84], np.uint8)
     # addresses as signed integers: unsigned plus signed would be a float in numba's arithmetic
     d, s_, ch = np.int64(dims.ctypes.data), np.int64(scalars.ctypes.data), np.int64(chars.ctypes.data)
     blk, yp, tp = np.int64(blocks.ctypes.data), np.int64(y.ctypes.data), np.int64(tmp.ctypes.data)
@@ -180,18 +191,15 @@ def _solve_columns(starts, row_ptr, block_rows, block_ptr, blocks, perm, B, X):
 
 
 @njit(cache=True)
-def _solve_block(starts, row_ptr, block_rows, block_ptr, blocks, Y):
+def _solve_block(starts, row_ptr, block_rows, block_ptr, blocks, Y, dims, scalars, chars):
     """Y (n, k) float32, column-major, permuted: overwritten with L⁻ᵀ L⁻¹ Y, supernode by supernode with BLAS-3
-    (`_solve_columns`' sweeps with a block of columns in place of one; BLAS linked: `_link_blas`)."""
+    (`_solve_columns`' sweeps with a block of columns in place of one; BLAS linked: `_link_blas`; dims, scalars,
+    chars: `_by_reference`, here dims (m, n, k, lda, ldb, ldc))."""
     n, k = Y.shape
     most = 0
     for s in range(starts.size - 1):
         most = max(most, row_ptr[s + 1] - row_ptr[s] - (starts[s + 1] - starts[s]))
     tmp = np.empty(max(most, 1) * k, np.float32)  # (below, k) column-major
-    # by-reference dims (m, n, k, lda, ldb, ldc), scalars (1, 0, −1), chars (L, N, T)
-    dims = np.empty(6, np.int32)
-    scalars = np.array([1.0, 0.0, -1.0], np.float32)
-    chars = np.array([76, 78, 84], np.uint8)
     d, s_, ch = np.int64(dims.ctypes.data), np.int64(scalars.ctypes.data), np.int64(chars.ctypes.data)
     blk, yp, tp = np.int64(blocks.ctypes.data), np.int64(Y.ctypes.data), np.int64(tmp.ctypes.data)
     dims[1], dims[4] = k, n
