@@ -42,7 +42,7 @@ from scissor_cli.insertion.capture import free_nodes
 from scissor_cli.insertion.model_state import ModelInsertion, ModelState, move_held, moved_start
 from scissor_cli.insertion.needle import NeedleParams, NeedleState, advance, transverse_basis
 from scissor_cli.insertion.points import is_body, needle_points
-from scissor_cli.insertion.steering import DEADBAND, MissFilter, NeedleModel, TableSteering, seen_directions
+from scissor_cli.insertion.steering import MissFilter, NeedleModel, TableSteering, seen_directions
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import target_positions
 from scissor_cli.sensing.sensor import EXACT, Sensor, TrueState
@@ -406,9 +406,8 @@ def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID, miss: Optio
     across = state.transverse if body else state.transverse[:1, :2]  # a body's miss has two components
     offset = seen - needle.p0[:seen.size]
     if isinstance(steering, TableSteering):
-        e = -(across @ offset)
         J, responses = steering.jacobian(state.depth_mm, s, seen), None
-        e = np.array([-steering.offset(state.depth_mm, s, -e[0], J[0])])
+        e = np.array([-steering.offset(state.depth_mm, s, float((across @ offset)[0]), J[0])])
         if abs(e[0]) <= steering.deadband_mm:  # on the line as well as the filter can tell: the cups stay
             return
     elif body:
@@ -425,7 +424,7 @@ def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID, miss: Optio
         steering.follow(state, x, s, loads)
         moved = across @ (target_positions(needle.probe, steering.x)[0] - before)
         estimate = miss.update(moved, across @ np.where(measured, offset, 0.0), seen_directions(observed))
-        if np.linalg.norm(estimate) <= DEADBAND * needle.options.controller.tolerance_mm:
+        if np.linalg.norm(estimate) <= miss.deadband_mm:
             return  # on the line as well as the filter can tell: the cups stay
         e = -estimate
         J, responses = steering.jacobian(state, needle.probe, state.solver, rows=2)

@@ -95,8 +95,9 @@ class NeedleModel:
 class MissFilter:
     """A Kalman filter of the target's offset across the needle's axis, k components (mm), as `loop` steers on it.
 
-    The prior is the manipulation's end: on the line, σ prior_sd_mm (the
-    controller's tolerance) per component. Each frame the model predicts
+    The prior is the manipulation's end: on the line, σ tolerance_mm (the
+    controller's) per component; within DEADBAND of it (`deadband_mm`) the
+    loop leaves the cups where they are. Each frame the model predicts
     the offset's move since the last (its drag and the cups' effect: a
     table's, `TableSteering`, or a model body's own insertion), uncertain by
     DRIFT_SD_MM per component; the reading corrects the components the
@@ -104,10 +105,12 @@ class MissFilter:
     itself there). A component no sensor sees keeps the prediction.
     """
 
-    def __init__(self, k: int, prior_sd_mm: float, noise_mm: float):
+    def __init__(self, k: int, tolerance_mm: float, noise_mm: float):
         self.offset_mm = np.zeros(k)
         #: (k, k) mm² the estimate's covariance
-        self.covariance = float(prior_sd_mm) ** 2 * np.eye(k)
+        self.covariance = float(tolerance_mm) ** 2 * np.eye(k)
+        #: |offset| (mm) below which the loop does not move the cups
+        self.deadband_mm = DEADBAND * float(tolerance_mm)
         self._noise_var = float(noise_mm) ** 2
         self._started = False
 
@@ -155,13 +158,13 @@ class TableSteering:
     def __init__(self, model: NeedleModel, across: np.ndarray, broyden: bool = False, noise_mm: float = 0.0,
                  tolerance_mm: float = 0.1):
         self.model = model
-        #: |offset| (mm) below which the loop does not move the cups
-        self.deadband_mm = DEADBAND * float(tolerance_mm)
         self.across = np.asarray(across, float)[:2]
         self.correction: Optional[BroydenCorrection] = BroydenCorrection(noise_mm) if broyden else None
         self._drift0: Optional[np.ndarray] = None
         self._window: list = []
         self._filter = MissFilter(1, tolerance_mm, noise_mm)
+        #: |offset| (mm) below which the loop does not move the cups (the filter's)
+        self.deadband_mm = self._filter.deadband_mm
         #: the depth, strokes and J the filter's estimate holds at
         self._at: tuple = ()
 
