@@ -84,7 +84,7 @@ SHIFT_BELOW = 1e-2
 HESSIAN_FREE = True
 
 
-def _krylov(tissue: Tissue, krylov: bool | None) -> bool:
+def krylov_default(tissue: Tissue, krylov: bool | None) -> bool:
     """Whether steps first try conjugate gradients on the last factor (default: in 3-D, where factoring dominates)."""
     return tissue.dim == 3 if krylov is None else krylov
 
@@ -118,7 +118,7 @@ def tangent_predictor(
     # The exact tangent of a stable equilibrium is positive definite; the
     # per-element projection only where it is not (the factorisation says).
     dx = None
-    rtol = PREDICTOR_RTOL if _krylov(tissue, krylov) else None
+    rtol = PREDICTOR_RTOL if krylov_default(tissue, krylov) else None
     for project in (False, True):
         K = _system(tissue, x, project, inertia, held, None if project else Ke)
         try:
@@ -213,7 +213,7 @@ def newton_iterations(
     history = []
     free = tissue.free_dofs
     n_factor = 0
-    krylov = _krylov(tissue, krylov)
+    krylov = krylov_default(tissue, krylov)
     full_step = False  # the last step of this call was a full Newton step (not a chord step, not shortened)
     for it in range(max_iter + 1):
         check_finite(grad, "the Newton gradient")

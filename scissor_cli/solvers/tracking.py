@@ -4,9 +4,12 @@ Each move starts from the tangent predictor x + (∂x/∂s) Δs and is corrected
 by the one Newton iteration of `solvers.newton` with chord steps on the
 tracker's last factorisation of K_ff (kept while they shrink the residual
 ≥ 3×, refactored otherwise: same sparsity pattern, numeric work only). When
-∂x/∂s is wanted — the controller's Jacobian — the exact tangent is factored
-once at the converged state; that factorisation is also the next move's
-chord matrix. A tracker that does without the tangent (the truth) keeps
+∂x/∂s is wanted — the controller's Jacobian — it is solved with the exact
+tangent at the converged state: in 3-D first by conjugate gradients
+preconditioned with the tracker's last factorisation (an earlier state's,
+a few iterations on a loop's small moves, TANGENT_RTOL), and only when
+that does not converge fast is the tangent factored there; that
+factorisation is also the next moves' chord matrix. A tracker that does without the tangent (the truth) keeps
 its ∂x/∂s as a predictor by Broyden's secant update from each move
 instead. Once a few equilibria are known, the predictor is a polynomial in
 the strokes (degree ≤ 6, as high as the history supports) fitted to the last ones, through their exact
@@ -32,8 +35,8 @@ import scipy.linalg
 from scissor_cli.mechanics import fem
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.common import SolverError, check_finite
-from scissor_cli.solvers.linear import Factorization, factorize_free
-from scissor_cli.solvers.newton import newton_iterations, solve_newton
+from scissor_cli.solvers.linear import KRYLOV_STALE_ITER, Factorization, factorize_free, preconditioned_cg
+from scissor_cli.solvers.newton import krylov_default, newton_iterations, solve_newton
 
 #: How many of its last equilibria a tracker keeps for the polynomial predictor (`TrackedEquilibrium._fitted`).
 HISTORY = 28
@@ -43,6 +46,9 @@ MAX_DEGREE = 6
 MAX_UNKNOWNS = 25
 #: The polynomial predictor serves moves up to this many times the stroke distance of the farthest state it fits.
 REACH = 3.0
+#: ∂x/∂s solved by conjugate gradients on an earlier factorisation (3-D): to this relative residual of K_ff ∂x/∂s =
+#: −K_fc B, far below what the controller's J or the Hermite predictor can tell from the direct solve's
+TANGENT_RTOL = 1e-10
 
 
 class TrackedEquilibrium:
@@ -76,25 +82,67 @@ class TrackedEquilibrium:
         # Its last equilibria (strokes (C,), x (N, 2), the exact ∂x/∂s there or None), oldest first:
         # what the polynomial predictor is fitted to.
         self.history: list[tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]] = []
+        # Where the slot's factorisation is the exact K_ff (x (N, d), made by `refactor`), or None when a Newton
+        # solve made it (at an iterate this tracker does not know): a restored state refactors there.
+        self._factor_x: Optional[np.ndarray] = None
         # After `restore` the factorisation slot holds another state's K_ff: refactor before the next move.
-        self._factor_elsewhere = False
+        self._factor_elsewhere: Optional[FactorState] = None
+        # ∂x/∂s by conjugate gradients on an earlier factorisation (in 3-D, where factoring dominates a move)
+        self._krylov = krylov_default(tissue, None)
 
     def refactor(self, x: np.ndarray) -> None:
-        """Factor the exact K_ff at x (N, 2) and compute ∂x/∂s there (docs/model.md §5)."""
+        """Factor the exact K_ff at x (N, d) and compute ∂x/∂s there (docs/model.md §5)."""
+        self._tangent(x, iterate=False)
+
+    def _tangent(self, x: np.ndarray, iterate: bool = True) -> None:
+        """∂x/∂s (dN, C) at the equilibrium x (N, d): K_ff ∂x_f/∂s = −(K B)_f with the exact tangent K.
+
+        With `iterate` (and `_krylov`) first by conjugate gradients preconditioned with the slot's
+        factorisation while that is an exact tangent of this tracker's (`_factor_x`) and not stale; K_ff is
+        factored at x when they do not reach TANGENT_RTOL within KRYLOV_STALE_ITER iterations a column.
+        """
         t = self.tissue
-        self.stats["refactors"] += 1
         Ke = t.element_stiffness(x)
         K = t.stiffness_free(x, Ke=Ke, upper=True)
-        try:
-            factor = factorize_free(t, K, self.factors)
-        except SolverError:  # not positive definite (an unstable state): LDLᵀ for the response only
-            factor = Factorization(K, upper=True)
+        rhs = -self._cup_forces(x, Ke)[t.free_dofs] if t.n_cups else np.zeros((t.free_dofs.size, 0))
+        solved = self._iterated(K, rhs) if iterate and self._krylov else None
+        if solved is None:
+            try:
+                factor = self._factor(x, K)
+            except SolverError:  # not positive definite (an unstable state): LDLᵀ for the response only
+                factor = Factorization(K, upper=True)
+            solved = factor.solve(rhs)  # every cup's column in one solve
         D = self._B.copy()
-        if t.n_cups:
-            D[t.free_dofs] = factor.solve(-self._cup_forces(x, Ke)[t.free_dofs])  # every cup's column in one solve
+        D[t.free_dofs] = solved
         check_finite(D, "the cup response (K_ff singular?)")
         self.response, self.tangent_x = D, x
-        self._factor_elsewhere = False
+
+    def _factor(self, x: np.ndarray, K=None) -> Factorization:
+        """Factor the exact K_ff at x (N, d) (its upper triangle K when already assembled) in the slot; SolverError
+        when it is not positive definite."""
+        t = self.tissue
+        self.stats["refactors"] += 1
+        self._factor_x, self._factor_elsewhere = x, None
+        try:
+            return factorize_free(t, t.stiffness_free(x, upper=True) if K is None else K, self.factors)
+        except SolverError:
+            self._factor_x = None
+            raise
+
+    def _iterated(self, K, rhs: np.ndarray) -> Optional[np.ndarray]:
+        """K_ff⁻¹ rhs (Nf, C) by `preconditioned_cg` on the slot's factorisation, or None when it has none fit
+        to precondition (not this tracker's exact tangent, stale, another pattern) or a column does not converge."""
+        factor = self.factors.get("free")
+        if (self._factor_x is None or self._factor_elsewhere is not None or factor is None
+                or factor.method != "cholesky" or factor.stale or not factor.matches(K)):
+            return None
+        columns = []
+        for b in rhs.T:
+            d, _, _ = preconditioned_cg(K, b, factor, TANGENT_RTOL, KRYLOV_STALE_ITER)
+            if d is None:
+                return None
+            columns.append(d)
+        return np.column_stack(columns) if columns else np.zeros_like(rhs)
 
     def _cup_forces(self, x: np.ndarray, Ke: np.ndarray) -> np.ndarray:
         """K B (dN, C) at x: each cup's unit stroke through the tangent whose element Hessians are Ke."""
@@ -124,16 +172,23 @@ class TrackedEquilibrium:
         if self.response is None:
             self.refactor(self.x)
         if not np.array_equal(strokes, self.strokes):
-            if self._factor_elsewhere:  # (restored: the chord steps need the factorisation at x)
-                self.refactor(self.x)
+            # With the tangent wanted (3-D), K_ff is factored at the move's predicted start: its chord steps then
+            # contract fast (a loop's move changes a body's tangent enough that one factored at the last
+            # equilibrium contracts them by only 0.3-0.8) and ∂x/∂s at the end needs a few CG iterations on it.
+            at_start = tangent and self._krylov
+            if self._factor_elsewhere is not None and not at_start:  # (restored: the chord steps need its factor)
+                self._refactor_as(self._factor_elsewhere)
             fallbacks = self.stats["fallbacks"]
             fitted = self._fitted(strokes - self.strokes)
             x0, s0 = (self.x, self.strokes) if fitted is not None else self._start(strokes)
-            x = self._corrected(strokes, x0, s0, fitted)
+            x = self._corrected(strokes, x0, s0, fitted, at_start)
             if x is None:
+                if self._factor_elsewhere is not None:  # (the predictor inverted an element before it was factored)
+                    self._refactor_as(self._factor_elsewhere)
                 self.stats["fallbacks"] += 1
                 if fitted is not None:  # (the fit starts from the current state) a nearer guess is a shorter path
                     x0, s0 = self._nearest_guess(strokes) or (x0, s0)
+                self._factor_x = None
                 r = self._continued(strokes, x0, s0)
                 x = r.x
                 self.stats["refactors"] += r.factorizations
@@ -144,7 +199,7 @@ class TrackedEquilibrium:
             self.history = (self.history + [(self.strokes, self.x, tangent_here)])[-HISTORY:]
             self.x, self.strokes = x, strokes.copy()
         if tangent and not self.jacobian_is_current:
-            self.refactor(self.x)
+            self._tangent(self.x)
 
     def _continued(self, strokes: np.ndarray, x0: np.ndarray, s0: np.ndarray):
         """`solve_newton`'s load continuation to `strokes` (C,) mm from the move's start (x0, s0): a guess
@@ -254,11 +309,12 @@ class TrackedEquilibrium:
         return None
 
     def _corrected(self, strokes: np.ndarray, x0: np.ndarray, s0: np.ndarray,
-                   fitted: Optional[np.ndarray] = None) -> Optional[np.ndarray]:
+                   fitted: Optional[np.ndarray] = None, at_start: bool = False) -> Optional[np.ndarray]:
         """Predictor from (x0, s0), then Newton with chord steps; None if that fails.
 
         The predictor is x0 + `fitted` (2N,) (`_fitted`) when given and it
-        inverts no element, else the tangent one x0 + (∂x/∂s) Δs.
+        inverts no element, else the tangent one x0 + (∂x/∂s) Δs. With
+        `at_start` the chord matrix is the exact K_ff factored there.
         """
         t = self.tissue
         for dx in ([fitted] if fitted is not None else []) + [self.response @ (strokes - s0)]:
@@ -267,32 +323,62 @@ class TrackedEquilibrium:
                 break
         else:
             return None  # the predictor inverts an element
+        if at_start:
+            try:
+                self._factor(start)
+            except SolverError:  # (an unstable start: Newton's own steps project its Hessian)
+                pass
+        before = self._slot_record()
         try:
             r = newton_iterations(t, start, tol=self.tol, max_iter=self.max_iter, chord=True, chord_above=0.0,
                                   factors=self.factors)
         except SolverError:
+            r = None
+        if self._slot_record() != before:  # Newton factored at an iterate: no longer a known exact tangent
+            self._factor_x = None
+        if r is None:
             return None
         self.stats["newton_iterations"] += r.iterations
         self.stats["refactors"] += r.factorizations
         return r.x if r.converged else None
 
+    def _slot_record(self) -> tuple:
+        """(the slot's factorisation, its numeric factorisations so far): changes whenever it is factored."""
+        factor = self.factors.get("free")
+        return (id(factor), None if factor is None else factor.factorizations)
+
     def snapshot(self) -> "TrackerState":
         """This tracker's state at an equilibrium with its exact tangent, to `restore` later (this tracker's own)."""
         if not self.jacobian_is_current:
             raise ValueError("snapshot needs the exact tangent at the equilibrium (move_to(..., tangent=True))")
-        return TrackerState(self.x, self.strokes.copy(), self.response, tuple(self.history))
+        if self._factor_elsewhere is not None:  # (restored and not moved since: its factorisation is still owed)
+            held = self._factor_elsewhere
+        else:
+            factor = self.factors.get("free")
+            held = FactorState(self.x if self._factor_x is None else self._factor_x,
+                               factor is not None and factor.stale, None if factor is None else factor.cg_rate)
+        return TrackerState(self.x, self.strokes.copy(), self.response, tuple(self.history), held)
 
     def restore(self, state: "TrackerState") -> None:
         """Go back to a `snapshot` of this tracker: from here on it answers exactly as it did after taking it.
 
         The factorisation is not kept in the state (it is large and CHOLMOD
-        overwrites it in place); the next move factors K_ff at x again first —
-        the very factorisation the tracker held there, so the moves that follow
-        are, bit for bit, the ones it would have made.
+        overwrites it in place) but where it was made is: the next move factors
+        K_ff there again first (`_refactor_as`) — the very factorisation the
+        tracker held, so the moves that follow are, bit for bit, the ones it
+        would have made.
         """
         self.x, self.strokes, self.response = state.x, state.strokes.copy(), state.response
         self.tangent_x, self.history = state.x, list(state.history)
-        self._factor_elsewhere = True
+        self._factor_elsewhere = state.factor
+
+    def _refactor_as(self, held: "FactorState") -> None:
+        """The slot's factorisation as a snapshot held it: the exact K_ff at held.x, its CG record with it."""
+        try:
+            factor = self._factor(held.x)
+        except SolverError:  # (as it failed when the state was taken: an unstable state's LDLᵀ was not kept)
+            return
+        factor.stale, factor.cg_rate = held.stale, held.cg_rate
 
     def adopt(self, other: "TrackedEquilibrium") -> None:
         """Take another tracker's state of the same tissue (same x, strokes and ∂x/∂s)."""
@@ -302,14 +388,26 @@ class TrackedEquilibrium:
 
 
 @dataclass(frozen=True)
+class FactorState:
+    """Where a tracker's factorisation was made (the exact K_ff at x (N, d) mm) and its conjugate-gradient record
+    there (`Factorization.stale`, `.cg_rate`): what `TrackedEquilibrium.restore` needs to factor it again."""
+
+    x: np.ndarray
+    stale: bool
+    cg_rate: Optional[float]
+
+
+@dataclass(frozen=True)
 class TrackerState:
     """A tracker's equilibrium (`TrackedEquilibrium.snapshot`): x (N, d) mm at strokes (C,) mm, ∂x/∂s there
-    (dN, C) and the history its polynomial predictor fits. Arrays are shared, never written."""
+    (dN, C), the history its polynomial predictor fits and where its factorisation was made. Arrays are
+    shared, never written."""
 
     x: np.ndarray
     strokes: np.ndarray
     response: np.ndarray
     history: tuple
+    factor: FactorState
 
 
 def _degree(C: int, exact: bool, have: int) -> Optional[tuple[np.ndarray, np.ndarray, int]]:
