@@ -64,4 +64,4 @@ def test_a_cup_smaller_than_the_mesh_at_it_is_refused_with_the_reason(meshes):
     scene, mesh = meshes[0]
     tiny = replace(scene, cups=(replace(scene.cups[0], radius_mm=0.2),))
     with pytest.raises(BoundaryError, match="smaller than the mesh"):
-        build_body(tiny, mesh)
+        build_body(tiny, mesh, element="p1")

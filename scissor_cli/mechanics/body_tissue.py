@@ -104,10 +104,10 @@ def cup_patch(mesh: BodyMesh, skin: np.ndarray, contact: np.ndarray, radius_mm: 
     return np.sort(skin[order[:count]])
 
 
-def build_body(scene: BodyScene, mesh: BodyMesh, model: str | None = None, element: str = "p1") -> Tissue:
+def build_body(scene: BodyScene, mesh: BodyMesh, model: str | None = None, *, element: str) -> Tissue:
     """The body tissue (dim 3) of a scene on its mesh; `model` overrides the material model; `element` "p1" or
-    "nodal" (docs/model.md §21). BoundaryError when nothing is held or a cup is smaller than the mesh at it
-    (`cup_patch`)."""
+    "nodal" (docs/model.md §21; no default here: a config's `tissue.mesh.element` has the one). BoundaryError
+    when nothing is held or a cup is smaller than the mesh at it (`cup_patch`)."""
     m = scene.material
     model = model or m.model
     element_E = region_E(scene, mesh)
