@@ -93,6 +93,26 @@ def test_one_camera_above_does_not_see_depth_and_the_true_3d_error_is_kept(tmp_p
         assert error.shape == (1, 3) and np.all(np.isfinite(error))
 
 
+def test_on_two_workers_the_nominal_manipulations_run_beside_the_trials_to_the_same_numbers(reference, tmp_path,
+                                                                                            monkeypatch):
+    """With two local workers the nominal manipulations go to the trials' pool (`run_trial_stage`'s `nominal`) instead
+    of the run's own process: every number stored is the one-process run's, to the last bit."""
+    from scissor_cli.experiments import body_closed_loop
+
+    from test_resume_stages import assert_same_run
+
+    def not_here(*args, **kwargs):
+        raise AssertionError("the run's own process solved the nominal manipulations")
+
+    monkeypatch.setattr(body_closed_loop, "_manipulation_stage", not_here)
+    _, ref = reference
+    run = simulate_here(tmp_path, WITH_FORWARD, jobs=2)
+    with h5py.File(run / "results.h5", "r") as h5:
+        finished = set(h5.attrs["finished"].astype(str))
+    assert {"manipulation/T1", "manipulation/T2", "trials"} <= finished
+    assert_same_run(ref, run / "results.h5")
+
+
 @pytest.mark.slow  # (the default run has the ideal trials above; these are the profile's, with two workers)
 def test_prosthesis_trials_run_on_two_workers_none_failed(tmp_path):
     data = dict(SCENE, trials={"count": 4, "profile": "prosthesis"})

@@ -20,8 +20,6 @@ Each product goes to the sink and is marked finished for `--resume`.
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 
 from scissor_cli import control, progress
@@ -29,16 +27,17 @@ from scissor_cli.config.body_sections import BodyConfig
 from scissor_cli.experiments.body_imaging_stage import body_imaging_record
 from scissor_cli.experiments.body_insertion import body_insertion_stage
 from scissor_cli.experiments.body_surrogate import body_surrogate_data
-from scissor_cli.experiments.body_trials import BodyTruth, body_sensor_model, model_controllers
+from scissor_cli.experiments.body_trials import BodyTruth, body_sensor_model, model_controllers, nominal_manipulation
 from scissor_cli.experiments.error_budget import run_budget
 from scissor_cli.experiments.profiles import CAMERA_SPREADS, IMAGING_SPREADS, INSERTION_SPREADS, error_model
 from scissor_cli.experiments.run_cache import cache_dir
 from scissor_cli.experiments.sink import Manipulation, RunSink, product_key
 from scissor_cli.experiments.trial_stage import Execution, run_trial_stage
-from scissor_cli.experiments.trial_types import TargetTask, law_attrs
+from scissor_cli.experiments.trial_types import NominalOutcome, TargetTask, law_attrs
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.planning.body_plan import BodyNeedlePlan, body_robot_check, plan_body_targets, stored_body_plan
 from scissor_cli.robot.chain import RobotModel
+from scissor_cli.solvers.common import SolverError
 from scissor_cli.solvers.tracking import TrackedEquilibrium
 
 
@@ -58,8 +57,13 @@ def body_loop_stages(cfg: BodyConfig, tissue: Tissue, sink: RunSink, summary, do
     model_data = None
     if cfg.controller.model == "surrogate":
         model_data = body_surrogate_data(cfg, tissue, cache_dir(sink.location))
-    summary.figures += _manipulation_stage(cfg, tissue, truth, plans, sink, done, model_data)
     tasks = body_tasks(tissue, plans, model_data)
+    # With several local workers the nominal manipulations run in the trials' pool, beside the trials (the
+    # run's own process would solve them alone first); with imaging their frames are kept here, so not there.
+    beside = execution.executor == "local" and execution.jobs > 1 and cfg.imaging is None
+    nominal = [t for t in tasks if product_key("manipulation", t.name) not in done] if beside else []
+    if not beside:
+        summary.figures += _manipulation_stage(cfg, tissue, truth, plans, sink, done, model_data)
     if "trials" not in done:
         em = error_model(cfg.trials)
         other_sensor = IMAGING_SPREADS if cfg.imaging is None else CAMERA_SPREADS  # the sensor not used
@@ -76,7 +80,8 @@ def body_loop_stages(cfg: BodyConfig, tissue: Tissue, sink: RunSink, summary, do
         sink.allocate_trials([p.target for p in plans], cfg.trials.count, attrs,
                              {p.target: p.reason for p in plans if p.target not in planned}, dim=3)
         sink.mark_finished("trials")
-    summary.trials_run = run_trial_stage(sink, cfg, tasks, execution)
+    summary.trials_run = run_trial_stage(sink, cfg, tasks, execution, nominal,
+                                         lambda o: _store_nominal(tissue, truth, plans, sink, summary, o))
     if cfg.trials.budget:  # the trials again with one source at a time, the body's own too (docs/model.md §20)
         summary.figures += run_budget(cfg, tasks, sink, execution, done)
 
@@ -137,26 +142,38 @@ def _manipulation_stage(cfg: BodyConfig, tissue: Tissue, truth: BodyTruth, plans
         run = control.TargetRun(sensor=sensor, target=target.name,
                                 direction=np.asarray(plan.direction, float), controller_factory=controllers(k),
                                 truth_factory=truth.factory(target.rest))
-        closed = control.run_target(tissue, target.rest, desired, cfg.controller, run)
-        # the baseline's one move goes from rest about as far as the loop went: on the same nominal truth, the
-        # loop's end is its warm start (from rest a nodal body's load continuation costs several factorisations)
-        ended = None if closed.final_x is None else (closed.hist_strokes[-1], closed.final_x)
-        opened = control.run_target(tissue, target.rest, desired, cfg.controller,
-                                    replace(run, mode="open", truth_guess=ended))
-        for r in (closed, opened):  # the plan's needle, for the figure (no corridor is checked in a body yet)
-            r.corridor_direction = np.asarray(plan.direction, float)
-            r.corridor_entry = np.asarray(plan.entry, float)
-        # drawn on the truth's mesh: the nodes the loop ends with are its
-        out = sink.manipulation(Manipulation(target.name, closed, opened, truth.tissue, target.rest, None))
+        closed, opened = nominal_manipulation(tissue, target.rest, desired, cfg.controller, run)
+        paths += _stored_manipulation(truth, plan, target.rest, closed, opened, sink)
         if imaging and hasattr(sink, "imaging"):
             paths += sink.imaging(body_imaging_record(cfg.imaging, target.name, plan, closed, sensor), truth.tissue,
                                   [])
-        sink.mark_finished(product_key("manipulation", target.name))
-        paths += [p for p in np.atleast_1d(out) if p is not None]
-        true_miss = float(np.linalg.norm((np.eye(3) - np.outer(plan.direction, plan.direction)) @ closed.final_error))
-        progress.info(f"manipulation {target.name}: closed loop {closed.iterations} iterations ({closed.stop_reason}),"
-                      f" true miss across the needle {true_miss:.3f} mm vs open loop {opened.miss_mm:.3f} mm")
     return paths
+
+
+def _store_nominal(tissue: Tissue, truth: BodyTruth, plans: list, sink: RunSink, summary,
+                   outcome: NominalOutcome) -> None:
+    """A nominal manipulation a trials' worker ran (`run_trial_stage`), stored as `_manipulation_stage` stores its
+    own; its failure fails the run, as there."""
+    target = tissue.scene.targets[outcome.target_index]
+    if outcome.error:
+        raise SolverError(f"the nominal manipulation of {target.name}: {outcome.error}")
+    summary.figures += _stored_manipulation(truth, plans[outcome.target_index], target.rest, outcome.closed,
+                                            outcome.opened, sink)
+
+
+def _stored_manipulation(truth: BodyTruth, plan, rest: np.ndarray, closed, opened, sink: RunSink) -> list:
+    """Store a lesion's closed loop and open-loop baseline (/manipulation), mark it finished, say so; its figures."""
+    for r in (closed, opened):  # the plan's needle, for the figure (no corridor is checked in a body yet)
+        r.corridor_direction = np.asarray(plan.direction, float)
+        r.corridor_entry = np.asarray(plan.entry, float)
+    target = closed.target
+    # drawn on the truth's mesh: the nodes the loop ends with are its
+    out = sink.manipulation(Manipulation(target, closed, opened, truth.tissue, rest, None))
+    sink.mark_finished(product_key("manipulation", target))
+    true_miss = float(np.linalg.norm((np.eye(3) - np.outer(plan.direction, plan.direction)) @ closed.final_error))
+    progress.info(f"manipulation {target}: closed loop {closed.iterations} iterations ({closed.stop_reason}),"
+                  f" true miss across the needle {true_miss:.3f} mm vs open loop {opened.miss_mm:.3f} mm")
+    return [p for p in np.atleast_1d(out) if p is not None]
 
 
 def _stored(sink: RunSink, scene) -> list | None:

@@ -19,6 +19,7 @@ Dask) run its `run` exactly as a layer's.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import Callable, Optional
 
 import numpy as np
@@ -104,6 +105,19 @@ class BodyTruth:
         return lambda perturbation: (true_tissue(fine, perturbation), view)
 
 
+def nominal_manipulation(tissue: Tissue, rest: np.ndarray, desired: np.ndarray, controller_cfg,
+                         run: control.TargetRun) -> tuple[control.LoopResult, control.LoopResult]:
+    """A lesion's closed loop from rest to `desired` (3,) mm and its open-loop baseline, on `run`'s nominal truth.
+
+    The baseline's one move goes from rest about as far as the loop went: on the same nominal truth, the
+    loop's end is its warm start (from rest a nodal body's load continuation costs several factorisations).
+    """
+    closed = control.run_target(tissue, rest, desired, controller_cfg, run)
+    ended = None if closed.final_x is None else (closed.hist_strokes[-1], closed.final_x)
+    opened = control.run_target(tissue, rest, desired, controller_cfg, replace(run, mode="open", truth_guess=ended))
+    return closed, opened
+
+
 def body_sensor_model(cfg, errors: ErrorModel, mesh=None):
     """The run's 3-D sensor model: with `imaging`, the ultrasound with its probe on `mesh`'s skin
     (`sensing.ultrasound.body_sensor`, the profile's imaging errors); else the camera model, `cameras`
@@ -155,6 +169,12 @@ class BodyTrialContext:
         return control.TargetRun(sensor=sensor, target=task.name, direction=np.asarray(task.direction, float),
                                  controller_factory=self.controllers(task.index),
                                  truth_factory=self.truth.factory(task.rest))
+
+    def manipulate(self, task) -> tuple[control.LoopResult, control.LoopResult]:
+        """The lesion's nominal manipulation (`nominal_manipulation` of `nominal_run`), as `simulate`'s own
+        process runs it: what a worker runs beside the trials."""
+        return nominal_manipulation(self.tissue, np.asarray(task.rest, float), np.asarray(task.desired, float),
+                                    self.cfg.controller, self.nominal_run(task))
 
     def target_run(self, task, trial: int) -> tuple[control.TargetRun, BodyDraw]:
         """How trial `trial` of `task` runs its loop (`control.TargetRun`: the drawn truth with the lesion's

@@ -11,11 +11,12 @@ from __future__ import annotations
 import time
 from contextlib import closing
 from dataclasses import dataclass
+from typing import Callable, Optional, Sequence
 
 from scissor_cli import progress
 from scissor_cli.experiments.pool import deferred_signals
 from scissor_cli.experiments.sink import RunSink
-from scissor_cli.experiments.trial_types import TargetTask
+from scissor_cli.experiments.trial_types import NominalOutcome, TargetTask
 from scissor_cli.experiments.trials import execute
 from scissor_cli.text import duration
 
@@ -33,11 +34,14 @@ class Execution:
     scheduler: str | None = None
 
 
-def run_trial_stage(sink: RunSink, cfg, tasks: list[TargetTask], execution: Execution) -> int:
+def run_trial_stage(sink: RunSink, cfg, tasks: list[TargetTask], execution: Execution,
+                    nominal: Sequence[TargetTask] = (),
+                    store_nominal: Optional[Callable[[NominalOutcome], None]] = None) -> int:
     """Run every pending trial of the sink and store each as it finishes; returns how many ran.
 
-    Storing a trial is not cut short by a stop signal (`deferred_signals`);
-    leaving the loop for any reason stops the workers at once.
+    `nominal`: tasks whose nominal manipulation the workers run first, beside the trials (a body's, with
+    several local workers); `store_nominal` stores each as it comes in. Storing is not cut short by a stop
+    signal (`deferred_signals`); leaving the loop for any reason stops the workers at once.
     """
     pending = sink.pending_trials()
     by_name = {t.name: t for t in tasks}
@@ -45,11 +49,17 @@ def run_trial_stage(sink: RunSink, cfg, tasks: list[TargetTask], execution: Exec
     work = [(by_name[name], int(k)) for name, ks in pending.items() if name in by_name for k in ks]
     if work:
         progress.info(f"trials: {len(work)} to run ({cfg.trials.profile} profile, {execution.jobs} job(s), "
-                      f"{execution.executor} executor)")
+                      f"{execution.executor} executor)" + (f", beside {len(nominal)} nominal manipulation(s)"
+                                                           if nominal else ""))
     advance = progress.bar("trials", len(work))
     t0, failed, finished, lost, refused = time.perf_counter(), 0, 0, [], []
-    with closing(execute(sink.config_yaml, work, execution.jobs, execution.executor, execution.scheduler)) as outcomes:
+    items = [(task, None) for task in nominal] + work
+    with closing(execute(sink.config_yaml, items, execution.jobs, execution.executor, execution.scheduler)) as outcomes:
         for outcome in outcomes:
+            if isinstance(outcome, NominalOutcome):
+                with deferred_signals():
+                    store_nominal(outcome)
+                continue
             with deferred_signals():
                 sink.trial(by_index[outcome.target_index].name, outcome)
             if outcome.ok:

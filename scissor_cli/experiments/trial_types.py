@@ -75,3 +75,15 @@ def law_attrs(controller) -> dict:
     elif controller.law == "mpc":
         attrs |= {"mpc_horizon": controller.mpc.horizon, "mpc_action_weight": controller.mpc.action_weight}
     return attrs
+
+
+@dataclass
+class NominalOutcome:
+    """A lesion's nominal manipulation run by a trials' worker beside the trials (a body's, docs/model.md §19,
+    "Trials"): its closed loop and open-loop baseline (`control.LoopResult`), or `error`, why it failed (the run
+    fails with it, as when the run's own process solves it)."""
+
+    target_index: int
+    closed: Optional[object] = None
+    opened: Optional[object] = None
+    error: str = ""

@@ -24,7 +24,7 @@ from scissor_cli.experiments.build import build_model
 from scissor_cli.experiments.pool import run_pool
 from scissor_cli.experiments.profiles import ErrorModel, TrialDraw, draw_trial, error_model, trial_needle
 from scissor_cli.experiments.sensor_models import sensor_model
-from scissor_cli.experiments.trial_types import TargetTask, TrialOutcome
+from scissor_cli.experiments.trial_types import NominalOutcome, TargetTask, TrialOutcome
 from scissor_cli.insertion import InsertionOptions, NeedleParams, needle_path, run_strategies
 from scissor_cli.planning.corridor import corridor_radius
 from scissor_cli.sensing.sensor import Sensor, SensorModel, TrialDraws
@@ -243,8 +243,24 @@ def run_trial(config_yaml: str, task: TargetTask, trial: int) -> TrialOutcome:
         )
 
 
-def _run_batch(row: str, config_yaml: str, work: list[tuple[TargetTask, int]]) -> list[tuple[str, TrialOutcome]]:
-    return [(row, run_trial(config_yaml, task, k)) for task, k in work]
+def run_nominal(config_yaml: str, task: TargetTask) -> NominalOutcome:
+    """A body lesion's nominal manipulation in whatever process runs it (`BodyTrialContext.manipulate`); a failure
+    is an outcome carrying its message (the run fails with it where the outcome is stored)."""
+    try:
+        closed, opened = trial_context(config_yaml).manipulate(task)
+    except Exception as exc:  # noqa: BLE001 - the run's process reports it
+        return NominalOutcome(task.index, error=f"{type(exc).__name__}: {exc}")
+    return NominalOutcome(task.index, closed, opened)
+
+
+def _run_item(config_yaml: str, task: TargetTask, k: Optional[int]) -> TrialOutcome | NominalOutcome:
+    """Trial k of the task, or (k None) its nominal manipulation."""
+    return run_nominal(config_yaml, task) if k is None else run_trial(config_yaml, task, k)
+
+
+def _run_batch(row: str, config_yaml: str, work: list[tuple[TargetTask, Optional[int]]]
+               ) -> list[tuple[str, TrialOutcome | NominalOutcome]]:
+    return [(row, _run_item(config_yaml, task, k)) for task, k in work]
 
 
 def _run_batch_dask(row: str, config_yaml: str, work: list[tuple[TargetTask, int]]) -> list[tuple[str, TrialOutcome]]:
@@ -259,6 +275,11 @@ def _batches(work: list[tuple[TargetTask, int]], size: int) -> list[list[tuple[T
     return [work[i : i + size] for i in range(0, len(work), size)]
 
 
+def _batched(work: list[tuple[TargetTask, Optional[int]]], size: int) -> list[list]:
+    """`_batches` of the trials after one batch per nominal manipulation (k None)."""
+    return [[w] for w in work if w[1] is None] + _batches([w for w in work if w[1] is not None], size)
+
+
 def execute(
     config_yaml: str,
     work: list[tuple[TargetTask, int]],
@@ -268,8 +289,9 @@ def execute(
 ) -> Iterator[TrialOutcome]:
     """Run trials and yield outcomes as they finish (order not guaranteed).
 
-    jobs 1 runs in this process; a local pool sends small batches so each
-    worker builds its model once, and its workers die with the run
+    A work item (task, None) is the task's nominal manipulation (a body's; yields a `NominalOutcome`), run
+    first and on its own, so it goes on beside the trials. jobs 1 runs in this process; a local pool sends
+    small batches so each worker builds its model once, and its workers die with the run
     (`pool.run_pool`); "dask" submits batches to the dask.distributed
     scheduler at `scheduler`. Close the generator (or let an exception leave
     the loop over it) to stop the workers at once.
@@ -301,13 +323,14 @@ def execute_rows(
     if jobs <= 1:
         for row, config_yaml in rows.items():
             for task, k in todo[row]:
-                yield row, run_trial(config_yaml, task, k)
+                yield row, _run_item(config_yaml, task, k)
         return
     jobs = min(jobs, total)  # a worker without a trial would only cost its start-up
-    # Batches amortise the per-task overhead while keeping both workers busy to the end.
+    # Batches amortise the per-task overhead while keeping both workers busy to the end; a nominal manipulation
+    # is a batch of its own, first.
     size = max(1, min(8, total // (len(rows) * 4 * jobs)))
     yield from run_pool(_run_batch, [(row, config_yaml, batch) for row, config_yaml in rows.items()
-                                     for batch in _batches(todo[row], size)], jobs)
+                                     for batch in _batched(todo[row], size)], jobs)
 
 
 def _execute_dask(rows: dict[str, str], work: dict, scheduler: Optional[str]) -> Iterator[tuple[str, TrialOutcome]]:
@@ -321,6 +344,6 @@ def _execute_dask(rows: dict[str, str], work: dict, scheduler: Optional[str]) ->
         n_workers = max(1, len(client.scheduler_info().get("workers", {})))
         size = max(1, min(8, sum(len(w) for w in work.values()) // (len(rows) * 4 * n_workers)))
         futures = [client.submit(_run_batch_dask, row, config_yaml, batch, pure=False)
-                   for row, config_yaml in rows.items() for batch in _batches(work[row], size)]
+                   for row, config_yaml in rows.items() for batch in _batched(work[row], size)]
         for future in as_completed(futures):
             yield from future.result()
