@@ -5,15 +5,17 @@ by the one Newton iteration of `solvers.newton` with chord steps on the
 tracker's last factorisation of K_ff (kept while they shrink the residual
 ≥ 3×, refactored otherwise: same sparsity pattern, numeric work only). When
 ∂x/∂s is wanted — the controller's Jacobian — it is solved with the exact
-tangent at the converged state: in 3-D first by conjugate gradients
-preconditioned with the tracker's last factorisation (an earlier state's,
-a few iterations on a loop's small moves, TANGENT_RTOL), and only when
-that does not converge fast is the tangent factored there; that
-factorisation is also the next moves' chord matrix. A tracker that does without the tangent (the truth) keeps
-its ∂x/∂s as a predictor by Broyden's secant update from each move
-instead. Once a few equilibria are known, the predictor is a polynomial in
-the strokes (degree ≤ 6, as high as the history supports) fitted to the last ones, through their exact
-tangents too when the tracker has them: its start residuals are decades
+tangent at the converged state. In 2-D that tangent is factored there and
+is the next move's chord matrix. In 3-D the exact tangent is factored at
+the move's predicted start instead (a body's tangent changes too much over
+a loop's move for an older factor to carry the chord steps), and ∂x/∂s at
+the end is conjugate gradients preconditioned with it (TANGENT_RTOL); the
+tangent is factored at the equilibrium only when they do not converge
+fast. A tracker that does without the tangent (the truth) keeps its
+∂x/∂s as a predictor by Broyden's secant update from each move instead.
+Once a few equilibria are known, the predictor is a polynomial in the
+strokes (degree ≤ 6, as high as the history supports) fitted to the last
+ones, through their exact tangents too when the tracker has them: its start residuals are decades
 below the tangent predictor's on the small moves of a loop. A move the
 fast path cannot finish (the predictor inverts an element, or Newton does
 not converge from it) is solved by `solvers.newton.solve_newton` with load
@@ -82,7 +84,7 @@ class TrackedEquilibrium:
         # Its last equilibria (strokes (C,), x (N, 2), the exact ∂x/∂s there or None), oldest first:
         # what the polynomial predictor is fitted to.
         self.history: list[tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]] = []
-        # Where the slot's factorisation is the exact K_ff (x (N, d), made by `refactor`), or None when a Newton
+        # Where the slot's factorisation is the exact K_ff (x (N, d), made by `_factor`), or None when a Newton
         # solve made it (at an iterate this tracker does not know): a restored state refactors there.
         self._factor_x: Optional[np.ndarray] = None
         # After `restore` the factorisation slot holds another state's K_ff: refactor before the next move.
