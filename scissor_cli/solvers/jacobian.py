@@ -24,7 +24,7 @@ import numpy as np
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import TargetProbe, apply_probe
 from scissor_cli.solvers.common import SolverError
-from scissor_cli.solvers.linear import Factorization
+from scissor_cli.solvers.linear import Factorization, factorize_free
 
 
 def nodal_response(
@@ -34,14 +34,22 @@ def nodal_response(
 
     Column c is the first-order displacement of every dof for a unit stroke of
     cup c: the cup's axis on its gripped nodes, zero on fixed ones and
-    −K_ff⁻¹ K_fc B e_c on the free ones. `factor`, if given, is refactored in
-    place (same sparsity pattern on every call, so the symbolic analysis is
-    reused) and returned. Raises SolverError if K_ff is singular (a buckling
+    −K_ff⁻¹ K_fc B e_c on the free ones. K_ff is factored from its upper
+    triangle (`linear.factorize_free`, in a slot of its own); `factor`, if
+    given (one this function returned), is refactored in place instead (same
+    sparsity pattern on every call, so the symbolic analysis is reused) and
+    returned. Raises SolverError if K_ff is singular (a buckling
     point) or the response is not finite.
     """
     x = np.asarray(x, float)
-    K = tissue.stiffness_free(x, project=False)
-    factor = Factorization(K) if factor is None else factor.refactor(K)
+    K = tissue.stiffness_free(x, project=False, upper=True)
+    if factor is not None:
+        factor.refactor(K)
+    else:
+        try:  # the solvers' own factorisation: in 3-D nested dissection, its ordering cached per pattern
+            factor = factorize_free(tissue, K, {})
+        except SolverError:  # not positive definite (a buckling point): LDLᵀ
+            factor = Factorization(K, upper=True)
     free = tissue.free_dofs
     D = np.zeros((tissue.dim * tissue.mesh.n_nodes, tissue.n_cups))
     for c in range(tissue.n_cups):
