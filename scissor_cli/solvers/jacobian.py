@@ -42,7 +42,8 @@ def nodal_response(
     point) or the response is not finite.
     """
     x = np.asarray(x, float)
-    K = tissue.stiffness_free(x, project=False, upper=True)
+    Ke = tissue.element_stiffness(x)  # the exact element Hessians, for K_ff and each cup's K b alike
+    K = tissue.stiffness_free(x, Ke=Ke, upper=True)
     if factor is not None:
         factor.refactor(K)
     else:
@@ -55,7 +56,7 @@ def nodal_response(
     for c in range(tissue.n_cups):
         b = tissue.cup_displacement(c)  # zero on free and fixed dofs
         # K b restricted to free rows is K_fc B e_c: b vanishes outside the cup's dofs.
-        rhs = -tissue.stiffness_times(x, b)[free]
+        rhs = -tissue.stiffness_times(x, b, Ke)[free]
         D[:, c] = b
         D[free, c] = factor.solve(rhs)
     if not np.all(np.isfinite(D)):
