@@ -403,7 +403,7 @@ def _goal_rows() -> list[list]:
     add("the 3-D body's mesh ≤ 5 s at ~30k tetrahedra", "bench_body_mesh", body_mesh)
     add("one equilibrium of the 3-D body ≤ 1 s at ~30k tetrahedra (from rest)", "bench_body",
         lambda r: (f"{fixed(fig(r, 'from_rest_s'), 3)} s ({num(fig(r, 'tetrahedra'))} tetrahedra, "
-                   f"`{r['data'].get('element', 'p1')}`; a warm control move {fixed(fig(r, 'move_s'), 2)} s)",
+                   f"`{r['data']['element']}`; a warm control move {fixed(fig(r, 'move_s'), 2)} s)",
                    fig(r, "from_rest_s") <= 1))
     add("`configs/example_dome.yaml`, `simulate --trials 0` from nothing ≤ 30 s", "bench_body",
         at_most("forward_run_s", 30, 1, " s"))
@@ -1004,7 +1004,7 @@ def _body(r) -> str:
          f"{fixed(fig(r, 'min_dihedral_deg'), 1)}°; ≤ 5 s at ~30k"],
         ["the mesh, from the cache", f"{fixed(1e3 * fig(r, 'mesh_cached_s'), 1)} ms", ""],
         ["push10 from rest", f"{fixed(fig(r, 'from_rest_s'), 2)} s",
-         f"`{r['data'].get('element', 'p1')}`; {fig(r, 'from_rest_iterations')} Newton iterations (the tangent "
+         f"`{r['data']['element']}`; {fig(r, 'from_rest_iterations')} Newton iterations (the tangent "
          "predictor, load steps)"],
         ["one control move, 10 → 11 mm warm", f"{fixed(fig(r, 'move_s'), 2)} s",
          f"{fig(r, 'move_iterations')} Newton iterations; one equilibrium ≤ 1 s at 30k"],
