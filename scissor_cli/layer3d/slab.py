@@ -7,9 +7,11 @@ Newton solver (`solvers.equilibrium`) solves it unchanged.
 Boundary:
 * the 2-D fixed sides become fixed faces (every level of their nodes);
 * `chest_wall_fixed`: the face z = 0 is held;
-* a cup grips the side-surface nodes within its radius of its contact point
-  at the layer's height (3-D distance) and moves them along its in-plane
-  axis; `cup_holds_z` also holds them vertically (else z is free there);
+* a cup grips the free side-surface nodes nearest its contact point at the
+  layer's height (3-D distance) whose shares of the side surface add up to
+  its disc, π r² within the slab's height (`side_patch`, as the body's cups:
+  `mechanics.patch`), and moves them along its in-plane axis;
+  `cup_holds_z` also holds them vertically (else z is free there);
 * for the checks only: `grip_full_height` grips the cup's 2-D nodes at
   every level, `hold_z` holds the out-of-plane displacement everywhere.
 
@@ -34,6 +36,7 @@ import numpy as np
 from scissor_cli.geometry import graded_levels
 from scissor_cli.layer3d.extrude import SlabMesh, extrude
 from scissor_cli.mechanics import fem
+from scissor_cli.mechanics.patch import PATCH_AREA_LIMIT, disc_area_in_strip, nearest_patch
 from scissor_cli.mechanics.tissue import BoundaryError, Tissue, scene_material, tissue_from_boundary
 from scissor_cli.mesh.mesh import Mesh, build_mesh
 from scissor_cli.mesh.probe import probe_targets
@@ -91,20 +94,16 @@ def build_slab(scene: Scene, mesh: Mesh, spec: SlabSpec, model: str | None = Non
     fixed = sm.column(fixed2)
     if spec.chest_wall_fixed:
         fixed = np.union1d(fixed, sm.node(0, np.arange(sm.n_nodes_2d)))
-    boundary2 = np.unique(mesh.boundary_edges)
-    surface = sm.column(boundary2)  # the side faces
-    z_layer = sm.levels_mm[sm.layer_level]
     cup_nodes = []
     for cup in scene.cups:
         if spec.grip_full_height:
-            nodes = sm.column(mesh.boundary_nodes_near(cup.contact, cup.radius_mm))
+            nodes = np.setdiff1d(sm.column(mesh.boundary_nodes_near(cup.contact, cup.radius_mm)), fixed)
         else:
-            p = sm.nodes[surface]
-            dist = np.hypot(np.linalg.norm(p[:, :2] - cup.contact, axis=1), p[:, 2] - z_layer)
-            nodes = surface[dist <= cup.radius_mm * (1 + 1e-9)]
-        nodes = np.setdiff1d(nodes, fixed)
+            nodes = side_patch(sm, fixed, cup.contact, cup.radius_mm)
         if len(nodes) == 0:
-            raise BoundaryError(f"cup {cup.name!r} grips no free surface node of the slab")
+            raise BoundaryError(f"cup {cup.name!r} (radius {cup.radius_mm:g} mm) grips no free side-surface node of "
+                                f"the slab: its nearest one alone stands for more than {PATCH_AREA_LIMIT:g}× the "
+                                "cup's area; refine the slab at the cup (tissue.mesh, layer_check.max_layer_mm)")
         cup_nodes.append(np.sort(nodes))
     grip = np.unique(np.concatenate(cup_nodes)) if cup_nodes else np.zeros(0, np.int64)
     dirichlet = [3 * fixed, 3 * fixed + 1, 3 * fixed + 2, 3 * grip, 3 * grip + 1]
@@ -119,6 +118,35 @@ def build_slab(scene: Scene, mesh: Mesh, spec: SlabSpec, model: str | None = Non
         axes[:, :2] = np.array([c.axis for c in scene.cups])
     return tissue_from_boundary(scene, sm, ops, (element_E, fiber, params), fixed, cup_nodes, axes, dirichlet,
                                 element)
+
+
+def side_shares(sm: SlabMesh) -> tuple[np.ndarray, np.ndarray]:
+    """The side surface's nodes (S,) and each one's share of it (S,) mm²: half the boundary edges at its 2-D
+    vertex times half the prism layers at its level (the side faces are the boundary edges extruded)."""
+    plane = sm.plane
+    edges = plane.boundary_edges
+    length = np.linalg.norm(plane.nodes[edges[:, 0]] - plane.nodes[edges[:, 1]], axis=1)
+    along = np.bincount(edges.ravel(), weights=np.repeat(0.5 * length, 2), minlength=sm.n_nodes_2d)
+    layers = np.diff(sm.levels_mm)
+    up = np.zeros(sm.levels_mm.size)
+    up[:-1] += 0.5 * layers
+    up[1:] += 0.5 * layers
+    vertices = np.unique(edges)
+    surface = sm.column(vertices)  # level by level, each level's vertices in `vertices`' order
+    level = surface // sm.n_nodes_2d
+    return surface, along[surface - level * sm.n_nodes_2d] * up[level]
+
+
+def side_patch(sm: SlabMesh, fixed: np.ndarray, contact: np.ndarray, radius_mm: float) -> np.ndarray:
+    """The free side-surface nodes (P,) a cup of radius_mm at its 2-D contact (2,) mm grips: those nearest the
+    contact at the layer's height whose shares (`side_shares`) add up closest to the cup's disc within the
+    slab's height (`patch.nearest_patch`); empty when the mesh is too coarse there."""
+    surface, shares = side_shares(sm)
+    free = ~np.isin(surface, fixed)
+    z_layer = float(sm.levels_mm[sm.layer_level])
+    centre = np.array([contact[0], contact[1], z_layer])
+    area = disc_area_in_strip(radius_mm, z_layer - float(sm.levels_mm[0]), float(sm.levels_mm[-1]) - z_layer)
+    return nearest_patch(surface[free], sm.nodes[surface[free]], shares[free], centre, area)
 
 
 @dataclass(frozen=True)

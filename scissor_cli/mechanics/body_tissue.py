@@ -22,15 +22,13 @@ from __future__ import annotations
 import numpy as np
 
 from scissor_cli.mechanics import fem, materials
+from scissor_cli.mechanics.patch import PATCH_AREA_LIMIT, nearest_patch
 from scissor_cli.mechanics.tissue import BoundaryError, Tissue, tissue_from_boundary
 from scissor_cli.mesh.body_mesh import BodyMesh
 from scissor_cli.scene.body_scene import BodyScene
 
 #: a boundary node lies on a held plane when it is this close to it (× the body's size)
 PLANE_TOL = 1e-6
-#: a cup whose nearest skin node alone stands for more than this many times its area π r² is refused: the
-#: mesh is too coarse there to grip it (`cup_patch`)
-PATCH_AREA_LIMIT = 2.0
 
 
 def region_E(scene: BodyScene, mesh: BodyMesh) -> np.ndarray:
@@ -85,23 +83,10 @@ def skin_areas(mesh: BodyMesh, skin: np.ndarray) -> np.ndarray:
 
 def cup_patch(mesh: BodyMesh, skin: np.ndarray, contact: np.ndarray, radius_mm: float) -> np.ndarray:
     """The skin nodes (P,) a cup of radius_mm at `contact` (3,) mm grips: the nearest ones to the contact whose
-    skin shares (`skin_areas`) add up closest to the cup's area π r², the nearest node at least. Empty when
-    even the nearest node's share exceeds PATCH_AREA_LIMIT × π r² (the mesh is too coarse at the cup).
-
-    Gripping every node within the radius makes the gripped area follow the
-    mesh: a node's share reaches about half an edge beyond it, so the held
-    area swings by the width of the last ring of nodes with where that ring
-    happens to fall (docs/model.md §21). Matching the shares to π r² keeps
-    the area the cup's, within one node's share, on any mesh.
-    """
-    distance = np.linalg.norm(mesh.nodes[skin] - np.asarray(contact, float), axis=1)
-    order = np.lexsort((skin, distance))  # nearest first; ties by node number (deterministic)
-    covered = np.cumsum(skin_areas(mesh, skin)[order])
-    area = np.pi * radius_mm**2
-    if covered.size == 0 or covered[0] > PATCH_AREA_LIMIT * area:
-        return np.zeros(0, np.int64)
-    count = int(np.argmin(np.abs(covered - area))) + 1
-    return np.sort(skin[order[:count]])
+    skin shares (`skin_areas`) add up closest to the cup's area π r², the nearest node at least
+    (`patch.nearest_patch`). Empty when even the nearest node's share exceeds PATCH_AREA_LIMIT × π r² (the
+    mesh is too coarse at the cup)."""
+    return nearest_patch(skin, mesh.nodes[skin], skin_areas(mesh, skin), contact, np.pi * radius_mm**2)
 
 
 def build_body(scene: BodyScene, mesh: BodyMesh, model: str | None = None, *, element: str) -> Tissue:
