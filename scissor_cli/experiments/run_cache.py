@@ -17,8 +17,9 @@ from scissor_cli import __version__
 
 CACHE_DIR = ".scissor-cache"
 #: what the cached files mean, beside the code's version: raised when that changes between versions (2: a body's
-#: lesion became its region's mean, docs/model.md §21), so a cache written before is not read as today's
-REVISION = 2
+#: lesion became its region's mean; 3: the slab's cups grip by area, docs/model.md §21), so a cache written
+#: before is not read as today's
+REVISION = 3
 
 
 def cache_dir(location: Optional[Path]) -> Optional[Path]:
