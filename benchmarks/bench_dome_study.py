@@ -41,9 +41,11 @@ ROOT = Path(__file__).resolve().parents[1]
 PAPER_MAX_MM = {"x": 0.7, "y": 1.7}
 
 
-def simulate_scene(scene: dict, name: str) -> tuple[list[dict], float, float]:
+def simulate_scene(scene: dict, name: str, with_slab: bool = False) -> tuple:
     """`scissor simulate` of a scene's data with --jobs 2 from an empty folder and cache: per-target rows of the
-    final errors (a target without a plan has 0 trials and no maxima), the wall and the CPU seconds."""
+    final errors (a target without a plan has 0 trials and no maxima; a layer's, no |z|), the wall and the CPU
+    seconds; with_slab, also the slab `layer_check.accuracy_mm` picked (its tetrahedra, in-plane scale, levels,
+    error against the finest, mm)."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "run"
         config_run = Path(tmp) / name
@@ -57,8 +59,13 @@ def simulate_scene(scene: dict, name: str) -> tuple[list[dict], float, float]:
         after = resource.getrusage(resource.RUSAGE_CHILDREN)
         if r.returncode != 0:
             raise SystemExit(f"simulate failed ({r.returncode}):\n{r.stderr[-2000:]}")
-        rows = []
+        rows, slab = [], {}
         with h5py.File(out / "results.h5", "r") as f:
+            if with_slab:
+                pick = f["layer_check_resolution"].attrs
+                slab = {"slab_tetrahedra": int(pick["n_tetrahedra"]),
+                        "slab_in_plane_scale": float(pick["in_plane_scale"]), "slab_levels": int(pick["levels"]),
+                        "slab_error_mm": float(pick["error_mm"])}
             for t in f["trials"]:
                 g = f["trials"][t]
                 e, miss = g["final_error"][()], g["manipulation_miss_mm"][()]
@@ -66,12 +73,15 @@ def simulate_scene(scene: dict, name: str) -> tuple[list[dict], float, float]:
                     rows.append({"target": t, "trials": 0})
                     continue
                 rows.append({"target": t, "trials": int(len(e)), "max_x_mm": float(np.abs(e[:, 0]).max()),
-                             "max_y_mm": float(np.abs(e[:, 1]).max()), "max_z_mm": float(np.abs(e[:, 2]).max()),
+                             "max_y_mm": float(np.abs(e[:, 1]).max()),
+                             # (a layer's trials have no vertical error)
+                             "max_z_mm": float(np.abs(e[:, 2]).max()) if e.shape[1] > 2 else None,
                              "miss_median_mm": float(np.median(miss)), "miss_p95_mm": float(np.percentile(miss, 95)),
                              "at_stroke_limit": int(np.sum(g["stop_reason"][()] == b"stroke_limit")),
                              "trial_s_median": float(np.median(g["trial_time_s"][()])),
                              "iterations_median": float(np.median(g["iterations"][()]))})
-    return rows, wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return (rows, wall, cpu, slab) if with_slab else (rows, wall, cpu)
 
 
 def main() -> None:
