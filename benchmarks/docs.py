@@ -754,6 +754,30 @@ def _element_dome_study(p1, nodal, default) -> str:
               "the machine's load, in the source line; the CPU seconds less). " + source(p1, nodal, default))
 
 
+@renderer("element_slab_study", "bench_element_slab_study")
+def _element_slab_study(r) -> str:
+    """benchmarks/bench_element_slab_study.py: the paper's prosthesis study with slab truth on each element."""
+    out = []
+    for x in rows_of(r, "targets"):
+        if not x["trials"]:
+            out.append([f"`{x['element']}`", x["target"], 0, "no plan", "", "", "", ""])
+            continue
+        out.append([f"`{x['element']}`", x["target"], x["trials"], fixed(x["max_x_mm"], 2), fixed(x["max_y_mm"], 2),
+                    f"{fixed(x['miss_median_mm'], 2)} / {fixed(x['miss_p95_mm'], 2)}", x["at_stroke_limit"],
+                    f"{fixed(x['trial_s_median'], 1)} s"])
+    paper = r["data"]["paper_max_mm"]
+    out.append(["the paper (Fig. 14)", "", 30, num(paper["x"]), num(paper["y"]), "", "", ""])
+    runs = "; ".join(f"`{x['element']}`: the slab {num(x['slab_tetrahedra'])} tetrahedra (in-plane scale "
+                     f"{num(x['slab_in_plane_scale'])}, {x['slab_levels']} levels, {fixed(x['slab_error_mm'], 3)} mm "
+                     f"from the finest), {fixed(x['wall_s'] / 60, 1)} min wall, {num(x['cpu_s'], 3)} CPU-s"
+                     for x in rows_of(r, "runs"))
+    return (table(["element", "target", "trials", "max \\|x\\| (mm)", "max \\|y\\| (mm)",
+                   "true miss median / p95 (mm)", "at the stroke limit", "a trial (median)"], out)
+            + f"\n\n{r['data']['config']}, slab truth, {r['data']['trials_per_target']} trials per target, the "
+              "controller steering by the layer; the layer and the slab on the element, Newton for both; `--jobs 2` "
+              f"from nothing: {runs}. " + source(r))
+
+
 @renderer("control", "bench_control.table")
 def _control(r) -> str:
     out = [[x["scene"], x["cups"], f"{fixed(x['iteration_ms'], 1)} ms",
