@@ -59,7 +59,7 @@ def main() -> None:
     for assumption, value in SETUPS:
         for model in args.models.split(","):
             scene = setup(base, assumption, value, model, args.trials)
-            targets, wall, cpu = simulate_scene(scene, BASELINE.name)
+            targets, wall, cpu, _ = simulate_scene(scene, BASELINE.name)
             run = [x for x in targets if x["trials"]]
             row = {"assumption": assumption or "baseline", "value": value, "model": model,
                    "planned": len(run), "targets": len(targets), "trials": sum(x["trials"] for x in run),

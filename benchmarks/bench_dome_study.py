@@ -41,11 +41,11 @@ ROOT = Path(__file__).resolve().parents[1]
 PAPER_MAX_MM = {"x": 0.7, "y": 1.7}
 
 
-def simulate_scene(scene: dict, name: str, with_slab: bool = False) -> tuple:
+def simulate_scene(scene: dict, name: str) -> tuple[list[dict], float, float, dict]:
     """`scissor simulate` of a scene's data with --jobs 2 from an empty folder and cache: per-target rows of the
     final errors (a target without a plan has 0 trials and no maxima; a layer's, no |z|), the wall and the CPU
-    seconds; with_slab, also the slab `layer_check.accuracy_mm` picked (its tetrahedra, in-plane scale, levels,
-    error against the finest, mm)."""
+    seconds, and the slab `layer_check.accuracy_mm` picked (its tetrahedra, in-plane scale, levels, error against
+    the finest, mm; empty for a run without one)."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "run"
         config_run = Path(tmp) / name
@@ -61,7 +61,7 @@ def simulate_scene(scene: dict, name: str, with_slab: bool = False) -> tuple:
             raise SystemExit(f"simulate failed ({r.returncode}):\n{r.stderr[-2000:]}")
         rows, slab = [], {}
         with h5py.File(out / "results.h5", "r") as f:
-            if with_slab:
+            if "layer_check_resolution" in f:
                 pick = f["layer_check_resolution"].attrs
                 slab = {"slab_tetrahedra": int(pick["n_tetrahedra"]),
                         "slab_in_plane_scale": float(pick["in_plane_scale"]), "slab_levels": int(pick["levels"]),
@@ -80,8 +80,7 @@ def simulate_scene(scene: dict, name: str, with_slab: bool = False) -> tuple:
                              "at_stroke_limit": int(np.sum(g["stop_reason"][()] == b"stroke_limit")),
                              "trial_s_median": float(np.median(g["trial_time_s"][()])),
                              "iterations_median": float(np.median(g["iterations"][()]))})
-    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    return (rows, wall, cpu, slab) if with_slab else (rows, wall, cpu)
+    return rows, wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime), slab
 
 
 def main() -> None:
@@ -121,7 +120,7 @@ def main() -> None:
         scene["tissue"].setdefault("mesh", {})["element"] = args.element
     if args.grading is not None:
         scene["tissue"].setdefault("mesh", {})["grading"] = args.grading
-    rows, wall, cpu = simulate_scene(scene, config.name)
+    rows, wall, cpu, _ = simulate_scene(scene, config.name)
     res.figure("wall_s", wall, "s")
     res.figure("cpu_s", cpu, "s")
     res.table("targets", rows, units={k: "mm" for k in ("max_x_mm", "max_y_mm", "max_z_mm", "miss_median_mm",

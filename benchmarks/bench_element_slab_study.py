@@ -34,7 +34,7 @@ def main() -> None:
         scene["tissue"].setdefault("mesh", {})["element"] = element
         scene["trials"]["count"] = args.trials
         scene["solver"]["kind"] = "newton"  # (ADMM refuses `nodal`: both elements on the same solver)
-        targets, wall, cpu, slab = simulate_scene(scene, CONFIG.name, with_slab=True)
+        targets, wall, cpu, slab = simulate_scene(scene, CONFIG.name)
         rows += [{"element": element} | row for row in targets]
         runs.append({"element": element, "wall_s": wall, "cpu_s": cpu} | slab)
         for row in targets:
