@@ -93,3 +93,11 @@ def test_a_patch_is_the_nearest_nodes_and_its_area_the_closest_to_the_cups(count
     assert k >= 1 and np.array_equal(np.sort(nodes[order[:k]]), patch)  # the k nearest, sorted
     covered = np.cumsum(shares[order])
     assert abs(covered[k - 1] - area) <= np.abs(covered - area).min() + 1e-9 * area  # no count comes closer
+
+
+def test_two_cups_gripping_the_same_side_nodes_are_refused_with_their_names(slab):
+    scene, mesh, _ = slab
+    cup = scene.cups[0]
+    near = replace(cup, name="second", contact=cup.contact + np.array([1.0, 0.0]))
+    with pytest.raises(BoundaryError, match="'second' grip the same side-surface nodes"):
+        build_slab(replace(scene, cups=(cup, near)), mesh, SlabSpec(HEIGHT_MM, LAYER_Z_MM, max_layer_mm=4.0))

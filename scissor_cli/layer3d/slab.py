@@ -104,6 +104,10 @@ def build_slab(scene: Scene, mesh: Mesh, spec: SlabSpec, model: str | None = Non
             raise BoundaryError(f"cup {cup.name!r} (radius {cup.radius_mm:g} mm) grips no free side-surface node of "
                                 f"the slab: its nearest one alone stands for more than {PATCH_AREA_LIMIT:g}× the "
                                 "cup's area; refine the slab at the cup (tissue.mesh, layer_check.max_layer_mm)")
+        for other, prev in zip(scene.cups, cup_nodes):  # (a node held by two cups would move by both strokes)
+            if np.intersect1d(nodes, prev).size:
+                raise BoundaryError(f"cups {other.name!r} and {cup.name!r} grip the same side-surface nodes of the "
+                                    "slab: move them apart or shrink radius_mm")
         cup_nodes.append(np.sort(nodes))
     grip = np.unique(np.concatenate(cup_nodes)) if cup_nodes else np.zeros(0, np.int64)
     dirichlet = [3 * fixed, 3 * fixed + 1, 3 * fixed + 2, 3 * grip, 3 * grip + 1]
