@@ -243,6 +243,12 @@ def run_trial(config_yaml: str, task: TargetTask, trial: int) -> TrialOutcome:
         )
 
 
+#: a work item: (task, trial k), or (task, None) for the task's nominal manipulation (a body's)
+WorkItem = tuple[TargetTask, Optional[int]]
+#: what a work item gives
+Outcome = TrialOutcome | NominalOutcome
+
+
 def run_nominal(config_yaml: str, task: TargetTask) -> NominalOutcome:
     """A body lesion's nominal manipulation in whatever process runs it (`BodyTrialContext.manipulate`); a failure
     is an outcome carrying its message (the run fails with it where the outcome is stored)."""
@@ -253,17 +259,16 @@ def run_nominal(config_yaml: str, task: TargetTask) -> NominalOutcome:
     return NominalOutcome(task.index, closed, opened)
 
 
-def _run_item(config_yaml: str, task: TargetTask, k: Optional[int]) -> TrialOutcome | NominalOutcome:
+def _run_item(config_yaml: str, task: TargetTask, k: Optional[int]) -> Outcome:
     """Trial k of the task, or (k None) its nominal manipulation."""
     return run_nominal(config_yaml, task) if k is None else run_trial(config_yaml, task, k)
 
 
-def _run_batch(row: str, config_yaml: str, work: list[tuple[TargetTask, Optional[int]]]
-               ) -> list[tuple[str, TrialOutcome | NominalOutcome]]:
+def _run_batch(row: str, config_yaml: str, work: list[WorkItem]) -> list[tuple[str, Outcome]]:
     return [(row, _run_item(config_yaml, task, k)) for task, k in work]
 
 
-def _run_batch_dask(row: str, config_yaml: str, work: list[tuple[TargetTask, int]]) -> list[tuple[str, TrialOutcome]]:
+def _run_batch_dask(row: str, config_yaml: str, work: list[WorkItem]) -> list[tuple[str, Outcome]]:
     """`_run_batch` in a Dask worker: scissor did not start that process, so its settings (one BLAS thread, freed
     memory kept: `runtime.configure`, idempotent) are applied here; without them Dask workers ran slab-truth
     trials markedly slower than the local pool (benchmarks/bench_dask_slab.py)."""
@@ -275,18 +280,18 @@ def _batches(work: list[tuple[TargetTask, int]], size: int) -> list[list[tuple[T
     return [work[i : i + size] for i in range(0, len(work), size)]
 
 
-def _batched(work: list[tuple[TargetTask, Optional[int]]], size: int) -> list[list]:
+def _batched(work: list[WorkItem], size: int) -> list[list[WorkItem]]:
     """`_batches` of the trials after one batch per nominal manipulation (k None)."""
     return [[w] for w in work if w[1] is None] + _batches([w for w in work if w[1] is not None], size)
 
 
 def execute(
     config_yaml: str,
-    work: list[tuple[TargetTask, int]],
+    work: list[WorkItem],
     jobs: int = 1,
     executor: str = "local",
     scheduler: Optional[str] = None,
-) -> Iterator[TrialOutcome]:
+) -> Iterator[Outcome]:
     """Run trials and yield outcomes as they finish (order not guaranteed).
 
     A work item (task, None) is the task's nominal manipulation (a body's; yields a `NominalOutcome`), run
@@ -302,11 +307,11 @@ def execute(
 
 def execute_rows(
     rows: dict[str, str],
-    work: dict[str, list[tuple[TargetTask, int]]],
+    work: dict[str, list[WorkItem]],
     jobs: int = 1,
     executor: str = "local",
     scheduler: Optional[str] = None,
-) -> Iterator[tuple[str, TrialOutcome]]:
+) -> Iterator[tuple[str, Outcome]]:
     """`execute` for trials under several configs {row: config YAML} on one set of workers, {row: its trials}.
 
     Yields (row, outcome). Batches go row by row, so a worker rebuilds its
@@ -333,7 +338,7 @@ def execute_rows(
                                      for batch in _batched(todo[row], size)], jobs)
 
 
-def _execute_dask(rows: dict[str, str], work: dict, scheduler: Optional[str]) -> Iterator[tuple[str, TrialOutcome]]:
+def _execute_dask(rows: dict[str, str], work: dict, scheduler: Optional[str]) -> Iterator[tuple[str, Outcome]]:
     try:
         from dask.distributed import Client, as_completed
     except ImportError:  # pragma: no cover - depends on the installation
