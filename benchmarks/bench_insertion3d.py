@@ -314,7 +314,7 @@ def _loop_runs(cfg, slab, x0, plan, target, params, entry, axis, table=None) -> 
 
 def _kernel_times(slab, x) -> tuple[float, dict, dict]:
     """Medians (s) at x (N3, 3): one energy gradient; per precision one solve on the kept factor and one
-    refactorisation (float32: CHOLMOD's factor copied out, `Factorization.detach`)."""
+    refactorisation (float32: CHOLMOD's factor copied out, `Factorization.single`)."""
     K = slab.stiffness_free(x, upper=True)
     slot: dict = {}
     factor = factorize_free(slab, K, slot)
@@ -333,7 +333,7 @@ def _kernel_times(slab, x) -> tuple[float, dict, dict]:
         times["factor64"].append(time.perf_counter() - t0)
     for _ in range(5):
         t0 = time.perf_counter()
-        single = factorize_free(slab, K, slot).detach()
+        single = factorize_free(slab, K, slot).single()
         times["factor32"].append(time.perf_counter() - t0)
     single.solve(g)  # compiled on the first call
     for _ in range(20):

@@ -1,5 +1,6 @@
 """The shared sparse factorisation: CHOLMOD for definite matrices, qdldl's LDLᵀ otherwise."""
 
+import ctypes
 import subprocess
 import sys
 
@@ -111,18 +112,22 @@ def test_nested_dissection_is_a_permutation_and_solves_like_amd():
         Factorization(A, ordering="metis")
 
 
-def test_preconditioned_cg_solves_to_tolerance_and_refuses_indefinite():
+def test_preconditioned_cg_solves_to_tolerance_and_refuses_indefinite(monkeypatch):
+    from scissor_cli.solvers import linear
     from scissor_cli.solvers.linear import preconditioned_cg
 
     A = _laplacian_3d(8, 0.5)
     near = (A + 0.2 * sp.diags(np.random.default_rng(3).random(A.shape[0]))).tocsr()
     b = np.random.default_rng(4).random(A.shape[0])
-    f = Factorization(A, definite=True)
+    f = Factorization(A, definite=True, float32_steps=True)
     x, k, why = preconditioned_cg(sp.triu(near).tocsr(), b, f, 1e-12, max_iter=50)
     assert x is not None and 1 < k < 50 and f.cg_iterations == k and why == "converged"
     direct = Factorization(near, definite=True).solve(b)
     assert np.linalg.norm(x - direct) <= 1e-10 * np.linalg.norm(direct)
-    x1, k1, _ = preconditioned_cg(A, b, f, 1e-10, upper=False)  # its own factor: one iteration
+    x1, k1, _ = preconditioned_cg(A, b, f, 1e-10, upper=False)  # its own factor's float32 copy: one or two
+    assert k1 <= 2 and np.linalg.norm(A @ x1 - b) <= 1e-10 * np.linalg.norm(b)
+    monkeypatch.setattr(linear, "SINGLE_PRECISION_STEPS", False)  # its own factor in float64: one iteration
+    x1, k1, _ = preconditioned_cg(A, b, f, 1e-10, upper=False)
     assert k1 == 1 and np.linalg.norm(A @ x1 - b) <= 1e-10 * np.linalg.norm(b)
     bad = (A - 2.0 * sp.eye(A.shape[0])).tocsr()  # indefinite: not returned
     x, _, why = preconditioned_cg(sp.triu(bad).tocsr(), b, f, 1e-12, max_iter=200)
@@ -271,29 +276,51 @@ def test_reading_the_factor_size_leaves_the_factor_usable():
 
 
 @pytest.mark.parametrize("ordering", ["amd", "nested_dissection"])
-def test_a_detached_float32_factor_solves_to_single_precision_and_the_slot_refactors(ordering):
-    """detach hands the supernodal factor over as float32 blocks (solvers.supernodal): it solves one or many
-    columns to float32's precision in the original ordering; the Factorization refactors and solves again."""
+def test_a_float32_copy_solves_to_single_precision_and_leaves_the_factor_in_float64(ordering):
+    """single copies the supernodal factor, read where CHOLMOD keeps it (solvers.cholmod_factor), into float32
+    blocks: it solves one or many columns to float32's precision in the original ordering; the Factorization still
+    solves in float64, and after a refactorisation its copy is the new factor's."""
     A = sp.triu(_laplacian_3d(12, 0.1)).tocsr()  # wide supernodes in a nested-dissection order
     full = (A + sp.triu(A, 1).T).tocsc()
     f = Factorization(A, definite=True, upper=True, ordering=ordering, supernodal=True)
-    kept = f.detach()
+    kept = f.single()
+    assert kept is not None and f.single() is kept  # one copy per factorisation
     b = np.random.default_rng(3).random((A.shape[0], 3))
     ref = spla.spsolve(full, b)
     for x, r in ((kept.solve(b), ref), (kept.solve(b[:, 2]), ref[:, 2])):
         assert x.shape == r.shape and x.dtype == np.float64
         assert np.linalg.norm(x - r) <= 1e-5 * np.linalg.norm(r)
-    with pytest.raises(SolverError):
-        f.detach()  # given away already
-    f.refactor(A)
     np.testing.assert_allclose(f.solve(b), ref, rtol=1e-10)
+    twice = sp.triu(2.0 * full).tocsr()
+    f.refactor(twice)
+    assert f.single() is not kept
+    np.testing.assert_allclose(f.single().solve(b), 0.5 * ref, rtol=1e-4)
+
+
+def test_only_a_supernodal_cholesky_factor_has_a_float32_copy():
+    """A simplicial LDLᵀ, an indefinite matrix's qdldl factor and a capsule that is not CHOLMOD's factor give no
+    copy (the callers then solve in float64)."""
+    from scissor_cli.solvers.cholmod_factor import single_precision_copy
+
+    A = sp.triu(_laplacian_3d(6, 0.1)).tocsr()
+    assert Factorization(A, definite=True, upper=True, supernodal=False).single() is None
+    indefinite = (_laplacian_3d(6, 0.1) - 2.0 * sp.eye(A.shape[0])).tocsr()
+    f = Factorization(indefinite)
+    assert f.method == "ldl" and f.single() is None
+    supernodal = Factorization(A, definite=True, upper=True)
+    assert single_precision_copy(supernodal._chol, A.shape[0] + 1) is None  # not the order asked for
+    new_capsule = ctypes.pythonapi.PyCapsule_New
+    new_capsule.restype, new_capsule.argtypes = ctypes.py_object, [ctypes.c_void_p, ctypes.c_char_p, ctypes.c_void_p]
+    name = ctypes.c_char_p(b"something else")  # (kept alive: the capsule holds its address)
+    other = new_capsule(ctypes.addressof(ctypes.c_double(1.0)), name, None)
+    assert single_precision_copy(other, 3) is None
 
 
 def test_a_float32_factor_solves_a_block_as_it_solves_each_column():
     """Many right-hand sides go through the BLAS-3 sweeps (`_solve_block`), one through the matrix-vector ones: the
     same solution to float32's precision, whatever the block's width."""
     A = sp.triu(_laplacian_3d(12, 0.1)).tocsr()
-    kept = Factorization(A, definite=True, upper=True, ordering="nested_dissection", supernodal=True).detach()
+    kept = Factorization(A, definite=True, upper=True, ordering="nested_dissection", supernodal=True).single()
     rng = np.random.default_rng(8)
     for k in (2, 7, 40):
         b = rng.normal(size=(A.shape[0], k))

@@ -113,7 +113,7 @@ class ChordSolver:
                 # (in 3-D the factor's fill makes the supernodal one the faster to build and to solve with)
                 factor = factorize_free(self.tissue, K, self._factors, supernodal=self.d == 3 or self.single_precision)
                 if self.single_precision:  # solved a thousand times or more before the next refactorisation
-                    factor = factor.detach()
+                    factor = factor.single() or factor  # (float64 where CHOLMOD's factor cannot be read in place)
                 break
             except SolverError:
                 continue

@@ -18,6 +18,7 @@ import qdldl
 import scipy.sparse as sp
 from cvxopt import cholmod
 
+from scissor_cli.solvers.cholmod_factor import single_precision_copy
 from scissor_cli.solvers.common import SolverError
 from scissor_cli.solvers.supernodal import SupernodalFactor
 
@@ -28,6 +29,10 @@ KRYLOV_MAX_ITER = 12
 #: below it CHOLMOD keeps AMD's sparser factor; above it METIS's factor is sparser and its one-time
 #: cost pays off within a run's factorisations (benchmarks/bench_forward.py)
 ND_MIN_UNKNOWNS_2D = 10_000
+#: conjugate gradients and Newton's chord steps solve with a float32 copy of the factor (`Factorization.single`):
+#: they only precondition or propose a step that the float64 residual judges, and the copy's solve reads half the
+#: bytes; off, CHOLMOD's float64 solve (for A/B runs: benchmarks/ab_trials.py)
+SINGLE_PRECISION_STEPS = True
 #: a solve that needed more CG iterations than this marks its factor stale: the
 #: tangent has moved away from it, so the next solve factors instead of trying
 KRYLOV_STALE_ITER = 6
@@ -81,13 +86,16 @@ class Factorization:
 
     def __init__(self, A: sp.spmatrix, definite: bool = False, upper: bool = False,
                  ordering: str = "amd", groups: np.ndarray | None = None, supernodal: bool = True,
-                 perm: np.ndarray | None = None):
+                 perm: np.ndarray | None = None, float32_steps: bool = False):
         if ordering not in ("amd", "nested_dissection"):
             raise ValueError(f"unknown ordering {ordering!r}: 'amd' or 'nested_dissection'")
         if perm is not None and (ordering != "nested_dissection" or len(perm) != A.shape[0]):
             raise ValueError("a given perm is a nested-dissection ordering of A's unknowns")
         self.definite = definite
         self.supernodal = supernodal
+        #: whether `stepping_solve` uses the float32 copy (3-D: `factorize_free`; a 2-D factor is small and its
+        #: solves overhead-bound, so it keeps float64)
+        self.float32_steps = float32_steps
         self.upper = upper
         self.ordering = ordering
         self.groups = groups
@@ -124,6 +132,7 @@ class Factorization:
         self.factorizations += 1
         self.stale = False
         self.cg_rate = None
+        self._single = None  # (the float32 copy of this factorisation, made on demand: `single`)
         try:
             if self._chol is None:
                 self._chol = self._symbolic(A, self.supernodal)
@@ -198,31 +207,21 @@ class Factorization:
         cholmod.options["supernodal"] = 2 if supernodal else 0  # read by the analysis only
         try:
             if self.ordering == "nested_dissection":
-                if self._perm is None:  # once per pattern (`detach` makes the analysis run again)
+                if self._perm is None:  # once per pattern
                     self._perm = cvxopt.matrix(nested_dissection(A, self.groups).tolist(), tc="i")
                 return cholmod.symbolic(self._lower, p=self._perm)
             return cholmod.symbolic(self._lower)
         finally:
             cholmod.options["supernodal"] = saved
 
-    def detach(self) -> SupernodalFactor:
-        """The current CHOLMOD factor as a float32 copy for compiled solves (`solvers.supernodal`).
-
-        cvxopt reads a factor out only by converting it into a simplicial,
-        symbolic one, so this object gives its factor away: it cannot solve
-        until the next `refactor`, which analyses the pattern again (the
-        ordering is kept). For a factor solved with many times between
-        refactorisations (the needle's chord solver in the slab).
-        """
-        if self._active != "cholesky" or not self.supernodal:
-            raise SolverError("only a supernodal Cholesky factor can be detached")
-        n = self._pattern[1]
-        order = cvxopt.matrix(np.arange(n, dtype=float))
-        cholmod.solve(self._chol, order, sys=7)  # P e: the ordering CHOLMOD kept (its own AMD may have won)
-        perm = np.rint(np.asarray(memoryview(order)).ravel()).astype(np.int64)
-        colptr, rows, values = cholmod.getfactor(self._chol).CCS
-        self._chol = self._check = self._active = None
-        return SupernodalFactor(*(np.asarray(memoryview(a)).ravel() for a in (colptr, rows, values)), perm)
+    def single(self) -> SupernodalFactor | None:
+        """The current supernodal Cholesky factor as a float32 copy solved in compiled loops
+        (`solvers.supernodal`, read in place by `solvers.cholmod_factor`), made once per factorisation; None
+        for any other factor, or one CHOLMOD does not lay out as expected. This object still solves in
+        float64: the copy is for solves that only precondition or step (conjugate gradients, chord steps)."""
+        if self._single is None and self._active == "cholesky" and self.supernodal:
+            self._single = single_precision_copy(self._chol, self._pattern[1]) or False
+        return self._single or None
 
     @property
     def method(self) -> str:
@@ -330,13 +329,20 @@ def preconditioned_cg(A: sp.csr_matrix | Callable[[np.ndarray], np.ndarray], b: 
             return A @ v + AT @ v - diag * v
     else:
         times = A.__matmul__
-    x, k, why = conjugate_gradients(times, factor.solve, b, rtol, max_iter)
+    x, k, why = conjugate_gradients(times, stepping_solve(factor), b, rtol, max_iter)
     factor.cg_iterations += k
     if x is not None:
         factor.stale = k > KRYLOV_STALE_ITER
         if k > 0:
             factor.cg_rate = rtol ** (1.0 / k)
     return x, k, why
+
+
+def stepping_solve(factor: Factorization) -> Callable[[np.ndarray], np.ndarray]:
+    """b ↦ the factor's solve for a preconditioner or a trial step: on its float32 copy where it asks for one
+    (`Factorization.float32_steps`, SINGLE_PRECISION_STEPS) and has one, else its own."""
+    single = factor.single() if SINGLE_PRECISION_STEPS and factor.float32_steps else None
+    return factor.solve if single is None else single.solve
 
 
 def solve_free(tissue, K_upper: sp.csr_matrix, b: np.ndarray, factors: dict | None = None,
@@ -420,7 +426,7 @@ def factorize_free(tissue, K_upper: sp.csr_matrix, factors: dict | None = None,
         perm = tissue.factor_cache.get(known) if large else None
         factor = factors["free"] = Factorization(K_upper, definite=True, upper=True, ordering=ordering,
                                                  groups=tissue.free_dofs // tissue.dim, supernodal=supernodal,
-                                                 perm=perm)
+                                                 perm=perm, float32_steps=tissue.dim == 3)
         if large and perm is None and factor.perm is not None:
             tissue.factor_cache[known] = factor.perm
         return factor

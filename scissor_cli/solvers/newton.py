@@ -38,7 +38,7 @@ from scissor_cli.solvers.common import (
 )
 from scissor_cli.solvers.held import Held as _Held
 from scissor_cli.solvers.hessian_free import hessian_free_step
-from scissor_cli.solvers.linear import KRYLOV_MAX_ITER, NotPositiveDefinite, factorize_free, solve_free
+from scissor_cli.solvers.linear import KRYLOV_MAX_ITER, NotPositiveDefinite, factorize_free, solve_free, stepping_solve
 
 ARMIJO = 1e-4
 #: a full step whose Φ decrease reaches this fraction of the linear prediction
@@ -299,7 +299,7 @@ def _shifted_solve(tissue, K, g, factors) -> tuple[np.ndarray, int] | None:
 
 def _chord_step(tissue, x, g, inertia, res, conditions, held, factors):
     """A full step on the cached factorisation, if it is feasible and contracts the residual enough."""
-    d = -factors["free"].solve(g)
+    d = -stepping_solve(factors["free"])(g)
     if not np.all(np.isfinite(d)) or np.dot(g, d) >= 0:
         return None
     step = np.zeros(x.size)

@@ -83,6 +83,18 @@ class SupernodalFactor:
         _pack(colptr, rows, np.asarray(values, float), self.starts, self.row_ptr, self.block_ptr, self.block_rows,
               self.blocks)
 
+    @classmethod
+    def from_blocks(cls, starts: np.ndarray, row_ptr: np.ndarray, block_ptr: np.ndarray, block_rows: np.ndarray,
+                    blocks: np.ndarray, perm: np.ndarray) -> "SupernodalFactor":
+        """The factor from supernode blocks already in this layout (module docstring): starts, row_ptr,
+        block_ptr (S + 1,) int64, block_rows (int32), blocks (float32, each block's upper triangle unread),
+        perm (n,) int64; the arrays are kept, not copied (`solvers.cholmod_factor`)."""
+        self = cls.__new__(cls)
+        self.starts, self.row_ptr, self.block_ptr = starts, row_ptr, block_ptr
+        self.block_rows, self.blocks, self.perm = block_rows, blocks, perm
+        self.n = perm.size
+        return self
+
     def solve(self, b: np.ndarray) -> np.ndarray:
         """x (float64) with A x = b, for b (n,) or (n, k).
 
