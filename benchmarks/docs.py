@@ -1051,12 +1051,14 @@ def _body_truth_tol(r) -> str:
               f"rest.\n\n" + source(r))
 
 
-@renderer("trial_steps", "ab_trials.example_dome.on.off", "ab_trials.example_dome.forward.central")
-def _trial_steps(hessian_free, difference) -> str:
-    """benchmarks/ab_trials.py on example_dome's trials: Newton steps with and without the assembled Hessian, and
-    the forward against the central difference (`solvers/hessian_free.py`)."""
+@renderer("trial_steps", "ab_trials.example_dome.on.off", "ab_trials.example_dome.forward.central",
+          "ab_trials.example_dome.float32.float64")
+def _trial_steps(hessian_free, difference, precision) -> str:
+    """benchmarks/ab_trials.py on example_dome's trials: Newton steps with and without the assembled Hessian, the
+    forward against the central difference (`solvers/hessian_free.py`), and the steps' solves on the factor's
+    float32 copy against CHOLMOD's float64 (`solvers.linear.SINGLE_PRECISION_STEPS`)."""
     rows = []
-    for r in (hessian_free, difference):
+    for r in (hessian_free, difference, precision):
         for x in rows_of(r, "settings"):
             setting = ", ".join(f"`{k.rsplit('.', 1)[1]} = {v}`" for k, v in x["values"].items())
             rows.append([setting, f"{fixed(x['cpu_median_s'], 1)} s ({fixed(x['cpu_min_s'], 1)}–"
@@ -1068,7 +1070,7 @@ def _trial_steps(hessian_free, difference) -> str:
                    "factorisations", "sparse-solve columns", "gradients", "final errors apart from the first's"],
                   rows)
             + f"\n\nEach pair replays the same {trials} trials of configs/example_dome.yaml (2 per target) in one "
-              "process, the settings in turn.\n\n" + source(hessian_free, difference))
+              "process, the settings in turn.\n\n" + source(hessian_free, difference, precision))
 
 
 @renderer("body_insertion", "bench_body_insertion")
