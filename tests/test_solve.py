@@ -334,11 +334,10 @@ def test_the_float32_solve_compiled_in_one_process_solves_in_another():
     second process, which loads the cached code and links the name again, solves as the first did."""
     script = (
         "import numpy as np, scipy.sparse as sp\n"
-        "from scissor_cli.solvers.supernodal import SupernodalFactor\n"
+        "from scissor_cli.solvers.linear import Factorization\n"
         "n = 400\n"
-        "A = sp.diags([-1.0, 4.0, -1.0], [-1, 0, 1], (n, n)).toarray()\n"
-        "L = sp.csc_matrix(np.linalg.cholesky(A))\n"
-        "x = SupernodalFactor(L.indptr, L.indices, L.data, np.arange(n)).solve(np.ones(n))\n"
+        "A = sp.diags([-1.0, 4.0, -1.0], [-1, 0, 1], (n, n), format='csr')\n"
+        "x = Factorization(A, definite=True).single().solve(np.ones(n))\n"
         "print(np.abs(A @ x - 1.0).max())\n"
     )
     for _ in range(2):  # the first may compile (and cache), the second loads

@@ -86,4 +86,4 @@ def single_precision_copy(capsule, n: int) -> SupernodalFactor | None:
     perm = _array(f.Perm, n, index).astype(np.int64)
     buffer = (ctypes.c_double * int(block_ptr[-1])).from_address(f.x)
     blocks = np.frombuffer(buffer, dtype=np.float64).astype(np.float32)  # the one copy, cast on the way
-    return SupernodalFactor.from_blocks(starts, row_ptr, block_ptr, block_rows, blocks, perm)
+    return SupernodalFactor(starts, row_ptr, block_ptr, block_rows, blocks, perm)

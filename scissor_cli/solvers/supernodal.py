@@ -2,7 +2,8 @@
 chord step's arithmetic").
 
 The needle's chord solver (`insertion.chord`) solves with one kept factor of
-the slab's K_ff a thousand times or more before it refactors. CHOLMOD's
+the slab's K_ff a thousand times or more before it refactors, and a 3-D
+Newton step's conjugate gradients tens of times (`linear.stepping_solve`). CHOLMOD's
 supernodal solve through cvxopt reads the whole float64 factor twice per
 solve (tens of MB on a picked slab: memory-bound) and converts its operands
 on every call. A chord step only needs the solve as a preconditioner — its
@@ -62,38 +63,20 @@ def _link_blas() -> None:
 class SupernodalFactor:
     """L of P A Pᵀ = L Lᵀ in float32 supernode blocks (module docstring); `solve` gives A⁻¹b.
 
-    Built from a factor's columns: colptr (n + 1,), rows (nnz,) and values
-    (nnz,) of L in CSC with each column's diagonal first, perm (n,) (row k
-    of P A Pᵀ is row perm[k] of A). The relative error of a solve is that
-    of float32 arithmetic on the factor's condition.
+    starts, row_ptr, block_ptr (S + 1,) int64, block_rows (int32) and blocks
+    (float32; each block's upper triangle is not read) in the module's
+    layout, perm (n,) int64 (row k of P A Pᵀ is row perm[k] of A): as
+    CHOLMOD's supernodal factor lays them out (`solvers.cholmod_factor` reads
+    them there; `Factorization.single`). The arrays are kept, not copied. The
+    relative error of a solve is that of float32 arithmetic on the factor's
+    condition.
     """
 
-    def __init__(self, colptr: np.ndarray, rows: np.ndarray, values: np.ndarray, perm: np.ndarray):
-        colptr, rows = np.asarray(colptr, np.int64), np.asarray(rows, np.int64)
-        self.perm = np.asarray(perm, np.int64)
-        self.n = self.perm.size
-        self.starts = _supernodes(colptr, rows)
-        first = self.starts[:-1]
-        width = np.diff(self.starts)
-        height = colptr[first + 1] - colptr[first]
-        self.row_ptr = np.concatenate([[0], np.cumsum(height)]).astype(np.int64)
-        self.block_ptr = np.concatenate([[0], np.cumsum(height * width)]).astype(np.int64)
-        self.block_rows = np.empty(self.row_ptr[-1], np.int32)
-        self.blocks = np.zeros(self.block_ptr[-1], np.float32)
-        _pack(colptr, rows, np.asarray(values, float), self.starts, self.row_ptr, self.block_ptr, self.block_rows,
-              self.blocks)
-
-    @classmethod
-    def from_blocks(cls, starts: np.ndarray, row_ptr: np.ndarray, block_ptr: np.ndarray, block_rows: np.ndarray,
-                    blocks: np.ndarray, perm: np.ndarray) -> "SupernodalFactor":
-        """The factor from supernode blocks already in this layout (module docstring): starts, row_ptr,
-        block_ptr (S + 1,) int64, block_rows (int32), blocks (float32, each block's upper triangle unread),
-        perm (n,) int64; the arrays are kept, not copied (`solvers.cholmod_factor`)."""
-        self = cls.__new__(cls)
+    def __init__(self, starts: np.ndarray, row_ptr: np.ndarray, block_ptr: np.ndarray, block_rows: np.ndarray,
+                 blocks: np.ndarray, perm: np.ndarray):
         self.starts, self.row_ptr, self.block_ptr = starts, row_ptr, block_ptr
         self.block_rows, self.blocks, self.perm = block_rows, blocks, perm
         self.n = perm.size
-        return self
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """x (float64) with A x = b, for b (n,) or (n, k).
@@ -128,39 +111,6 @@ def _by_reference() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     then reuse it (a float32 block solve that failed at random).
     """
     return np.zeros(6, np.int32), np.array([1.0, 0.0, -1.0], np.float32), np.array([76, 78, 84], np.uint8)
-
-
-@njit(cache=True)
-def _supernodes(colptr, rows):
-    """The first column of each supernode, and n (S + 1,): runs of columns whose patterns nest (j's = {j} ∪ j+1's)."""
-    n = colptr.size - 1
-    starts = [0]
-    for j in range(n - 1):
-        a, b, c, e = colptr[j], colptr[j + 1], colptr[j + 1], colptr[j + 2]
-        same = (b - a) == (e - c) + 1 and rows[a + 1] == j + 1 if b - a > 1 else False
-        if same:
-            for k in range(e - c):
-                if rows[a + 1 + k] != rows[c + k]:
-                    same = False
-                    break
-        if not same:
-            starts.append(j + 1)
-    starts.append(n)
-    return np.array(starts, np.int64)
-
-
-@njit(cache=True)
-def _pack(colptr, rows, values, starts, row_ptr, block_ptr, block_rows, blocks):
-    """Each supernode's rows and its columns as one column-major block (zeros above the diagonal)."""
-    for s in range(starts.size - 1):
-        c0, w = starts[s], starts[s + 1] - starts[s]
-        r = row_ptr[s + 1] - row_ptr[s]
-        for k in range(r):
-            block_rows[row_ptr[s] + k] = rows[colptr[c0] + k]
-        for c in range(w):
-            first = colptr[c0 + c]
-            for k in range(c, r):
-                blocks[block_ptr[s] + c * r + k] = values[first + k - c]
 
 
 @njit(cache=True)
