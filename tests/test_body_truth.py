@@ -16,7 +16,9 @@ from scissor_cli.control.plant import TruthPerturbation
 from scissor_cli.experiments.body_trials import BODY_TRUTH_TOL, BodyTrialContext, BodyTruth
 from scissor_cli.experiments.build import body_model
 from scissor_cli.experiments.trial_types import TargetTask
+from scissor_cli.mechanics.tissue import BoundaryError
 from scissor_cli.mesh.probe import target_positions
+from scissor_cli.solvers.common import SolverError
 from scissor_cli.solvers.tracking import TrackedEquilibrium
 
 from helpers import simulate_here, write_scene
@@ -93,10 +95,34 @@ def test_accuracy_picks_the_models_body_and_element_and_leaves_the_truth_configu
         element = resolution.attrs["element"]
         assert element == resolution["element"][pick].decode() and f["mesh"].attrs["element"] == element
         assert resolution.attrs["reference_element"] == "nodal" and errors[0] == 0.0
+        skipped = [v.decode() for v in resolution["skipped"][()]]
+        assert len(skipped) == len(errors) and all(errors[k] == -1.0 for k, why in enumerate(skipped) if why)
         recorded = yaml.safe_load(f.attrs["config_yaml"])
     assert recorded["tissue"]["accuracy_mm"] is None and recorded["tissue"]["mesh"]["scale"] == 1.0
     assert recorded["tissue"]["mesh"]["element"] == element
     assert recorded["controller"]["mesh_scale"] == resolution_scale(tmp_path)
+
+
+@pytest.mark.parametrize("error", [BoundaryError, SolverError])
+def test_a_coarser_candidate_that_cannot_be_built_or_solved_is_skipped_with_its_reason(monkeypatch, error):
+    """A coarse candidate may not grip a cup (its nearest skin node stands for more than the cup) or may not
+    solve: the ladder goes on to the next finer one and records why (docs/model.md §21)."""
+    from scissor_cli.experiments import body_resolution
+
+    solve = body_resolution._solve
+
+    def failing(cfg, scale, element, cache):
+        if scale == body_resolution.SCALES[1]:
+            raise error("cup 'side' cannot be gripped here")
+        return solve(cfg, scale, element, cache)
+
+    monkeypatch.setattr(body_resolution, "_solve", failing)
+    data = dict(_scene(), tissue=dict(SCENE["tissue"], accuracy_mm=10.0), trials={"count": 0})
+    data["forward"] = [{"name": "push", "strokes": {"side": 4.0}}]
+    choice = body_resolution.choose_body_scale(parse_config(yaml.safe_dump(data), "<test>"))
+    coarsest, next_finer = choice.candidates[1:3]
+    assert coarsest.scale == body_resolution.SCALES[1] and "cup 'side'" in coarsest.skipped and not coarsest.solved
+    assert choice.pick == 2 and next_finer.solved and not next_finer.skipped and next_finer.error_mm <= 10.0
 
 
 def resolution_scale(tmp_path) -> float:

@@ -14,7 +14,9 @@ pick when none is within. With `auto` the element comes first: `p1` (the
 cheaper: a sparser factor) when its configured mesh is within the accuracy
 of the reference, else `nodal`; then that element's ladder. As with the
 slab's ladder (`layer3d.resolution`) no error estimate spares the finest
-solve.
+solve. A coarser candidate that cannot be built (a cup smaller than the mesh at
+it) or solved is skipped, with its reason recorded; the configured mesh must
+build and solve (the run stops there otherwise).
 """
 
 from __future__ import annotations
@@ -28,9 +30,11 @@ import numpy as np
 from scissor_cli import progress
 from scissor_cli.config.body_sections import BodyConfig
 from scissor_cli.mechanics.body_tissue import build_body
+from scissor_cli.mechanics.tissue import BoundaryError
 from scissor_cli.mesh.body_inputs import mesh_body
 from scissor_cli.mesh.probe import target_positions
 from scissor_cli.scene.body_scene import build_body_scene
+from scissor_cli.solvers.common import SolverError
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 
 #: the candidates' edge lengths over the configured ones, the configured (finest) first
@@ -43,7 +47,7 @@ SOLVE_TOL = 1e-8
 class BodyCandidate:
     """One mesh and element: its scale over the configured size field and its size; when solved its error (mm,
     the largest lesion distance from the reference's; the reference's 0) and the time of its mesh and forward
-    solves (s)."""
+    solves (s); `skipped`: why it could not be built or solved ("" otherwise)."""
 
     scale: float
     element: str = "p1"
@@ -51,6 +55,7 @@ class BodyCandidate:
     error_mm: float = -1.0
     mesh_s: float = -1.0
     solve_s: float = -1.0
+    skipped: str = ""
 
     @property
     def solved(self) -> bool:
@@ -114,16 +119,27 @@ def choose_body_scale(cfg: BodyConfig, cache: Path | None = None) -> BodyChoice:
                   f"{finest.mesh_s + finest.solve_s:.1f} s")
     element = first
     if auto:  # the cheaper element where it meets the accuracy on the configured mesh
-        record, ends = _solve(cfg, SCALES[0], "p1", cache)
-        candidates.append(replace(record, error_mm=_error(ends, reference)))
-        progress.info(f"mesh by accuracy: the configured mesh on p1: lesions within {candidates[-1].error_mm:.3f} mm")
-        if candidates[-1].error_mm <= accuracy:
-            element = "p1"
+        try:
+            record, ends = _solve(cfg, SCALES[0], "p1", cache)
+        except SolverError as exc:  # (the mesh built on nodal: it builds on p1)
+            candidates.append(BodyCandidate(SCALES[0], "p1", skipped=str(exc)))
+            progress.info(f"mesh by accuracy: the configured mesh on p1: skipped ({exc})")
+        else:
+            candidates.append(replace(record, error_mm=_error(ends, reference)))
+            progress.info(f"mesh by accuracy: the configured mesh on p1: lesions within "
+                          f"{candidates[-1].error_mm:.3f} mm")
+            if candidates[-1].error_mm <= accuracy:
+                element = "p1"
     fallback = len(candidates) - 1 if element == "p1" else 0  # the element's configured mesh
     ladder = len(candidates)
     candidates += [BodyCandidate(s, element) for s in SCALES[1:]]
     for k in range(ladder, len(candidates)):  # coarsest first
-        record, ends = _solve(cfg, candidates[k].scale, element, cache)
+        try:
+            record, ends = _solve(cfg, candidates[k].scale, element, cache)
+        except (BoundaryError, SolverError) as exc:
+            candidates[k] = replace(candidates[k], skipped=str(exc))
+            progress.info(f"mesh by accuracy: {element}, edges × {candidates[k].scale:g}: skipped ({exc})")
+            continue
         candidates[k] = replace(record, error_mm=_error(ends, reference))
         progress.info(f"mesh by accuracy: {element}, edges × {record.scale:g}, {record.n_tetrahedra} tetrahedra: "
                       f"lesions within {candidates[k].error_mm:.3f} mm")

@@ -8,6 +8,7 @@ Forward cases, targets and the Jacobian use the 2-D writers (`output.results`), 
 
 from __future__ import annotations
 
+import h5py
 import numpy as np
 
 from scissor_cli.output.results import ResultsFile, filled
@@ -52,6 +53,8 @@ def write_body_resolution(out: ResultsFile, choice) -> None:
     out.dataset("mesh_resolution/error_mm", np.array([c.error_mm for c in rows]), "mm",
                 description="largest lesion distance from the reference's (row 0: the configured mesh); -1: not solved")
     out.dataset("mesh_resolution/time_s", np.array([max(c.mesh_s, 0) + max(c.solve_s, 0) for c in rows]), "s")
+    out.dataset("mesh_resolution/skipped", np.array([c.skipped for c in rows], dtype=h5py.string_dtype()),
+                description="why a candidate could not be built or solved; empty otherwise")
     out.attrs("mesh_resolution", {"accuracy_mm": choice.accuracy_mm, "pick": int(choice.pick),
                                   "chosen_scale": float(rows[choice.pick].scale), "element": choice.element,
                                   "reference_element": rows[0].element})
