@@ -25,7 +25,7 @@ from helpers import cli_here, simulate_here, write_scene
 from test_body_loop import SCENE
 from test_cli import run_cli
 
-COARSE = dict(SCENE, tissue=dict(SCENE["tissue"], mesh={"max_edge_mm": 9.0, "min_edge_mm": 3.5}),
+COARSE = dict(SCENE, tissue=dict(SCENE["tissue"], mesh={"max_edge_mm": 9.0, "min_edge_mm": 3.5, "grading": 0.8}),
               trials={"count": 0})
 
 

@@ -3,7 +3,8 @@ vessel, each lesion moved across it onto the needle's line by two cups under tri
 
 The scene: a dome (radius 40, height 25 mm), two lesions, each to be moved across its horizontal needle in
 y and z to where the cups can put it (the miss has two components: two cups, seen by two cameras), a vessel beside
-T1's path, two cups on the skin; coarse, so a run takes seconds. The planner's search for a move that clears
+T1's path, two cups on the skin; coarse (its edges grow twice as fast away from the lesions, vessel and cups
+as a body's default `tissue.mesh.grading`), so a run takes seconds. The planner's search for a move that clears
 a blocked line is tested in tests/test_body_plan.py.
 """
 
@@ -19,7 +20,7 @@ SCENE = {
     "name": "loop-dome",
     "seed": 5,
     "tissue": {"shape": "dome", "radius_mm": 40.0, "height_mm": 25.0, "fixed": ["base"],
-               "mesh": {"max_edge_mm": 8.0, "min_edge_mm": 3.0}},
+               "mesh": {"max_edge_mm": 8.0, "min_edge_mm": 3.0, "grading": 0.8}},
     "material": {"model": "neo_hookean_fiber", "E_kPa": 10.0, "nu": 0.45, "eta_kPa": 5.0, "fiber_angle_deg": 30.0},
     "cups": [
         {"name": "side", "contact_mm": [0.0, 38.5, 8.0], "radius_mm": 5.0, "stroke_mm": [-6.0, 6.0]},
