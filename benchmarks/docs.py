@@ -667,6 +667,26 @@ def _element_default(meshes, study_p, study, example_p, example, insertion_p, in
             + source(meshes, needle, study_p, study, example_p, example, insertion_p, insertion))
 
 
+@renderer("cup_springs", "bench_cup_springs")
+def _cup_springs(r) -> str:
+    rows = rows_of(r, "holds")
+    names = [k[len("move_"):-len("_mm")] for k in rows[0] if k.startswith("move_") and k.endswith("_mm")]
+    out = [[x["hold"] if x["k_mN_per_mm3"] is None else f"{x['hold']} (k {num(x['k_mN_per_mm3'])} mN/mm³)",
+            fixed(x["wall_s"], 2), str(x["iterations"]), str(x["factorizations"]), str(x["substeps"]),
+            fixed(x["min_J"], 3), f"{fixed(x['patch_push_mm'], 2)} ({fixed(x['patch_push_min_mm'], 2)})",
+            " / ".join(fixed(x[f"move_{n}_mm"], 3) for n in names),
+            " / ".join(fixed(x[f"move_{n}_mm"] / rows[0][f"move_{n}_mm"], 2) for n in names)]
+           for x in rows]
+    e = r["data"]["element"]
+    return (table(["the cup's hold", "push10 from rest (s)", "Newton iterations", "factorisations", "load substeps",
+                   "smallest J", "the patch's push: mean (least) (mm)", f"lesions' move, {' / '.join(names)} (mm)",
+                   "of the rigid cup's"], out)
+            + f"\n\nconfigs/example_dome.yaml ({num(fig(r, 'tetrahedra'))} tetrahedra, `{e}`), its cup's patch of "
+              f"{fig(r, 'patch_nodes')} skin nodes ({fixed(fig(r, 'patch_area_mm2'), 1)} mm²) pushed 10 mm from rest, "
+              "Newton to 1e-8; the time is the median of the repeats. Springs: each patch node tied to where the rigid "
+              "cup would put it, k = E / t per mm² of its share of the skin. " + source(r))
+
+
 @renderer("selection_elements", "bench_selection_elements")
 def _selection_elements(r) -> str:
     picks = rows_of(r, "picks")
