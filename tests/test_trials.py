@@ -278,6 +278,18 @@ def test_expected_duration_counts_trials_per_worker():
     assert "insertion" not in expected_duration(10.0, 4, Execution(jobs=2), loop_s=9.5)  # the loop is the trial
 
 
+def test_the_rest_is_estimated_at_the_rate_since_the_first_trial():
+    from scissor_cli.experiments.trial_stage import Execution, estimate_checkpoint, remaining_duration
+
+    assert estimate_checkpoint(60, Execution(jobs=2)) == 6  # a tenth
+    assert estimate_checkpoint(10, Execution(jobs=2)) == 5  # the first and two more per worker
+    assert estimate_checkpoint(120, Execution(jobs=1)) == 12
+    assert estimate_checkpoint(8, Execution(jobs=2)) is None  # fewer would be left than are done
+    assert estimate_checkpoint(2, Execution(jobs=8)) is None
+    line = remaining_duration(50.0, 6, 60)  # 5 trials in 50 s after the first: 10 s each, 54 left
+    assert "6 of 60 done" in line and "the other 54 should take about 9 min" in line
+
+
 def test_a_trials_time_holds_its_insertion_not_only_its_loop(monkeypatch):
     """The estimate a run prints is built on the whole trial: with slab insertion the loop was a tenth of it."""
     import time
