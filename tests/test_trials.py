@@ -278,7 +278,7 @@ def test_expected_duration_counts_trials_per_worker():
     assert "insertion" not in expected_duration(10.0, 4, Execution(jobs=2), loop_s=9.5)  # the loop is the trial
 
 
-def test_the_rest_is_estimated_at_the_rate_since_the_first_trial():
+def test_the_rest_is_estimated_from_the_finished_trials_mean_time():
     from scissor_cli.experiments.trial_stage import Execution, estimate_checkpoint, remaining_duration
 
     assert estimate_checkpoint(60, Execution(jobs=2)) == 6  # a tenth
@@ -286,8 +286,9 @@ def test_the_rest_is_estimated_at_the_rate_since_the_first_trial():
     assert estimate_checkpoint(120, Execution(jobs=1)) == 12
     assert estimate_checkpoint(8, Execution(jobs=2)) is None  # fewer would be left than are done
     assert estimate_checkpoint(2, Execution(jobs=8)) is None
-    line = remaining_duration(50.0, 6, 60)  # 5 trials in 50 s after the first: 10 s each, 54 left
-    assert "6 of 60 done" in line and "the other 54 should take about 9 min" in line
+    line = remaining_duration(10.0, 6, 60, Execution(jobs=2))  # 54 left, 27 per worker at 10 s
+    assert "6 of 60 done, 10 s each on average" in line and "the other 54 should take about 4 min" in line
+    assert "about 10 s" in remaining_duration(10.0, 5, 6, Execution(jobs=2))  # one left: one worker busy
 
 
 def test_a_trials_time_holds_its_insertion_not_only_its_loop(monkeypatch):

@@ -52,7 +52,7 @@ def run_trial_stage(sink: RunSink, cfg, tasks: list[TargetTask], execution: Exec
                       f"{execution.executor} executor)" + (f", beside {len(nominal)} nominal manipulation(s)"
                                                            if nominal else ""))
     advance = progress.bar("trials", len(work))
-    t0, failed, finished, lost, refused = time.perf_counter(), 0, 0, [], []
+    t0, failed, finished, lost, refused, trials_s = time.perf_counter(), 0, 0, [], [], 0.0
     checkpoint = estimate_checkpoint(len(work), execution)
     items = [(task, None) for task in nominal] + work
     with closing(execute(sink.config_yaml, items, execution.jobs, execution.executor, execution.scheduler)) as outcomes:
@@ -72,13 +72,12 @@ def run_trial_stage(sink: RunSink, cfg, tasks: list[TargetTask], execution: Exec
             if outcome.lost_frames:
                 lost.append(f"{by_index[outcome.target_index].name}#{outcome.trial}: {outcome.lost_frames}")
             finished += 1
-            if finished == 1:
-                first_in = time.perf_counter()
+            trials_s += outcome.trial_time_s
             if finished == 1 and len(work) > 1:
                 loop_s = outcome.time_s if getattr(cfg, "insertion", None) is not None else None  # the rest: the needle
                 progress.info(expected_duration(outcome.trial_time_s, len(work), execution, loop_s=loop_s))
             if finished == checkpoint:
-                progress.info(remaining_duration(time.perf_counter() - first_in, finished, len(work)))
+                progress.info(remaining_duration(trials_s / finished, finished, len(work), execution))
             advance(1)
     if work:
         progress.info(f"trials done in {time.perf_counter() - t0:.1f} s")
@@ -94,27 +93,26 @@ def run_trial_stage(sink: RunSink, cfg, tasks: list[TargetTask], execution: Exec
     return len(work)
 
 
-#: a run estimates the rest of its trials from the rate so far once 1/CHECKPOINT_PARTS of them are in
-#: (`remaining_duration`)
+#: a run estimates the rest of its trials again once 1/CHECKPOINT_PARTS of them are in (`remaining_duration`)
 CHECKPOINT_PARTS = 10
 
 
 def estimate_checkpoint(n_trials: int, execution: Execution) -> int | None:
-    """After how many finished trials a run estimates the rest from its rate so far: a tenth of them, and at least
-    two per worker more than the first; None when fewer than that many would be left to estimate."""
+    """After how many finished trials a run estimates the rest again: a tenth of them, and at least two per worker
+    more than the first; None when fewer than that many would be left to estimate."""
     workers = max(1, min(execution.jobs, n_trials))
     at = max(1 + 2 * workers, -(-n_trials // CHECKPOINT_PARTS))
     return at if n_trials - at >= at else None
 
 
-def remaining_duration(since_first_s: float, finished: int, n_trials: int) -> str:
-    """The line a run prints at `estimate_checkpoint`: the rest of the trials at the pool's rate since the first
-    came in (since_first_s s for the finished − 1 after it), which leaves out the workers' start-up and the
-    first trials' extra work (a body's later trials take over the model's moves its earlier ones solved):
-    the first trial's estimate (`expected_duration`) overstates such runs."""
-    rest_s = since_first_s / (finished - 1) * (n_trials - finished)
-    return (f"trials: {finished} of {n_trials} done; the other {n_trials - finished} should take about "
-            f"{duration(rest_s)} at the rate since the first")
+def remaining_duration(mean_s: float, finished: int, n_trials: int, execution: Execution) -> str:
+    """The line a run prints at `estimate_checkpoint`: the rest of the trials at mean_s s each (the finished
+    trials' own mean time, `TrialOutcome.trial_time_s`) per worker. The first trial alone (`expected_duration`)
+    often overstates a run: a body's later trials take over the model's moves its earlier ones solved."""
+    rest = n_trials - finished
+    workers = max(1, min(execution.jobs, rest))
+    return (f"trials: {finished} of {n_trials} done, {duration(mean_s)} each on average; the other {rest} "
+            f"should take about {duration(mean_s * -(-rest // workers))}")
 
 
 def expected_duration(first_s: float, n_trials: int, execution: Execution, loop_s: float | None = None) -> str:
