@@ -110,9 +110,15 @@ def remaining_duration(mean_s: float, finished: int, n_trials: int, execution: E
     trials' own mean time, `TrialOutcome.trial_time_s`) per worker. The first trial alone (`expected_duration`)
     often overstates a run: a body's later trials take over the model's moves its earlier ones solved."""
     rest = n_trials - finished
-    workers = max(1, min(execution.jobs, rest))
     return (f"trials: {finished} of {n_trials} done, {duration(mean_s)} each on average; the other {rest} "
-            f"should take about {duration(mean_s * -(-rest // workers))}")
+            f"should take about {duration(_on_workers(mean_s, rest, execution)[0])}")
+
+
+def _on_workers(trial_s: float, n_trials: int, execution: Execution) -> tuple[float, int]:
+    """(the wall time s of n_trials trials of trial_s s each on the execution's workers, the workers busy): the
+    busiest worker's share, no idle worker counted."""
+    workers = max(1, min(execution.jobs, n_trials))
+    return trial_s * -(-n_trials // workers), workers
 
 
 def expected_duration(first_s: float, n_trials: int, execution: Execution, loop_s: float | None = None) -> str:
@@ -126,8 +132,7 @@ def expected_duration(first_s: float, n_trials: int, execution: Execution, loop_
     insertion) is a noticeable share. A Dask cluster's size is not known
     here: there it is per job asked for.
     """
-    workers = max(1, min(execution.jobs, n_trials))
-    total = first_s * -(-n_trials // workers)
+    total, workers = _on_workers(first_s, n_trials, execution)
     split = ""
     if loop_s is not None and first_s - loop_s > 0.1 * first_s:
         split = f" (the loop {duration(loop_s)}, the needle's insertion {duration(first_s - loop_s)})"
