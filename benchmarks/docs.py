@@ -1090,7 +1090,8 @@ def _trial_steps(hessian_free, difference, precision) -> str:
                    "factorisations", "sparse-solve columns", "gradients", "final errors apart from the first's"],
                   rows)
             + f"\n\nEach pair replays the same {trials} trials of configs/example_dome.yaml (2 per target) in one "
-              "process, the settings in turn.\n\n" + source(hessian_free, difference, precision))
+              "process, the settings in turn, each round on a trial context built anew (the controller model's "
+              "states solved again, as a run's worker solves them).\n\n" + source(hessian_free, difference, precision))
 
 
 @renderer("body_insertion", "bench_body_insertion")
