@@ -9,7 +9,7 @@ import yaml
 
 from scissor_cli import control
 from scissor_cli.config.loading import parse_config
-from scissor_cli.experiments.body_trials import body_sensor_model
+from scissor_cli.experiments.body_trials import BODY_MODEL_TOL, body_sensor_model
 from scissor_cli.experiments.build import body_model
 from scissor_cli.experiments.profiles import error_model
 from scissor_cli.solvers.tracking import TrackedEquilibrium
@@ -23,14 +23,15 @@ def body():
     return cfg, body_model(cfg)[2]
 
 
-def test_a_restored_tracker_moves_on_bit_for_bit(body):
+@pytest.mark.parametrize("tol", [1e-10, BODY_MODEL_TOL])  # factoring at each move's start, and keeping a factor
+def test_a_restored_tracker_moves_on_bit_for_bit(body, tol):
     _, tissue = body
-    a = TrackedEquilibrium(tissue, 1e-10)
+    a = TrackedEquilibrium(tissue, tol)
     a.move_to(np.array([1.0, -0.5]), tangent=True)
     state = a.snapshot()
     for s in ([1.6, -0.2], [2.1, 0.4]):
         a.move_to(np.array(s), tangent=True)
-    b = TrackedEquilibrium(tissue, 1e-10)
+    b = TrackedEquilibrium(tissue, tol)
     b.move_to(np.array([-2.0, 1.0]), tangent=True)  # its factorisation somewhere else entirely
     b.restore(state)
     for s in ([1.6, -0.2], [2.1, 0.4]):
@@ -41,7 +42,8 @@ def test_a_restored_tracker_moves_on_bit_for_bit(body):
         a.snapshot()  # without the exact tangent there is nothing to go on from exactly
 
 
-def test_loops_sharing_the_models_paths_answer_as_loops_without(body):
+@pytest.mark.parametrize("tol", [1e-10, BODY_MODEL_TOL])
+def test_loops_sharing_the_models_paths_answer_as_loops_without(body, tol):
     cfg, tissue = body
     rest = tissue.scene.targets[0].rest
     desired = np.array(SCENE["targets"][0]["desired_mm"], float)
@@ -53,7 +55,8 @@ def test_loops_sharing_the_models_paths_answer_as_loops_without(body):
     shared, alone = [], []
     for truth in truths:
         for store, results in ((paths, shared), (None, alone)):
-            run = control.TargetRun(truth=truth, sensor=sensor, direction=np.array([-1.0, 0.0, 0.0]), model_paths=store)
+            run = control.TargetRun(truth=truth, sensor=sensor, direction=np.array([-1.0, 0.0, 0.0]),
+                                    model_paths=store, tol=tol)
             results.append(control.run_target(tissue, rest, desired, cfg.controller, run))
     assert paths.hits > 0
     assert paths.get(()) is not None  # the rest state, where every loop's J starts, is shared too

@@ -40,12 +40,17 @@ from scissor_cli.sensing.camera3d_sensor import BodyCameraModel
 from scissor_cli.sensing.sensor import TrialDraws
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 
-#: A trial's true body settles to this relative residual (the controller's model keeps the loop's 1e-10 for its J).
+#: A trial's true body settles to this relative residual.
 #: The camera reads the lesion to its noise (σ ≈ 0.15 mm on the paper's bench); along a loop's travel on the paper
 #: dome the lesion stays decades below that noise from its 1e-10 settle, on p1 and on nodal, and a settle costs
 #: fewer Newton iterations and factorisations (benchmarks/bench_body_truth_tol.py); the slab truth's
 #: `SLAB_TRUTH_TOL` is chosen alike.
 BODY_TRUTH_TOL = 1e-5
+#: and the controller's model (the body itself) to this one: its J steers by a camera read to that noise, and the
+#: actuator quantises the commands; settled this loosely it goes on with a factorisation that still preconditions
+#: well instead of factoring at every move (`solvers.tracking.KEEP_FACTOR_FROM_TOL`; benchmarks/ab_trials.py,
+#: docs/performance.md "Where a trial's time goes")
+BODY_MODEL_TOL = 1e-5
 
 
 def model_controllers(cfg, model_data=None) -> Callable[[int], Optional[Callable]]:
@@ -190,6 +195,7 @@ class BodyTrialContext:
         sensor = self.sensors.for_trial(TrialDraws(draw.localisation_z, draw.rng,
                                                    (int(self.cfg.seed), task.index, trial), goal_mm=desired))
         return control.TargetRun(
+            tol=BODY_MODEL_TOL if self.cfg.controller.model == "body" else control.TargetRun.tol,
             truth=truth, truth_tol=BODY_TRUTH_TOL, sensor=sensor, resolution_mm=self.errors.actuator_resolution_mm,
             backlash_mm=self.errors.backlash_mm, target=task.name, guess=self.guess(task),
             direction=np.asarray(task.direction, float), controller_factory=self.controllers(task.index),

@@ -11,7 +11,9 @@ the move's predicted start instead (a body's tangent changes too much over
 a loop's move for an older factor to carry the chord steps), and ∂x/∂s at
 the end is conjugate gradients preconditioned with it (TANGENT_RTOL); the
 tangent is factored at the equilibrium only when they do not converge
-fast. A tracker that does without the tangent (the truth) keeps its
+fast. A tracker that solves to a loose tolerance (KEEP_FACTOR_FROM_TOL:
+the trials' controller model) factors at a move's start only when its
+factorisation no longer preconditions well. A tracker that does without the tangent (the truth) keeps its
 ∂x/∂s as a predictor by Broyden's secant update from each move instead.
 Once a few equilibria are known, the predictor is a polynomial in the
 strokes (degree ≤ 6, as high as the history supports) fitted to the last
@@ -49,8 +51,15 @@ MAX_UNKNOWNS = 25
 #: The polynomial predictor serves moves up to this many times the stroke distance of the farthest state it fits.
 REACH = 3.0
 #: ∂x/∂s solved by conjugate gradients on an earlier factorisation (3-D): to this relative residual of K_ff ∂x/∂s =
-#: −K_fc B, far below what the controller's J or the Hermite predictor can tell from the direct solve's
+#: −K_fc B, far below what the controller's J or the Hermite predictor can tell from the direct solve's; a tracker
+#: with a looser tolerance solves it to its own (its states are no more precise than that)
 TANGENT_RTOL = 1e-10
+#: A 3-D tracker that wants the tangent factors the exact K_ff at each move's predicted start when it solves to a
+#: relative residual below this; from this one up it goes on with its factorisation while that still preconditions
+#: well (an exact tangent of its own, not stale), and factors at the start only then: from the predictor a loose
+#: settle is a step or two of conjugate gradients on an older factor, where a tight one needs the fresh factor's
+#: fast contraction (benchmarks/ab_trials.py with experiments.body_trials.BODY_MODEL_TOL, docs/performance.md)
+KEEP_FACTOR_FROM_TOL = 1e-6
 
 
 class TrackedEquilibrium:
@@ -131,16 +140,27 @@ class TrackedEquilibrium:
             self._factor_x = None
             raise
 
+    def _factor_fit(self) -> bool:
+        """Whether the slot holds this tracker's exact tangent, Cholesky-factored and not stale: fit to precondition
+        (a restored state's counts when the one it held was, `_refactor_as` making it again)."""
+        if self._factor_elsewhere is not None:
+            return self._factor_elsewhere.fit
+        factor = self.factors.get("free")
+        return self._factor_x is not None and factor is not None and factor.method == "cholesky" and not factor.stale
+
+    def _keeps_factor(self) -> bool:
+        """Whether a move goes on with the slot's factorisation, not factoring at its start (KEEP_FACTOR_FROM_TOL)."""
+        return self.tol >= KEEP_FACTOR_FROM_TOL and self._factor_fit()
+
     def _iterated(self, K, rhs: np.ndarray) -> Optional[np.ndarray]:
         """K_ff⁻¹ rhs (Nf, C) by `preconditioned_cg` on the slot's factorisation, or None when it has none fit
         to precondition (not this tracker's exact tangent, stale, another pattern) or a column does not converge."""
         factor = self.factors.get("free")
-        if (self._factor_x is None or self._factor_elsewhere is not None or factor is None
-                or factor.method != "cholesky" or factor.stale or not factor.matches(K)):
+        if self._factor_elsewhere is not None or not self._factor_fit() or not factor.matches(K):
             return None
         columns = []
         for b in rhs.T:
-            d, _, _ = preconditioned_cg(K, b, factor, TANGENT_RTOL, KRYLOV_STALE_ITER)
+            d, _, _ = preconditioned_cg(K, b, factor, max(TANGENT_RTOL, self.tol), KRYLOV_STALE_ITER)
             if d is None:
                 return None
             columns.append(d)
@@ -177,7 +197,8 @@ class TrackedEquilibrium:
             # With the tangent wanted (3-D), K_ff is factored at the move's predicted start: its chord steps then
             # contract fast (a loop's move changes a body's tangent enough that one factored at the last
             # equilibrium contracts them by only 0.3-0.8) and ∂x/∂s at the end needs a few CG iterations on it.
-            at_start = tangent and self._krylov
+            # A loose tracker goes on with a factor that still preconditions well (KEEP_FACTOR_FROM_TOL).
+            at_start = tangent and self._krylov and not self._keeps_factor()
             if self._factor_elsewhere is not None and not at_start:  # (restored: the chord steps need its factor)
                 self._refactor_as(self._factor_elsewhere)
             fallbacks = self.stats["fallbacks"]
@@ -358,7 +379,8 @@ class TrackedEquilibrium:
         else:
             factor = self.factors.get("free")
             held = FactorState(self.x if self._factor_x is None else self._factor_x,
-                               factor is not None and factor.stale, None if factor is None else factor.cg_rate)
+                               factor is not None and factor.stale, None if factor is None else factor.cg_rate,
+                               self._factor_fit())
         return TrackerState(self.x, self.strokes.copy(), self.response, tuple(self.history), held)
 
     def restore(self, state: "TrackerState") -> None:
@@ -397,6 +419,8 @@ class FactorState:
     x: np.ndarray
     stale: bool
     cg_rate: Optional[float]
+    #: it was fit to precondition (`TrackedEquilibrium._factor_fit`)
+    fit: bool = False
 
 
 @dataclass(frozen=True)
