@@ -1071,14 +1071,15 @@ def _body_truth_tol(r) -> str:
               f"rest.\n\n" + source(r))
 
 
-@renderer("trial_steps", "ab_trials.example_dome.on.off", "ab_trials.example_dome.forward.central",
-          "ab_trials.example_dome.float32.float64")
-def _trial_steps(hessian_free, difference, precision) -> str:
-    """benchmarks/ab_trials.py on example_dome's trials: Newton steps with and without the assembled Hessian, the
+@renderer("trial_steps", "ab_trials.example_dome.tight.loose", "ab_trials.example_dome.on.off",
+          "ab_trials.example_dome.forward.central", "ab_trials.example_dome.float32.float64")
+def _trial_steps(model_tol, hessian_free, difference, precision) -> str:
+    """benchmarks/ab_trials.py on example_dome's trials: the controller's model settled to 1e-10 against
+    `BODY_MODEL_TOL` (`experiments/body_trials.py`), Newton steps with and without the assembled Hessian, the
     forward against the central difference (`solvers/hessian_free.py`), and the steps' solves on the factor's
     float32 copy against CHOLMOD's float64 (`solvers.linear.SINGLE_PRECISION_STEPS`)."""
     rows = []
-    for r in (hessian_free, difference, precision):
+    for r in (model_tol, hessian_free, difference, precision):
         for x in rows_of(r, "settings"):
             setting = ", ".join(f"`{k.rsplit('.', 1)[1]} = {v}`" for k, v in x["values"].items())
             rows.append([setting, f"{fixed(x['cpu_median_s'], 1)} s ({fixed(x['cpu_min_s'], 1)}–"
@@ -1091,7 +1092,8 @@ def _trial_steps(hessian_free, difference, precision) -> str:
                   rows)
             + f"\n\nEach pair replays the same {trials} trials of configs/example_dome.yaml (2 per target) in one "
               "process, the settings in turn, each round on a trial context built anew (the controller model's "
-              "states solved again, as a run's worker solves them).\n\n" + source(hessian_free, difference, precision))
+              "states solved again, as a run's worker solves them).\n\n"
+            + source(model_tol, hessian_free, difference, precision))
 
 
 @renderer("body_insertion", "bench_body_insertion")
