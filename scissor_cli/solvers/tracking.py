@@ -39,7 +39,13 @@ import scipy.linalg
 from scissor_cli.mechanics import fem
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.common import SolverError, check_finite
-from scissor_cli.solvers.linear import KRYLOV_STALE_ITER, Factorization, factorize_free, preconditioned_cg
+from scissor_cli.solvers.linear import (
+    KRYLOV_MAX_ITER,
+    KRYLOV_STALE_ITER,
+    Factorization,
+    factorize_free,
+    preconditioned_cg,
+)
 from scissor_cli.solvers.newton import krylov_default, newton_iterations, solve_newton
 
 #: How many of its last equilibria a tracker keeps for the polynomial predictor (`TrackedEquilibrium._fitted`).
@@ -110,7 +116,8 @@ class TrackedEquilibrium:
 
         With `iterate` (and `_krylov`) first by conjugate gradients preconditioned with the slot's
         factorisation while that is an exact tangent of this tracker's (`_factor_x`) and not stale; K_ff is
-        factored at x when they do not reach TANGENT_RTOL within KRYLOV_STALE_ITER iterations a column.
+        factored at x when they do not reach TANGENT_RTOL (or the tracker's looser tolerance) within
+        `_tangent_iterations` a column.
         """
         t = self.tissue
         Ke = t.element_stiffness(x)
@@ -148,6 +155,13 @@ class TrackedEquilibrium:
         factor = self.factors.get("free")
         return self._factor_x is not None and factor is not None and factor.method == "cholesky" and not factor.stale
 
+    @property
+    def _tangent_iterations(self) -> int:
+        """Conjugate-gradient iterations a column of ∂x/∂s may take before K_ff is factored for it: a tracker that
+        keeps its factor lets them run as long as a Newton step's (KRYLOV_MAX_ITER; the factor is still marked stale
+        beyond KRYLOV_STALE_ITER, so the next move factors at its start); a tight one factors sooner."""
+        return KRYLOV_MAX_ITER if self.tol >= KEEP_FACTOR_FROM_TOL else KRYLOV_STALE_ITER
+
     def _keeps_factor(self) -> bool:
         """Whether a move goes on with the slot's factorisation, not factoring at its start (KEEP_FACTOR_FROM_TOL)."""
         return self.tol >= KEEP_FACTOR_FROM_TOL and self._factor_fit()
@@ -160,7 +174,7 @@ class TrackedEquilibrium:
             return None
         columns = []
         for b in rhs.T:
-            d, _, _ = preconditioned_cg(K, b, factor, max(TANGENT_RTOL, self.tol), KRYLOV_STALE_ITER)
+            d, _, _ = preconditioned_cg(K, b, factor, max(TANGENT_RTOL, self.tol), self._tangent_iterations)
             if d is None:
                 return None
             columns.append(d)
