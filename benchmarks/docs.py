@@ -1082,17 +1082,16 @@ def _trial_steps(model_tol, hessian_free, difference, precision) -> str:
     for r in (model_tol, hessian_free, difference, precision):
         for x in rows_of(r, "settings"):
             setting = ", ".join(f"`{k.rsplit('.', 1)[1]} = {v}`" for k, v in x["values"].items())
-            rows.append([setting, f"{fixed(x['cpu_median_s'], 1)} s ({fixed(x['cpu_min_s'], 1)}–"
+            rows.append([setting, fig(r, "trials"), f"{fixed(x['cpu_median_s'], 1)} s ({fixed(x['cpu_min_s'], 1)}–"
                                   f"{fixed(x['cpu_max_s'], 1)}, {x['rounds']})",
                          f"{fixed(x['over_reference'], 2)}×", x["factorisations"], x["solve columns"],
                          x["gradients"], f"{num(x['final_errors_apart_mm'])} mm"])
-    trials = fig(hessian_free, "trials")
-    return (table(["setting", "CPU, the trials (median, range, rounds)", "against the first of its pair",
+    return (table(["setting", "trials", "CPU, the trials (median, range, rounds)", "against the first of its pair",
                    "factorisations", "sparse-solve columns", "gradients", "final errors apart from the first's"],
                   rows)
-            + f"\n\nEach pair replays the same {trials} trials of configs/example_dome.yaml (2 per target) in one "
-              "process, the settings in turn, each round on a trial context built anew (the controller model's "
-              "states solved again, as a run's worker solves them).\n\n"
+            + "\n\nEach pair replays the same trials of configs/example_dome.yaml (half per target) in one process, "
+              "the settings in turn, each round on a trial context built anew (the controller model's states solved "
+              "again, as a run's worker solves them).\n\n"
             + source(model_tol, hessian_free, difference, precision))
 
 
