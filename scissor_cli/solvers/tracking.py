@@ -2,25 +2,26 @@
 
 Each move starts from the tangent predictor x + (∂x/∂s) Δs and is corrected
 by the one Newton iteration of `solvers.newton` with chord steps on the
-tracker's last factorisation of K_ff (kept while they shrink the residual
-≥ 3×, refactored otherwise: same sparsity pattern, numeric work only). When
+tracker's last factorisation of K_ff (kept while they shrink the residual ≥
+3×, refactored otherwise: same sparsity pattern, numeric work only). When
 ∂x/∂s is wanted — the controller's Jacobian — it is solved with the exact
 tangent at the converged state. In 2-D that tangent is factored there and
 is the next move's chord matrix. In 3-D the exact tangent is factored at
 the move's predicted start instead (a body's tangent changes too much over
 a loop's move for an older factor to carry the chord steps), and ∂x/∂s at
 the end is conjugate gradients preconditioned with it (TANGENT_RTOL); the
-tangent is factored at the equilibrium only when they do not converge
-fast. A tracker that solves to a loose tolerance (KEEP_FACTOR_FROM_TOL:
-the trials' controller model) factors at a move's start only when its
-factorisation no longer preconditions well. A tracker that does without the tangent (the truth) keeps its
-∂x/∂s as a predictor by Broyden's secant update from each move instead.
-Once a few equilibria are known, the predictor is a polynomial in the
-strokes (degree ≤ 6, as high as the history supports) fitted to the last
-ones, through their exact tangents too when the tracker has them: its start residuals are decades
-below the tangent predictor's on the small moves of a loop. A move the
-fast path cannot finish (the predictor inverts an element, or Newton does
-not converge from it) is solved by `solvers.newton.solve_newton` with load
+tangent is factored at the equilibrium only when they do not converge fast.
+A tracker that solves to a loose tolerance (KEEP_FACTOR_FROM_TOL: the
+trials' controller model) factors at a move's start only when its
+factorisation no longer preconditions well. A tracker that does without the
+tangent (the truth) keeps its ∂x/∂s as a predictor by Broyden's secant
+update from each move instead. Once a few equilibria are known, the
+predictor is a polynomial in the strokes (degree ≤ 6, as high as the
+history supports) fitted to the last ones, through their exact tangents too
+when the tracker has them: its start residuals are decades below the
+tangent predictor's on the small moves of a loop. A move the fast path
+cannot finish (the predictor inverts an element, or Newton does not
+converge from it) is solved by `solvers.newton.solve_newton` with load
 continuation (`_continued`), from the move's start or, when a known
 equilibrium (`guesses`) is much nearer in stroke, from that one.
 """
