@@ -61,11 +61,10 @@ REACH = 3.0
 #: −K_fc B, far below what the controller's J or the Hermite predictor can tell from the direct solve's; a tracker
 #: with a looser tolerance solves it to its own (its states are no more precise than that)
 TANGENT_RTOL = 1e-10
-#: A 3-D tracker that wants the tangent factors the exact K_ff at each move's predicted start when it solves to a
-#: relative residual below this; from this one up it goes on with its factorisation while that still preconditions
-#: well (an exact tangent of its own, not stale), and factors at the start only then: from the predictor a loose
-#: settle is a step or two of conjugate gradients on an older factor, where a tight one needs the fresh factor's
-#: fast contraction (benchmarks/ab_trials.py with experiments.body_trials.BODY_MODEL_TOL, docs/performance.md)
+#: A 3-D tracker wanting the tangent factors K_ff at each move's predicted start when it solves tighter than this;
+#: from this up it goes on with its factorisation while that preconditions well (`_factor_fit`): from the predictor
+#: a loose settle is a step or two of CG on an older factor, a tight one needs a fresh factor's fast contraction
+#: (benchmarks/ab_trials.py with experiments.body_trials.BODY_MODEL_TOL, docs/performance.md)
 KEEP_FACTOR_FROM_TOL = 1e-6
 
 
@@ -148,19 +147,23 @@ class TrackedEquilibrium:
             self._factor_x = None
             raise
 
-    def _factor_fit(self) -> bool:
-        """Whether the slot holds this tracker's exact tangent, Cholesky-factored and not stale: fit to precondition
-        (a restored state's counts when the one it held was, `_refactor_as` making it again)."""
-        if self._factor_elsewhere is not None:
-            return self._factor_elsewhere.fit
+    def _factor_exact(self) -> bool:
+        """Whether the slot holds this tracker's exact tangent (made by `_factor`), Cholesky-factored."""
         factor = self.factors.get("free")
-        return self._factor_x is not None and factor is not None and factor.method == "cholesky" and not factor.stale
+        return self._factor_x is not None and factor is not None and factor.method == "cholesky"
+
+    def _factor_fit(self) -> bool:
+        """Whether the slot's factorisation is fit to precondition: this tracker's exact tangent, not stale (a
+        restored state's counts when the one it held was, `_refactor_as` making it again)."""
+        held = self._factor_elsewhere
+        if held is not None:
+            return held.exact and not held.stale
+        return self._factor_exact() and not self.factors["free"].stale
 
     @property
     def _tangent_iterations(self) -> int:
-        """Conjugate-gradient iterations a column of ∂x/∂s may take before K_ff is factored for it: a tracker that
-        keeps its factor lets them run as long as a Newton step's (KRYLOV_MAX_ITER; the factor is still marked stale
-        beyond KRYLOV_STALE_ITER, so the next move factors at its start); a tight one factors sooner."""
+        """CG iterations a column of ∂x/∂s may take before K_ff is factored for it: a Newton step's when the tracker
+        keeps its factor (beyond KRYLOV_STALE_ITER it is marked stale for the next move's start), else fewer."""
         return KRYLOV_MAX_ITER if self.tol >= KEEP_FACTOR_FROM_TOL else KRYLOV_STALE_ITER
 
     def _keeps_factor(self) -> bool:
@@ -211,8 +214,8 @@ class TrackedEquilibrium:
         if not np.array_equal(strokes, self.strokes):
             # With the tangent wanted (3-D), K_ff is factored at the move's predicted start: its chord steps then
             # contract fast (a loop's move changes a body's tangent enough that one factored at the last
-            # equilibrium contracts them by only 0.3-0.8) and ∂x/∂s at the end needs a few CG iterations on it.
-            # A loose tracker goes on with a factor that still preconditions well (KEEP_FACTOR_FROM_TOL).
+            # equilibrium contracts them by only 0.3-0.8) and ∂x/∂s at the end needs a few CG iterations on it;
+            # a loose tracker goes on with a factor that still preconditions well (KEEP_FACTOR_FROM_TOL).
             at_start = tangent and self._krylov and not self._keeps_factor()
             if self._factor_elsewhere is not None and not at_start:  # (restored: the chord steps need its factor)
                 self._refactor_as(self._factor_elsewhere)
@@ -395,7 +398,7 @@ class TrackedEquilibrium:
             factor = self.factors.get("free")
             held = FactorState(self.x if self._factor_x is None else self._factor_x,
                                factor is not None and factor.stale, None if factor is None else factor.cg_rate,
-                               self._factor_fit())
+                               self._factor_exact())
         return TrackerState(self.x, self.strokes.copy(), self.response, tuple(self.history), held)
 
     def restore(self, state: "TrackerState") -> None:
@@ -434,8 +437,8 @@ class FactorState:
     x: np.ndarray
     stale: bool
     cg_rate: Optional[float]
-    #: it was fit to precondition (`TrackedEquilibrium._factor_fit`)
-    fit: bool = False
+    #: it was the tracker's exact tangent, Cholesky-factored (`TrackedEquilibrium._factor_exact`)
+    exact: bool = False
 
 
 @dataclass(frozen=True)
