@@ -6,7 +6,15 @@ simplices), the same held and cup nodes: a node scissor holds is held here,
 and so is the midpoint of every edge whose two ends it holds (component by
 component, at their mean displacement: a cup moves its patch rigidly). Nothing of scissor's
 mechanics is used, so the comparison is between two codes, not one code
-with itself. Loaded by benchmarks/bench_elements.py and the element tests
+with itself.
+
+Quadratic displacements alone lock too as ν → 1/2 (in 3-D a 10-node
+tetrahedron's divergence has nearly as many constraints as the mesh has
+unknowns), so `solve_mixed` gives the locking-free reference beside it:
+Taylor–Hood, the same P2 displacements with a continuous P1 pressure
+(Herrmann's mixed u–p form), its pressure solved by conjugate gradients on
+the Schur complement with the displacement block's Cholesky factor.
+Loaded by benchmarks/bench_elements.py and the element tests
 (tests/test_elements.py) as a module; needs the `bench` or `test` extra.
 """
 
@@ -28,10 +36,133 @@ def solve_p2(nodes: np.ndarray, cells: np.ndarray, held: np.ndarray, displacemen
     basis, u = system.basis, system.u
     K = system.assemble()
     A, b, x, free = skfem.condense(K, np.zeros(K.shape[0]), x=u, D=system.held_dofs)
-    u[free] = _cholesky_solve(A, b)
+    u[free] = _cholesky(A)(b)
+    return _at_vertices_and_points(basis, u, points)
+
+
+def _at_vertices_and_points(basis, u: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The P2 field u (n_dofs,) mm at the mesh's vertices (N, d) and at `points` (K, d)."""
     at_points = np.column_stack([part.probes(points.T) @ u[index]
                                  for part, index in zip(basis.split_bases(), basis.split_indices())])
-    return u[basis.nodal_dofs.T].T.copy(), at_points
+    return u[basis.nodal_dofs.T].copy(), at_points
+
+
+#: the mixed solve's pressure: conjugate gradients on its Schur complement to this relative residual
+MIXED_RTOL = 1e-12
+MIXED_MAX_ITER = 500
+
+
+@dataclass
+class MixedSolve:
+    """What `solve_mixed` did: the displacements (N, d) mm at the vertices and (K, d) at the points, the pressure
+    unknowns, the Schur complement's CG iterations, and the pressure (n_p,) kPa at the vertices."""
+
+    vertices: np.ndarray
+    at_points: np.ndarray
+    pressure_unknowns: int
+    iterations: int
+    pressure: np.ndarray
+
+
+def solve_mixed(nodes: np.ndarray, cells: np.ndarray, held: np.ndarray, displacement: np.ndarray,
+                E_kPa: np.ndarray | float, nu: float, points: np.ndarray) -> MixedSolve:
+    """Taylor–Hood (P2 displacements, continuous P1 pressure) linear elasticity, held as `solve_p2` holds.
+
+    Herrmann's form: find u, p with
+        ∫ 2μ ε(u):ε(v) + ∫ p div v = 0,   ∫ q div u − ∫ p q / λ = 0,
+    the energy μ ε:ε + λ/2 (div u)² with p = λ div u, which stays well posed as λ → ∞: the pressure is
+    one unknown a vertex, not a constraint a tetrahedron. With A the first form on the free dofs, B the
+    divergence and C = ∫ p q / λ, the pressure solves (C + B A⁻¹ Bᵀ) p = B A⁻¹ f − g by conjugate gradients
+    preconditioned with the pressure mass matrix weighted by 1/λ + 1/μ (spectrally equivalent to the Schur
+    complement for every ν: the iterations do not grow as ν → 1/2), each iteration one solve with A's
+    Cholesky factor; then A u = f − Bᵀ p. Raises RuntimeError when CG does not reach MIXED_RTOL.
+    """
+    from scipy.sparse.linalg import splu
+
+    system = mixed_system(nodes, cells, held, displacement, E_kPa, nu)
+    A, B, C, weighted_mass = system.assemble()
+    u, held_dofs, free = system.p2.u, system.p2.held_dofs, system.free
+    f = -(A[free][:, held_dofs] @ u[held_dofs])
+    g = -(B[:, held_dofs] @ u[held_dofs])
+    solve_A = _cholesky(A[free][:, free])
+    B_free = B[:, free]
+    preconditioner = splu(weighted_mass.tocsc())
+
+    def schur(q):
+        return C @ q + B_free @ solve_A(B_free.T @ q)
+
+    rhs = B_free @ solve_A(f) - g
+    p = np.zeros(B.shape[0])
+    r = rhs.copy()
+    z = preconditioner.solve(r)
+    step, rz, target = z.copy(), r @ z, MIXED_RTOL * np.linalg.norm(rhs)
+    iteration = 0
+    while np.linalg.norm(r) > target:
+        if iteration == MIXED_MAX_ITER:
+            raise RuntimeError(f"the mixed solve's pressure did not converge in {MIXED_MAX_ITER} CG iterations")
+        iteration += 1
+        S_step = schur(step)
+        a = rz / (step @ S_step)
+        p += a * step
+        r -= a * S_step
+        z = preconditioner.solve(r)
+        rz, rz_old = r @ z, rz
+        step = z + (rz / rz_old) * step
+    u[free] = solve_A(f - B_free.T @ p)
+    vertices, at_points = _at_vertices_and_points(system.p2.basis, u, points)
+    return MixedSolve(vertices, at_points, int(B.shape[0]), iteration, p)
+
+
+@dataclass
+class MixedSystem:
+    """Taylor–Hood on a mesh (`solve_mixed`): the displacement part as `p2_system` makes it, the pressure's P1
+    basis, its forms and E (kPa) as a P0 field; `free` (n_free,) the displacement dofs not held."""
+
+    p2: P2System
+    pressure: object
+    forms: tuple
+    free: np.ndarray
+
+    def assemble(self):
+        """(A (n_u, n_u) mN/mm, B (n_p, n_u), C (n_p, n_p), the preconditioner's weighted mass (n_p, n_p)): the
+        shear form, the divergence, the pressure's compliance ∫ p q / λ and ∫ p q (1/λ + 1/μ). The E field is
+        at the displacement basis's quadrature points, which the pressure basis shares (one mesh, one order)."""
+        shear, divergence, compliance, weighted_mass = self.forms
+        E = self.p2.e_field
+        return (shear.assemble(self.p2.basis, E=E).tocsr(), divergence.assemble(self.p2.basis, self.pressure).tocsr(),
+                compliance.assemble(self.pressure, E=E).tocsr(), weighted_mass.assemble(self.pressure, E=E).tocsr())
+
+
+def mixed_system(nodes: np.ndarray, cells: np.ndarray, held: np.ndarray, displacement: np.ndarray,
+                 E_kPa: np.ndarray | float, nu: float) -> MixedSystem:
+    """The Taylor–Hood system of `solve_mixed` before it is solved (benchmarks/bench_elements.py times its cost)."""
+    import skfem
+    from skfem.helpers import div
+    from skfem.models.elasticity import lame_parameters, linear_elasticity
+
+    p2 = p2_system(nodes, cells, held, displacement, E_kPa, nu)
+    pressure = skfem.Basis(p2.basis.mesh, skfem.ElementTriP1() if nodes.shape[1] == 2 else skfem.ElementTetP1(),
+                           intorder=2)
+    lam1, mu1 = lame_parameters(1.0, nu)  # per unit E: the forms scale by E (λ and μ both ∝ E at one ν)
+
+    @skfem.BilinearForm
+    def shear(u, v, w):
+        return w["E"] * linear_elasticity(0.0, mu1).form(u, v, w)
+
+    @skfem.BilinearForm
+    def divergence(u, q, w):
+        return div(u) * q
+
+    @skfem.BilinearForm
+    def compliance(p, q, w):
+        return p * q / (lam1 * w["E"])
+
+    @skfem.BilinearForm
+    def weighted_mass(p, q, w):
+        return p * q * (1.0 / lam1 + 1.0 / mu1) / w["E"]
+
+    free = np.setdiff1d(np.arange(p2.basis.N), p2.held_dofs)
+    return MixedSystem(p2, pressure, (shear, divergence, compliance, weighted_mass), free)
 
 
 @dataclass
@@ -92,14 +223,21 @@ def p2_system(nodes: np.ndarray, cells: np.ndarray, held: np.ndarray, displaceme
     return P2System(basis, stiffness, e_field, np.concatenate(fixed), u, node_of_dof)
 
 
-def _cholesky_solve(A, b: np.ndarray) -> np.ndarray:
-    """A⁻¹ b for the symmetric positive definite A (CHOLMOD through cvxopt: SuperLU takes minutes at 3-D sizes)."""
+def _cholesky(A):
+    """b ↦ A⁻¹ b for the symmetric positive definite A, factored once (CHOLMOD through cvxopt: SuperLU takes
+    minutes at 3-D sizes)."""
     import cvxopt
     from cvxopt import cholmod
 
     A = A.tocoo()
     lower = A.row >= A.col
     M = cvxopt.spmatrix(A.data[lower], A.row[lower].astype(int), A.col[lower].astype(int), A.shape)
-    x = cvxopt.matrix(np.asarray(b, float).reshape(-1, 1))
-    cholmod.linsolve(M, x)
-    return np.array(x).ravel()
+    factor = cholmod.symbolic(M)
+    cholmod.numeric(M, factor)
+
+    def solve(b: np.ndarray) -> np.ndarray:
+        x = cvxopt.matrix(np.asarray(b, float).reshape(-1, 1))
+        cholmod.solve(factor, x)
+        return np.array(x).ravel()
+
+    return solve
