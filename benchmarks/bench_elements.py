@@ -3,13 +3,17 @@
 For the 2-D example (configs/example.yaml) and the dome (configs/example_dome.yaml), on each scene's own mesh
 with its own held and cup nodes, linear elasticity under a 1 mm push of the first cup, at ν 0.45, 0.49 and
 0.499: each lesion's displacement with `p1` and with `nodal` against scikit-fem's P2 on the same mesh
-(benchmarks/quadratic_reference.py), the same on the dome with a second cup (both pushed), and the cost of
+(benchmarks/quadratic_reference.py) and against the mixed u–p Taylor–Hood solve there (P2 with a P1
+pressure: quadratic displacements alone lock too as ν → 1/2), the same on the dome with a second cup (both
+pushed), and the cost of
 one tangent: assembly of K_ff, its upper triangle's
 nonzeros, its factorisation (CHOLMOD, the solvers' `factorize_free`), and a whole nonlinear forward solve
 (the scene's material at ν 0.45, Newton to 1e-8: the layer's push10, the dome's 8 mm push), and beside them
-what quadratic elements on the same mesh would cost (unknowns, nonzeros, the same factorisation). Then the dome
+what quadratic elements on the same mesh would cost, alone and mixed (unknowns, nonzeros, the same
+factorisation of the displacement block; the mixed solve's pressure iterations besides). Then the dome
 with its fibers at ν 0.49 and an 8 mm push at mesh scale 1 and 0.7: how far the lesions move under refinement.
-Last, the sweep that chose α (`nodal.ELEMENT_SHARE`): the dome at ν 0.49 against P2 for each share in SHARES.
+Last, the sweep of α (`nodal.ELEMENT_SHARE`): the dome at ν 0.49 against P2 and against Taylor–Hood for each
+share in SHARES.
 Times are medians of `--repeats` runs in this process, p1 and nodal side by side.
 
     PYTHONPATH=. python3 benchmarks/bench_elements.py             # about 12 minutes on 2 cores
@@ -88,32 +92,50 @@ def _targets(tissue) -> np.ndarray:
     return np.array([t.rest for t in tissue.scene.targets]).reshape(len(tissue.scene.targets), -1)
 
 
+def _references(tissue, nu: float, strokes: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, object, float]:
+    """(P2's displacements (K, d) at the points, the Taylor–Hood solve there, P2's time in s) of the tissue's
+    mesh, held nodes and cup strokes, linear elasticity at ν."""
+    d = tissue.dim
+    held = np.zeros(tissue.rest.size, bool)
+    held[tissue.dirichlet_dofs] = True
+    moved = tissue.apply_strokes(tissue.rest, strokes) - tissue.rest
+    args = (tissue.mesh.nodes, tissue.ops.triangles, held.reshape(-1, d), moved, tissue.element_E_kPa, nu, points)
+    t0 = time.perf_counter()
+    _, p2 = quadratic_reference.solve_p2(*args)
+    p2_s = time.perf_counter() - t0
+    return p2, quadratic_reference.solve_mixed(*args), p2_s
+
+
+def _off_pct(u: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """|u − ref| / |ref| per point (K,), in %."""
+    return 100 * np.linalg.norm(u - ref, axis=1) / np.linalg.norm(ref, axis=1)
+
+
 def accuracy_rows(scene_name: str) -> list[dict]:
-    """Per ν and target: |u − u_P2| / |u_P2| of p1 and nodal, 1 mm push of every cup, linear elasticity."""
+    """Per ν and target: |u − u_ref| / |u_ref| of p1 and nodal against P2 and against Taylor–Hood (and P2's own
+    against Taylor–Hood), 1 mm push of every cup, linear elasticity."""
     rows = []
     for nu in NUS:
         tissues = _tissues(scene_name, nu, "linear")
         any_t = tissues["p1"]
-        d, points = any_t.dim, _targets(any_t)
+        points = _targets(any_t)
         strokes = np.ones(any_t.n_cups)
-        held = np.zeros(any_t.rest.size, bool)
-        held[any_t.dirichlet_dofs] = True
-        moved = any_t.apply_strokes(any_t.rest, strokes) - any_t.rest
-        t0 = time.perf_counter()
-        _, ref = quadratic_reference.solve_p2(any_t.mesh.nodes, any_t.ops.triangles, held.reshape(-1, d), moved,
-                                              any_t.element_E_kPa, nu, points)
-        p2_s = time.perf_counter() - t0
+        ref, mixed, p2_s = _references(any_t, nu, strokes, points)
+        th = mixed.at_points
         probe = probe_points(any_t.mesh.nodes, any_t.ops.triangles, points)
+        moves = {e: target_positions(probe, solve_equilibrium(t, strokes, method="newton").x) - points
+                 for e, t in tissues.items()}
         for k, name in enumerate(t.name for t in any_t.scene.targets):
             row = {"scene": scene_name, "nu": nu, "target": name, "p2_move_mm": float(np.linalg.norm(ref[k])),
-                   "p2_s": p2_s}
-            for element, tissue in tissues.items():
-                x = solve_equilibrium(tissue, strokes, method="newton").x
-                u = target_positions(probe, x)[k] - points[k]
-                row[f"{element}_error_pct"] = 100 * float(np.linalg.norm(u - ref[k]) / np.linalg.norm(ref[k]))
+                   "p2_s": p2_s, "th_move_mm": float(np.linalg.norm(th[k])),
+                   "th_iterations": mixed.iterations, "p2_off_th_pct": float(_off_pct(ref, th)[k])}
+            for element, u in moves.items():
+                row[f"{element}_error_pct"] = float(_off_pct(u, ref)[k])
+                row[f"{element}_off_th_pct"] = float(_off_pct(u, th)[k])
             rows.append(row)
             print(f"{scene_name} ν {nu} {name}: p1 {row['p1_error_pct']:.1f} %, nodal {row['nodal_error_pct']:.1f} %"
-                  f" off P2 (P2 move {row['p2_move_mm']:.4f} mm)", flush=True)
+                  f" off P2 (P2 move {row['p2_move_mm']:.4f} mm); off Taylor–Hood p1 {row['p1_off_th_pct']:.1f} %, "
+                  f"nodal {row['nodal_off_th_pct']:.1f} %, P2 {row['p2_off_th_pct']:.1f} %", flush=True)
     return rows
 
 
@@ -134,7 +156,7 @@ def cost_rows(scene_name: str, stroke_mm: float, repeats: int) -> list[dict]:
                      "forward_s": solve_s, "newton_iterations": int(r.iterations), "stroke_mm": stroke_mm})
         print(f"{scene_name} {element}: nnz {K.nnz}, assemble {1e3 * assemble_s:.1f} ms, "
               f"factor {1e3 * factor_s:.1f} ms, forward {solve_s:.2f} s ({r.iterations} it)", flush=True)
-    return rows + [p2_cost_row(scene_name, tissues["p1"], repeats)]
+    return rows + [p2_cost_row(scene_name, tissues["p1"], repeats), mixed_cost_row(scene_name, tissues["p1"], repeats)]
 
 
 def p2_cost_row(scene_name: str, tissue, repeats: int) -> dict:
@@ -163,28 +185,61 @@ def p2_cost_row(scene_name: str, tissue, repeats: int) -> dict:
             "newton_iterations": None, "stroke_mm": None}
 
 
+def mixed_cost_row(scene_name: str, tissue, repeats: int) -> dict:
+    """Taylor–Hood's side of the cost table (`p2_cost_row`'s, for P2 displacements with a P1 pressure): the
+    unknowns (both fields), the nonzeros of the saddle-point matrix's upper triangle, scikit-fem's assembly of its
+    blocks, the same CHOLMOD factorisation of the displacement block, and the pressure's CG iterations on the
+    Schur complement (each a solve with that factor) under a 1 mm push."""
+    d = tissue.dim
+    held = np.zeros(tissue.rest.size, bool)
+    held[tissue.dirichlet_dofs] = True
+    args = (tissue.mesh.nodes, tissue.ops.triangles, held.reshape(-1, d))
+    system = quadratic_reference.mixed_system(*args, np.zeros_like(tissue.rest), tissue.element_E_kPa, 0.45)
+    assemble_s, (A, B, C, _) = _median_time(system.assemble, repeats)
+    free = system.free
+    A_upper = sp.triu(A[free][:, free], format="csr")
+    A_upper.sort_indices()
+    nnz = A_upper.nnz + B[:, free].nnz + sp.triu(C).nnz
+
+    def factor():
+        return Factorization(A_upper, definite=True, upper=True, ordering="nested_dissection",
+                             groups=system.p2.node_of_dof[free])
+
+    factor_s, _ = _median_time(factor, repeats)
+    moved = tissue.apply_strokes(tissue.rest, np.ones(tissue.n_cups)) - tissue.rest
+    mixed = quadratic_reference.solve_mixed(*args, moved, tissue.element_E_kPa, 0.45, _targets(tissue))
+    print(f"{scene_name} Taylor–Hood: {free.size} + {B.shape[0]} unknowns, nnz {nnz}, assemble "
+          f"{1e3 * assemble_s:.1f} ms, factor {1e3 * factor_s:.1f} ms, {mixed.iterations} pressure iterations",
+          flush=True)
+    return {"scene": scene_name, "element": "p2/p1", "unknowns": int(free.size + B.shape[0]), "K_upper_nnz": int(nnz),
+            "assemble_ms": 1e3 * assemble_s, "factor_ms": 1e3 * factor_s, "forward_s": None,
+            "newton_iterations": None, "stroke_mm": None, "pressure_iterations": mixed.iterations}
+
+
 #: the shares α of the element's own deviatoric energy the sweep tries (nodal.ELEMENT_SHARE is the built one)
 SHARES = (0.0, 0.2, 0.35, 0.5, 0.65, 0.8, 1.0)
 
 
 def share_rows(nu: float = 0.49) -> list[dict]:
-    """The dome, linear elasticity at ν, a 1 mm push: each target's error against P2 for every α in SHARES."""
+    """The dome, linear elasticity at ν, a 1 mm push: each target's error against P2 and against Taylor–Hood for
+    every α in SHARES (worst target; the signed change of its move against Taylor–Hood's: + moves further)."""
     tissue = _tissues("example_dome.yaml", nu, "linear")["nodal"]
-    points, d = _targets(tissue), tissue.dim
+    points = _targets(tissue)
     strokes = np.ones(tissue.n_cups)
-    held = np.zeros(tissue.rest.size, bool)
-    held[tissue.dirichlet_dofs] = True
-    moved = tissue.apply_strokes(tissue.rest, strokes) - tissue.rest
-    _, ref = quadratic_reference.solve_p2(tissue.mesh.nodes, tissue.ops.triangles, held.reshape(-1, d), moved,
-                                          tissue.element_E_kPa, nu, points)
+    ref, mixed, _ = _references(tissue, nu, strokes, points)
+    th = mixed.at_points
     probe = probe_points(tissue.mesh.nodes, tissue.ops.triangles, points)
     rows = []
     for share in SHARES:
         t = replace(tissue, element=tissue.element.with_share(share), factor_cache={})
         u = target_positions(probe, solve_equilibrium(t, strokes, method="newton").x) - points
-        err = 100 * np.linalg.norm(u - ref, axis=1) / np.linalg.norm(ref, axis=1)
-        rows.append({"share": share, "nu": nu, "max_error_pct": float(err.max())})
-        print(f"share α {share}: worst target {err.max():.1f} % off P2", flush=True)
+        err, off_th = _off_pct(u, ref), _off_pct(u, th)
+        worst = int(np.argmax(off_th))
+        further = 100 * (np.linalg.norm(u[worst]) / np.linalg.norm(th[worst]) - 1)
+        rows.append({"share": share, "nu": nu, "max_error_pct": float(err.max()), "max_off_th_pct": float(off_th.max()),
+                     "further_than_th_pct": float(further)})
+        print(f"share α {share}: worst target {err.max():.1f} % off P2, {off_th.max():.1f} % off Taylor–Hood "
+              f"({further:+.1f} % of its move)", flush=True)
     return rows
 
 
@@ -226,9 +281,11 @@ def main() -> None:
     if not args.quick:
         accuracy += accuracy_rows("example_dome.yaml+cup2")
         res.table("refinement", refinement_rows(1), units={"forward_s": "s", "lesion_shift_mm": "mm"})
-        res.table("share", share_rows(), units={"max_error_pct": "%"})
+        res.table("share", share_rows(), units={"max_error_pct": "%", "max_off_th_pct": "%",
+                                                "further_than_th_pct": "%"})
     res.table("accuracy", accuracy, units={"p2_move_mm": "mm", "p2_s": "s", "p1_error_pct": "%",
-                                           "nodal_error_pct": "%"})
+                                           "nodal_error_pct": "%", "th_move_mm": "mm", "p2_off_th_pct": "%",
+                                           "p1_off_th_pct": "%", "nodal_off_th_pct": "%"})
     res.table("cost", cost, units={"assemble_ms": "ms", "factor_ms": "ms", "forward_s": "s", "stroke_mm": "mm"})
     print(res.write())
 
