@@ -521,35 +521,44 @@ def _elements(r) -> str:
     def cells(scene, nu, column):
         return " / ".join(fixed(x[column], 1) for x in acc if (x["scene"], x["nu"]) == (scene, nu))
 
-    accuracy = [[scene.replace(".yaml", ""), fixed(nu, 3), cells(scene, nu, "p1_error_pct"),
-                 cells(scene, nu, "nodal_error_pct")] for scene, nu in keys]
-    cost = [[x["scene"].replace(".yaml", ""), f"`{x['element']}`", num(x["unknowns"]), num(x["K_upper_nnz"]),
-             fixed(x["assemble_ms"], 1), fixed(x["factor_ms"], 1),
+    columns = ("p1_error_pct", "nodal_error_pct", "p2_off_th_pct", "p1_off_th_pct", "nodal_off_th_pct")
+    accuracy = [[scene.replace(".yaml", ""), fixed(nu, 3)] + [cells(scene, nu, c) for c in columns]
+                for scene, nu in keys]
+    names = {"p2/p1": "`p2/p1` (Taylor–Hood)"}
+    cost = [[x["scene"].replace(".yaml", ""), names.get(x["element"], f"`{x['element']}`"), num(x["unknowns"]),
+             num(x["K_upper_nnz"]), fixed(x["assemble_ms"], 1), fixed(x["factor_ms"], 1),
              "—" if x["forward_s"] is None else f"{fixed(x['forward_s'], 2)} ({x['newton_iterations']} it)"]
             for x in rows_of(r, "cost")]
-    quadratic = ("" if not any(x["element"] == "p2" for x in rows_of(r, "cost")) else
-                 " `p2`: the quadratic elements of the reference on the same mesh (6-node triangles, 10-node "
-                 "tetrahedra), linear elasticity: scikit-fem's assembly (a vectorised Python assembler, not "
-                 "comparable with the compiled kernels) and the same CHOLMOD factorisation; scissor has no nonlinear "
-                 "P2 solve to time.")
+    pressure = "; ".join(f"{x['scene'].replace('.yaml', '')} {x['pressure_iterations']}"
+                         for x in rows_of(r, "cost") if x["element"] == "p2/p1")
     shift = {x["element"]: x for x in rows_of(r, "refinement") if "lesion_shift_mm" in x}
     coarse = {x["element"]: x for x in rows_of(r, "refinement") if "lesion_shift_mm" not in x}
     refinement = "; ".join(f"`{e}` {fixed(x['lesion_shift_mm'], 3)} mm ({num(coarse[e]['tetrahedra'])} → "
                            f"{num(x['tetrahedra'])} tetrahedra, {fixed(x['forward_s'], 1)} s at the finer)"
                            for e, x in shift.items())
-    return (table(["scene", "ν", "`p1` off P2, per target (%)", "`nodal` off P2, per target (%)"], accuracy)
+    shares = rows_of(r, "share")
+    return (table(["scene", "ν", "`p1` off P2 (%)", "`nodal` off P2 (%)", "P2 off Taylor–Hood (%)",
+                   "`p1` off Taylor–Hood (%)", "`nodal` off Taylor–Hood (%)"], accuracy)
             + "\n\nLinear elasticity, every cup pushed 1 mm (`+cup2`: the dome with a second cup, both pushed), "
-              "each scene's own mesh; the reference is scikit-fem's quadratic elements on the same mesh and nodes "
-              "(`benchmarks/quadratic_reference.py`).\n\n"
+              "each scene's own mesh, per target; the references are scikit-fem's quadratic elements on the same "
+              "mesh and nodes: P2 (displacements alone) and Taylor–Hood (P2 with a continuous P1 pressure, the "
+              "mixed u–p form, which does not lock as ν → 1/2; `benchmarks/quadratic_reference.py`).\n\n"
             + table(["scene", "element", "unknowns", "K_ff nonzeros (upper)", "assembly (ms)", "factorisation (ms)",
                      "forward solve (s)"], cost)
             + "\n\nOne tangent at rest and one nonlinear forward solve (the scene's material at ν 0.45, Newton to "
-              "1e-8: the layer's 10 mm push, the dome's 8 mm); medians of the repeats." + quadratic
-            + " Under refinement, the dome "
+              "1e-8: the layer's 10 mm push, the dome's 8 mm); medians of the repeats. `p2`, `p2/p1`: the "
+              "quadratic elements of the references on the same mesh (6-node triangles, 10-node tetrahedra), "
+              "linear elasticity: scikit-fem's assembly (a vectorised Python assembler, not comparable with the "
+              "compiled kernels) and the same CHOLMOD factorisation of the displacement block; scissor has no "
+              "nonlinear quadratic solve to time. Taylor–Hood's unknowns and nonzeros count its pressure too, and "
+              f"its pressure takes conjugate-gradient iterations on the Schur complement, each a solve with that "
+              f"factor ({pressure} under the 1 mm push). Under refinement, the dome "
               f"with its fibers at ν 0.49 pushed 8 mm: its lesions move from mesh scale 1 to 0.7 by {refinement}. "
               "The share α of the element's own deviatoric energy (`nodal.ELEMENT_SHARE`; 1 is the averaged nodal "
-              "volume alone), the dome at ν 0.49 against P2, worst target: "
-              + ", ".join(f"α {fixed(x['share'], 2)} {fixed(x['max_error_pct'], 1)} %" for x in rows_of(r, "share"))
+              "volume alone), the dome at ν 0.49, worst target, against P2 / against Taylor–Hood (and how much "
+              "further than Taylor–Hood's that target moves): "
+              + ", ".join(f"α {fixed(x['share'], 2)} {fixed(x['max_error_pct'], 1)} / {fixed(x['max_off_th_pct'], 1)}"
+                          f" % ({x['further_than_th_pct']:+.1f} %)" for x in shares)
               + ".\n\n" + source(r))
 
 
