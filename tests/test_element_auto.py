@@ -35,10 +35,15 @@ def _config(accuracy_mm: float, nu: float, element: str = "auto"):
 
 def _ladder_is_sound(choice) -> None:
     """The reference is the configured mesh on nodal; the pick meets the accuracy (or is an element's configured
-    mesh); every solved candidate of the picked element coarser than the pick missed it."""
+    mesh); every solved candidate of the picked element coarser than the pick missed it, and none finer than a
+    coarser pick was solved."""
     reference, chosen = choice.candidates[0], choice.chosen
     assert (reference.element, reference.scale, reference.error_mm) == ("nodal", 1.0, 0.0)
     assert chosen.error_mm <= choice.accuracy_mm or chosen.scale == 1.0
+    if choice.pick == 0:  # the configured mesh itself: every coarser nodal candidate was solved and missed
+        coarser = [c for c in choice.candidates[1:] if c.element == chosen.element]
+        assert coarser and all(c.solved and c.error_mm > choice.accuracy_mm for c in coarser)
+        return
     ladder = [c for c in choice.candidates[choice.pick + 1:] if c.element == chosen.element]
     assert not any(c.solved for c in ladder)  # the ladder stops at the pick
     tried = [c for c in choice.candidates[1:choice.pick] if c.element == chosen.element and c.scale != 1.0]

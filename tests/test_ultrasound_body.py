@@ -87,9 +87,10 @@ def test_the_pose_is_moved_onto_the_skin_and_its_frame_is_orthonormal(body):
     assert abs(pose.elevation @ cfg.needle.direction) < 1e-12  # in-plane guidance: the needle in the image
     q = np.random.default_rng(1).normal(size=(5, 3))
     assert np.allclose(pose.to_probe(pose.to_body(q)), q)
-    # the scene's own pose: straight down from the top, the lesion in its plane
+    # the scene's own pose: straight down from the top, the lesion in its plane (to the shift of the configured
+    # point onto the meshed skin's nearest facet: a fraction of a mm, far inside the elevation beam)
     assert np.allclose(model.pose.axis, [0, 0, -1]) and np.allclose(model.pose.lateral, [-1, 0, 0])
-    assert abs(model.pose.to_probe(np.array(cfg.targets[0].position_mm))[2]) < 0.1
+    assert abs(model.pose.to_probe(np.array(cfg.targets[0].position_mm))[2]) < 0.25
 
 
 def test_point_location_agrees_with_the_exhaustive_search(body):

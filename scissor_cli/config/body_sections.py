@@ -60,7 +60,7 @@ class BodyMeshConfig(_Section):
     #: growth of the edge length per mm of distance from a feature; coarser than a layer's 0.3 because the default
     #: element does not lock: the coarsest grading on which `nodal` meets the refinement bound (docs/model.md §21,
     #: "The body's default")
-    grading: Num(0.001, 100.0) = 0.4
+    grading: Num(0.001, 100.0) = 0.5
     #: multiplies both edge lengths (the accuracy ladder's levels)
     scale: Num(0.01, 100.0) = 1.0
     #: a mesh used as it is (docs/contract.md, "Reproducibility"): an .npz with nodes (N, 3) mm, tetrahedra (M, 4)
