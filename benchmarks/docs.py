@@ -41,6 +41,8 @@ from pathlib import Path
 
 import results_io
 
+from scissor_cli.config.body_sections import BodyMeshConfig
+
 ROOT = results_io.ROOT
 DOCS = ROOT / "docs"
 IMG = DOCS / "img"
@@ -582,6 +584,8 @@ def _shares(r) -> tuple[str, str]:
     return table(header, out), "–" if built is None else fixed(built, 2)
 
 
+#: a body's default `tissue.mesh.grading` (the config's default, so the prose follows it)
+BODY_GRADING = BodyMeshConfig().grading
 #: the coarser gradings `bench_element_convergence.py --grading G` was run on (rows where their files exist)
 CONVERGENCE_GRADINGS = (0.4, 0.5, 0.7)
 
@@ -601,7 +605,7 @@ def _element_convergence(r) -> str:
               "levels' is the asymptotic one: the coarse levels differ less than their scales, the graded mesh's "
               "largest edges being capped). The bound the elements are held to: scale 1 → 0.7 (the last change) "
               "moves the lesions ≤ 0.05 mm. Grading: `tissue.mesh.grading` (0.3 without `--grading G`: a layer's "
-              "default, and a body's before `nodal`; a body's default is 0.4). "
+              f"default, and a body's before `nodal`; a body's default is {fixed(BODY_GRADING, 1)}). "
             + source(*[result for result, _ in graded]))
 
 
@@ -624,7 +628,8 @@ def _element_meshes(r) -> str:
                    "lesions off the reference (% of its move)"], out)
             + f"\n\nconfigs/paper_trials_prosthesis_dome.yaml (fibers) at each ν, its cup moved {strokes} mm, "
               "Newton to 1e-8; grading: `tissue.mesh.grading`, the edge's growth per mm from the lesions, vessels "
-              "and cup (0.4 a body's default, 0.3 a layer's and a body's before `nodal`); the reference: `nodal` "
+              f"and cup ({fixed(BODY_GRADING, 1)} a body's default, 0.3 a layer's and a body's before `nodal`); the "
+              "reference: `nodal` "
               "graded 0.3 with every edge × "
               f"{r['data']['reference_scale']:g}. Off the reference: the largest over lesions and strokes, in mm "
               "and in % of the reference's move. A factorisation: the tangent at rest, numeric only (the pattern "
@@ -659,7 +664,7 @@ def _insertion_elements(r) -> str:
           "bench_dome_study.example.p1.grading-0.3", "bench_dome_study.example", "bench_body_insertion.p1.grading-0.3",
           "bench_body_insertion", "bench_insertion_elements")
 def _element_default(meshes, study_p, study, example_p, example, insertion_p, insertion, needle) -> str:
-    """The body's speed goals and its accuracy on its default (nodal, grading 0.4) and on the former one (p1, 0.3)."""
+    """The body's speed goals and its accuracy on its default (nodal on its grading) and on the former one (p1, 0.3)."""
     grading = study["data"]["grading"]
 
     def off(element: str, g: float) -> tuple[str, float]:
