@@ -12,8 +12,9 @@ Quadratic displacements alone lock too as ν → 1/2 (in 3-D a 10-node
 tetrahedron's divergence has nearly as many constraints as the mesh has
 unknowns), so `solve_mixed` gives the locking-free reference beside it:
 Taylor–Hood, the same P2 displacements with a continuous P1 pressure
-(Herrmann's mixed u–p form), its pressure solved by conjugate gradients on
-the Schur complement with the displacement block's Cholesky factor.
+(Herrmann's mixed u–p form), its pressure solved by scipy's conjugate
+gradients on the Schur complement with the displacement block's Cholesky
+factor.
 Loaded by benchmarks/bench_elements.py and the element tests
 (tests/test_elements.py) as a module; needs the `bench` or `test` extra.
 """
@@ -54,12 +55,11 @@ MIXED_MAX_ITER = 500
 
 @dataclass
 class MixedSolve:
-    """What `solve_mixed` did: the displacements (N, d) mm at the vertices and (K, d) at the points, the pressure
-    unknowns, the Schur complement's CG iterations, and the pressure (n_p,) kPa at the vertices."""
+    """What `solve_mixed` did: the displacements (N, d) mm at the vertices and (K, d) at the points, the Schur
+    complement's CG iterations, and the pressure (n_p,) kPa at the vertices."""
 
     vertices: np.ndarray
     at_points: np.ndarray
-    pressure_unknowns: int
     iterations: int
     pressure: np.ndarray
 
@@ -72,12 +72,12 @@ def solve_mixed(nodes: np.ndarray, cells: np.ndarray, held: np.ndarray, displace
         ∫ 2μ ε(u):ε(v) + ∫ p div v = 0,   ∫ q div u − ∫ p q / λ = 0,
     the energy μ ε:ε + λ/2 (div u)² with p = λ div u, which stays well posed as λ → ∞: the pressure is
     one unknown a vertex, not a constraint a tetrahedron. With A the first form on the free dofs, B the
-    divergence and C = ∫ p q / λ, the pressure solves (C + B A⁻¹ Bᵀ) p = B A⁻¹ f − g by conjugate gradients
-    preconditioned with the pressure mass matrix weighted by 1/λ + 1/μ (spectrally equivalent to the Schur
-    complement for every ν: the iterations do not grow as ν → 1/2), each iteration one solve with A's
+    divergence and C = ∫ p q / λ, the pressure solves (C + B A⁻¹ Bᵀ) p = B A⁻¹ f − g by scipy's conjugate
+    gradients preconditioned with the pressure mass matrix weighted by 1/λ + 1/μ (spectrally equivalent to the
+    Schur complement for every ν: the iterations do not grow as ν → 1/2), each iteration one solve with A's
     Cholesky factor; then A u = f − Bᵀ p. Raises RuntimeError when CG does not reach MIXED_RTOL.
     """
-    from scipy.sparse.linalg import splu
+    from scipy.sparse.linalg import LinearOperator, cg, splu
 
     system = mixed_system(nodes, cells, held, displacement, E_kPa, nu)
     A, B, C, weighted_mass = system.assemble()
@@ -86,31 +86,22 @@ def solve_mixed(nodes: np.ndarray, cells: np.ndarray, held: np.ndarray, displace
     g = -(B[:, held_dofs] @ u[held_dofs])
     solve_A = _cholesky(A[free][:, free])
     B_free = B[:, free]
-    preconditioner = splu(weighted_mass.tocsc())
+    n_p = B.shape[0]
+    mass = splu(weighted_mass.tocsc())
+    schur = LinearOperator((n_p, n_p), matvec=lambda q: C @ q + B_free @ solve_A(B_free.T @ q), dtype=float)
+    preconditioner = LinearOperator((n_p, n_p), matvec=mass.solve, dtype=float)
+    iterations = [0]
 
-    def schur(q):
-        return C @ q + B_free @ solve_A(B_free.T @ q)
+    def count(_):
+        iterations[0] += 1
 
-    rhs = B_free @ solve_A(f) - g
-    p = np.zeros(B.shape[0])
-    r = rhs.copy()
-    z = preconditioner.solve(r)
-    step, rz, target = z.copy(), r @ z, MIXED_RTOL * np.linalg.norm(rhs)
-    iteration = 0
-    while np.linalg.norm(r) > target:
-        if iteration == MIXED_MAX_ITER:
-            raise RuntimeError(f"the mixed solve's pressure did not converge in {MIXED_MAX_ITER} CG iterations")
-        iteration += 1
-        S_step = schur(step)
-        a = rz / (step @ S_step)
-        p += a * step
-        r -= a * S_step
-        z = preconditioner.solve(r)
-        rz, rz_old = r @ z, rz
-        step = z + (rz / rz_old) * step
+    p, info = cg(schur, B_free @ solve_A(f) - g, rtol=MIXED_RTOL, maxiter=MIXED_MAX_ITER, M=preconditioner,
+                 callback=count)
+    if info != 0:
+        raise RuntimeError(f"the mixed solve's pressure did not converge in {MIXED_MAX_ITER} CG iterations")
     u[free] = solve_A(f - B_free.T @ p)
     vertices, at_points = _at_vertices_and_points(system.p2.basis, u, points)
-    return MixedSolve(vertices, at_points, int(B.shape[0]), iteration, p)
+    return MixedSolve(vertices, at_points, iterations[0], p)
 
 
 @dataclass
