@@ -57,10 +57,10 @@ from scissor_cli.mechanics import compiled, compiled3d, fem, materials, nodal_co
 
 #: the element kinds `Tissue` knows: `p1` (linear simplices, every term per element) and `nodal` (this module)
 ELEMENTS: tuple[str, ...] = ("p1", "nodal")
-#: α, the share of the deviatoric energy kept per element (the rest per node): the share whose largest error
-#: against the mixed u–p (Taylor–Hood) reference over the dome's lesions, one cup and two, at ν 0.45, 0.49 and
-#: 0.499 is the smallest of those tried, or near it (benchmarks/bench_elements.py, its `share` table; P2 alone
-#: locks at the larger ν and favoured a stiffer share)
+#: α, the share of the deviatoric energy kept per element (the rest per node), chosen against the mixed u–p
+#: (Taylor–Hood) reference, which does not lock: over the dome's lesions, one cup and two, the share of those
+#: tried with the smallest errors at the tissue's ν 0.45–0.49 that stays within the element's bounds at 0.499
+#: (benchmarks/bench_elements.py, its `share` table; P2 alone locks at the larger ν and favoured a stiffer share)
 ELEMENT_SHARE = 0.3
 
 
