@@ -164,13 +164,9 @@ def _reference():
     return benchmark_module("quadratic_reference")
 
 
-def _lesion_errors(tissues: dict, stroke_mm: float = 1.0, mixed: bool = False) -> dict:
-    """{element: |u − u_ref| / |u_ref| (K,)} at the scene's targets for tissues on one mesh with one boundary
-    (linear elasticity, the cup pushed `stroke_mm`): one quadratic solve for all of them, P2's or (`mixed`)
-    Taylor–Hood's."""
-    pytest.importorskip("skfem")
-    tissue = next(iter(tissues.values()))
-    nu = float(tissue.scene.material.nu)
+def _reference_problem(tissue, stroke_mm: float = 1.0) -> tuple[tuple, np.ndarray]:
+    """(the quadratic references' arguments, the targets (K, d)) of a tissue's mesh, held nodes and cup pushed
+    `stroke_mm`, linear elasticity at its ν; a slab's targets at mid-height."""
     points = np.array([t.rest for t in tissue.scene.targets])
     d = tissue.dim
     if d == 3:
@@ -179,10 +175,21 @@ def _lesion_errors(tissues: dict, stroke_mm: float = 1.0, mixed: bool = False) -
     held = np.zeros(tissue.rest.size, bool)
     held[tissue.dirichlet_dofs] = True
     moved = tissue.apply_strokes(tissue.rest, np.array([stroke_mm])) - tissue.rest
-    nodes, cells = tissue.mesh.nodes, tissue.ops.triangles
-    args = (nodes, cells, held.reshape(-1, d), moved, tissue.element_E_kPa, nu, points)
+    nu = float(tissue.scene.material.nu)
+    return (tissue.mesh.nodes, tissue.ops.triangles, held.reshape(-1, d), moved, tissue.element_E_kPa, nu,
+            points), points
+
+
+def _lesion_errors(tissues: dict, stroke_mm: float = 1.0, mixed: bool = False) -> dict:
+    """{element: |u − u_ref| / |u_ref| (K,)} at the scene's targets for tissues on one mesh with one boundary
+    (linear elasticity, the cup pushed `stroke_mm`): one quadratic solve for all of them, P2's or (`mixed`)
+    Taylor–Hood's."""
+    pytest.importorskip("skfem")
+    tissue = next(iter(tissues.values()))
+    args, points = _reference_problem(tissue, stroke_mm)
     at = _reference().solve_mixed(*args).at_points if mixed else _reference().solve_p2(*args)[1]
-    probe = probe_targets(tissue.mesh, points) if d == 2 else probe_points(nodes, cells, points)
+    nodes, cells = tissue.mesh.nodes, tissue.ops.triangles
+    probe = probe_targets(tissue.mesh, points) if tissue.dim == 2 else probe_points(nodes, cells, points)
     errors = {}
     for name, t in tissues.items():
         x = solve_equilibrium(t, np.array([stroke_mm]), method="newton").x
@@ -219,13 +226,7 @@ def test_the_mixed_reference_does_not_lock_in_3d_where_p2_does():
     moves, iterations = {}, {}
     for nu in (0.49, 0.4999):
         _, _, layer = build_model(_cfg(scale=3.0, model="linear", nu=nu))
-        slab = _slab(layer, "p1", (0.0, 2.5, 5.0, 7.5, 10.0))
-        z = np.full((len(slab.scene.targets), 1), 0.5 * float(slab.scene.thickness_mm))
-        points = np.hstack([np.array([t.rest for t in slab.scene.targets])[:, :2], z])
-        held = np.zeros(slab.rest.size, bool)
-        held[slab.dirichlet_dofs] = True
-        moved = slab.apply_strokes(slab.rest, np.array([1.0])) - slab.rest
-        args = (slab.mesh.nodes, slab.ops.triangles, held.reshape(-1, 3), moved, slab.element_E_kPa, nu, points)
+        args, _ = _reference_problem(_slab(layer, "p1", (0.0, 2.5, 5.0, 7.5, 10.0)))
         mixed = _reference().solve_mixed(*args)
         moves["mixed", nu] = np.linalg.norm(mixed.at_points, axis=1)
         moves["p2", nu] = np.linalg.norm(_reference().solve_p2(*args)[1], axis=1)
