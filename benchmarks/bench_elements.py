@@ -101,7 +101,8 @@ def _mesh_and_held(tissue) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return tissue.mesh.nodes, tissue.ops.triangles, held.reshape(-1, tissue.dim)
 
 
-#: (scene, ν) → `_references`' answer: the α sweep reuses the accuracy table's solves
+#: (scene, ν) → (the scene's `nodal` tissue at ν, `_references`' answer): the α sweep and the mixed cost row
+#: reuse the accuracy table's tissues and solves
 _SOLVED: dict = {}
 
 
@@ -130,7 +131,8 @@ def accuracy_rows(scene_name: str) -> list[dict]:
         any_t = tissues["p1"]
         points = _targets(any_t)
         strokes = np.ones(any_t.n_cups)
-        ref, mixed, p2_s = _SOLVED[scene_name, nu] = _references(any_t, nu, strokes, points)
+        ref, mixed, p2_s = _references(any_t, nu, strokes, points)
+        _SOLVED[scene_name, nu] = tissues["nodal"], (ref, mixed, p2_s)
         th = mixed.at_points
         probe = probe_points(any_t.mesh.nodes, any_t.ops.triangles, points)
         moves = {e: target_positions(probe, solve_equilibrium(t, strokes, method="newton").x) - points
@@ -210,8 +212,7 @@ def mixed_cost_row(scene_name: str, tissue, repeats: int) -> dict:
                              groups=system.p2.node_of_dof[free])
 
     factor_s, _ = _median_time(factor, repeats)
-    moved = tissue.apply_strokes(tissue.rest, np.ones(tissue.n_cups)) - tissue.rest
-    mixed = quadratic_reference.solve_mixed(*args, moved, tissue.element_E_kPa, 0.45, _targets(tissue))
+    mixed = _SOLVED[scene_name, 0.45][1][1]  # the accuracy table's solve at ν 0.45: the same mesh, E and push
     print(f"{scene_name} Taylor–Hood: {free.size} + {B.shape[0]} unknowns, nnz {nnz}, assemble "
           f"{1e3 * assemble_s:.1f} ms, factor {1e3 * factor_s:.1f} ms, {mixed.iterations} pressure iterations",
           flush=True)
@@ -230,10 +231,9 @@ def share_rows(scene_name: str) -> list[dict]:
     The references are the accuracy table's (`accuracy_rows` first)."""
     rows = []
     for nu in NUS:
-        tissue = _tissues(scene_name, nu, "linear")["nodal"]
+        tissue, (ref, mixed, _) = _SOLVED[scene_name, nu]
         points = _targets(tissue)
         strokes = np.ones(tissue.n_cups)
-        ref, mixed, _ = _SOLVED[scene_name, nu]
         th = mixed.at_points
         probe = probe_points(tissue.mesh.nodes, tissue.ops.triangles, points)
         for share in SHARES:
