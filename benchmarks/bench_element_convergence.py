@@ -14,10 +14,13 @@ is the one in the asymptotic range, the others are reported as measured.
 
     PYTHONPATH=. python3 benchmarks/bench_element_convergence.py     # about 5 minutes on 2 cores
     PYTHONPATH=. python3 benchmarks/bench_element_convergence.py --grading 0.5
+    PYTHONPATH=. python3 benchmarks/bench_element_convergence.py --grading 0.5 --share 0.4
 
 On `tissue.mesh.grading` GRADING (a layer's default, and a body's before `nodal`: the finest the study compares);
 writes benchmarks/results/bench_element_convergence.json. With --grading G the same ladder on that grading, variant
 "grading-G": whether a coarser mesh still meets the refinement bound (scale 1 → 0.7 moves the lesions ≤ 0.05 mm).
+With --share A only `nodal`, its α (`nodal.ELEMENT_SHARE`, the share of the deviatoric energy kept per element) A,
+variant "grading-G.share-A": whether a stiffer share, cheaper in the insertion, still meets that bound there.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -49,9 +53,9 @@ NU = 0.49
 STROKE_MM = 8.0
 
 
-def level_rows(grading: float) -> list[dict]:
+def level_rows(grading: float, share: float | None = None) -> list[dict]:
     """One row per (element, scale): tetrahedra, the lesions' final positions (T, 3) mm, the solve's time; the mesh
-    graded `grading`."""
+    graded `grading`; with `share`, `nodal` alone with that α."""
     cfg = load_config(ROOT / "configs" / "example_dome.yaml")
     cfg = cfg.model_copy(update={"material": cfg.material.model_copy(update={"nu": NU})})
     cfg = cfg.model_copy(update={"tissue": cfg.tissue.model_copy(
@@ -61,8 +65,10 @@ def level_rows(grading: float) -> list[dict]:
         scene, mesh, _ = body_model(cfg, cache=ROOT / "runs" / ".mesh-cache", scale=scale)
         rest = np.array([t.rest for t in scene.targets]).reshape(len(scene.targets), 3)
         probe = probe_points(mesh.nodes, mesh.tetrahedra, rest)
-        for element in ELEMENTS:
+        for element in ELEMENTS if share is None else ("nodal",):
             tissue = build_body(scene, mesh, element=element)
+            if share is not None:
+                tissue = replace(tissue, element=tissue.element.with_share(share), factor_cache={})
             t0 = time.perf_counter()
             r = solve_equilibrium(tissue, np.full(tissue.n_cups, STROKE_MM), method="newton", tol=1e-8)
             rows.append({"element": element, "scale": scale, "tetrahedra": int(mesh.n_elements),
@@ -77,7 +83,7 @@ def level_rows(grading: float) -> list[dict]:
 def orders(rows: list[dict]) -> list[dict]:
     """Per element: the change between levels, the observed orders and the finest level's Richardson error."""
     out = []
-    for element in ELEMENTS:
+    for element in dict.fromkeys(r["element"] for r in rows):
         levels = [r for r in rows if r["element"] == element]
         x = [np.asarray(r["lesions_mm"]) for r in levels]
         h = [r["h"] for r in levels]
@@ -96,15 +102,19 @@ def orders(rows: list[dict]) -> list[dict]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--grading", type=float, default=GRADING, help="tissue.mesh.grading")
+    ap.add_argument("--share", type=float, default=None, help="nodal's α (nodal.ELEMENT_SHARE): nodal alone")
     args = ap.parse_args()
     runtime.configure()
-    res = results_io.Results("bench_element_convergence",
-                             None if args.grading == GRADING else f"grading-{args.grading:g}")
+    variant = ".".join(([] if args.grading == GRADING else [f"grading-{args.grading:g}"])
+                       + ([] if args.share is None else [f"share-{args.share:g}"]))
+    res = results_io.Results("bench_element_convergence", variant or None)
     print(f"machine: {results_io.machine()}, load {results_io.load1()}")
-    rows = level_rows(args.grading)
+    rows = level_rows(args.grading, args.share)
     res.table("levels", rows, units={"forward_s": "s", "lesions_mm": "mm", "moves_mm": "mm"})
     res.table("orders", orders(rows), units={"changes_mm": "mm", "finest_error_mm": "mm"})
     res.figure("grading", args.grading, "1")
+    if args.share is not None:
+        res.figure("share", args.share, "1")
     print(res.write())
 
 

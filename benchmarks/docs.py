@@ -588,15 +588,20 @@ def _shares(r) -> tuple[str, str]:
 BODY_GRADING = BodyMeshConfig().grading
 #: the coarser gradings `bench_element_convergence.py --grading G` was run on (rows where their files exist)
 CONVERGENCE_GRADINGS = (0.4, 0.5, 0.7)
+#: (grading, α) of its `--grading G --share A` runs: `nodal` with a stiffer share than its default
+CONVERGENCE_SHARES = ((0.5, 0.4),)
 
 
 @renderer("element_convergence", "bench_element_convergence")
 def _element_convergence(r) -> str:
-    graded = [(r, "0.3")] + [(x, fixed(g, 1)) for g in CONVERGENCE_GRADINGS
-                                 if (x := load(f"bench_element_convergence.grading-{g:g}")) is not None]
-    out = [[f"`{x['element']}`", grading, " → ".join(num(n) for n in x["tetrahedra"]),
+    variants = [(f"grading-{g:g}", g, None) for g in CONVERGENCE_GRADINGS] + [
+        (f"grading-{g:g}.share-{a:g}", g, a) for g, a in CONVERGENCE_SHARES]
+    graded = [(r, "0.3", None)] + [(x, fixed(g, 1), a) for name, g, a in variants
+                                   if (x := load(f"bench_element_convergence.{name}")) is not None]
+    out = [[f"`{x['element']}`" + ("" if share is None else f", α {num(share)}"), grading,
+            " → ".join(num(n) for n in x["tetrahedra"]),
             " / ".join(fixed(d, 3) for d in x["changes_mm"]), " / ".join(fixed(p, 2) for p in x["orders"]),
-            fixed(x["finest_error_mm"], 3)] for result, grading in graded for x in rows_of(result, "orders")]
+            fixed(x["finest_error_mm"], 3)] for result, grading, share in graded for x in rows_of(result, "orders")]
     scales = " → ".join(fixed(s, 1) for s in rows_of(r, "orders")[0]["scales"])
     return (table(["element", "grading", f"tetrahedra (scale {scales})", "lesions' change between levels (mm)",
                    "observed order", "finest level's error, Richardson (mm)"], out)
@@ -605,8 +610,9 @@ def _element_convergence(r) -> str:
               "levels' is the asymptotic one: the coarse levels differ less than their scales, the graded mesh's "
               "largest edges being capped). The bound the elements are held to: scale 1 → 0.7 (the last change) "
               "moves the lesions ≤ 0.05 mm. Grading: `tissue.mesh.grading` (0.3 without `--grading G`: a layer's "
-              f"default, and a body's before `nodal`; a body's default is {fixed(BODY_GRADING, 1)}). "
-            + source(*[result for result, _ in graded]))
+              f"default, and a body's before `nodal`; a body's default is {fixed(BODY_GRADING, 1)}); α: `nodal`'s "
+              "share of the deviatoric energy kept per element (`nodal.ELEMENT_SHARE`) where a run set another. "
+            + source(*[result for result, _, _ in graded]))
 
 
 @renderer("element_meshes", "bench_element_meshes")
