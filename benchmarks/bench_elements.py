@@ -93,14 +93,6 @@ def _targets(tissue) -> np.ndarray:
     return np.array([t.rest for t in tissue.scene.targets]).reshape(len(tissue.scene.targets), -1)
 
 
-def _mesh_and_held(tissue) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(nodes (N, d), cells (M, d+1), held (N, d) bool): the tissue's mesh and the dofs it holds, as the
-    quadratic references take them."""
-    held = np.zeros(tissue.rest.size, bool)
-    held[tissue.dirichlet_dofs] = True
-    return tissue.mesh.nodes, tissue.ops.triangles, held.reshape(-1, tissue.dim)
-
-
 #: (scene, ν) → (the scene's `nodal` tissue at ν, `_references`' answer): the α sweep and the mixed cost row
 #: reuse the accuracy table's tissues and solves
 _SOLVED: dict = {}
@@ -110,7 +102,7 @@ def _references(tissue, nu: float, strokes: np.ndarray, points: np.ndarray) -> t
     """(P2's displacements (K, d) at the points, the Taylor–Hood solve there, P2's time in s) of the tissue's
     mesh, held nodes and cup strokes, linear elasticity at ν."""
     moved = tissue.apply_strokes(tissue.rest, strokes) - tissue.rest
-    args = (*_mesh_and_held(tissue), moved, tissue.element_E_kPa, nu, points)
+    args = (*quadratic_reference.mesh_and_held(tissue), moved, tissue.element_E_kPa, nu, points)
     t0 = time.perf_counter()
     _, p2 = quadratic_reference.solve_p2(*args)
     p2_s = time.perf_counter() - t0
@@ -175,7 +167,7 @@ def p2_cost_row(scene_name: str, tissue, repeats: int) -> dict:
     """Quadratic elements' side of the cost table on the same mesh and held nodes: the unknowns, K_ff's upper
     nonzeros, scikit-fem's assembly of the linear-elastic K (scissor has no nonlinear P2 to time) and the same
     CHOLMOD factorisation as the others (nested dissection by node, `linear.Factorization`)."""
-    system = quadratic_reference.p2_system(*_mesh_and_held(tissue),
+    system = quadratic_reference.p2_system(*quadratic_reference.mesh_and_held(tissue),
                                            np.zeros_like(tissue.rest), tissue.element_E_kPa, 0.45)
     assemble_s, K = _median_time(system.assemble, repeats)
     free = np.setdiff1d(np.arange(K.shape[0]), system.held_dofs)
@@ -199,7 +191,7 @@ def mixed_cost_row(scene_name: str, tissue, repeats: int) -> dict:
     unknowns (both fields), the nonzeros of the saddle-point matrix's upper triangle, scikit-fem's assembly of its
     blocks, the same CHOLMOD factorisation of the displacement block, and the pressure's CG iterations on the
     Schur complement (each a solve with that factor) under a 1 mm push."""
-    args = _mesh_and_held(tissue)
+    args = quadratic_reference.mesh_and_held(tissue)
     system = quadratic_reference.mixed_system(*args, np.zeros_like(tissue.rest), tissue.element_E_kPa, 0.45)
     assemble_s, (A, B, C, _) = _median_time(system.assemble, repeats)
     free = system.free

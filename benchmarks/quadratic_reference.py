@@ -26,6 +26,14 @@ from dataclasses import dataclass
 import numpy as np
 
 
+def mesh_and_held(tissue) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(nodes (N, d), cells (M, d+1), held (N, d) bool) of a scissor tissue: its mesh and the dofs it holds, as
+    this module's solves take them."""
+    held = np.zeros(tissue.rest.size, bool)
+    held[tissue.dirichlet_dofs] = True
+    return tissue.mesh.nodes, tissue.ops.triangles, held.reshape(-1, tissue.dim)
+
+
 def solve_p2(nodes: np.ndarray, cells: np.ndarray, held: np.ndarray, displacement: np.ndarray,
              E_kPa: np.ndarray | float, nu: float, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """P2 linear elasticity with the vertex dofs `held` (N, d) bool held at `displacement` (N, d) mm; E per

@@ -172,12 +172,9 @@ def _reference_problem(tissue, stroke_mm: float = 1.0) -> tuple[tuple, np.ndarra
     if d == 3:
         z = np.full((len(points), 1), 0.5 * float(tissue.scene.thickness_mm))
         points = np.hstack([points[:, :2], z])
-    held = np.zeros(tissue.rest.size, bool)
-    held[tissue.dirichlet_dofs] = True
     moved = tissue.apply_strokes(tissue.rest, np.array([stroke_mm])) - tissue.rest
     nu = float(tissue.scene.material.nu)
-    return (tissue.mesh.nodes, tissue.ops.triangles, held.reshape(-1, d), moved, tissue.element_E_kPa, nu,
-            points), points
+    return (*_reference().mesh_and_held(tissue), moved, tissue.element_E_kPa, nu, points), points
 
 
 def _lesion_errors(tissues: dict, stroke_mm: float = 1.0, mixed: bool = False) -> dict:
