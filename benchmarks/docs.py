@@ -434,16 +434,13 @@ def _goal_rows() -> list[list]:
 
     add("a 50 mm insertion in the body in 0.5 mm steps ≤ 5 s at 30k tetrahedra", "bench_body_insertion",
         body_insertion)
-    def as_accurate_goal(key: str, goal_s: float, digits: int):
-        def fn(r):
-            x = as_accurate(r)
-            return f"{fixed(x[key], digits)} s ({as_accurate_mesh(r, x)})", x[key] <= goal_s
-        return fn
+    def as_accurate_goals(r):  # the two goals set at 30k tetrahedra, on the coarsest mesh as accurate
+        x = as_accurate(r)
+        return (f"{fixed(x['push_s'], 2)} s / {fixed(x['wall_s'], 1)} s ({as_accurate_mesh(r, x)})",
+                x["push_s"] <= 1 and x["wall_s"] <= 5)
 
-    add("one equilibrium of the 3-D body from rest ≤ 1 s on the coarsest mesh as accurate (model.md §21)",
-        "bench_insertion_elements", as_accurate_goal("push_s", 1, 2))
-    add("a 50 mm insertion in the body ≤ 5 s on the coarsest mesh as accurate (model.md §21)",
-        "bench_insertion_elements", as_accurate_goal("wall_s", 5, 1))
+    add("one equilibrium from rest ≤ 1 s / a 50 mm insertion ≤ 5 s, both on the coarsest mesh as accurate instead "
+        "of at 30k tetrahedra (model.md §21)", "bench_insertion_elements", as_accurate_goals)
     add("a trial in the body with the needle, every strategy ≤ 15 s (median)", "bench_body_insertion",
         lambda r: (f"{fixed(fig(r, 'trial_median_s'), 1)} s (slowest {fixed(fig(r, 'trial_max_s'), 1)} s)",
                    fig(r, "trial_median_s") <= 15))
@@ -694,6 +691,17 @@ def _insertion_elements(r) -> str:
                 f"measured ([performance.md](performance.md#the-speed-goals)): {as_accurate_mesh(r, as_accurate(r))}. ")
     except ValueError:
         fair = f"No mesh here is within {bound:g} % on both. "
+    p1 = [x for x in rows if x["element"] == "p1"]
+    if p1:  # the accuracy the goals' 30k tetrahedra gave the element they were set for
+        at_30k = min(p1, key=lambda x: abs(x["tetrahedra"] - 30_000))
+        beside = [x for x in rows if x["element"] != "p1" and not x["reference"]
+                  and x["error_pct"] <= at_30k["error_pct"] and x["push_error_pct"] <= at_30k["push_error_pct"]]
+        if beside:
+            x = min(beside, key=lambda x: x["tetrahedra"])
+            fair += (f"As accurate as `p1` at {num(at_30k['tetrahedra'])} tetrahedra (drag "
+                     f"{fixed(at_30k['error_pct'], 1)} %, push {fixed(at_30k['push_error_pct'], 1)} % off) is "
+                     f"`{x['element']}` on {num(x['tetrahedra'])}: {case} {fixed(x['push_s'], 2)} s, the insertion "
+                     f"{fixed(x['wall_s'], 1)} s. ")
     return (table(["element", "grading", "tetrahedra", "the insertion (s)", "the lesion's drag (mm)",
                    "its end off the reference (% of the drag)", "its centre point's end off the reference's",
                    "last force (mN)", "miss (mm)", f"{case} from rest (s)",
