@@ -36,22 +36,13 @@ CONFIG = ROOT / "configs" / "example_dome.yaml"
 SEED = 0
 
 
-def one_ring(tetrahedra: np.ndarray, nodes: np.ndarray, n_nodes: int) -> sp.csr_matrix:
-    """The node graph (n, n) of `nodes` (the free ones), an entry where two share a tetrahedron (M, 4)."""
-    index = np.full(n_nodes, -1)
-    index[nodes] = np.arange(nodes.size)
-    pairs = np.array([(a, b) for a in range(4) for b in range(4)])
-    rows, cols = index[tetrahedra[:, pairs[:, 0]]].ravel(), index[tetrahedra[:, pairs[:, 1]]].ravel()
-    keep = (rows >= 0) & (cols >= 0)
-    G = sp.csr_matrix((np.ones(int(keep.sum())), (rows[keep], cols[keep])), shape=(nodes.size, nodes.size))
-    G.data[:] = 1.0
-    return G
-
-
 def mixed_pattern(G: sp.csr_matrix, per_node: int) -> tuple[sp.csr_matrix, np.ndarray]:
     """The pattern of a u–field system (3 displacements and `per_node` field unknowns per node): u–u and u–field
-    coupled over the one-ring G, the field coupled within its node only; and each unknown's node (n,)."""
+    coupled over the one-ring G (the node graph (n, n) of `p1`'s K_ff, `linear.node_graph`), the field coupled
+    within its node only; and each unknown's node (n,)."""
     n = G.shape[0]
+    G = (G + sp.identity(n)).tocsr()
+    G.data[:] = 1.0
     uu, uf = sp.kron(G, np.ones((3, 3))), sp.kron(G, np.ones((3, per_node)))
     ff = sp.kron(sp.identity(n), np.ones((per_node, per_node)))
     groups = np.concatenate([np.repeat(np.arange(n), 3), np.repeat(np.arange(n), per_node)])
@@ -91,7 +82,7 @@ def main() -> None:
     from scissor_cli.config import load_config
     from scissor_cli.experiments.build import body_model
     from scissor_cli.mechanics.body_tissue import build_body
-    from scissor_cli.solvers.linear import Factorization
+    from scissor_cli.solvers.linear import Factorization, node_graph
 
     res = results_io.Results("bench_factor_patterns")
     cfg = load_config(CONFIG)
@@ -102,14 +93,15 @@ def main() -> None:
     for scale in args.scales:
         scene, mesh, nodal = body_model(cfg, cache=ROOT / "runs" / ".mesh-cache", scale=scale)
         p1 = build_body(scene, mesh, element="p1")
-        nodes = np.unique(nodal.free_dofs // 3)
-        G = one_ring(mesh.tetrahedra, nodes, mesh.n_nodes)
-        forms = [("p1", p1.stiffness_free(p1.rest, upper=True), nodal.free_dofs // 3, "the scene's K_ff"),
-                 ("nodal", nodal.stiffness_free(nodal.rest, upper=True), nodal.free_dofs // 3, "the scene's K_ff")]
-        for name, per_node in (("u–p", 1), ("u–F̄", 9)):
-            pattern, groups = mixed_pattern(G, per_node)
+        node_of_dof = nodal.free_dofs // 3
+        K_p1 = p1.stiffness_free(p1.rest, upper=True)
+        G, _ = node_graph(K_p1, node_of_dof)
+        forms = [("p1", K_p1, node_of_dof, "the scene's K_ff"),
+                 ("nodal", nodal.stiffness_free(nodal.rest, upper=True), node_of_dof, "the scene's K_ff")]
+        patterns = {name: mixed_pattern(G, per_node) for name, per_node in (("u–p", 1), ("u–F̄", 9))}
+        for name, (pattern, groups) in patterns.items():
             forms.append((name, sp.triu(valued(pattern, rng)).tocsr(), groups, "LLᵀ on its pattern"))
-        print(f"scale {scale:g}: {mesh.n_elements} tetrahedra, {nodes.size} free nodes", flush=True)
+        print(f"scale {scale:g}: {mesh.n_elements} tetrahedra, {G.shape[0]} free nodes", flush=True)
         for name, K_upper, groups, what in forms:
             factor = Factorization(K_upper, definite=True, upper=True, ordering="nested_dissection", groups=groups)
             factor_s = timed(args.repeats, factor.refactor, K_upper)
@@ -120,8 +112,7 @@ def main() -> None:
                    "nnz_factor": int(factor.nnz_factor), "factor_s": factor_s, "solve_s": solve_s,
                    "qdldl_s": None}
             if name == "u–p":  # the quasi-definite system itself, through the LDLᵀ scissor has
-                full, _ = mixed_pattern(G, 1)
-                A = sp.triu(valued(full, rng, negative_from=3 * nodes.size)).tocsc()
+                A = sp.triu(valued(patterns[name][0], rng, negative_from=3 * G.shape[0])).tocsc()
                 solver = qdldl.Solver(A, upper=True)  # (its analysis once, as `refactor` keeps CHOLMOD's)
                 row["qdldl_s"] = timed(max(1, args.repeats // 2), solver.update, A)
             rows.append(row)

@@ -382,23 +382,31 @@ def nested_dissection(A: sp.csr_matrix, groups: np.ndarray | None = None) -> np.
     the same fill as ordering the unknowns, for a third of the time, and
     whole node blocks in the factor's supernodes.
     """
-    A = sp.csr_matrix(A)
     n = A.shape[0]
     if groups is None:
         groups = np.arange(n)
+    G, node_of = node_graph(A, groups)
+    if G.nnz == 0:
+        return np.arange(n)
+    perm = np.asarray(pymetis.nested_dissection(pymetis.CSRAdjacency(G.indptr, G.indices))[0])
+    rank = np.empty(G.shape[0], np.int64)
+    rank[perm] = np.arange(G.shape[0])
+    return np.lexsort((np.arange(n), rank[node_of]))
+
+
+def node_graph(A: sp.spmatrix, groups: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
+    """The graph of the nodes whose unknowns A (n, n) couples (its pattern, or one triangle's): the adjacency
+    (m, m) of the m distinct `groups` (n,), both triangles, no diagonal, indices sorted (METIS's input); and each
+    unknown's node (n,), 0..m-1 in the order of the group numbers."""
+    A = sp.csr_matrix(A)
     nodes, node_of = np.unique(np.asarray(groups), return_inverse=True)
     rows = np.repeat(node_of, np.diff(A.indptr))
     cols = node_of[A.indices]
     off = rows != cols
     G = sp.csr_matrix((np.ones(int(off.sum())), (rows[off], cols[off])), shape=(len(nodes), len(nodes)))
-    G = (G + G.T).tocsr()  # both triangles, the diagonal dropped: METIS's adjacency
+    G = (G + G.T).tocsr()
     G.sort_indices()
-    if G.nnz == 0:
-        return np.arange(n)
-    perm = np.asarray(pymetis.nested_dissection(pymetis.CSRAdjacency(G.indptr, G.indices))[0])
-    rank = np.empty(len(nodes), np.int64)
-    rank[perm] = np.arange(len(nodes))
-    return np.lexsort((np.arange(n), rank[node_of]))
+    return G, node_of
 
 
 def factorize_free(tissue, K_upper: sp.csr_matrix, factors: dict | None = None,
