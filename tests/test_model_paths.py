@@ -64,3 +64,36 @@ def test_loops_sharing_the_models_paths_answer_as_loops_without(body, tol):
         assert a.iterations == b.iterations > 1
         assert np.array_equal(a.final_error, b.final_error)
         assert np.array_equal(a.history_table()[1], b.history_table()[1], equal_nan=True)
+
+
+def test_loops_on_released_factorisations_answer_as_loops_on_new_ones(body, monkeypatch):
+    """A loop hands its trackers' factorisations back when it ends (`linear.release_free`): the next loop's new
+    slots refactor them instead of analysing the pattern anew, and answer bit for bit as on new ones."""
+    from scissor_cli.solvers import linear
+
+    cfg, tissue = body
+    rest = tissue.scene.targets[0].rest
+    desired = np.array(SCENE["targets"][0]["desired_mm"], float)
+    sensor = body_sensor_model(cfg, error_model(cfg.trials)).nominal(desired)
+    taken = []
+    released = linear._released
+    monkeypatch.setattr(linear, "_released", lambda *a: taken.append(released(*a)) or taken[-1])
+
+    def loop(k: int):
+        truth = control.TruthPerturbation(fiber_offset_rad=0.1 * k)
+        run = control.TargetRun(truth=truth, sensor=sensor, direction=np.array([-1.0, 0.0, 0.0]), tol=BODY_MODEL_TOL)
+        return control.run_target(tissue, rest, desired, cfg.controller, run)
+
+    tissue.factor_cache.pop("released", None)
+    loop(0)
+    assert tissue.factor_cache["released"]  # both trackers' slots, kept on the cache the truth shares
+    taken.clear()
+    on_released = loop(1)
+    assert any(f is not None for f in taken) and tissue.factor_cache["released"]
+    monkeypatch.setattr(linear, "REUSE_RELEASED", False)
+    tissue.factor_cache.pop("released")
+    on_new = loop(1)
+    assert "released" not in tissue.factor_cache
+    assert on_released.iterations == on_new.iterations > 1
+    assert np.array_equal(on_released.final_error, on_new.final_error)
+    assert np.array_equal(on_released.history_table()[1], on_new.history_table()[1], equal_nan=True)

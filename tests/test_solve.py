@@ -235,6 +235,44 @@ def test_a_new_slot_on_a_known_pattern_reuses_its_nested_dissection(monkeypatch)
         Factorization(upper, definite=True, upper=True, perm=first["free"].perm)  # (AMD takes none)
 
 
+def test_a_released_slot_is_taken_by_the_next_new_slot_of_its_pattern_only(monkeypatch):
+    """A tracker's slot handed back when its loop ends (`release_free`) becomes the next new slot of exactly its
+    pattern: refactored at the new matrix, its counts and conjugate-gradient record gone, solving exactly as a new
+    factorisation; a pattern with as many entries elsewhere gets a new one, and with reuse off nothing is kept."""
+    from types import SimpleNamespace
+
+    from scissor_cli.solvers import linear
+
+    A = _laplacian_3d(6, 0.5)
+    n = A.shape[0]
+    tissue = SimpleNamespace(factor_cache={}, dim=3, free_dofs=np.arange(n))
+    first = {}
+    f = linear.factorize_free(tissue, sp.triu(A).tocsr(), first)
+    f.stale, f.cg_rate = True, 0.5
+    linear.release_free(tissue, first)
+    assert "free" not in first and tissue.factor_cache["released"] == [f]
+    shifted = sp.triu(A + 0.3 * sp.eye(n)).tocsr()
+    second = {}
+    g = linear.factorize_free(tissue, shifted, second)
+    assert g is f and second["free"] is f and tissue.factor_cache["released"] == []
+    assert g.factorizations == 1 and not g.stale and g.cg_rate is None
+    fresh = Factorization(shifted, definite=True, upper=True, ordering="nested_dissection", perm=f.perm)
+    b = np.random.default_rng(6).random(n)
+    np.testing.assert_array_equal(g.solve(b), fresh.solve(b))
+    linear.release_free(tissue, second)
+    moved = A.tolil()
+    moved[0, 1] = moved[1, 0] = 0.0
+    moved[0, n - 1] = moved[n - 1, 0] = -0.5
+    moved = sp.triu(moved.tocsr()).tocsr()
+    moved.eliminate_zeros()
+    assert moved.nnz == shifted.nnz
+    third = {}
+    assert linear.factorize_free(tissue, moved, third) is not f
+    monkeypatch.setattr(linear, "REUSE_RELEASED", False)
+    linear.release_free(tissue, third)
+    assert "free" not in third and tissue.factor_cache["released"] == [f]
+
+
 def _laplacian_2d_blocks(m: int) -> sp.csr_matrix:
     """A 2-D grid Laplacian (m², m²) + I, each node carrying 2 unknowns (I ⊗ 2x2 SPD block): a 2-D stiffness's
     pattern."""

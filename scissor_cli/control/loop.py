@@ -61,6 +61,7 @@ from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.mesh.probe import probe_targets
 from scissor_cli.sensing.sensor import EXACT, Sensor
 from scissor_cli.solvers.common import SolverError
+from scissor_cli.solvers.linear import release_free
 
 #: A step this small (mm) towards a stroke limit the command sits at ends the loop ("stroke_limit").
 LIMIT_SLACK_MM = 1.0e-3
@@ -346,6 +347,10 @@ def run_target(model: Tissue, target_rest: np.ndarray, desired: np.ndarray, cfg:
         result.corridor_entry, result.clearance_mm = entry, clearance
         result.corridor_direction = corridor.direction
         result.corridor_clear = bool(clearance > 0)
+    for part in (plant, controller):  # done: the next loop's new trackers take their factors' analyses over
+        tracker = getattr(part, "eq", None)
+        if tracker is not None:
+            release_free(tracker.tissue, tracker.factors)
     return result
 
 

@@ -36,6 +36,13 @@ SINGLE_PRECISION_STEPS = True
 #: a solve that needed more CG iterations than this marks its factor stale: the
 #: tangent has moved away from it, so the next solve factors instead of trying
 KRYLOV_STALE_ITER = 6
+#: a slot released when its tracker is done (`release_free`) is taken by the next new slot of the same pattern:
+#: it keeps its symbolic analysis and CHOLMOD's copy of the pattern, so that slot's first factorisation is a
+#: refactorisation (each trial's trackers start new slots on the same mesh); off, every new slot analyses anew
+#: (for A/B runs: benchmarks/ab_trials.py)
+REUSE_RELEASED = True
+#: released factorisations a tissue's cache keeps (each holds its factor: tens of MB on a body)
+RELEASED_KEPT = 2
 
 
 class NotPositiveDefinite(SolverError):
@@ -125,6 +132,7 @@ class Factorization:
             upper = slice(None) if self.upper else A.indices >= row
             lower = cvxopt.spmatrix(A.data[upper], A.indices[upper].astype(int), row[upper].astype(int), (n, n))
             self._pattern, self._upper, self._lower = (A.nnz, n), upper, lower
+            self._pattern_arrays = (A.indptr.copy(), A.indices.copy())
             self._chol = self._ldl = None
             self._perm, self._given_perm = self._given_perm, None  # (given for the first pattern only)
         else:
@@ -173,6 +181,14 @@ class Factorization:
         if self.cg_rate is None or not 0.0 < self.cg_rate < 1.0:
             return 0.0
         return math.log(rtol) / math.log(self.cg_rate)
+
+    def same_pattern(self, A: sp.spmatrix) -> bool:
+        """Whether A (as given to `refactor`) has exactly this factor's pattern, entry for entry."""
+        if self._pattern is None:
+            return False
+        A = _symmetric_csr(A)
+        indptr, indices = self._pattern_arrays
+        return np.array_equal(A.indptr, indptr) and np.array_equal(A.indices, indices)
 
     def matches(self, A: sp.spmatrix) -> bool:
         """Whether A (as given to `refactor`) has the pattern's size and entry count, so the factor can
@@ -419,7 +435,9 @@ def factorize_free(tissue, K_upper: sp.csr_matrix, factors: dict | None = None,
     dissection is computed once per pattern and kept in the tissue's cache
     (shared by the tissues `Tissue.with_material` derives): each trial's
     trackers analyse the same pattern again, and METIS is most of that
-    analysis on the nodal element's wider pattern. Raises SolverError if
+    analysis on the nodal element's wider pattern. A new slot first takes a
+    slot an ended loop released of exactly its pattern (`release_free`),
+    refactored: the rest of the analysis is kept too. Raises SolverError if
     K_ff is not positive definite (Newton then projects). A 3-D tissue's
     factor is ordered by nested dissection (`Factorization`), a 2-D one's by
     AMD below ND_MIN_UNKNOWNS_2D unknowns and by nested dissection above.
@@ -427,6 +445,9 @@ def factorize_free(tissue, K_upper: sp.csr_matrix, factors: dict | None = None,
     """
     factors = tissue.factor_cache if factors is None else factors
     factor = factors.get("free")
+    if factor is None and (factor := _released(tissue, K_upper, supernodal)) is not None:
+        factors["free"] = factor
+        return factor
     if factor is None:
         large = tissue.dim == 3 or K_upper.shape[0] >= ND_MIN_UNKNOWNS_2D
         ordering = "nested_dissection" if large else "amd"
@@ -439,3 +460,27 @@ def factorize_free(tissue, K_upper: sp.csr_matrix, factors: dict | None = None,
             tissue.factor_cache[known] = factor.perm
         return factor
     return factor.refactor(K_upper)
+
+
+def release_free(tissue, factors: dict) -> None:
+    """Hand back the slot `factors["free"]` of a tracker that is done with it (its trial ended): the next new slot
+    of the same pattern on a tissue sharing `tissue`'s cache refactors it instead of analysing anew
+    (`factorize_free`, REUSE_RELEASED). The slot is emptied either way."""
+    factor = factors.pop("free", None)
+    if not REUSE_RELEASED or factor is None or factor.method != "cholesky":
+        return
+    released = tissue.factor_cache.setdefault("released", [])
+    released.append(factor)
+    del released[:-RELEASED_KEPT]
+
+
+def _released(tissue, K_upper: sp.csr_matrix, supernodal: bool) -> Factorization | None:
+    """A released factorisation (`release_free`) of K_upper's exact pattern and kind, refactored at K_upper with
+    its counts from 0 (as a new one's: what it held before is gone), or None. SolverError as `refactor`."""
+    released = tissue.factor_cache.get("released", [])
+    for i, factor in enumerate(released):
+        if factor.supernodal == supernodal and factor.same_pattern(K_upper):
+            del released[i]
+            factor.factorizations = factor.cg_iterations = 0
+            return factor.refactor(K_upper)
+    return None
