@@ -1183,14 +1183,16 @@ def _body_truth_tol(r) -> str:
 
 
 @renderer("trial_steps", "ab_trials.example_dome.tight.loose", "ab_trials.example_dome.on.off",
-          "ab_trials.example_dome.forward.central", "ab_trials.example_dome.float32.float64")
-def _trial_steps(model_tol, hessian_free, difference, precision) -> str:
+          "ab_trials.example_dome.forward.central", "ab_trials.example_dome.float32.float64",
+          "ab_trials.example_dome.reuse.new")
+def _trial_steps(model_tol, hessian_free, difference, precision, reuse) -> str:
     """benchmarks/ab_trials.py on example_dome's trials: the controller's model settled to 1e-10 against
     `BODY_MODEL_TOL` (`experiments/body_trials.py`), Newton steps with and without the assembled Hessian, the
-    forward against the central difference (`solvers/hessian_free.py`), and the steps' solves on the factor's
-    float32 copy against CHOLMOD's float64 (`solvers.linear.SINGLE_PRECISION_STEPS`)."""
+    forward against the central difference (`solvers/hessian_free.py`), the steps' solves on the factor's
+    float32 copy against CHOLMOD's float64 (`solvers.linear.SINGLE_PRECISION_STEPS`), and new trackers on the
+    last loop's released factorisations against new ones (`solvers.linear.REUSE_RELEASED`)."""
     rows = []
-    for r in (model_tol, hessian_free, difference, precision):
+    for r in (model_tol, hessian_free, difference, precision, reuse):
         for x in rows_of(r, "settings"):
             setting = ", ".join(f"`{k.rsplit('.', 1)[1]} = {v}`" for k, v in x["values"].items())
             rows.append([setting, fig(r, "trials"), f"{fixed(x['cpu_median_s'], 1)} s ({fixed(x['cpu_min_s'], 1)}–"
@@ -1203,7 +1205,7 @@ def _trial_steps(model_tol, hessian_free, difference, precision) -> str:
             + "\n\nEach pair replays the same trials of configs/example_dome.yaml (half per target) in one process, "
               "the settings in turn, each round on a trial context built anew (the controller model's states solved "
               "again, as a run's worker solves them).\n\n"
-            + source(model_tol, hessian_free, difference, precision))
+            + source(model_tol, hessian_free, difference, precision, reuse))
 
 
 @renderer("body_insertion", "bench_body_insertion")
