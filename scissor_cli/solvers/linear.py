@@ -476,11 +476,17 @@ def release_free(tissue, factors: dict) -> None:
 
 def _released(tissue, K_upper: sp.csr_matrix, supernodal: bool) -> Factorization | None:
     """A released factorisation (`release_free`) of K_upper's exact pattern and kind, refactored at K_upper with
-    its counts from 0 (as a new one's: what it held before is gone), or None. SolverError as `refactor`."""
+    its counts from 0 (as a new one's: what it held before is gone), or None. SolverError as `refactor`.
+    Each is taken off the list before it is looked at (`list.pop` is atomic), so trials on threads sharing a
+    tissue never take the same one."""
     released = tissue.factor_cache.get("released", [])
-    for i, factor in enumerate(released):
+    for _ in range(len(released)):
+        try:
+            factor = released.pop(0)
+        except IndexError:  # (another thread took the last one)
+            return None
         if factor.supernodal == supernodal and factor.same_pattern(K_upper):
-            del released[i]
             factor.factorizations = factor.cg_iterations = 0
             return factor.refactor(K_upper)
+        released.append(factor)
     return None
