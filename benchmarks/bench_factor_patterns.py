@@ -22,7 +22,7 @@ scene's own K_ff at rest. qdldl, the indefinite LDLᵀ scissor has (simplicial),
 from __future__ import annotations
 
 import argparse
-import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -60,16 +60,6 @@ def valued(pattern: sp.csr_matrix, rng: np.random.Generator, negative_from: int 
     return (A + A.T + sp.diags(diagonal)).tocsr()
 
 
-def timed(repeats: int, call, *args) -> float:
-    """The median wall time (s) of `call(*args)` over `repeats`."""
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        call(*args)
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scales", type=float, nargs="+", default=[1.0, 0.7],
@@ -104,9 +94,9 @@ def main() -> None:
         print(f"scale {scale:g}: {mesh.n_elements} tetrahedra, {G.shape[0]} free nodes", flush=True)
         for name, K_upper, groups, what in forms:
             factor = Factorization(K_upper, definite=True, upper=True, ordering="nested_dissection", groups=groups)
-            factor_s = timed(args.repeats, factor.refactor, K_upper)
+            factor_s = results_io.median_s(partial(factor.refactor, K_upper), args.repeats)
             b = rng.standard_normal(K_upper.shape[0])
-            solve_s = timed(args.repeats, factor.solve, b)
+            solve_s = results_io.median_s(partial(factor.solve, b), args.repeats)
             row = {"scale": scale, "tetrahedra": int(mesh.n_elements), "form": name, "matrix": what,
                    "unknowns": int(K_upper.shape[0]), "nnz_upper": int(K_upper.nnz),
                    "nnz_factor": int(factor.nnz_factor), "factor_s": factor_s, "solve_s": solve_s,
@@ -114,7 +104,7 @@ def main() -> None:
             if name == "u–p":  # the quasi-definite system itself, through the LDLᵀ scissor has
                 A = sp.triu(valued(patterns[name][0], rng, negative_from=3 * G.shape[0])).tocsc()
                 solver = qdldl.Solver(A, upper=True)  # (its analysis once, as `refactor` keeps CHOLMOD's)
-                row["qdldl_s"] = timed(max(1, args.repeats // 2), solver.update, A)
+                row["qdldl_s"] = results_io.median_s(partial(solver.update, A), max(1, args.repeats // 2))
             rows.append(row)
             print(f"  {name} ({what}): {row['unknowns']} unknowns, factor {row['nnz_factor'] / 1e6:.2f} M, "
                   f"factorisation {1e3 * factor_s:.1f} ms, solve {1e3 * solve_s:.2f} ms"

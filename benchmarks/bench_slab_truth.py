@@ -57,15 +57,6 @@ class Printer(progress.SilentReporter):
         print(message, flush=True)
 
 
-def median_s(f, repeats: int = 5) -> float:
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        f()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
-
-
 def kernels(slab) -> dict:
     x = slab.rest * 1.01
     compiled3d.element_stiffness(slab.ops, slab.params, x, False)  # compile (cached on disk after the first run)
@@ -79,20 +70,21 @@ def kernels(slab) -> dict:
         P = materials.evaluate(F, slab.params, order=1)[1]
         fem.scatter_vector(slab.ops, fem.element_forces(slab.ops, P))
 
-    out = {"gradient_numpy_s": median_s(numpy_gradient),
-           "gradient_compiled_s": median_s(lambda: compiled3d.energy_gradient(slab.ops, slab.params, x))}
+    out = {"gradient_numpy_s": results_io.median_s(numpy_gradient),
+           "gradient_compiled_s": results_io.median_s(lambda: compiled3d.energy_gradient(slab.ops, slab.params, x))}
     print(f"  gradient: numpy {out['gradient_numpy_s']:.3f} s, compiled {out['gradient_compiled_s']:.3f} s")
-    out["stiffness_numpy_s"] = median_s(numpy_stiffness)
-    out["stiffness_compiled_s"] = median_s(lambda: compiled3d.element_stiffness(slab.ops, slab.params, x, False))
-    out["kff_assembled_s"] = median_s(lambda: slab.stiffness_free(x, upper=True))
+    out["stiffness_numpy_s"] = results_io.median_s(numpy_stiffness)
+    out["stiffness_compiled_s"] = results_io.median_s(
+        lambda: compiled3d.element_stiffness(slab.ops, slab.params, x, False))
+    out["kff_assembled_s"] = results_io.median_s(lambda: slab.stiffness_free(x, upper=True))
     print(f"  element stiffness: numpy {out['stiffness_numpy_s']:.3f} s, compiled "
           f"{out['stiffness_compiled_s']:.3f} s; K_ff assembled {out['kff_assembled_s']:.3f} s")
     K = slab.stiffness_free(slab.rest, upper=True)
     slot: dict = {}
     factor = factorize_free(slab, K, slot)
     b = np.ones(K.shape[0])
-    out["refactorisation_s"] = median_s(lambda: factorize_free(slab, K, slot), 3)
-    out["solve_s"] = median_s(lambda: factor.solve(b), 7)
+    out["refactorisation_s"] = results_io.median_s(lambda: factorize_free(slab, K, slot), 3)
+    out["solve_s"] = results_io.median_s(lambda: factor.solve(b), 7)
     print(f"  CHOLMOD refactorisation {out['refactorisation_s']:.2f} s, solve {out['solve_s'] * 1e3:.0f} ms")
     return out
 

@@ -23,6 +23,7 @@ import math
 import os
 import platform
 import shlex
+import statistics
 import subprocess
 import sys
 import time
@@ -152,6 +153,16 @@ class Results:
         self.path.write_text(json.dumps(self.record, indent=1, allow_nan=False) + "\n")
         print(f"results: {self.path.relative_to(ROOT)}", file=sys.stderr)
         return self.path
+
+
+def median_s(call, repeats: int = 5) -> float:
+    """The median wall time (s) of `call()` over `repeats` calls: what a benchmark quotes of a repeated step."""
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        call()
+        times.append(time.perf_counter() - t0)
+    return float(statistics.median(times))
 
 
 def read(name: str) -> dict:
