@@ -778,6 +778,19 @@ def _cup_springs(r) -> str:
               "cup would put it, k = E / t per mm² of its share of the skin. " + source(r))
 
 
+@renderer("continuation", "bench_continuation")
+def _continuation(r) -> str:
+    rows = rows_of(r, "settings")
+    out = [[f"{x['step_fraction']:g}" + (" (default)" if x["default"] else ""), f"{x['substep_tol']:g}",
+            fixed(x["wall_s"], 2), str(x["iterations"]), str(x["factorizations"]), str(x["substeps"]),
+            num(x["off_reference_mm"])] for x in rows]
+    return (table(["STEP_FRACTION", "SUBSTEP_TOL", "push10 from rest (s)", "Newton iterations", "factorisations",
+                   "load substeps", "off the answer to 1e-10 (mm)"], out)
+            + f"\n\nconfigs/example_dome.yaml ({num(fig(r, 'tetrahedra'))} tetrahedra, `{r['data']['element']}`), "
+              "its cup pushed 10 mm from rest, Newton to 1e-8; the time is the median of the repeats, each "
+              "starting with the factorisation the last one left (as `bench_body` times it). " + source(r))
+
+
 @renderer("factor_patterns", "bench_factor_patterns")
 def _factor_patterns(r) -> str:
     rows = rows_of(r, "forms")
