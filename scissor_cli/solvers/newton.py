@@ -48,7 +48,7 @@ MAX_EXTRAPOLATION = 64.0
 #: an intermediate load step goes this far towards the first inverted element
 STEP_FRACTION = 0.7
 #: and is solved to this relative residual only
-SUBSTEP_TOL = 1e-4
+SUBSTEP_TOL = 1e-3
 #: a load step below this fraction of the remaining increment ends the continuation: the path has met a stroke
 #: where an element inverts whatever the path (the feasible fraction then shrinks about 3× a step, and each step
 #: is a Newton solve at a nearly singular state), not a detour it can go round
