@@ -1,4 +1,4 @@
-"""The load continuation's two settings on the body's hardest move (docs/model.md §4, "Large strokes"); a
+"""The load continuation's two settings on the body's hardest move (docs/model.md §4, "Load continuation"); a
 measurement, not a test.
 
 A solve from rest takes the tangent predictor's step as far as STEP_FRACTION of the way to its first inverted
@@ -15,7 +15,6 @@ substeps, and how far the answer lies from the default settings' solved to 1e-10
 from __future__ import annotations
 
 import argparse
-import re
 import statistics
 import time
 from pathlib import Path
@@ -28,12 +27,6 @@ from scissor_cli import runtime
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "example_dome.yaml"
 PUSH_MM = 10.0
-
-
-def _substeps(message: str) -> int:
-    """The load substeps `solve_newton` reports in its message ("converged with N load substeps")."""
-    found = re.search(r"(\d+) load substeps", message)
-    return int(found.group(1)) if found else 0
 
 
 def main() -> None:
@@ -70,7 +63,7 @@ def main() -> None:
                     times.append(time.perf_counter() - t0)
                 row = {"step_fraction": fraction, "substep_tol": substep_tol, "wall_s": statistics.median(times),
                        "iterations": r.iterations, "factorizations": r.factorizations,
-                       "substeps": _substeps(r.message), "off_reference_mm": float(np.max(np.linalg.norm(
+                       "substeps": r.substeps, "off_reference_mm": float(np.max(np.linalg.norm(
                            r.x - reference, axis=1))), "default": (fraction, substep_tol) == defaults}
                 rows.append(row)
                 print(f"fraction {fraction:g}, substep tol {substep_tol:g}: {row['wall_s']:.2f} s, "

@@ -20,7 +20,6 @@ push along the cup's axis, and each lesion's move against the rigid cup's.
 from __future__ import annotations
 
 import argparse
-import re
 import tempfile
 import time
 from pathlib import Path
@@ -34,12 +33,6 @@ ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "example_dome.yaml"
 STROKE_MM = 10.0
 TOL = 1e-8
-
-
-def _substeps(message: str) -> int:
-    """The load substeps `solve_newton` reports in its message ("converged with N load substeps")."""
-    found = re.search(r"(\d+) load substeps", message)
-    return int(found.group(1)) if found else 0
 
 
 def main() -> None:
@@ -112,7 +105,7 @@ def main() -> None:
         rigid_moves = moves if rigid_moves is None else rigid_moves
         push = (r.x[patch] - mesh.nodes[patch]) @ axis
         row = {"hold": hold, "thickness_mm": thickness, "k_mN_per_mm3": k, "wall_s": wall_s,
-               "iterations": r.iterations, "factorizations": r.factorizations, "substeps": _substeps(r.message),
+               "iterations": r.iterations, "factorizations": r.factorizations, "substeps": r.substeps,
                "min_J": float(np.min(rigid.jacobians(r.x))), "patch_push_mm": float(push.mean()),
                "patch_push_min_mm": float(push.min()),
                **{f"move_{t.name}_mm": float(m) for t, m in zip(scene.targets, moves)}}

@@ -6,6 +6,7 @@ import pytest
 from scissor_cli.config import load_config
 from scissor_cli.experiments.simulate import build_model
 from scissor_cli.mesh.mesh import interpolate, locate
+from scissor_cli.solvers import newton
 from scissor_cli.solvers.common import SolverError
 from scissor_cli.solvers.newton import solve_newton
 
@@ -91,6 +92,18 @@ def test_hard_cases_converge_or_fail_clearly(example, name, update, stroke):
         assert exc.result is None or np.all(np.isfinite(exc.result.x))
         pytest.fail(f"{name}: {exc}")  # on these small meshes we expect convergence
     assert r.converged and np.all(np.isfinite(r.x)) and tissue.jacobians(r.x).min() > 0
+
+
+def test_load_substeps_are_counted_and_settled_loosely_to_the_same_equilibrium(example, monkeypatch):
+    """A push the tangent predictor cannot take in one step goes in load substeps (SolveResult.substeps, as
+    its message says); settling them tighter than SUBSTEP_TOL gives the same equilibrium."""
+    _, _, tissue = build_model(example, mesh_scale=2.0)
+    r = solve_newton(tissue, np.array([20.0]))
+    assert r.converged and r.substeps >= 1 and f"{r.substeps} load substeps" in r.message
+    monkeypatch.setattr(newton, "SUBSTEP_TOL", 1e-8)
+    tight = solve_newton(tissue, np.array([20.0]))
+    assert tight.converged and np.max(np.abs(tight.x - r.x)) < 1e-6
+    assert solve_newton(tissue, np.array([5.0])).substeps == 0
 
 
 def test_inverted_start_guess_is_replaced(example):

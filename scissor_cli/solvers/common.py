@@ -129,6 +129,8 @@ class SolveResult:
     history: list[float] = field(default_factory=list)
     #: sparse factorisations the solve made (numeric refactorisations included)
     factorizations: int = 0
+    #: load substeps the continuation took before the final solve (`newton.solve_newton`; 0 otherwise)
+    substeps: int = 0
 
     def displacement(self, rest: np.ndarray) -> np.ndarray:
         return self.x - rest
