@@ -15,8 +15,6 @@ substeps, and how far the answer lies from the default settings' solved to 1e-10
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 from pathlib import Path
 
 import numpy as np
@@ -56,12 +54,11 @@ def main() -> None:
             for substep_tol in args.substep_tols:
                 newton.STEP_FRACTION, newton.SUBSTEP_TOL = fraction, substep_tol
                 solve_equilibrium(tissue, push, tol=1e-8)  # warm-up: each setting starts as the repeats do
-                times = []
-                for _ in range(args.repeats):
-                    t0 = time.perf_counter()
-                    r = solve_equilibrium(tissue, push, tol=1e-8)
-                    times.append(time.perf_counter() - t0)
-                row = {"step_fraction": fraction, "substep_tol": substep_tol, "wall_s": statistics.median(times),
+                solved = []
+                wall_s = results_io.median_s(
+                    lambda solved=solved: solved.append(solve_equilibrium(tissue, push, tol=1e-8)), args.repeats)
+                r = solved[-1]
+                row = {"step_fraction": fraction, "substep_tol": substep_tol, "wall_s": wall_s,
                        "iterations": r.iterations, "factorizations": r.factorizations,
                        "substeps": r.substeps, "off_reference_mm": float(np.max(np.linalg.norm(
                            r.x - reference, axis=1))), "default": (fraction, substep_tol) == defaults}
