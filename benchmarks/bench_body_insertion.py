@@ -55,6 +55,18 @@ CHECK_EVERY = 10
 TOLERANCES = (1e-6, 1e-5, 1e-4, 3e-4, 1e-3)
 #: trials per lesion of the timed trials with the needle
 TRIALS = 2
+#: the needle's axis through a lesion: along −x, entering on the +x side (example_dome's `needle.direction`)
+AXIS = np.array([-1.0, 0.0, 0.0])
+
+
+def lesion_path(mesh, lesion, depth_mm: float):
+    """The `NeedlePath` through `lesion`'s rest position along AXIS from where that line enters the body's skin,
+    depth_mm deep (scissor's modules imported here: the caller has run `runtime.configure`)."""
+    from scissor_cli.insertion import NeedlePath
+    from scissor_cli.planning.body_lines import skin_entries
+    entries, _, _ = skin_entries(mesh.nodes, mesh.boundary_triangles, np.zeros(len(mesh.boundary_triangles), bool),
+                                 lesion.rest, AXIS[None])
+    return NeedlePath(entries[0], AXIS, depth_mm, lesion.rest, lesion.name)
 
 
 def trial_times(cfg_data: dict) -> tuple[list[dict], list[str]]:
@@ -119,9 +131,8 @@ def main() -> None:
     from scissor_cli.config.body_sections import BodyMeshConfig
     from scissor_cli.config.sections import InsertionConfig
     from scissor_cli.experiments.build import body_model
-    from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_strategies
+    from scissor_cli.insertion import InsertionOptions, NeedleParams, run_strategies
     from scissor_cli.insertion.points import needle_points
-    from scissor_cli.planning.body_lines import skin_entries
     from scissor_cli.solvers.equilibrium import solve_equilibrium
     variant = ".".join([args.element or BodyMeshConfig().element]
                        + ([f"grading-{args.grading:g}"] if args.grading is not None else []))
@@ -132,14 +143,11 @@ def main() -> None:
     scene, mesh, tissue = body_model(cfg)
     params = NeedleParams.from_config(InsertionConfig(step_mm=args.step_mm), cfg.needle, cfg.tissue.mesh)
     lesion = scene.targets[0]
-    n = np.array([-1.0, 0.0, 0.0])
-    entries, _, _ = skin_entries(mesh.nodes, mesh.boundary_triangles, np.zeros(len(mesh.boundary_triangles), bool),
-                                 lesion.rest, n[None])
     strokes = np.zeros(len(scene.cups))
     x0 = solve_equilibrium(tissue, strokes).x
-    path = NeedlePath(entries[0], n, args.depth_mm, lesion.rest, lesion.name)
-    print(f"{cfg.name}: {mesh.n_elements} tetrahedra; {lesion.name} from {np.round(entries[0], 1).tolist()} along "
-          f"{n.tolist()}, {args.depth_mm:g} mm in {args.step_mm:g} mm steps", flush=True)
+    path = lesion_path(mesh, lesion, args.depth_mm)
+    print(f"{cfg.name}: {mesh.n_elements} tetrahedra; {lesion.name} from {np.round(path.entry, 1).tolist()} along "
+          f"{AXIS.tolist()}, {args.depth_mm:g} mm in {args.step_mm:g} mm steps", flush=True)
     res.figure("tetrahedra", mesh.n_elements, "1")
 
     def insert(strategy, p, record=None):

@@ -1,4 +1,5 @@
-"""Speed of the needle insertion in the 3-D slab (docs/model.md §14; docs/performance.md, "Needle in the slab (§14)").
+"""Speed of the needle insertion in 3-D: the slab (docs/model.md §14; docs/performance.md, "Needle in the slab (§14)")
+or a body (§20; docs/performance-elements.md, "Where an insertion step goes").
 
 Not a timed test.
 
@@ -7,7 +8,7 @@ The scene's `layer_check` slab (default: configs/example_full.yaml's,
 slab's equilibrium at the plan's strokes, along the plan's entry and
 direction lifted to the layer's height (strategy `none`):
 
-* the whole insertion (default 50 mm in 0.5 mm steps; target ≤ 30 s), the
+* the whole insertion (default 50 mm in 0.5 mm steps; the slab's goal ≤ 30 s), the
   median of the repeats, and one step's median;
 * the factorisations, active-set passes and chord steps per step, the
   captured nodes at the end and the final miss (the evidence that holds
@@ -32,8 +33,15 @@ The slab is the one `scissor simulate` would use: with `layer_check.accuracy_mm`
 (0.1 mm by default) the ladder's pick (cached beside runs/); --configured
 benches the configured slab.
 
+A body's config (e.g. configs/example_dome.yaml) benches its body instead,
+at rest, the needle through its first lesion from the skin as
+bench_body_insertion.py inserts it (`lesion_path`; §12's needle–tissue
+defaults): the same measurements, the same step against its floor, on the
+body's element; variant: the config's stem.
+
     PYTHONPATH=. python benchmarks/bench_insertion3d.py [CONFIG.yaml] [--depth MM] [--repeats K] [--configured]
         [--loop [--run DIR]]
+    PYTHONPATH=. python benchmarks/bench_insertion3d.py configs/example_dome.yaml
 
 The machine has 2 cores and other work may share them: the numbers are
 wall-clock medians, printed with the load average and the CPU time.
@@ -49,7 +57,8 @@ from types import SimpleNamespace
 
 import h5py
 import numpy as np
-from bench_insertion import (  # the layer's benchmark's load line and plan (this directory is on sys.path)
+from bench_body_insertion import lesion_path  # the body's needle path (this directory is on sys.path)
+from bench_insertion import (  # the layer's benchmark's load line and plan
     _load,
     first_plan,
 )
@@ -60,7 +69,9 @@ runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_
 import results_io  # noqa: E402
 
 from scissor_cli.config import load_config, parse_config  # noqa: E402
-from scissor_cli.experiments.build import build_model  # noqa: E402
+from scissor_cli.config.body_sections import BodyConfig  # noqa: E402
+from scissor_cli.config.sections import InsertionConfig  # noqa: E402
+from scissor_cli.experiments.build import body_model, build_model  # noqa: E402
 from scissor_cli.experiments.layer_check_stage import slab_resolution_stage  # noqa: E402
 from scissor_cli.experiments.run_cache import CACHE_DIR  # noqa: E402
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, miss_and_depth_error, run_insertion  # noqa: E402
@@ -74,6 +85,8 @@ from scissor_cli.layer3d.check import slab_spec  # noqa: E402
 from scissor_cli.layer3d.slab import build_slab, slab_probe  # noqa: E402
 from scissor_cli.layer3d.truth import SLAB_TRUTH_TOL  # noqa: E402
 from scissor_cli.mechanics.tissue import Tissue  # noqa: E402
+from scissor_cli.mesh.probe import target_positions  # noqa: E402
+from scissor_cli.solvers.equilibrium import solve_equilibrium  # noqa: E402
 from scissor_cli.solvers.linear import Factorization, factorize_free  # noqa: E402
 from scissor_cli.solvers.newton import solve_newton  # noqa: E402
 from scissor_cli.solvers.supernodal import SupernodalFactor  # noqa: E402
@@ -102,38 +115,20 @@ def main() -> None:
         "configured" if args.configured else None, "loop" if args.loop else None,
         f"run-{args.run.name}" if args.run else None) if p) or None)
     cfg = load_config(args.config) if args.run is None else _run_config(args.run)
-    if cfg.layer_check is not None and cfg.layer_check.accuracy_mm is not None and not args.configured:
-        cfg = slab_resolution_stage(cfg, ROOT / "runs" / CACHE_DIR)[0]
-    if cfg.insertion is None or cfg.layer_check is None:
-        raise SystemExit(f"{args.config}: needs an insertion and a layer_check section")
-    scene, mesh, tissue = build_model(cfg)
-    t0 = time.perf_counter()
-    slab = build_slab(scene, mesh, slab_spec(cfg.layer_check, cfg.tissue.mesh), model=tissue.params.model)
-    build_s = time.perf_counter() - t0
-    params = NeedleParams.from_config(cfg.insertion, cfg.needle, cfg.tissue.mesh)
-    table = None
-    if args.run is not None:
-        plan, target, table = _from_run(args.run, scene)
+    if isinstance(cfg, BodyConfig):
+        if args.loop or args.configured:
+            raise SystemExit(f"{args.config}: --loop and --configured are the slab's")
+        case = _body_case(cfg, args)
     else:
-        plan, target = first_plan(tissue, scene, cfg.needle)
-    t0 = time.perf_counter()
-    x0 = solve_newton(slab, plan.strokes, tol=SLAB_TRUTH_TOL).x
-    settle_s = time.perf_counter() - t0
-    z = slab.mesh.levels_mm[slab.mesh.layer_level]
-    entry, axis = np.append(plan.entry, z), np.append(plan.direction, 0.0)
-    probe = slab_probe(slab, target.rest[None])
-    print(f"{cfg.name}: slab {slab.mesh.n_nodes} nodes, {slab.mesh.n_elements} tetrahedra, "
-          f"{slab.free_dofs.size} free dofs (built in {build_s:.1f} s, nominal equilibrium {settle_s:.1f} s); "
-          f"target {target.name}, {plan.side} entry; f_s {params.friction_static_mN_per_mm:g}, "
-          f"f_k {params.friction_kinetic_mN_per_mm:g} mN/mm, F_tip {params.tip_force_mN:g} mN, "
-          f"capture radius {params.capture_radius_mm:g} mm")
+        case = _slab_case(cfg, args)
+    slab, x0, strokes, entry, axis, probe, params = (case.tissue, case.x0, case.strokes, case.entry, case.axis,
+                                                     case.probe, case.params)
     print(f"load average {_load()}")
-    res.data("scene", {"config": cfg.name, "nodes": slab.mesh.n_nodes, "tetrahedra": slab.mesh.n_elements,
-                       "free_dofs": int(slab.free_dofs.size), "build_s": build_s, "nominal_equilibrium_s": settle_s,
-                       "target": target.name, "entry": plan.side, "depth_mm": args.depth, "step_mm": args.step,
+    res.data("scene", {**case.scene, "nodes": slab.mesh.n_nodes, "tetrahedra": slab.mesh.n_elements,
+                       "free_dofs": int(slab.free_dofs.size), "depth_mm": args.depth, "step_mm": args.step,
                        "repeats": args.repeats})
     if args.loop:
-        res.table("loop", _loop_runs(cfg, slab, x0, plan, target, params, entry, axis, table),
+        res.table("loop", _loop_runs(cfg, slab, x0, case.plan, case.target, params, entry, axis, case.table),
                   {"wall_s": "s", "miss_mm": "mm", "moved_s": "s", "unmoved_s": "s"})
         res.write()
         return
@@ -149,7 +144,7 @@ def main() -> None:
             with _in_situ() as spent:
                 while state.depth_mm < args.depth - 1e-9:
                     t0 = time.perf_counter()
-                    out = advance(slab, state, x, plan.strokes, min(args.step, args.depth - state.depth_mm), params,
+                    out = advance(slab, state, x, strokes, min(args.step, args.depth - state.depth_mm), params,
                                   cand)
                     step_times.append(time.perf_counter() - t0)
                     r["counts"].append((out.factorizations, out.passes, out.iterations))
@@ -177,6 +172,59 @@ def main() -> None:
     res.write()
 
 
+def _slab_case(cfg, args) -> SimpleNamespace:
+    """The scene's `layer_check` slab (accuracy_mm's pick unless --configured) at the first plan's strokes, the
+    needle along that plan lifted to the layer's height (with --run, the run's plan and needle model)."""
+    if cfg.layer_check is not None and cfg.layer_check.accuracy_mm is not None and not args.configured:
+        cfg = slab_resolution_stage(cfg, ROOT / "runs" / CACHE_DIR)[0]
+    if cfg.insertion is None or cfg.layer_check is None:
+        raise SystemExit(f"{args.config}: needs an insertion and a layer_check section")
+    scene, mesh, tissue = build_model(cfg)
+    t0 = time.perf_counter()
+    slab = build_slab(scene, mesh, slab_spec(cfg.layer_check, cfg.tissue.mesh), model=tissue.params.model)
+    build_s = time.perf_counter() - t0
+    params = NeedleParams.from_config(cfg.insertion, cfg.needle, cfg.tissue.mesh)
+    table = None
+    if args.run is not None:
+        plan, target, table = _from_run(args.run, scene)
+    else:
+        plan, target = first_plan(tissue, scene, cfg.needle)
+    t0 = time.perf_counter()
+    x0 = solve_newton(slab, plan.strokes, tol=SLAB_TRUTH_TOL).x
+    settle_s = time.perf_counter() - t0
+    z = slab.mesh.levels_mm[slab.mesh.layer_level]
+    print(f"{cfg.name}: slab {slab.mesh.n_nodes} nodes, {slab.mesh.n_elements} tetrahedra, "
+          f"{slab.free_dofs.size} free dofs (built in {build_s:.1f} s, nominal equilibrium {settle_s:.1f} s); "
+          f"target {target.name}, {plan.side} entry; f_s {params.friction_static_mN_per_mm:g}, "
+          f"f_k {params.friction_kinetic_mN_per_mm:g} mN/mm, F_tip {params.tip_force_mN:g} mN, "
+          f"capture radius {params.capture_radius_mm:g} mm")
+    return SimpleNamespace(
+        tissue=slab, x0=x0, strokes=plan.strokes, entry=np.append(plan.entry, z), axis=np.append(plan.direction, 0.0),
+        probe=slab_probe(slab, target.rest[None]), params=params, plan=plan, target=target, table=table,
+        scene={"kind": "slab", "config": cfg.name, "build_s": build_s, "nominal_equilibrium_s": settle_s,
+               "target": target.name, "entry": plan.side, "element": slab.element.name})
+
+
+def _body_case(cfg, args) -> SimpleNamespace:
+    """A 3-D body at rest (docs/model.md §19), the needle through its first lesion as bench_body_insertion.py
+    inserts it (`lesion_path`), §12's needle–tissue defaults; the lesion is its region's mean."""
+    scene, mesh, tissue = body_model(cfg)
+    params = NeedleParams.from_config(InsertionConfig(step_mm=args.step), cfg.needle, cfg.tissue.mesh)
+    lesion, strokes = scene.targets[0], np.zeros(len(scene.cups))
+    t0 = time.perf_counter()
+    x0 = solve_equilibrium(tissue, strokes).x
+    settle_s = time.perf_counter() - t0
+    path = lesion_path(mesh, lesion, args.depth)
+    lesion_probe = tissue.probe(lesion.rest[None])
+    print(f"{cfg.name}: body {mesh.n_nodes} nodes, {mesh.n_elements} tetrahedra (`{tissue.element.name}`), "
+          f"{tissue.free_dofs.size} free dofs; lesion {lesion.name} along {path.direction.tolist()} from the skin")
+    return SimpleNamespace(
+        tissue=tissue, x0=x0, strokes=strokes, entry=path.entry, axis=path.direction,
+        probe=SimpleNamespace(positions=lambda x: target_positions(lesion_probe, x)), params=params,
+        scene={"kind": "body", "config": cfg.name, "nominal_equilibrium_s": settle_s, "target": lesion.name,
+               "entry": "skin", "element": tissue.element.name})
+
+
 def _report(args, precision, r, probe, entry, axis, kernels) -> dict:
     """One precision's insertion: a step's time, the whole, the counts, the miss, and the step against its floor."""
     t = np.array(r["times"]) * 1e3
@@ -186,7 +234,7 @@ def _report(args, precision, r, probe, entry, axis, kernels) -> dict:
     print(f"{precision} factor — one step ({args.step:g} mm): median {np.median(t):.0f} ms (min {t.min():.0f}, "
           f"max {t.max():.0f})")
     print(f"  {args.depth:g} mm in {args.step:g} mm steps: {np.median(totals):.1f} s, median of {args.repeats} "
-          f"(min {min(totals):.1f}; target ≤ 30 s); CPU time {np.median(r['cpu']):.1f} s")
+          f"(min {min(totals):.1f}; the slab's goal ≤ 30 s); CPU time {np.median(r['cpu']):.1f} s")
     print(f"  per step: {f.mean():.2f} factorisations ({f.sum() // args.repeats} per run), {p.mean():.1f} active-set "
           f"passes, {k.mean():.1f} chord steps; at the end {state.captured.size} captured "
           f"({int(state.stuck.sum())} stuck), needle force {out.force_mN:.1f} mN, miss {miss:.3f} mm, "

@@ -36,14 +36,14 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import results_io  # noqa: E402
+from bench_body_insertion import lesion_path  # noqa: E402
 
 from scissor_cli import runtime  # noqa: E402
 from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.config.sections import InsertionConfig  # noqa: E402
 from scissor_cli.experiments.build import body_model  # noqa: E402
-from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_strategies  # noqa: E402
+from scissor_cli.insertion import InsertionOptions, NeedleParams, run_strategies  # noqa: E402
 from scissor_cli.mesh.probe import target_positions  # noqa: E402
-from scissor_cli.planning.body_lines import skin_entries  # noqa: E402
 from scissor_cli.solvers.equilibrium import solve_equilibrium  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -69,12 +69,10 @@ def insertion(element: str, grading: float, scale: float, repeats: int) -> dict:
     cfg = cfg.model_copy(update={"tissue": cfg.tissue.model_copy(update={"mesh": mesh_cfg})})
     scene, mesh, tissue = body_model(cfg, cache=ROOT / "runs" / ".mesh-cache", scale=scale)
     params = NeedleParams.from_config(InsertionConfig(step_mm=STEP_MM), cfg.needle, cfg.tissue.mesh)
-    lesion, n = scene.targets[0], np.array([-1.0, 0.0, 0.0])
-    entries, _, _ = skin_entries(mesh.nodes, mesh.boundary_triangles, np.zeros(len(mesh.boundary_triangles), bool),
-                                 lesion.rest, n[None])
+    lesion = scene.targets[0]
     strokes = np.zeros(len(scene.cups))
     x0 = solve_equilibrium(tissue, strokes).x
-    path = NeedlePath(entries[0], n, DEPTH_MM, lesion.rest, lesion.name)
+    path = lesion_path(mesh, lesion, DEPTH_MM)
     centre = tissue.element.probe(tissue.rest, lesion.rest[None])  # the lesion's centre point (the former probe)
     walls, r = [], None
     for _ in range(repeats):

@@ -99,6 +99,7 @@ COMMANDS = {
     "bench_trials": "python3 benchmarks/bench_trials.py",
     "bench_insertion": "python3 benchmarks/bench_insertion.py",
     "bench_insertion3d": "python3 benchmarks/bench_insertion3d.py",
+    "bench_insertion3d.example_dome": "python3 benchmarks/bench_insertion3d.py configs/example_dome.yaml",
     "bench_needle_3d": "python3 benchmarks/bench_needle_3d.py",
     "bench_needle_3d.full": "python3 benchmarks/bench_needle_3d.py --full",
     "bench_slab": "python3 benchmarks/bench_slab.py",
@@ -1521,18 +1522,34 @@ def _ladder(r) -> str:
 
 @renderer("insertion3d", "bench_insertion3d")
 def _insertion3d(r) -> str:
+    return _insertion3d_table(r)
+
+
+@renderer("insertion3d_body", "bench_insertion3d.example_dome")
+def _insertion3d_body(r) -> str:
+    return _insertion3d_table(r)
+
+
+def _insertion3d_table(r) -> str:
+    """bench_insertion3d's table on the slab or on a body (`data.scene.kind`)."""
     s = r["data"]["scene"]
     out = [[x["precision"], f"{fixed(x['insertion_s'], 1)} s", f"{fixed(x['step_median_ms'], 0)} ms",
             f"{fixed(x['factorisations_per_step'], 2)}, {fixed(x['passes_per_step'], 1)}, "
             f"{fixed(x['chord_steps_per_step'], 1)}",
             f"{fixed(x['gradient_ms'], 1)} + {fixed(x['solve_ms'], 1)} ms; {fixed(x['floor_ms'], 0)} ms",
+            f"{fixed(x['step_mean_ms'], 0)} ms",
             f"{x['captured']} ({x['stuck']} stuck), {fixed(x['force_mN'], 0)} mN", f"{fixed(x['miss_mm'], 3)} mm"]
            for x in rows_of(r, "precisions")]
+    if s.get("kind") == "body":
+        what = (f"The body: {s['config']}'s, {num(s['tetrahedra'])} tetrahedra (`{s['element']}`), "
+                f"{num(s['free_dofs'])} free dofs, at rest; lesion {s['target']} from the skin, strategy `none`")
+    else:
+        what = (f"The slab: {s['config']}'s, {num(s['tetrahedra'])} tetrahedra, {num(s['free_dofs'])} free dofs; "
+                f"target {s['target']}, strategy `none`")
     return (table(["kept factor", f"{num(s['depth_mm'])} mm, median of {s['repeats']}", "a step (median)",
                    "per step: factorisations, passes, chord steps", "gradient + solve; a step's floor",
-                   "captured at the end, force", "miss"], out)
-            + f"\n\nThe slab: {s['config']}'s, {num(s['tetrahedra'])} tetrahedra, {num(s['free_dofs'])} free dofs; "
-              f"target {s['target']}, strategy `none`. The float32 and float64 factors' final nodes "
+                   "a step (mean)", "captured at the end, force", "miss"], out)
+            + f"\n\n{what}. The float32 and float64 factors' final nodes "
               f"{num(fig(r, 'float32_float64_nodes_apart_mm'), 2)} mm apart; float32 takes "
               f"{fixed(fig(r, 'float32_over_float64'), 2)}× the time.\n\n" + source(r))
 
