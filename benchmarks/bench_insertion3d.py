@@ -16,7 +16,11 @@ direction lifted to the layer's height (strategy `none`):
 * a step against its floor (docs/model.md §18): one energy gradient plus
   one solve on the kept factor per chord step (each timed alone, median of
   20), plus each refactorisation; the rest is the step's own bookkeeping
-  (capture, shares, the hold's Schur complement, the active-set rule).
+  (capture, shares, the hold's Schur complement, the active-set rule);
+* on a body (below), the same insertion once more on the float32 factor
+  refactored at the start of every step (the exact tangent there): how
+  many of the chord steps the kept factor's age costs, and what refreshing
+  it would.
 
 With --loop, the `loop` strategy instead (exact sensor, the scene's
 controller gains, steering on the target's `NeedleModel` tabulated first
@@ -96,6 +100,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 #: the kept factor's precisions compared (`ChordSolver.single_precision`)
 PRECISIONS = {"float32": True, "float64": False}
+#: the row of the float32 run whose kept factor is refactored at the start of every step (the exact tangent there)
+FRESH = "float32, refactored at every step"
 
 
 def main() -> None:
@@ -121,8 +127,7 @@ def main() -> None:
         case = _body_case(cfg, args)
     else:
         case = _slab_case(cfg, args)
-    slab, x0, strokes, entry, axis, probe, params = (case.tissue, case.x0, case.strokes, case.entry, case.axis,
-                                                     case.probe, case.params)
+    slab, x0, entry, axis, probe, params = case.tissue, case.x0, case.entry, case.axis, case.probe, case.params
     print(f"load average {_load()}")
     res.data("scene", {**case.scene, "nodes": slab.mesh.n_nodes, "tetrahedra": slab.mesh.n_elements,
                        "free_dofs": int(slab.free_dofs.size), "depth_mm": args.depth, "step_mm": args.step,
@@ -135,29 +140,15 @@ def main() -> None:
     runs = {precision: {"totals": [], "times": [], "cpu": [], "counts": []} for precision in PRECISIONS}
     for _ in range(args.repeats):
         for precision, single in PRECISIONS.items():  # alternately: peers under the same load
-            r = runs[precision]
-            state, x = NeedleState(entry, axis), x0.copy()
-            state.solver = ChordSolver(slab, single_precision=single)
-            cand = free_nodes(slab)
-            step_times = []
-            c0 = time.process_time()
-            with _in_situ() as spent:
-                while state.depth_mm < args.depth - 1e-9:
-                    t0 = time.perf_counter()
-                    out = advance(slab, state, x, strokes, min(args.step, args.depth - state.depth_mm), params,
-                                  cand)
-                    step_times.append(time.perf_counter() - t0)
-                    r["counts"].append((out.factorizations, out.passes, out.iterations))
-                    x = out.x
-            r.setdefault("in_situ", []).append(spent)
-            r["cpu"].append(time.process_time() - c0)
-            r["times"] += step_times
-            r["totals"].append(sum(step_times))
-            r["x"], r["state"], r["out"] = x, state, out
-            print(f"  one run, {precision} factor: {r['totals'][-1]:.1f} s, {len(step_times)} steps, load {_load()}",
-                  flush=True)
+            _insert(runs[precision], precision, slab, case, params, args, single)
+    # on a body, what the kept factor's age costs: the same insertion on the exact tangent at every step's start
+    extra = {}
+    if case.scene["kind"] == "body":
+        extra[FRESH] = {"totals": [], "times": [], "cpu": [], "counts": []}
+        _insert(extra[FRESH], FRESH, slab, case, params, args, True, refresh=True)
     kernels = _kernel_times(slab, x0)
-    res.table("precisions", [_report(args, precision, r, probe, entry, axis, kernels) for precision, r in runs.items()],
+    res.table("precisions", [_report(args, precision, r, probe, entry, axis, kernels) for precision, r in
+                             [*runs.items(), *extra.items()]],
               {"step_median_ms": "ms", "step_mean_ms": "ms", "insertion_s": "s", "insertion_cpu_s": "s",
                "force_mN": "mN", "miss_mm": "mm", "depth_error_mm": "mm", "gradient_ms": "ms", "solve_ms": "ms",
                "refactorisation_ms": "ms", "floor_ms": "ms", "per_step": "factorisations, passes, chord steps"})
@@ -170,6 +161,33 @@ def main() -> None:
           f"{np.median(runs['float32']['totals']) / np.median(runs['float64']['totals']):.2f}× the time")
     print(f"load average {_load()}")
     res.write()
+
+
+def _insert(r: dict, label: str, tissue: Tissue, case, params, args, single: bool, refresh: bool = False) -> None:
+    """One `none` insertion from case.x0 along case.entry, case.axis, appended to r (its steps' times and counts,
+    the run's wall and CPU times, the in-situ timings, the final state). refresh: the chord solver refactors at the
+    start of every step after the first (counted as that step's)."""
+    state, x = NeedleState(case.entry, case.axis), case.x0.copy()
+    state.solver = ChordSolver(tissue, single_precision=single)
+    cand = free_nodes(tissue)
+    step_times = []
+    c0 = time.process_time()
+    with _in_situ() as spent:
+        while state.depth_mm < args.depth - 1e-9:
+            t0 = time.perf_counter()
+            fresh = refresh and state.solver.factored
+            if fresh:
+                state.solver.refactor(x)
+            out = advance(tissue, state, x, case.strokes, min(args.step, args.depth - state.depth_mm), params, cand)
+            step_times.append(time.perf_counter() - t0)
+            r["counts"].append((out.factorizations + fresh, out.passes, out.iterations))
+            x = out.x
+    r.setdefault("in_situ", []).append(spent)
+    r["cpu"].append(time.process_time() - c0)
+    r["times"] += step_times
+    r["totals"].append(sum(step_times))
+    r["x"], r["state"], r["out"] = x, state, out
+    print(f"  one run, {label}: {r['totals'][-1]:.1f} s, {len(step_times)} steps, load {_load()}", flush=True)
 
 
 def _slab_case(cfg, args) -> SimpleNamespace:
@@ -231,20 +249,21 @@ def _report(args, precision, r, probe, entry, axis, kernels) -> dict:
     f, p, k = np.array(r["counts"]).T
     state, out, totals = r["state"], r["out"], r["totals"]
     miss, depth_error = miss_and_depth_error(probe.positions(r["x"])[0], entry, axis, state.depth_mm)
-    print(f"{precision} factor — one step ({args.step:g} mm): median {np.median(t):.0f} ms (min {t.min():.0f}, "
+    print(f"{precision} — one step ({args.step:g} mm): median {np.median(t):.0f} ms (min {t.min():.0f}, "
           f"max {t.max():.0f})")
-    print(f"  {args.depth:g} mm in {args.step:g} mm steps: {np.median(totals):.1f} s, median of {args.repeats} "
+    print(f"  {args.depth:g} mm in {args.step:g} mm steps: {np.median(totals):.1f} s, median of {len(totals)} "
           f"(min {min(totals):.1f}; the slab's goal ≤ 30 s); CPU time {np.median(r['cpu']):.1f} s")
-    print(f"  per step: {f.mean():.2f} factorisations ({f.sum() // args.repeats} per run), {p.mean():.1f} active-set "
+    print(f"  per step: {f.mean():.2f} factorisations ({f.sum() // len(totals)} per run), {p.mean():.1f} active-set "
           f"passes, {k.mean():.1f} chord steps; at the end {state.captured.size} captured "
           f"({int(state.stuck.sum())} stuck), needle force {out.force_mN:.1f} mN, miss {miss:.3f} mm, "
           f"depth error {depth_error:+.3f} mm; the solver in float32 at the end: {state.solver.single_precision}")
     grad_s, solves, factor_s = kernels
-    solve_s = solves[precision]
-    floor = (k.mean() * (grad_s + solve_s) + f.mean() * factor_s[precision]) * 1e3
+    kind = precision.split(",")[0]  # (FRESH is a float32 run)
+    solve_s = solves[kind]
+    floor = (k.mean() * (grad_s + solve_s) + f.mean() * factor_s[kind]) * 1e3
     print(f"  floor of a step: {k.mean():.1f} chord steps × (gradient {grad_s * 1e3:.1f} ms + kept-factor solve "
           f"{solve_s * 1e3:.1f} ms, each timed alone) + {f.mean():.2f} refactorisations × "
-          f"{factor_s[precision] * 1e3:.0f} ms = {floor:.0f} ms; measured {np.mean(t):.0f} ms (mean)")
+          f"{factor_s[kind] * 1e3:.0f} ms = {floor:.0f} ms; measured {np.mean(t):.0f} ms (mean)")
     spent = r["in_situ"][-1]  # the last run's
     steps = len(t) // len(totals)
     grad_calls, grad_time = spent["gradient"]
@@ -255,12 +274,12 @@ def _report(args, precision, r, probe, entry, axis, kernels) -> dict:
           f"{solve_time:.2f} s ({solve_time / max(solve_calls, 1) * 1e3:.1f} ms each, the captured nodes' "
           f"responses among them), the rest {rest:.2f} s ({rest / steps * 1e3:.0f} ms a step: capture, shares, the "
           f"hold's Schur complement, the active-set rule, refactorisations)")
-    return {"precision": precision, "step_median_ms": np.median(t), "step_mean_ms": np.mean(t),
+    return {"precision": precision, "runs": len(totals), "step_median_ms": np.median(t), "step_mean_ms": np.mean(t),
             "insertion_s": np.median(totals), "insertion_cpu_s": np.median(r["cpu"]),
             "factorisations_per_step": f.mean(), "passes_per_step": p.mean(), "chord_steps_per_step": k.mean(),
             "captured": int(state.captured.size), "stuck": int(state.stuck.sum()), "force_mN": out.force_mN,
             "miss_mm": miss, "depth_error_mm": depth_error, "gradient_ms": grad_s * 1e3, "solve_ms": solve_s * 1e3,
-            "refactorisation_ms": factor_s[precision] * 1e3, "floor_ms": floor}
+            "refactorisation_ms": factor_s[kind] * 1e3, "floor_ms": floor}
 
 
 @contextlib.contextmanager

@@ -1533,7 +1533,9 @@ def _insertion3d_body(r) -> str:
 def _insertion3d_table(r) -> str:
     """bench_insertion3d's table on the slab or on a body (`data.scene.kind`)."""
     s = r["data"]["scene"]
-    out = [[x["precision"], f"{fixed(x['insertion_s'], 1)} s", f"{fixed(x['step_median_ms'], 0)} ms",
+    out = [[x["precision"], f"{fixed(x['insertion_s'], 1)} s"
+            + (" (one run)" if x.get("runs", s["repeats"]) == 1 != s["repeats"] else ""),
+            f"{fixed(x['step_median_ms'], 0)} ms",
             f"{fixed(x['factorisations_per_step'], 2)}, {fixed(x['passes_per_step'], 1)}, "
             f"{fixed(x['chord_steps_per_step'], 1)}",
             f"{fixed(x['gradient_ms'], 1)} + {fixed(x['solve_ms'], 1)} ms; {fixed(x['floor_ms'], 0)} ms",
