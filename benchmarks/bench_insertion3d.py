@@ -187,6 +187,7 @@ def _insert(r: dict, label: str, tissue: Tissue, case, params, args, single: boo
     r["times"] += step_times
     r["totals"].append(sum(step_times))
     r["x"], r["state"], r["out"] = x, state, out
+    r["factor"] = "float32" if single else "float64"  # (its kernel times: `_kernel_times`)
     print(f"  one run, {label}: {r['totals'][-1]:.1f} s, {len(step_times)} steps, load {_load()}", flush=True)
 
 
@@ -258,7 +259,7 @@ def _report(args, precision, r, probe, entry, axis, kernels) -> dict:
           f"({int(state.stuck.sum())} stuck), needle force {out.force_mN:.1f} mN, miss {miss:.3f} mm, "
           f"depth error {depth_error:+.3f} mm; the solver in float32 at the end: {state.solver.single_precision}")
     grad_s, solves, factor_s = kernels
-    kind = precision.split(",")[0]  # (FRESH is a float32 run)
+    kind = r["factor"]
     solve_s = solves[kind]
     floor = (k.mean() * (grad_s + solve_s) + f.mean() * factor_s[kind]) * 1e3
     print(f"  floor of a step: {k.mean():.1f} chord steps × (gradient {grad_s * 1e3:.1f} ms + kept-factor solve "
