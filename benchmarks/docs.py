@@ -1521,16 +1521,8 @@ def _ladder(r) -> str:
 
 
 @renderer("insertion3d", "bench_insertion3d")
-def _insertion3d(r) -> str:
-    return _insertion3d_table(r)
-
-
 @renderer("insertion3d_body", "bench_insertion3d.example_dome")
-def _insertion3d_body(r) -> str:
-    return _insertion3d_table(r)
-
-
-def _insertion3d_table(r) -> str:
+def _insertion3d(r) -> str:
     """bench_insertion3d's table on the slab or on a body (`data.scene.kind`)."""
     s = r["data"]["scene"]
     out = [[x["precision"], f"{fixed(x['insertion_s'], 1)} s"
