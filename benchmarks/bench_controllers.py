@@ -26,10 +26,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from scissor_cli import runtime  # noqa: E402
+
+runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
 import results_io  # noqa: E402
 
 import scissor_cli.api as scissor  # noqa: E402
-from scissor_cli import runtime  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENES = {"layer": "configs/paper_trials_prosthesis.yaml", "body": "configs/paper_trials_prosthesis_dome.yaml"}
@@ -85,7 +87,6 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="the layer only, 5 trials per target")
     ap.add_argument("--jobs", type=int, default=2, help="trial processes")
     args = ap.parse_args()
-    runtime.configure()
     res = results_io.Results("bench_controllers", variant="quick" if args.quick else None)
     print(f"machine: {results_io.machine()}, load {results_io.load1()}")
     rows = []

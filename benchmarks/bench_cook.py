@@ -29,6 +29,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import results_io  # noqa: E402
 
 from scissor_cli import runtime  # noqa: E402
+
+runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
 from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.experiments.build import scene_of  # noqa: E402
 from scissor_cli.mechanics import fem  # noqa: E402
@@ -118,7 +120,6 @@ def orders(rows: list[dict]) -> list[dict]:
 
 def main() -> None:
     argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()
-    runtime.configure()
     res = results_io.Results("bench_cook")
     print(f"machine: {results_io.machine()}, load {results_io.load1()}")
     rows = level_rows()

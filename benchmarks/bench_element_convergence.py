@@ -38,6 +38,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import results_io  # noqa: E402
 
 from scissor_cli import runtime  # noqa: E402
+
+runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
 from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.experiments.build import body_model  # noqa: E402
 from scissor_cli.mechanics.body_tissue import build_body  # noqa: E402
@@ -104,7 +106,6 @@ def main() -> None:
     ap.add_argument("--grading", type=float, default=GRADING, help="tissue.mesh.grading")
     ap.add_argument("--share", type=float, default=None, help="nodal's α (nodal.ELEMENT_SHARE): nodal alone")
     args = ap.parse_args()
-    runtime.configure()
     variant = ".".join(([] if args.grading == GRADING else [f"grading-{args.grading:g}"])
                        + ([] if args.share is None else [f"share-{args.share:g}"]))
     res = results_io.Results("bench_element_convergence", variant or None)

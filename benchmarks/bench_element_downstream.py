@@ -27,10 +27,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from scissor_cli import runtime  # noqa: E402
+
+runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
 import results_io  # noqa: E402
 
 import scissor_cli.api as scissor  # noqa: E402
-from scissor_cli import runtime  # noqa: E402
 from scissor_cli.output.layer_check import layer_check_rows  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -83,7 +85,6 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
     args = ap.parse_args()
-    runtime.configure()
     res = results_io.Results("bench_element_downstream",
                              variant=None if args.scenes == list(SCENES) else "-".join(args.scenes))
     print(f"machine: {results_io.machine()}, load {results_io.load1()}")

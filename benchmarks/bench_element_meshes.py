@@ -33,6 +33,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import results_io  # noqa: E402
 
 from scissor_cli import runtime  # noqa: E402
+
+runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
 from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.experiments.build import body_model  # noqa: E402
 from scissor_cli.mesh.probe import probe_points, target_positions  # noqa: E402
@@ -103,7 +105,6 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=3, help="factorisations timed per row (the median)")
     args = ap.parse_args()
-    runtime.configure()
     res = results_io.Results("bench_element_meshes")
     rows = [row for nu in NUS for row in rows_for(nu, args.repeats)]
     res.table("meshes", rows, units={"factor_s": "s", "forward_s": "s", "error_mm": "mm", "error_pct": "%"})

@@ -40,6 +40,8 @@ import quadratic_reference  # noqa: E402
 import results_io  # noqa: E402
 
 from scissor_cli import runtime  # noqa: E402
+
+runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
 from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.experiments.build import body_model, build_model  # noqa: E402
 from scissor_cli.mechanics.body_tissue import build_body  # noqa: E402
@@ -269,7 +271,6 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="the 2-D example only")
     ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args()
-    runtime.configure()
     res = results_io.Results("bench_elements", variant="quick" if args.quick else None)
     scenes = [("example.yaml", 10.0)] + ([] if args.quick else [("example_dome.yaml", 8.0)])
     accuracy, cost = [], []

@@ -39,6 +39,8 @@ import results_io  # noqa: E402
 from bench_body_insertion import lesion_path  # noqa: E402
 
 from scissor_cli import runtime  # noqa: E402
+
+runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
 from scissor_cli.config import load_config  # noqa: E402
 from scissor_cli.config.sections import InsertionConfig  # noqa: E402
 from scissor_cli.experiments.build import body_model  # noqa: E402
@@ -100,7 +102,6 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=2, help="timed insertions per row (the median)")
     args = ap.parse_args()
-    runtime.configure()
     res = results_io.Results("bench_insertion_elements")
     rows = []
     lesions_rest = np.array([t.position_mm for t in load_config(CONFIG).targets])

@@ -28,6 +28,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import results_io  # noqa: E402
 
 from scissor_cli import runtime  # noqa: E402
+
+runtime.configure()  # before scissor's modules load cvxopt: runtime.match_blas_kernels
 from scissor_cli.config import parse_config  # noqa: E402
 from scissor_cli.experiments.build import build_model, scene_of  # noqa: E402
 from scissor_cli.experiments.selection import choose, hardest_case, select  # noqa: E402
@@ -100,7 +102,6 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args()
-    runtime.configure()
     res = results_io.Results("bench_selection_elements")
     print(f"machine: {results_io.machine()}, load {results_io.load1()}")
     rows = [row for nu in NUS for row in rows_for(nu, args.repeats)]
