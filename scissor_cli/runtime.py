@@ -15,8 +15,6 @@ import sys
 #: OpenBLAS reports for the same machine; a newer core maps to the older one whose kernels it runs
 KNOWN_CORES = {"Sandybridge": "Sandybridge", "Haswell": "Haswell", "SkylakeX": "SkylakeX",
                "Cooperlake": "Cooperlake", "SapphireRapids": "SkylakeX", "Zen": "Zen"}
-#: the variables each BLAS scissor may load reads its thread count from when it loads
-BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
 
 
 def configure() -> None:
@@ -58,11 +56,11 @@ def limit_blas_threads() -> None:
     hand-off waits for the scheduler: ADMM ran much slower under load
     (docs/performance.md, "Why the runtime settings").
     """
-    # A BLAS reads its thread count from the environment when it is loaded, and threadpoolctl limits only
-    # those already loaded: the variables cover the ones loaded later (scipy's, cvxopt's, a worker's) without
-    # importing them here, which cost every command half a second (`scissor validate` solves nothing).
-    for variable in BLAS_THREAD_VARIABLES:
-        os.environ[variable] = "1"
+    # threadpoolctl limits only libraries already loaded: load every BLAS
+    # scissor uses (numpy's, scipy's own, cvxopt's) before limiting them.
+    import cvxopt  # noqa: F401
+    import numpy  # noqa: F401
+    import scipy.linalg  # noqa: F401
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(limits=1, user_api="blas")
