@@ -83,7 +83,7 @@ def _load(config: Optional[Path]) -> tuple[Config, str]:
     except ConfigError as exc:
         _fail(2, str(exc))
     if cfg.tissue.shape in ("dome", "surface"):  # a 3-D scene's element budget and cameras
-        from scissor_cli.experiments.body_run import body_scene_problems
+        from scissor_cli.experiments.body_scene_checks import body_scene_problems
 
         problems = body_scene_problems(cfg)
         if problems:
