@@ -332,6 +332,8 @@ def test_the_second_order_predictor_fitted_to_recent_equilibria():
     (through their positions and exact tangents when it has them, else through the positions): nearer
     the reference equilibrium than the tangent predictor, for the controller with one cup, for the
     controller and for a truth with two; none beyond the history's reach."""
+    from scissor_cli.solvers import stroke_polynomial
+
     _, tissue, _ = scene_setup("paper_push")
     eq = TrackedEquilibrium(tissue)
     for s in (9.0, 9.3, 9.6):
@@ -342,8 +344,9 @@ def test_the_second_order_predictor_fitted_to_recent_equilibria():
     fitted = eq.x + eq._fitted(ds).reshape(eq.x.shape)
     assert np.linalg.norm(fitted - ref) < 0.01 * np.linalg.norm(linear - ref)  # cubic Hermite: two orders up
     farthest = max(abs(h[0][0] - eq.strokes[0]) for h in eq.history)  # the rest state: all three are fitted
-    assert eq._fitted(np.array([1.01 * REACH * farthest])) is None  # beyond REACH x the farthest fitted state
-    assert eq._fitted(np.array([0.99 * REACH * farthest])) is not None
+    uncapped = stroke_polynomial.MAX_DEGREE  # (the highest degree fits every state; a lower cap, fewer)
+    assert eq._fitted(np.array([1.01 * REACH * farthest]), cap=uncapped) is None  # beyond REACH x the farthest
+    assert eq._fitted(np.array([0.99 * REACH * farthest]), cap=uncapped) is not None
 
     cfg = load_config(ROOT / "configs" / "two_cups.yaml")
     two = build_model(cfg, mesh_scale=2.0)[2]
@@ -412,6 +415,35 @@ def test_a_move_the_fast_path_cannot_finish_continues_from_its_guess(monkeypatch
         eq.move_to(np.array([-12.0]), tangent=False)
         assert starts == ([-11.0, 0.0] if fail else [-11.0])
         np.testing.assert_allclose(eq.x, reference, atol=1e-7)
+
+
+def test_each_move_caps_the_next_fit_at_the_degree_that_would_have_predicted_it_best():
+    """After a move the predictor's degree is capped at the degree whose fit, made before the move, lands nearest
+    the equilibrium reached (the highest: no cap); a snapshot keeps the cap (`restore` goes on exactly)."""
+    from scissor_cli.solvers import stroke_polynomial
+
+    _, tissue, _ = scene_setup("paper_push")
+    for tangent in (True, False):  # the model's Hermite fit and the truth's position fit
+        eq, caps = TrackedEquilibrium(tissue), []
+        for s in (2.0, 2.5, 3.0, 3.6, 4.1, 4.5, 5.2, 5.6, 6.3, 7.0):
+            ds = np.array([s]) - eq.strokes
+            exact, states, per_state = eq._fit_history()
+            top = stroke_polynomial.highest_degree(1, exact, len(states) * per_state)
+            fits = {} if top is None else {p: eq._fitted(ds, cap=p) for p in
+                                           range(stroke_polynomial.lowest_degree(exact),
+                                                 int(top[0].sum(axis=1).max()) + 1)}
+            before = eq.x.ravel()
+            eq.move_to(np.array([s]), tangent=tangent)
+            errors = {p: np.max(np.abs(before + f - eq.x.ravel())) for p, f in fits.items() if f is not None}
+            if errors:
+                best = min(errors, key=lambda p: (errors[p], -p))
+                assert eq.degree_cap == (stroke_polynomial.MAX_DEGREE if best == max(errors) else best)
+                caps.append(eq.degree_cap)
+        assert caps, "no move was predicted by a fit"
+        if tangent:
+            restored = TrackedEquilibrium(tissue)
+            restored.restore(eq.snapshot())
+            assert restored.degree_cap == eq.degree_cap
 
 
 def test_a_fitted_move_that_fails_continues_from_a_nearer_guess(monkeypatch):
@@ -495,15 +527,15 @@ def test_manipulation_figure(tmp_path):
     assert "T1" in fig._suptitle.get_text() and "clearance" in fig._suptitle.get_text()
 
 
-def test_the_truths_position_fit_takes_the_degree_its_history_supports(monkeypatch):
+def test_the_truths_position_fit_takes_the_degree_its_history_supports():
     """Two cups, a truth (positions only): with a full history the fit is of degree 5 (20 unknowns per dof,
     27 states), and on a small move of a loop it starts far nearer the equilibrium than the cubic the
     former 12-unknown cap allowed; with a short history it takes a lower degree instead of none."""
-    import scissor_cli.solvers.tracking as tracking
+    from scissor_cli.solvers import stroke_polynomial
 
-    assert len(tracking._degree(2, False, HISTORY)[0]) == 20  # degree 5 without the tangent
-    assert len(tracking._degree(2, False, 5)[0]) == 2  # five states: the linear fit (three equations)
-    assert tracking._degree(2, False, 2) is None
+    assert len(stroke_polynomial.highest_degree(2, False, HISTORY)[0]) == 20  # degree 5 without the tangent
+    assert len(stroke_polynomial.highest_degree(2, False, 5)[0]) == 2  # five states: the linear fit (three equations)
+    assert stroke_polynomial.highest_degree(2, False, 2) is None
     cfg = load_config(ROOT / "configs" / "two_cups.yaml")
     truth = build_model(cfg, mesh_scale=2.0)[2].with_material(1.3, fiber_angle_rad=0.3)
     eq = TrackedEquilibrium(truth)
@@ -514,9 +546,7 @@ def test_the_truths_position_fit_takes_the_degree_its_history_supports(monkeypat
         eq.move_to(s, tangent=False)
     ds = np.array([0.2, -0.15])
     ref = solve_newton(truth, eq.strokes + ds, tol=1e-10).x.ravel()
-    quintic = eq._fitted(ds)
-    monkeypatch.setattr(tracking, "MAX_DEGREE", 3)
-    cubic = eq._fitted(ds)
+    quintic, cubic = eq._fitted(ds, cap=5), eq._fitted(ds, cap=3)
     quintic_error, cubic_error = (np.linalg.norm(eq.x.ravel() + p - ref) for p in (quintic, cubic))
     assert quintic_error < 0.2 * cubic_error
 

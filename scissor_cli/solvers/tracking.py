@@ -17,7 +17,8 @@ factorisation no longer preconditions well. A tracker that does without the
 tangent (the truth) keeps its ∂x/∂s as a predictor by Broyden's secant
 update from each move instead. Once a few equilibria are known, the
 predictor is a polynomial in the strokes (degree ≤ 6, as high as the
-history supports) fitted to the last ones, through their exact tangents too
+history supports, capped after each move at the degree that would have
+predicted it best) fitted to the last ones, through their exact tangents too
 when the tracker has them: its start residuals are decades below the
 tangent predictor's on the small moves of a loop. A move the fast path
 cannot finish (the predictor inverts an element, or Newton does not
@@ -29,13 +30,9 @@ equilibrium (`guesses`) is much nearer in stroke, from that one.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
-from itertools import combinations_with_replacement
-from math import factorial
 from typing import Optional
 
 import numpy as np
-import scipy.linalg
 
 from scissor_cli.mechanics import fem
 from scissor_cli.mechanics.tissue import Tissue
@@ -48,13 +45,14 @@ from scissor_cli.solvers.linear import (
     preconditioned_cg,
 )
 from scissor_cli.solvers.newton import krylov_default, newton_iterations, solve_newton
+from scissor_cli.solvers.stroke_polynomial import MAX_DEGREE, highest_degree, lowest_degree, taylor, weights
 
 #: How many of its last equilibria a tracker keeps for the polynomial predictor (`TrackedEquilibrium._fitted`).
 HISTORY = 28
-#: The predictor's polynomial: degree at most MAX_DEGREE, at most MAX_UNKNOWNS fitted coefficients per dof
-#: (two cups: the truth's position fit of degree 5 needs 27 states, the model's Hermite fit of degree 6 twelve).
-MAX_DEGREE = 6
-MAX_UNKNOWNS = 25
+#: After each move its predictor's degree is capped for the next at the degree whose fit would have landed nearest
+#: the equilibrium reached (`_best_degree`); off, every fit is of the highest degree its history allows (for A/B
+#: runs: benchmarks/ab_trials.py)
+SELECT_DEGREE = True
 #: The polynomial predictor serves moves up to this many times the stroke distance of the farthest state it fits.
 REACH = 3.0
 #: ∂x/∂s solved by conjugate gradients on an earlier factorisation (3-D): to this relative residual of K_ff ∂x/∂s =
@@ -94,6 +92,8 @@ class TrackedEquilibrium:
         self.response: Optional[np.ndarray] = None
         self.tangent_x: Optional[np.ndarray] = None
         self.stats = {"moves": 0, "refactors": 0, "fallbacks": 0, "newton_iterations": 0}
+        #: the highest degree the next move's polynomial predictor may have (`_best_degree`)
+        self.degree_cap = MAX_DEGREE
         # Known (near-)equilibria (strokes (C,), x (N, 2)) to start a big move from, e.g. the planner's.
         self.guesses: list[tuple[np.ndarray, np.ndarray]] = []
         # Its last equilibria (strokes (C,), x (N, 2), the exact ∂x/∂s there or None), oldest first:
@@ -234,6 +234,8 @@ class TrackedEquilibrium:
                 x = r.x
                 self.stats["refactors"] += r.factorizations
                 self.refactor(x)  # the old tangent just failed as a predictor
+            if fitted is not None and SELECT_DEGREE:
+                self.degree_cap = self._best_degree(strokes - self.strokes, x)
             if not tangent and self.stats["fallbacks"] == fallbacks:  # (a fallback left the exact tangent)
                 self._secant(x - x0, strokes - s0)
             tangent_here = self.response if self.tangent_x is self.x else None
@@ -254,7 +256,7 @@ class TrackedEquilibrium:
         return solve_newton(self.tissue, strokes, x0=self.x, strokes0=self.strokes, tol=self.tol,
                             factors=self.factors)
 
-    def _fitted(self, ds: np.ndarray) -> Optional[np.ndarray]:
+    def _fitted(self, ds: np.ndarray, cap: Optional[int] = None) -> Optional[np.ndarray]:
         """The move's increment (2N,) from a polynomial in the strokes fitted to recent equilibria, or None.
 
         x(s0 + d) ≈ x0 + Σ_{n=1..p} (1/n!) A_n[d, …, d] around the current
@@ -264,7 +266,7 @@ class TrackedEquilibrium:
         each giving its position and its C tangent columns (Hermite); without
         it (the truth) A_1 is fitted too, to positions only. The degree p is
         the highest ≤ MAX_DEGREE with at most MAX_UNKNOWNS unknowns per dof
-        whose equations the history at hand covers (`_degree`; with a full
+        whose equations the history at hand covers (`highest_degree`; with a full
         history, one cup: 6 for both; two cups: 6 with the tangent, 5
         without); the equations are as many as the unknowns with one cup
         (interpolation), a third more with several (a square fit
@@ -273,15 +275,14 @@ class TrackedEquilibrium:
         degree still lowers the start residual (two cups, the truth: degree 3
         ~2e-5, degree 5 ~8e-7; the model's Hermite fit ~1e-7). None (the
         tangent predictor is used) without enough history or for a move
-        beyond REACH times the farthest fitted state.
+        beyond REACH times the farthest fitted state. cap: the highest degree
+        (default `degree_cap`, set by the last move: `_best_degree`).
         """
         C = ds.size
         if C == 0:
             return None
-        exact = self.tangent_x is self.x
-        with_tangent = [h for h in self.history if h[2] is not None] if exact else self.history
-        per_state = 1 + C if exact else 1  # a state gives its position (and its C tangent columns)
-        fit = _degree(C, exact, len(with_tangent) * per_state)
+        exact, with_tangent, per_state = self._fit_history()
+        fit = highest_degree(C, exact, len(with_tangent) * per_state, self.degree_cap if cap is None else cap)
         if fit is None:
             return None
         E, coefficient, equations = fit
@@ -294,18 +295,42 @@ class TrackedEquilibrium:
         # w (m',) = lstsq(Aᵀ, f(ds)), the rows of pinv(A) f(ds) (A (m', k): the fit's equations), and
         # Y (m', 2N) the fitted data. w Y is formed from the few weights, not from a stacked Y.
         X = np.stack([h[1] for h in past]).reshape(len(past), -1)  # (m, 2N)
-        f = _taylor(E, coefficient, ds[None])[0]
+        f = taylor(E, coefficient, ds[None])[0]
         if not exact:
-            w = _weights(_taylor(E, coefficient, d), f)
+            w = weights(taylor(E, coefficient, d), f)
             return w @ X - w.sum() * self.x.ravel()
         # Hermite: Y = [positions − x − d Gᵀ; each tangent column c − G_c].
         G = self.response
-        A = np.vstack([_taylor(E, coefficient, d)] + [_taylor(E, coefficient, d, along=c) for c in range(C)])
-        w = _weights(A, f)
+        A = np.vstack([taylor(E, coefficient, d)] + [taylor(E, coefficient, d, along=c) for c in range(C)])
+        w = weights(A, f)
         w0, wc = w[:len(past)], w[len(past):].reshape(C, len(past))
         T = np.stack([h[2] for h in past])  # (m, 2N, C)
         return (G @ (ds - w0 @ d - wc.sum(axis=1)) + w0 @ X - w0.sum() * self.x.ravel()
                 + np.matmul(T, wc.T[:, :, None]).sum(axis=0)[:, 0])  # Σ_m T_m wc[:, m], batched
+
+    def _fit_history(self) -> tuple[bool, list, int]:
+        """(whether the fit has the exact tangent at x, the remembered states it fits, the equations each gives: its
+        position, and with the tangent its C tangent columns)."""
+        exact = self.tangent_x is self.x
+        with_tangent = [h for h in self.history if h[2] is not None] if exact else self.history
+        return exact, with_tangent, 1 + self.strokes.size if exact else 1
+
+    def _best_degree(self, ds: np.ndarray, x: np.ndarray) -> int:
+        """The degree whose fit, made before the move ds (C,) mm, lands nearest (largest node error) the equilibrium
+        x (N, d) the move reached: the next move's cap. A loop's path is smooth over most of its moves, where the
+        highest degree predicts best; where it bends sharply (a body near its cups' rims) the highest degree
+        overshoots by far more than a low one, and the next move's path bends alike."""
+        exact, with_tangent, per_state = self._fit_history()
+        top = highest_degree(ds.size, exact, len(with_tangent) * per_state)
+        if top is None:
+            return MAX_DEGREE
+        highest, errors = int(top[0].sum(axis=1).max()), {}
+        for p in range(lowest_degree(exact), highest + 1):
+            increment = self._fitted(ds, cap=p)
+            if increment is not None:
+                errors[p] = float(np.max(np.abs(self.x.ravel() + increment - x.ravel())))
+        best = max(errors, key=lambda p: (-errors[p], p)) if errors else highest  # (a tie: the higher degree)
+        return MAX_DEGREE if best == highest else best  # (the highest: uncapped, as the history grows)
 
     def _secant(self, dx: np.ndarray, ds: np.ndarray) -> None:
         """Broyden's update of `response` with a solved move ds (C,) → dx (N, 2): no longer an exact tangent.
@@ -399,7 +424,7 @@ class TrackedEquilibrium:
             held = FactorState(self.x if self._factor_x is None else self._factor_x,
                                factor is not None and factor.stale, None if factor is None else factor.cg_rate,
                                self._factor_exact())
-        return TrackerState(self.x, self.strokes.copy(), self.response, tuple(self.history), held)
+        return TrackerState(self.x, self.strokes.copy(), self.response, tuple(self.history), held, self.degree_cap)
 
     def restore(self, state: "TrackerState") -> None:
         """Go back to a `snapshot` of this tracker: from here on it answers exactly as it did after taking it.
@@ -411,7 +436,7 @@ class TrackedEquilibrium:
         would have made.
         """
         self.x, self.strokes, self.response = state.x, state.strokes.copy(), state.response
-        self.tangent_x, self.history = state.x, list(state.history)
+        self.tangent_x, self.history, self.degree_cap = state.x, list(state.history), state.degree_cap
         self._factor_elsewhere = state.factor
 
     def _refactor_as(self, held: "FactorState") -> None:
@@ -452,49 +477,5 @@ class TrackerState:
     response: np.ndarray
     history: tuple
     factor: FactorState
-
-
-def _degree(C: int, exact: bool, have: int) -> Optional[tuple[np.ndarray, np.ndarray, int]]:
-    """The highest-degree polynomial (`_polynomial`) whose equations `have` data covers, or None."""
-    best = None
-    for p in range(2 if exact else 1, MAX_DEGREE + 1):
-        fit = _polynomial(C, exact, p)
-        if len(fit[0]) > MAX_UNKNOWNS or fit[2] > have:
-            break
-        best = fit
-    return best
-
-
-@lru_cache(maxsize=None)
-def _polynomial(C: int, exact: bool, p: int) -> tuple[np.ndarray, np.ndarray, int]:
-    """The predictor's polynomial of degree p in C strokes: (exponents (k, C), 1/e! (k,), equations wanted).
-
-    Degrees from 2 (with the exact tangent) or 1 up to p; Σ_e d^e/e! ∂^e x
-    over the exponents e of degree n is the symmetric form (1/n!) A_n[d, …, d],
-    so the unknowns fitted are the partial derivatives ∂^e x. Equations: as
-    many as unknowns with one stroke, a third more with several.
-    """
-    first = 2 if exact else 1
-    E = np.array([np.bincount(combo, minlength=C) for n in range(first, p + 1)
-                  for combo in combinations_with_replacement(range(C), n)]).reshape(-1, C)
-    coefficient = 1.0 / np.prod([[factorial(int(v)) for v in e] for e in E], axis=1)
-    k = len(E)
-    return E, coefficient, (k if C == 1 else -(-4 * k // 3))
-
-
-def _weights(A: np.ndarray, f: np.ndarray) -> np.ndarray:
-    """w (m,) = f pinv(A) for the fit's equations A (m, k) and the terms f (k,) at the move: the min-norm lstsq
-    of Aᵀ w = f.
-
-    LAPACK's gelsy (rank-revealing QR): half the time of the SVD's gelsd on these few-dozen-row systems.
-    """
-    return scipy.linalg.lstsq(A.T, f, cond=1e-10, lapack_driver="gelsy", check_finite=False)[0]
-
-
-def _taylor(E: np.ndarray, coefficient: np.ndarray, d: np.ndarray, along: Optional[int] = None) -> np.ndarray:
-    """(m, k): the terms d^e/e! at the stroke increments d (m, C), or their derivatives along stroke `along`."""
-    if along is None:
-        return coefficient * np.prod(d[:, None, :] ** E, axis=2)
-    lowered = E.copy()
-    lowered[:, along] = np.maximum(lowered[:, along] - 1, 0)  # the terms without this stroke vanish (× e = 0)
-    return coefficient * E[:, along] * np.prod(d[:, None, :] ** lowered, axis=2)
+    #: the cap on its predictor's next degree (`TrackedEquilibrium.degree_cap`)
+    degree_cap: int = MAX_DEGREE
