@@ -49,10 +49,13 @@ from scissor_cli.solvers.stroke_polynomial import MAX_DEGREE, highest_degree, lo
 
 #: How many of its last equilibria a tracker keeps for the polynomial predictor (`TrackedEquilibrium._fitted`).
 HISTORY = 28
-#: After each move its predictor's degree is capped for the next at the degree whose fit would have landed nearest
-#: the equilibrium reached (`_best_degree`); off, every fit is of the highest degree its history allows (for A/B
-#: runs: benchmarks/ab_trials.py)
+#: In 3-D, after each move its predictor's degree is capped for the next at the degree whose fit would have landed
+#: nearest the equilibrium reached (`_best_degree`); off, every fit is of the highest degree its history allows (for
+#: A/B runs: benchmarks/ab_trials.py). Not in 2-D: a layer's move costs about as much as those fits, and the layer's
+#: trials took as many gradients and factorisations either way (ab_trials on paper_trials_prosthesis).
 SELECT_DEGREE = True
+#: the dofs `_best_degree` compares the fits on: those the move moved most
+BEST_DEGREE_DOFS = 64
 #: The polynomial predictor serves moves up to this many times the stroke distance of the farthest state it fits.
 REACH = 3.0
 #: ∂x/∂s solved by conjugate gradients on an earlier factorisation (3-D): to this relative residual of K_ff ∂x/∂s =
@@ -92,8 +95,9 @@ class TrackedEquilibrium:
         self.response: Optional[np.ndarray] = None
         self.tangent_x: Optional[np.ndarray] = None
         self.stats = {"moves": 0, "refactors": 0, "fallbacks": 0, "newton_iterations": 0}
-        #: the highest degree the next move's polynomial predictor may have (`_best_degree`)
-        self.degree_cap = MAX_DEGREE
+        #: the highest degree the next move's polynomial predictor may have, and whether each move sets it
+        #: (`_best_degree`; SELECT_DEGREE)
+        self.degree_cap, self.select_degree = MAX_DEGREE, SELECT_DEGREE and tissue.dim == 3
         # Known (near-)equilibria (strokes (C,), x (N, 2)) to start a big move from, e.g. the planner's.
         self.guesses: list[tuple[np.ndarray, np.ndarray]] = []
         # Its last equilibria (strokes (C,), x (N, 2), the exact ∂x/∂s there or None), oldest first:
@@ -234,7 +238,7 @@ class TrackedEquilibrium:
                 x = r.x
                 self.stats["refactors"] += r.factorizations
                 self.refactor(x)  # the old tangent just failed as a predictor
-            if fitted is not None and SELECT_DEGREE:
+            if fitted is not None and self.select_degree:
                 self.degree_cap = self._best_degree(strokes - self.strokes, x)
             if not tangent and self.stats["fallbacks"] == fallbacks:  # (a fallback left the exact tangent)
                 self._secant(x - x0, strokes - s0)
@@ -256,7 +260,8 @@ class TrackedEquilibrium:
         return solve_newton(self.tissue, strokes, x0=self.x, strokes0=self.strokes, tol=self.tol,
                             factors=self.factors)
 
-    def _fitted(self, ds: np.ndarray, cap: Optional[int] = None) -> Optional[np.ndarray]:
+    def _fitted(self, ds: np.ndarray, cap: Optional[int] = None,
+                rows: Optional[np.ndarray] = None) -> Optional[np.ndarray]:
         """The move's increment (2N,) from a polynomial in the strokes fitted to recent equilibria, or None.
 
         x(s0 + d) ≈ x0 + Σ_{n=1..p} (1/n!) A_n[d, …, d] around the current
@@ -276,7 +281,8 @@ class TrackedEquilibrium:
         ~2e-5, degree 5 ~8e-7; the model's Hermite fit ~1e-7). None (the
         tangent predictor is used) without enough history or for a move
         beyond REACH times the farthest fitted state. cap: the highest degree
-        (default `degree_cap`, set by the last move: `_best_degree`).
+        (default `degree_cap`, set by the last move: `_best_degree`); rows:
+        the dofs predicted (default all; then (len(rows),)).
         """
         C = ds.size
         if C == 0:
@@ -294,18 +300,20 @@ class TrackedEquilibrium:
         # Each fitted quantity is linear in the remembered ones: the increment is w Y with the weights
         # w (m',) = lstsq(Aᵀ, f(ds)), the rows of pinv(A) f(ds) (A (m', k): the fit's equations), and
         # Y (m', 2N) the fitted data. w Y is formed from the few weights, not from a stacked Y.
-        X = np.stack([h[1] for h in past]).reshape(len(past), -1)  # (m, 2N)
+        rows = slice(None) if rows is None else rows
+        X = np.stack([h[1].ravel()[rows] for h in past])  # (m, 2N)
+        x = self.x.ravel()[rows]
         f = taylor(E, coefficient, ds[None])[0]
         if not exact:
             w = weights(taylor(E, coefficient, d), f)
-            return w @ X - w.sum() * self.x.ravel()
+            return w @ X - w.sum() * x
         # Hermite: Y = [positions − x − d Gᵀ; each tangent column c − G_c].
-        G = self.response
+        G = self.response[rows]
         A = np.vstack([taylor(E, coefficient, d)] + [taylor(E, coefficient, d, along=c) for c in range(C)])
         w = weights(A, f)
         w0, wc = w[:len(past)], w[len(past):].reshape(C, len(past))
-        T = np.stack([h[2] for h in past])  # (m, 2N, C)
-        return (G @ (ds - w0 @ d - wc.sum(axis=1)) + w0 @ X - w0.sum() * self.x.ravel()
+        T = np.stack([h[2][rows] for h in past])  # (m, 2N, C)
+        return (G @ (ds - w0 @ d - wc.sum(axis=1)) + w0 @ X - w0.sum() * x
                 + np.matmul(T, wc.T[:, :, None]).sum(axis=0)[:, 0])  # Σ_m T_m wc[:, m], batched
 
     def _fit_history(self) -> tuple[bool, list, int]:
@@ -316,19 +324,25 @@ class TrackedEquilibrium:
         return exact, with_tangent, 1 + self.strokes.size if exact else 1
 
     def _best_degree(self, ds: np.ndarray, x: np.ndarray) -> int:
-        """The degree whose fit, made before the move ds (C,) mm, lands nearest (largest node error) the equilibrium
-        x (N, d) the move reached: the next move's cap. A loop's path is smooth over most of its moves, where the
-        highest degree predicts best; where it bends sharply (a body near its cups' rims) the highest degree
-        overshoots by far more than a low one, and the next move's path bends alike."""
+        """The degree whose fit, made before the move ds (C,) mm, lands nearest the equilibrium x (N, d) the move
+        reached: the next move's cap. A loop's path is smooth over most of its moves, where the highest degree
+        predicts best; where it bends sharply (a body near its cups' rims) the highest degree overshoots by far
+        more than a low one, and the next move's path bends alike. Nearest: the largest error over the
+        BEST_DEGREE_DOFS dofs the move moved most (where the fits differ; each fit then costs its small
+        least-squares solve, not a pass over every dof)."""
         exact, with_tangent, per_state = self._fit_history()
         top = highest_degree(ds.size, exact, len(with_tangent) * per_state)
         if top is None:
             return MAX_DEGREE
+        moved = x.ravel() - self.x.ravel()
+        rows = np.argpartition(np.abs(moved), -BEST_DEGREE_DOFS)[-BEST_DEGREE_DOFS:] \
+            if moved.size > BEST_DEGREE_DOFS else None
+        target = moved if rows is None else moved[rows]
         highest, errors = int(top[0].sum(axis=1).max()), {}
         for p in range(lowest_degree(exact), highest + 1):
-            increment = self._fitted(ds, cap=p)
+            increment = self._fitted(ds, cap=p, rows=rows)
             if increment is not None:
-                errors[p] = float(np.max(np.abs(self.x.ravel() + increment - x.ravel())))
+                errors[p] = float(np.max(np.abs(increment - target)))
         best = max(errors, key=lambda p: (-errors[p], p)) if errors else highest  # (a tie: the higher degree)
         return MAX_DEGREE if best == highest else best  # (the highest: uncapped, as the history grows)
 
