@@ -52,7 +52,7 @@ HISTORY = 28
 #: In 3-D, after each move its predictor's degree is capped for the next at the degree whose fit would have landed
 #: nearest the equilibrium reached (`_best_degree`); off, every fit is of the highest degree its history allows (for
 #: A/B runs: benchmarks/ab_trials.py). Not in 2-D: a layer's move costs about as much as those fits, and the layer's
-#: trials took as many gradients and factorisations either way (ab_trials on paper_trials_prosthesis).
+#: trials took as many gradients and factorisations either way (tried with ab_trials on paper_trials_prosthesis).
 SELECT_DEGREE = True
 #: the dofs `_best_degree` compares the fits on: those the move moved most
 BEST_DEGREE_DOFS = 64
