@@ -86,6 +86,8 @@ def test_the_trials_model_keeps_a_factor_that_preconditions_and_its_J_stays_the_
     assert tight.stats["refactors"] >= tight.stats["moves"] - 1  # (the first from rest may reuse rest's)
 
 
+@pytest.mark.slow  # (its parts: the coarser model's trials above; Broyden on a body's camera rows and in a loop,
+# tests/test_broyden.py)
 def test_a_coarser_model_with_broyden_still_puts_every_lesion_on_the_finer_truths_needle(tmp_path):
     """Broyden's correction of the coarse model's J (3 × cups) from the two cameras' moves (its rows under one
     camera: tests/test_broyden.py)."""

@@ -42,7 +42,9 @@ def test_a_restored_tracker_moves_on_bit_for_bit(body, tol):
         a.snapshot()  # without the exact tangent there is nothing to go on from exactly
 
 
-@pytest.mark.parametrize("tol", [1e-10, BODY_MODEL_TOL])
+@pytest.mark.parametrize("tol", [pytest.param(1e-10, marks=pytest.mark.slow), BODY_MODEL_TOL])
+# (1e-10, a factor at each move's start: the restored tracker above moves on bit for bit there; runs settle their
+# model to BODY_MODEL_TOL, the loops' default here)
 def test_loops_sharing_the_models_paths_answer_as_loops_without(body, tol):
     cfg, tissue = body
     rest = tissue.scene.targets[0].rest
