@@ -3,7 +3,7 @@
 x(s0 + d) ≈ x0 + Σ_n (1/n!) A_n[d, …, d]: the exponents of its terms in C
 strokes, how many equations a degree needs, the terms at a stroke
 increment, and the weights that give the fitted value as a combination of
-the remembered data (docs/model.md §5).
+the remembered data (docs/model.md §6, "Tracking an equilibrium").
 """
 
 from __future__ import annotations
