@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
+import faulthandler
 import inspect
 import os
+import signal
 import sys
 import typing
 from dataclasses import dataclass
@@ -113,6 +115,8 @@ def main(
 ) -> None:
     """scissor: simulate robot-assisted breast intervention from a YAML scene."""
     runtime.configure()
+    if hasattr(signal, "SIGUSR1"):  # `kill -USR1 PID`: every thread's stack on stderr, the run goes on
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
 
 
 @app.command()

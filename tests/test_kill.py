@@ -106,10 +106,13 @@ def stop(proc: subprocess.Popen, sig: int) -> tuple[float, str]:
         time.sleep(0.02)
     gone = time.monotonic() - t0
     left = group_members(proc.pid)
+    if proc.pid in left:  # the run hangs: have it print where its threads are (the CLI's SIGUSR1 handler)
+        os.kill(proc.pid, signal.SIGUSR1)
+        time.sleep(2.0)
     for pid in left:  # do not leave anything behind, even when the test fails
         os.kill(pid, signal.SIGKILL)
     _, stderr = proc.communicate(timeout=10)
-    assert not left, f"still alive {gone:.1f} s after the signal: {left}"
+    assert not left, f"still alive {gone:.1f} s after the signal: {left}; the run's stderr ends:\n{stderr[-6000:]}"
     return gone, " ".join(stderr.split())  # the console wraps long lines
 
 
@@ -158,9 +161,12 @@ def reference(tmp_path_factory):
 def test_stop_signal_keeps_finished_trials_and_resume_completes(sig, reference, tmp_path):
     out = tmp_path / "run"
     proc = start(scene(tmp_path), "--jobs", "2", "--out", out)
-    wait_for_trials(proc, out, 8)
+    n = wait_for_trials(proc, out, 8)
+    os.kill(proc.pid, signal.SIGUSR1)  # where its threads are, on stderr; the run goes on
+    wait_for_trials(proc, out, n + 1)
     gone, stderr = stop(proc, sig)
     print(f"{signal.Signals(sig).name}: all processes gone {gone:.2f} s after the signal")
+    assert str(ROOT / "scissor_cli" / "cli.py") in stderr  # the main thread's stack, from the command down
     assert gone < 5.0
     assert proc.returncode == 128 + sig, stderr
     assert "interrupted" in stderr and f"--resume {out}" in stderr and "Traceback" not in stderr
