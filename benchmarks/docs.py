@@ -1198,13 +1198,14 @@ def _body_truth_tol(r) -> str:
 
 @renderer("trial_steps", "ab_trials.example_dome.tight.loose", "ab_trials.example_dome.on.off",
           "ab_trials.example_dome.forward.central", "ab_trials.example_dome.float32.float64",
-          "ab_trials.example_dome.reuse.new")
-def _trial_steps(model_tol, hessian_free, difference, precision, reuse) -> str:
+          "ab_trials.example_dome.reuse.new", "ab_trials.example_dome.base.both")
+def _trial_steps(model_tol, hessian_free, difference, precision, reuse, refactor_later) -> str:
     """benchmarks/ab_trials.py on example_dome's trials: the controller's model settled to 1e-10 against
     `BODY_MODEL_TOL` (`experiments/body_trials.py`), Newton steps with and without the assembled Hessian, the
     forward against the central difference (`solvers/hessian_free.py`), the steps' solves on the factor's
     float32 copy against CHOLMOD's float64 (`solvers.linear.SINGLE_PRECISION_STEPS`), and new trackers on the
-    last loop's released factorisations against new ones (`solvers.linear.REUSE_RELEASED`)."""
+    last loop's released factorisations against new ones (`solvers.linear.REUSE_RELEASED`); and, tried without
+    a gain, a factor kept for more CG iterations with chord steps accepted at a slower contraction."""
     rows = []
     for r in (model_tol, hessian_free, difference, precision, reuse):
         for x in rows_of(r, "settings"):
@@ -1218,8 +1219,21 @@ def _trial_steps(model_tol, hessian_free, difference, precision, reuse) -> str:
                   rows)
             + "\n\nEach pair replays the same trials of configs/example_dome.yaml (half per target) in one process, "
               "the settings in turn, each round on a trial context built anew (the controller model's states solved "
-              "again, as a run's worker solves them).\n\n"
-            + source(model_tol, hessian_free, difference, precision, reuse))
+              "again, as a run's worker solves them). Tried and not kept: refactoring later, a factor kept until "
+              "CG needs more than 9 iterations (`solvers.linear.KRYLOV_STALE_ITER`, 6) with chord steps kept "
+              "down to a contraction of 0.6 (`solvers.newton.CHORD_CONTRACTION`, 0.3): " + _tried(refactor_later)
+            + ".\n\n" + source(model_tol, hessian_free, difference, precision, reuse, refactor_later))
+
+
+def _tried(r) -> str:
+    """One A/B pair of `benchmarks/ab_trials.py` in a sentence: CPU ratio, whether the rounds overlap, and the
+    load-free counts, first → second."""
+    a, b = rows_of(r, "settings")[:2]
+    overlap = b["cpu_min_s"] <= a["cpu_max_s"] and a["cpu_min_s"] <= b["cpu_max_s"]
+    return (f"{fixed(b['over_reference'], 3)}× CPU ({fixed(a['cpu_median_s'], 1)} → {fixed(b['cpu_median_s'], 1)} s, "
+            f"{b['rounds']} rounds{', the ranges overlapping' if overlap else ''}), factorisations "
+            f"{a['factorisations']} → {b['factorisations']}, gradients {a['gradients']} → {b['gradients']}, "
+            f"sparse-solve columns {a['solve columns']} → {b['solve columns']}")
 
 
 @renderer("body_insertion", "bench_body_insertion")
