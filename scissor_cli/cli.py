@@ -116,7 +116,10 @@ def main(
     """scissor: simulate robot-assisted breast intervention from a YAML scene."""
     runtime.configure()
     if hasattr(signal, "SIGUSR1"):  # `kill -USR1 PID`: every thread's stack on stderr, the run goes on
-        faulthandler.register(signal.SIGUSR1, all_threads=True)
+        try:  # (the process's own stderr: a caller may have put an object without a file descriptor in sys.stderr)
+            faulthandler.register(signal.SIGUSR1, file=sys.__stderr__, all_threads=True)
+        except (AttributeError, ValueError, OSError):  # no stderr at all (an embedding without one)
+            pass
 
 
 @app.command()
