@@ -1,6 +1,6 @@
 """A cheaper factor to precondition the `nodal` tangent: the linear tetrahedra's (`p1`) on the same mesh; not a test.
 
-A body's trial spends about a third of its time factoring the `nodal` element's tangent, whose pattern reaches two
+A body's trial spends much of its time factoring the `nodal` element's tangent, whose pattern reaches two
 rings of neighbours (docs/performance.md, "Where a trial's time goes"). The `p1` tangent on the same mesh and state
 has a one-ring pattern and factors several times faster, so it could precondition conjugate gradients on the nodal
 tangent in place of the nodal tangent's own factor. On configs/example_dome.yaml (the scene's mesh), at rest and at
