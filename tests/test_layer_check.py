@@ -91,7 +91,7 @@ def test_run_writes_layer_check(tmp_path):
         # the 2-D forward case is untouched by the check
         assert f["forward/push4/displacement"].shape[1] == 2
     assert_png_drawn(out / "layer_check_push4.png")
-    rep = cli_here("report", out)
+    rep = cli_here("report", out, "--out", tmp_path / "report")  # not the checkout's runs/
     assert rep.exit_code == 0, rep.output
     assert "layer check" in rep.stdout.lower()
 
