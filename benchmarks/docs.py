@@ -115,7 +115,7 @@ COMMANDS = {
     "compare_controller_models.paper_trials_prosthesis_slab":
         "python3 benchmarks/compare_controller_models.py configs/paper_trials_prosthesis_slab.yaml",
     "docs_scenes": "python3 benchmarks/docs.py --images-only",
-    "bench_dome_study.example": "python3 benchmarks/bench_dome_study.py --example",
+    "bench_dome_study.example": "python3 benchmarks/bench_dome_study.py --example --repeats 3",
     "bench_dome_study.nodal": "python3 benchmarks/bench_dome_study.py --element nodal",
     "bench_body_grips": "python3 benchmarks/bench_body_grips.py",
     "bench_dome_study.layer": "python3 benchmarks/bench_dome_study.py --model layer",
@@ -166,8 +166,9 @@ def off_reference(x: dict) -> str:
 
 
 def wall_minutes(r: dict) -> str:
-    """A result's `wall_s` figure in minutes."""
-    return f"{fixed(fig(r, 'wall_s') / 60, 1)} min"
+    """A result's `wall_s` figure in minutes (the median of its runs when it ran several)."""
+    repeats = r["figures"]["wall_s"].get("repeats", 1)
+    return f"{fixed(fig(r, 'wall_s') / 60, 1)} min" + (f" (median of {repeats} runs)" if repeats > 1 else "")
 
 
 def slowest_trial_s(r: dict) -> float:
@@ -217,9 +218,11 @@ def source(*results: dict) -> str:
         c = r["commit"]
         commit = (c.get("head") or "?")[:7] + (" + changes" if c.get("dirty") else "")
         m = r["machine"]
+        speed = (f", speed index {num(r['speed_index_ms_before'], 3)} → {num(r['speed_index_ms_after'], 3)} ms"
+                 if "speed_index_ms_after" in r else "")  # (results written before it was recorded have none)
         parts.append(f"`benchmarks/results/{name}.json`: `{r['command']}`, {r['date'][:16].replace('T', ' ')} UTC, "
-                     f"{m['cpu']} ({m['cores']} cores), load {r['load1_before']:.2f} → {r['load1_after']:.2f}, "
-                     f"{num(r.get('wall_s'), 3)} s, commit {commit}")
+                     f"{m['cpu']} ({m['cores']} cores), load {r['load1_before']:.2f} → {r['load1_after']:.2f}"
+                     f"{speed}, {num(r.get('wall_s'), 3)} s, commit {commit}")
     return "Source: " + "; ".join(parts) + "."
 
 
@@ -277,14 +280,17 @@ def _provenance() -> str:
         dates = sorted(r["date"][:16].replace("T", " ") for r in rs)
         loads = [x for r in rs for x in (r["load1_before"], r["load1_after"])]
         dirty = sum(1 for r in rs if r["commit"].get("dirty"))
+        speeds = [r[k] for r in rs for k in ("speed_index_ms_before", "speed_index_ms_after") if k in r]
         rows.append([f"{cpu}, {cores} cores, {system}", f"{python} / {numpy_}", len(rs),
                      f"{dates[0]} – {dates[-1]}", f"{min(loads):.2f}–{max(loads):.2f}",
+                     f"{num(min(speeds), 3)}–{num(max(speeds), 3)} ({len(speeds) // 2} files)" if speeds else "–",
                      f"{dirty} of {len(rs)}" if dirty else "none"])
     note = "" if not other else (f" Not written through `results_io` (no machine or load recorded): "
                                  f"{', '.join(other)}.")
     return table(["machine", "python / numpy", "result files", "dates (UTC)", "load (1 min) at start and end",
-                  "with uncommitted changes"], rows) + "\n\n" + (
-        "Each table's source line gives its file's command, date, load before and after, wall time and commit."
+                  "speed index (ms, lower is faster)", "with uncommitted changes"], rows) + "\n\n" + (
+        "Each table's source line gives its file's command, date, load and speed index before and after, wall time "
+        "and commit."
         + note)
 
 

@@ -11,8 +11,10 @@ Each script makes one `Results` when it starts and writes it when it ends:
 A file holds, beside the figures: the machine (CPU model from /proc/cpuinfo, core count), the 1-minute load
 average when the script started and when it ended, the date (ISO, UTC), the commit (git rev-parse HEAD and
 whether the tree had changes outside benchmarks/results and docs), the exact command line, the script's wall
-time and the python / numpy versions. A run with other than the default arguments that change what is measured
-names a variant: benchmarks/results/<name>.<variant>.json, so it does not overwrite the figures the docs quote.
+time, the python / numpy versions, and the machine's speed when the script started and when it ended
+(`speed_index_ms`: a shared VM's speed changes between hours, which a figure alone would not show). A run with
+other than the default arguments that change what is measured names a variant:
+benchmarks/results/<name>.<variant>.json, so it does not overwrite the figures the docs quote.
 """
 
 from __future__ import annotations
@@ -49,6 +51,32 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine()
+
+
+#: the speed index's kernel: the 7-point Laplacian on this many nodes a side, and products a timing
+SPEED_INDEX_SIDE, SPEED_INDEX_PRODUCTS = 64, 20
+
+
+def speed_index_ms(repeats: int = 7) -> float:
+    """The machine's speed now: the median time (ms) of SPEED_INDEX_PRODUCTS products of a fixed sparse matrix (the
+    7-point 3-D Laplacian, SPEED_INDEX_SIDE³ rows) with a vector, over `repeats` timings. scipy runs it on one
+    thread and it is bound by memory, as a sparse solve or an element loop's gathers are: a neighbour loading the
+    host or a throttled CPU shows here as in any figure taken beside it. Lower is faster."""
+    import numpy as np  # noqa: PLC0415 (results_io itself needs neither)
+    import scipy.sparse as sp  # noqa: PLC0415
+
+    n = SPEED_INDEX_SIDE
+    line = sp.diags([-np.ones(n - 1), 2 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1])
+    eye = sp.identity(n)
+    A = (sp.kron(sp.kron(line, eye), eye) + sp.kron(sp.kron(eye, line), eye) + sp.kron(sp.kron(eye, eye), line)).tocsr()
+    v = np.linspace(0.0, 1.0, A.shape[0])
+
+    def products() -> None:
+        for _ in range(SPEED_INDEX_PRODUCTS):
+            A @ v
+
+    products()  # (the first touch of the arrays)
+    return round(1e3 * median_s(products, repeats), 2)
 
 
 def machine() -> dict:
@@ -126,8 +154,8 @@ class Results:
         self.record = {
             "benchmark": name, "variant": variant, "command": command_line(),
             "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-            "machine": machine(), "load1_before": load1(), "commit": commit(), "versions": versions(),
-            "figures": {}, "tables": {}, "data": {},
+            "machine": machine(), "load1_before": load1(), "speed_index_ms_before": speed_index_ms(),
+            "commit": commit(), "versions": versions(), "figures": {}, "tables": {}, "data": {},
         }
 
     @property
@@ -148,6 +176,7 @@ class Results:
 
     def write(self) -> Path:
         self.record["load1_after"] = load1()
+        self.record["speed_index_ms_after"] = speed_index_ms()
         self.record["wall_s"] = round(time.perf_counter() - self.started, 2)
         RESULTS_DIR.mkdir(parents=True, exist_ok=True)
         self.path.write_text(json.dumps(self.record, indent=1, allow_nan=False) + "\n")
