@@ -388,6 +388,30 @@ def test_a_guess_from_another_tissue_does_not_change_the_equilibrium():
     np.testing.assert_allclose(guided.x, plain.x, atol=1e-7)
 
 
+def test_a_guess_given_as_a_function_is_solved_only_when_a_move_starts_there():
+    """A guess's state may be a function (the body trials' equilibrium at the plan: seconds from rest): small
+    moves, which start from the tracker's own state, never call it; a big move towards it calls it once and
+    starts there, as from the state itself."""
+    _, tissue, _ = scene_setup("paper_pull")
+    calls = []
+
+    def at_minus_13():
+        calls.append(solve_newton(tissue, np.array([-13.0])).x)
+        return calls[-1]
+
+    lazy, eager = TrackedEquilibrium(tissue), TrackedEquilibrium(tissue)
+    lazy.guesses.append((np.array([-13.0]), at_minus_13))
+    eager.guesses.append((np.array([-13.0]), solve_newton(tissue, np.array([-13.0])).x))
+    for s in (-1.0, -2.0):  # small steps from rest: the guess is no nearer
+        for eq in (lazy, eager):
+            eq.move_to(np.array([s]), tangent=False)
+    assert not calls
+    for eq in (lazy, eager):  # a big step, beyond the fit's reach: from the guess
+        eq.move_to(np.array([-12.0]), tangent=False)
+    assert len(calls) == 1 and lazy.tangent_x is calls[0]  # the move started from the state it returned
+    np.testing.assert_allclose(lazy.x, eager.x, atol=1e-7)
+
+
 def test_a_move_the_fast_path_cannot_finish_continues_from_its_guess(monkeypatch):
     """When the predictor and Newton fail, the load continuation starts from the move's guess (nearer in stroke:
     a shorter path) and, if that path fails too, from the current state; either way the equilibrium is the

@@ -286,7 +286,8 @@ class TargetRun:
     it is not the model itself (None: tol; a camera reads the truth to its
     noise, the controller's J wants the model tighter); guess: (strokes
     (C,), x (N, 2)) a known equilibrium of the model the first big move
-    may start from;
+    may start from (x may be a function returning it: called only if a
+    move does start there);
     truth_guess: the same for the truth (x on the truth's mesh: an earlier
     loop's end on the same true tissue);
     direction (2,): the needle axis of the miss (default the corridor's);
@@ -387,7 +388,8 @@ def loop_parts(model: Tissue, target_rest: np.ndarray, run: TargetRun = TargetRu
         trackers = [plant.eq] if run.truth_factory is None else []
         trackers += [controller.eq] if getattr(controller, "tissue", None) is model else []
         for eq in trackers:
-            eq.guesses.append((np.asarray(run.guess[0], float), np.asarray(run.guess[1], float)))
+            eq.guesses.append((np.asarray(run.guess[0], float),
+                               run.guess[1] if callable(run.guess[1]) else np.asarray(run.guess[1], float)))
     if run.truth_guess is not None:
         plant.eq.guesses.append((np.asarray(run.truth_guess[0], float), np.asarray(run.truth_guess[1], float)))
     return plant, controller, direction

@@ -153,17 +153,23 @@ class BodyTrialContext:
         self.truth = BodyTruth(self.cfg, self.tissue)
         self.errors: ErrorModel = error_model(self.cfg.trials)
         self.sensors = body_sensor_model(self.cfg, self.errors, self.truth.tissue.mesh)
-        self._guesses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._guesses: dict[int, np.ndarray] = {}  # per target: the model's equilibrium at the plan (`guess`)
         self.paths: dict[int, control.ModelPaths] = {}  # per target: the model's states the loops solved
         self.controllers: Optional[Callable] = None  # from the first task (a surrogate's samples come in it)
 
-    def guess(self, task) -> tuple[np.ndarray, np.ndarray] | None:
-        """The model's equilibrium at the plan's strokes: a warm start for the loop's first big move."""
+    def guess(self, task) -> tuple[np.ndarray, Callable[[], np.ndarray]] | None:
+        """(the plan's strokes (C,) mm, the function solving the model's equilibrium there (N, 3) mm): a warm start
+        for the loop's first big move, solved (once in this process) only when a move starts there — a body's
+        load continuation from rest costs seconds, and a loop stepping at its drives' speed seldom needs it."""
         if not np.any(task.plan_strokes):
             return None
-        if task.index not in self._guesses:
-            self._guesses[task.index] = (task.plan_strokes, solve_equilibrium(self.tissue, task.plan_strokes).x)
-        return self._guesses[task.index]
+
+        def solved() -> np.ndarray:
+            if task.index not in self._guesses:
+                self._guesses[task.index] = solve_equilibrium(self.tissue, task.plan_strokes).x
+            return self._guesses[task.index]
+
+        return task.plan_strokes, solved
 
     def nominal_run(self, task) -> control.TargetRun:
         """The nominal manipulation's `control.TargetRun`: the nominal body as the truth, its camera(s) without

@@ -30,7 +30,7 @@ equilibrium (`guesses`) is much nearer in stroke, from that one.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -98,8 +98,10 @@ class TrackedEquilibrium:
         #: the highest degree the next move's polynomial predictor may have, and whether each move sets it
         #: (`_best_degree`; SELECT_DEGREE)
         self.degree_cap, self.select_degree = MAX_DEGREE, SELECT_DEGREE and tissue.dim == 3
-        # Known (near-)equilibria (strokes (C,), x (N, 2)) to start a big move from, e.g. the planner's.
-        self.guesses: list[tuple[np.ndarray, np.ndarray]] = []
+        # Known (near-)equilibria (strokes (C,), x (N, 2)) to start a big move from, e.g. the planner's. x may be a
+        # function returning it, called only when a move starts there: a loop's moves are its drives' steps, so a
+        # guess solved for its first big move is seldom wanted, and then costs nothing.
+        self.guesses: list[tuple[np.ndarray, np.ndarray | Callable[[], np.ndarray]]] = []
         # Its last equilibria (strokes (C,), x (N, 2), the exact ∂x/∂s there or None), oldest first:
         # what the polynomial predictor is fitted to.
         self.history: list[tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]] = []
@@ -385,7 +387,7 @@ class TrackedEquilibrium:
             return None
         s_g, x_g = min(self.guesses, key=lambda g: np.linalg.norm(g[0] - strokes))
         if np.linalg.norm(s_g - strokes) < 0.5 * np.linalg.norm(self.strokes - strokes):
-            return x_g, s_g
+            return (x_g() if callable(x_g) else x_g), s_g
         return None
 
     def _corrected(self, strokes: np.ndarray, x0: np.ndarray, s0: np.ndarray,
