@@ -281,14 +281,14 @@ def _provenance() -> str:
         loads = [x for r in rs for x in (r["load1_before"], r["load1_after"])]
         dirty = sum(1 for r in rs if r["commit"].get("dirty"))
         speeds = [r[k] for r in rs for k in ("speed_index_ms_before", "speed_index_ms_after") if k in r]
+        speed = f"{num(min(speeds), 3)}–{num(max(speeds), 3)} ({len(speeds) // 2} of {len(rs)})" if speeds else "–"
         rows.append([f"{cpu}, {cores} cores, {system}", f"{python} / {numpy_}", len(rs),
                      f"{dates[0]} – {dates[-1]}", f"{min(loads):.2f}–{max(loads):.2f}",
-                     f"{num(min(speeds), 3)}–{num(max(speeds), 3)} ({len(speeds) // 2} files)" if speeds else "–",
-                     f"{dirty} of {len(rs)}" if dirty else "none"])
+                     speed, f"{dirty} of {len(rs)}" if dirty else "none"])
     note = "" if not other else (f" Not written through `results_io` (no machine or load recorded): "
                                  f"{', '.join(other)}.")
     return table(["machine", "python / numpy", "result files", "dates (UTC)", "load (1 min) at start and end",
-                  "speed index (ms, lower is faster)", "with uncommitted changes"], rows) + "\n\n" + (
+                  "speed index (ms, lower is faster; files with it)", "with uncommitted changes"], rows) + "\n\n" + (
         "Each table's source line gives its file's command, date, load and speed index before and after, wall time "
         "and commit."
         + note)
