@@ -99,8 +99,8 @@ class TrackedEquilibrium:
         #: (`_best_degree`; SELECT_DEGREE)
         self.degree_cap, self.select_degree = MAX_DEGREE, SELECT_DEGREE and tissue.dim == 3
         # Known (near-)equilibria (strokes (C,), x (N, 2)) to start a big move from, e.g. the planner's. x may be a
-        # function returning it, called only when a move starts there: a loop's moves are its drives' steps, so a
-        # guess solved for its first big move is seldom wanted, and then costs nothing.
+        # function returning it, called whenever a move starts there: a loop's moves are its drives' steps, so it
+        # seldom does, and a guess given so costs nothing until then.
         self.guesses: list[tuple[np.ndarray, np.ndarray | Callable[[], np.ndarray]]] = []
         # Its last equilibria (strokes (C,), x (N, 2), the exact ∂x/∂s there or None), oldest first:
         # what the polynomial predictor is fitted to.
