@@ -48,8 +48,9 @@ def test_the_truth_is_the_configured_mesh_and_the_model_is_coarser():
 
 def test_a_trials_truth_settles_to_the_body_truth_tolerance_and_the_model_to_its_own():
     """BODY_TRUTH_TOL reaches a trial's perturbed truth, BODY_MODEL_TOL the controller's model (the body), and a
-    truth that is the model itself keeps the model's. Along a few moves the lesion settled at BODY_TRUTH_TOL stays
-    within 1e-4 mm of its 1e-10 settle, far below a camera's noise (σ ≈ 0.15 mm)."""
+    truth that is the model itself keeps the model's; a nominal manipulation's loop has the same. Along a few
+    moves the lesion settled at BODY_TRUTH_TOL stays within 1e-4 mm of its 1e-10 settle, far below a camera's
+    noise (σ ≈ 0.15 mm)."""
     ctx = BodyTrialContext(yaml.safe_dump(dict(_scene(), trials={"count": 1, "profile": "prosthesis"})))
     target = ctx.cfg.targets[0]
     task = TargetTask(0, target.name, np.asarray(target.position_mm, float), np.asarray(target.desired_mm, float),
@@ -60,6 +61,8 @@ def test_a_trials_truth_settles_to_the_body_truth_tolerance_and_the_model_to_its
     assert controller.eq.tol == run.tol == BODY_MODEL_TOL
     shared, _, _ = loop_parts(ctx.tissue, task.rest, dataclasses.replace(run, truth=TruthPerturbation()))
     assert shared.tissue is ctx.tissue and shared.eq.tol == run.tol
+    nominal = ctx.nominal_run(task)  # the same loop without the trial's errors: the same tolerances
+    assert (nominal.tol, nominal.truth_tol) == (run.tol, run.truth_tol) == (BODY_MODEL_TOL, BODY_TRUTH_TOL)
     probe = plant.tissue.probe(task.rest[None])
     loose, tight = TrackedEquilibrium(plant.tissue, BODY_TRUTH_TOL), TrackedEquilibrium(plant.tissue, 1e-10)
     for strokes in ([1.5, 0.0], [3.0, -1.0], [3.5, -2.0]):

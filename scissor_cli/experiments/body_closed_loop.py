@@ -27,7 +27,13 @@ from scissor_cli.config.body_sections import BodyConfig
 from scissor_cli.experiments.body_imaging_stage import body_imaging_record
 from scissor_cli.experiments.body_insertion import body_insertion_stage
 from scissor_cli.experiments.body_surrogate import body_surrogate_data
-from scissor_cli.experiments.body_trials import BodyTruth, body_sensor_model, model_controllers, nominal_manipulation
+from scissor_cli.experiments.body_trials import (
+    BodyTruth,
+    body_sensor_model,
+    loop_tolerances,
+    model_controllers,
+    nominal_manipulation,
+)
 from scissor_cli.experiments.error_budget import run_budget
 from scissor_cli.experiments.profiles import CAMERA_SPREADS, IMAGING_SPREADS, INSERTION_SPREADS, error_model
 from scissor_cli.experiments.run_cache import cache_dir
@@ -141,7 +147,7 @@ def _manipulation_stage(cfg: BodyConfig, tissue: Tissue, truth: BodyTruth, plans
                                                                                                     cfg.seed)
         run = control.TargetRun(sensor=sensor, target=target.name,
                                 direction=np.asarray(plan.direction, float), controller_factory=controllers(k),
-                                truth_factory=truth.factory(target.rest))
+                                truth_factory=truth.factory(target.rest), **loop_tolerances(cfg.controller))
         closed, opened = nominal_manipulation(tissue, target.rest, desired, cfg.controller, run)
         paths += _stored_manipulation(truth, plan, target.rest, closed, opened, sink)
         if imaging and hasattr(sink, "imaging"):

@@ -40,7 +40,8 @@ from scissor_cli.sensing.camera3d_sensor import BodyCameraModel
 from scissor_cli.sensing.sensor import TrialDraws
 from scissor_cli.solvers.equilibrium import solve_equilibrium
 
-#: A trial's true body settles to this relative residual.
+#: A body's loop (a trial's, and a lesion's nominal manipulation, which runs as a trial does without its errors)
+#: settles the true body to this relative residual.
 #: The camera reads the lesion to its noise (σ ≈ 0.15 mm on the paper's bench); along a loop's travel on the paper
 #: dome the lesion stays decades below that noise from its 1e-10 settle, on p1 and on nodal, and a settle costs
 #: fewer Newton iterations and factorisations (benchmarks/bench_body_truth_tol.py); the slab truth's
@@ -51,6 +52,14 @@ BODY_TRUTH_TOL = 1e-5
 #: well instead of factoring at every move (`solvers.tracking.KEEP_FACTOR_FROM_TOL`; benchmarks/ab_trials.py,
 #: docs/performance.md "Where a trial's time goes")
 BODY_MODEL_TOL = 1e-5
+
+
+def loop_tolerances(controller_cfg) -> dict[str, float]:
+    """`control.TargetRun`'s tol and truth_tol for a body's loops, its trials' and its nominal manipulations':
+    BODY_MODEL_TOL for the controller's model when that is the body (a layer or a surrogate keeps the loop's
+    default), BODY_TRUTH_TOL for the truth (the model's own when the truth is the model)."""
+    return {"tol": BODY_MODEL_TOL if controller_cfg.model == "body" else control.TargetRun.tol,
+            "truth_tol": BODY_TRUTH_TOL}
 
 
 def model_controllers(cfg, model_data=None) -> Callable[[int], Optional[Callable]]:
@@ -179,7 +188,7 @@ class BodyTrialContext:
         sensor = self.sensors.nominal(np.asarray(task.desired, float), task.index, self.cfg.seed)
         return control.TargetRun(sensor=sensor, target=task.name, direction=np.asarray(task.direction, float),
                                  controller_factory=self.controllers(task.index),
-                                 truth_factory=self.truth.factory(task.rest))
+                                 truth_factory=self.truth.factory(task.rest), **loop_tolerances(self.cfg.controller))
 
     def manipulate(self, task) -> tuple[control.LoopResult, control.LoopResult]:
         """The lesion's nominal manipulation (`nominal_manipulation` of `nominal_run`), as `simulate`'s own
@@ -201,8 +210,8 @@ class BodyTrialContext:
         sensor = self.sensors.for_trial(TrialDraws(draw.localisation_z, draw.rng,
                                                    (int(self.cfg.seed), task.index, trial), goal_mm=desired))
         return control.TargetRun(
-            tol=BODY_MODEL_TOL if self.cfg.controller.model == "body" else control.TargetRun.tol,
-            truth=truth, truth_tol=BODY_TRUTH_TOL, sensor=sensor, resolution_mm=self.errors.actuator_resolution_mm,
+            **loop_tolerances(self.cfg.controller), truth=truth, sensor=sensor,
+            resolution_mm=self.errors.actuator_resolution_mm,
             backlash_mm=self.errors.backlash_mm, target=task.name, guess=self.guess(task),
             direction=np.asarray(task.direction, float), controller_factory=self.controllers(task.index),
             truth_factory=self.truth.factory(task.rest),
