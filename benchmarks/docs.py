@@ -1589,6 +1589,26 @@ def _insertion3d(r) -> str:
               f"{fixed(fig(r, 'float32_over_float64'), 2)}× the time.\n\n" + source(r))
 
 
+@renderer("needle_trial_parts", "bench_needle_trial_parts")
+def _needle_trial_parts(r) -> str:
+    """bench_needle_trial_parts: each part's time, refactorisations and Newton take-overs per stage and needle; the
+    cup moves under the needle by size."""
+    parts = [[x["stage"], f"`{x['strategies']}`".replace(" + ", "` + `"), x["part"], num(x["calls"]),
+              f"{fixed(x['wall_s'], 1)} s ({fixed(100 * x['share'], 0)} %)",
+              f"{num(x['refactorisations'])} ({fixed(x['refactorisation_s'], 1)} s)",
+              f"{num(x['newton'])} ({fixed(x['newton_s'], 1)} s)"] for x in rows_of(r, "parts")]
+    moves = [[x["stage"], f"{num(x['from_mm'])}–{num(x['to_mm'])} mm" if x["to_mm"] not in (None, float("inf"))
+              else f"over {num(x['from_mm'])} mm", num(x["moves"]), f"{fixed(x['wall_s'], 1)} s",
+              f"{fixed(1e3 * x['wall_s'] / x['moves'], 0)} ms" if x["moves"] else "–", num(x["refactorisations"]),
+              num(x["newton"])] for x in rows_of(r, "moves")]
+    return (table(["stage", "needle", "part", "calls", "time (share of the stage's insertions)",
+                   "refactorisations", "Newton take-overs"], parts)
+            + "\n\n" + table(["stage", "a cup move under the needle", "moves", "time", "a move (mean)",
+                                "refactorisations", "Newton take-overs"], moves)
+            + f"\n\n{num(fig(r, 'trials'))} trials, median {fixed(fig(r, 'trial_median_s'), 1)} s each (timed with the "
+              f"parts charged; the closed loop before the needle included).\n\n" + source(r))
+
+
 @renderer("needle_3d", "bench_needle_3d")
 def _needle_3d(r) -> str:
     full = load("bench_needle_3d.full")
