@@ -36,6 +36,7 @@ import yaml
 from scissor_cli import runtime
 
 runtime.configure()  # before scissor's modules load cvxopt (runtime.match_blas_kernels)
+import scissor_cli.experiments.body_closed_loop as body_closed_loop  # noqa: E402
 import scissor_cli.experiments.body_insertion as body_insertion  # noqa: E402
 import scissor_cli.experiments.body_trials as body_trials  # noqa: E402
 import scissor_cli.insertion.model_state as model_state  # noqa: E402
@@ -121,7 +122,8 @@ class Ledger:
 
 def instrument() -> Ledger:
     ledger = Ledger()
-    ledger.wrap_while(body_insertion, "body_insertion_stage", "stage", lambda args: "nominal")
+    for owner in (body_insertion, body_closed_loop):  # (the caller holds its own name for it)
+        ledger.wrap_while(owner, "body_insertion_stage", "stage", lambda args: "nominal")
     ledger.wrap_while(body_trials.BodyTrialContext, "insert", "stage", lambda args: "trials")
     # _insert_together(tissue, x0, strokes, path, params, options): the strategies on one needle
     ledger.wrap_while(insertion_run, "_insert_together", "strategies", lambda args: " + ".join(args[5]))
