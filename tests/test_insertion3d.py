@@ -345,3 +345,36 @@ def test_a_cup_moves_from_the_kept_factors_response_not_from_its_nodes_alone(sla
     settled = move_held(slab, state, x, s, command, loads, None)
     far_placed = np.abs(placed - settled).max()
     assert np.abs(start - settled).max() < 0.2 * far_placed and far_placed > 0.05
+
+
+def test_a_cup_move_the_kept_factor_cannot_settle_restarts_from_the_exact_tangent_not_newton(slab_model,
+                                                                                             monkeypatch):
+    """`move_held` from a start its kept factor's chord steps cannot settle (the strokes placed alone, a large
+    move): it factors the exact tangent at the last equilibrium and settles from that tangent's held response,
+    without Newton's continuation, to the equilibrium Newton finds."""
+    from scissor_cli.insertion import model_state
+    from scissor_cli.insertion.chord import ChordSolver
+    from scissor_cli.insertion.model_state import move_held, settled_tol
+    from scissor_cli.insertion.needle import needle_conditions
+
+    cfg, slab = slab_model[0], slab_model[3]
+    state = NeedleState(ENTRY, AXIS)
+    x, s = slab.rest.copy(), np.zeros(slab.n_cups)
+    while state.depth_mm < 8.0 - 1e-9:
+        out = advance(slab, state, x, s, 1.0, _params(cfg), free_nodes(slab))
+        x, loads = out.x, out.loads
+    command = s + 3.0
+    newton = model_state.solve_equilibrium
+    reference = newton(slab, command, start=x, start_strokes=s, conditions=needle_conditions(state, loads),
+                       tol=1e-10).x
+    factored_at = []
+    refactor = ChordSolver.refactor
+    monkeypatch.setattr(ChordSolver, "refactor", lambda solver, y: (factored_at.append(y.copy()), refactor(solver, y)))
+
+    def no_newton(*args, **kwargs):
+        raise AssertionError("Newton took over")
+
+    monkeypatch.setattr(model_state, "solve_equilibrium", no_newton)
+    settled = move_held(slab, state, x, s, command, loads, np.zeros((slab.n_cups,) + x.shape))
+    assert any(np.array_equal(y, x) for y in factored_at)
+    assert np.abs(settled - reference).max() < 100 * settled_tol(slab) * np.abs(reference - x).max()

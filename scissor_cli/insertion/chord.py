@@ -258,16 +258,19 @@ class ChordSolver:
         self._last_solve = (key, g_free, solved)
         return solved
 
-    def converge(self, x: np.ndarray, g: np.ndarray, hold: "Hold", tol: float, loads: np.ndarray, decide=None):
+    def converge(self, x: np.ndarray, g: np.ndarray, hold: "Hold", tol: float, loads: np.ndarray, decide=None,
+                 refactor: bool = True):
         """Chord steps from x (N, d) (gradient g) until the hold's relative residual is ≤ tol.
 
         Returns (x, g, iterations, verdict). decide(x, d_captured, μ, res),
         asked before each step with that step's prediction at the captured
         nodes (`predict`) and the residual at x, may end the solve early:
         whatever it returns (not None) is the verdict, x is left as it is.
-        Refactors when a step does not contract; raises ChordFailed when a
-        fresh factorisation does not help either (an inverted trial, no
-        contraction, or MAX_CHORD steps).
+        Refactors when a step does not contract (with `refactor` False it
+        raises ChordFailed instead: the caller knows a better state to factor
+        at than this iterate); raises ChordFailed when a fresh factorisation
+        does not help either (an inverted trial, no contraction, or MAX_CHORD
+        steps).
         """
         t = self.tissue
         free = t.free_dofs
@@ -309,6 +312,8 @@ class ChordSolver:
                     self.single_precision = False
                 elif self.fresh:
                     raise ChordFailed(f"a chord step on a fresh factorisation went from {res:.3g} to {res_t:.3g}")
+                elif not refactor:
+                    raise ChordFailed(f"a chord step on the kept factorisation went from {res:.3g} to {res_t:.3g}")
                 self.refactor(x)
                 accelerate.reset()  # its steps were on the old factor
                 continue

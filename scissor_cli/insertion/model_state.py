@@ -240,20 +240,33 @@ def move_held(tissue: Tissue, state: NeedleState, x: np.ndarray, s: np.ndarray, 
 
     Chord steps on the insertion's kept factorisation from the linear
     response to the stroke change (responses (C, N, d) per unit stroke, or
-    None: the strokes placed only); Newton (as a step's fallback) when they
-    fail or that start inverts an element.
+    None: the kept factor's own, `moved_start`). When they do not contract,
+    the tangent is factored at x, the last equilibrium, and the chord steps
+    start again from its exact response to the move (Newton's predictor):
+    at a cup's rigid rim the first start's residual is large and a
+    factorisation there steps into an inverted element
+    (docs/performance-elements.md, "Where a trial with the needle goes").
+    Newton when that fails too or its start inverts an element.
     """
     tol = settled_tol(tissue)
     hold = hold_at(state, x)
+    solver = state.solver
     predicted = moved_start(tissue, state, x, command) if responses is None else \
         x + np.tensordot(command - s, responses, axes=1)
-    start = hold.place(tissue.apply_strokes(predicted, command))
-    _, g = objective_gradient(tissue, start, None, loads, require_positive_J=True)
-    if g is not None:
-        try:
-            return state.solver.converge(start, g, hold, tol, loads)[0]
-        except ChordFailed:
-            pass
+    for attempt in range(2):
+        if attempt:  # Newton's predictor on the chord solver: the exact tangent at x and its held response
+            try:
+                solver.refactor(x)
+            except SolverError:  # (no positive definite tangent at x: Newton's continuation)
+                break
+            predicted = moved_start(tissue, state, x, command)
+        start = hold.place(tissue.apply_strokes(predicted, command))
+        _, g = objective_gradient(tissue, start, None, loads, require_positive_J=True)
+        if g is not None:
+            try:
+                return solver.converge(start, g, hold, tol, loads, refactor=attempt == 1)[0]
+            except ChordFailed:
+                pass
     r = solve_equilibrium(tissue, command, start=x, start_strokes=s, conditions=needle_conditions(state, loads),
                           tol=tol)
     return r.x
