@@ -324,17 +324,23 @@ def test_in_a_slab_with_its_own_plane_the_target_is_the_slabs_point(slab_model):
     assert np.linalg.norm(drag[1] - drag[0]) < 0.35 * np.linalg.norm(drag[0])
 
 
+def _needle_in(cfg, slab, depth_mm: float):
+    """The needle advanced depth_mm into the slab at rest in 1 mm steps: (state, x (N, 3), strokes (C,), loads)."""
+    state = NeedleState(ENTRY, AXIS)
+    x, s = slab.rest.copy(), np.zeros(slab.n_cups)
+    while state.depth_mm < depth_mm - 1e-9:
+        out = advance(slab, state, x, s, 1.0, _params(cfg), free_nodes(slab))
+        x, loads = out.x, out.loads
+    return state, x, s, loads
+
+
 def test_a_cup_moves_from_the_kept_factors_response_not_from_its_nodes_alone(slab_model):
     """`moved_start`: the cups at the command, the captured nodes where they were, the rest near the held
     equilibrium."""
     from scissor_cli.insertion.model_state import move_held, moved_start
 
     cfg, slab = slab_model[0], slab_model[3]
-    state = NeedleState(ENTRY, AXIS)
-    x, s = slab.rest.copy(), np.zeros(slab.n_cups)
-    while state.depth_mm < 8.0 - 1e-9:
-        out = advance(slab, state, x, s, 1.0, _params(cfg), free_nodes(slab))
-        x, loads = out.x, out.loads
+    state, x, s, loads = _needle_in(cfg, slab, 8.0)
     command = s + 0.4
     unfactored = dataclasses.replace(state, solver=None)
     np.testing.assert_array_equal(moved_start(slab, unfactored, x, command), slab.apply_strokes(x, command))
@@ -358,11 +364,7 @@ def test_a_cup_move_the_kept_factor_cannot_settle_restarts_from_the_exact_tangen
     from scissor_cli.insertion.needle import needle_conditions
 
     cfg, slab = slab_model[0], slab_model[3]
-    state = NeedleState(ENTRY, AXIS)
-    x, s = slab.rest.copy(), np.zeros(slab.n_cups)
-    while state.depth_mm < 8.0 - 1e-9:
-        out = advance(slab, state, x, s, 1.0, _params(cfg), free_nodes(slab))
-        x, loads = out.x, out.loads
+    state, x, s, loads = _needle_in(cfg, slab, 8.0)
     command = s + 3.0
     newton = model_state.solve_equilibrium
     reference = newton(slab, command, start=x, start_strokes=s, conditions=needle_conditions(state, loads),
