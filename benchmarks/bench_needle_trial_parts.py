@@ -7,12 +7,15 @@ asked for them:
 * the needle's steps: their active-set passes (`insertion.needle`), every strategy;
 * the cups' moves under the needle: the plant settled at `loop`'s command with the needle's hold
   (`insertion.model_state.move_held`), each also binned by its size (the largest stroke change);
-* the controller's model following the plant's needle (`ModelState.follow`) and its J (`target_response`).
+* the controller's model following the plant's needle (`ModelState.follow`: only for a lesion without a needle
+  model) and the held J (`target_response`: the needle models' table).
 
 Within each, the kept factorisations made again (`ChordSolver.refactor`) and the Newton solves that took over
-where the chord steps failed. The scene's own insertion (stage `nominal`: every strategy in the undrawn body) and the
-trials' are kept apart, and within each the needles (`none` + `depth` share one until one stops, `loop` goes alone);
-a share is of its stage's insertions. A trial's whole time (its closed loop too) is results.h5's `trial_time_s`.
+where the chord steps failed. The needle models `loop` steers with (stage `needle models`: each lesion's
+nominal `depth` insertion tabulated, once per run), the scene's own insertion (stage `nominal`: every strategy
+in the undrawn body) and the trials' are kept apart, and within each the needles (`none` + `depth` share one
+until one stops, `loop` goes alone); a share is of its stage's insertions. A trial's whole time (its closed loop
+too) is results.h5's `trial_time_s`.
 
     PYTHONPATH=. python3 benchmarks/bench_needle_trial_parts.py [--count 2]     # about 3 minutes on 2 cores
 
@@ -51,6 +54,8 @@ ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "example_dome.yaml"
 #: the parts of an insertion, by the function that asks for its solves
 PARTS = ("needle steps", "cup moves under the needle", "the model follows", "the loop's J")
+#: the run's stages with insertions, in the order they run
+STAGES = ("needle models", "nominal", "trials")
 #: the cup moves' size bins (mm, the largest stroke change; upper bounds)
 MOVE_BINS = (0.05, 0.2, 0.45, np.inf)
 
@@ -124,6 +129,7 @@ def instrument() -> Ledger:
     ledger = Ledger()
     for owner in (body_insertion, body_closed_loop):  # (the caller holds its own name for it)
         ledger.wrap_while(owner, "body_insertion_stage", "stage", lambda args: "nominal")
+        ledger.wrap_while(owner, "body_needle_models", "stage", lambda args: "needle models")
     ledger.wrap_while(body_trials.BodyTrialContext, "insert", "stage", lambda args: "trials")
     # _insert_together(tissue, x0, strokes, path, params, options): the strategies on one needle
     ledger.wrap_while(insertion_run, "_insert_together", "strategies", lambda args: " + ".join(args[5]))
@@ -157,7 +163,7 @@ def main() -> None:
     print(f"{cfg.name}: {len(trial_s)} trials, median {statistics.median(trial_s):.1f} s; the run {wall:.0f} s",
           flush=True)
     rows = []
-    groups = sorted({key[:2] for key in ledger.parts if key[0] != "other"}, key=lambda g: (g[0] != "nominal", g))
+    groups = sorted({key[:2] for key in ledger.parts if key[0] in STAGES}, key=lambda g: (STAGES.index(g[0]), g))
     for stage, strategies in groups:
         total = sum(c["wall_s"] for key, c in ledger.parts.items() if key[0] == stage)
         for part in PARTS:

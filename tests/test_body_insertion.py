@@ -16,6 +16,7 @@ from scissor_cli.experiments.body_trials import body_sensor_model
 from scissor_cli.experiments.build import body_model
 from scissor_cli.experiments.profiles import error_model
 from scissor_cli.insertion import InsertionOptions, NeedleParams, NeedlePath, run_strategies
+from scissor_cli.insertion.model_table import tabulate
 from scissor_cli.planning.body_lines import skin_entries
 from scissor_cli.sensing.sensor import EXACT, TrueState
 from scissor_cli.solvers.equilibrium import solve_equilibrium
@@ -37,9 +38,10 @@ def body():
 
 
 def _insert(body, strategy="none", direction=(-1.0, 0.0, 0.0), record=None, sensor=EXACT, tolerance_mm=None,
-            **params):
+            table=False, **params):
     """Insert towards T1 from rest along `direction`, from where that line enters the skin, to T1's depth
-    (`loop` with the controller's tolerance, or tolerance_mm: the loop's deadband is half of it)."""
+    (`loop` with the controller's tolerance, or tolerance_mm: the loop's deadband is half of it; table: `loop`
+    steered by the nominal insertion's table, as a run's, else by the body itself under the needle)."""
     cfg, scene, tissue = body
     controller = cfg.controller if tolerance_mm is None else cfg.controller.model_copy(
         update={"tolerance_mm": tolerance_mm})
@@ -52,8 +54,10 @@ def _insert(body, strategy="none", direction=(-1.0, 0.0, 0.0), record=None, sens
     x0 = solve_equilibrium(tissue, strokes).x
     p = NeedleParams(**{"step_mm": 1.0, "capture_radius_mm": 2.5, **params})
     path = NeedlePath(entries[0], n, float(depths[0]), rest, "T1")
+    needle = tabulate(tissue, x0, strokes, path, p, controller) if table else None
     return run_strategies(tissue, x0, strokes, {strategy: path}, p,
-                          {strategy: InsertionOptions(strategy, controller, record=record, sensor=sensor)})[0], rest
+                          {strategy: InsertionOptions(strategy, controller, record=record, sensor=sensor,
+                                                      needle_model=needle)})[0], rest
 
 
 def test_with_no_friction_and_no_tip_force_the_lesion_does_not_move(body):
@@ -119,23 +123,26 @@ def test_the_run_inserts_every_planned_lesion_along_its_plan_and_so_do_its_trial
     assert len(list((tmp_path / "paraview" / "insertion_T1_depth").glob("*.vtu"))) == f_steps
 
 
-def test_loop_drives_both_components_of_the_miss_with_both_cups(body):
-    """From rest, T1 on its line: the shaft's drag pushes it off; `loop` (J 2 × 2, the body's held response)
-    brings it back within 0.1 mm and to a fraction of `none`'s miss, the cups within the drives' speed each step.
+@pytest.mark.parametrize("table", [False, True], ids=["body", "table"])
+def test_loop_drives_both_components_of_the_miss_with_both_cups(body, table):
+    """From rest, T1 on its line: the shaft's drag pushes it off; `loop` (J 2 × 2, the body's held response, or
+    the nominal insertion's tabulated as a run steers with it) brings it back within 0.1 mm and to a fraction of
+    `none`'s miss, the cups within the drives' speed each step.
     Without the tip's force: its push on the lesion in the last steps is faster than the drives follow (the
     cups' reach per step), and on the element that does not lock it moves this coarse dome's lesion by a few
     tenths of a millimetre, which the drag test is not about. The drag here is a few hundredths of a millimetre:
     the controller's tolerance 0.02 mm (its deadband 0.01 mm) lets the loop act on it."""
     cfg, scene, _ = body
     none, _ = _insert(body, "none", tip_force_mN=0.0)
-    loop, _ = _insert(body, "loop", tip_force_mN=0.0, tolerance_mm=0.02)
+    loop, _ = _insert(body, "loop", tip_force_mN=0.0, tolerance_mm=0.02, table=table)
     assert loop.completed and loop.miss_mm <= 0.1 and loop.miss_mm < 0.2 * none.miss_mm
     assert np.any(np.abs(loop.strokes[-1]) > 0.5)  # the cups moved
     reach = np.array([c.speed_mm_per_s for c in scene.cups]) / cfg.controller.rate_hz
     assert np.all(np.abs(np.diff(loop.strokes, axis=0)) <= reach + 1e-9)
 
 
-def test_loop_under_one_camera_drives_the_miss_it_sees(body):
+@pytest.mark.parametrize("table", [False, True], ids=["body", "table"])
+def test_loop_under_one_camera_drives_the_miss_it_sees(body, table):
     """One camera above does not see the depth along its view: its reading's z is NaN. The loop drives the part of
     the miss across the needle that the camera sees (y, the needle along x), as the manipulation's law does. It
     once computed the miss as T · (reading − entry), which 0 · NaN made NaN in both rows, and the cups never moved:
@@ -145,7 +152,8 @@ def test_loop_under_one_camera_drives_the_miss_it_sees(body):
                                            camera={"position_mm": [0.0, 0.0, 400.0]})), "<test>")
     sensor = body_sensor_model(one, error_model(one.trials), tissue.mesh).nominal(scene.targets[0].rest)
     assert np.isnan(sensor.measure(TrueState(scene.targets[0].rest, tissue.rest, tissue.mesh))[2])
-    runs = {k: _insert(body, k, tip_force_mN=0.0, sensor=sensor, tolerance_mm=0.02)[0] for k in ("depth", "loop")}
+    runs = {k: _insert(body, k, tip_force_mN=0.0, sensor=sensor, tolerance_mm=0.02, table=table)[0]
+            for k in ("depth", "loop")}
     loop = runs["loop"]
     assert loop.completed and np.any(np.abs(loop.strokes[-1] - loop.strokes[0]) > 0.1)  # the cups moved
     seen_miss = {k: abs(r.target[-1][1] - r.entry[1]) for k, r in runs.items()}  # y: across the needle, seen
@@ -157,3 +165,54 @@ def test_a_bad_insertion_section_of_a_body_exits_2(tmp_path):
     r = run_cli("validate", write_scene(tmp_path, data))
     assert r.returncode == 2 and "insertion.friction_kinetic_mN_per_mm" in r.stderr and "Traceback" not in r.stderr
 
+
+
+def test_a_run_makes_each_lesion_s_needle_model_once_and_reads_it_from_the_cache(body, tmp_path, monkeypatch):
+    """`loop`'s model under the needle in a run: the nominal body's `depth` insertion at the plan, tabulated once
+    (depths increasing, the lesion dragged, its held J 3 × C), kept in the run's cache and read back unchanged."""
+    from types import SimpleNamespace
+
+    import scissor_cli.experiments.body_insertion as body_insertion
+
+    cfg, scene, tissue = body
+    rest = scene.targets[0].rest
+    mesh = tissue.mesh
+    n = np.array([-1.0, 0.0, 0.0])
+    entries, depths, _ = skin_entries(mesh.nodes, mesh.boundary_triangles, np.zeros(len(mesh.boundary_triangles),
+                                                                                   bool), rest, n[None])
+    plans = [SimpleNamespace(feasible=True, strokes=np.zeros(len(scene.cups)), entry=entries[0], direction=n,
+                             depth_mm=float(depths[0])),
+             SimpleNamespace(feasible=False)]
+    cfg = parse_config(yaml.safe_dump(dict(COARSE, insertion={"step_mm": 2.0, "capture_radius_mm": 2.5,
+                                                               "strategies": ["none", "loop"]})), "<test>")
+    made = body_insertion.body_needle_models(cfg, tissue, plans, tmp_path)
+    assert list(made) == ["T1"]
+    table = made["T1"]
+    assert np.all(np.diff(table.depth_mm) > 0) and table.jacobian.shape == (len(table.depth_mm), 3, len(scene.cups))
+    assert np.all(np.isfinite(table.jacobian)) and np.linalg.norm(table.target_mm[-1] - rest) > 1e-3
+    monkeypatch.setattr(body_insertion, "tabulate", lambda *a, **k: pytest.fail("made again, not read"))
+    again = body_insertion.body_needle_models(cfg, tissue, plans, tmp_path)["T1"]
+    np.testing.assert_array_equal(again.jacobian, table.jacobian)
+    np.testing.assert_array_equal(again.target_mm, table.target_mm)
+
+
+def test_a_lesion_whose_nominal_insertion_fails_gets_no_needle_model_and_the_run_says_so(body, monkeypatch, capsys):
+    """`loop` on that lesion then follows the needle in the undrawn body (`ModelState`): the run goes on."""
+    from types import SimpleNamespace
+
+    import scissor_cli.experiments.body_insertion as body_insertion
+    from scissor_cli import progress
+    from scissor_cli.solvers.common import SolverError
+
+    cfg, scene, tissue = body
+    cfg = parse_config(yaml.safe_dump(dict(COARSE, insertion={"strategies": ["loop"]})), "<test>")
+
+    def fails(*args, **kwargs):
+        raise SolverError("the nominal insertion stopped short")
+
+    monkeypatch.setattr(body_insertion, "tabulate", fails)
+    monkeypatch.setattr(progress, "info", lambda message: print(message))
+    plans = [SimpleNamespace(feasible=True, strokes=np.zeros(len(scene.cups)), entry=np.zeros(3),
+                             direction=np.array([1.0, 0.0, 0.0]), depth_mm=10.0)]
+    assert body_insertion.body_needle_models(cfg, tissue, plans, None, {"T1": tissue.rest}) == {}
+    assert "needle model T1: none (the nominal insertion stopped short)" in capsys.readouterr().out

@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from scissor_cli.insertion.steering import DRIFT_SD_MM, MissFilter, seen_directions
+from scissor_cli.insertion.steering import DRIFT_SD_MM, MissFilter, NeedleModel, TableSteering, seen_directions
 
 
 def _scalar(prior_sd, noise, moves, readings):
@@ -74,3 +74,20 @@ def test_seen_directions_span_what_one_camera_sees_across_the_needle(axis):
         assert rows.shape == (2, 2)
     else:  # sees (0.8, −0.6) across fully and (0.6, 0.8) not at all
         assert rows.shape == (1, 2) and abs(rows[0] @ [0.8, -0.6]) == pytest.approx(1.0)
+
+
+def test_a_body_s_table_steers_both_components_across_the_needle_on_the_filter():
+    """A body's `loop` on its table (r = 2 across the needle along x, the table 3-D): J is the table's across the
+    needle; the move predicted is the table's drag plus J times the strokes' change; an exact sensor that sees y
+    only corrects y, z keeps the prediction (as `MissFilter` alone does)."""
+    depth = np.array([1.0, 2.0, 3.0])
+    target = np.array([[10.0, 0.0, 0.0], [10.0, 0.1, 0.2], [10.0, 0.3, 0.4]])  # dragged in y and z
+    J = np.stack([np.array([[9.0, 9.0], [1.0, 0.0], [0.0, 2.0]])] * 3)  # (K, 3, C): x, y, z per cup
+    across = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    steer = TableSteering(NeedleModel(depth, target, J, 0.0, 0.0), across, noise_mm=0.0, tolerance_mm=0.1)
+    assert steer.jacobian(2.0, np.zeros(2), np.full(3, np.nan)) == pytest.approx(np.array([[1.0, 0.0], [0.0, 2.0]]))
+    y_only = np.array([[1.0, 0.0]])
+    assert steer.offset(1.0, np.zeros(2), np.array([0.05, 9.0]), J[0][1:], y_only) == pytest.approx([0.05, 0.0])
+    # from depth 1 to 2 at strokes (0.1, 0.1): drag (0.1, 0.2) plus J (0.1, 0.1) = (0.1, 0.2); y read 0.0
+    est = steer.offset(2.0, np.array([0.1, 0.1]), np.array([0.0, 9.0]), J[1][1:], y_only)
+    assert est == pytest.approx([0.0, 0.4])

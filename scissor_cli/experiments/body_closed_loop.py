@@ -25,7 +25,7 @@ import numpy as np
 from scissor_cli import control, progress
 from scissor_cli.config.body_sections import BodyConfig
 from scissor_cli.experiments.body_imaging_stage import body_imaging_record
-from scissor_cli.experiments.body_insertion import body_insertion_stage
+from scissor_cli.experiments.body_insertion import body_insertion_stage, body_needle_models
 from scissor_cli.experiments.body_surrogate import body_surrogate_data
 from scissor_cli.experiments.body_trials import (
     BodyTruth,
@@ -56,14 +56,17 @@ def body_loop_stages(cfg: BodyConfig, tissue: Tissue, sink: RunSink, summary, do
         sink.mark_finished("plan")
     summary.plans = plans
     truth = BodyTruth(cfg, tissue) if cfg.trials.count or cfg.insertion is not None else None
+    needle, starts = {}, {}
+    if cfg.insertion is not None and "loop" in cfg.insertion.strategies:
+        needle = body_needle_models(cfg, truth.tissue, plans, cache_dir(sink.location), starts)
     if cfg.insertion is not None:
-        summary.figures += body_insertion_stage(cfg, truth.tissue, plans, sink, done)
+        summary.figures += body_insertion_stage(cfg, truth.tissue, plans, sink, done, needle, starts)
     if cfg.trials.count == 0:
         return
     model_data = None
     if cfg.controller.model == "surrogate":
         model_data = body_surrogate_data(cfg, tissue, cache_dir(sink.location))
-    tasks = body_tasks(tissue, plans, model_data)
+    tasks = body_tasks(tissue, plans, model_data, needle)
     # With several local workers the nominal manipulations run in the trials' pool, beside the trials (the
     # run's own process would solve them alone first); with imaging their frames are kept here, so not there.
     beside = execution.executor == "local" and execution.jobs > 1 and cfg.imaging is None
@@ -105,11 +108,14 @@ def _plan_stage(cfg: BodyConfig, tissue: Tissue, sink: RunSink) -> list[BodyNeed
     return plans
 
 
-def body_tasks(tissue: Tissue, plans: list[BodyNeedlePlan], model_data=None) -> list[TargetTask]:
-    """Plain-data tasks of the lesions with a feasible plan (and the controller's model's data, if any)."""
+def body_tasks(tissue: Tissue, plans: list[BodyNeedlePlan], model_data=None,
+               needle: dict | None = None) -> list[TargetTask]:
+    """Plain-data tasks of the lesions with a feasible plan (and the controller's model's data, if any; needle:
+    {lesion: its NeedleModel} for `loop`)."""
     return [TargetTask(k, p.target, tissue.scene.targets[k].rest, np.asarray(p.desired, float),
                        np.asarray(p.strokes, float), "", np.asarray(p.direction, float),
-                       np.asarray(p.entry, float), float(p.depth_mm), controller_model=model_data)
+                       np.asarray(p.entry, float), float(p.depth_mm), controller_model=model_data,
+                       needle_model=(needle or {}).get(p.target))
             for k, p in enumerate(plans) if p.feasible]
 
 

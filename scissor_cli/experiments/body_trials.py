@@ -247,8 +247,9 @@ class BodyTrialContext:
 
         As a layer's trial inserts (`trials.TrialContext.insert`): the profile's factors on the friction and
         the tip force, the trial's camera(s) going on from the loop's on a stream of their own, the plan's
-        entry and axis. `loop`'s model under the needle is the undrawn body on the truth's mesh (its held J
-        needs the truth's captured nodes; docs/model.md §20), whatever model steered the manipulation.
+        entry and axis. `loop` steers with the task's needle model (the nominal body's insertion at the plan,
+        tabulated once per run: `body_insertion.body_needle_models`; docs/model.md §20), whatever model steered
+        the manipulation; without one, with the undrawn body on the truth's mesh following the needle.
         """
         ins = self.cfg.insertion
         if ins is None or loop.final_x is None:
@@ -258,13 +259,14 @@ class BodyTrialContext:
         rng = np.random.default_rng([int(self.cfg.seed), task.index, trial, 13])
         nominal = self.truth.tissue
         plant = control.true_tissue(nominal, truth)
+        needle = task.needle_model
         model_x0 = None
-        if plant is not nominal and "loop" in ins.strategies:
+        if plant is not nominal and "loop" in ins.strategies and needle is None:
             model_x0 = solve_equilibrium(nominal, loop.final_strokes, start=loop.final_x,
                                          start_strokes=loop.final_strokes).x
         path = NeedlePath(np.asarray(entry, float), np.asarray(direction, float), float(task.depth_mm),
                           np.asarray(task.rest, float), task.name)
-        options = {k: InsertionOptions(k, self.cfg.controller, sensor.reseeded(rng), nominal, model_x0,
+        options = {k: InsertionOptions(k, self.cfg.controller, sensor.reseeded(rng), nominal, model_x0, needle,
                                        keep_displacement=False) for k in ins.strategies}
         results = run_strategies(plant, loop.final_x, loop.final_strokes, dict.fromkeys(ins.strategies, path),
                                  params, options)

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -58,25 +58,33 @@ def needle_models(cfg: Config, tissue: Tissue, slab: Tissue, plans: list, cache:
     for target, plan in zip(tissue.scene.targets, plans):
         if not plan.feasible:
             continue
-        path = None if cache is None else cache / f"needle-{target.name}-{_key(cfg, plan)}.npz"
-        model = read_needle_model(path)
-        how = "from the cache"
-        if model is None:
-            t0 = time.perf_counter()
+        def make(target=target, plan=plan) -> NeedleModel:
             strokes = np.asarray(plan.strokes, float)
             x0 = solve_equilibrium(slab, strokes, tol=SLAB_TRUTH_TOL).x
             height = float(slab_probe(slab, np.asarray(target.rest, float)[None]).positions(x0)[0, 2])
             needle = NeedlePath(np.append(plan.entry, height), np.append(plan.direction, 0.0), float(plan.depth_mm),
                                 np.asarray(target.rest, float), target.name)
-            model = tabulate(slab, x0, strokes, needle, params, cfg.controller)
-            how = f"{len(model.depth_mm)} steps in {time.perf_counter() - t0:.1f} s"
-            if path is not None:
-                write_needle_model(path, model)
+            return tabulate(slab, x0, strokes, needle, params, cfg.controller)
+
+        model, how = cached_needle_model(
+            None if cache is None else cache / f"needle-{target.name}-{_key(cfg, plan)}.npz", make)
         out[target.name] = model
         progress.info(f"needle model {target.name} ({how}): the target ends {model.end_height_mm - layer_z:+.3f} mm "
                       f"off the layer's plane, {model.steered_height_mm - layer_z:+.3f} mm with loop: the needle "
                       f"is aimed there")
     return out
+
+
+def cached_needle_model(path: Optional[Path], make: Callable[[], NeedleModel]) -> tuple[NeedleModel, str]:
+    """The model cached at path (None: no cache), else make()'s, written there; and how it was had (for the log)."""
+    model = read_needle_model(path)
+    if model is not None:
+        return model, "from the cache"
+    t0 = time.perf_counter()
+    model = make()
+    if path is not None:
+        write_needle_model(path, model)
+    return model, f"{len(model.depth_mm)} steps in {time.perf_counter() - t0:.1f} s"
 
 
 def write_needle_model(path: Path, model: NeedleModel) -> None:

@@ -33,6 +33,9 @@ class TargetTask:
     #: with `imaging`: the probe and its PSF as plain data (`sensor_models.imaging_data`), made once per run;
     #: None: the worker makes them
     imaging: Optional[dict] = None
+    #: a body with the needle and `loop`: the controller's model of the target under the needle
+    #: (`insertion.NeedleModel`, made once per run); None: none
+    needle_model: Optional[object] = None
 
 
 @dataclass

@@ -1,10 +1,10 @@
-"""The controller's 3-D model of a target under the needle, tabulated from the nominal slab's insertion
-(docs/model.md §18).
+"""The controller's 3-D model of a target under the needle, tabulated from the nominal tissue's insertion
+(docs/model.md §18, §20).
 
-`tabulate` inserts the needle into the nominal slab (the controller's
-knowledge, no trial's perturbation) from its equilibrium at the plan's
-strokes, along the plan's entry and axis at the given height, twice, with
-an exact sensor:
+`tabulate` inserts the needle into the nominal slab or body (the
+controller's knowledge, no trial's perturbation) from its equilibrium at
+the plan's strokes, along the plan's entry and axis (in the slab at the
+given height) with an exact sensor:
 
 1. with the `depth` strategy, recording after every step the target's 3-D
    position, and every JACOBIAN_EVERY-th step (every step once the tip is
@@ -12,8 +12,9 @@ an exact sensor:
    response fastest) its held response to each cup
    (`ModelState.target_response` to JACOBIAN_TOL, the plant's own kept
    factorisation as the preconditioner), linear in depth between;
-2. with `loop` steered by that table, for the height the target ends at
-   when the loop's cup moves correct the drag in the plane.
+2. in the slab, with `loop` steered by that table, for the height the
+   target ends at when the loop's cup moves correct the drag in the plane
+   (a body's needle is aimed at the lesion in 3-D: no height to find).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import numpy as np
 from scissor_cli.config import ControllerConfig
 from scissor_cli.insertion.model_state import ModelState
 from scissor_cli.insertion.needle import NeedleParams, NeedleState
-from scissor_cli.insertion.points import layer_points
+from scissor_cli.insertion.points import is_body, needle_points
 from scissor_cli.insertion.run import InsertionOptions, NeedlePath, run_insertion
 from scissor_cli.insertion.steering import NeedleModel
 from scissor_cli.mechanics.tissue import Tissue
@@ -42,10 +43,10 @@ JACOBIAN_TOL = 1e-4
 
 def tabulate(slab: Tissue, x0: np.ndarray, strokes: np.ndarray, path: NeedlePath, params: NeedleParams,
              controller: ControllerConfig) -> NeedleModel:
-    """The NeedleModel of one target: the nominal slab's insertions from x0 (N3, 3) at strokes (C,) mm along path
-    (entry (3,) at the needle's height, direction (3,) with n_z = 0); controller: the loop's gains. Raises
-    SolverError when an insertion stops short of the target."""
-    probe = layer_points(slab, np.asarray(path.target_rest, float), [])[0]
+    """The NeedleModel of one target: the nominal slab's or body's insertions from x0 (N, 3) at strokes (C,) mm
+    along path (in the slab entry (3,) at the needle's height, direction (3,) with n_z = 0; in a body any
+    axis); controller: the loop's gains. Raises SolverError when an insertion stops short of the target."""
+    probe = needle_points(slab, np.asarray(path.target_rest, float)).probe
     p0, n = np.asarray(path.entry, float), np.asarray(path.direction, float) / np.linalg.norm(path.direction)
     depths, targets, jacobians = [], [], []
 
@@ -63,7 +64,9 @@ def tabulate(slab: Tissue, x0: np.ndarray, strokes: np.ndarray, path: NeedlePath
     _completed(run_insertion(slab, x0, strokes, path, params,
                              InsertionOptions("depth", keep_displacement=False, record=record)), path)
     depths = np.array(depths)
-    table = NeedleModel(depths, np.array(targets), _filled(depths, jacobians), float(p0[2]), 0.0)
+    table = NeedleModel(depths, np.array(targets), _filled(depths, jacobians), float(p0[2]), float(p0[2]))
+    if is_body(slab):
+        return table
     steered = run_insertion(slab, x0, strokes, path, params,
                             InsertionOptions("loop", controller, needle_model=table, keep_displacement=False))
     _completed(steered, path)

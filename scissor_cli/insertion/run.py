@@ -311,7 +311,7 @@ def _insert_together(tissue, x0, strokes, path, params, options: dict) -> dict:
     steering = _steering(needle, first, params) if "loop" in options else None
     # a body's loop on a model tissue filters the miss it steers on (a table's steering filters its own)
     miss = (MissFilter(2, first.controller.tolerance_mm, first.sensor.noise_mm)
-            if steering is not None and needle.body else None)
+            if needle.body and steering is not None and not isinstance(steering, TableSteering) else None)
     pid = None
     if steering is not None:
         gains = first.controller
@@ -366,7 +366,8 @@ def _steering(needle: _Needle, options: InsertionOptions, params: NeedleParams):
     """`loop`'s source of J: the tabulated 3-D model, or a model tissue under the needle."""
     gains = options.controller
     if options.needle_model is not None:
-        return TableSteering(options.needle_model, needle.state.transverse[0][:2], gains.jacobian_update == "broyden",
+        across = needle.state.transverse if needle.body else needle.state.transverse[:1, :2]
+        return TableSteering(options.needle_model, across, gains.jacobian_update == "broyden",
                              options.sensor.noise_mm, gains.tolerance_mm)
     return _model_state(needle.tissue, options.model, needle.x, options.model_x0, needle.s, needle.p0, needle.n,
                         np.asarray(needle.path.target_rest, float), params)
@@ -392,25 +393,22 @@ def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID, miss: Optio
     J is the controller's: its 3-D model's held Jacobian at this depth
     (`steering.TableSteering`), or its model tissue's linear response with
     the hold at its own equilibrium under the needle (`ModelState`,
-    `ModelInsertion`). On the table the command moves the cups with the
-    needle's next step (one equilibrium for both, the step bounded by the
-    drives' speed); otherwise the plant is solved at the command with the
-    same hold (§14, the layer model's loop as it was). On a body the miss
-    is filtered (`miss`: the model body's own move under the needle
-    predicts, the reading corrects what the sensor sees), and the cups stay
-    while the estimate is within the deadband (as on the table).
+    `ModelInsertion`). On the slab's table the command moves the cups with
+    the needle's next step (one equilibrium for both, the step bounded by
+    the drives' speed); otherwise the plant is solved at the command with
+    the same hold (§14, the layer model's loop as it was; on a body a large
+    move at the cup's rigid rim inverts an element at a needle step's
+    start). On a body the miss is filtered (the table's filter, or `miss`:
+    the model body's own move under the needle predicts, the reading
+    corrects what the sensor sees), and the cups stay while the estimate is
+    within the deadband (as on the slab's table).
     """
     state, x, s = needle.state, needle.x, needle.s
     seen = needle.seen()
     body = needle.body
     across = state.transverse if body else state.transverse[:1, :2]  # a body's miss has two components
     offset = seen - needle.p0[:seen.size]
-    if isinstance(steering, TableSteering):
-        J, responses = steering.jacobian(state.depth_mm, s, seen), None
-        e = np.array([-steering.offset(state.depth_mm, s, float((across @ offset)[0]), J[0])])
-        if abs(e[0]) <= steering.deadband_mm:  # on the line as well as the filter can tell: the cups stay
-            return
-    elif body:
+    if body:
         # One camera does not see the depth along its view (NaN there): the unseen coordinates count as 0 and
         # the filter is told which directions across the needle the sensor sees (T S Tᵀ, S its projector:
         # `seen` of the camera or ultrasound sensor, else onto the coordinates it reports). (across @ offset
@@ -420,10 +418,19 @@ def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID, miss: Optio
         measured = np.isfinite(offset)
         S = getattr(needle.options.sensor, "seen", None)
         observed = across @ (np.diag(measured.astype(float)) if S is None else S) @ across.T  # (2, 2)
+        reading = across @ np.where(measured, offset, 0.0)
+    if isinstance(steering, TableSteering):
+        J, responses = steering.jacobian(state.depth_mm, s, seen), None
+        estimate = (steering.offset(state.depth_mm, s, reading, J, seen_directions(observed)) if body
+                    else steering.offset(state.depth_mm, s, across @ offset, J))
+        if np.linalg.norm(estimate) <= steering.deadband_mm:  # on the line as well as the filter can tell
+            return
+        e = -estimate
+    elif body:
         before = target_positions(needle.probe, steering.x)[0]
         steering.follow(state, x, s, loads)
         moved = across @ (target_positions(needle.probe, steering.x)[0] - before)
-        estimate = miss.update(moved, across @ np.where(measured, offset, 0.0), seen_directions(observed))
+        estimate = miss.update(moved, reading, seen_directions(observed))
         if np.linalg.norm(estimate) <= miss.deadband_mm:
             return  # on the line as well as the filter can tell: the cups stay
         e = -estimate
@@ -449,7 +456,7 @@ def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID, miss: Optio
     command, _ = pid.command(s, ds, lo, hi)
     if np.allclose(command, s, atol=1e-12, rtol=0):
         return
-    if isinstance(steering, TableSteering):  # the cups move with the needle's next step: one equilibrium, not two
+    if isinstance(steering, TableSteering) and not body:  # the cups move with the needle's next step
         needle.pending = command
     else:
         needle.x, needle.s = _move_plant(tissue, state, x, s, command, loads, responses), command

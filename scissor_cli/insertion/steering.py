@@ -45,14 +45,15 @@ BROYDEN_WINDOW = 5
 
 @dataclass(frozen=True)
 class NeedleModel:
-    """One target under the needle, tabulated over depth (the nominal slab's insertion at the plan).
+    """One target under the needle, tabulated over depth (the nominal slab's or body's insertion at the plan).
 
     depth_mm (K,) increasing; target_mm (K, 3): the target after each step,
-    slab frame; jacobian (K, 3, C) mm/mm: its response to a unit stroke of
-    each cup with the needle's hold at that step; entry_height_mm: the
-    needle's height in that insertion; steered_height_mm: the target's
-    height at the end of the same insertion steered by `loop` with this
-    model (its cup moves lift or lower the target too).
+    the tissue's frame; jacobian (K, 3, C) mm/mm: its response to a unit
+    stroke of each cup with the needle's hold at that step; in the slab,
+    entry_height_mm: the needle's height in that insertion;
+    steered_height_mm: the target's height at the end of the same insertion
+    steered by `loop` with this model (its cup moves lift or lower the
+    target too); in a body both are the entry's z (no height is aimed).
     """
 
     depth_mm: np.ndarray
@@ -148,55 +149,65 @@ def seen_directions(observed: np.ndarray) -> np.ndarray:
 class TableSteering:
     """The `loop` strategy's Jacobian from a `NeedleModel`, with Broyden's correction when asked for.
 
-    across (2,): the in-plane unit normal of the needle's axis; broyden:
-    whether to correct J from the moves; noise_mm: the sensor's σ (the
-    filter's, and Broyden's guard); tolerance_mm: the controller's (the
-    filter's prior σ and the deadband). `jacobian` returns the (1, C)
-    response of the across-axis miss, `offset` the filtered miss.
+    across (r, d): the unit directions across the needle's axis the miss is
+    steered along, in the table's first d coordinates (the slab: r = 1, the
+    in-plane normal, d = 2; a body: r = 2, the two transverse axes, d = 3);
+    broyden: whether to correct J from the moves; noise_mm: the sensor's σ
+    (the filter's, and Broyden's guard); tolerance_mm: the controller's (the
+    filter's prior σ and the deadband). `jacobian` returns the (r, C)
+    response of the miss across the needle, `offset` the filtered miss.
     """
 
     def __init__(self, model: NeedleModel, across: np.ndarray, broyden: bool = False, noise_mm: float = 0.0,
                  tolerance_mm: float = 0.1):
         self.model = model
-        self.across = np.asarray(across, float)[:2]
+        self.across = np.atleast_2d(np.asarray(across, float))
         self.correction: Optional[BroydenCorrection] = BroydenCorrection(noise_mm) if broyden else None
         self._drift0: Optional[np.ndarray] = None
         self._window: list = []
-        self._filter = MissFilter(1, tolerance_mm, noise_mm)
+        self._filter = MissFilter(self.across.shape[0], tolerance_mm, noise_mm)
         #: |offset| (mm) below which the loop does not move the cups (the filter's)
         self.deadband_mm = self._filter.deadband_mm
         #: the depth, strokes and J the filter's estimate holds at
         self._at: tuple = ()
 
-    def offset(self, depth_mm: float, strokes: np.ndarray, seen_offset_mm: float, J_across: np.ndarray) -> float:
-        """The filtered across-axis offset (mm) of the target from the needle line, from this frame's
-        `seen_offset_mm` at depth (mm) and strokes (C,) mm; J_across (C,) the held Jacobian steered with: the
-        table's drag and J_across times the strokes' change predict the move (`MissFilter`)."""
+    def offset(self, depth_mm: float, strokes: np.ndarray, seen_offset_mm: np.ndarray, J_across: np.ndarray,
+               seen: Optional[np.ndarray] = None) -> np.ndarray:
+        """The filtered offset (r,) mm of the target across the needle line, from this frame's `seen_offset_mm`
+        (r,) at depth (mm) and strokes (C,) mm; J_across (r, C) the held Jacobian steered with: the table's drag
+        and J_across times the strokes' change predict the move (`MissFilter`); seen (q, r): the directions the
+        sensor observes (default all)."""
         strokes = np.asarray(strokes, float)
-        moved = 0.0
+        d = self.across.shape[1]
+        moved = np.zeros(self.across.shape[0])
         if self._at:
             depth0, strokes0, J0 = self._at
-            drift = self.across @ (self.model.target_at(depth_mm) - self.model.target_at(depth0))[:2]
-            moved = float(drift + J0 @ (strokes - strokes0))
-        self._at = (depth_mm, strokes.copy(), np.asarray(J_across, float).copy())
-        return float(self._filter.update(np.array([moved]), np.array([float(seen_offset_mm)]), np.ones((1, 1)))[0])
+            drift = self.across @ (self.model.target_at(depth_mm) - self.model.target_at(depth0))[:d]
+            moved = drift + J0 @ (strokes - strokes0)
+        self._at = (depth_mm, strokes.copy(), np.atleast_2d(np.asarray(J_across, float)).copy())
+        r = self.across.shape[0]
+        return self._filter.update(moved, np.asarray(seen_offset_mm, float).reshape(r),
+                                   np.eye(r) if seen is None else seen)
 
     def jacobian(self, depth_mm: float, strokes: np.ndarray, measured: np.ndarray) -> np.ndarray:
-        """J (1, C) of the across-axis miss at this depth; `measured` (2,) the sensor's target at strokes (C,) mm.
+        """J (r, C) of the miss across the needle at this depth; `measured` (d,) the sensor's target at strokes
+        (C,) mm.
 
         Broyden sees the measured target less the model's drag since the
         first step (the cups' part of the motion, as far as the model knows
-        the drag).
+        the drag; a coordinate no sensor sees is NaN, which it skips).
         """
-        J = self.model.jacobian_at(depth_mm)[:2]
+        d = self.across.shape[1]
+        J = self.model.jacobian_at(depth_mm)[:d]
         if self.correction is not None:
-            drift = self.model.target_at(depth_mm)[:2]
+            drift = self.model.target_at(depth_mm)[:d]
             if self._drift0 is None:
                 self._drift0 = drift
-            self._window.append((np.array(strokes, float), np.asarray(measured, float) - (drift - self._drift0), J))
+            measured = np.asarray(measured, float)[:d]
+            self._window.append((np.array(strokes, float), measured - (drift - self._drift0), J))
             if len(self._window) == BROYDEN_WINDOW:
                 s, y, Js = (np.mean(v, axis=0) for v in zip(*self._window))
                 self.correction.observe(Js, s, y)
                 self._window.clear()
             J = self.correction.jacobian(J)
-        return (self.across @ J)[None, :]
+        return self.across @ J
