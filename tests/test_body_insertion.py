@@ -100,8 +100,12 @@ def test_the_run_inserts_every_planned_lesion_along_its_plan_and_so_do_its_trial
     left the body, the miss and depth error per strategy stored (T, S). (`loop` in a run:
     benchmarks/bench_body_insertion.py.)"""
     data = dict(COARSE, targets=COARSE["targets"][:1], trials={"count": 1, "profile": "ideal"},
-                insertion={"step_mm": 1.0, "capture_radius_mm": 2.5, "strategies": ["none", "depth"]})
+                insertion={"step_mm": 1.0, "capture_radius_mm": 2.5, "strategies": ["none", "depth", "loop"]})
     with h5py.File(simulate_here(tmp_path, data) / "results.h5", "r") as f:
+        # `loop`'s needle model beside its insertion: the nominal `depth` insertion tabulated
+        table = f["insertion/T1/loop/needle_model"]
+        assert table["jacobian"].shape == (len(table["depth_mm"]), 3, 2) and table["target"].shape[1] == 3
+        np.testing.assert_allclose(table["target"][-1], f["insertion/T1/depth/target"][-1], atol=1e-6)
         plan = f["plan/T1"].attrs
         depth = f["insertion/T1/depth"]
         assert depth["tip"].shape[1] == 3 and depth["target"].shape[1] == 3
@@ -112,9 +116,9 @@ def test_the_run_inserts_every_planned_lesion_along_its_plan_and_so_do_its_trial
         # during that step (its drag is not chased): a few hundredths of a mm, `none`'s push ahead a millimetre
         assert abs(depth.attrs["depth_error_mm"]) <= 0.1 < abs(f["insertion/T1/none"].attrs["depth_error_mm"])
         miss, depth_error = f["trials/T1/miss_mm"][()], f["trials/T1/depth_error_mm"][()]
-        assert list(f["trials/T1/miss_mm"].attrs["strategies"]) == ["none", "depth"]
+        assert list(f["trials/T1/miss_mm"].attrs["strategies"]) == ["none", "depth", "loop"]
         f_steps = len(depth["tip"])
-    assert miss.shape == (1, 2) and np.all(np.isfinite(miss)) and np.all(miss < 2.0)
+    assert miss.shape == (1, 3) and np.all(np.isfinite(miss)) and np.all(miss < 2.0)
     assert abs(depth_error[0, 1]) <= 0.05 < abs(depth_error[0, 0])
     assert_png_drawn(tmp_path / "run" / "insertion_path_T1.png")
     # ParaView: the insertion's steps on the body's own mesh

@@ -69,7 +69,8 @@ def body_insertion_stage(cfg: BodyConfig, truth: Tissue, plans: list, sink: RunS
         finally:
             bar.close()
         paths += sink.insertion(Insertion(target.name, results, truth, np.asarray(target.rest, float),
-                                          np.asarray(plan.desired, float), [], False, None))
+                                          np.asarray(plan.desired, float), [], False, None,
+                                          needle.get(target.name)))
         sink.mark_finished(product_key("insertion", target.name))
         report_insertions(target.name, results)
     return paths

@@ -41,6 +41,7 @@ if TYPE_CHECKING:  # the types the stages produce; annotations only
     from scissor_cli.experiments.selection import Selection
     from scissor_cli.experiments.study import StudyResult
     from scissor_cli.experiments.trials import TrialOutcome
+    from scissor_cli.insertion.steering import NeedleModel
     from scissor_cli.layer3d.check import LayerCheckCase
     from scissor_cli.layer3d.extrude import SlabMesh
     from scissor_cli.layer3d.resolution import SlabChoice
@@ -106,7 +107,9 @@ class Insertion:
     ramping to the plan's strokes), for the animation; animate: draw the GIF.
     tissue is the layer; layer: the layer's nodes as points of the slab
     (`layer3d.slab.layer_probe`) when the insertions ran in the slab
-    (docs/model.md §14), None in the layer.
+    (docs/model.md §14), None in the layer. needle_model: on a body, the
+    `insertion.NeedleModel` `loop` steered with (docs/model.md §20), stored
+    beside `loop`'s insertion.
     """
 
     target: str
@@ -117,6 +120,7 @@ class Insertion:
     manipulation_frames: list
     animate: bool = False
     layer: Optional["SlabProbe"] = None
+    needle_model: Optional["NeedleModel"] = None
 
 
 @dataclass(frozen=True)

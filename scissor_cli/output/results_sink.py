@@ -38,7 +38,7 @@ from scissor_cli.experiments.study import rows_as_columns
 from scissor_cli.output import figures, journal, layer_check, results
 from scissor_cli.output.error_budget import results as budget_results
 from scissor_cli.output.error_budget.figures import budget_figure
-from scissor_cli.output.insertion.results import write_insertion
+from scissor_cli.output.insertion.results import write_insertion, write_needle_model
 from scissor_cli.output.manipulation import manipulation_figure_inputs
 from scissor_cli.output.results import ResultsFile, temporary
 
@@ -226,6 +226,8 @@ class ResultsSink:
 
         for r in ins.results:
             write_insertion(self.out, r)
+        if ins.needle_model is not None and any(r.strategy == "loop" for r in ins.results):
+            write_needle_model(self.out, ins.target, ins.needle_model)
         self.out.flush()
         return insertion_outputs(ins, self.location)
 

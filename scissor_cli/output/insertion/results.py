@@ -45,3 +45,14 @@ def write_insertion(out: ResultsFile, r) -> None:
         "has_obstacles": bool(r.has_obstacles), "completed": bool(r.completed), "stop_reason": str(r.stop_reason),
         "unsettled_steps": int(r.unsettled),
     })
+
+
+def write_needle_model(out: ResultsFile, target: str, model) -> None:
+    """The `insertion.NeedleModel` a body's `loop` steered with, at /insertion/<target>/loop/needle_model: per step
+    of the nominal `depth` insertion it was tabulated from, its depth, the lesion and its held response."""
+    base = f"{insertion_path(target, 'loop')}/needle_model"
+    out.dataset(f"{base}/depth_mm", np.asarray(model.depth_mm, float), "mm",
+                description="needle depth per step of the nominal insertion tabulated")
+    out.dataset(f"{base}/target", np.asarray(model.target_mm, float), "mm", description="the lesion per step")
+    out.dataset(f"{base}/jacobian", np.asarray(model.jacobian, float), "mm/mm",
+                description="the lesion's held response to a unit stroke of each cup per step (3, C)")
