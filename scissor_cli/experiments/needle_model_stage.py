@@ -58,6 +58,7 @@ def needle_models(cfg: Config, tissue: Tissue, slab: Tissue, plans: list, cache:
     for target, plan in zip(tissue.scene.targets, plans):
         if not plan.feasible:
             continue
+
         def make(target=target, plan=plan) -> NeedleModel:
             strokes = np.asarray(plan.strokes, float)
             x0 = solve_equilibrium(slab, strokes, tol=SLAB_TRUTH_TOL).x

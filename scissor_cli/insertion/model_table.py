@@ -41,12 +41,12 @@ JACOBIAN_NEAR_MM = 3.0
 JACOBIAN_TOL = 1e-4
 
 
-def tabulate(slab: Tissue, x0: np.ndarray, strokes: np.ndarray, path: NeedlePath, params: NeedleParams,
+def tabulate(tissue: Tissue, x0: np.ndarray, strokes: np.ndarray, path: NeedlePath, params: NeedleParams,
              controller: ControllerConfig) -> NeedleModel:
-    """The NeedleModel of one target: the nominal slab's or body's insertions from x0 (N, 3) at strokes (C,) mm
-    along path (in the slab entry (3,) at the needle's height, direction (3,) with n_z = 0; in a body any
-    axis); controller: the loop's gains. Raises SolverError when an insertion stops short of the target."""
-    probe = needle_points(slab, np.asarray(path.target_rest, float)).probe
+    """The NeedleModel of one target: the nominal tissue's (a slab's or a body's) insertions from x0 (N, 3) at
+    strokes (C,) mm along path (in the slab entry (3,) at the needle's height, direction (3,) with n_z = 0; in a
+    body any axis); controller: the loop's gains. Raises SolverError when an insertion stops short of the target."""
+    probe = needle_points(tissue, np.asarray(path.target_rest, float)).probe
     p0, n = np.asarray(path.entry, float), np.asarray(path.direction, float) / np.linalg.norm(path.direction)
     depths, targets, jacobians = [], [], []
 
@@ -54,20 +54,20 @@ def tabulate(slab: Tissue, x0: np.ndarray, strokes: np.ndarray, path: NeedlePath
         y = target_positions(probe, x)[0]
         near = (y - p0) @ n - state.depth_mm <= JACOBIAN_NEAR_MM
         if near or len(depths) % JACOBIAN_EVERY == 0:
-            R = ModelState(slab, slab, x, x, s).target_response(state, probe, state.solver, JACOBIAN_TOL)[0]
+            R = ModelState(tissue, tissue, x, x, s).target_response(state, probe, state.solver, JACOBIAN_TOL)[0]
             jacobians.append(R)
         else:
             jacobians.append(None)
         depths.append(state.depth_mm)
         targets.append(y)
 
-    _completed(run_insertion(slab, x0, strokes, path, params,
+    _completed(run_insertion(tissue, x0, strokes, path, params,
                              InsertionOptions("depth", keep_displacement=False, record=record)), path)
     depths = np.array(depths)
     table = NeedleModel(depths, np.array(targets), _filled(depths, jacobians), float(p0[2]), float(p0[2]))
-    if is_body(slab):
+    if is_body(tissue):
         return table
-    steered = run_insertion(slab, x0, strokes, path, params,
+    steered = run_insertion(tissue, x0, strokes, path, params,
                             InsertionOptions("loop", controller, needle_model=table, keep_displacement=False))
     _completed(steered, path)
     return replace(table, steered_height_mm=float(steered.target[-1, 2]))
