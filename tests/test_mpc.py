@@ -43,6 +43,12 @@ def problems(draw, outside: bool = False):
 
 @settings(max_examples=60, deadline=None)
 @given(problems())
+# a cup held still (zero limits, zero speed) beside one whose box its speed cannot reach in the horizon: the box's
+# rows repeated the speed limits' normals, the polish cycled between them and OSQP crawled to MAX_ITER
+# (control.mpc._bounds leaves such a box out)
+@example(dict(J=np.array([[0.0, 0.0], [1.0, 1.0]]), error_mm=np.array([0.0, -2.0]), strokes_mm=np.array([0.0, 0.1875]),
+              lo_mm=np.zeros(2), hi_mm=np.array([0.0, 3.0]), max_step_mm=np.array([0.0, 0.0625]), horizon=2,
+              action_weight=0.1, direction=None, mode="miss"))
 def test_the_move_respects_the_speed_and_the_stroke_limits(p):
     u = mpc_step(**p)
     s0, m = p["strokes_mm"], p["max_step_mm"]

@@ -125,9 +125,18 @@ def _hessian(Q: np.ndarray, H: int, rho: float) -> np.ndarray:
 
 def _bounds(s0, lo, hi, m, H: int) -> tuple[np.ndarray, np.ndarray]:
     """lb, ub (2CH,) of [I; D] δ from strokes s0 (C,) mm in [lo, hi]: each frame's stroke box, then the speed
-    limit m (C,) mm on every move. δ = 0 is admissible."""
-    return (np.concatenate([np.tile(lo - s0, H), np.tile(-m, H)]),
-            np.concatenate([np.tile(hi - s0, H), np.tile(m, H)]))
+    limit m (C,) mm on every move. δ = 0 is admissible.
+
+    A frame's box that its cup cannot reach at full speed from s0 (k m within it after k frames; a cup with
+    m = 0 among them) is left out (±inf): it holds wherever the speed limits do, and beside them it would
+    repeat their normals — a degenerate optimum the polish cannot certify and the ADMM crawls towards.
+    """
+    k = np.repeat(np.arange(1, H + 1, dtype=float), s0.size)
+    reach = k * np.tile(m, H)
+    lo_k, hi_k = np.tile(lo - s0, H), np.tile(hi - s0, H)
+    implied = (lo_k <= -reach) & (hi_k >= reach)
+    return (np.concatenate([np.where(implied, -np.inf, lo_k), np.tile(-m, H)]),
+            np.concatenate([np.where(implied, np.inf, hi_k), np.tile(m, H)]))
 
 
 def _active(A: np.ndarray, lb: np.ndarray, ub: np.ndarray, x: np.ndarray, y: np.ndarray
