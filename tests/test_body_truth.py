@@ -89,6 +89,29 @@ def test_the_trials_model_keeps_a_factor_that_preconditions_and_its_J_stays_the_
     assert tight.stats["refactors"] >= tight.stats["moves"] - 1  # (the first from rest may reuse rest's)
 
 
+def test_loops_table_under_the_needle_is_made_on_the_controllers_coarser_body(tmp_path, monkeypatch):
+    """With `controller.mesh_scale` 2 the table `loop` steers with under the needle (docs/model.md §20) is the
+    controller's own coarse body's; a table of the lesion, not of nodes, it steers the needle in the finer truth."""
+    import scissor_cli.experiments.body_insertion as body_insertion
+
+    made = []
+    tabulate = body_insertion.tabulate
+
+    def spy(tissue, *args, **kwargs):
+        made.append(tissue.mesh.n_nodes)
+        return tabulate(tissue, *args, **kwargs)
+
+    monkeypatch.setattr(body_insertion, "tabulate", spy)
+    data = dict(_scene(mesh_scale=2.0), targets=SCENE["targets"][:1], trials={"count": 0},
+                insertion={"step_mm": 1.0, "capture_radius_mm": 2.5, "strategies": ["loop"]})
+    with h5py.File(simulate_here(tmp_path, data) / "results.h5", "r") as f:
+        coarse = len(f["mesh/nodes"])  # the run's body: the controller's
+        loop = f["insertion/T1/loop"]
+        assert made == [coarse] and len(f["insertion/T1/loop/needle_model/depth_mm"]) > 5
+        assert loop.attrs["completed"] and loop["displacement"].shape[1] > coarse  # in the finer truth
+        assert loop.attrs["miss_mm"] < 0.5
+
+
 @pytest.mark.slow  # (its parts: the coarser model's trials above; Broyden on a body's camera rows and in a loop,
 # tests/test_broyden.py)
 def test_a_coarser_model_with_broyden_still_puts_every_lesion_on_the_finer_truths_needle(tmp_path):

@@ -58,7 +58,9 @@ def body_loop_stages(cfg: BodyConfig, tissue: Tissue, sink: RunSink, summary, do
     truth = BodyTruth(cfg, tissue) if cfg.trials.count or cfg.insertion is not None else None
     needle, starts = {}, {}
     if cfg.insertion is not None and "loop" in cfg.insertion.strategies:
-        needle = body_needle_models(cfg, truth.tissue, plans, cache_dir(sink.location), starts)
+        # the controller's own body (its equilibria at the plans the insertion stage's too when it is the truth's)
+        needle = body_needle_models(cfg, tissue, plans, cache_dir(sink.location),
+                                    starts if tissue is truth.tissue else {})
     if cfg.insertion is not None:
         summary.figures += body_insertion_stage(cfg, truth.tissue, plans, sink, done, needle, starts)
     if cfg.trials.count == 0:

@@ -76,21 +76,24 @@ def body_insertion_stage(cfg: BodyConfig, truth: Tissue, plans: list, sink: RunS
     return paths
 
 
-def body_needle_models(cfg: BodyConfig, truth: Tissue, plans: list, cache: Optional[Path],
+def body_needle_models(cfg: BodyConfig, model: Tissue, plans: list, cache: Optional[Path],
                        starts: Optional[dict] = None) -> dict:
     """{lesion: NeedleModel} of every feasible plan: the controller's model of its lesion under the needle, which
     `loop` steers with in the nominal insertion and in every trial (docs/model.md §20).
 
-    The nominal body's `depth` insertion at the plan's strokes, tabulated
-    (`insertion.model_table.tabulate`: the lesion after every step, its held
-    response to each cup along the way); kept in the run's cache keyed by
-    what it depends on, so a second run or a resume reads it. starts: as
-    `body_insertion_stage`'s (filled here).
+    The controller's own body (`model`: at `controller.mesh_scale`, the
+    truth's mesh at 1), its `depth` insertion at the plan's strokes,
+    tabulated (`insertion.model_table.tabulate`: the lesion after every
+    step, its held response to each cup along the way): a table of the
+    lesion, not of nodes, so it steers a truth on another mesh. Kept in the
+    run's cache keyed by what it depends on, so a second run or a resume
+    reads it. starts: as `body_insertion_stage`'s, for the same body
+    (filled here).
     """
     params = NeedleParams.from_config(cfg.insertion, cfg.needle, cfg.tissue.mesh)
     starts = {} if starts is None else starts
     out = {}
-    for target, plan in zip(truth.scene.targets, plans):
+    for target, plan in zip(model.scene.targets, plans):
         if not plan.feasible:
             continue
         strokes = np.asarray(plan.strokes, float)
@@ -98,25 +101,25 @@ def body_needle_models(cfg: BodyConfig, truth: Tissue, plans: list, cache: Optio
                             np.asarray(target.rest, float), target.name)
 
         def make(name=target.name, strokes=strokes, needle=needle) -> NeedleModel:
-            return tabulate(truth, _plan_start(truth, name, strokes, starts), strokes, needle, params, cfg.controller)
+            return tabulate(model, _plan_start(model, name, strokes, starts), strokes, needle, params, cfg.controller)
 
         try:
-            model, how = cached_needle_model(
+            table, how = cached_needle_model(
                 None if cache is None else cache / f"body-needle-{target.name}-{_key(cfg, plan)}.npz", make)
         except SolverError as exc:  # `loop` on this lesion steers on the body under the needle instead
             progress.info(f"needle model {target.name}: none ({exc}); `loop` follows the needle in the undrawn "
                           f"body instead")
             continue
-        out[target.name] = model
-        drag = np.linalg.norm(model.target_mm[-1] - model.target_mm[0])
+        out[target.name] = table
+        drag = np.linalg.norm(table.target_mm[-1] - table.target_mm[0])
         progress.info(f"needle model {target.name} ({how}): the needle drags the lesion {drag:.3f} mm on its way")
     return out
 
 
-def _plan_start(truth: Tissue, name: str, strokes: np.ndarray, starts: dict) -> np.ndarray:
+def _plan_start(body: Tissue, name: str, strokes: np.ndarray, starts: dict) -> np.ndarray:
     """The body's equilibrium (N, 3) at a plan's strokes (C,), solved once per run (kept in starts by lesion)."""
     if name not in starts:
-        starts[name] = solve_equilibrium(truth, strokes).x
+        starts[name] = solve_equilibrium(body, strokes).x
     return starts[name]
 
 
@@ -124,6 +127,7 @@ def _key(cfg: BodyConfig, plan) -> str:
     return run_cache.key({
         "scene": cfg.model_dump(mode="json", include={"tissue", "material", "cups", "targets", "obstacles",
                                                       "insertion", "needle"}),
+        "mesh_scale": cfg.controller.mesh_scale,
         "plan": [np.round(np.asarray(v, float), 9).tolist() for v in (plan.strokes, plan.entry, plan.direction)]
         + [round(float(plan.depth_mm), 9)],
     })
