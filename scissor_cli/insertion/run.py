@@ -366,8 +366,7 @@ def _steering(needle: _Needle, options: InsertionOptions, params: NeedleParams):
     """`loop`'s source of J: the tabulated 3-D model, or a model tissue under the needle."""
     gains = options.controller
     if options.needle_model is not None:
-        across = needle.state.transverse if needle.body else needle.state.transverse[:1, :2]
-        return TableSteering(options.needle_model, across, gains.jacobian_update == "broyden",
+        return TableSteering(options.needle_model, _across(needle), gains.jacobian_update == "broyden",
                              options.sensor.noise_mm, gains.tolerance_mm)
     return _model_state(needle.tissue, options.model, needle.x, options.model_x0, needle.s, needle.p0, needle.n,
                         np.asarray(needle.path.target_rest, float), params)
@@ -385,6 +384,13 @@ def _model_state(plant, model, x0, model_x0, strokes, p0, n, target_rest, params
     if model_x0 is None:  # x0 only warms the solve: the model's equilibrium does not depend on it
         model_x0 = solve_equilibrium(model, strokes, start=x0, start_strokes=strokes).x
     return ModelState(model, plant, model_x0, x0, strokes)
+
+
+def _across(needle: _Needle) -> np.ndarray:
+    """The directions (r, d) across the needle that `loop` steers the miss along: a body's two transverse axes in
+    3-D, the layer's (and the slab's) in-plane normal."""
+    t = needle.state.transverse
+    return t if needle.body else t[:1, :2]
 
 
 def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID, miss: Optional[MissFilter] = None) -> None:
@@ -406,7 +412,7 @@ def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID, miss: Optio
     state, x, s = needle.state, needle.x, needle.s
     seen = needle.seen()
     body = needle.body
-    across = state.transverse if body else state.transverse[:1, :2]  # a body's miss has two components
+    across = _across(needle)
     offset = seen - needle.p0[:seen.size]
     if body:
         # One camera does not see the depth along its view (NaN there): the unseen coordinates count as 0 and

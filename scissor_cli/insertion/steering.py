@@ -178,14 +178,13 @@ class TableSteering:
         and J_across times the strokes' change predict the move (`MissFilter`); seen (q, r): the directions the
         sensor observes (default all)."""
         strokes = np.asarray(strokes, float)
-        d = self.across.shape[1]
-        moved = np.zeros(self.across.shape[0])
+        r, d = self.across.shape
+        moved = np.zeros(r)
         if self._at:
             depth0, strokes0, J0 = self._at
             drift = self.across @ (self.model.target_at(depth_mm) - self.model.target_at(depth0))[:d]
             moved = drift + J0 @ (strokes - strokes0)
         self._at = (depth_mm, strokes.copy(), np.atleast_2d(np.asarray(J_across, float)).copy())
-        r = self.across.shape[0]
         return self._filter.update(moved, np.asarray(seen_offset_mm, float).reshape(r),
                                    np.eye(r) if seen is None else seen)
 
