@@ -94,14 +94,23 @@ def test_any_axis_reaches_the_lesion_and_the_tip_is_on_the_needle(body, directio
     assert np.isfinite(r.miss_mm) and r.miss_mm < 2.0
 
 
-def test_the_run_inserts_every_planned_lesion_along_its_plan_and_so_do_its_trials(tmp_path):
+#: a run of one lesion with the needle and a trial
+WITH_NEEDLE = dict(COARSE, targets=COARSE["targets"][:1], trials={"count": 1, "profile": "ideal"},
+                   insertion={"step_mm": 1.0, "capture_radius_mm": 2.5, "strategies": ["none", "depth", "loop"]})
+
+
+@pytest.fixture(scope="module")
+def needle_run(tmp_path_factory):
+    """`simulate` of WITH_NEEDLE in one process: the run's directory."""
+    return simulate_here(tmp_path_factory.mktemp("needle"), WITH_NEEDLE)
+
+
+def test_the_run_inserts_every_planned_lesion_along_its_plan_and_so_do_its_trials(needle_run, tmp_path):
     """`simulate` with `insertion` on a body: each plan's needle, the results in 3-D, the shaft clear of the vessel,
     `depth` stopping at the lesion as the cameras see it; each trial inserts every strategy from where its loop
     left the body, the miss and depth error per strategy stored (T, S). (`loop` in a run:
     benchmarks/bench_body_insertion.py.)"""
-    data = dict(COARSE, targets=COARSE["targets"][:1], trials={"count": 1, "profile": "ideal"},
-                insertion={"step_mm": 1.0, "capture_radius_mm": 2.5, "strategies": ["none", "depth", "loop"]})
-    with h5py.File(simulate_here(tmp_path, data) / "results.h5", "r") as f:
+    with h5py.File(needle_run / "results.h5", "r") as f:
         # `loop`'s needle model beside its insertion: the nominal `depth` insertion tabulated
         table = f["insertion/T1/loop/needle_model"]
         assert table["jacobian"].shape == (len(table["depth_mm"]), 3, 2) and table["target"].shape[1] == 3
@@ -120,11 +129,32 @@ def test_the_run_inserts_every_planned_lesion_along_its_plan_and_so_do_its_trial
         f_steps = len(depth["tip"])
     assert miss.shape == (1, 3) and np.all(np.isfinite(miss)) and np.all(miss < 2.0)
     assert abs(depth_error[0, 1]) <= 0.05 < abs(depth_error[0, 0])
-    assert_png_drawn(tmp_path / "run" / "insertion_path_T1.png")
+    assert_png_drawn(needle_run / "insertion_path_T1.png")
     # ParaView: the insertion's steps on the body's own mesh
-    r = cli_here("export", tmp_path / "run", "--out", tmp_path / "paraview", "--format", "vtu")
+    r = cli_here("export", needle_run, "--out", tmp_path / "paraview", "--format", "vtu")
     assert r.exit_code == 0, r.output
     assert len(list((tmp_path / "paraview" / "insertion_T1_depth").glob("*.vtu"))) == f_steps
+
+
+def test_on_two_workers_the_nominal_insertions_run_beside_the_trials_to_the_same_numbers(needle_run, tmp_path,
+                                                                                         monkeypatch):
+    """With two local workers a lesion's nominal insertions go to the trials' pool (`run_trial_stage`'s `nominal`,
+    `BodyTrialContext.insert_nominal`) instead of the run's own process: every number stored is the one-process
+    run's, to the last bit, and the insertions are marked finished for `--resume`."""
+    from scissor_cli.experiments import body_closed_loop
+
+    from test_resume_stages import assert_same_run
+
+    def not_here(*args, **kwargs):
+        raise AssertionError("the run's own process ran the nominal insertions")
+
+    monkeypatch.setattr(body_closed_loop, "body_insertion_stage", not_here)
+    two = simulate_here(tmp_path, WITH_NEEDLE, jobs=2)
+    with h5py.File(two / "results.h5", "r") as h5:
+        finished = set(h5.attrs["finished"].astype(str))
+    assert {"insertion/T1", "manipulation/T1", "trials"} <= finished
+    assert_same_run(needle_run / "results.h5", two / "results.h5")
+    assert_png_drawn(two / "insertion_path_T1.png")
 
 
 @pytest.mark.parametrize("table", [False, True], ids=["body", "table"])

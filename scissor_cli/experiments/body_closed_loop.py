@@ -25,7 +25,7 @@ import numpy as np
 from scissor_cli import control, progress
 from scissor_cli.config.body_sections import BodyConfig
 from scissor_cli.experiments.body_imaging_stage import body_imaging_record
-from scissor_cli.experiments.body_insertion import body_insertion_stage, body_needle_models
+from scissor_cli.experiments.body_insertion import body_insertion_stage, body_needle_models, store_insertion
 from scissor_cli.experiments.body_surrogate import body_surrogate_data
 from scissor_cli.experiments.body_trials import (
     BodyTruth,
@@ -35,11 +35,12 @@ from scissor_cli.experiments.body_trials import (
     nominal_manipulation,
 )
 from scissor_cli.experiments.error_budget import run_budget
+from scissor_cli.experiments.insertion_stage import to_insert
 from scissor_cli.experiments.profiles import CAMERA_SPREADS, IMAGING_SPREADS, INSERTION_SPREADS, error_model
 from scissor_cli.experiments.run_cache import cache_dir
 from scissor_cli.experiments.sink import Manipulation, RunSink, product_key
 from scissor_cli.experiments.trial_stage import Execution, run_trial_stage
-from scissor_cli.experiments.trial_types import NominalOutcome, TargetTask, law_attrs
+from scissor_cli.experiments.trial_types import NominalInsertion, NominalOutcome, TargetTask, law_attrs
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.planning.body_plan import BodyNeedlePlan, body_robot_check, plan_body_targets, stored_body_plan
 from scissor_cli.robot.chain import RobotModel
@@ -61,7 +62,12 @@ def body_loop_stages(cfg: BodyConfig, tissue: Tissue, sink: RunSink, summary, do
         # the controller's own body (its equilibria at the plans the insertion stage's too when it is the truth's)
         needle = body_needle_models(cfg, tissue, plans, cache_dir(sink.location),
                                     starts if tissue is truth.tissue else {})
-    if cfg.insertion is not None:
+    # With several local workers and trials, the nominal insertions and manipulations run in the trials' pool,
+    # beside the trials (the run's own process would run them alone first, one core idle); with imaging their
+    # frames are kept here, so not there.
+    beside = (execution.executor == "local" and execution.jobs > 1 and cfg.imaging is None
+              and cfg.trials.count > 0)
+    if cfg.insertion is not None and not beside:
         summary.figures += body_insertion_stage(cfg, truth.tissue, plans, sink, done, needle, starts)
     if cfg.trials.count == 0:
         return
@@ -69,11 +75,14 @@ def body_loop_stages(cfg: BodyConfig, tissue: Tissue, sink: RunSink, summary, do
     if cfg.controller.model == "surrogate":
         model_data = body_surrogate_data(cfg, tissue, cache_dir(sink.location))
     tasks = body_tasks(tissue, plans, model_data, needle)
-    # With several local workers the nominal manipulations run in the trials' pool, beside the trials (the
-    # run's own process would solve them alone first); with imaging their frames are kept here, so not there.
-    beside = execution.executor == "local" and execution.jobs > 1 and cfg.imaging is None
-    nominal = [t for t in tasks if product_key("manipulation", t.name) not in done] if beside else []
-    if not beside:
+    nominal = []
+    if beside:
+        if cfg.insertion is not None:  # the longest first; the truth's start where the run has solved it
+            inserting = {target.name for target, _ in to_insert(truth.tissue.scene.targets, plans, done)}
+            nominal += [(t, NominalInsertion(starts.get(t.name) if truth.tissue is tissue else None))
+                        for t in tasks if t.name in inserting]
+        nominal += [(t, None) for t in tasks if product_key("manipulation", t.name) not in done]
+    else:
         summary.figures += _manipulation_stage(cfg, tissue, truth, plans, sink, done, model_data)
     if "trials" not in done:
         em = error_model(cfg.trials)
@@ -92,7 +101,7 @@ def body_loop_stages(cfg: BodyConfig, tissue: Tissue, sink: RunSink, summary, do
                              {p.target: p.reason for p in plans if p.target not in planned}, dim=3)
         sink.mark_finished("trials")
     summary.trials_run = run_trial_stage(sink, cfg, tasks, execution, nominal,
-                                         lambda o: _store_nominal(tissue, truth, plans, sink, summary, o))
+                                         lambda o: _store_nominal(tissue, truth, plans, sink, summary, o, needle))
     if cfg.trials.budget:  # the trials again with one source at a time, the body's own too (docs/model.md §20)
         summary.figures += run_budget(cfg, tasks, sink, execution, done)
 
@@ -165,14 +174,18 @@ def _manipulation_stage(cfg: BodyConfig, tissue: Tissue, truth: BodyTruth, plans
 
 
 def _store_nominal(tissue: Tissue, truth: BodyTruth, plans: list, sink: RunSink, summary,
-                   outcome: NominalOutcome) -> None:
-    """A nominal manipulation a trials' worker ran (`run_trial_stage`), stored as `_manipulation_stage` stores its
-    own; its failure fails the run, as there."""
+                   outcome: NominalOutcome, needle: dict) -> None:
+    """A nominal manipulation or a lesion's nominal insertions a trials' worker ran (`run_trial_stage`), stored as
+    `_manipulation_stage` and `body_insertion_stage` store their own; a failure fails the run, as there.
+    needle: {lesion: the NeedleModel `loop` steered with}."""
     target = tissue.scene.targets[outcome.target_index]
     if outcome.error:
-        raise SolverError(f"the nominal manipulation of {target.name}: {outcome.error}")
-    summary.figures += _stored_manipulation(truth, plans[outcome.target_index], target.rest, outcome.closed,
-                                            outcome.opened, sink)
+        raise SolverError(f"the nominal {outcome.what} of {target.name}: {outcome.error}")
+    plan = plans[outcome.target_index]
+    if outcome.what == "insertion":
+        summary.figures += store_insertion(sink, truth.tissue, plan, outcome.insertion, needle.get(target.name))
+        return
+    summary.figures += _stored_manipulation(truth, plan, target.rest, outcome.closed, outcome.opened, sink)
 
 
 def _stored_manipulation(truth: BodyTruth, plan, rest: np.ndarray, closed, opened, sink: RunSink) -> list:

@@ -27,12 +27,12 @@ import numpy as np
 from scissor_cli import progress
 from scissor_cli.config.body_sections import BodyConfig
 from scissor_cli.experiments import run_cache
-from scissor_cli.experiments.body_trials import body_sensor_model
+from scissor_cli.experiments.body_trials import body_sensor_model, nominal_insertions, plan_path
 from scissor_cli.experiments.insertion_stage import StepBar, report_insertions, to_insert
 from scissor_cli.experiments.needle_model_stage import cached_needle_model
 from scissor_cli.experiments.profiles import error_model
 from scissor_cli.experiments.sink import Insertion, RunSink, product_key
-from scissor_cli.insertion import InsertionOptions, NeedleModel, NeedleParams, NeedlePath, run_strategies
+from scissor_cli.insertion import NeedleModel, NeedleParams
 from scissor_cli.insertion.model_table import tabulate
 from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.common import SolverError
@@ -49,30 +49,32 @@ def body_insertion_stage(cfg: BodyConfig, truth: Tissue, plans: list, sink: RunS
     equilibrium (N, 3) at its plan's strokes} already solved (filled here with those it solves)."""
     starts = {} if starts is None else starts
     needle = needle or {}
-    params = NeedleParams.from_config(cfg.insertion, cfg.needle, cfg.tissue.mesh)
-    strategies = list(cfg.insertion.strategies)
     sensors = body_sensor_model(cfg, error_model(cfg.trials), truth.mesh)
+    params = NeedleParams.from_config(cfg.insertion, cfg.needle, cfg.tissue.mesh)
     index = {t.name: k for k, t in enumerate(truth.scene.targets)}
     paths: list[Path] = []
     for target, plan in to_insert(truth.scene.targets, plans, done):
         strokes = np.asarray(plan.strokes, float)
-        x0 = _plan_start(truth, target.name, strokes, starts)
-        path = NeedlePath(np.asarray(plan.entry, float), np.asarray(plan.direction, float), float(plan.depth_mm),
-                          np.asarray(target.rest, float), target.name)
-        sensor = sensors.nominal(np.asarray(plan.desired, float), index[target.name], cfg.seed)
-        bar = StepBar(target.name, path.depth_mm, params, strategies)
+        path = plan_path(plan, target.rest, target.name)
+        bar = StepBar(target.name, path.depth_mm, params, list(cfg.insertion.strategies))
         try:
-            results = run_strategies(truth, x0, strokes, dict.fromkeys(strategies, path), params,
-                                     {k: InsertionOptions(k, cfg.controller, sensor=sensor, on_step=bar,
-                                                          needle_model=needle.get(target.name))
-                                      for k in strategies})
+            results = nominal_insertions(cfg, truth, sensors, index[target.name], path, strokes,
+                                         np.asarray(plan.desired, float),
+                                         _plan_start(truth, target.name, strokes, starts), needle.get(target.name),
+                                         on_step=bar)
         finally:
             bar.close()
-        paths += sink.insertion(Insertion(target.name, results, truth, np.asarray(target.rest, float),
-                                          np.asarray(plan.desired, float), [], False, None,
-                                          needle.get(target.name)))
-        sink.mark_finished(product_key("insertion", target.name))
-        report_insertions(target.name, results)
+        paths += store_insertion(sink, truth, plan, results, needle.get(target.name))
+    return paths
+
+
+def store_insertion(sink: RunSink, truth: Tissue, plan, results: list, needle: Optional[NeedleModel]) -> list[Path]:
+    """Store a lesion's nominal insertions (/insertion), mark them finished, print the misses; their figures."""
+    target = next(t for t in truth.scene.targets if t.name == plan.target)
+    paths = sink.insertion(Insertion(target.name, results, truth, np.asarray(target.rest, float),
+                                     np.asarray(plan.desired, float), [], False, None, needle))
+    sink.mark_finished(product_key("insertion", target.name))
+    report_insertions(target.name, results)
     return paths
 
 
@@ -97,8 +99,7 @@ def body_needle_models(cfg: BodyConfig, model: Tissue, plans: list, cache: Optio
         if not plan.feasible:
             continue
         strokes = np.asarray(plan.strokes, float)
-        needle = NeedlePath(np.asarray(plan.entry, float), np.asarray(plan.direction, float), float(plan.depth_mm),
-                            np.asarray(target.rest, float), target.name)
+        needle = plan_path(plan, target.rest, target.name)
 
         def make(name=target.name, strokes=strokes, needle=needle) -> NeedleModel:
             return tabulate(model, _plan_start(model, name, strokes, starts), strokes, needle, params, cfg.controller)

@@ -132,6 +132,29 @@ def nominal_manipulation(tissue: Tissue, rest: np.ndarray, desired: np.ndarray, 
     return closed, opened
 
 
+def nominal_insertions(cfg, truth: Tissue, sensors, index: int, path: NeedlePath, strokes: np.ndarray,
+                       desired: np.ndarray, x0: np.ndarray, needle, on_step: Optional[Callable] = None) -> list:
+    """A lesion's nominal insertions (every configured strategy, `insertion.run_strategies`) in the body `truth`
+    along its plan's `path` from x0 (N, 3) mm, the body's equilibrium at the plan's strokes (C,) mm, seen without
+    error by `sensors` (`body_sensor_model`'s; desired (3,) mm where the plan wants the lesion); the lesion is
+    truth's target `index`, `loop` steered by `needle` (an `insertion.NeedleModel` or None). The same in the
+    run's own process (`body_insertion.body_insertion_stage`) and in a trials' worker beside the trials
+    (`BodyTrialContext.insert_nominal`). on_step(depth_mm): after each step."""
+    params = NeedleParams.from_config(cfg.insertion, cfg.needle, cfg.tissue.mesh)
+    strategies = list(cfg.insertion.strategies)
+    sensor = sensors.nominal(np.asarray(desired, float), index, cfg.seed)
+    return run_strategies(truth, x0, np.asarray(strokes, float), dict.fromkeys(strategies, path), params,
+                          {k: InsertionOptions(k, cfg.controller, sensor=sensor, on_step=on_step, needle_model=needle)
+                           for k in strategies})
+
+
+def plan_path(plan, rest: np.ndarray, name: str) -> NeedlePath:
+    """The needle of a plan (its entry, direction and depth mm: a `BodyNeedlePlan` or a trials' `TargetTask`) to
+    the lesion `name` at rest (3,) mm."""
+    return NeedlePath(np.asarray(plan.entry, float), np.asarray(plan.direction, float), float(plan.depth_mm),
+                      np.asarray(rest, float), name)
+
+
 def body_sensor_model(cfg, errors: ErrorModel, mesh=None):
     """The run's 3-D sensor model: with `imaging`, the ultrasound with its probe on `mesh`'s skin
     (`sensing.ultrasound.body_sensor`, the profile's imaging errors); else the camera model, `cameras`
@@ -195,6 +218,16 @@ class BodyTrialContext:
         process runs it: what a worker runs beside the trials."""
         return nominal_manipulation(self.tissue, np.asarray(task.rest, float), np.asarray(task.desired, float),
                                     self.cfg.controller, self.nominal_run(task))
+
+    def insert_nominal(self, task, start: Optional[np.ndarray] = None) -> list:
+        """The lesion's nominal insertions (`nominal_insertions` in the undrawn truth from start (N, 3) mm, its
+        equilibrium at the plan's strokes, solved here when None), as `simulate`'s own process runs them: what
+        a worker runs beside the trials."""
+        truth = self.truth.tissue
+        if start is None:
+            start = solve_equilibrium(truth, task.plan_strokes).x
+        return nominal_insertions(self.cfg, truth, self.sensors, task.index, plan_path(task, task.rest, task.name),
+                                  task.plan_strokes, task.desired, start, task.needle_model)
 
     def target_run(self, task, trial: int) -> tuple[control.TargetRun, BodyDraw]:
         """How trial `trial` of `task` runs its loop (`control.TargetRun`: the drawn truth with the lesion's

@@ -17,7 +17,7 @@ from scissor_cli import progress
 from scissor_cli.experiments.pool import deferred_signals
 from scissor_cli.experiments.sink import RunSink
 from scissor_cli.experiments.trial_types import NominalOutcome, TargetTask
-from scissor_cli.experiments.trials import execute
+from scissor_cli.experiments.trials import WorkItem, execute
 from scissor_cli.text import duration
 
 
@@ -35,12 +35,13 @@ class Execution:
 
 
 def run_trial_stage(sink: RunSink, cfg, tasks: list[TargetTask], execution: Execution,
-                    nominal: Sequence[TargetTask] = (),
+                    nominal: Sequence[WorkItem] = (),
                     store_nominal: Optional[Callable[[NominalOutcome], None]] = None) -> int:
     """Run every pending trial of the sink and store each as it finishes; returns how many ran.
 
-    `nominal`: tasks whose nominal manipulation the workers run first, beside the trials (a body's, with
-    several local workers); `store_nominal` stores each as it comes in. Storing is not cut short by a stop
+    `nominal`: work items of a body's nominal manipulations (task, None) and insertions (task,
+    `NominalInsertion`) the workers run first, in this order, beside the trials (with several local workers);
+    `store_nominal` stores each as it comes in. Storing is not cut short by a stop
     signal (`deferred_signals`); leaving the loop for any reason stops the workers at once.
     """
     pending = sink.pending_trials()
@@ -49,12 +50,11 @@ def run_trial_stage(sink: RunSink, cfg, tasks: list[TargetTask], execution: Exec
     work = [(by_name[name], int(k)) for name, ks in pending.items() if name in by_name for k in ks]
     if work:
         progress.info(f"trials: {len(work)} to run ({cfg.trials.profile} profile, {execution.jobs} job(s), "
-                      f"{execution.executor} executor)" + (f", beside {len(nominal)} nominal manipulation(s)"
-                                                           if nominal else ""))
+                      f"{execution.executor} executor)" + _beside(nominal))
     advance = progress.bar("trials", len(work))
     t0, failed, finished, lost, refused, trials_s = time.perf_counter(), 0, 0, [], [], 0.0
     checkpoint = estimate_checkpoint(len(work), execution)
-    items = [(task, None) for task in nominal] + work
+    items = list(nominal) + work
     with closing(execute(sink.config_yaml, items, execution.jobs, execution.executor, execution.scheduler)) as outcomes:
         for outcome in outcomes:
             if isinstance(outcome, NominalOutcome):
@@ -91,6 +91,14 @@ def run_trial_stage(sink: RunSink, cfg, tasks: list[TargetTask], execution: Exec
     if failed:
         raise TrialsFailed(f"{failed} trial(s) crashed (see /trials/<target>/message); re-run them with --resume")
     return len(work)
+
+
+def _beside(nominal: Sequence[WorkItem]) -> str:
+    """What the trials' workers run beside the trials, said after the trials' count."""
+    manipulations = sum(k is None for _, k in nominal)
+    parts = [f"{n} nominal {what}(s)" for n, what in ((len(nominal) - manipulations, "insertion"),
+                                                       (manipulations, "manipulation")) if n]
+    return f", beside {' and '.join(parts)}" if parts else ""
 
 
 #: a run estimates the rest of its trials again once 1/CHECKPOINT_PARTS of them are in (`remaining_duration`)

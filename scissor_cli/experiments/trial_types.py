@@ -80,13 +80,25 @@ def law_attrs(controller) -> dict:
     return attrs
 
 
+@dataclass(frozen=True)
+class NominalInsertion:
+    """A work item's second element (`trials.WorkItem`) for a lesion's nominal insertions (a body's), run by a
+    trials' worker beside the trials: the truth's equilibrium at the plan's strokes (N, 3) mm when the run has
+    solved it already, else None (the worker solves it)."""
+
+    start: Optional[np.ndarray] = None
+
+
 @dataclass
 class NominalOutcome:
-    """A lesion's nominal manipulation run by a trials' worker beside the trials (a body's, docs/model.md §19,
-    "Trials"): its closed loop and open-loop baseline (`control.LoopResult`), or `error`, why it failed (the run
-    fails with it, as when the run's own process solves it)."""
+    """A lesion's nominal manipulation or nominal insertions run by a trials' worker beside the trials (a body's,
+    docs/model.md §19, "Trials"): its closed loop and open-loop baseline (`control.LoopResult`), or (`what`
+    "insertion") every strategy's `insertion.InsertionResult`; or `error`, why it failed (the run fails with it,
+    as when the run's own process solves it)."""
 
     target_index: int
     closed: Optional[object] = None
     opened: Optional[object] = None
     error: str = ""
+    what: str = "manipulation"
+    insertion: Optional[list] = None

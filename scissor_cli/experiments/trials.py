@@ -24,7 +24,7 @@ from scissor_cli.experiments.build import build_model
 from scissor_cli.experiments.pool import run_pool
 from scissor_cli.experiments.profiles import ErrorModel, TrialDraw, draw_trial, error_model, trial_needle
 from scissor_cli.experiments.sensor_models import sensor_model
-from scissor_cli.experiments.trial_types import NominalOutcome, TargetTask, TrialOutcome
+from scissor_cli.experiments.trial_types import NominalInsertion, NominalOutcome, TargetTask, TrialOutcome
 from scissor_cli.insertion import InsertionOptions, NeedleParams, needle_path, run_strategies
 from scissor_cli.planning.corridor import corridor_radius
 from scissor_cli.sensing.sensor import Sensor, SensorModel, TrialDraws
@@ -243,25 +243,37 @@ def run_trial(config_yaml: str, task: TargetTask, trial: int) -> TrialOutcome:
         )
 
 
-#: a work item: (task, trial k), or (task, None) for the task's nominal manipulation (a body's)
-WorkItem = tuple[TargetTask, Optional[int]]
+#: a work item: (task, trial k), or for a body's lesion (task, None), its nominal manipulation, or
+#: (task, NominalInsertion(...)), its nominal insertions
+WorkItem = tuple[TargetTask, Optional[int | NominalInsertion]]
 #: what a work item gives
 Outcome = TrialOutcome | NominalOutcome
 
 
-def run_nominal(config_yaml: str, task: TargetTask) -> NominalOutcome:
-    """A body lesion's nominal manipulation in whatever process runs it (`BodyTrialContext.manipulate`); a failure
-    is an outcome carrying its message (the run fails with it where the outcome is stored)."""
+def run_nominal(config_yaml: str, task: TargetTask, insertion: Optional[NominalInsertion] = None) -> NominalOutcome:
+    """A body lesion's nominal manipulation (`BodyTrialContext.manipulate`), or with `insertion` its nominal
+    insertions (`BodyTrialContext.insert_nominal`), in whatever process runs it; a failure is an outcome carrying its
+    message (the run fails with it where the outcome is stored)."""
+    what = "manipulation" if insertion is None else "insertion"
     try:
-        closed, opened = trial_context(config_yaml).manipulate(task)
+        context = trial_context(config_yaml)
+        if insertion is not None:
+            return NominalOutcome(task.index, what=what, insertion=context.insert_nominal(task, insertion.start))
+        closed, opened = context.manipulate(task)
     except Exception as exc:  # noqa: BLE001 - the run's process reports it
-        return NominalOutcome(task.index, error=f"{type(exc).__name__}: {exc}")
+        return NominalOutcome(task.index, error=f"{type(exc).__name__}: {exc}", what=what)
     return NominalOutcome(task.index, closed, opened)
 
 
-def _run_item(config_yaml: str, task: TargetTask, k: Optional[int]) -> Outcome:
-    """Trial k of the task, or (k None) its nominal manipulation."""
-    return run_nominal(config_yaml, task) if k is None else run_trial(config_yaml, task, k)
+def _is_trial(k) -> bool:
+    """Whether a work item's second element is a trial's number (not a nominal manipulation or insertion)."""
+    return k is not None and not isinstance(k, NominalInsertion)
+
+
+def _run_item(config_yaml: str, task: TargetTask, k) -> Outcome:
+    """Trial k of the task, or (k None) its nominal manipulation, or (k a `NominalInsertion`) its nominal
+    insertions."""
+    return run_trial(config_yaml, task, k) if _is_trial(k) else run_nominal(config_yaml, task, k)
 
 
 def _run_batch(row: str, config_yaml: str, work: list[WorkItem]) -> list[tuple[str, Outcome]]:
@@ -281,8 +293,8 @@ def _batches(work: list[tuple[TargetTask, int]], size: int) -> list[list[tuple[T
 
 
 def _batched(work: list[WorkItem], size: int) -> list[list[WorkItem]]:
-    """`_batches` of the trials after one batch per nominal manipulation (k None)."""
-    return [[w] for w in work if w[1] is None] + _batches([w for w in work if w[1] is not None], size)
+    """`_batches` of the trials after one batch per nominal manipulation or insertion."""
+    return [[w] for w in work if not _is_trial(w[1])] + _batches([w for w in work if _is_trial(w[1])], size)
 
 
 def execute(
@@ -294,8 +306,9 @@ def execute(
 ) -> Iterator[Outcome]:
     """Run trials and yield outcomes as they finish (order not guaranteed).
 
-    A work item (task, None) is the task's nominal manipulation (a body's; yields a `NominalOutcome`), run
-    first and on its own, so it goes on beside the trials. jobs 1 runs in this process; a local pool sends
+    A work item (task, None) is the task's nominal manipulation, (task, `NominalInsertion`) its nominal
+    insertions (a body's; each yields a `NominalOutcome`), run first and on its own, so it goes on beside the
+    trials. jobs 1 runs in this process; a local pool sends
     small batches so each worker builds its model once, and its workers die with the run
     (`pool.run_pool`); "dask" submits batches to the dask.distributed
     scheduler at `scheduler`. Close the generator (or let an exception leave
@@ -332,7 +345,7 @@ def execute_rows(
         return
     jobs = min(jobs, total)  # a worker without a trial would only cost its start-up
     # Batches amortise the per-task overhead while keeping both workers busy to the end; a nominal manipulation
-    # is a batch of its own, first.
+    # or insertion is a batch of its own, first.
     size = max(1, min(8, total // (len(rows) * 4 * jobs)))
     yield from run_pool(_run_batch, [(row, config_yaml, batch) for row, config_yaml in rows.items()
                                      for batch in _batched(todo[row], size)], jobs)
