@@ -39,10 +39,10 @@ def run_trial_stage(sink: RunSink, cfg, tasks: list[TargetTask], execution: Exec
                     store_nominal: Optional[Callable[[NominalOutcome], None]] = None) -> int:
     """Run every pending trial of the sink and store each as it finishes; returns how many ran.
 
-    `nominal`: work items of a body's nominal manipulations (task, None) and insertions (task,
-    `NominalInsertion`) the workers run first, in this order, beside the trials (with several local workers);
-    `store_nominal` stores each as it comes in. Storing is not cut short by a stop
-    signal (`deferred_signals`); leaving the loop for any reason stops the workers at once.
+    `nominal`: work items of a body's nominal insertions (task, `NominalInsertion`) and manipulations (task,
+    None) the workers run first, in the order given, beside the trials (with several local workers);
+    `store_nominal` stores each as it comes in. Storing is not cut short by a stop signal (`deferred_signals`);
+    leaving the loop for any reason stops the workers at once.
     """
     pending = sink.pending_trials()
     by_name = {t.name: t for t in tasks}
