@@ -276,6 +276,9 @@ def test_expected_duration_counts_trials_per_worker():
     line = expected_duration(600.0, 4, Execution(jobs=2), loop_s=60.0)  # a slab insertion: 9 parts in 10
     assert "the first took 10 min (the loop 60 s, the needle's insertion 9 min)" in line and "about 20 min" in line
     assert "insertion" not in expected_duration(10.0, 4, Execution(jobs=2), loop_s=9.5)  # the loop is the trial
+    # a body's nominal insertions and manipulations in the same pool come on top, and the line says so
+    assert "the 4 nominal run(s) beside" in expected_duration(10.0, 4, Execution(jobs=2), beside=4)
+    assert "nominal" not in expected_duration(10.0, 4, Execution(jobs=2))
 
 
 def test_the_rest_is_estimated_from_the_finished_trials_mean_time():

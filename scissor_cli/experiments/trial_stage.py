@@ -75,7 +75,8 @@ def run_trial_stage(sink: RunSink, cfg, tasks: list[TargetTask], execution: Exec
             trials_s += outcome.trial_time_s
             if finished == 1 and len(work) > 1:
                 loop_s = outcome.time_s if getattr(cfg, "insertion", None) is not None else None  # the rest: the needle
-                progress.info(expected_duration(outcome.trial_time_s, len(work), execution, loop_s=loop_s))
+                progress.info(expected_duration(outcome.trial_time_s, len(work), execution, loop_s=loop_s,
+                                                beside=len(nominal)))
             if finished == checkpoint:
                 progress.info(remaining_duration(trials_s / finished, finished, len(work), execution))
             advance(1)
@@ -129,20 +130,24 @@ def _on_workers(trial_s: float, n_trials: int, execution: Execution) -> tuple[fl
     return trial_s * -(-n_trials // workers), workers
 
 
-def expected_duration(first_s: float, n_trials: int, execution: Execution, loop_s: float | None = None) -> str:
+def expected_duration(first_s: float, n_trials: int, execution: Execution, loop_s: float | None = None,
+                      beside: int = 0) -> str:
     """The line a run prints when its first trial is in: how long all of them should take.
 
     first_s: the first trial's own time, its loop and, with insertion, every
     strategy's insertion (`TrialOutcome.trial_time_s`; outcomes arrive in
     batches, so the wall time until the first arrives can hold several
     trials), times the trials per worker; building each worker's model
-    comes on top. loop_s: the loop's part of it, named when the rest (the
-    insertion) is a noticeable share. A Dask cluster's size is not known
-    here: there it is per job asked for.
+    comes on top, and so do the `beside` nominal runs the workers run
+    beside the trials (a body's nominal insertions and manipulations, whose
+    time the first trial does not tell). loop_s: the loop's part of it,
+    named when the rest (the insertion) is a noticeable share. A Dask
+    cluster's size is not known here: there it is per job asked for.
     """
     total, workers = _on_workers(first_s, n_trials, execution)
     split = ""
     if loop_s is not None and first_s - loop_s > 0.1 * first_s:
         split = f" (the loop {duration(loop_s)}, the needle's insertion {duration(first_s - loop_s)})"
     return (f"trials: the first took {duration(first_s)}{split}; all {n_trials} should take about "
-            f"{duration(total)} with {workers} worker(s), plus building each worker's model")
+            f"{duration(total)} with {workers} worker(s), plus building each worker's model"
+            + (f" and the {beside} nominal run(s) beside the trials" if beside else ""))
