@@ -183,7 +183,9 @@ def _store_nominal(tissue: Tissue, truth: BodyTruth, plans: list, sink: RunSink,
         raise SolverError(f"the nominal {outcome.what} of {target.name}: {outcome.error}")
     plan = plans[outcome.target_index]
     if outcome.what == "insertion":
-        summary.figures += store_insertion(sink, truth.tissue, plan, outcome.insertion, needle.get(target.name))
+        lesion = truth.tissue.scene.targets[outcome.target_index]  # (its rest on the truth's mesh)
+        summary.figures += store_insertion(sink, truth.tissue, lesion, plan, outcome.insertion,
+                                           needle.get(lesion.name))
         return
     summary.figures += _stored_manipulation(truth, plan, target.rest, outcome.closed, outcome.opened, sink)
 

@@ -64,13 +64,14 @@ def body_insertion_stage(cfg: BodyConfig, truth: Tissue, plans: list, sink: RunS
                                          on_step=bar)
         finally:
             bar.close()
-        paths += store_insertion(sink, truth, plan, results, needle.get(target.name))
+        paths += store_insertion(sink, truth, target, plan, results, needle.get(target.name))
     return paths
 
 
-def store_insertion(sink: RunSink, truth: Tissue, plan, results: list, needle: Optional[NeedleModel]) -> list[Path]:
-    """Store a lesion's nominal insertions (/insertion), mark them finished, print the misses; their figures."""
-    target = next(t for t in truth.scene.targets if t.name == plan.target)
+def store_insertion(sink: RunSink, truth: Tissue, target, plan, results: list,
+                    needle: Optional[NeedleModel]) -> list[Path]:
+    """Store a lesion's (the scene's `target`) nominal insertions along its plan (/insertion), mark them finished,
+    print the misses; their figures."""
     paths = sink.insertion(Insertion(target.name, results, truth, np.asarray(target.rest, float),
                                      np.asarray(plan.desired, float), [], False, None, needle))
     sink.mark_finished(product_key("insertion", target.name))
