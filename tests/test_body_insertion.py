@@ -94,6 +94,26 @@ def test_any_axis_reaches_the_lesion_and_the_tip_is_on_the_needle(body, directio
     assert np.isfinite(r.miss_mm) and r.miss_mm < 2.0
 
 
+
+def test_a_node_that_sticks_again_beside_a_released_one_does_not_stop_the_needle():
+    """A slipping node that catches up with the needle sticks where the needle carried it; placed there alone in the
+    pass's equilibrium it can flatten an element that a neighbour's release stretched, whatever the step's size. On
+    test_body_loop's dome (the truth's mesh, coarse) T2's line, as a controller model twice as coarse plans it, so
+    stopped at 43 mm ("inverts an element even when split into 64 parts"); the pass now starts from the step's own
+    start with the set as it stands (`needle._newton_start`) and the needle reaches its depth."""
+    cfg = parse_config(yaml.safe_dump(SCENE), "<test>")
+    scene, _, tissue = body_model(cfg)
+    lesion = scene.targets[1]
+    strokes = np.zeros(len(scene.cups))
+    x0 = solve_equilibrium(tissue, strokes).x
+    path = NeedlePath(np.array([36.69, -5.92, 8.05]), np.array([-1.0, 0.0, 0.0]), 44.69, lesion.rest, lesion.name)
+    params = NeedleParams(step_mm=1.0, capture_radius_mm=2.5)
+    r = run_strategies(tissue, x0, strokes, {"none": path}, params,
+                       {"none": InsertionOptions("none", cfg.controller, keep_displacement=False)})[0]
+    assert r.completed, r.stop_reason
+    assert np.all(np.isfinite(r.target)) and np.all(np.isfinite(r.needle_force_mN))
+
+
 #: a run of one lesion with the needle and a trial
 WITH_NEEDLE = dict(COARSE, targets=COARSE["targets"][:1], trials={"count": 1, "profile": "ideal"},
                    insertion={"step_mm": 1.0, "capture_radius_mm": 2.5, "strategies": ["none", "depth", "loop"]})

@@ -282,9 +282,12 @@ def _flattens(tissue: Tissue, start: np.ndarray, J_now: np.ndarray) -> bool:
     return bool(np.min(tissue.jacobians(start) / J_now) <= MIN_START_J)
 
 
-def _check_start(tissue: Tissue, start: np.ndarray, J_now: np.ndarray) -> None:
-    if _flattens(tissue, start, J_now):
-        raise _Infeasible
+def _newton_start(tissue: Tissue, J_now: np.ndarray, *starts: np.ndarray) -> np.ndarray:
+    """The first of starts (N, d) that flattens no element (`_flattens`); `_Infeasible` when each does."""
+    for start in starts:
+        if not _flattens(tissue, start, J_now):
+            return start
+    raise _Infeasible
 
 
 def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> StepOutcome:
@@ -313,14 +316,11 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
     sign = np.concatenate([np.where(state.stuck, 1.0, state.sign), np.ones(new.size)])
     ride = np.concatenate([np.full(old.size, step_mm),
                            np.clip(state.depth_mm - (x[new] - state.entry) @ n, 0.0, step_mm)])
-    start = x.copy()
-    if state.rate is not None:  # the tissue keeps moving as in the last step (unless that inverts an element)
-        start += state.rate * step_mm
-    start = _placed(start, x, captured, stuck, ride, n)
     J_now = tissue.jacobians(x)
-    if _flattens(tissue, start, J_now):
-        start = _placed(x.copy(), x, captured, stuck, ride, n)
-        _check_start(tissue, start, J_now)
+    # Newton's start: the tissue moving on as in the last step, else from x
+    start = _newton_start(tissue, J_now, *(
+        [_placed(x + state.rate * step_mm, x, captured, stuck, ride, n)] if state.rate is not None else []),
+        _placed(x.copy(), x, captured, stuck, ride, n))
     fs, fk = params.friction_static_mN_per_mm, params.friction_kinetic_mN_per_mm
     limit = fs * lengths * (1.0 + 1e-9)  # f_s l_i, with round-off: a rule adds 1e-9 of the force scale
     # A slipping node that catches up with the needle sticks again and is tested
@@ -393,9 +393,11 @@ def _advance_once(tissue, state, x, strokes, step_mm, params, candidates) -> Ste
         stuck = (stuck & ~release) | restick
         start = r_x
         if restick.any():  # a node that catches up sticks where the needle has carried it in this step
-            start = r_x.copy()
-            start[captured[restick]] = x[captured[restick]] + ride[restick, None] * n
-            _check_start(tissue, start, J_now)
+            placed = r_x.copy()
+            placed[captured[restick]] = x[captured[restick]] + ride[restick, None] * n
+            # Placed alone in r_x it may flatten an element a neighbour's release stretched (a coarse mesh): then
+            # the step's own start with the set as it now stands
+            start = _newton_start(tissue, J_now, placed, _placed(x.copy(), x, captured, stuck, ride, n))
             _, grad_u = tissue.energy_gradient(start)
         chord_x = start
     force = float(axial[stuck].sum() + (fk * lengths[~stuck] * sign[~stuck]).sum() + params.tip_force_mN)
@@ -454,7 +456,7 @@ def _solve_pass(tissue, solver, strokes, x, g, hold, loads, tol, decide, start):
     The kept factorisation's chord steps (`chord.ChordSolver`) from x (N, d)
     with objective gradient g (dN,), which `decide` may end early with a
     verdict; when they fail, Newton with the same hold as `Conditions` from
-    start (N, d), the hold's placed start (checked not to flatten).
+    start (N, d), the hold's placed start (`_newton_start`).
     """
     try:
         return solver.converge(x, g, hold, tol, loads, decide)
