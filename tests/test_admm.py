@@ -11,10 +11,10 @@ from scissor_cli.mechanics.tissue import build_tissue
 from scissor_cli.mesh.mesh import mesh_for_config
 from scissor_cli.solvers.admm import local
 from scissor_cli.solvers.admm import solver as admm_solver
-from scissor_cli.solvers.admm.anderson import Anderson
 from scissor_cli.solvers.admm.euler import implicit_euler
 from scissor_cli.solvers.admm.solver import AdmmSolver, AdmmState
 from scissor_cli.solvers.admm.weights import curvature_boost, rest_weights
+from scissor_cli.solvers.anderson import Anderson
 from scissor_cli.solvers.common import Inertia, SolverError
 from scissor_cli.solvers.newton import solve_newton
 

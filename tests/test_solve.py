@@ -335,10 +335,30 @@ def test_a_float32_copy_solves_to_single_precision_and_leaves_the_factor_in_floa
     np.testing.assert_allclose(f.single().solve(b), 0.5 * ref, rtol=1e-4)
 
 
+
+@pytest.mark.parametrize("ordering", ["amd", "nested_dissection"])
+def test_a_float64_copy_solves_as_cholmod_does(ordering):
+    """double: the same compiled loops on float64 blocks (for a factor float32 cannot carry) solve one or many
+    columns to double precision, each right-hand side as the Factorization itself solves it; a copy per
+    factorisation, apart from the float32 one."""
+    A = sp.triu(_laplacian_3d(12, 0.1)).tocsr()
+    f = Factorization(A, definite=True, upper=True, ordering=ordering, supernodal=True)
+    kept = f.double()
+    assert kept is not None and f.double() is kept and f.single() is not kept and kept.blocks.dtype == np.float64
+    b = np.random.default_rng(4).random((A.shape[0], 5))
+    ref = f.solve(b)
+    for x, r in ((kept.solve(b), ref), (kept.solve(b[:, 1]), ref[:, 1])):
+        assert x.shape == r.shape and x.dtype == np.float64
+        assert np.linalg.norm(x - r) <= 1e-12 * np.linalg.norm(r)
+    f.refactor(sp.triu(4.0 * (A + sp.triu(A, 1).T)).tocsr())
+    assert f.double() is not kept
+    np.testing.assert_allclose(f.double().solve(b), 0.25 * ref, rtol=1e-10)
+
+
 def test_only_a_supernodal_cholesky_factor_has_a_float32_copy():
     """A simplicial LDLᵀ, an indefinite matrix's qdldl factor and a capsule that is not CHOLMOD's factor give no
     copy (the callers then solve in float64)."""
-    from scissor_cli.solvers.cholmod_factor import single_precision_copy
+    from scissor_cli.solvers.cholmod_factor import supernodal_copy
 
     A = sp.triu(_laplacian_3d(6, 0.1)).tocsr()
     assert Factorization(A, definite=True, upper=True, supernodal=False).single() is None
@@ -346,12 +366,12 @@ def test_only_a_supernodal_cholesky_factor_has_a_float32_copy():
     f = Factorization(indefinite)
     assert f.method == "ldl" and f.single() is None
     supernodal = Factorization(A, definite=True, upper=True)
-    assert single_precision_copy(supernodal._chol, A.shape[0] + 1) is None  # not the order asked for
+    assert supernodal_copy(supernodal._chol, A.shape[0] + 1) is None  # not the order asked for
     new_capsule = ctypes.pythonapi.PyCapsule_New
     new_capsule.restype, new_capsule.argtypes = ctypes.py_object, [ctypes.c_void_p, ctypes.c_char_p, ctypes.c_void_p]
     name = ctypes.c_char_p(b"something else")  # (kept alive: the capsule holds its address)
     other = new_capsule(ctypes.addressof(ctypes.c_double(1.0)), name, None)
-    assert single_precision_copy(other, 3) is None
+    assert supernodal_copy(other, 3) is None
 
 
 def test_a_float32_factor_solves_a_block_as_it_solves_each_column():

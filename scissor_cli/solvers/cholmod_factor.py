@@ -1,5 +1,5 @@
-"""CHOLMOD's supernodal factor read where it lies, as a float32 `SupernodalFactor` (docs/model.md §12, "The
-chord step's arithmetic").
+"""CHOLMOD's supernodal factor read where it lies, as a float32 (or float64) `SupernodalFactor` (docs/model.md
+§12, "The chord step's arithmetic").
 
 cvxopt hands a numeric factorisation to Python as a capsule holding
 CHOLMOD's `cholmod_factor` and reads its values out only through
@@ -9,13 +9,14 @@ pattern again, and the conversion costs about as much as the
 factorisation. A supernodal LLᵀ factor already stores each supernode's
 rows and columns as one dense column-major block (CHOLMOD's `super`, `pi`,
 `px`, `s`, `x`), the layout `SupernodalFactor` solves with, so the float32
-copy is one cast of `x`, and the factor stays usable in float64.
+copy is one cast of `x` (the float64 one a copy of it), and the factor
+stays usable through cvxopt.
 
 The struct is read by its documented layout (CHOLMOD 2 to 4, the one
 cvxopt's wheels carry); every field the copy relies on is checked first
 (a supernodal, real, double-precision LLᵀ factor of the expected order with
-64-bit or 32-bit indices), and `single_precision_copy` gives None for
-anything else, so the caller keeps solving in float64.
+64-bit or 32-bit indices), and `supernodal_copy` gives None for anything
+else, so the caller keeps solving through cvxopt.
 """
 
 from __future__ import annotations
@@ -56,9 +57,10 @@ def _array(address: int, count: int, dtype) -> np.ndarray:
     return np.frombuffer(buffer, dtype=dtype).copy()
 
 
-def single_precision_copy(capsule, n: int) -> SupernodalFactor | None:
-    """A float32 `SupernodalFactor` of the numeric factor in cvxopt's `capsule` (order n), or None when the
-    capsule does not hold a supernodal real double LLᵀ factor of order n laid out as this module reads it."""
+def supernodal_copy(capsule, n: int, dtype=np.float32) -> SupernodalFactor | None:
+    """A `SupernodalFactor` in `dtype` (float32 or float64) of the numeric factor in cvxopt's `capsule` (order
+    n), or None when the capsule does not hold a supernodal real double LLᵀ factor of order n laid out as this
+    module reads it."""
     name = _capsule_name(capsule)
     if name is None or not name.startswith(b"CHOLMOD FACTOR"):
         return None
@@ -85,5 +87,5 @@ def single_precision_copy(capsule, n: int) -> SupernodalFactor | None:
         return None
     perm = _array(f.Perm, n, index).astype(np.int64)
     buffer = (ctypes.c_double * int(block_ptr[-1])).from_address(f.x)
-    blocks = np.frombuffer(buffer, dtype=np.float64).astype(np.float32)  # the one copy, cast on the way
+    blocks = np.frombuffer(buffer, dtype=np.float64).astype(dtype)  # the one copy (CHOLMOD owns x), cast on the way
     return SupernodalFactor(starts, row_ptr, block_ptr, block_rows, blocks, perm)

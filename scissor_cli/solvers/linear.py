@@ -18,7 +18,7 @@ import qdldl
 import scipy.sparse as sp
 from cvxopt import cholmod
 
-from scissor_cli.solvers.cholmod_factor import single_precision_copy
+from scissor_cli.solvers.cholmod_factor import supernodal_copy
 from scissor_cli.solvers.common import SolverError
 from scissor_cli.solvers.supernodal import SupernodalFactor
 
@@ -140,7 +140,7 @@ class Factorization:
         self.factorizations += 1
         self.stale = False
         self.cg_rate = None
-        self._single = None  # (the float32 copy of this factorisation, made on demand: `single`)
+        self._copies: dict = {}  # (this factorisation's float32 and float64 copies, made on demand: `single`)
         try:
             if self._chol is None:
                 self._chol = self._symbolic(A, self.supernodal)
@@ -235,9 +235,18 @@ class Factorization:
         (`solvers.supernodal`, read in place by `solvers.cholmod_factor`), made once per factorisation; None
         for any other factor, or one CHOLMOD does not lay out as expected. This object still solves in
         float64: the copy is for solves that only precondition or step (conjugate gradients, chord steps)."""
-        if self._single is None and self._active == "cholesky" and self.supernodal:
-            self._single = single_precision_copy(self._chol, self._pattern[1]) or False
-        return self._single or None
+        return self._copy(np.float32)
+
+    def double(self) -> SupernodalFactor | None:
+        """`single`'s copy in float64, for a factor whose condition float32 cannot carry: the same compiled
+        loops solve a block of right-hand sides at once, where cvxopt's CHOLMOD goes column by column."""
+        return self._copy(np.float64)
+
+    def _copy(self, dtype) -> SupernodalFactor | None:
+        dtype = np.dtype(dtype)
+        if dtype not in self._copies and self._active == "cholesky" and self.supernodal:
+            self._copies[dtype] = supernodal_copy(self._chol, self._pattern[1], dtype) or False
+        return self._copies.get(dtype) or None
 
     @property
     def method(self) -> str:

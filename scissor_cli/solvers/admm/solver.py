@@ -1,7 +1,7 @@
 """ADMM-PD on the tissue energy, quasi-static or one implicit-Euler step (docs/model.md §4).
 
 After Overby et al. 2017. The per-element weights are in `admm.weights`, the
-local step in `admm.local`, the acceleration in `admm.anderson`, and time
+local step in `admm.local`, the acceleration in `solvers.anderson`, and time
 stepping over a stroke path in `admm.euler`.
 
 Problem and splitting
@@ -88,9 +88,9 @@ import scipy.sparse as sp
 
 from scissor_cli.mechanics import fem
 from scissor_cli.mechanics.tissue import Tissue
-from scissor_cli.solvers.admm.anderson import Anderson
 from scissor_cli.solvers.admm.local import IDENTITY, LocalCache, closest_rotation, det4, evaluate_local, local_newton
 from scissor_cli.solvers.admm.weights import curvature_boost, rest_weights
+from scissor_cli.solvers.anderson import Anderson
 from scissor_cli.solvers.common import Inertia, SolverError, SolveResult, objective_gradient, relative_residual
 from scissor_cli.solvers.linear import Factorization
 

@@ -1,4 +1,5 @@
-"""Type-II Anderson acceleration for ADMM-PD (Zhang et al. 2019; docs/model.md §4).
+"""Type-II Anderson acceleration of a fixed-point iteration: ADMM-PD's (Zhang et al. 2019; docs/model.md §4) and
+the needle's chord steps on a kept factorisation (`insertion.chord`, docs/model.md §12).
 
 With `anderson_memory = m > 0` the solver treats one ADMM iteration as a
 fixed-point map G(z, u) (x depends only on z and u) and extrapolates over
@@ -10,6 +11,11 @@ cleared (also cleared when the weights change). An accelerated z may have
 det ≤ 0: the local step always warm-starts from the last plain z (valid,
 cached). Anderson pays a little per iteration for far fewer iterations, and
 helps most where plain ADMM is slowest.
+
+The chord steps x ↦ x + d(x) of a 3-D body or slab contract slowly on a
+kept factor of an older state; there G(x) = x + d, f = d (no weights), and
+each accelerated step must contract as a chord step must, else the plain
+one is taken (`ChordSolver.converge`).
 """
 
 from __future__ import annotations
@@ -31,6 +37,11 @@ class Anderson:
         """Forget the history: the next `step` returns its g unchanged."""
         self.dF, self.dG = [], []
         self.f_prev = self.g_prev = None
+
+    @property
+    def extrapolating(self) -> bool:
+        """Whether the last `step` extrapolated (it had a past difference), rather than returning g as it was."""
+        return bool(self.dF)
 
     def step(self, g: np.ndarray, f: np.ndarray) -> np.ndarray:
         """g = G(s) and the weighted residual f = W (G(s) − s) of an accepted point → the next s."""
