@@ -114,6 +114,23 @@ def test_a_node_that_sticks_again_beside_a_released_one_does_not_stop_the_needle
     assert np.all(np.isfinite(r.target)) and np.all(np.isfinite(r.needle_force_mN))
 
 
+
+def test_nearly_incompressible_the_needle_s_passes_are_damped_not_handed_to_newton(monkeypatch):
+    """ν 0.499: a fresh factorisation's chord step (Newton's own) often raises the residual on its way to the
+    equilibrium, as Newton's full steps do there. It is damped as Newton damps it, on Φ (`chord.ChordSolver`),
+    where before the pass went to Newton from its start (on this body 21 of 31 steps, with a factorisation per
+    Newton iteration); the needle still reaches its depth."""
+    from scissor_cli.insertion import needle
+
+    cfg = parse_config(yaml.safe_dump(dict(COARSE, material=dict(COARSE["material"], nu=0.499))), "<test>")
+    scene, _, tissue = body_model(cfg)
+    newton, solve = [], needle.solve_equilibrium
+    monkeypatch.setattr(needle, "solve_equilibrium", lambda *a, **k: newton.append(1) or solve(*a, **k))
+    r, _ = _insert((cfg, scene, tissue))
+    assert r.completed, r.stop_reason
+    assert len(newton) <= 2, len(newton)
+
+
 #: a run of one lesion with the needle and a trial
 WITH_NEEDLE = dict(COARSE, targets=COARSE["targets"][:1], trials={"count": 1, "profile": "ideal"},
                    insertion={"step_mm": 1.0, "capture_radius_mm": 2.5, "strategies": ["none", "depth", "loop"]})

@@ -218,17 +218,19 @@ def test_the_float32_factor_steps_meet_the_hold_exactly_and_the_equilibrium_to_i
 
 def test_a_float32_factor_that_does_not_contract_hands_the_solver_to_float64(slab_model, monkeypatch):
     """A fresh float32 factor whose chord step does not contract is float32's floor, not a bad tangent: the
-    solver switches to float64 for the rest of its run and still converges (not ChordFailed)."""
+    solver switches to float64 for the rest of its run (the same compiled loops on a float64 copy) and still
+    converges (not ChordFailed)."""
     slab, x, hold, loads = _a_hold(slab_model)
     start = hold.place(x)
     exact = SupernodalFactor.solve
-    monkeypatch.setattr(SupernodalFactor, "solve", lambda self, b: 0.05 * exact(self, b))  # contracts by 0.95
+    monkeypatch.setattr(SupernodalFactor, "solve",  # float32's contracts by 0.95
+                        lambda self, b: (0.05 if self.blocks.dtype == np.float32 else 1.0) * exact(self, b))
     solver = ChordSolver(slab)
     solver.refactor(start)
     _, g = objective_gradient(slab, start, None, loads)
     chord_x, _, its, verdict = solver.converge(start, g, hold, 1e-8, loads)
     assert verdict is None and its > 0
-    assert not solver.single_precision and not isinstance(solver._factor, SupernodalFactor)
+    assert not solver.single_precision and solver._factor.blocks.dtype == np.float64
     zero = np.zeros(slab.n_cups)
     newton = solve_equilibrium(slab, zero, start=start, start_strokes=zero, conditions=hold.conditions(loads), tol=1e-8)
     np.testing.assert_allclose(chord_x, newton.x, atol=1e-6)
@@ -259,9 +261,18 @@ def test_a_factor_fresh_at_another_state_is_refreshed_where_a_step_does_not_cont
     made = solver.factorizations
     chord_x, _, its, verdict = solver.converge(start, g, hold, 1e-8, loads)
     assert verdict is None and its > 0 and solver.factorizations > made
-    # where the fresh factor was made, the same step not contracting is the tangent's failure
+    # where the fresh factor was made, the same step not contracting is the tangent's: it is damped as Newton
+    # damps a step (on Φ), with no refactorisation, to the same equilibrium; ChordFailed when that cannot help
     solver.refactor(start)
     _first_trial_does_not_contract(monkeypatch)
+    made = solver.factorizations
+    damped_x, _, its, verdict = solver.converge(start, g, hold, 1e-8, loads)
+    assert verdict is None and its > 0 and solver.factorizations == made
+    np.testing.assert_allclose(damped_x, chord_x, atol=1e-6)
+    solver.refactor(start)
+    _first_trial_does_not_contract(monkeypatch)
+    complete = ChordSolver.complete
+    monkeypatch.setattr(ChordSolver, "complete", lambda *args: -complete(*args))  # uphill: no damping helps
     with pytest.raises(ChordFailed):
         solver.converge(start, g, hold, 1e-8, loads)
 

@@ -28,8 +28,9 @@ converged means the same relative residual as Newton's, of the same
 gradient with the same held components removed (`residual`), so the
 solution is the same equilibrium to the solver tolerance. A chord step that
 does not shrink the residual by CONTRACTION refactors K at the current
-iterate; a fresh factorisation that still fails raises `ChordFailed` and
-the caller falls back to Newton.
+iterate; on a fresh factorisation (Newton's step) it is damped on the
+energy as Newton's line search damps it (`_damped`), and only when that
+fails too raises `ChordFailed`: the caller falls back to Newton.
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ from scipy.linalg import lapack
 
 from scissor_cli.insertion import kernels
 from scissor_cli.mechanics.tissue import Tissue
+from scissor_cli.solvers.anderson import Anderson
 from scissor_cli.solvers.common import Conditions, SolverError, check_finite
 from scissor_cli.solvers.linear import factorize_free
 
@@ -58,6 +60,11 @@ GAP_TOL = 1e-10
 #: contract more slowly there (`CONTRACTION_3D`)
 MAX_CHORD = 40
 MAX_CHORD_3D = 80
+#: A step on a fresh factorisation (Newton's) that does not contract is damped as Newton damps it: halved
+#: up to this many times until Φ falls by ARMIJO of its slope (nearly incompressible tissue, where Newton's
+#: residual grows on the way), before the solve goes to Newton
+DAMPING_HALVINGS = 4
+ARMIJO = 1e-4
 #: In the slab the chord steps are Anderson-accelerated (type II, this many past steps): on a kept
 #: factor of an older state they contract slowly, and each costs a triangular solve on the slab's
 #: factor (benchmarks/bench_insertion3d.py). The acceleration reuses the steps already
@@ -112,8 +119,12 @@ class ChordSolver:
                 # simplicial: a kept factor is solved with about 200 times per factorisation here
                 # (in 3-D the factor's fill makes the supernodal one the faster to build and to solve with)
                 factor = factorize_free(self.tissue, K, self._factors, supernodal=self.d == 3 or self.single_precision)
-                if self.single_precision:  # solved a thousand times or more before the next refactorisation
-                    factor = factor.single() or factor  # (float64 where CHOLMOD's factor cannot be read in place)
+                # solved a thousand times or more before the next refactorisation, its captured nodes' responses as
+                # blocks of columns: in compiled loops (through cvxopt where CHOLMOD's factor cannot be read in place)
+                if self.single_precision:
+                    factor = factor.single() or factor
+                elif self.d == 3:  # (float32's floor met: `converge`)
+                    factor = factor.double() or factor
                 break
             except SolverError:
                 continue
@@ -285,7 +296,7 @@ class ChordSolver:
         gap = np.empty(hold.rows.size)
         closing = hold.gap_into(x, gap) > GAP_TOL  # a step that meets the rows: no residual to compare
         its = 0
-        accelerate = _Anderson(ANDERSON_3D if self.d == 3 else 0)
+        accelerate = Anderson(ANDERSON_3D) if self.d == 3 and ANDERSON_3D else None
         while res > tol or closing:
             if its >= (MAX_CHORD if self.d == 2 else MAX_CHORD_3D):
                 raise ChordFailed(f"{its} chord steps left the residual at {res:.3g}")
@@ -298,30 +309,55 @@ class ChordSolver:
             step = self.complete(d0, mu, d_captured, hold)
             contraction = CONTRACTION if self.d == 2 else CONTRACTION_3D
             trial, g_t, res_t = None, None, np.inf
-            if not closing:
-                accelerated = accelerate.step(x.reshape(-1)[free], step)
-                if accelerated is not None:  # kept if it contracts as a chord step must; else the plain step
+            if not closing and accelerate is not None:
+                x_free = x.reshape(-1)[free]
+                accelerated = accelerate.step(x_free + step, step) - x_free
+                if accelerate.extrapolating:  # kept if it contracts as a chord step must; else the plain step
                     trial, g_t, res_t = self._trial(x, accelerated, hold, loads)
                     if not (res_t <= contraction * res or res_t <= tol):
                         trial = None
             if trial is None:
                 trial, g_t, res_t = self._trial(x, step, hold, loads)
+            damped = None
             if not (res_t <= contraction * res or res_t <= tol or (closing and g_t is not None)):
                 if self.fresh and self.single_precision and g_t is not None:
                     # float32's floor, not the tangent's: the rest of this solver's solves in float64
                     self.single_precision = False
                 elif self.fresh:
-                    raise ChordFailed(f"a chord step on a fresh factorisation went from {res:.3g} to {res_t:.3g}")
+                    damped = None if closing else self._damped(x, g_free, step, hold, loads)
+                    if damped is None:
+                        raise ChordFailed(f"a chord step on a fresh factorisation went from {res:.3g} to {res_t:.3g}")
                 elif not refactor:
                     raise ChordFailed(f"a chord step on the kept factorisation went from {res:.3g} to {res_t:.3g}")
-                self.refactor(x)
-                accelerate.reset()  # its steps were on the old factor
-                continue
+                if accelerate is not None:  # its steps were on the old factor, or the last one undamped
+                    accelerate.reset()
+                if damped is None:
+                    self.refactor(x)
+                    continue
+                trial, g_t, res_t = damped
             x, g, g_free, res = trial, g_t, g_t[free], res_t
             closing = hold.gap_into(x, gap) > GAP_TOL
             self.fresh = False
             its += 1
         return x, g, its, None
+
+    def _damped(self, x: np.ndarray, g_free: np.ndarray, step: np.ndarray, hold: "Hold", loads: np.ndarray):
+        """Newton's backtracking along a fresh factorisation's step (Nf,) from x on the hold's rows: the first of
+        the whole step, ½, ¼, … (DAMPING_HALVINGS) whose Φ = U − loads·x falls by ARMIJO of its slope, as
+        (trial, gradient, residual); None when none does or the step is no descent."""
+        slope = float(g_free @ step)
+        if not slope < 0.0:
+            return None
+        phi0 = self.tissue.energy_gradient(x)[0] - float(loads @ x.reshape(-1))
+        alpha = 1.0
+        for _ in range(DAMPING_HALVINGS + 1):
+            trial, finite = kernels.moved(x, self.tissue.free_dofs, alpha * step)
+            U_t, g_t = self.tissue.energy_gradient(trial, require_positive_J=True)
+            if finite and g_t is not None and U_t - float(loads @ trial.reshape(-1)) <= phi0 + ARMIJO * alpha * slope:
+                g_t -= loads
+                return trial, g_t, hold.held_residual(self, g_t)
+            alpha *= 0.5
+        return None
 
     def _trial(self, x: np.ndarray, step: np.ndarray, hold: "Hold", loads: np.ndarray):
         """x moved by step (Nf,) on the free dofs, its objective gradient (dN,) and held residual (inf, None if
@@ -334,42 +370,6 @@ class ChordSolver:
             return trial, None, np.inf
         g_t -= loads
         return trial, g_t, hold.held_residual(self, g_t)
-
-
-class _Anderson:
-    """Type-II Anderson acceleration of the chord iteration x ← x + d(x) (d the chord step, `ChordSolver.complete`).
-
-    With the last m iterates' differences ΔX and steps' differences ΔD (free
-    dofs), γ = argmin ‖d − ΔD γ‖ and the accelerated step is d − (ΔX + ΔD) γ
-    (Walker & Ni 2011). memory 0: never.
-    """
-
-    def __init__(self, memory: int):
-        self.memory = memory
-        self.reset()
-
-    def reset(self) -> None:
-        self._last: tuple | None = None
-        self._dx: list[np.ndarray] = []
-        self._dd: list[np.ndarray] = []
-
-    def step(self, x_free: np.ndarray, d: np.ndarray) -> np.ndarray | None:
-        """The accelerated step (Nf,) from the iterate x_free (Nf,) with chord step d (Nf,), or None (no history
-        yet)."""
-        if self.memory == 0:
-            return None
-        if self._last is not None:
-            self._dx.append(x_free - self._last[0])
-            self._dd.append(d - self._last[1])
-            if len(self._dx) > self.memory:
-                self._dx.pop(0)
-                self._dd.pop(0)
-        self._last = (x_free.copy(), d.copy())
-        if not self._dx:
-            return None
-        DD = np.column_stack(self._dd)
-        gamma = np.linalg.lstsq(DD, d, rcond=1e-12)[0]
-        return d - (np.column_stack(self._dx) + DD) @ gamma
 
 
 @dataclass(frozen=True)
