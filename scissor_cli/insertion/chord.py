@@ -352,8 +352,8 @@ class ChordSolver:
         alpha = 1.0
         for _ in range(DAMPING_HALVINGS + 1):
             trial, finite = kernels.moved(x, self.tissue.free_dofs, alpha * step)
-            U_t, g_t = self.tissue.energy_gradient(trial, require_positive_J=True)
-            if finite and g_t is not None and U_t - float(loads @ trial.reshape(-1)) <= phi0 + ARMIJO * alpha * slope:
+            U_t, g_t = self.tissue.energy_gradient(trial, require_positive_J=True) if finite else (np.inf, None)
+            if g_t is not None and U_t - float(loads @ trial.reshape(-1)) <= phi0 + ARMIJO * alpha * slope:
                 g_t -= loads
                 return trial, g_t, hold.held_residual(self, g_t)
             alpha *= 0.5
