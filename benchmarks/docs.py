@@ -839,6 +839,21 @@ def _factor_patterns(r) -> str:
               "repeats. " + source(r))
 
 
+@renderer("needle_incompressible", "bench_needle_incompressible")
+def _needle_incompressible(r) -> str:
+    rows = rows_of(r, "runs")
+    shipped = {x["nu"]: x["wall_s"] for x in rows if x["variant"] == "shipped"}
+    out = [[fixed(x["nu"], 3), x["variant"], fixed(x["wall_s"], 1), fixed(x["wall_s"] / shipped[x["nu"]], 2) + "×",
+            str(x["steps"]), str(x["factorisations"]), str(x["newton"]), num(x["float64"]),
+            "–" if x["variant"] == "shipped" else num(x["lesion_off_mm"])] for x in rows]
+    return (table(["ν", "solver", "50 mm (s)", "against shipped", "steps", "factorisations", "passes to Newton",
+                   "float64 solves", "lesion off the shipped run's (mm)"], out)
+            + f"\n\nconfigs/example_dome.yaml's body ({num(rows[0]['tetrahedra'])} tetrahedra, `nodal`) at each ν, T1 "
+              "along −x from the skin, 50 mm in 0.5 mm steps, `none`; `no float64 copy`: the float64 solves through "
+              "cvxopt's CHOLMOD; `neither`: besides, a fresh factorisation's step that does not contract goes to "
+              "Newton, as before. Each ν's three in turn in one process, medians of the repeats. " + source(r))
+
+
 @renderer("selection_elements", "bench_selection_elements")
 def _selection_elements(r) -> str:
     picks = rows_of(r, "picks")
