@@ -243,7 +243,6 @@ class Factorization:
         return self._copy(np.float64)
 
     def _copy(self, dtype) -> SupernodalFactor | None:
-        dtype = np.dtype(dtype)
         if dtype not in self._copies and self._active == "cholesky" and self.supernodal:
             self._copies[dtype] = supernodal_copy(self._chol, self._pattern[1], dtype) or False
         return self._copies.get(dtype) or None
