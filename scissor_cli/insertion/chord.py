@@ -45,6 +45,7 @@ from scissor_cli.mechanics.tissue import Tissue
 from scissor_cli.solvers.anderson import Anderson
 from scissor_cli.solvers.common import Conditions, SolverError, check_finite
 from scissor_cli.solvers.linear import factorize_free
+from scissor_cli.solvers.newton import ARMIJO
 
 #: a chord step is kept when it shrinks the relative residual at least this much
 CONTRACTION = 0.5
@@ -61,10 +62,9 @@ GAP_TOL = 1e-10
 MAX_CHORD = 40
 MAX_CHORD_3D = 80
 #: A step on a fresh factorisation (Newton's) that does not contract is damped as Newton damps it: halved
-#: up to this many times until Φ falls by ARMIJO of its slope (nearly incompressible tissue, where Newton's
-#: residual grows on the way), before the solve goes to Newton
+#: up to this many times until Φ falls by Newton's ARMIJO share of its slope (nearly incompressible tissue,
+#: where Newton's residual grows on the way), before the solve goes to Newton
 DAMPING_HALVINGS = 4
-ARMIJO = 1e-4
 #: In the slab the chord steps are Anderson-accelerated (type II, this many past steps): on a kept
 #: factor of an older state they contract slowly, and each costs a triangular solve on the slab's
 #: factor (benchmarks/bench_insertion3d.py). The acceleration reuses the steps already

@@ -140,7 +140,7 @@ class Factorization:
         self.factorizations += 1
         self.stale = False
         self.cg_rate = None
-        self._copies: dict = {}  # (this factorisation's float32 and float64 copies, made on demand: `single`)
+        self._copies: dict = {}  # (its float32 and float64 copies, made on demand: `single`, `double`)
         try:
             if self._chol is None:
                 self._chol = self._symbolic(A, self.supernodal)
