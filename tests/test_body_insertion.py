@@ -231,6 +231,20 @@ def test_loop_under_one_camera_drives_the_miss_it_sees(body, table):
     assert seen_miss["loop"] <= 0.1 and seen_miss["loop"] < 0.5 * seen_miss["depth"]
 
 
+def test_with_one_cup_loop_does_not_chase_the_miss_it_cannot_correct(body):
+    """One cup moves the lesion along one line across the needle; the rest of the miss is out of its reach. The
+    loop moves the cup only while the part of the miss it can correct (J J⁺ e) is beyond the deadband: it once
+    moved at most steps, trading one component for the other by hundredths of a millimetre, each move an
+    equilibrium of the body."""
+    one = parse_config(yaml.safe_dump(dict(COARSE, cups=COARSE["cups"][:1])), "<test>")
+    scene, _, tissue = body_model(one)
+    none, _ = _insert((one, scene, tissue), "none", tip_force_mN=0.0)
+    loop, _ = _insert((one, scene, tissue), "loop", tip_force_mN=0.0, tolerance_mm=0.02, table=True)
+    moves = int(np.sum(np.any(np.diff(loop.strokes, axis=0) != 0.0, axis=1)))
+    assert loop.completed and 0 < moves <= loop.steps // 3
+    assert loop.miss_mm < 0.75 * none.miss_mm  # and it still corrects what it can
+
+
 def test_a_bad_insertion_section_of_a_body_exits_2(tmp_path):
     data = dict(COARSE, insertion={"friction_static_mN_per_mm": 5.0, "friction_kinetic_mN_per_mm": 10.0})
     r = run_cli("validate", write_scene(tmp_path, data))

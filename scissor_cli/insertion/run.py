@@ -406,8 +406,9 @@ def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID, miss: Optio
     move at the cup's rigid rim inverts an element at a needle step's
     start). On a body the miss is filtered (the table's filter, or `miss`:
     the model body's own move under the needle predicts, the reading
-    corrects what the sensor sees), and the cups stay while the estimate is
-    within the deadband (as on the slab's table).
+    corrects what the sensor sees), and the cups stay while the estimate,
+    or the part of it their move can correct (J J⁺ e), is within the
+    deadband (as on the slab's table).
     """
     state, x, s = needle.state, needle.x, needle.s
     seen = needle.seen()
@@ -429,7 +430,8 @@ def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID, miss: Optio
         J, responses = steering.jacobian(state.depth_mm, s, seen), None
         estimate = (steering.offset(state.depth_mm, s, reading, J, seen_directions(observed)) if body
                     else steering.offset(state.depth_mm, s, across @ offset, J))
-        if np.linalg.norm(estimate) <= steering.deadband_mm:  # on the line as well as the filter can tell
+        deadband = steering.deadband_mm
+        if np.linalg.norm(estimate) <= deadband:  # on the line as well as the filter can tell
             return
         e = -estimate
     elif body:
@@ -437,12 +439,13 @@ def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID, miss: Optio
         steering.follow(state, x, s, loads)
         moved = across @ (target_positions(needle.probe, steering.x)[0] - before)
         estimate = miss.update(moved, reading, seen_directions(observed))
-        if np.linalg.norm(estimate) <= miss.deadband_mm:
+        deadband = miss.deadband_mm
+        if np.linalg.norm(estimate) <= deadband:
             return  # on the line as well as the filter can tell: the cups stay
         e = -estimate
         J, responses = steering.jacobian(state, needle.probe, state.solver, rows=2)
     else:
-        e = -(across @ offset)
+        e, deadband = -(across @ offset), None  # the layer's loop steers on every reading
         steering.follow(state, x, s, loads)
         J, responses = steering.jacobian(state, needle.probe, state.solver)
         if responses.shape[1:] != x.shape:
@@ -452,7 +455,9 @@ def _correct(needle: _Needle, steering, loads: np.ndarray, pid: PID, miss: Optio
     seen_rows = np.isfinite(e)
     if not np.any(seen_rows):
         return
-    ds, _, _ = split_error(J[seen_rows], e[seen_rows])
+    ds, correctable, _ = split_error(J[seen_rows], e[seen_rows])
+    if deadband is not None and np.linalg.norm(correctable) <= deadband:
+        return  # what the cups can correct is on the line already: a move would only trade one component for another
     tissue = needle.tissue
     lo = np.array([c.stroke_min_mm for c in tissue.scene.cups])
     hi = np.array([c.stroke_max_mm for c in tissue.scene.cups])
