@@ -216,6 +216,26 @@ def test_the_float32_factor_steps_meet_the_hold_exactly_and_the_equilibrium_to_i
     np.testing.assert_allclose(mu, mu64, atol=1e-4 * np.abs(mu64).max())
 
 
+def test_a_refactorisation_is_made_in_float32_on_the_first_factor_s_layout(slab_model):
+    """After its first factorisation (CHOLMOD's, copied to float32) the solver refactors in float32 itself, on that
+    factor's supernodal layout (`supernodal.SingleFactorizer`): CHOLMOD factors no more, and the step is the
+    copy's to float32's precision."""
+    slab, x, hold, loads = _a_hold(slab_model)
+    y = x + 0.01 * np.sin(np.arange(x.size)).reshape(x.shape)
+    _, g = objective_gradient(slab, y, None, loads)
+    solver = ChordSolver(slab)
+    solver.refactor(x)
+    d_copy, mu_copy = solver.step(g, hold, y)
+    by_cholmod = solver._factors["free"].factorizations
+    solver.refactor(x)
+    assert solver.factorizations == 2 and solver._factors["free"].factorizations == by_cholmod
+    assert isinstance(solver._factor, SupernodalFactor) and solver._factor.blocks.dtype == np.float32
+    d, mu = solver.step(g, hold, y)
+    np.testing.assert_allclose(hold.gap(y + d), 0.0, atol=1e-10)
+    np.testing.assert_allclose(d, d_copy, atol=1e-5 * np.abs(d_copy).max())
+    np.testing.assert_allclose(mu, mu_copy, atol=1e-4 * np.abs(mu_copy).max())
+
+
 def test_a_float32_factor_that_does_not_contract_hands_the_solver_to_float64(slab_model, monkeypatch):
     """A fresh float32 factor whose chord step does not contract is float32's floor, not a bad tangent: the
     solver switches to float64 for the rest of its run (the same compiled loops on a float64 copy) and still

@@ -355,6 +355,31 @@ def test_a_float64_copy_solves_as_cholmod_does(ordering):
     np.testing.assert_allclose(f.double().solve(b), 0.25 * ref, rtol=1e-10)
 
 
+@pytest.mark.parametrize("ordering", ["amd", "nested_dissection"])
+def test_a_float32_factorisation_on_cholmod_s_layout_solves_as_cholmod_does(ordering):
+    """SingleFactorizer: a matrix of the pattern, factored in float32 on the layout of CHOLMOD's factor of another
+    (the values scaled per unknown), solves as CHOLMOD's factor of it does to float32's precision, its blocks
+    CHOLMOD's L rounded; a matrix that is not positive definite gives None."""
+    from scissor_cli.solvers.supernodal import SingleFactorizer
+
+    A = sp.triu(_laplacian_3d(12, 0.1)).tocsr()
+    f = Factorization(A, definite=True, upper=True, ordering=ordering, supernodal=True)
+    factorizer = SingleFactorizer(f.single(), A.indptr, A.indices)
+    D = sp.diags(np.random.default_rng(5).uniform(0.5, 2.0, A.shape[0]))
+    B = sp.triu(D @ (A + sp.triu(A, 1).T) @ D).tocsr()
+    assert factorizer.matches(B)
+    own = factorizer.factor(B.data)
+    f.refactor(B)
+    cholmod = f.single()
+    assert own.blocks.dtype == np.float32 and own.blocks.shape == cholmod.blocks.shape
+    assert np.abs(own.blocks - cholmod.blocks).max() <= 1e-5 * np.abs(cholmod.blocks).max()
+    b = np.random.default_rng(6).random((A.shape[0], 3))
+    ref = f.solve(b)
+    assert np.linalg.norm(own.solve(b) - ref) <= 1e-4 * np.linalg.norm(ref)
+    indefinite = sp.triu(A - 2.0 * sp.eye(A.shape[0])).tocsr()
+    assert factorizer.matches(indefinite) and factorizer.factor(indefinite.data) is None
+
+
 def test_only_a_supernodal_cholesky_factor_has_a_float32_copy():
     """A simplicial LDLᵀ, an indefinite matrix's qdldl factor and a capsule that is not CHOLMOD's factor give no
     copy (the callers then solve in float64)."""

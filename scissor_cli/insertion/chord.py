@@ -16,21 +16,17 @@ with K d₀ = −g, W = K⁻¹Cᵀ and S = C W,
     μ = S⁻¹ (C d₀ − r),   d = d₀ − W μ,
 
 so C d = r exactly and K d + Cᵀμ = −g. The responses K⁻¹e of each
-captured node's d dofs (d = tissue.dim: 2 in the layer, 3 in the slab,
-docs/model.md §14) are solved once per factorisation and kept (a newly
-captured node adds d), so switching a node between stuck and slipping
-costs no factorisation at all. In the captured nodes' (t₁ … t_{d−1}, n)
-frame every row is one coordinate, so S is a submatrix of one kept
-compliance, Cholesky-factored once per pass. The arithmetic of a step
-around its triangular solve and its gradient runs in compiled loops
-(`insertion.kernels`). The step is a chord (modified Newton) step:
-converged means the same relative residual as Newton's, of the same
-gradient with the same held components removed (`residual`), so the
-solution is the same equilibrium to the solver tolerance. A chord step that
-does not shrink the residual by CONTRACTION refactors K at the current
-iterate; on a fresh factorisation (Newton's step) it is damped on the
-energy as Newton's line search damps it (`_damped`), and only when that
-fails too raises `ChordFailed`: the caller falls back to Newton.
+captured node's d dofs (d = tissue.dim) are solved once per factorisation
+and kept, so switching a node between stuck and slipping costs no
+factorisation. In the captured nodes' (t₁ … t_{d−1}, n) frame every row is
+one coordinate: S is a submatrix of one kept compliance, Cholesky-factored
+once per pass. A step's arithmetic around its solve and gradient runs in
+compiled loops (`insertion.kernels`). Converged means Newton's relative
+residual with the held components removed (`residual`): the same
+equilibrium to the solver tolerance. A step that does not shrink the
+residual by CONTRACTION refactors K at the iterate; on a fresh factor
+(Newton's step) it is damped on the energy as Newton's line search damps
+it (`_damped`), and when that fails too raises `ChordFailed`: Newton next.
 """
 
 from __future__ import annotations
@@ -46,30 +42,27 @@ from scissor_cli.solvers.anderson import Anderson
 from scissor_cli.solvers.common import Conditions, SolverError, check_finite
 from scissor_cli.solvers.linear import factorize_free
 from scissor_cli.solvers.newton import ARMIJO
+from scissor_cli.solvers.supernodal import SingleFactorizer
 
 #: a chord step is kept when it shrinks the relative residual at least this much
 CONTRACTION = 0.5
-#: in the slab a factorisation costs a dozen or more triangular solves and then 3 solves per
-#: captured node for the kept responses (cvxopt's CHOLMOD solves many right-hand sides no faster
-#: per column than one; benchmarks/bench_insertion3d.py): with a hundred captured nodes a refresh
-#: costs as much as hundreds of chord steps. So in 3-D a step on the kept factor is
-#: kept while it contracts at all appreciably (Anderson-accelerated, `ANDERSON_3D`)
+#: in 3-D a refactorisation costs dozens of triangular solves and then 3 per captured node for the kept
+#: responses (benchmarks/bench_insertion3d.py): a step on the kept factor is kept while it contracts at all
+#: appreciably (Anderson-accelerated, `ANDERSON_3D`)
 CONTRACTION_3D = 0.9
 #: a hold's constraint is met when it is this close (mm): round-off of positions ~100 mm
 GAP_TOL = 1e-10
-#: chord steps per solve before giving up (with the factorisation fresh); in 3-D more, as steps
-#: contract more slowly there (`CONTRACTION_3D`)
+#: chord steps per solve before giving up (the factor fresh); in 3-D more: they contract more slowly there
 MAX_CHORD = 40
 MAX_CHORD_3D = 80
 #: A step on a fresh factorisation (Newton's) that does not contract is damped as Newton damps it: halved
 #: up to this many times until Φ falls by Newton's ARMIJO share of its slope (nearly incompressible tissue,
 #: where Newton's residual grows on the way), before the solve goes to Newton
 DAMPING_HALVINGS = 4
-#: In the slab the chord steps are Anderson-accelerated (type II, this many past steps): on a kept
-#: factor of an older state they contract slowly, and each costs a triangular solve on the slab's
-#: factor (benchmarks/bench_insertion3d.py). The acceleration reuses the steps already
-#: taken (vector work only); the rows stay met (every past step meets them: Σγ-combinations do too).
-#: 0 turns it off. The layer keeps the plain steps (a solve there costs about a gradient).
+#: In 3-D the chord steps are Anderson-accelerated (type II, this many past steps): on a kept factor of an older
+#: state they contract slowly, each a triangular solve (benchmarks/bench_insertion3d.py). It reuses the steps
+#: taken (vector work only); the rows stay met (every past step meets them, so Σγ-combinations do). 0 turns it
+#: off. The layer keeps the plain steps (a solve there costs about a gradient).
 ANDERSON_3D = 5
 
 
@@ -116,15 +109,7 @@ class ChordSolver:
             K = self.tissue.stiffness_free(x, project=project, upper=True)
             self.factorizations += 1
             try:
-                # simplicial: a kept factor is solved with about 200 times per factorisation here
-                # (in 3-D the factor's fill makes the supernodal one the faster to build and to solve with)
-                factor = factorize_free(self.tissue, K, self._factors, supernodal=self.d == 3 or self.single_precision)
-                # solved a thousand times or more before the next refactorisation, its captured nodes' responses as
-                # blocks of columns: in compiled loops (through cvxopt where CHOLMOD's factor cannot be read in place)
-                if self.single_precision:
-                    factor = factor.single() or factor
-                elif self.d == 3:  # (float32's floor met: `converge`)
-                    factor = factor.double() or factor
+                factor = self._factored(K)
                 break
             except SolverError:
                 continue
@@ -134,6 +119,24 @@ class ChordSolver:
         self._factored_at = np.array(x, dtype=float)
         self._slot[:] = -1
         self._used = 0
+
+    def _factored(self, K):
+        """K's factor to step on (SolverError: K not positive definite), solved in compiled loops (through cvxopt
+        where CHOLMOD's cannot be read in place); in float32 factored there too, on the first CHOLMOD factor's
+        layout (`supernodal.SingleFactorizer`), unless float32 breaks down on K."""
+        single = self._factors.get("single")
+        if self.single_precision and single is not None and single.matches(K):
+            factor = single.factor(K.data)
+            if factor is not None:
+                return factor
+        # simplicial in 2-D: solved about 200 times per factorisation (in 3-D the fill makes supernodal faster)
+        factor = factorize_free(self.tissue, K, self._factors, supernodal=self.d == 3 or self.single_precision)
+        if self.single_precision:
+            copy = factor.single()
+            if copy is not None and single is None:
+                self._factors["single"] = SingleFactorizer(copy, K.indptr, K.indices)
+            return copy or factor
+        return (factor.double() or factor) if self.d == 3 else factor  # (float32's floor met: `converge`)
 
     @property
     def factored(self) -> bool:
@@ -288,8 +291,7 @@ class ChordSolver:
         if self._factor is None:
             self.refactor(x)
         elif self.fresh and not np.array_equal(x, self._factored_at):
-            # fresh at another state (a solve that failed there and went to Newton, a start moved since): a
-            # step here that does not contract is the factor's age, not a failure of the exact tangent
+            # fresh elsewhere (a solve there went to Newton, a start moved): a step that fails here is its age
             self.fresh = False
         g_free = g[free]
         res = hold.held_residual(self, g)

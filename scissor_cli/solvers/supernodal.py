@@ -1,5 +1,5 @@
-"""A Cholesky factor kept in single (or double) precision, solved in compiled loops with BLAS (docs/model.md
-§12, "The chord step's arithmetic").
+"""A Cholesky factor kept in single (or double) precision, solved — and in float32 also factored — in compiled
+loops with BLAS (docs/model.md §12, "The chord step's arithmetic").
 
 The needle's chord solver (`insertion.chord`) solves with one kept factor of
 the slab's K_ff a thousand times or more before it refactors, and a 3-D
@@ -33,12 +33,16 @@ import functools
 import llvmlite.binding
 import numpy as np
 import scipy.linalg.cython_blas as _cython_blas
+import scipy.linalg.cython_lapack as _cython_lapack
 from numba import njit, types
 
 #: the BLAS routines the compiled solve calls, by the symbol names they are linked under (`_link_blas`):
 #: (uplo, trans, diag, n, A, lda, x, incx) and (trans, m, n, alpha, A, lda, x, incx, beta, y, incy), every
 #: argument a pointer (Fortran: by reference), passed as an address
-_BLAS = {"strsv": 8, "sgemv": 11, "strsm": 11, "sgemm": 13, "dtrsv": 8, "dgemv": 11, "dtrsm": 11, "dgemm": 13}
+_BLAS = {"strsv": 8, "sgemv": 11, "strsm": 11, "sgemm": 13, "dtrsv": 8, "dgemv": 11, "dtrsm": 11, "dgemm": 13,
+         "ssyrk": 10}
+#: LAPACK's Cholesky of a supernode's diagonal block, (uplo, n, A, lda, info): `SingleFactorizer`
+_LAPACK = {"spotrf": 5}
 _strsv = types.ExternalFunction("scissor_blas_strsv", types.void(*[types.intp] * _BLAS["strsv"]))
 _sgemv = types.ExternalFunction("scissor_blas_sgemv", types.void(*[types.intp] * _BLAS["sgemv"]))
 #: (side, uplo, trans, diag, m, n, alpha, A, lda, B, ldb) and (transa, transb, m, n, k, alpha, A, lda, B, ldb,
@@ -50,6 +54,9 @@ _dtrsv = types.ExternalFunction("scissor_blas_dtrsv", types.void(*[types.intp] *
 _dgemv = types.ExternalFunction("scissor_blas_dgemv", types.void(*[types.intp] * _BLAS["dgemv"]))
 _dtrsm = types.ExternalFunction("scissor_blas_dtrsm", types.void(*[types.intp] * _BLAS["dtrsm"]))
 _dgemm = types.ExternalFunction("scissor_blas_dgemm", types.void(*[types.intp] * _BLAS["dgemm"]))
+#: (uplo, trans, n, k, alpha, A, lda, beta, C, ldc): a descendant's update of a diagonal block (`_factor_blocks`)
+_ssyrk = types.ExternalFunction("scissor_blas_ssyrk", types.void(*[types.intp] * _BLAS["ssyrk"]))
+_spotrf = types.ExternalFunction("scissor_lapack_spotrf", types.void(*[types.intp] * _LAPACK["spotrf"]))
 
 
 @functools.cache
@@ -65,9 +72,10 @@ def _link_blas() -> None:
     get_name.restype, get_name.argtypes = ctypes.c_char_p, [ctypes.py_object]
     get_pointer = ctypes.pythonapi.PyCapsule_GetPointer
     get_pointer.restype, get_pointer.argtypes = ctypes.c_void_p, [ctypes.py_object, ctypes.c_char_p]
-    for name in _BLAS:
-        capsule = _cython_blas.__pyx_capi__[name]
-        llvmlite.binding.add_symbol(f"scissor_blas_{name}", get_pointer(capsule, get_name(capsule)))
+    for module, prefix, names in ((_cython_blas, "blas", _BLAS), (_cython_lapack, "lapack", _LAPACK)):
+        for name in names:
+            capsule = module.__pyx_capi__[name]
+            llvmlite.binding.add_symbol(f"scissor_{prefix}_{name}", get_pointer(capsule, get_name(capsule)))
 
 
 class SupernodalFactor:
@@ -232,3 +240,133 @@ def _solve_block(starts, row_ptr, block_rows, block_ptr, blocks, Y, dims, scalar
             _dtrsm(ch, ch, ch + 2, ch + 1, d, d + 4, s_, a, d + 12, yp + z * c0, d + 16)
         else:
             _strsm(ch, ch, ch + 2, ch + 1, d, d + 4, s_, a, d + 12, yp + z * c0, d + 16)
+
+
+class SingleFactorizer:
+    """Numeric Cholesky factorisations in float32 on one supernodal layout: CHOLMOD's symbolic analysis of a
+    pattern, read from a factor of it (`layout`, a `SupernodalFactor`, `Factorization.single`).
+
+    indptr, indices: the pattern of the matrices factored, their upper
+    triangle in sorted CSR (CHOLMOD's lower triangle in CSC), as
+    `linear.Factorization` was given it. The needle's chord solver refactors
+    its kept factor hundreds of times per insertion and only steps on it
+    (`insertion.chord`): CHOLMOD factors in float64 only, and its float32
+    copy was made after; here the values go straight into float32 blocks
+    and are factored left-looking, supernode by supernode — each
+    descendant's update by BLAS `ssyrk` and `sgemm`, the diagonal block by
+    LAPACK `spotrf`, the rows below by `strsm` — in the layout's order
+    (`benchmarks/bench_insertion3d.py` times both).
+    """
+
+    def __init__(self, layout: SupernodalFactor, indptr: np.ndarray, indices: np.ndarray):
+        self.layout = layout
+        self.nnz = int(indices.size)
+        iperm = np.empty(layout.n, np.int64)
+        iperm[layout.perm] = np.arange(layout.n)
+        i, j = iperm[np.repeat(np.arange(layout.n), np.diff(indptr))], iperm[indices]
+        col, row = np.minimum(i, j), np.maximum(i, j)  # the entry's place in L: column ≤ row
+        owner = np.repeat(np.arange(layout.starts.size - 1), np.diff(layout.starts))[col]
+        heights = np.diff(layout.row_ptr)
+        # its row's place among its supernode's rows (sorted within each supernode)
+        local = np.empty(row.size, np.int64)
+        _rows_in(layout.block_rows, layout.row_ptr, owner, row, local)
+        #: (nnz,) where each stored value of A goes in the blocks
+        self._into = layout.block_ptr[owner] + (col - layout.starts[owner]) * heights[owner] + local
+        most = max(1, int(np.max(heights)) * int(np.max(np.diff(layout.starts))))
+        self._update = np.empty(most, np.float32)  # a descendant's update, kept alive beside the compiled loop
+
+    def matches(self, A) -> bool:
+        """Whether A (upper triangle, CSR) could have this factorizer's pattern (its order and stored count)."""
+        return A.shape == (self.layout.n, self.layout.n) and A.nnz == self.nnz
+
+    def factor(self, data: np.ndarray) -> SupernodalFactor | None:
+        """The float32 factor of the matrix whose stored values (in the pattern's order) are data (nnz,), or None
+        when float32 breaks down on it (a diagonal block not positive definite)."""
+        lay = self.layout
+        blocks = np.zeros(int(lay.block_ptr[-1]), np.float32)
+        blocks[self._into] = data
+        _link_blas()
+        dims, scalars = np.zeros(8, np.int32), np.array([1.0, 0.0, -1.0], np.float32)
+        chars = np.array([76, 78, 84, 82], np.uint8)  # L, N, T, R
+        failed = _factor_blocks(lay.starts, lay.row_ptr, lay.block_rows, lay.block_ptr, blocks, self._update,
+                                dims, scalars, chars)
+        return None if failed else SupernodalFactor(lay.starts, lay.row_ptr, lay.block_ptr, lay.block_rows, blocks,
+                                                    lay.perm)
+
+
+@njit(cache=True)
+def _rows_in(block_rows, row_ptr, owner, row, out):
+    """out[k]: the place of row[k] among its supernode owner[k]'s rows (binary search: they are sorted)."""
+    for k in range(row.size):
+        a = row_ptr[owner[k]]
+        lo, hi = a, row_ptr[owner[k] + 1]
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if block_rows[mid] < row[k]:
+                lo = mid + 1
+            else:
+                hi = mid
+        out[k] = lo - a
+
+
+@njit(cache=True)
+def _factor_blocks(starts, row_ptr, block_rows, block_ptr, blocks, update, dims, scalars, chars):
+    """blocks (float32, A's lower triangle scattered in) overwritten with L, left-looking: 0, or 1 + the
+    supernode whose diagonal block was not positive definite. A supernode's descendants wait in a linked list
+    under the supernode of their next row (as CHOLMOD's supernodal numeric factorisation keeps them)."""
+    n_super = starts.size - 1
+    owner = np.empty(starts[n_super], np.int64)
+    for s in range(n_super):
+        for c in range(starts[s], starts[s + 1]):
+            owner[c] = s
+    place = np.empty(starts[n_super], np.int64)  # a row's place in the supernode being factored
+    head = np.full(n_super, -1, np.int64)
+    after = np.full(n_super, -1, np.int64)
+    next_row = np.zeros(n_super, np.int64)
+    z = 4
+    d, sc, ch = np.int64(dims.ctypes.data), np.int64(scalars.ctypes.data), np.int64(chars.ctypes.data)
+    blk, up = np.int64(blocks.ctypes.data), np.int64(update.ctypes.data)
+    for j in range(n_super):
+        c0, w = starts[j], starts[j + 1] - starts[j]
+        r0, r = row_ptr[j], row_ptr[j + 1] - row_ptr[j]
+        for k in range(r):
+            place[block_rows[r0 + k]] = k
+        e = head[j]
+        head[j] = -1
+        while e != -1:
+            following = after[e]
+            e0, er, ew = row_ptr[e], row_ptr[e + 1] - row_ptr[e], starts[e + 1] - starts[e]
+            p1 = next_row[e]
+            p2 = p1
+            while p2 < er and block_rows[e0 + p2] < c0 + w:
+                p2 += 1
+            nd, m = p2 - p1, er - p1
+            a = blk + z * (block_ptr[e] + p1)
+            # update (m × nd) = L_e[p1:] L_e[p1:p2]ᵀ: its top nd × nd by syrk (lower triangle), the rest by gemm
+            dims[0], dims[1], dims[2], dims[3] = nd, ew, er, m
+            _ssyrk(ch, ch + 1, d, d + 4, sc, a, d + 8, sc + z, up, d + 12)
+            if m > nd:
+                dims[0], dims[1], dims[2], dims[3], dims[4] = m - nd, nd, ew, er, m
+                _sgemm(ch + 1, ch + 2, d, d + 4, d + 8, sc, a + z * nd, d + 12, a, d + 12, sc + z, up + z * nd,
+                       d + 16)
+            for jj in range(nd):
+                base = block_ptr[j] + (block_rows[e0 + p1 + jj] - c0) * r
+                for ii in range(jj, m):
+                    blocks[base + place[block_rows[e0 + p1 + ii]]] -= update[ii + jj * m]
+            next_row[e] = p2
+            if p2 < er:  # on to the supernode of its next row
+                o = owner[block_rows[e0 + p2]]
+                after[e], head[o] = head[o], e
+            e = following
+        a = blk + z * block_ptr[j]
+        dims[0], dims[1] = w, r
+        _spotrf(ch, d, a, d + 4, d + 8)
+        if dims[2] != 0:
+            return j + 1
+        if r > w:  # L_below = A_below L_diag⁻ᵀ
+            dims[0], dims[1], dims[2] = r - w, w, r
+            _strsm(ch + 3, ch, ch + 2, ch + 1, d, d + 4, sc, a, d + 8, a + z * w, d + 8)
+            next_row[j] = w
+            o = owner[block_rows[r0 + w]]
+            after[j], head[o] = head[o], j
+    return 0
