@@ -121,14 +121,14 @@ class SupernodalFactor:
 
 def _by_reference(dtype) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The BLAS calls' by-reference arguments, owned by the caller for the whole compiled solve: dims (6,) int32
-    (the kernels fill them), scalars (1, 0, −1) of the blocks' dtype, chars (L, N, T).
+    (the kernels fill them), scalars (1, 0, −1) of the blocks' dtype, chars (L, N, T, R).
 
     Not allocated inside the compiled loops: there an array read only
     through its address is dead to numba after that read and may be freed
     at once; BLAS-3 routines allocate workspace of their own, which may
     then reuse it (a float32 block solve that failed at random).
     """
-    return np.zeros(6, np.int32), np.array([1.0, 0.0, -1.0], dtype), np.array([76, 78, 84], np.uint8)
+    return np.zeros(6, np.int32), np.array([1.0, 0.0, -1.0], dtype), np.array([76, 78, 84, 82], np.uint8)
 
 
 @njit(cache=True)
@@ -247,8 +247,8 @@ class SingleFactorizer:
     pattern, read from a factor of it (`layout`, a `SupernodalFactor`, `Factorization.single`).
 
     indptr, indices: the pattern of the matrices factored, their upper
-    triangle in sorted CSR (CHOLMOD's lower triangle in CSC), as
-    `linear.Factorization` was given it. The needle's chord solver refactors
+    triangle in CSR as `linear.Factorization` was given it; `factor` takes
+    their values in that order. The needle's chord solver refactors
     its kept factor hundreds of times per insertion and only steps on it
     (`insertion.chord`): CHOLMOD factors in float64 only, and its float32
     copy was made after; here the values go straight into float32 blocks
@@ -286,10 +286,8 @@ class SingleFactorizer:
         blocks = np.zeros(int(lay.block_ptr[-1]), np.float32)
         blocks[self._into] = data
         _link_blas()
-        dims, scalars = np.zeros(8, np.int32), np.array([1.0, 0.0, -1.0], np.float32)
-        chars = np.array([76, 78, 84, 82], np.uint8)  # L, N, T, R
         failed = _factor_blocks(lay.starts, lay.row_ptr, lay.block_rows, lay.block_ptr, blocks, self._update,
-                                dims, scalars, chars)
+                                *_by_reference(np.float32))
         return None if failed else SupernodalFactor(lay.starts, lay.row_ptr, lay.block_ptr, lay.block_rows, blocks,
                                                     lay.perm)
 
