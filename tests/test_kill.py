@@ -94,6 +94,15 @@ def wait_for_trials(proc: subprocess.Popen, out: Path, at_least: int, timeout: f
     raise AssertionError(f"no {at_least} finished trials within {timeout} s")
 
 
+def alive_after(pgid: int, seconds: float) -> list[int]:
+    """The group's live processes once none is left or `seconds` have passed: a worker dies when the kernel
+    delivers its kill (its parent's death, the pool's SIGKILL), a moment after the run itself has ended."""
+    t0 = time.monotonic()
+    while group_members(pgid) and time.monotonic() - t0 < seconds:
+        time.sleep(0.02)
+    return group_members(pgid)
+
+
 def stop(proc: subprocess.Popen, sig: int) -> tuple[float, str]:
     """Send `sig` (SIGINT to the whole group, like Ctrl-C; others to the run): (seconds until all are gone, stderr)."""
     assert len(group_members(proc.pid)) >= 3, "expected the run and 2 workers"
@@ -102,10 +111,8 @@ def stop(proc: subprocess.Popen, sig: int) -> tuple[float, str]:
         os.killpg(proc.pid, sig)
     else:
         os.kill(proc.pid, sig)
-    while group_members(proc.pid) and time.monotonic() - t0 < 30:
-        time.sleep(0.02)
+    left = alive_after(proc.pid, 30)
     gone = time.monotonic() - t0
-    left = group_members(proc.pid)
     if proc.pid in left:  # the run hangs: have it print where its threads are (the CLI's SIGUSR1 handler)
         os.kill(proc.pid, signal.SIGUSR1)
         time.sleep(2.0)
@@ -361,10 +368,7 @@ def test_a_budget_run_sigkilled_between_rows_keeps_them_and_resumes_to_the_same_
             time.sleep(0.02)
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(timeout=10)
-        t0 = time.monotonic()
-        while group_members(proc.pid) and time.monotonic() - t0 < 30:
-            time.sleep(0.02)
-        left = group_members(proc.pid)
+        left = alive_after(proc.pid, 30)
         for pid in left:
             os.kill(pid, signal.SIGKILL)
         assert not left, f"workers outlived the SIGKILLed run: {left}"
@@ -379,18 +383,21 @@ def test_a_budget_run_sigkilled_between_rows_keeps_them_and_resumes_to_the_same_
     assert not [k for k in reference if not np.array_equal(now[k], reference[k])]
 
 
-def run_pool_script(script: Path, text: str) -> tuple[subprocess.Popen, str, str]:
+def run_pool_script(script: Path, text: str) -> tuple[subprocess.Popen, str, str, list[int]]:
     """Run a pool script in a session of its own (as a run is: a pool forked from the test runner's worker shares,
-    and once took down, that worker); (process, stdout, stderr), nothing of its group left alive."""
+    and once took down, that worker); (process, stdout, stderr, the pids of its group still alive 10 s after it
+    ended), nothing of its group left alive. (The group was once read at once and a worker the kernel was
+    killing still counted.)"""
     script.write_text(text)
     proc = subprocess.Popen([sys.executable, str(script)], env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, start_new_session=True)
     try:
         out, err = proc.communicate(timeout=60)
     finally:
-        for pid in group_members(proc.pid):
+        left = alive_after(proc.pid, 10)
+        for pid in left:
             os.kill(pid, signal.SIGKILL)
-    return proc, out, err
+    return proc, out, err, left
 
 
 LOST_STOP_RUN = """
@@ -425,11 +432,11 @@ def test_a_stop_whose_exception_was_lost_still_stops_the_pool(tmp_path):
     ignored later signals as its own clean-up's and went on (seen: a SIGTERM'd slab-truth budget ran on). The pool's
     wait raises the stop again within STOP_POLL_S and its workers go. (A process of its own, as a run is: a pool
     forked from the test runner's worker shares that worker's pipes and signals.)"""
-    proc, out, err = run_pool_script(tmp_path / "lost_stop.py", LOST_STOP_RUN)
+    proc, out, err, left = run_pool_script(tmp_path / "lost_stop.py", LOST_STOP_RUN)
     assert proc.returncode == 128 + signal.SIGTERM, err
     seconds = float(re.search(r"stopped ([0-9.]+)", out).group(1))
     assert seconds < 15.0  # (the workers' start-up and one poll, not their 30 s)
-    assert not group_members(proc.pid), "a worker outlived the stopped run"
+    assert not left, "a worker outlived the stopped run"
 
 
 DYING_WORKER_RUN = """
@@ -455,7 +462,7 @@ if __name__ == "__main__":
 def test_a_worker_that_dies_is_a_clear_error(tmp_path):
     """A worker that dies is `WorkerLost` naming --resume, and the run's other workers go with it. (A process of its
     own, as a run is: a pool forked from the test runner's worker once took that worker down with it in CI.)"""
-    proc, out, err = run_pool_script(tmp_path / "dying_worker.py", DYING_WORKER_RUN)
+    proc, out, err, left = run_pool_script(tmp_path / "dying_worker.py", DYING_WORKER_RUN)
     assert proc.returncode == 1, err
     assert "worker process died" in out and "--resume" in out, out
-    assert not group_members(proc.pid), "a worker outlived the run"
+    assert not left, "a worker outlived the run"
