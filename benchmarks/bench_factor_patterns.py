@@ -38,7 +38,7 @@ SEED = 0
 
 def mixed_pattern(G: sp.csr_matrix, per_node: int) -> tuple[sp.csr_matrix, np.ndarray]:
     """The pattern of a u–field system (3 displacements and `per_node` field unknowns per node): u–u and u–field
-    coupled over the one-ring G (the node graph (n, n) of `p1`'s K_ff, `linear.node_graph`), the field coupled
+    coupled over the one-ring G (the node graph (n, n) of `p1`'s K_ff, `ordering.node_graph`), the field coupled
     within its node only; and each unknown's node (n,)."""
     n = G.shape[0]
     G = (G + sp.identity(n)).tocsr()
@@ -72,7 +72,8 @@ def main() -> None:
     from scissor_cli.config import load_config
     from scissor_cli.experiments.build import body_model
     from scissor_cli.mechanics.body_tissue import build_body
-    from scissor_cli.solvers.linear import Factorization, node_graph
+    from scissor_cli.solvers.linear import Factorization
+    from scissor_cli.solvers.ordering import node_graph
 
     res = results_io.Results("bench_factor_patterns")
     cfg = load_config(CONFIG)

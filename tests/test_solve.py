@@ -94,7 +94,7 @@ def _laplacian_3d(k=8, shift=0.0):
 
 
 def test_nested_dissection_is_a_permutation_and_solves_like_amd():
-    from scissor_cli.solvers.linear import nested_dissection
+    from scissor_cli.solvers.ordering import nested_dissection
 
     A = _laplacian_3d(10, 0.1)
     n = A.shape[0]

@@ -13,13 +13,13 @@ from typing import Callable
 
 import cvxopt
 import numpy as np
-import pymetis
 import qdldl
 import scipy.sparse as sp
 from cvxopt import cholmod
 
 from scissor_cli.solvers.cholmod_factor import supernodal_copy
 from scissor_cli.solvers.common import SolverError
+from scissor_cli.solvers.ordering import nested_dissection
 from scissor_cli.solvers.supernodal import SupernodalFactor
 
 #: conjugate-gradient iterations `solve_free` spends on an earlier factor before it refactors:
@@ -79,7 +79,7 @@ class Factorization:
 
     `ordering` is the fill-reducing ordering of the Cholesky factor: "amd"
     (CHOLMOD's own, cvxopt's CHOLMOD has no METIS) or "nested_dissection"
-    (METIS through pymetis, `nested_dissection`), computed once per pattern;
+    (METIS through pymetis, `ordering.nested_dissection`), computed once per pattern;
     `groups` (n,) numbers each unknown's node so the ordering keeps a node's
     unknowns together; `perm` (n,), a nested-dissection ordering already
     computed for this pattern (`perm` of an earlier factorisation), skips
@@ -395,42 +395,6 @@ def solve_free(tissue, K_upper: sp.csr_matrix, b: np.ndarray, factors: dict | No
             raise NotPositiveDefinite("system matrix is not positive definite (conjugate gradients met negative "
                                       "curvature)", factored=False)
     return factorize_free(tissue, K_upper, factors).solve(b), True
-
-
-def nested_dissection(A: sp.csr_matrix, groups: np.ndarray | None = None) -> np.ndarray:
-    """A fill-reducing permutation p (n,) of symmetric A (its pattern, or one triangle's) by METIS.
-
-    p[k] is the unknown eliminated k-th (CHOLMOD's `P A Pᵀ`). With `groups`
-    (n,), the node numbers of the unknowns, METIS orders the (3x smaller)
-    graph of the nodes and each node's unknowns follow in their own order:
-    the same fill as ordering the unknowns, for a third of the time, and
-    whole node blocks in the factor's supernodes.
-    """
-    n = A.shape[0]
-    if groups is None:
-        groups = np.arange(n)
-    G, node_of = node_graph(A, groups)
-    if G.nnz == 0:
-        return np.arange(n)
-    perm = np.asarray(pymetis.nested_dissection(pymetis.CSRAdjacency(G.indptr, G.indices))[0])
-    rank = np.empty(G.shape[0], np.int64)
-    rank[perm] = np.arange(G.shape[0])
-    return np.lexsort((np.arange(n), rank[node_of]))
-
-
-def node_graph(A: sp.spmatrix, groups: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
-    """The graph of the nodes whose unknowns A (n, n) couples (its pattern, or one triangle's): the adjacency
-    (m, m) of the m distinct `groups` (n,), both triangles, no diagonal, indices sorted (METIS's input); and each
-    unknown's node (n,), 0..m-1 in the order of the group numbers."""
-    A = sp.csr_matrix(A)
-    nodes, node_of = np.unique(np.asarray(groups), return_inverse=True)
-    rows = np.repeat(node_of, np.diff(A.indptr))
-    cols = node_of[A.indices]
-    off = rows != cols
-    G = sp.csr_matrix((np.ones(int(off.sum())), (rows[off], cols[off])), shape=(len(nodes), len(nodes)))
-    G = (G + G.T).tocsr()
-    G.sort_indices()
-    return G, node_of
 
 
 def factorize_free(tissue, K_upper: sp.csr_matrix, factors: dict | None = None,
