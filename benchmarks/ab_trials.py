@@ -95,8 +95,8 @@ def record_trials(config: Path, truth: str | None, count: int) -> list[tuple]:
 
 
 class Counts:
-    """Gradients, sparse-solve columns (CHOLMOD's and the slab's float32 ones) and factorisations, counted by
-    wrapping the methods every caller uses."""
+    """Gradients, sparse-solve columns (CHOLMOD's and the slab's float32 ones) and factorisations (CHOLMOD's, and
+    float32's alone: `Factorization.deferred`), counted by wrapping the methods every caller uses."""
 
     def __init__(self):
         self.n = collections.Counter()
@@ -111,9 +111,12 @@ class Counts:
         def counted_solve32(factor, b):
             return counted_solve(factor, b, solve32)
 
-        def counted_refactor(factor, A):
-            counter["factorisations"] += 1
-            return refactor(factor, A)
+        def counted_refactor(factor, A, single=False):
+            try:
+                refactor(factor, A, single)
+            finally:  # (a failed one counts too)
+                counter["float32 factorisations" if factor.deferred else "factorisations"] += 1
+            return factor
 
         def counted_gradient(tissue, *args, **kwargs):
             counter["gradients"] += 1

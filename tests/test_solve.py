@@ -380,6 +380,48 @@ def test_a_float32_factorisation_on_cholmod_s_layout_solves_as_cholmod_does(orde
     assert factorizer.matches(indefinite) and factorizer.factor(indefinite.data) is None
 
 
+def test_a_refactorisation_that_only_preconditions_is_made_in_float32_and_float64_on_demand(monkeypatch):
+    """`refactor(single=True)` (a 3-D slot, supernodal): the first factorisation is CHOLMOD's, which lays out the
+    float32 ones, and float32's of the same values, which `stepping_solve` steps on (`in_float32`: so whether a slot
+    is new or not changes no bit); the next is float32's alone (`deferred`), solved to float32's precision, and
+    CHOLMOD factors the same values only when a float64 solve asks; `solve_free` with rtol solves on it by CG
+    without that. Where float32 breaks down CHOLMOD decides (an indefinite matrix is refused), and off it is
+    CHOLMOD each time."""
+    from types import SimpleNamespace
+
+    from scissor_cli.solvers import linear
+
+    A = sp.triu(_laplacian_3d(10, 0.5)).tocsr()
+    n = A.shape[0]
+    tissue = SimpleNamespace(factor_cache={}, dim=3, free_dofs=np.arange(n))
+    b = np.random.default_rng(5).random(n)
+
+    def residual(M, x):
+        return np.linalg.norm(M @ x + M.T @ x - M.diagonal() * x - b) / np.linalg.norm(b)
+
+    f = linear.factorize_free(tissue, A, single=True)
+    assert f.in_float32 and not f.deferred and f.factorizations == 1
+    first = linear.stepping_solve(f)(b)
+    assert residual(A, first) <= 1e-5
+    near = (A + sp.diags(np.random.default_rng(6).uniform(0.0, 0.5, n))).tocsr()
+    f = linear.factorize_free(tissue, near, single=True)
+    assert f.in_float32 and f.deferred and f.method == "cholesky"
+    assert np.array_equal(linear.Factorization(A, definite=True, upper=True, ordering="nested_dissection",
+                                               groups=np.arange(n), float32_steps=True, single=True,
+                                               perm=f.perm).single().solve(b), first)  # a new slot's: the same bits
+    assert residual(near, linear.stepping_solve(f)(b)) <= 1e-5  # float32's factor of `near` itself
+    assert residual(near, f.solve(b)) <= 1e-12 and not f.deferred  # CHOLMOD's, made for this solve
+    f.stale = True  # the slot's factor is not to precondition: solve_free refactors
+    x, factored = linear.solve_free(tissue, near, b, rtol=1e-10)
+    assert factored and f.deferred and residual(near, x) <= 2e-10  # by CG on float32's factor, CHOLMOD not asked
+    bad = sp.triu(A - 2.0 * sp.eye(n)).tocsr()
+    with pytest.raises(linear.NotPositiveDefinite):
+        linear.factorize_free(tissue, bad, single=True)
+    assert not f.in_float32
+    monkeypatch.setattr(linear, "SINGLE_FACTORIZATION", False)
+    assert not linear.factorize_free(tissue, near, single=True).in_float32
+
+
 def test_only_a_supernodal_cholesky_factor_has_a_float32_copy():
     """A simplicial LDLᵀ, an indefinite matrix's qdldl factor and a capsule that is not CHOLMOD's factor give no
     copy (the callers then solve in float64)."""

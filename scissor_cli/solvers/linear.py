@@ -20,7 +20,7 @@ from cvxopt import cholmod
 from scissor_cli.solvers.cholmod_factor import supernodal_copy
 from scissor_cli.solvers.common import SolverError
 from scissor_cli.solvers.ordering import nested_dissection
-from scissor_cli.solvers.supernodal import SupernodalFactor
+from scissor_cli.solvers.supernodal import SingleFactorizer, SupernodalFactor
 
 #: conjugate-gradient iterations `solve_free` spends on an earlier factor before it refactors:
 #: a 3-D refactorisation costs about 25 of them at 65k unknowns (docs/performance.md)
@@ -33,6 +33,10 @@ ND_MIN_UNKNOWNS_2D = 10_000
 #: they only precondition or propose a step that the float64 residual judges, and the copy's solve reads half the
 #: bytes; off, CHOLMOD's float64 solve (for A/B runs: benchmarks/ab_trials.py)
 SINGLE_PRECISION_STEPS = True
+#: a 3-D refactorisation only to precondition (`solve_free`'s inexact steps, a tracker's response) is float32's on
+#: the slot's first CHOLMOD layout (`supernodal.SingleFactorizer`), CHOLMOD's float64 one made when a float64 solve
+#: asks (`Factorization.refactor`); off, CHOLMOD factors each time (A/B runs: benchmarks/ab_trials.py)
+SINGLE_FACTORIZATION = True
 #: a solve that needed more CG iterations than this marks its factor stale: the
 #: tangent has moved away from it, so the next solve factors instead of trying
 KRYLOV_STALE_ITER = 6
@@ -63,13 +67,11 @@ class Factorization:
     Positive definite matrices (every projected Newton Hessian, the ADMM
     global matrix, a stable equilibrium's tangent) get CHOLMOD's supernodal
     Cholesky (through cvxopt): faster than a simplicial LDLᵀ from a few
-    thousand unknowns on, because its dense supernode blocks run in BLAS.
-    With `supernodal=False` the solves use CHOLMOD's simplicial LDLᵀ
-    instead: slower to factor but faster to solve with at a few thousand
-    unknowns (no padded supernodes), for a factor kept over many solves (the
-    needle's chord solver; docs/performance.md). LDLᵀ takes indefinite
-    matrices too, so with `definite` a supernodal LLᵀ is factored first to
-    check.
+    thousand unknowns on, its dense supernode blocks in BLAS. With
+    `supernodal=False` the solves use CHOLMOD's simplicial LDLᵀ: slower to
+    factor, faster to solve with at a few thousand unknowns (no padded
+    supernodes), for a factor kept over many solves (docs/performance.md);
+    with `definite` a supernodal LLᵀ is then factored first to check.
     A symmetric indefinite matrix falls back to qdldl's LDLᵀ (AMD ordering),
     unless `definite` is asked for: then "not positive definite" is a
     SolverError, which is what Newton wants to hear before it projects.
@@ -77,23 +79,20 @@ class Factorization:
     same (a Newton iteration, the next control step). A singular matrix
     raises SolverError rather than returning inf.
 
-    `ordering` is the fill-reducing ordering of the Cholesky factor: "amd"
-    (CHOLMOD's own, cvxopt's CHOLMOD has no METIS) or "nested_dissection"
-    (METIS through pymetis, `ordering.nested_dissection`), computed once per pattern;
-    `groups` (n,) numbers each unknown's node so the ordering keeps a node's
-    unknowns together; `perm` (n,), a nested-dissection ordering already
-    computed for this pattern (`perm` of an earlier factorisation), skips
-    METIS. On a 3-D tetrahedral tangent AMD fills in badly:
-    nested dissection halves the factor's nonzeros and its time at 65k
-    unknowns (docs/performance.md). In 2-D AMD is as good up to ~10k
-    unknowns; beyond, nested dissection wins too (fewer nonzeros, a faster
-    numeric factorisation; benchmarks/bench_forward.py). With a
-    user ordering CHOLMOD still tries AMD and keeps the sparser factor.
+    `ordering`: "amd" (CHOLMOD's own; cvxopt's CHOLMOD has no METIS) or
+    "nested_dissection" (`ordering.nested_dissection`), computed once per
+    pattern; `groups` (n,) numbers each unknown's node so the ordering keeps
+    a node's unknowns together; `perm` (n,), a nested-dissection ordering of
+    this pattern already computed (an earlier factor's `perm`), skips METIS.
+    On a 3-D tangent AMD fills in badly (nested dissection halves the
+    factor's nonzeros and time at 65k unknowns); in 2-D it is as good up to
+    ~10k unknowns (benchmarks/bench_forward.py). With a user ordering
+    CHOLMOD still tries AMD and keeps the sparser factor.
     """
 
     def __init__(self, A: sp.spmatrix, definite: bool = False, upper: bool = False,
                  ordering: str = "amd", groups: np.ndarray | None = None, supernodal: bool = True,
-                 perm: np.ndarray | None = None, float32_steps: bool = False):
+                 perm: np.ndarray | None = None, float32_steps: bool = False, single: bool = False):
         if ordering not in ("amd", "nested_dissection"):
             raise ValueError(f"unknown ordering {ordering!r}: 'amd' or 'nested_dissection'")
         if perm is not None and (ordering != "nested_dissection" or len(perm) != A.shape[0]):
@@ -116,13 +115,22 @@ class Factorization:
         self.cg_rate: float | None = None
         self._pattern: tuple | None = None
         self._chol = self._ldl = None
+        #: float32 factorisations on the pattern's layout (`refactor(single=True)`), whether `stepping_solve` is on
+        #: one of the current values, and whether CHOLMOD's of them is still to be made (a float64 solve makes it)
+        self._single: SingleFactorizer | None = None
+        self.in_float32 = self.deferred = False
         self._given_perm = None if perm is None else cvxopt.matrix(np.asarray(perm).tolist(), tc="i")
-        self.refactor(A)
+        self.refactor(A, single)
 
-    def refactor(self, A: sp.spmatrix) -> "Factorization":
+    def refactor(self, A: sp.spmatrix, single: bool = False) -> "Factorization":
+        """Factor A on the kept analysis (a new one when its pattern changed). With `single` (a caller that only
+        preconditions: `stepping_solve`) in float32 once CHOLMOD's first factor gave the layout, CHOLMOD's float64
+        one deferred to a float64 solve (SINGLE_FACTORIZATION); CHOLMOD decides where float32 breaks down."""
         A = _symmetric_csr(A)
         n = A.shape[0]
+        self.in_float32 = self.deferred = False
         if self._pattern is None or A.nnz != self._pattern[0] or n != self._pattern[1]:
+            self._single = None
             # The upper triangle of a sorted symmetric CSR matrix is, entry for
             # entry, the lower triangle in CSC order: CHOLMOD's input, so a
             # refactorisation only copies A.data[upper] (no conversion).
@@ -141,6 +149,11 @@ class Factorization:
         self.stale = False
         self.cg_rate = None
         self._copies: dict = {}  # (its float32 and float64 copies, made on demand: `single`, `double`)
+        single = single and SINGLE_FACTORIZATION and self.float32_steps and self.upper and self.supernodal
+        if single and self._single is not None and (own := self._single.factor(A.data)) is not None:
+            self._copies[np.float32], self._active = own, "cholesky"
+            self.in_float32 = self.deferred = True
+            return self
         try:
             if self._chol is None:
                 self._chol = self._symbolic(A, self.supernodal)
@@ -151,6 +164,11 @@ class Factorization:
                 cholmod.numeric(self._lower, self._check)
             cholmod.numeric(self._lower, self._chol)
             self._active = "cholesky"
+            if single and self._single is None and (layout := self.single()) is not None:
+                self._single = SingleFactorizer(layout, *self._pattern_arrays)
+                # the first one made too, so that what a slot steps on never depends on its history
+                if (own := self._single.factor(A.data)) is not None:
+                    self._copies[np.float32], self.in_float32 = own, True
             return self
         except ArithmeticError:
             if self.definite:
@@ -203,12 +221,8 @@ class Factorization:
 
     @property
     def nnz_factor(self) -> int:
-        """Entries of the Cholesky factor L (0 without one): the fill the ordering left.
-
-        Factors a copy (one more factorisation: for reports, not hot paths):
-        cvxopt's `getfactor` turns the factor it reads into a symbolic,
-        simplicial one, which would break this object's next solve.
-        """
+        """Entries of the Cholesky factor L (0 without one): the fill the ordering left. Factors a copy (for
+        reports, not hot paths): cvxopt's `getfactor` turns the factor it reads into a symbolic, simplicial one."""
         if self._active != "cholesky":
             return 0
         copy = self._symbolic(self._pattern_csr, self.supernodal)
@@ -231,10 +245,9 @@ class Factorization:
             cholmod.options["supernodal"] = saved
 
     def single(self) -> SupernodalFactor | None:
-        """The current supernodal Cholesky factor as a float32 copy solved in compiled loops
-        (`solvers.supernodal`, read in place by `solvers.cholmod_factor`), made once per factorisation; None
-        for any other factor, or one CHOLMOD does not lay out as expected. This object still solves in
-        float64: the copy is for solves that only precondition or step (conjugate gradients, chord steps)."""
+        """The current supernodal Cholesky factor in float32, solved in compiled loops (`solvers.supernodal`):
+        float32's own (`refactor(single=True)`) or CHOLMOD's copied (`solvers.cholmod_factor`); None for any other
+        factor, or one CHOLMOD does not lay out as expected. For solves that only precondition or step."""
         return self._copy(np.float32)
 
     def double(self) -> SupernodalFactor | None:
@@ -242,7 +255,20 @@ class Factorization:
         loops solve a block of right-hand sides at once, where cvxopt's CHOLMOD goes column by column."""
         return self._copy(np.float64)
 
+    def _numeric(self) -> None:
+        """CHOLMOD's factorisation of the current values where it was deferred (NotPositiveDefinite: as `refactor`)."""
+        if not self.deferred:
+            return
+        self.deferred = False
+        try:
+            cholmod.numeric(self._lower, self._chol)
+        except ArithmeticError:
+            self._active = None
+            raise NotPositiveDefinite("system matrix is not positive definite", factored=True) from None
+
     def _copy(self, dtype) -> SupernodalFactor | None:
+        if dtype != np.float32:
+            self._numeric()
         if dtype not in self._copies and self._active == "cholesky" and self.supernodal:
             self._copies[dtype] = supernodal_copy(self._chol, self._pattern[1], dtype) or False
         return self._copies.get(dtype) or None
@@ -255,6 +281,7 @@ class Factorization:
     def solve(self, b: np.ndarray) -> np.ndarray:
         """x with A x = b, for b (n,) or (n, k)."""
         if self._active == "cholesky":
+            self._numeric()
             B = cvxopt.matrix(np.asarray(b, dtype=float))
             cholmod.solve(self._chol, B)
             x = np.array(B)
@@ -382,7 +409,9 @@ def solve_free(tissue, K_upper: sp.csr_matrix, b: np.ndarray, factors: dict | No
     positive definite: found by the factorisation, or by conjugate gradients
     meeting negative curvature (then the factorisation, which would fail
     after most of its cost, is not tried, and the slot keeps its factor).
-    Without rtol K_ff is always factored: the direct solve.
+    Without rtol K_ff is always factored: the direct solve. With rtol it is
+    factored in float32 (`Factorization.refactor`'s `single`) and solved by
+    CG on it, directly (CHOLMOD's float64 factor) only if that fails.
     """
     factors = tissue.factor_cache if factors is None else factors
     factor = factors.get("free")
@@ -394,11 +423,16 @@ def solve_free(tissue, K_upper: sp.csr_matrix, b: np.ndarray, factors: dict | No
         if why == "curvature":
             raise NotPositiveDefinite("system matrix is not positive definite (conjugate gradients met negative "
                                       "curvature)", factored=False)
-    return factorize_free(tissue, K_upper, factors).solve(b), True
+    factor = factorize_free(tissue, K_upper, factors, single=rtol is not None)
+    if factor.in_float32:
+        x, _, _ = preconditioned_cg(K_upper, b, factor, rtol, max_iter)
+        if x is not None:
+            return x, True
+    return factor.solve(b), True
 
 
 def factorize_free(tissue, K_upper: sp.csr_matrix, factors: dict | None = None,
-                   supernodal: bool = True) -> Factorization:
+                   supernodal: bool = True, single: bool = False) -> Factorization:
     """A positive definite factorisation of K_ff from its upper triangle (Nf, Nf).
 
     Refactors the symbolic analysis kept in `factors["free"]` (default: the
@@ -413,11 +447,12 @@ def factorize_free(tissue, K_upper: sp.csr_matrix, factors: dict | None = None,
     K_ff is not positive definite (Newton then projects). A 3-D tissue's
     factor is ordered by nested dissection (`Factorization`), a 2-D one's by
     AMD below ND_MIN_UNKNOWNS_2D unknowns and by nested dissection above.
-    `supernodal` (the slot's first factorisation decides) as in `Factorization`.
+    `supernodal` (the slot's first factorisation decides) and `single` (a caller that only preconditions with
+    it) as in `Factorization`.
     """
     factors = tissue.factor_cache if factors is None else factors
     factor = factors.get("free")
-    if factor is None and (factor := _released(tissue, K_upper, supernodal)) is not None:
+    if factor is None and (factor := _released(tissue, K_upper, supernodal, single)) is not None:
         factors["free"] = factor
         return factor
     if factor is None:
@@ -427,11 +462,11 @@ def factorize_free(tissue, K_upper: sp.csr_matrix, factors: dict | None = None,
         perm = tissue.factor_cache.get(known) if large else None
         factor = factors["free"] = Factorization(K_upper, definite=True, upper=True, ordering=ordering,
                                                  groups=tissue.free_dofs // tissue.dim, supernodal=supernodal,
-                                                 perm=perm, float32_steps=tissue.dim == 3)
+                                                 perm=perm, float32_steps=tissue.dim == 3, single=single)
         if large and perm is None and factor.perm is not None:
             tissue.factor_cache[known] = factor.perm
         return factor
-    return factor.refactor(K_upper)
+    return factor.refactor(K_upper, single)
 
 
 def release_free(tissue, factors: dict) -> None:
@@ -446,7 +481,7 @@ def release_free(tissue, factors: dict) -> None:
     del released[:-RELEASED_KEPT]
 
 
-def _released(tissue, K_upper: sp.csr_matrix, supernodal: bool) -> Factorization | None:
+def _released(tissue, K_upper: sp.csr_matrix, supernodal: bool, single: bool) -> Factorization | None:
     """A released factorisation (`release_free`) of K_upper's exact pattern and kind, refactored at K_upper with
     its counts from 0 (as a new one's: what it held before is gone), or None. SolverError as `refactor`.
     Each is taken off the list before it is looked at (`list.pop` is atomic), so trials on threads sharing a
@@ -459,6 +494,6 @@ def _released(tissue, K_upper: sp.csr_matrix, supernodal: bool) -> Factorization
             return None
         if factor.supernodal == supernodal and factor.same_pattern(K_upper):
             factor.factorizations = factor.cg_iterations = 0
-            return factor.refactor(K_upper)
+            return factor.refactor(K_upper, single)
         released.append(factor)
     return None

@@ -135,7 +135,8 @@ class TrackedEquilibrium:
                 factor = self._factor(x, K)
             except SolverError:  # not positive definite (an unstable state): LDLᵀ for the response only
                 factor = Factorization(K, upper=True)
-            solved = factor.solve(rhs)  # every cup's column in one solve
+            solved = self._iterated(K, rhs) if factor.in_float32 else None  # (made to precondition: CG on it)
+            solved = factor.solve(rhs) if solved is None else solved
         D = self._B.copy()
         D[t.free_dofs] = solved
         check_finite(D, "the cup response (K_ff singular?)")
@@ -148,7 +149,8 @@ class TrackedEquilibrium:
         self.stats["refactors"] += 1
         self._factor_x, self._factor_elsewhere = x, None
         try:
-            return factorize_free(t, t.stiffness_free(x, upper=True) if K is None else K, self.factors)
+            return factorize_free(t, t.stiffness_free(x, upper=True) if K is None else K, self.factors,
+                                  single=self._krylov)
         except SolverError:
             self._factor_x = None
             raise
