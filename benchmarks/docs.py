@@ -819,6 +819,24 @@ def _preconditioner(r) -> str:
               "factorisations. " + source(r))
 
 
+@renderer("single_factorization", "ab_trials.example_dome.cholmod.single", "ab_trials.example_3d.cholmod.single")
+def _single_factorization(*pairs) -> str:
+    """benchmarks/ab_trials.py on a body's and a slab's trials: the factorisations that only precondition made by
+    CHOLMOD in float64, against float32's own on its layout (`solvers.linear.SINGLE_FACTORIZATION`)."""
+    rows = [[r["variant"].split(".")[0], f"`{x['setting']}`", fig(r, "trials"),
+             f"{fixed(x['cpu_median_s'], 1)} s ({fixed(x['cpu_min_s'], 1)}–{fixed(x['cpu_max_s'], 1)}, "
+             f"{x['rounds']})", f"{fixed(x['over_reference'], 3)}×", x["factorisations"],
+             x.get("float32 factorisations", 0), x["solve columns"], x["gradients"],
+             f"{num(x['misses_apart_mm'])} mm", f"{num(x['final_errors_apart_mm'])} mm"]
+            for r in pairs for x in rows_of(r, "settings")]
+    return (table(["config", "setting", "trials", "CPU, the trials (median, range, rounds)", "against `cholmod`",
+                   "CHOLMOD factorisations", "float32 factorisations", "sparse-solve columns", "gradients",
+                   "insertion misses apart", "final errors apart"], rows)
+            + "\n\n`cholmod`: `SINGLE_FACTORIZATION = False`, every factorisation CHOLMOD's in float64 (its float32 "
+              "copy then preconditions); `single`: `True`. Each pair replays the same trials in one process, the "
+              "settings in turn, each round on a trial context built anew. " + source(*pairs))
+
+
 @renderer("factor_patterns", "bench_factor_patterns")
 def _factor_patterns(r) -> str:
     rows = rows_of(r, "forms")
