@@ -1,5 +1,5 @@
 """Fill-reducing orderings of a sparse symmetric matrix's unknowns, by node (`linear.Factorization`'s
-nested dissection; docs/model.md §12)."""
+nested dissection; docs/model.md §13, "Linear algebra in 3-D")."""
 
 from __future__ import annotations
 
