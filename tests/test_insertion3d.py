@@ -217,18 +217,18 @@ def test_the_float32_factor_steps_meet_the_hold_exactly_and_the_equilibrium_to_i
 
 
 def test_a_refactorisation_is_made_in_float32_on_the_first_factor_s_layout(slab_model):
-    """After its first factorisation (CHOLMOD's, copied to float32) the solver refactors in float32 itself, on that
-    factor's supernodal layout (`supernodal.SingleFactorizer`): CHOLMOD factors no more, and the step is the
-    copy's to float32's precision."""
+    """After its first factorisation (CHOLMOD's, and float32's of the same values on its layout) the solver
+    refactors in float32 alone (`Factorization.refactor`'s `single`): CHOLMOD factors no more, and the step is
+    the first factor's to float32's precision."""
     slab, x, hold, loads = _a_hold(slab_model)
     y = x + 0.01 * np.sin(np.arange(x.size)).reshape(x.shape)
     _, g = objective_gradient(slab, y, None, loads)
     solver = ChordSolver(slab)
     solver.refactor(x)
     d_copy, mu_copy = solver.step(g, hold, y)
-    by_cholmod = solver._factors["free"].factorizations
+    assert not solver._factors["free"].deferred
     solver.refactor(x)
-    assert solver.factorizations == 2 and solver._factors["free"].factorizations == by_cholmod
+    assert solver.factorizations == 2 and solver._factors["free"].deferred  # (CHOLMOD's not made)
     assert isinstance(solver._factor, SupernodalFactor) and solver._factor.blocks.dtype == np.float32
     d, mu = solver.step(g, hold, y)
     np.testing.assert_allclose(hold.gap(y + d), 0.0, atol=1e-10)

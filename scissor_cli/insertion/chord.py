@@ -42,7 +42,6 @@ from scissor_cli.solvers.anderson import Anderson
 from scissor_cli.solvers.common import Conditions, SolverError, check_finite
 from scissor_cli.solvers.linear import factorize_free
 from scissor_cli.solvers.newton import ARMIJO
-from scissor_cli.solvers.supernodal import SingleFactorizer
 
 #: a chord step is kept when it shrinks the relative residual at least this much
 CONTRACTION = 0.5
@@ -122,20 +121,13 @@ class ChordSolver:
 
     def _factored(self, K):
         """K's factor to step on (SolverError: K not positive definite), solved in compiled loops (through cvxopt
-        where CHOLMOD's cannot be read in place); in float32 factored there too, on the first CHOLMOD factor's
-        layout (`supernodal.SingleFactorizer`), unless float32 breaks down on K."""
-        single = self._factors.get("single")
-        if self.single_precision and single is not None and single.matches(K):
-            factor = single.factor(K.data)
-            if factor is not None:
-                return factor
+        where CHOLMOD's cannot be read in place); in float32, factored in float32 on the first CHOLMOD factor's
+        layout (`Factorization.refactor`'s `single`) unless float32 breaks down on K."""
         # simplicial in 2-D: solved about 200 times per factorisation (in 3-D the fill makes supernodal faster)
-        factor = factorize_free(self.tissue, K, self._factors, supernodal=self.d == 3 or self.single_precision)
+        factor = factorize_free(self.tissue, K, self._factors, supernodal=self.d == 3 or self.single_precision,
+                                single=self.single_precision)
         if self.single_precision:
-            copy = factor.single()
-            if copy is not None and single is None:
-                self._factors["single"] = SingleFactorizer(copy, K.indptr, K.indices)
-            return copy or factor
+            return factor.single() or factor
         return (factor.double() or factor) if self.d == 3 else factor  # (float32's floor met: `converge`)
 
     @property
