@@ -248,14 +248,16 @@ class SingleFactorizer:
 
     indptr, indices: the pattern of the matrices factored, their upper
     triangle in CSR as `linear.Factorization` was given it; `factor` takes
-    their values in that order. The needle's chord solver refactors
-    its kept factor hundreds of times per insertion and only steps on it
-    (`insertion.chord`): CHOLMOD factors in float64 only, and its float32
-    copy was made after; here the values go straight into float32 blocks
-    and are factored left-looking, supernode by supernode — each
-    descendant's update by BLAS `ssyrk` and `sgemm`, the diagonal block by
-    LAPACK `spotrf`, the rows below by `strsm` — in the layout's order
-    (`benchmarks/bench_insertion3d.py` times both).
+    their values in that order. A factor slot makes one from its first
+    CHOLMOD factor (`Factorization.refactor(single=True)`) for the 3-D
+    refactorisations that only precondition or step (the needle's chord
+    steps, Newton's conjugate gradients, the trackers' responses): CHOLMOD
+    factors in float64 only, and a float32 copy of it would be made after;
+    here the values go straight into float32 blocks and are factored
+    left-looking, supernode by supernode — each descendant's update by BLAS
+    `ssyrk` and `sgemm`, the diagonal block by LAPACK `spotrf`, the rows
+    below by `strsm` — in the layout's order (`benchmarks/bench_insertion3d.py`
+    times both).
     """
 
     def __init__(self, layout: SupernodalFactor, indptr: np.ndarray, indices: np.ndarray):
