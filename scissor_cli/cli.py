@@ -114,7 +114,10 @@ def main(
                                  help="Print the version and exit."),
 ) -> None:
     """scissor: simulate robot-assisted breast intervention from a YAML scene."""
-    runtime.configure()
+    try:
+        runtime.configure()
+    except ValueError as exc:  # (a SCISSOR_THREADS it does not take)
+        _fail(2, str(exc))
     if hasattr(signal, "SIGUSR1"):  # `kill -USR1 PID`: every thread's stack on stderr, the run goes on
         try:  # (the process's own stderr: a caller may have put an object without a file descriptor in sys.stderr)
             faulthandler.register(signal.SIGUSR1, file=sys.__stderr__, all_threads=True)

@@ -10,6 +10,10 @@ import ctypes
 import ctypes.util
 import os
 import sys
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable, TypeVar
+
+T = TypeVar("T")
 
 #: OpenBLAS core names (`OPENBLAS_CORETYPE`) that cvxopt's bundled OpenBLAS knows, by the name numpy's newer
 #: OpenBLAS reports for the same machine; a newer core maps to the older one whose kernels it runs
@@ -17,11 +21,68 @@ KNOWN_CORES = {"Sandybridge": "Sandybridge", "Haswell": "Haswell", "SkylakeX": "
                "Cooperlake": "Cooperlake", "SapphireRapids": "SkylakeX", "Zen": "Zen"}
 
 
-def configure() -> None:
-    """cvxopt's BLAS kernels matched to the CPU, one BLAS thread, freed array memory kept in the heap. Idempotent."""
+#: the environment variable that sets `configure`'s thread count (1 or 2) for a process and those it starts
+THREADS_VARIABLE = "SCISSOR_THREADS"
+#: the most threads a compiled loop splits its work across: it splits it into this many fixed parts
+MOST_THREADS = 2
+#: threads this process's compiled loops may use (`set_threads`); 1 until start-up says more
+_threads = 1
+#: (pid, executor) of the helper thread: made on first use in each process, since a forked child has none
+_helper: tuple[int, ThreadPoolExecutor] | None = None
+
+
+def configure(threads: int | None = None) -> None:
+    """cvxopt's BLAS kernels matched to the CPU, one BLAS thread, freed array memory kept in the heap, and the
+    threads the compiled loops may use (`set_threads`: threads, else SCISSOR_THREADS, else every core up to
+    MOST_THREADS; a trial worker passes 1). Idempotent."""
     match_blas_kernels()
     limit_blas_threads()
     keep_freed_memory()
+    if threads is None:
+        threads = _threads_from_environment()
+    set_threads(threads)
+
+
+def _threads_from_environment() -> int:
+    value = os.environ.get(THREADS_VARIABLE, "").strip()
+    if value in {str(k) for k in range(1, MOST_THREADS + 1)}:
+        return int(value)
+    if value:
+        raise ValueError(f"{THREADS_VARIABLE}={value!r}: allowed values are 1 to {MOST_THREADS}")
+    return max(1, min(MOST_THREADS, os.cpu_count() or 1))
+
+
+def set_threads(threads: int) -> None:
+    """Let the compiled loops that split their work (`in_parts`) run threads (1 to MOST_THREADS) parts at once.
+
+    The loops split their work into the same MOST_THREADS parts whatever
+    the count and add the parts' sums in the same order, so the count
+    changes the time, never a number. A trial worker runs on one thread:
+    its processes already share the cores.
+    """
+    global _threads
+    if not 1 <= threads <= MOST_THREADS:
+        raise ValueError(f"threads: {threads}; allowed values are 1 to {MOST_THREADS}")
+    _threads = int(threads)
+
+
+def threads() -> int:
+    """The threads this process's compiled loops may use (`set_threads`)."""
+    return _threads
+
+
+def in_parts(*parts: Callable[[], T]) -> list[T]:
+    """Each of parts called, the last on this thread and the others on helper threads when `threads` allows,
+    else in turn; their results in order. The parts must not write what another reads: they are the fixed
+    split of a compiled loop that releases the GIL (`nogil`)."""
+    if _threads == 1 or len(parts) == 1:
+        return [part() for part in parts]
+    global _helper
+    if _helper is None or _helper[0] != os.getpid():
+        _helper = (os.getpid(), ThreadPoolExecutor(MOST_THREADS - 1, thread_name_prefix="scissor-part"))
+    futures = [_helper[1].submit(part) for part in parts[:-1]]
+    last = parts[-1]()
+    return [f.result() for f in futures] + [last]
 
 
 def match_blas_kernels() -> None:

@@ -7,6 +7,9 @@ sys.path.insert(0, ROOT)
 
 from scissor_cli import runtime  # noqa: E402
 
+# xdist's workers share the cores: one compiled-loop thread each, and in the scissor processes they start
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    os.environ.setdefault(runtime.THREADS_VARIABLE, "1")
 # the same process settings as a scissor run (one BLAS thread, heap kept)
 runtime.configure()
 

@@ -18,6 +18,7 @@ import pytest
 import scipy.sparse as sp
 import yaml
 
+from scissor_cli import runtime
 from scissor_cli.config import parse_config
 from scissor_cli.experiments.build import build_model
 from scissor_cli.layer3d.slab import SlabSpec, build_slab
@@ -93,8 +94,9 @@ def test_gradient_and_tangent_match_finite_differences(tissues, which):
 
 
 def test_the_compiled_whole_gradient_is_the_term_by_term_one(tissues):
-    """In 3-D every term's gradient comes from one compiled call (`nodal_compiled.energy_gradient`): the same U and
-    ∇U as the per-element kernels plus the nodal terms; it declines where that path owns the policy."""
+    """In 3-D every term's gradient comes from three compiled passes (`nodal_gradient.energy_gradient`): the same U
+    and ∇U as the per-element kernels plus the nodal terms, the same bits on one thread or two; it declines where
+    that path owns the policy."""
     slab = tissues[1]
     x = _perturbed(slab)
     whole = slab.element.compiled_energy_gradient(x)
@@ -102,6 +104,13 @@ def test_the_compiled_whole_gradient_is_the_term_by_term_one(tissues):
         assert whole is None
         return
     U, g = whole
+    threads = runtime.threads()
+    try:
+        runtime.set_threads(3 - threads)
+        U2, g2 = slab.element.compiled_energy_gradient(x)
+    finally:
+        runtime.set_threads(threads)
+    assert U2 == U and np.array_equal(g2, g)
     U0, g0 = slab.element.add_gradient(x, *slab._kernels.energy_gradient(slab.ops, slab.element_params, x))
     assert U == pytest.approx(U0, rel=1e-12)
     np.testing.assert_allclose(g, g0, rtol=0, atol=1e-11 * np.abs(g0).max())

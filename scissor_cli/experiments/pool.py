@@ -121,8 +121,9 @@ def die_with_parent() -> None:
 
 
 def init_worker() -> None:
-    """The pool's initializer: the run's process settings, death with the parent, stop signals left to the run."""
-    runtime.configure()
+    """The pool's initializer: the run's process settings (one thread: the workers share the cores), death with the
+    parent, stop signals left to the run."""
+    runtime.configure(threads=1)
     die_with_parent()
     for sig in STOP_SIGNALS:
         signal.signal(sig, signal.SIG_IGN)

@@ -281,10 +281,10 @@ def _run_batch(row: str, config_yaml: str, work: list[WorkItem]) -> list[tuple[s
 
 
 def _run_batch_dask(row: str, config_yaml: str, work: list[WorkItem]) -> list[tuple[str, Outcome]]:
-    """`_run_batch` in a Dask worker: scissor did not start that process, so its settings (one BLAS thread, freed
-    memory kept: `runtime.configure`, idempotent) are applied here; without them Dask workers ran slab-truth
-    trials markedly slower than the local pool (benchmarks/bench_dask_slab.py)."""
-    runtime.configure()
+    """`_run_batch` in a Dask worker: scissor did not start that process, so its settings (one BLAS thread and one
+    compiled-loop thread, freed memory kept: `runtime.configure`, idempotent) are applied here; without them Dask
+    workers ran slab-truth trials markedly slower than the local pool (benchmarks/bench_dask_slab.py)."""
+    runtime.configure(threads=1)
     return _run_batch(row, config_yaml, work)
 
 

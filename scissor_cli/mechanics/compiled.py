@@ -276,15 +276,16 @@ def element_stiffness_2d(x, corners, grad_rows, volume, material, tension_only, 
 
 
 @njit(**_JIT)
-def scatter_packed(Ke, entries, slot, out):
-    """out[slot[k]] += Ke.flat[entries[k]] for every k (`fem.SparsePattern.assemble`), out zeroed first.
+def scatter_packed(Ke, entries, slot, out, entry_range, data_range):
+    """out[slot[k]] += Ke.flat[entries[k]] for k in entry_range (k0, k1) (`fem.SparsePattern.assemble`), out's
+    data_range (d0, d1), where those land, zeroed first.
 
-    The same sums in the same order as np.bincount(slot, Ke.flat[entries]),
-    without its gathered copy of the entries.
+    Over every run, the same sums in the same order as np.bincount(slot,
+    Ke.flat[entries]), without its gathered copy of the entries.
     """
-    out[:] = 0.0
+    out[data_range[0]:data_range[1]] = 0.0
     flat = Ke.ravel()
-    for k in range(entries.shape[0]):
+    for k in range(entry_range[0], entry_range[1]):
         out[slot[k]] += flat[entries[k]]
 
 

@@ -22,6 +22,7 @@ import math
 import numpy as np
 from numba import njit
 
+from scissor_cli import runtime
 from scissor_cli.mechanics.materials.params import J_FLOOR
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
@@ -155,8 +156,9 @@ def feasibility_cubic_3d(x, dx, corners, grad_rows):
 
 
 @njit(**_JIT)
-def energy_gradient_3d(x, corners, grad_rows, volume, material, tension_only, out):
-    """U (µJ) and ∇U written into out (3N,) mN; returns (U, -1), or (nan, e) for the first element e it cannot take.
+def energy_gradient_3d(x, corners, grad_rows, volume, material, tension_only, out, e0, e1):
+    """U (µJ) and ∇U of elements e0 ≤ e < e1 written into out (3N,) mN; returns (U, -1), or (nan, e) for the first
+    element e it cannot take.
 
     material: (μ, κ, η (M,) kPa, the unit fiber (M, 3)) per element (`_material`).
     """
@@ -164,7 +166,7 @@ def energy_gradient_3d(x, corners, grad_rows, volume, material, tension_only, ou
     out[:] = 0.0
     U = 0.0
     f, c, P, a = np.empty(9), np.empty(9), np.empty(9), np.empty(3)
-    for e in range(corners.shape[1]):
+    for e in range(e0, e1):
         _deformation(x, corners, grad_rows, e, f)
         a[0], a[1], a[2] = fiber[e, 0], fiber[e, 1], fiber[e, 2]
         psi, J = _stress(f, c, a, mu[e], kappa[e], eta[e], tension_only, P)[:2]
@@ -265,14 +267,15 @@ def project_matrix(C, L, A):
 
 
 @njit(**_JIT)
-def element_stiffness_3d(x, corners, grad_rows, volume, material, tension_only, hd_pattern, project, Ke, grad):
-    """Packed element Hessians into Ke (78, M), mN/mm; (-1, U), or (the first element it cannot take, nan).
+def element_stiffness_3d(x, corners, grad_rows, volume, material, tension_only, hd_pattern, project, Ke, grad, e0, e1):
+    """Packed Hessians of elements e0 ≤ e < e1 into Ke (78, M), mN/mm; (-1, U), or (the first element it cannot
+    take, nan).
 
     material: as `energy_gradient_3d`'s; hd_pattern: (`_HD_INDEX`, `_HD_SIGN`). With `project` each
     tetrahedron's tangent C is PSD-projected first (`project_matrix`, the numpy path's rule).
 
     K_e[3a+i, 3b+k] = V Σ_jl ∂N_a/∂X_j C[3i+j, 3k+l] ∂N_b/∂X_l. With grad of
-    size 3N (not 0), ∇U goes into it and U is returned (one pass for both).
+    size 3N (not 0), their ∇U goes into it and U is returned (one pass for both).
     """
     mu, kappa, eta, fiber = material
     hd_index, hd_sign = hd_pattern
@@ -284,7 +287,7 @@ def element_stiffness_3d(x, corners, grad_rows, volume, material, tension_only, 
     C = np.empty((9, 9))
     L, A = np.empty((9, 9)), np.empty((9, 9))
     T = np.empty((9, 4, 3))
-    for e in range(corners.shape[1]):
+    for e in range(e0, e1):
         _deformation(x, corners, grad_rows, e, f)
         a[0], a[1], a[2] = fiber[e, 0], fiber[e, 1], fiber[e, 2]
         psi, J, alpha, s, iJ, I4m1, eta_eff, v0, v1, v2 = _stress(f, c, a, mu[e], kappa[e], eta[e], tension_only, P)
@@ -348,25 +351,48 @@ def _material(params) -> tuple:
 
 
 def energy_gradient(ops, params, x: np.ndarray) -> tuple[float, np.ndarray] | None:
-    """U (µJ) and ∇U (3N,) mN at positions x (N, 3); None if an element has J ≤ J_FLOOR or a non-finite term."""
-    grad = np.empty(3 * ops.n_nodes)
-    U, bad = energy_gradient_3d(np.ascontiguousarray(x, dtype=np.float64), ops.corners, ops.grad_rows, ops.volume,
-                                *_material(params), grad)
-    return None if bad >= 0 else (float(U), grad)
+    """U (µJ) and ∇U (3N,) mN at positions x (N, 3); None if an element has J ≤ J_FLOOR or a non-finite term.
+    In `_stiffness_in_parts`'s parts: the same numbers as `energy_gradient_stiffness`'s."""
+    cuts = _element_cuts(ops)
+    grads = np.empty((cuts.size - 1, 3 * ops.n_nodes))
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    common = (x, ops.corners, ops.grad_rows, ops.volume, *_material(params))
+    results = runtime.in_parts(*[lambda k=k: energy_gradient_3d(*common, grads[k], cuts[k], cuts[k + 1])
+                                 for k in range(cuts.size - 1)])
+    if any(bad >= 0 for _, bad in results):
+        return None
+    return float(sum(U for U, _ in results)), grads.sum(axis=0)
+
+
+def _element_cuts(ops) -> np.ndarray:
+    """The bounds (K + 1,) of runtime.MOST_THREADS equal runs of the elements: the loops' fixed parts."""
+    K = runtime.MOST_THREADS
+    return (np.arange(K + 1) * ops.corners.shape[1]) // K
 
 
 def element_stiffness(ops, params, x: np.ndarray, project: bool) -> np.ndarray | None:
     """Packed element Hessians (78, M) mN/mm at x (N, 3), exact or PSD-projected; None as above."""
-    Ke = np.empty((78, ops.corners.shape[1]))
-    bad, _ = element_stiffness_3d(np.ascontiguousarray(x, dtype=np.float64), ops.corners, ops.grad_rows, ops.volume,
-                                  *_material(params), (_HD_INDEX, _HD_SIGN), project, Ke, np.empty(0))
-    return None if bad >= 0 else Ke
+    result = _stiffness_in_parts(ops, params, x, project, with_gradient=False)
+    return None if result is None else result[2]
 
 
 def energy_gradient_stiffness(ops, params, x: np.ndarray, project: bool) -> tuple[float, np.ndarray, np.ndarray] | None:
     """U (µJ), ∇U (3N,) mN and the packed element Hessians (78, M) at x (N, 3), in one pass; None as above."""
-    Ke = np.empty((78, ops.corners.shape[1]))
-    grad = np.empty(3 * ops.n_nodes)
-    bad, U = element_stiffness_3d(np.ascontiguousarray(x, dtype=np.float64), ops.corners, ops.grad_rows, ops.volume,
-                                  *_material(params), (_HD_INDEX, _HD_SIGN), project, Ke, grad)
-    return None if bad >= 0 else (float(U), grad, Ke)
+    return _stiffness_in_parts(ops, params, x, project, with_gradient=True)
+
+
+def _stiffness_in_parts(ops, params, x, project, with_gradient):
+    """`element_stiffness_3d` over runtime.MOST_THREADS equal runs of the elements (at once where the process has
+    the threads: `runtime.in_parts`), each part's ∇U in its own vector and the parts' sums added in order, so the
+    numbers do not depend on the threads: (U, ∇U, Ke), or None for an element it cannot take."""
+    M, cuts = ops.corners.shape[1], _element_cuts(ops)
+    K = cuts.size - 1
+    Ke = np.empty((78, M))
+    grads = np.empty((K, 3 * ops.n_nodes if with_gradient else 0))
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    common = (x, ops.corners, ops.grad_rows, ops.volume, *_material(params), (_HD_INDEX, _HD_SIGN), project, Ke)
+    results = runtime.in_parts(*[lambda k=k: element_stiffness_3d(*common, grads[k], cuts[k], cuts[k + 1])
+                                 for k in range(K)])
+    if any(bad >= 0 for bad, _ in results):
+        return None
+    return float(sum(U for _, U in results)), grads.sum(axis=0) if with_gradient else None, Ke

@@ -33,7 +33,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from scissor_cli.mechanics import fem, materials, nodal, nodal_compiled
+from scissor_cli.mechanics import fem, materials, nodal, nodal_gradient
 from scissor_cli.mesh.mesh import meshio_cell_type
 from scissor_cli.mesh.probe import TargetProbe, locate_in_simplices, probe_points
 
@@ -263,10 +263,10 @@ class Nodal(LinearSimplex):
                 + float(self._averaged(x, order=0)[0].sum()))
 
     def compiled_energy_gradient(self, x):
-        """In 3-D, every term in three compiled passes over the mesh (`nodal_compiled.energy_gradient`) where the
+        """In 3-D, every term in three compiled passes over the mesh (`nodal_gradient.energy_gradient`) where the
         term-by-term path makes seven: the insertion's and the line searches' cost. The state is not kept: a
         tangent at x forms it (`state`)."""
-        return nodal_compiled.energy_gradient(self.ops, self.element_params, self.averaged_params,
+        return nodal_gradient.energy_gradient(self.ops, self.element_params, self.averaged_params,
                                               self.volume.rest_volume, self.kappa, x)
 
     def add_gradient(self, x, U, grad, require_positive_J=False):
@@ -288,7 +288,7 @@ class Nodal(LinearSimplex):
         """+ Bᵀ W B and Āᵀ C̄ Ā, the nodal terms' coupling, in the joined pattern's slots."""
         coupling, weight = self._coupling(x)
         C = self._averaged(x, order=2, project=project)[2]
-        nodal.add_tangent(self.volume, coupling, weight, C, free_index, pattern.upper, pattern.extra_slot, data)
+        nodal.add_tangent(self.volume, coupling, weight, C, free_index, pattern, data)
 
     def add_times(self, x, v, Kv):
         """Kv + (Bᵀ W B + Āᵀ C̄ Ā) v."""

@@ -26,6 +26,7 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 
+from scissor_cli import runtime
 from scissor_cli.mechanics import compiled
 from scissor_cli.mesh.mesh import Mesh
 
@@ -268,15 +269,25 @@ class SparsePattern:
     indptr: np.ndarray
     indices: np.ndarray
     shape: tuple[int, int]
+    #: (K + 1,) bounds in csr data of K runs of whole rows with about equal entries, and (K + 1,) bounds in
+    #: `entries` of the entries landing in each (`runtime.MOST_THREADS` runs; `entries` grouped by run, each
+    #: group in element order): a run's rows are written by its part alone, so the parts may assemble at once,
+    #: each slot's sum in the serial order
+    data_cuts: np.ndarray
+    entry_cuts: np.ndarray
     upper: bool = False
     #: (X,) int32 into csr data: where the entries of `sparse_pattern`'s `extra` land (the nodal element's
     #: coupling, `mechanics.nodal`; int32 halves what its loop streams); empty without
     extra_slot: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
 
     def assemble(self, Ke: np.ndarray) -> sp.csr_matrix:
-        """The CSR matrix of packed element matrices Ke (P, M)."""
+        """The CSR matrix of packed element matrices Ke (P, M), its runs of rows at once where the process has the
+        threads (`runtime.in_parts`)."""
         data = np.empty(len(self.indices))
-        compiled.scatter_packed(np.ascontiguousarray(Ke, dtype=np.float64), self.entries, self.slot, data)
+        Ke = np.ascontiguousarray(Ke, dtype=np.float64)
+        e, d = self.entry_cuts, self.data_cuts
+        runtime.in_parts(*[lambda k=k: compiled.scatter_packed(Ke, self.entries, self.slot, data, (e[k], e[k + 1]),
+                                                               (d[k], d[k + 1])) for k in range(e.size - 1)])
         return self.matrix(data)
 
     def matrix(self, data: np.ndarray) -> sp.csr_matrix:
@@ -328,8 +339,15 @@ def sparse_pattern(ops: FEOperators, dof_index: np.ndarray | None = None, upper:
     if extra is not None:
         rows, cols = np.concatenate([rows, extra[0]]), np.concatenate([cols, extra[1]])
     indptr, indices, slot = compiled.csr_pattern(rows, cols, size)
-    return SparsePattern(packed[keep], slot[:n_elem], indptr, indices, (size, size), upper,
-                         slot[n_elem:].astype(np.int32))
+    entries, slot, extra_slot = packed[keep], slot[:n_elem], slot[n_elem:].astype(np.int32)
+    # runs of whole rows with about equal entries; the element entries grouped by run, each group in its order
+    K = runtime.MOST_THREADS
+    data_cuts = indptr[np.searchsorted(indptr, np.arange(K + 1) * indptr[-1] // K)]
+    run = np.searchsorted(data_cuts[1:-1], slot, side="right")
+    order = np.argsort(run, kind="stable")
+    entry_cuts = np.searchsorted(run[order], np.arange(K + 1))
+    return SparsePattern(entries[order], slot[order], indptr, indices, (size, size), data_cuts.astype(np.int64),
+                         entry_cuts.astype(np.int64), upper, extra_slot)
 
 
 def max_feasible_step_3d(F: np.ndarray, dF: np.ndarray) -> float:

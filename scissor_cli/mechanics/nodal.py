@@ -53,6 +53,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from scissor_cli import runtime
 from scissor_cli.mechanics import compiled, compiled3d, fem, materials, nodal_compiled
 
 #: the element kinds `Tissue` knows: `p1` (linear simplices, every term per element) and `nodal` (this module)
@@ -251,9 +252,15 @@ def pairs(nodal: NodalVolume, dof_index: np.ndarray, upper: bool) -> tuple[np.nd
 
 
 def add_tangent(nodal: NodalVolume, data: np.ndarray, weight: np.ndarray, tangent: np.ndarray,
-                dof_index: np.ndarray, upper: bool, slot: np.ndarray, out: np.ndarray) -> None:
-    """The two-ring part of the tangent into the CSR data `out` of a joined pattern, pair k of `pairs` at slot[k]:
-    weight_a B_ap B_aq (the volume; B's data `data`, weight (N,) = κ_a / V_a) + (Āᵀ_a C_a Ā_a)_pq (the averaged
-    strain; tangents (N, d², d²) already weighted by (1 − α) V_a)."""
-    nodal_compiled.add_pairs(nodal.b_indptr, nodal.b_indices, data, weight, nodal.b_rest, nodal.rest_volume,
-                             np.ascontiguousarray(tangent, float), dof_index, upper, slot, out)
+                dof_index: np.ndarray, pattern: fem.SparsePattern, out: np.ndarray) -> None:
+    """The two-ring part of the tangent into the CSR data `out` of the joined pattern, pair k of `pairs` at
+    pattern.extra_slot[k]: weight_a B_ap B_aq (the volume; B's data `data`, weight (N,) = κ_a / V_a) +
+    (Āᵀ_a C_a Ā_a)_pq (the averaged strain; tangents (N, d², d²) already weighted by (1 − α) V_a). The pattern's
+    runs of rows at once where the process has the threads (`runtime.in_parts`): each slot's sum in the serial
+    order."""
+    b_matrix = (nodal.b_indptr, nodal.b_indices, data, nodal.b_rest)
+    tangent = np.ascontiguousarray(tangent, float)
+    cuts = pattern.data_cuts
+    runtime.in_parts(*[lambda k=k: nodal_compiled.add_pairs(b_matrix, weight, nodal.rest_volume, tangent, dof_index,
+                                                            pattern.upper, pattern.extra_slot, out,
+                                                            (cuts[k], cuts[k + 1])) for k in range(cuts.size - 1)])

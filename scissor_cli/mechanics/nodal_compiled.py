@@ -7,8 +7,7 @@ numpy temporaries (F's cofactors, determinants, einsum, bincount): the
 same sums in the same order as those where the order was defined (the
 scatters: bit for bit), otherwise equal to round-off. The 3-D gradient,
 which the needle's chord steps and every line search ask for most, is
-also fused into three passes over the mesh (`energy_gradient_3d`), equal
-to the term-by-term sum to round-off.
+fused into three passes over the mesh in `mechanics.nodal_gradient`.
 
 The nodes' material Ψ_dev(F̄_a) reuses the element loops' closed forms:
 `compiled._stress` / `_tangent` (2-D, the tangent projected per energy
@@ -239,15 +238,21 @@ def fill_pairs(indptr, indices, dof_index, upper, rows, cols):
 
 
 @njit(**_JIT)
-def add_pairs(indptr, indices, data, weight, b_rest, rest_volume, tangent, dof_index, upper, slot, out):
-    """The pairs of `fill_pairs`, in its order, added into out at slot. Pair (s, t) (entry s = dof (b, i), t =
-    (c, k) of row a) gets w_a B_as B_at + Σ_jl ḡ_ab[j] C_a[d i + j, d k + l] ḡ_ac[l], with ḡ_ab[j] =
-    B_lin[a, (b, j)] / V_a found at s − i + j (a node's d dofs are consecutive in its row).
+def add_pairs(b_matrix, weight, rest_volume, tangent, dof_index, upper, slot, out, data_range):
+    """The pairs of `fill_pairs`, in its order, added into out at slot: those landing in out's data_range (d0, d1)
+    (whole rows: `fem.SparsePattern.data_cuts`), so runs of rows may be added at once. b_matrix: B's CSR
+    (indptr, indices, data) and its rest values b_rest. Pair (s, t) (entry s = dof (b, i), t = (c, k) of row a)
+    gets w_a B_as B_at + Σ_jl ḡ_ab[j] C_a[d i + j, d k + l] ḡ_ac[l], with ḡ_ab[j] = B_lin[a, (b, j)] / V_a found
+    at s − i + j (a node's d dofs are consecutive in its row).
 
     Row s's contraction with C_a is formed once (r[k, l]); the row's
     columns are then walked node by node, so a column's coordinate k is its
-    place in the node's group: no integer division in the innermost loop.
+    place in the node's group: no integer division in the innermost loop. A
+    row s's pairs all land in one row of out (the first is (s, s) or (s, lo)), so
+    a row landing elsewhere is only counted past.
     """
+    indptr, indices, data, b_rest = b_matrix
+    d0, d1 = data_range
     d = 3 if tangent.shape[1] == 9 else 2
     r = np.empty((d, d))
     k = 0
@@ -258,6 +263,12 @@ def add_pairs(indptr, indices, data, weight, b_rest, rest_volume, tangent, dof_i
         for s in range(lo, hi):
             if dof_index[indices[s]] < 0:
                 continue
+            start = s if upper else lo
+            if not d0 <= slot[k] < d1:  # another run's row: its pairs counted past
+                for t in range(start, hi):
+                    if dof_index[indices[t]] >= 0:
+                        k += 1
+                continue
             ws = w * data[s]
             i = indices[s] % d
             s0 = s - i
@@ -267,7 +278,6 @@ def add_pairs(indptr, indices, data, weight, b_rest, rest_volume, tangent, dof_i
                     for j in range(d):
                         acc += b_rest[s0 + j] * tangent[a, d * i + j, d * kk + m]
                     r[kk, m] = acc * inv2
-            start = s if upper else lo
             t0 = start - indices[start] % d
             while t0 < hi:
                 for kk in range(d):
@@ -354,94 +364,6 @@ def averaged_material_3d(F, V, material, tension_only, hd_pattern, order, projec
             for j in range(9):
                 C[node, i, j] = T[i, j] * w
     return -1
-
-
-@njit(**_JIT)
-def energy_gradient_3d(x, corners, grad_rows, volume, material, tension_only, nodes, scratch, out):
-    """U (µJ) of every term of the 3-D nodal element at positions x (N, 3) and ∇U into out (3N,) mN, in three
-    passes; returns (U, -1), or (nan, 0) for an element or node it cannot take (J ≤ J_FLOOR, a non-finite term).
-
-    Every term's force is an element stress against ∇N, so one scatter
-    carries them all: with F̄_a = Σ_{e∋a} V_e F_e / (4 V_a) and
-    v_a = Σ_{e∋a} V_e det F_e / 4, ∂/∂x of V_a Ψ(F̄_a) is Σ_{e∋a} V_e (P̄_a / 4) : ∂F_e/∂x and ∂v_e/∂x = V_e
-    cof(F_e) ∇N, so element e's stress is P_e + Σ_{a∈e} P̄_a / 4 + p̄_e cof F_e. The elements first (F_e, their
-    own α share, v_a and F̄_a summed at the corners), then the nodes (J_a, p_a, P̄_a), then the elements again.
-    material: `compiled3d._material`'s (κ = 0) of the elements' deviatoric share; nodes: (rest_volume (N,) mm³,
-    κ_a (N,) kPa, the nodes' deviatoric share as material); scratch: F, S (M, 9), Fbar (N, 9), v (N,).
-    """
-    mu, _, eta, fiber = material
-    rest_volume, kappa, (mu_a, _, eta_a, fiber_a) = nodes
-    F, S, Fbar, v = scratch
-    M, N = corners.shape[1], rest_volume.shape[0]
-    f, c, P, a = np.empty(9), np.empty(9), np.empty(9), np.empty(3)
-    Fbar[:] = 0.0
-    v[:] = 0.0
-    U = 0.0
-    for e in range(M):
-        compiled3d._deformation(x, corners, grad_rows, e, f)
-        a[0], a[1], a[2] = fiber[e, 0], fiber[e, 1], fiber[e, 2]
-        psi, J = compiled3d._stress(f, c, a, mu[e], 0.0, eta[e], tension_only, P)[:2]
-        if not compiled3d._takes(psi, P, J):
-            return math.nan, 0
-        V = volume[e]
-        U += psi * V
-        for p in range(9):
-            F[e, p] = f[p]
-            S[e, p] = P[p]
-        share = 0.25 * V
-        for k in range(4):
-            node = corners[k, e]
-            v[node] += share * J
-            for p in range(9):
-                Fbar[node, p] += share * f[p]
-    for node in range(N):  # v now becomes p_a and Fbar P̄_a (in place)
-        Va = rest_volume[node]
-        Ja = v[node] / Va
-        U += 0.5 * Va * kappa[node] * (Ja - 1.0) ** 2
-        v[node] = kappa[node] * (Ja - 1.0)
-        for p in range(9):
-            f[p] = Fbar[node, p] / Va
-        a[0], a[1], a[2] = fiber_a[node, 0], fiber_a[node, 1], fiber_a[node, 2]
-        psi, J = compiled3d._stress(f, c, a, mu_a[node], 0.0, eta_a[node], tension_only, P)[:2]
-        if not compiled3d._takes(psi, P, J):
-            return math.nan, 0
-        U += psi * Va
-        for p in range(9):
-            Fbar[node, p] = P[p]
-    out[:] = 0.0
-    for e in range(M):
-        pressure = 0.0
-        for p in range(9):
-            P[p] = S[e, p]
-            f[p] = F[e, p]
-        for k in range(4):
-            node = corners[k, e]
-            pressure += 0.25 * v[node]
-            for p in range(9):
-                P[p] += 0.25 * Fbar[node, p]
-        compiled3d._cofactor(f, c)
-        for p in range(9):
-            P[p] += pressure * c[p]
-        compiled3d._add_forces(out, P, volume[e], corners, grad_rows, e)
-    return U, -1
-
-
-def energy_gradient(ops, element_params, node_params, rest_volume: np.ndarray, kappa: np.ndarray,
-                    x: np.ndarray) -> tuple[float, np.ndarray] | None:
-    """U (µJ) and ∇U (3N,) mN of the 3-D nodal element in one compiled call (`energy_gradient_3d`); None where
-    the term-by-term path must answer: 2-D, the `linear` model, an element or node it cannot take.
-    element_params / node_params: the deviatoric shares per element (M) and per node (N)."""
-    if ops.dim != 3 or element_params.model == "linear":
-        return None
-    M, N = ops.corners.shape[1], len(rest_volume)
-    material, tension_only = compiled3d._material(element_params)
-    node_material, _ = compiled3d._material(node_params)
-    out = np.empty(3 * N)
-    nodes = (rest_volume, np.ascontiguousarray(kappa, float), node_material)
-    scratch = (np.empty((M, 9)), np.empty((M, 9)), np.empty((N, 9)), np.empty(N))
-    U, bad = energy_gradient_3d(np.ascontiguousarray(x, dtype=np.float64), ops.corners, ops.grad_rows, ops.volume,
-                                material, tension_only, nodes, scratch, out)
-    return None if bad >= 0 else (float(U), out)
 
 
 def averaged_material(F: np.ndarray, V: np.ndarray, params, order: int, project: bool) -> tuple | None:
