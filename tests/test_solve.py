@@ -360,7 +360,7 @@ def test_a_float32_factorisation_on_cholmod_s_layout_solves_as_cholmod_does(orde
     """SingleFactorizer: a matrix of the pattern, factored in float32 on the layout of CHOLMOD's factor of another
     (the values scaled per unknown), solves as CHOLMOD's factor of it does to float32's precision, its blocks
     CHOLMOD's L rounded; a matrix that is not positive definite gives None."""
-    from scissor_cli.solvers.supernodal import SingleFactorizer
+    from scissor_cli.solvers.single_factor import SingleFactorizer
 
     A = sp.triu(_laplacian_3d(12, 0.1)).tocsr()
     f = Factorization(A, definite=True, upper=True, ordering=ordering, supernodal=True)
@@ -442,7 +442,7 @@ def test_only_a_supernodal_cholesky_factor_has_a_float32_copy():
 
 
 def test_a_float32_factor_solves_a_block_as_it_solves_each_column():
-    """Many right-hand sides go through the BLAS-3 sweeps (`_solve_block`), one through the matrix-vector ones: the
+    """Many right-hand sides go through the BLAS-3 sweeps (`_forward_block`), one through the matrix-vector ones: the
     same solution to float32's precision, whatever the block's width."""
     A = sp.triu(_laplacian_3d(12, 0.1)).tocsr()
     kept = Factorization(A, definite=True, upper=True, ordering="nested_dissection", supernodal=True).single()

@@ -20,7 +20,8 @@ from cvxopt import cholmod
 from scissor_cli.solvers.cholmod_factor import supernodal_copy
 from scissor_cli.solvers.common import SolverError
 from scissor_cli.solvers.ordering import nested_dissection
-from scissor_cli.solvers.supernodal import SingleFactorizer, SupernodalFactor
+from scissor_cli.solvers.single_factor import SingleFactorizer
+from scissor_cli.solvers.supernodal import SupernodalFactor
 
 #: conjugate-gradient iterations `solve_free` spends on an earlier factor before it refactors:
 #: a 3-D refactorisation costs about 25 of them at 65k unknowns (docs/performance.md)
@@ -34,7 +35,7 @@ ND_MIN_UNKNOWNS_2D = 10_000
 #: bytes; off, CHOLMOD's float64 solve (for A/B runs: benchmarks/ab_trials.py)
 SINGLE_PRECISION_STEPS = True
 #: a 3-D refactorisation only to precondition (`solve_free`'s inexact steps, a tracker's response) is float32's on
-#: the slot's first CHOLMOD layout (`supernodal.SingleFactorizer`), CHOLMOD's float64 one made when a float64 solve
+#: the slot's first CHOLMOD layout (`single_factor.SingleFactorizer`), CHOLMOD's float64 one made when a float64 solve
 #: asks (`Factorization.refactor`); off, CHOLMOD factors each time (A/B runs: benchmarks/ab_trials.py)
 SINGLE_FACTORIZATION = True
 #: a solve that needed more CG iterations than this marks its factor stale: the

@@ -1,5 +1,5 @@
-"""A Cholesky factor kept in single (or double) precision, solved — and in float32 also factored — in compiled
-loops with BLAS (docs/model.md §12, "The chord step's arithmetic").
+"""A Cholesky factor kept in single (or double) precision, solved in compiled loops with BLAS (docs/model.md §12,
+"The chord step's arithmetic"); `single_factor` factors into the same blocks in float32.
 
 The needle's chord solver (`insertion.chord`) solves with one kept factor of
 the slab's K_ff a thousand times or more before it refactors, and a 3-D
@@ -36,17 +36,20 @@ import scipy.linalg.cython_blas as _cython_blas
 import scipy.linalg.cython_lapack as _cython_lapack
 from numba import njit, types
 
+from scissor_cli import runtime
+from scissor_cli.solvers.supernode_tree import tree_cuts
+
 #: the BLAS routines the compiled solve calls, by the symbol names they are linked under (`_link_blas`):
 #: (uplo, trans, diag, n, A, lda, x, incx) and (trans, m, n, alpha, A, lda, x, incx, beta, y, incy), every
 #: argument a pointer (Fortran: by reference), passed as an address
 _BLAS = {"strsv": 8, "sgemv": 11, "strsm": 11, "sgemm": 13, "dtrsv": 8, "dgemv": 11, "dtrsm": 11, "dgemm": 13,
          "ssyrk": 10}
-#: LAPACK's Cholesky of a supernode's diagonal block, (uplo, n, A, lda, info): `SingleFactorizer`
+#: LAPACK's Cholesky of a supernode's diagonal block, (uplo, n, A, lda, info): `single_factor.SingleFactorizer`
 _LAPACK = {"spotrf": 5}
 _strsv = types.ExternalFunction("scissor_blas_strsv", types.void(*[types.intp] * _BLAS["strsv"]))
 _sgemv = types.ExternalFunction("scissor_blas_sgemv", types.void(*[types.intp] * _BLAS["sgemv"]))
 #: (side, uplo, trans, diag, m, n, alpha, A, lda, B, ldb) and (transa, transb, m, n, k, alpha, A, lda, B, ldb,
-#: beta, C, ldc): the same supernode sweeps on a block of right-hand sides (`_solve_block`)
+#: beta, C, ldc): the same supernode sweeps on a block of right-hand sides (`_forward_block`, `_backward_block`)
 _strsm = types.ExternalFunction("scissor_blas_strsm", types.void(*[types.intp] * _BLAS["strsm"]))
 _sgemm = types.ExternalFunction("scissor_blas_sgemm", types.void(*[types.intp] * _BLAS["sgemm"]))
 #: the same four in double precision, for float64 blocks
@@ -91,32 +94,77 @@ class SupernodalFactor:
     """
 
     def __init__(self, starts: np.ndarray, row_ptr: np.ndarray, block_ptr: np.ndarray, block_rows: np.ndarray,
-                 blocks: np.ndarray, perm: np.ndarray):
+                 blocks: np.ndarray, perm: np.ndarray, cuts: np.ndarray | None = None):
         self.starts, self.row_ptr, self.block_ptr = starts, row_ptr, block_ptr
         self.block_rows, self.blocks, self.perm = block_rows, blocks, perm
         self.n = perm.size
+        if cuts is not None:  # (a factor of the same layout: its tree's cut is the same)
+            self.cuts = cuts
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """x (float64) with A x = b, for b (n,) or (n, k).
 
         Several right-hand sides are solved together, each supernode's block
-        read once for all of them (BLAS-3 `strsm`, `sgemm`: `_solve_block`);
-        one is solved with the matrix–vector kernels (`_solve_columns`).
+        read once for all of them (BLAS-3 `strsm`, `sgemm`: `_forward_block`,
+        `_backward_block`); one is solved with the matrix–vector kernels
+        (`_forward`, `_backward`). Either way the elimination tree's
+        independent parts go at once where the process has threads for them
+        (`supernode_tree`, `runtime.in_parts`).
         """
         b = np.asarray(b, dtype=float)
         B = b.reshape(b.shape[0], -1)
         _link_blas()
-        refs = _by_reference(self.blocks.dtype)
         if B.shape[1] == 1:
-            X = np.empty(B.shape)
-            _solve_columns(self.starts, self.row_ptr, self.block_rows, self.block_ptr, self.blocks, self.perm, B, X,
-                           *refs)
-            return X.reshape(b.shape)
-        Y = np.asfortranarray(B[self.perm], dtype=self.blocks.dtype)  # P b, each column contiguous
-        _solve_block(self.starts, self.row_ptr, self.block_rows, self.block_ptr, self.blocks, Y, *refs)
+            return self._solve_vector(B[:, 0]).reshape(b.shape)
+        return self._solve_columns(B).reshape(b.shape)
+
+    @functools.cached_property
+    def cuts(self) -> np.ndarray:
+        """The parts' and the top's bounds in supernodes (`supernode_tree.tree_cuts`), one part per thread."""
+        return tree_cuts(self.starts, self.row_ptr, self.block_rows, runtime.MOST_THREADS)
+
+    def _solve_vector(self, b: np.ndarray) -> np.ndarray:
+        cuts, K = self.cuts, self.cuts.size - 2
+        lay = (self.starts, self.row_ptr, self.block_rows, self.block_ptr, self.blocks, self.perm)
+        y, spills, tmp, refs = self._workspace()
+        x = np.empty(self.n)
+        top0 = int(self.starts[cuts[K]])
+        runtime.in_parts(*[lambda k=k: _forward(lay, b, y, cuts[k], cuts[k + 1], top0, spills[k], tmp[k], refs[k])
+                           for k in range(K)])
+        _top(lay, b, y, x, cuts[K], spills, tmp[K], refs[K])
+        runtime.in_parts(*[lambda k=k: _backward(lay, y, x, cuts[k], cuts[k + 1], tmp[k], refs[k])
+                           for k in range(K)])
+        return x
+
+    def _solve_columns(self, B: np.ndarray) -> np.ndarray:
+        cuts, K, dtype = self.cuts, self.cuts.size - 2, self.blocks.dtype
+        lay = (self.starts, self.row_ptr, self.block_rows, self.block_ptr, self.blocks)
+        top0, k = int(self.starts[cuts[K]]), B.shape[1]
+        most = max(1, int(np.max(np.diff(self.row_ptr) - np.diff(self.starts))))
+        refs = [_by_reference(dtype) for _ in range(K + 1)]
+        tmp = np.empty((K + 1, most * k), dtype)
+        spills = [np.empty((self.n - top0, k), dtype, order="F") for _ in range(K + 1)]
+        Y = np.asfortranarray(B[self.perm], dtype=dtype)  # P b, each column contiguous
+        runtime.in_parts(*[lambda p=p: _forward_block(lay, Y, cuts[p], cuts[p + 1], top0, spills[p], tmp[p], refs[p])
+                           for p in range(K)])
+        for p in range(K):  # the parts' updates of the top's rows, in order
+            Y[top0:] -= spills[p]
+        _forward_block(lay, Y, cuts[K], cuts[K + 1], self.n, spills[K][:0], tmp[K], refs[K])
+        _backward_block(lay, Y, cuts[K], cuts[K + 1], tmp[K], refs[K])
+        runtime.in_parts(*[lambda p=p: _backward_block(lay, Y, cuts[p], cuts[p + 1], tmp[p], refs[p])
+                           for p in range(K)])
         X = np.empty(B.shape)
         X[self.perm] = Y
-        return X.reshape(b.shape)
+        return X
+
+    def _workspace(self) -> tuple:
+        """A single solve's arrays: y (n,), each part's spill (K, n − the top's first column), and each part's and
+        the top's (K + 1) BLAS row buffer and by-reference arguments (`_by_reference`). Made per solve, so two
+        threads may solve with one factor."""
+        K, dtype = self.cuts.size - 2, self.blocks.dtype
+        most = max(1, int(np.max(np.diff(self.row_ptr) - np.diff(self.starts))))
+        return (np.empty(self.n, dtype), np.empty((K, self.n - int(self.starts[self.cuts[K]])), dtype),
+                np.empty((K + 1, most), dtype), [_by_reference(dtype) for _ in range(K + 1)])
 
 
 def _by_reference(dtype) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -131,74 +179,107 @@ def _by_reference(dtype) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.zeros(6, np.int32), np.array([1.0, 0.0, -1.0], dtype), np.array([76, 78, 84, 82], np.uint8)
 
 
-@njit(cache=True)
-def _solve_columns(starts, row_ptr, block_rows, block_ptr, blocks, perm, B, X, dims, scalars, chars):
-    """X[:, c] = A⁻¹ B[:, c] for each column: P, L⁻¹ and L⁻ᵀ supernode by supernode, Pᵀ, in the blocks' precision
-    (BLAS linked: `_link_blas`; dims, scalars, chars: `_by_reference`, here dims (n, lda, m, inc))."""
-    n = perm.size
-    y = np.empty(n, blocks.dtype)
-    tmp = np.empty(n, blocks.dtype)
+@njit(cache=True, nogil=True)
+def _forward(lay, b, y, s0, s1, own_end, spill, tmp, refs, gather=True):
+    """L y = P b over supernodes s0 ≤ s < s1: their columns of y (n,), in the blocks' precision, gathered from b
+    (n,) (unless `gather` is False: the caller did) and solved in place. lay: (starts, row_ptr, block_rows,
+    block_ptr, blocks, perm); refs: (dims, scalars, chars), `_by_reference`'s, here dims (n, lda, m, inc); tmp:
+    a row buffer (BLAS linked: `_link_blas`). A row at or past own_end belongs to the top (`supernode_tree`): its
+    updates are summed into spill (n − own_end,), zeroed first, for `_top` to subtract."""
+    starts, row_ptr, block_rows, block_ptr, blocks, perm = lay
+    dims, scalars, chars = refs
+    if gather:
+        for c in range(starts[s0], starts[s1]):
+            y[c] = b[perm[c]]
+    spill[:] = 0.0
     z = blocks.itemsize  # bytes per entry: float32's or float64's routines
     # addresses as signed integers: unsigned plus signed would be a float in numba's arithmetic
     d, s_, ch = np.int64(dims.ctypes.data), np.int64(scalars.ctypes.data), np.int64(chars.ctypes.data)
     blk, yp, tp = np.int64(blocks.ctypes.data), np.int64(y.ctypes.data), np.int64(tmp.ctypes.data)
     dims[3] = 1
-    n_super = starts.size - 1
-    for col in range(B.shape[1]):
-        for k in range(n):
-            y[k] = B[perm[k], col]
-        for s in range(n_super):  # L y = b
-            c0, w = starts[s], starts[s + 1] - starts[s]
-            r0, r = row_ptr[s], row_ptr[s + 1] - row_ptr[s]
-            dims[0], dims[1], dims[2] = w, r, r - w
-            a = blk + z * block_ptr[s]
+    for s in range(s0, s1):
+        c0, w = starts[s], starts[s + 1] - starts[s]
+        r0, r = row_ptr[s], row_ptr[s + 1] - row_ptr[s]
+        dims[0], dims[1], dims[2] = w, r, r - w
+        a = blk + z * block_ptr[s]
+        if z == 8:
+            _dtrsv(ch, ch + 1, ch + 1, d, a, d + 4, yp + z * c0, d + 12)
+        else:
+            _strsv(ch, ch + 1, ch + 1, d, a, d + 4, yp + z * c0, d + 12)
+        if r > w:
             if z == 8:
-                _dtrsv(ch, ch + 1, ch + 1, d, a, d + 4, yp + z * c0, d + 12)
+                _dgemv(ch + 1, d + 8, d, s_, a + z * w, d + 4, yp + z * c0, d + 12, s_ + z, tp, d + 12)
             else:
-                _strsv(ch, ch + 1, ch + 1, d, a, d + 4, yp + z * c0, d + 12)
-            if r > w:
-                if z == 8:
-                    _dgemv(ch + 1, d + 8, d, s_, a + z * w, d + 4, yp + z * c0, d + 12, s_ + z, tp, d + 12)
+                _sgemv(ch + 1, d + 8, d, s_, a + z * w, d + 4, yp + z * c0, d + 12, s_ + z, tp, d + 12)
+            for k in range(r - w):
+                row = block_rows[r0 + w + k]
+                if row < own_end:
+                    y[row] -= tmp[k]
                 else:
-                    _sgemv(ch + 1, d + 8, d, s_, a + z * w, d + 4, yp + z * c0, d + 12, s_ + z, tp, d + 12)
-                for k in range(r - w):
-                    y[block_rows[r0 + w + k]] -= tmp[k]
-        for s in range(n_super - 1, -1, -1):  # Lᵀ x = y
-            c0, w = starts[s], starts[s + 1] - starts[s]
-            r0, r = row_ptr[s], row_ptr[s + 1] - row_ptr[s]
-            dims[0], dims[1], dims[2] = w, r, r - w
-            a = blk + z * block_ptr[s]
-            if r > w:
-                for k in range(r - w):
-                    tmp[k] = y[block_rows[r0 + w + k]]
-                if z == 8:
-                    _dgemv(ch + 2, d + 8, d, s_ + 2 * z, a + z * w, d + 4, tp, d + 12, s_, yp + z * c0, d + 12)
-                else:
-                    _sgemv(ch + 2, d + 8, d, s_ + 2 * z, a + z * w, d + 4, tp, d + 12, s_, yp + z * c0, d + 12)
-            if z == 8:
-                _dtrsv(ch, ch + 2, ch + 1, d, a, d + 4, yp + z * c0, d + 12)
-            else:
-                _strsv(ch, ch + 2, ch + 1, d, a, d + 4, yp + z * c0, d + 12)
-        for k in range(n):
-            X[perm[k], col] = y[k]
+                    spill[row - own_end] += tmp[k]
 
 
-@njit(cache=True)
-def _solve_block(starts, row_ptr, block_rows, block_ptr, blocks, Y, dims, scalars, chars):
-    """Y (n, k) of the blocks' dtype, column-major, permuted: overwritten with L⁻ᵀ L⁻¹ Y, supernode by supernode
-    with BLAS-3 (`_solve_columns`' sweeps with a block of columns in place of one; BLAS linked: `_link_blas`;
-    dims, scalars, chars: `_by_reference`, here dims (m, n, k, lda, ldb, ldc))."""
+@njit(cache=True, nogil=True)
+def _backward(lay, y, x, s0, s1, tmp, refs):
+    """Lᵀ y = y in place over supernodes s1 > s ≥ s0 (`_forward`'s arguments), their columns then scattered into
+    x (n,) = Pᵀ y: reads the rows below each, which the top or this run's later supernodes have finished, and
+    writes only the run's own."""
+    starts, row_ptr, block_rows, block_ptr, blocks, perm = lay
+    dims, scalars, chars = refs
+    z = blocks.itemsize
+    d, s_, ch = np.int64(dims.ctypes.data), np.int64(scalars.ctypes.data), np.int64(chars.ctypes.data)
+    blk, yp, tp = np.int64(blocks.ctypes.data), np.int64(y.ctypes.data), np.int64(tmp.ctypes.data)
+    dims[3] = 1
+    for s in range(s1 - 1, s0 - 1, -1):
+        c0, w = starts[s], starts[s + 1] - starts[s]
+        r0, r = row_ptr[s], row_ptr[s + 1] - row_ptr[s]
+        dims[0], dims[1], dims[2] = w, r, r - w
+        a = blk + z * block_ptr[s]
+        if r > w:
+            for k in range(r - w):
+                tmp[k] = y[block_rows[r0 + w + k]]
+            if z == 8:
+                _dgemv(ch + 2, d + 8, d, s_ + 2 * z, a + z * w, d + 4, tp, d + 12, s_, yp + z * c0, d + 12)
+            else:
+                _sgemv(ch + 2, d + 8, d, s_ + 2 * z, a + z * w, d + 4, tp, d + 12, s_, yp + z * c0, d + 12)
+        if z == 8:
+            _dtrsv(ch, ch + 2, ch + 1, d, a, d + 4, yp + z * c0, d + 12)
+        else:
+            _strsv(ch, ch + 2, ch + 1, d, a, d + 4, yp + z * c0, d + 12)
+    for c in range(starts[s0], starts[s1]):
+        x[perm[c]] = y[c]
+
+
+@njit(cache=True, nogil=True)
+def _top(lay, b, y, x, s0, spills, tmp, refs):
+    """The top's part of a solve, after the parts' `_forward`: from supernode s0 on, its columns gathered, the
+    parts' spills (K, n − starts[s0]) subtracted in order, L and Lᵀ solved, its columns scattered into x."""
+    starts, perm = lay[0], lay[5]
+    s1, c0 = starts.size - 1, starts[s0]
+    for c in range(c0, perm.size):
+        y[c] = b[perm[c]]
+        for k in range(spills.shape[0]):
+            y[c] -= spills[k, c - c0]
+    _forward(lay, b, y, s0, s1, perm.size, spills[0, :0], tmp, refs, False)
+    _backward(lay, y, x, s0, s1, tmp, refs)
+
+
+@njit(cache=True, nogil=True)
+def _forward_block(lay, Y, s0, s1, own_end, spill, tmp, refs):
+    """L Y = P B in place over supernodes s0 ≤ s < s1, Y (n, k) of the blocks' dtype, column-major, permuted: the
+    sweep of `_forward` with a block of columns in place of one, by BLAS-3 (`strsm`, `sgemm`). lay: (starts,
+    row_ptr, block_rows, block_ptr, blocks); refs: `_by_reference`'s, here dims (m, n, k, lda, ldb, ldc); tmp:
+    (most rows below × k,). A row at or past own_end is the top's: its updates go into spill (n − own_end, k),
+    zeroed first."""
+    starts, row_ptr, block_rows, block_ptr, blocks = lay
+    dims, scalars, chars = refs
     n, k = Y.shape
-    most = 0
-    for s in range(starts.size - 1):
-        most = max(most, row_ptr[s + 1] - row_ptr[s] - (starts[s + 1] - starts[s]))
-    tmp = np.empty(max(most, 1) * k, blocks.dtype)  # (below, k) column-major
+    spill[:, :] = 0.0
     z = blocks.itemsize  # bytes per entry: float32's or float64's routines
     d, s_, ch = np.int64(dims.ctypes.data), np.int64(scalars.ctypes.data), np.int64(chars.ctypes.data)
     blk, yp, tp = np.int64(blocks.ctypes.data), np.int64(Y.ctypes.data), np.int64(tmp.ctypes.data)
     dims[1], dims[4] = k, n
-    n_super = starts.size - 1
-    for s in range(n_super):  # L Y = B
+    for s in range(s0, s1):
         c0, w = starts[s], starts[s + 1] - starts[s]
         r0, r = row_ptr[s], row_ptr[s + 1] - row_ptr[s]
         below = r - w
@@ -218,8 +299,25 @@ def _solve_block(starts, row_ptr, block_rows, block_ptr, blocks, Y, dims, scalar
                        d + 20)
             for j in range(k):
                 for i in range(below):
-                    Y[block_rows[r0 + w + i], j] -= tmp[j * below + i]
-    for s in range(n_super - 1, -1, -1):  # Lᵀ X = Y
+                    row = block_rows[r0 + w + i]
+                    if row < own_end:
+                        Y[row, j] -= tmp[j * below + i]
+                    else:
+                        spill[row - own_end, j] += tmp[j * below + i]
+
+
+@njit(cache=True, nogil=True)
+def _backward_block(lay, Y, s0, s1, tmp, refs):
+    """Lᵀ X = Y in place over supernodes s1 > s ≥ s0 (`_forward_block`'s arguments): reads the rows below each,
+    which the top or this run's later supernodes have finished, and writes only the run's own."""
+    starts, row_ptr, block_rows, block_ptr, blocks = lay
+    dims, scalars, chars = refs
+    n, k = Y.shape
+    z = blocks.itemsize
+    d, s_, ch = np.int64(dims.ctypes.data), np.int64(scalars.ctypes.data), np.int64(chars.ctypes.data)
+    blk, yp, tp = np.int64(blocks.ctypes.data), np.int64(Y.ctypes.data), np.int64(tmp.ctypes.data)
+    dims[1], dims[4] = k, n
+    for s in range(s1 - 1, s0 - 1, -1):
         c0, w = starts[s], starts[s + 1] - starts[s]
         r0, r = row_ptr[s], row_ptr[s + 1] - row_ptr[s]
         below = r - w
@@ -240,133 +338,3 @@ def _solve_block(starts, row_ptr, block_rows, block_ptr, blocks, Y, dims, scalar
             _dtrsm(ch, ch, ch + 2, ch + 1, d, d + 4, s_, a, d + 12, yp + z * c0, d + 16)
         else:
             _strsm(ch, ch, ch + 2, ch + 1, d, d + 4, s_, a, d + 12, yp + z * c0, d + 16)
-
-
-class SingleFactorizer:
-    """Numeric Cholesky factorisations in float32 on one supernodal layout: CHOLMOD's symbolic analysis of a
-    pattern, read from a factor of it (`layout`, a `SupernodalFactor`, `Factorization.single`).
-
-    indptr, indices: the pattern of the matrices factored, their upper
-    triangle in CSR as `linear.Factorization` was given it; `factor` takes
-    their values in that order. A factor slot makes one from its first
-    CHOLMOD factor (`Factorization.refactor(single=True)`) for the 3-D
-    refactorisations that only precondition or step (the needle's chord
-    steps, Newton's conjugate gradients, the trackers' responses): CHOLMOD
-    factors in float64 only, and a float32 copy of it would be made after;
-    here the values go straight into float32 blocks and are factored
-    left-looking, supernode by supernode — each descendant's update by BLAS
-    `ssyrk` and `sgemm`, the diagonal block by LAPACK `spotrf`, the rows
-    below by `strsm` — in the layout's order (`benchmarks/bench_insertion3d.py`
-    times both).
-    """
-
-    def __init__(self, layout: SupernodalFactor, indptr: np.ndarray, indices: np.ndarray):
-        self.layout = layout
-        self.nnz = int(indices.size)
-        iperm = np.empty(layout.n, np.int64)
-        iperm[layout.perm] = np.arange(layout.n)
-        i, j = iperm[np.repeat(np.arange(layout.n), np.diff(indptr))], iperm[indices]
-        col, row = np.minimum(i, j), np.maximum(i, j)  # the entry's place in L: column ≤ row
-        owner = np.repeat(np.arange(layout.starts.size - 1), np.diff(layout.starts))[col]
-        heights = np.diff(layout.row_ptr)
-        # its row's place among its supernode's rows (sorted within each supernode)
-        local = np.empty(row.size, np.int64)
-        _rows_in(layout.block_rows, layout.row_ptr, owner, row, local)
-        #: (nnz,) where each stored value of A goes in the blocks
-        self._into = layout.block_ptr[owner] + (col - layout.starts[owner]) * heights[owner] + local
-        most = max(1, int(np.max(heights)) * int(np.max(np.diff(layout.starts))))
-        self._update = np.empty(most, np.float32)  # a descendant's update, kept alive beside the compiled loop
-
-    def matches(self, A) -> bool:
-        """Whether A (upper triangle, CSR) could have this factorizer's pattern (its order and stored count)."""
-        return A.shape == (self.layout.n, self.layout.n) and A.nnz == self.nnz
-
-    def factor(self, data: np.ndarray) -> SupernodalFactor | None:
-        """The float32 factor of the matrix whose stored values (in the pattern's order) are data (nnz,), or None
-        when float32 breaks down on it (a diagonal block not positive definite)."""
-        lay = self.layout
-        blocks = np.zeros(int(lay.block_ptr[-1]), np.float32)
-        blocks[self._into] = data
-        _link_blas()
-        failed = _factor_blocks(lay.starts, lay.row_ptr, lay.block_rows, lay.block_ptr, blocks, self._update,
-                                *_by_reference(np.float32))
-        return None if failed else SupernodalFactor(lay.starts, lay.row_ptr, lay.block_ptr, lay.block_rows, blocks,
-                                                    lay.perm)
-
-
-@njit(cache=True)
-def _rows_in(block_rows, row_ptr, owner, row, out):
-    """out[k]: the place of row[k] among its supernode owner[k]'s rows (binary search: they are sorted)."""
-    for k in range(row.size):
-        a = row_ptr[owner[k]]
-        lo, hi = a, row_ptr[owner[k] + 1]
-        while lo < hi:
-            mid = (lo + hi) // 2
-            if block_rows[mid] < row[k]:
-                lo = mid + 1
-            else:
-                hi = mid
-        out[k] = lo - a
-
-
-@njit(cache=True)
-def _factor_blocks(starts, row_ptr, block_rows, block_ptr, blocks, update, dims, scalars, chars):
-    """blocks (float32, A's lower triangle scattered in) overwritten with L, left-looking: 0, or 1 + the
-    supernode whose diagonal block was not positive definite. A supernode's descendants wait in a linked list
-    under the supernode of their next row (as CHOLMOD's supernodal numeric factorisation keeps them)."""
-    n_super = starts.size - 1
-    owner = np.empty(starts[n_super], np.int64)
-    for s in range(n_super):
-        for c in range(starts[s], starts[s + 1]):
-            owner[c] = s
-    place = np.empty(starts[n_super], np.int64)  # a row's place in the supernode being factored
-    head = np.full(n_super, -1, np.int64)
-    after = np.full(n_super, -1, np.int64)
-    next_row = np.zeros(n_super, np.int64)
-    z = 4
-    d, sc, ch = np.int64(dims.ctypes.data), np.int64(scalars.ctypes.data), np.int64(chars.ctypes.data)
-    blk, up = np.int64(blocks.ctypes.data), np.int64(update.ctypes.data)
-    for j in range(n_super):
-        c0, w = starts[j], starts[j + 1] - starts[j]
-        r0, r = row_ptr[j], row_ptr[j + 1] - row_ptr[j]
-        for k in range(r):
-            place[block_rows[r0 + k]] = k
-        e = head[j]
-        head[j] = -1
-        while e != -1:
-            following = after[e]
-            e0, er, ew = row_ptr[e], row_ptr[e + 1] - row_ptr[e], starts[e + 1] - starts[e]
-            p1 = next_row[e]
-            p2 = p1
-            while p2 < er and block_rows[e0 + p2] < c0 + w:
-                p2 += 1
-            nd, m = p2 - p1, er - p1
-            a = blk + z * (block_ptr[e] + p1)
-            # update (m × nd) = L_e[p1:] L_e[p1:p2]ᵀ: its top nd × nd by syrk (lower triangle), the rest by gemm
-            dims[0], dims[1], dims[2], dims[3] = nd, ew, er, m
-            _ssyrk(ch, ch + 1, d, d + 4, sc, a, d + 8, sc + z, up, d + 12)
-            if m > nd:
-                dims[0], dims[1], dims[2], dims[3], dims[4] = m - nd, nd, ew, er, m
-                _sgemm(ch + 1, ch + 2, d, d + 4, d + 8, sc, a + z * nd, d + 12, a, d + 12, sc + z, up + z * nd,
-                       d + 16)
-            for jj in range(nd):
-                base = block_ptr[j] + (block_rows[e0 + p1 + jj] - c0) * r
-                for ii in range(jj, m):
-                    blocks[base + place[block_rows[e0 + p1 + ii]]] -= update[ii + jj * m]
-            next_row[e] = p2
-            if p2 < er:  # on to the supernode of its next row
-                o = owner[block_rows[e0 + p2]]
-                after[e], head[o] = head[o], e
-            e = following
-        a = blk + z * block_ptr[j]
-        dims[0], dims[1] = w, r
-        _spotrf(ch, d, a, d + 4, d + 8)
-        if dims[2] != 0:
-            return j + 1
-        if r > w:  # L_below = A_below L_diag⁻ᵀ
-            dims[0], dims[1], dims[2] = r - w, w, r
-            _strsm(ch + 3, ch, ch + 2, ch + 1, d, d + 4, sc, a, d + 8, a + z * w, d + 8)
-            next_row[j] = w
-            o = owner[block_rows[r0 + w]]
-            after[j], head[o] = head[o], j
-    return 0
