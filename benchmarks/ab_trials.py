@@ -25,7 +25,10 @@ literal; the first setting is the reference, e.g.
         on=solvers.newton.HESSIAN_FREE:True off=solvers.newton.HESSIAN_FREE:False
 
 `--truth layer` runs a layer-truth trial as the error budget's rows do;
-`--count` trials per target (the budget is off). Settings touch module
+`--count` trials per target (the budget is off); `--needle` inserts the
+needle in each trial with every strategy. Each round's CPU time and wall
+time are both kept: a setting of the threads (`runtime._threads`) is
+judged by its wall time. Settings touch module
 constants only, so the replay is of this code; code changes are compared
 across two checkouts, or by a setting that switches them.
 """
@@ -36,12 +39,14 @@ import argparse
 import ast
 import collections
 import importlib
+import importlib.util
 import os
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from scissor_cli import runtime
 
@@ -51,7 +56,7 @@ import results_io  # noqa: E402
 import scissor_cli.experiments.trials as trials_module  # noqa: E402
 import scissor_cli.solvers.linear as linear  # noqa: E402
 import scissor_cli.solvers.supernodal as supernodal  # noqa: E402
-from scissor_cli.config import load_config  # noqa: E402
+from scissor_cli.config import load_config, parse_config  # noqa: E402
 from scissor_cli.experiments.simulate import Execution, run_simulation  # noqa: E402
 from scissor_cli.mechanics.tissue import Tissue  # noqa: E402
 from scissor_cli.output.results_sink import RunDirectory  # noqa: E402
@@ -66,7 +71,8 @@ def parse_setting(text: str) -> tuple[str, dict]:
     for item in body.split(","):
         target, _, value = item.partition(":")
         module, _, attr = target.rpartition(".")
-        path = f"scissor_cli.{module}" if "." in module else f"scissor_cli.insertion.{module}"
+        top = "." in module or importlib.util.find_spec(f"scissor_cli.{module}") is not None
+        path = f"scissor_cli.{module}" if top else f"scissor_cli.insertion.{module}"
         mod = importlib.import_module(path)
         if not hasattr(mod, attr):
             raise SystemExit(f"{path} has no {attr}")
@@ -74,9 +80,15 @@ def parse_setting(text: str) -> tuple[str, dict]:
     return name, out
 
 
-def record_trials(config: Path, truth: str | None, count: int) -> list[tuple]:
-    """Run the config's stages with its trials (budget off) and return each trial's (config text, task, index)."""
-    cfg = load_config(config)
+def record_trials(config: Path, truth: str | None, count: int, needle: bool = False) -> list[tuple]:
+    """Run the config's stages with its trials (budget off; with `needle`, every insertion strategy, as
+    benchmarks/bench_body_insertion.py's trials) and return each trial's (config text, task, index)."""
+    if needle:
+        data = yaml.safe_load(config.read_text())
+        data["insertion"] = {"strategies": ["none", "depth", "loop"]}
+        cfg = parse_config(yaml.safe_dump(data, sort_keys=False), str(config), config.parent)
+    else:
+        cfg = load_config(config)
     update = {"count": count, "budget": False} | ({"truth": truth} if truth else {})
     cfg = cfg.model_copy(update={"trials": cfg.trials.model_copy(update=update)})
     recorded, run_trial = [], trials_module.run_trial
@@ -148,17 +160,19 @@ def main() -> None:
     ap.add_argument("--truth", choices=("layer", "slab"), help="the trials' truth (default: the config's)")
     ap.add_argument("--count", type=int, default=2, help="trials per target")
     ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--needle", action="store_true", help="every insertion strategy in each trial")
     args = ap.parse_args()
     settings = dict(parse_setting(s) for s in args.settings)
-    res = results_io.Results("ab_trials", ".".join([args.config.stem, *settings]))
+    stem = args.config.stem + (".needle" if args.needle else "")
+    res = results_io.Results("ab_trials", ".".join([stem, *settings]))
     defaults = {key: getattr(*key) for s in settings.values() for key in s}
     t0 = time.perf_counter()
-    work = record_trials(args.config, args.truth, args.count)
+    work = record_trials(args.config, args.truth, args.count, args.needle)
     print(f"{args.config}: {len(work)} trials recorded in {time.perf_counter() - t0:.0f} s "
           f"(truth {args.truth or 'as configured'}); {args.rounds} rounds, settings in turn; load average "
           f"{os.getloadavg()[0]:.2f}")
     counts = Counts()
-    cpu = {name: [] for name in settings}
+    cpu, wall = {name: [] for name in settings}, {name: [] for name in settings}
     seen, misses, finals = {}, {}, {}
     for _ in range(args.rounds):
         for name, setting in settings.items():
@@ -166,9 +180,10 @@ def main() -> None:
                 setattr(mod, attr, value)
             fresh_context(work)
             counts.n.clear()
-            t = time.process_time()
+            t, t_wall = time.process_time(), time.perf_counter()
             outcomes = [trials_module.run_trial(*w) for w in work]
             cpu[name].append(time.process_time() - t)
+            wall[name].append(time.perf_counter() - t_wall)
             seen[name] = dict(counts.n)
             misses[name] = np.concatenate([o.insertion_miss_mm for o in outcomes] + [np.zeros(0)])
             finals[name] = np.concatenate([np.ravel(o.final_error) for o in outcomes])
@@ -178,20 +193,24 @@ def main() -> None:
     reference = next(iter(settings))
     rows = []
     for name in settings:
-        c = np.array(cpu[name])
+        c, w = np.array(cpu[name]), np.array(wall[name])
         apart = np.max(np.abs(misses[name] - misses[reference]), initial=0.0)
         final_apart = np.max(np.abs(finals[name] - finals[reference]), initial=0.0)
         print(f"{name}: CPU {np.median(c):.2f} s median of {c.size} ({c.min():.2f}–{c.max():.2f}), "
-              f"{np.median(c) / np.median(cpu[reference]):.3f}× {reference}; "
+              f"{np.median(c) / np.median(cpu[reference]):.3f}× {reference}; wall {np.median(w):.2f} s "
+              f"({w.min():.2f}–{w.max():.2f}), {np.median(w) / np.median(wall[reference]):.3f}×; "
               + ", ".join(f"{k} {v}" for k, v in sorted(seen[name].items()))
               + f"; insertion misses within {apart:.1e} mm, final errors within {final_apart:.1e} mm of {reference}'s")
         rows.append({"setting": name, "values": {f"{mod.__name__}.{attr}": repr(v) for (mod, attr), v in
                                                  settings[name].items()},
                      "cpu_median_s": np.median(c), "cpu_min_s": c.min(), "cpu_max_s": c.max(), "rounds": c.size,
-                     "over_reference": np.median(c) / np.median(cpu[reference]), **seen[name],
+                     "over_reference": np.median(c) / np.median(cpu[reference]), "wall_median_s": np.median(w),
+                     "wall_min_s": w.min(), "wall_max_s": w.max(),
+                     "wall_over_reference": np.median(w) / np.median(wall[reference]), **seen[name],
                      "misses_apart_mm": apart, "final_errors_apart_mm": final_apart})
     print(f"load average now {os.getloadavg()[0]:.2f}")
     res.table("settings", rows, {"cpu_median_s": "s (CPU)", "cpu_min_s": "s (CPU)", "cpu_max_s": "s (CPU)",
+                                 "wall_median_s": "s", "wall_min_s": "s", "wall_max_s": "s",
                                  "misses_apart_mm": "mm",
                                  "final_errors_apart_mm": "mm"})
     res.figure("trials", len(work), "trials")

@@ -837,6 +837,31 @@ def _single_factorization(*pairs) -> str:
               "settings in turn, each round on a trial context built anew. " + source(*pairs))
 
 
+@renderer("threads", "bench_threads", "ab_trials.example_dome.needle.one.two")
+def _threads(r, ab) -> str:
+    """benchmarks/bench_threads.py and ab_trials.py --needle: one compiled-loop thread against two in one process."""
+    shares = r["data"]["factor_shares"]
+    loops = [[x["what"], num(x["tetrahedra"]), f"{fixed(1e3 * x['one_s'], 1)} ms" if x["one_s"] < 1
+              else f"{fixed(x['one_s'], 2)} s", f"{fixed(1e3 * x['two_s'], 1)} ms" if x["two_s"] < 1
+              else f"{fixed(x['two_s'], 2)} s", f"{fixed(x['speedup'], 2)}×"] for x in rows_of(r, "loops")]
+    trials = [[f"`{x['setting']}`", fig(ab, "trials"),
+               f"{fixed(x['wall_median_s'], 1)} s ({fixed(x['wall_min_s'], 1)}–{fixed(x['wall_max_s'], 1)}, "
+               f"{x['rounds']})", f"{fixed(x['wall_over_reference'], 3)}×", f"{fixed(x['cpu_median_s'], 1)} s",
+               f"{num(x['misses_apart_mm'])} mm", f"{num(x['final_errors_apart_mm'])} mm"]
+              for x in rows_of(ab, "settings")]
+    return (table(["", "tetrahedra", "one thread", "two threads", "speed-up"], loops)
+            + "\n\nconfigs/example_dome.yaml at push10's equilibrium (the loops: the time per call), push10 from "
+              "rest, and T1's 50 mm `none` insertion at mesh scale 0.7; medians of the repeats, the two settings "
+              "alternating in one process; every pair gave the same numbers to the bit. The float32 "
+              f"factorisation's flops: the two parts {', '.join(f'{100 * p:.0f} %' for p in shares['parts'])}, "
+              f"the top (one thread) {100 * shares['top']:.0f} %. " + source(r)
+            + "\n\n" + table(["setting", "trials with the needle", "wall, the trials (median, range, rounds)",
+                               "against `one`", "CPU (both threads)", "insertion misses apart",
+                               "final errors apart"], trials)
+            + "\n\nconfigs/example_dome.yaml with every insertion strategy, 2 trials per lesion, replayed in one "
+              "process with `runtime._threads` at 1 (`one`) and 2 (`two`) in turn. " + source(ab))
+
+
 @renderer("factor_patterns", "bench_factor_patterns")
 def _factor_patterns(r) -> str:
     rows = rows_of(r, "forms")
