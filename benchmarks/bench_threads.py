@@ -12,7 +12,7 @@ this process (the machine's drift falls on both alike):
   (`bench_body_insertion`'s goal, at about 30k tetrahedra);
 * the answers: each pair must be the same to the bit (the parts are fixed), and the script stops if not.
 
-    PYTHONPATH=. python3 benchmarks/bench_threads.py [--repeats 5]     # about 6 minutes on 2 cores
+    PYTHONPATH=. python3 benchmarks/bench_threads.py [--repeats 5]     # about 2 minutes on 2 cores
 
 Writes benchmarks/results/bench_threads.json.
 """
