@@ -71,6 +71,11 @@ def threads() -> int:
     return _threads
 
 
+def part_bounds(count: int) -> list[int]:
+    """The bounds (MOST_THREADS + 1 ints) of MOST_THREADS equal runs of range(count): a loop's fixed parts."""
+    return [k * count // MOST_THREADS for k in range(MOST_THREADS + 1)]
+
+
 def in_parts(*parts: Callable[[], T]) -> list[T]:
     """Each of parts called, the last on this thread and the others on helper threads when `threads` allows,
     else in turn; their results in order. The parts must not write what another reads: they are the fixed

@@ -353,21 +353,15 @@ def _material(params) -> tuple:
 def energy_gradient(ops, params, x: np.ndarray) -> tuple[float, np.ndarray] | None:
     """U (µJ) and ∇U (3N,) mN at positions x (N, 3); None if an element has J ≤ J_FLOOR or a non-finite term.
     In `_stiffness_in_parts`'s parts: the same numbers as `energy_gradient_stiffness`'s."""
-    cuts = _element_cuts(ops)
-    grads = np.empty((cuts.size - 1, 3 * ops.n_nodes))
+    cuts = runtime.part_bounds(ops.corners.shape[1])
+    grads = np.empty((len(cuts) - 1, 3 * ops.n_nodes))
     x = np.ascontiguousarray(x, dtype=np.float64)
     common = (x, ops.corners, ops.grad_rows, ops.volume, *_material(params))
     results = runtime.in_parts(*[lambda k=k: energy_gradient_3d(*common, grads[k], cuts[k], cuts[k + 1])
-                                 for k in range(cuts.size - 1)])
+                                 for k in range(len(cuts) - 1)])
     if any(bad >= 0 for _, bad in results):
         return None
     return float(sum(U for U, _ in results)), grads.sum(axis=0)
-
-
-def _element_cuts(ops) -> np.ndarray:
-    """The bounds (K + 1,) of runtime.MOST_THREADS equal runs of the elements: the loops' fixed parts."""
-    K = runtime.MOST_THREADS
-    return (np.arange(K + 1) * ops.corners.shape[1]) // K
 
 
 def element_stiffness(ops, params, x: np.ndarray, project: bool) -> np.ndarray | None:
@@ -385,8 +379,9 @@ def _stiffness_in_parts(ops, params, x, project, with_gradient):
     """`element_stiffness_3d` over runtime.MOST_THREADS equal runs of the elements (at once where the process has
     the threads: `runtime.in_parts`), each part's ∇U in its own vector and the parts' sums added in order, so the
     numbers do not depend on the threads: (U, ∇U, Ke), or None for an element it cannot take."""
-    M, cuts = ops.corners.shape[1], _element_cuts(ops)
-    K = cuts.size - 1
+    M = ops.corners.shape[1]
+    cuts = runtime.part_bounds(M)
+    K = len(cuts) - 1
     Ke = np.empty((78, M))
     grads = np.empty((K, 3 * ops.n_nodes if with_gradient else 0))
     x = np.ascontiguousarray(x, dtype=np.float64)

@@ -341,11 +341,10 @@ def sparse_pattern(ops: FEOperators, dof_index: np.ndarray | None = None, upper:
     indptr, indices, slot = compiled.csr_pattern(rows, cols, size)
     entries, slot, extra_slot = packed[keep], slot[:n_elem], slot[n_elem:].astype(np.int32)
     # runs of whole rows with about equal entries; the element entries grouped by run, each group in its order
-    K = runtime.MOST_THREADS
-    data_cuts = indptr[np.searchsorted(indptr, np.arange(K + 1) * indptr[-1] // K)]
+    data_cuts = indptr[np.searchsorted(indptr, runtime.part_bounds(int(indptr[-1])))]
     run = np.searchsorted(data_cuts[1:-1], slot, side="right")
     order = np.argsort(run, kind="stable")
-    entry_cuts = np.searchsorted(run[order], np.arange(K + 1))
+    entry_cuts = np.searchsorted(run[order], np.arange(data_cuts.size))
     return SparsePattern(entries[order], slot[order], indptr, indices, (size, size), data_cuts.astype(np.int64),
                          entry_cuts.astype(np.int64), upper, extra_slot)
 

@@ -119,11 +119,6 @@ def force_pass(corners, grad_rows, volume, e0, e1, F, S, stress, pressure, out):
     return 0.0
 
 
-def _cuts(count: int, parts: int) -> np.ndarray:
-    """The bounds (parts + 1,) of parts equal runs of range(count)."""
-    return (np.arange(parts + 1) * count) // parts
-
-
 def energy_gradient(ops, element_params, node_params, rest_volume: np.ndarray, kappa: np.ndarray,
                     x: np.ndarray) -> tuple[float, np.ndarray] | None:
     """U (µJ) and ∇U (3N,) mN of the 3-D nodal element in three compiled passes; None where the term-by-term path
@@ -139,7 +134,7 @@ def energy_gradient(ops, element_params, node_params, rest_volume: np.ndarray, k
     F, S = np.empty((M, 9)), np.empty((M, 9))
     Fbar, v, out = np.empty((K, N, 9)), np.empty((K, N)), np.empty((K, 3 * N))
     stress, pressure = np.empty((N, 9)), np.empty(N)
-    ec, nc = _cuts(M, K), _cuts(N, K)
+    ec, nc = runtime.part_bounds(M), runtime.part_bounds(N)
     args = (ops.corners, ops.grad_rows, ops.volume)
     U = sum(runtime.in_parts(*[
         lambda k=k: element_pass(x, *args, material, tension_only, ec[k], ec[k + 1], F, S, Fbar[k], v[k])
@@ -151,4 +146,4 @@ def energy_gradient(ops, element_params, node_params, rest_volume: np.ndarray, k
         return None
     runtime.in_parts(*[lambda k=k: force_pass(*args, ec[k], ec[k + 1], F, S, stress, pressure, out[k])
                        for k in range(K)])
-    return float(U), out.sum(axis=0) if K > 1 else out[0]
+    return float(U), out.sum(axis=0)
