@@ -57,7 +57,8 @@ _dtrsv = types.ExternalFunction("scissor_blas_dtrsv", types.void(*[types.intp] *
 _dgemv = types.ExternalFunction("scissor_blas_dgemv", types.void(*[types.intp] * _BLAS["dgemv"]))
 _dtrsm = types.ExternalFunction("scissor_blas_dtrsm", types.void(*[types.intp] * _BLAS["dtrsm"]))
 _dgemm = types.ExternalFunction("scissor_blas_dgemm", types.void(*[types.intp] * _BLAS["dgemm"]))
-#: (uplo, trans, n, k, alpha, A, lda, beta, C, ldc): a descendant's update of a diagonal block (`_factor_blocks`)
+#: (uplo, trans, n, k, alpha, A, lda, beta, C, ldc): a descendant's update of a diagonal block
+#: (`single_factor._factor_run`)
 _ssyrk = types.ExternalFunction("scissor_blas_ssyrk", types.void(*[types.intp] * _BLAS["ssyrk"]))
 _spotrf = types.ExternalFunction("scissor_lapack_spotrf", types.void(*[types.intp] * _LAPACK["spotrf"]))
 
