@@ -127,9 +127,9 @@ class SupernodalFactor:
     def _solve_vector(self, b: np.ndarray) -> np.ndarray:
         cuts, K = self.cuts, self.cuts.size - 2
         lay = (self.starts, self.row_ptr, self.block_rows, self.block_ptr, self.blocks, self.perm)
-        y, spills, tmp, refs = self._workspace()
+        top0, tmp, refs = self._scratch(1)
+        y, spills = np.empty(self.n, self.blocks.dtype), np.empty((K, self.n - top0), self.blocks.dtype)
         x = np.empty(self.n)
-        top0 = int(self.starts[cuts[K]])
         runtime.in_parts(*[lambda k=k: _forward(lay, b, y, cuts[k], cuts[k + 1], top0, spills[k], tmp[k], refs[k])
                            for k in range(K)])
         _top(lay, b, y, x, cuts[K], spills, tmp[K], refs[K])
@@ -140,17 +140,15 @@ class SupernodalFactor:
     def _solve_columns(self, B: np.ndarray) -> np.ndarray:
         cuts, K, dtype = self.cuts, self.cuts.size - 2, self.blocks.dtype
         lay = (self.starts, self.row_ptr, self.block_rows, self.block_ptr, self.blocks)
-        top0, k = int(self.starts[cuts[K]]), B.shape[1]
-        most = max(1, int(np.max(np.diff(self.row_ptr) - np.diff(self.starts))))
-        refs = [_by_reference(dtype) for _ in range(K + 1)]
-        tmp = np.empty((K + 1, most * k), dtype)
-        spills = [np.empty((self.n - top0, k), dtype, order="F") for _ in range(K + 1)]
+        top0, tmp, refs = self._scratch(B.shape[1])
+        spills = [np.empty((self.n - top0, B.shape[1]), dtype, order="F") for _ in range(K)]
         Y = np.asfortranarray(B[self.perm], dtype=dtype)  # P b, each column contiguous
         runtime.in_parts(*[lambda p=p: _forward_block(lay, Y, cuts[p], cuts[p + 1], top0, spills[p], tmp[p], refs[p])
                            for p in range(K)])
         for p in range(K):  # the parts' updates of the top's rows, in order
             Y[top0:] -= spills[p]
-        _forward_block(lay, Y, cuts[K], cuts[K + 1], self.n, spills[K][:0], tmp[K], refs[K])
+        _forward_block(lay, Y, cuts[K], cuts[K + 1], self.n, np.empty((0, B.shape[1]), dtype, order="F"), tmp[K],
+                       refs[K])
         _backward_block(lay, Y, cuts[K], cuts[K + 1], tmp[K], refs[K])
         runtime.in_parts(*[lambda p=p: _backward_block(lay, Y, cuts[p], cuts[p + 1], tmp[p], refs[p])
                            for p in range(K)])
@@ -158,14 +156,14 @@ class SupernodalFactor:
         X[self.perm] = Y
         return X
 
-    def _workspace(self) -> tuple:
-        """A single solve's arrays: y (n,), each part's spill (K, n − the top's first column), and each part's and
-        the top's (K + 1) BLAS row buffer and by-reference arguments (`_by_reference`). Made per solve, so two
-        threads may solve with one factor."""
+    def _scratch(self, columns: int) -> tuple:
+        """The top's first column, and each part's and the top's (K + 1) BLAS buffer (the most rows below a
+        supernode × columns) and by-reference arguments (`_by_reference`): made per solve, so two threads may
+        solve with one factor."""
         K, dtype = self.cuts.size - 2, self.blocks.dtype
         most = max(1, int(np.max(np.diff(self.row_ptr) - np.diff(self.starts))))
-        return (np.empty(self.n, dtype), np.empty((K, self.n - int(self.starts[self.cuts[K]])), dtype),
-                np.empty((K + 1, most), dtype), [_by_reference(dtype) for _ in range(K + 1)])
+        return (int(self.starts[self.cuts[K]]), np.empty((K + 1, most * columns), dtype),
+                [_by_reference(dtype) for _ in range(K + 1)])
 
 
 def _by_reference(dtype) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
